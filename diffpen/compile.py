@@ -1,0 +1,550 @@
+"""Scene -> simulator: static index arrays, the Params/State pytrees, and a step built from
+ONLY the force terms the scene has.
+
+``diffpen.compile(scene, dt)`` returns a :class:`Simulator` with pure functions
+``step(params, state)``, ``rollout(params, steps)`` and ``forces(params, state)``. The scene's
+structure (bodies, pairs, springs, law, smoothing width, integrator) is static: changing it
+means compiling a new simulator. Parameter values are call-time arguments: changing them, or
+vmapping and differentiating over them, never recompiles.
+
+Each force term is written for ONE pair in :mod:`diffpen.laws` / :mod:`diffpen.geometry` and
+lifted here by ``jax.vmap`` over static index arrays plus a segment sum onto bodies. A term
+the scene does not need is never built, so it is never traced (each term runs under its own
+``jax.named_scope``, which tests use to prove it).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import geometry, laws
+from .errors import NonFiniteError, SceneError
+from .integrators import INTEGRATORS
+from .scene import DEFAULT, Scene
+from .state import ContactParams, Params, SpringParams, State, Trajectory
+
+__all__ = ["compile", "Simulator", "Term", "CompileContext", "TERM_BUILDERS"]
+
+
+# --------------------------------------------------------------------------- lifting helpers
+def gather(x, idx: np.ndarray, n: int):
+    """``x[idx]`` along axis 0, skipped when ``idx`` is ``arange(n)`` (decided at build time)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return x
+    if np.all(idx == idx[0]):
+        return jnp.broadcast_to(x[int(idx[0])], (idx.shape[0],) + x.shape[1:])
+    return x[idx]
+
+
+def scatter(values, idx: np.ndarray, n: int):
+    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return values
+    return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+
+
+class Term(NamedTuple):
+    """One force term of a compiled scene.
+
+    name: used as ``jax.named_scope`` (visible in the jaxpr).
+    force: ``force(params, state) -> (F, tau)``: F (n, 3) newtons on body centres, tau (n, 3)
+      torques in N m about the centres, or None when the term produces no torque.
+    """
+    name: str
+    force: Callable[[Params, State], tuple[Any, Any]]
+
+
+@dataclasses.dataclass
+class CompileContext:
+    """What a term builder sees: the scene and the static per-body arrays."""
+    scene: Scene
+    dtype: Any
+    law: Callable
+    width: float
+    material_index: dict
+    group_index: dict
+    mass: np.ndarray        # (n,) kg
+    radius: np.ndarray      # (n,) m
+    pinned: np.ndarray      # (n,) bool
+    collide: np.ndarray     # (n,) bool
+
+    @property
+    def n(self) -> int:
+        return len(self.mass)
+
+    def const(self, a):
+        """A static numpy array as a constant of the simulator's float dtype."""
+        return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
+
+    def contact_kc(self, params: Params, mat: np.ndarray):
+        """Per-pair (k, c) for material indices ``mat`` (m,), scalars when all pairs share one."""
+        names = list(self.material_index)
+        ks = [params.contact[name].k for name in names]
+        cs = [params.contact[name].c for name in names]
+        return _select(ks, mat), _select(cs, mat)
+
+    def spring_kc(self, params: Params, grp: np.ndarray):
+        names = list(self.group_index)
+        ks = [params.springs[name].k for name in names]
+        cs = [params.springs[name].c for name in names]
+        return _select(ks, grp), _select(cs, grp)
+
+
+def _select(values: list, idx: np.ndarray):
+    first = int(idx[0])
+    if np.all(idx == first):
+        return values[first]
+    return jnp.stack([jnp.asarray(v) for v in values])[jnp.asarray(idx)]
+
+
+# --------------------------------------------------------------------------- core terms
+def _pair_material(scene: Scene, *names: str) -> str:
+    return names[0] if len(set(names)) == 1 else DEFAULT
+
+
+def _plane_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, p, ctx.material_index[pl.material])
+            for p, pl in enumerate(scene.planes)
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+    if not rows:
+        return None
+    bi, pi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    normals = ctx.const([scene.planes[p].normal for p in pi])
+    offsets = ctx.const([scene.planes[p].offset for p in pi])
+    radii = ctx.const(ctx.radius[bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        d, nrm = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        vn = jnp.sum(nrm * v, axis=-1)
+        f = law(d, vn, k, c, width)
+        return scatter(f[:, None] * nrm, bi, n), None
+    return Term("contact_plane", force)
+
+
+def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, s, ctx.material_index[fs.material])
+            for s, fs in enumerate(scene.fixed_spheres)
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+    if not rows:
+        return None
+    bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    centers = ctx.const([scene.fixed_spheres[s].center for s in si])
+    rs = ctx.const([scene.fixed_spheres[s].radius for s in si])
+    radii = ctx.const(ctx.radius[bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, rs)
+        vn = jnp.sum(nrm * v, axis=-1)
+        f = law(d, vn, k, c, width)
+        return scatter(f[:, None] * nrm, bi, n), None
+    return Term("contact_fixed_sphere", force)
+
+
+def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    spheres = [i for i in range(ctx.n)
+               if ctx.collide[i] and ctx.radius[i] > 0.0 and scene.bodies[i].kind == "sphere"]
+    rows = []
+    for a_pos, i in enumerate(spheres):
+        for j in spheres[a_pos + 1:]:
+            if ctx.pinned[i] and ctx.pinned[j]:
+                continue  # two fixed things never need evaluating
+            mat = _pair_material(scene, scene.bodies[i].material, scene.bodies[j].material)
+            rows.append((i, j, ctx.material_index[mat]))
+    if not rows:
+        return None
+    ia, ib, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        xa, xb = state.position[ia], state.position[ib]
+        d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
+        vn = jnp.sum(nrm * (state.velocity[ia] - state.velocity[ib]), axis=-1)
+        f = (law(d, vn, k, c, width))[:, None] * nrm
+        return scatter(f, ia, n) - scatter(f, ib, n), None
+    return Term("contact_sphere_sphere", force)
+
+
+def _spring_axis(delta, rel_vel, rest):
+    """Stretch (m), stretch rate (m/s) and unit axis for ONE spring."""
+    length = geometry.safe_norm(delta)
+    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
+    u = delta * inv
+    return length - rest, jnp.dot(u, rel_vel), u
+
+
+def _body_springs(ctx: CompileContext) -> Term | None:
+    rows = [(s.a, s.b, s.rest_length, ctx.group_index[s.group])
+            for s in ctx.scene.springs if s.b is not None]
+    if not rows:
+        return None
+    ia = np.array([r[0] for r in rows], dtype=np.int32)
+    ib = np.array([r[1] for r in rows], dtype=np.int32)
+    gi = np.array([r[3] for r in rows], dtype=np.int32)
+    rest = ctx.const([r[2] for r in rows])
+    n = ctx.n
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        delta = state.position[ia] - state.position[ib]
+        dv = state.velocity[ia] - state.velocity[ib]
+        x, xd, u = jax.vmap(_spring_axis)(delta, dv, rest)
+        f = laws.spring_force(x, xd, k, c)[:, None] * u
+        return scatter(f, ia, n) - scatter(f, ib, n), None
+    return Term("springs", force)
+
+
+def _world_springs(ctx: CompileContext) -> Term | None:
+    rows = [(s.a, s.anchor, s.rest_length, ctx.group_index[s.group])
+            for s in ctx.scene.springs if s.b is None and not ctx.pinned[s.a]]
+    if not rows:
+        return None
+    ia = np.array([r[0] for r in rows], dtype=np.int32)
+    anchors = ctx.const([r[1] for r in rows])
+    rest = ctx.const([r[2] for r in rows])
+    gi = np.array([r[3] for r in rows], dtype=np.int32)
+    n = ctx.n
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        delta = gather(state.position, ia, n) - anchors
+        x, xd, u = jax.vmap(_spring_axis)(delta, gather(state.velocity, ia, n), rest)
+        return scatter(laws.spring_force(x, xd, k, c)[:, None] * u, ia, n), None
+    return Term("world_springs", force)
+
+
+#: Term builders run by ``compile``; each returns a Term or None (term absent from the scene).
+#: Extensions append their own builders here.
+TERM_BUILDERS: list[Callable[[CompileContext], Term | None]] = [
+    _plane_contact, _fixed_sphere_contact, _sphere_sphere_contact, _body_springs,
+    _world_springs,
+]
+
+
+# --------------------------------------------------------------------------- simulator
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _check_value(name: str, v) -> None:
+    """Validate a concrete parameter value (skipped for tracers)."""
+    if not _is_concrete(v):
+        return
+    arr = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise SceneError(f"{name} must be finite, got {v!r}.")
+    if np.any(arr < 0.0):
+        raise SceneError(f"{name} must be >= 0, got {v!r}: stiffness and damping cannot be "
+                         "negative.")
+
+
+def _default_width(scene: Scene) -> float:
+    radii = [b.radius for b in scene.bodies if b.radius > 0.0]
+    return 1e-3 * min(radii) if radii else 1e-5
+
+
+class Simulator:
+    """A compiled scene. Build it with :func:`compile`.
+
+    Attributes:
+      scene: the Scene it was built from.  dt: time step, s.  n_bodies: int.
+      law: contact law name.  smoothing: smoothing width used, m.  integrator: name.
+      materials: contact material names present in some contact pair (params keys).
+      spring_groups: spring group names (params keys).
+      terms: names of the force terms this simulator evaluates.
+      mass: (n_bodies,) kg.  radius: (n_bodies,) m.  pinned: (n_bodies,) bool.
+    """
+
+    def __init__(self, scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
+                 law: str = "linear", smoothing: float | str = "auto",
+                 exponent: float = 1.0, dtype=None, unroll: int = 1):
+        if not isinstance(scene, Scene):
+            raise SceneError(f"compile expects a diffpen.Scene, got {type(scene).__name__}.")
+        if not scene.bodies:
+            raise SceneError("the scene has no bodies: add one with scene.add_sphere(...) or "
+                             "scene.add_particle(...).")
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise SceneError(f"dt must be a number of seconds, got {dt!r}.") from None
+        if not math.isfinite(dt) or dt <= 0.0:
+            raise SceneError(f"dt must be a positive, finite number of seconds, got {dt!r}; "
+                             "try dt=1e-3.")
+        if integrator not in INTEGRATORS:
+            raise SceneError(f"unknown integrator {integrator!r}; choose one of "
+                             f"{sorted(INTEGRATORS)}.")
+        if law not in laws.CONTACT_LAWS:
+            raise SceneError(f"unknown contact law {law!r}; choose one of "
+                             f"{sorted(laws.CONTACT_LAWS)}.")
+        if smoothing == "auto":
+            width = _default_width(scene)
+        else:
+            try:
+                width = float(smoothing)
+            except (TypeError, ValueError):
+                raise SceneError(f"smoothing must be 'auto' or a width in metres >= 0, got "
+                                 f"{smoothing!r}.") from None
+            if not math.isfinite(width) or width < 0.0:
+                raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
+                                 f"got {smoothing!r}.")
+        exponent = float(exponent)
+        if not exponent >= 1.0:
+            raise SceneError(f"Hunt-Crossley exponent must be >= 1, got {exponent!r}.")
+        if int(unroll) < 1:
+            raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
+
+        self.scene = scene
+        self.dt = dt
+        self.integrator = integrator
+        self.law = law
+        self.smoothing = width
+        self.exponent = exponent
+        self.unroll = int(unroll)
+        self.dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+        if self.dtype == jnp.float64 and not jax.config.jax_enable_x64:
+            raise SceneError("dtype float64 needs jax.config.update('jax_enable_x64', True) "
+                             "before compiling.")
+
+        bodies = scene.bodies
+        self.n_bodies = len(bodies)
+        self.mass = np.array([b.mass for b in bodies])
+        self.radius = np.array([b.radius for b in bodies])
+        self.pinned = np.array([b.pinned for b in bodies])
+        collide = np.array([b.collide for b in bodies])
+
+        # Materials actually used by some contact pair, in a fixed order.
+        used: list[str] = []
+
+        def use(name):
+            if name not in used:
+                used.append(name)
+        movable = [i for i in range(self.n_bodies) if collide[i] and not self.pinned[i]]
+        if movable:
+            for pl in scene.planes:
+                use(pl.material)
+            for fs in scene.fixed_spheres:
+                use(fs.material)
+        spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
+        for a_pos, i in enumerate(spheres):
+            for j in spheres[a_pos + 1:]:
+                if not (self.pinned[i] and self.pinned[j]):
+                    use(_pair_material(scene, bodies[i].material, bodies[j].material))
+        self.materials = tuple(used)
+        self.spring_groups = tuple(dict.fromkeys(s.group for s in scene.springs))
+
+        base_law = laws.CONTACT_LAWS[law]
+        law_fn = (base_law if law != "hunt_crossley" else
+                  (lambda d, vn, k, c, w: base_law(d, vn, k, c, w, exponent)))
+        ctx = CompileContext(
+            scene=scene, dtype=self.dtype, law=law_fn, width=width,
+            material_index={m: i for i, m in enumerate(self.materials)},
+            group_index={g: i for i, g in enumerate(self.spring_groups)},
+            mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide)
+        self._ctx = ctx
+        built = (build(ctx) for build in TERM_BUILDERS)
+        self._terms: list[Term] = [t for t in built if t is not None]
+        self.terms = tuple(t.name for t in self._terms)
+
+        self._inv_mass = ctx.const(np.where(self.pinned, 0.0, 1.0 / self.mass)[:, None])
+        g = np.array(scene.gravity)
+        self._gravity = None
+        if np.any(g != 0.0):
+            free = (~self.pinned).astype(float)[:, None]
+            self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
+
+        self._step = INTEGRATORS[integrator](self._accel, dt)
+        self._step_jit = jax.jit(self._step)
+        self._rollout_jit = jax.jit(self._rollout_impl,
+                                    static_argnames=("steps", "save_every"))
+
+    # ------------------------------------------------------------------ parameters
+    def params(self, k=None, c=None, *, contact: dict | None = None, spring_k=None,
+               spring_c=None, springs: dict | None = None, extra: dict | None = None) -> Params:
+        """Build the differentiable parameter pytree.
+
+        Args:
+          k, c: contact stiffness (N/m) and damping (N s/m) for EVERY contact material.
+          contact: ``{material: (k, c)}`` per material (overrides ``k``/``c``).
+          spring_k, spring_c: stiffness (N/m) and damping (N s/m) for EVERY spring group.
+          springs: ``{group: (k, c)}`` per spring group (overrides ``spring_k``/``spring_c``).
+          extra: parameters of extension terms.
+        Values not given come from the scene's material / spring group defaults. Values may be
+        floats, arrays or tracers; they are cast to the simulator's dtype.
+        Returns: :class:`diffpen.Params`.
+        """
+        contact = dict(contact or {})
+        springs = dict(springs or {})
+        for name in contact:
+            if name not in self.materials:
+                raise SceneError(f"contact material {name!r} is not used by any contact pair of "
+                                 f"this scene; used: {list(self.materials)}.")
+        for name in springs:
+            if name not in self.spring_groups:
+                raise SceneError(f"spring group {name!r} is not in this scene; groups: "
+                                 f"{list(self.spring_groups)}.")
+        out_c = {}
+        for name in self.materials:
+            mat = self.scene.materials[name]
+            kk, cc = contact.get(name, (k, c))
+            kk = mat.k if kk is None else kk
+            cc = mat.c if cc is None else cc
+            if kk is None or cc is None:
+                raise SceneError(f"contact material {name!r} has no {'k' if kk is None else 'c'}: "
+                                 "pass sim.params(k=..., c=...) or declare it with "
+                                 f"scene.add_material({name!r}, k=..., c=...).")
+            _check_value(f"contact k of material {name!r} (N/m)", kk)
+            _check_value(f"contact c of material {name!r} (N s/m)", cc)
+            out_c[name] = ContactParams(self._cast(kk), self._cast(cc))
+        out_s = {}
+        for name in self.spring_groups:
+            grp = self.scene.spring_groups[name]
+            kk, cc = springs.get(name, (spring_k, spring_c))
+            kk = grp.k if kk is None else kk
+            cc = grp.c if cc is None else cc
+            _check_value(f"spring k of group {name!r} (N/m)", kk)
+            _check_value(f"spring c of group {name!r} (N s/m)", cc)
+            out_s[name] = SpringParams(self._cast(kk), self._cast(cc))
+        return Params(out_c, out_s, dict(extra or {}))
+
+    def _cast(self, v):
+        return jnp.asarray(v, dtype=self.dtype)
+
+    # ------------------------------------------------------------------ state
+    def init_state(self) -> State:
+        """The scene's initial state (time 0, positions and velocities as added)."""
+        b = self.scene.bodies
+        return State(time=jnp.zeros((), self.dtype),
+                     position=self._ctx.const([x.position for x in b]),
+                     velocity=self._ctx.const([x.velocity for x in b]))
+
+    # ------------------------------------------------------------------ dynamics
+    def forces(self, params: Params, state: State):
+        """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
+        (n_bodies, 3) N m, or None for scenes without rotating bodies."""
+        f = jnp.zeros_like(state.position)
+        tau = None
+        for term in self._terms:
+            with jax.named_scope(term.name):
+                ft, tt = term.force(params, state)
+            f = f + ft
+            if tt is not None:
+                tau = tt if tau is None else tau + tt
+        return f, tau
+
+    def _accel(self, params: Params, state: State):
+        f, tau = self.forces(params, state)
+        a = f * self._inv_mass
+        if self._gravity is not None:
+            with jax.named_scope("gravity"):
+                a = a + self._gravity
+        return a, None
+
+    def step(self, params: Params, state: State) -> State:
+        """Advance ``state`` by one time step ``dt``. Pure; jitted."""
+        return self._step_jit(params, state)
+
+    def _rollout_impl(self, params, state, steps, save_every):
+        params = jax.tree_util.tree_map(self._cast, params)
+        step = self._step
+        n_saves = steps // save_every
+
+        def inner(s, _):
+            return step(params, s), None
+
+        def outer(s, _):
+            if save_every == 1:
+                s = step(params, s)
+            else:
+                s, _ = jax.lax.scan(inner, s, None, length=save_every, unroll=self.unroll)
+            return s, s
+        unroll = self.unroll if save_every == 1 else 1
+        _, saved = jax.lax.scan(outer, state, None, length=n_saves, unroll=unroll)
+        t = state.time + self.dt * save_every * jnp.arange(1, n_saves + 1, dtype=self.dtype)
+        return Trajectory(t, saved.position, saved.velocity, saved.orientation,
+                          saved.angular_velocity, saved.aux)
+
+    def rollout(self, params: Params, steps: int, state: State | None = None, *,
+                save_every: int = 1, check_finite: bool = True) -> Trajectory:
+        """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
+
+        Pure and jitted: works under ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Changing
+        parameter values never recompiles; a new ``steps`` or ``save_every`` does.
+
+        Args:
+          params: from :meth:`params`.
+          steps: number of steps (static int > 0), a multiple of ``save_every``.
+          state: start state (default :meth:`init_state`).
+          save_every: keep one state every this many steps.
+          check_finite: when called with concrete values, raise :class:`NonFiniteError` naming
+            the first step and body at which the state became NaN/inf.
+        Returns:
+          :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
+        """
+        if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps <= 0:
+            raise SceneError(f"steps must be a positive int, got {steps!r}.")
+        if (not isinstance(save_every, (int, np.integer)) or save_every <= 0
+                or steps % save_every):
+            raise SceneError(f"save_every must be a positive int dividing steps={steps}, got "
+                             f"{save_every!r}.")
+        if state is None:
+            state = self.init_state()
+        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every))
+        if check_finite and _is_concrete(traj.position):
+            self._check_finite(traj, save_every)
+        return traj
+
+    def _check_finite(self, traj: Trajectory, save_every: int) -> None:
+        bad = ~np.isfinite(np.asarray(traj.position)).all(axis=-1)
+        bad |= ~np.isfinite(np.asarray(traj.velocity)).all(axis=-1)
+        if bad.any():
+            s, b = (int(v) for v in np.argwhere(bad)[0])
+            step = (s + 1) * save_every
+            raise NonFiniteError(
+                f"the state became NaN/inf by step {step} (t = {step * self.dt:.6g} s) at body "
+                f"{b}: the time step is probably past the stability limit for these k and c. "
+                "Use a smaller dt, more substeps, or a stiffer-stable integrator.",
+                step=step, body=b)
+
+    def __repr__(self) -> str:
+        return (f"Simulator(n_bodies={self.n_bodies}, dt={self.dt}, integrator="
+                f"{self.integrator!r}, law={self.law!r}, smoothing={self.smoothing}, "
+                f"terms={list(self.terms)})")
+
+
+def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
+            law: str = "linear", smoothing: float | str = "auto", exponent: float = 1.0,
+            dtype=None, unroll: int = 1) -> Simulator:
+    """Compile a scene into a simulator whose step holds only the terms the scene has.
+
+    Args:
+      scene: a :class:`diffpen.Scene`.
+      dt: time step, s, > 0.
+      integrator: name in ``diffpen.integrators.INTEGRATORS``.
+      law: contact law, ``"linear"`` (default; may pull at separation), ``"no_tension"`` or
+        ``"hunt_crossley"``.
+      smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"`` =
+        1e-3 x the smallest sphere radius (1e-5 m without spheres), which moves restitution by
+        well under 0.1%. Static: changing it recompiles.
+      exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
+      dtype: float dtype of the state (default: JAX's default float).
+      unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).
+    Returns:
+      :class:`Simulator`.
+    """
+    return Simulator(scene, dt, integrator=integrator, law=law, smoothing=smoothing,
+                     exponent=exponent, dtype=dtype, unroll=unroll)

@@ -1,0 +1,27 @@
+"""Exceptions raised by diffpen. Each message says what to change."""
+from __future__ import annotations
+
+__all__ = ["SceneError", "StabilityError", "NonFiniteError"]
+
+
+class SceneError(ValueError):
+    """Invalid scene or simulator input (raised before anything is compiled)."""
+
+
+class StabilityError(ValueError):
+    """An explicit integrator was asked to step past its stability limit."""
+
+    def __init__(self, message: str, *, stable_dt: float | None = None,
+                 substeps: int | None = None):
+        super().__init__(message)
+        self.stable_dt = stable_dt
+        self.substeps = substeps
+
+
+class NonFiniteError(FloatingPointError):
+    """A rollout produced NaN or inf; the message names the first step and body."""
+
+    def __init__(self, message: str, *, step: int | None = None, body: int | None = None):
+        super().__init__(message)
+        self.step = step
+        self.body = body

@@ -1,0 +1,311 @@
+"""Scene: what exists (bodies, springs, colliders, materials). Plain Python, no JAX tracing.
+
+A :class:`Scene` is built by ``add_*`` calls, each of which validates its input at once and
+raises :class:`diffpen.SceneError` with a message saying what to change. ``diffpen.compile``
+turns a scene into a simulator; the scene itself holds no arrays of JAX.
+
+Units: SI (metres, kilograms, seconds, newtons).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Sequence
+
+import numpy as np
+
+from .errors import SceneError
+
+__all__ = ["Scene", "Body", "Spring", "Plane", "FixedSphere", "Material", "SpringGroup"]
+
+DEFAULT = "default"
+
+
+def _finite(name: str, value) -> None:
+    arr = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise SceneError(f"{name} must be finite, got {value!r}: replace NaN/inf with a number.")
+
+
+def _vec3(name: str, value) -> tuple[float, float, float]:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
+    if arr.shape != (3,):
+        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.")
+    _finite(name, arr)
+    return tuple(float(a) for a in arr)
+
+
+def _positive(name: str, value, *, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be a number, got {value!r}.") from None
+    _finite(name, v)
+    if v < 0.0 or (v == 0.0 and not allow_zero):
+        need = "non-negative" if allow_zero else "positive"
+        raise SceneError(f"{name} must be {need}, got {v!r}.")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """A point mass (``radius == 0``) or a sphere. ``pinned`` bodies never move."""
+    kind: str
+    mass: float
+    radius: float
+    position: tuple[float, float, float]
+    velocity: tuple[float, float, float]
+    pinned: bool
+    material: str
+    collide: bool
+
+
+@dataclasses.dataclass(frozen=True)
+class Spring:
+    """Damped spring between bodies ``a`` and ``b`` (``b is None``: the world point ``anchor``)."""
+    a: int
+    b: int | None
+    anchor: tuple[float, float, float] | None
+    rest_length: float
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    """Fixed half-space ``normal . p <= offset`` (``normal`` unit, pointing out of the solid)."""
+    normal: tuple[float, float, float]
+    offset: float
+    material: str
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedSphere:
+    """Fixed spherical obstacle."""
+    center: tuple[float, float, float]
+    radius: float
+    material: str
+
+
+@dataclasses.dataclass
+class Material:
+    """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
+    k: float | None = None
+    c: float | None = None
+
+
+@dataclasses.dataclass
+class SpringGroup:
+    """Spring group sharing one stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
+    k: float
+    c: float
+
+
+class Scene:
+    """Builder for a simulation scene.
+
+    Args:
+      gravity: (3,) gravitational acceleration, m/s^2. ``(0, 0, 0)`` leaves gravity out of
+        the compiled step entirely.
+
+    Example::
+
+        scene = Scene(gravity=(0.0, 0.0, -9.81))
+        ball = scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
+        scene.add_plane()
+    """
+
+    def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81)):
+        self.gravity = _vec3("gravity", gravity)
+        self.bodies: list[Body] = []
+        self.springs: list[Spring] = []
+        self.planes: list[Plane] = []
+        self.fixed_spheres: list[FixedSphere] = []
+        self.materials: dict[str, Material] = {DEFAULT: Material()}
+        self.spring_groups: dict[str, SpringGroup] = {}
+
+    # ----------------------------------------------------------------- bodies
+    def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide) -> int:
+        mass = _positive("mass (kg)", mass)
+        radius = _positive("radius (m)", radius, allow_zero=(kind == "particle"))
+        position = _vec3("position (m)", position)
+        velocity = _vec3("velocity (m/s)", velocity)
+        if pinned and any(v != 0.0 for v in velocity):
+            raise SceneError("a pinned body cannot have an initial velocity: drop velocity= "
+                             "or pinned=True.")
+        self._check_material(material)
+        for i, fs in enumerate(self.fixed_spheres):
+            self._check_not_inside(position, radius, fs, i)
+        self.bodies.append(Body(kind, mass, radius, position, velocity, bool(pinned),
+                                material, bool(collide)))
+        return len(self.bodies) - 1
+
+    def add_particle(self, mass: float, position: Sequence[float],
+                     velocity: Sequence[float] = (0.0, 0.0, 0.0), *, pinned: bool = False,
+                     material: str = DEFAULT, collide: bool = True) -> int:
+        """Add a point mass. Returns its body index.
+
+        Args:
+          mass: kg, > 0.  position: (3,) m.  velocity: (3,) m/s.
+          pinned: fixed in space (takes no force, never moves).
+          material: contact material name (see :meth:`add_material`).
+          collide: whether it touches planes and fixed spheres.
+        """
+        return self._add_body("particle", mass, 0.0, position, velocity, pinned, material,
+                              collide)
+
+    def add_sphere(self, radius: float, mass: float, position: Sequence[float],
+                   velocity: Sequence[float] = (0.0, 0.0, 0.0), *, pinned: bool = False,
+                   material: str = DEFAULT, collide: bool = True) -> int:
+        """Add a sphere (translating point mass with a contact radius). Returns its index.
+
+        Args:
+          radius: m, > 0.  mass: kg, > 0.  position: (3,) centre, m.  velocity: (3,) m/s.
+          pinned: fixed in space.  material: contact material name.
+          collide: whether it touches planes, fixed spheres and other spheres.
+        """
+        return self._add_body("sphere", mass, radius, position, velocity, pinned, material,
+                              collide)
+
+    # ----------------------------------------------------------------- colliders
+    def add_plane(self, normal: Sequence[float] = (0.0, 0.0, 1.0), offset: float = 0.0, *,
+                  material: str = DEFAULT) -> int:
+        """Add a fixed plane ``normal . p = offset``; the solid is on the side ``-normal``.
+
+        Args:
+          normal: (3,) outward normal (normalised here; must be non-zero).
+          offset: m, signed distance of the plane from the origin along ``normal``.
+        Returns: the plane's index.
+        """
+        n = np.asarray(_vec3("plane normal", normal))
+        norm = float(np.linalg.norm(n))
+        if norm == 0.0:
+            raise SceneError("plane normal must be non-zero, e.g. (0, 0, 1) for the ground.")
+        try:
+            offset = float(offset)
+        except (TypeError, ValueError):
+            raise SceneError(f"plane offset must be a number, got {offset!r}.") from None
+        _finite("plane offset", offset)
+        self._check_material(material)
+        self.planes.append(Plane(tuple(float(a) for a in n / norm), offset, material))
+        return len(self.planes) - 1
+
+    def add_fixed_sphere(self, center: Sequence[float], radius: float, *,
+                         material: str = DEFAULT) -> int:
+        """Add a fixed spherical obstacle of ``radius`` (m) at ``center`` (m). Returns index."""
+        center = _vec3("fixed sphere center (m)", center)
+        radius = _positive("fixed sphere radius (m)", radius)
+        self._check_material(material)
+        fs = FixedSphere(center, radius, material)
+        for b in self.bodies:
+            self._check_not_inside(b.position, b.radius, fs, len(self.fixed_spheres))
+        self.fixed_spheres.append(fs)
+        return len(self.fixed_spheres) - 1
+
+    @staticmethod
+    def _check_not_inside(position, radius, fs: FixedSphere, index: int) -> None:
+        depth = radius + fs.radius - math.dist(position, fs.center)
+        if depth > max(radius, 0.0) and depth > 0.0:
+            raise SceneError(
+                f"a body at {position} starts inside fixed sphere {index} (penetration "
+                f"{depth:.4g} m > its radius {radius:.4g} m): its contact normal would point "
+                f"inwards. Move it out of the sphere.")
+
+    # ----------------------------------------------------------------- materials
+    def add_material(self, name: str, k: float | None = None, c: float | None = None) -> str:
+        """Declare a contact material with default stiffness ``k`` (N/m), damping ``c`` (N s/m).
+
+        Contact parameters live per material in the params pytree. A body-collider contact
+        uses the collider's material; a sphere-sphere contact uses the bodies' material when
+        both share one, else ``"default"``.
+        """
+        if not isinstance(name, str) or not name:
+            raise SceneError(f"material name must be a non-empty string, got {name!r}.")
+        if k is not None:
+            k = _positive(f"material {name!r} k (N/m)", k, allow_zero=True)
+        if c is not None:
+            c = _positive(f"material {name!r} c (N s/m)", c, allow_zero=True)
+        self.materials[name] = Material(k, c)
+        return name
+
+    def _check_material(self, material: str) -> None:
+        if material not in self.materials:
+            raise SceneError(f"unknown material {material!r}: declare it first with "
+                             f"scene.add_material({material!r}, k=..., c=...). Known: "
+                             f"{sorted(self.materials)}.")
+
+    # ----------------------------------------------------------------- springs
+    def add_spring_group(self, name: str, k: float, c: float = 0.0) -> str:
+        """Declare a spring group with stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
+        if not isinstance(name, str) or not name:
+            raise SceneError(f"spring group name must be a non-empty string, got {name!r}.")
+        k = _positive(f"spring group {name!r} k (N/m)", k, allow_zero=True)
+        c = _positive(f"spring group {name!r} c (N s/m)", c, allow_zero=True)
+        self.spring_groups[name] = SpringGroup(k, c)
+        return name
+
+    def add_spring(self, a: int, b, *, k: float | None = None, c: float | None = None,
+                   rest_length: float | None = None, group: str = DEFAULT) -> int:
+        """Join body ``a`` to body ``b`` (an index) or to a fixed world point (a 3-tuple).
+
+        Force ``F = -k x - c v`` along the axis (``x = length - rest_length``), equal and
+        opposite on the two ends. Stiffness and damping are per ``group``; giving ``k``/``c``
+        for a new group declares it.
+
+        Args:
+          a: body index.  b: body index, or (3,) world anchor point in metres.
+          k: N/m.  c: N s/m.
+          rest_length: m, >= 0; default is the initial distance.
+          group: spring group name (its k and c are one entry in the params pytree).
+        Returns: the spring's index.
+        """
+        self._check_body_index(a, "spring end a")
+        if isinstance(b, (int, np.integer)) and not isinstance(b, bool):
+            self._check_body_index(b, "spring end b")
+            if int(b) == int(a):
+                raise SceneError(f"spring joins body {a} to itself: give two different bodies.")
+            b_idx, anchor = int(b), None
+            pb = self.bodies[b_idx].position
+        else:
+            b_idx, anchor = None, _vec3("spring anchor point (m)", b)
+            pb = anchor
+        pa = self.bodies[int(a)].position
+        if b_idx is not None and self.bodies[int(a)].pinned and self.bodies[b_idx].pinned:
+            raise SceneError(f"spring joins two pinned bodies ({a}, {b}): it can never act; "
+                             "remove it or unpin one end.")
+        if group not in self.spring_groups:
+            if k is None:
+                raise SceneError(f"spring group {group!r} is new: give k= (N/m), or declare "
+                                 f"it with scene.add_spring_group({group!r}, k=..., c=...).")
+            self.add_spring_group(group, k, 0.0 if c is None else c)
+        else:
+            g = self.spring_groups[group]
+            for name, given, have in (("k", k, g.k), ("c", c, g.c)):
+                if given is not None and float(given) != have:
+                    raise SceneError(
+                        f"spring group {group!r} already has {name}={have}; got {name}={given}. "
+                        "Stiffness and damping are per group: use another group name.")
+        if rest_length is None:
+            rest_length = math.dist(pa, pb)
+        rest_length = _positive("spring rest_length (m)", rest_length, allow_zero=True)
+        self.springs.append(Spring(int(a), b_idx, anchor, rest_length, group))
+        return len(self.springs) - 1
+
+    def _check_body_index(self, i, what: str) -> None:
+        if not isinstance(i, (int, np.integer)) or isinstance(i, bool):
+            raise SceneError(f"{what} must be a body index (int), got {i!r}.")
+        if not 0 <= int(i) < len(self.bodies):
+            raise SceneError(f"{what} names body {i}, but the scene has {len(self.bodies)} "
+                             f"bodies (indices 0..{len(self.bodies) - 1}). Add the body first.")
+
+    # ----------------------------------------------------------------- queries
+    @property
+    def n_bodies(self) -> int:
+        return len(self.bodies)
+
+    def __repr__(self) -> str:
+        return (f"Scene(bodies={len(self.bodies)}, springs={len(self.springs)}, "
+                f"planes={len(self.planes)}, fixed_spheres={len(self.fixed_spheres)}, "
+                f"gravity={self.gravity})")

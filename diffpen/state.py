@@ -1,0 +1,83 @@
+"""Pytrees that change: the simulation state and saved trajectories, and the parameters.
+
+* :class:`Params` -- the ONLY thing tuning differentiates: per contact material and per spring
+  group stiffness and damping. Values may be Python floats, arrays, or tracers (vmap/grad);
+  changing them never recompiles.
+* :class:`State` -- what changes each step.
+* :class:`Trajectory` -- saved states of a rollout, leading axis = saved step.
+"""
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+__all__ = ["ContactParams", "SpringParams", "Params", "State", "Trajectory"]
+
+
+class ContactParams(NamedTuple):
+    """Penalty contact of one material.
+
+    k: stiffness, N/m (Hunt-Crossley: N/m^n), >= 0.
+    c: damping, N s/m (Hunt-Crossley: N s/m^(n+1)), >= 0.
+    """
+    k: Any
+    c: Any
+
+
+class SpringParams(NamedTuple):
+    """Damped springs of one group: k (N/m), c (N s/m)."""
+    k: Any
+    c: Any
+
+
+class Params(NamedTuple):
+    """Differentiable parameters of a compiled scene.
+
+    contact: ``{material name: ContactParams}`` for every material some contact pair uses.
+    springs: ``{group name: SpringParams}`` for every spring group in the scene.
+    extra: ``{name: value}`` for terms added by extensions (empty for the core terms).
+    """
+    contact: dict
+    springs: dict
+    extra: dict = {}
+
+
+class State(NamedTuple):
+    """Simulation state.
+
+    time: scalar, s.
+    position: (n_bodies, 3) body centres, m.
+    velocity: (n_bodies, 3) m/s.
+    orientation: (n_bodies, 4) unit quaternions (w, x, y, z), or None for scenes without
+      rotating bodies (then no orientation code is traced).
+    angular_velocity: (n_bodies, 3) world-frame rad/s, or None (as orientation).
+    aux: extension state (e.g. plastic rest lengths), a dict; empty for the core terms.
+    """
+    time: Any
+    position: Any
+    velocity: Any
+    orientation: Any = None
+    angular_velocity: Any = None
+    aux: dict = {}
+
+
+class Trajectory(NamedTuple):
+    """States saved by a rollout; the leading axis of every field is the saved step.
+
+    time: (n_saved,) s, the time after each saved step.
+    position: (n_saved, n_bodies, 3) m.  velocity: (n_saved, n_bodies, 3) m/s.
+    orientation: (n_saved, n_bodies, 4) or None.  angular_velocity: (n_saved, n_bodies, 3)
+      or None.
+    aux: saved extension state, leading axis n_saved.
+    """
+    time: Any
+    position: Any
+    velocity: Any
+    orientation: Any = None
+    angular_velocity: Any = None
+    aux: dict = {}
+
+    @property
+    def final(self) -> State:
+        """The last saved state, usable as the start of another rollout."""
+        import jax
+        return State(*jax.tree_util.tree_map(lambda a: a[-1], tuple(self)))
