@@ -1,0 +1,436 @@
+"""Core simulator: closed-form physics, gradients, transforms, left-out terms, bad input."""
+import math
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen import physical
+
+G = 9.81
+
+
+# --------------------------------------------------------------------------- fixtures
+def drop_scene(gravity=(0.0, 0.0, -G), z0=1.0, vz=0.0, r=0.1, m=1.0):
+    scene = dp.Scene(gravity=gravity)
+    scene.add_sphere(radius=r, mass=m, position=(0.0, 0.0, z0), velocity=(0.0, 0.0, vz))
+    scene.add_plane()
+    return scene
+
+
+@pytest.fixture(scope="module")
+def ball_sim():
+    """Quick-start ball (radius 0.1 m, 1 kg, centre at 1 m), dt = 1e-3, default smoothing."""
+    return dp.compile(drop_scene(), dt=1e-3)
+
+
+@pytest.fixture(scope="module")
+def spring_sim():
+    """A 2 kg particle on a world spring along x, no gravity, initial stretch 0.1 m."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    p = scene.add_particle(mass=2.0, position=(1.1, 0.0, 0.0))
+    scene.add_spring(p, (0.0, 0.0, 0.0), k=50.0, c=0.0, rest_length=1.0)
+    return dp.compile(scene, dt=1e-3)
+
+
+# --------------------------------------------------------------------------- closed forms
+def test_free_fall_matches_closed_form():
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    scene.add_particle(mass=1.0, position=(0.0, 0.0, 10.0), velocity=(1.0, 0.0, 2.0))
+    h = 1e-3
+    sim = dp.compile(scene, dt=h)
+    assert sim.terms == ()               # no contact, no springs: only gravity
+    traj = sim.rollout(sim.params(), steps=1000)
+    n = np.arange(1, 1001)
+    t = n * h
+    z = np.asarray(traj.position[:, 0, 2])
+    # Symplectic Euler is exact for the discrete recursion ...
+    np.testing.assert_allclose(z, 10.0 + 2.0 * t - G * h * h * n * (n + 1) / 2, rtol=1e-12)
+    # ... and first-order close to the continuous closed form (gap g h t / 2).
+    cont = 10.0 + 2.0 * t - 0.5 * G * t * t
+    assert np.max(np.abs(z - cont)) <= 0.5 * G * h * t[-1] * (1 + 1e-9)
+    np.testing.assert_allclose(traj.position[:, 0, 0], 1.0 * t, rtol=1e-12)
+    np.testing.assert_allclose(traj.time, t, rtol=1e-12)
+
+
+def _crossings(t, x):
+    """Times of upward zero crossings of x(t), linearly interpolated."""
+    i = np.nonzero((x[:-1] < 0) & (x[1:] >= 0))[0]
+    return t[i] - x[i] * (t[i + 1] - t[i]) / (x[i + 1] - x[i])
+
+
+def test_undamped_spring_period_and_bounded_energy(spring_sim):
+    traj = spring_sim.rollout(spring_sim.params(), steps=4000)
+    x = np.asarray(traj.position[:, 0, 0]) - 1.0
+    v = np.asarray(traj.velocity[:, 0, 0])
+    t = np.asarray(traj.time)
+    w0 = math.sqrt(50.0 / 2.0)
+    period = np.diff(_crossings(t, x)).mean()
+    # symplectic Euler raises the frequency by ~(1 + (w h)^2 / 24): far below 1e-4 here
+    assert period == pytest.approx(2 * math.pi / w0, rel=1e-4)
+    energy = 0.5 * 2.0 * v ** 2 + 0.5 * 50.0 * x ** 2
+    e0 = 0.5 * 50.0 * 0.1 ** 2
+    # bounded (no drift): symplectic Euler's energy oscillates with amplitude ~ w h / 2
+    assert np.max(np.abs(energy / e0 - 1.0)) < w0 * 1e-3
+
+
+def test_damped_spring_decay_matches_closed_form(spring_sim):
+    m, k, c = 2.0, 50.0, 1.0
+    traj = spring_sim.rollout(spring_sim.params(spring_c=c), steps=3000)
+    t = np.asarray(traj.time)
+    x = np.asarray(traj.position[:, 0, 0]) - 1.0
+    w0 = math.sqrt(k / m)
+    z = c / (2 * math.sqrt(k * m))
+    wd = w0 * math.sqrt(1 - z * z)
+    exact = 0.1 * np.exp(-z * w0 * t) * (np.cos(wd * t) + z * w0 / wd * np.sin(wd * t))
+    assert np.max(np.abs(x - exact)) < 1e-3 * 0.1 * 5   # first order in h: w h = 5e-3
+
+
+@pytest.fixture(scope="module")
+def impact_sims():
+    """Ball 1 m/s onto the plane, no gravity, exact ramp (width 0), dt = 1e-5, per law."""
+    out = {}
+    for law in ("linear", "no_tension", "hunt_crossley"):
+        scene = drop_scene(gravity=(0.0, 0.0, 0.0), z0=0.1 + 1e-4, vz=-1.0)
+        out[law] = dp.compile(scene, dt=1e-5, law=law, smoothing=0.0)
+    return out
+
+
+def _restitution(sim, k, cs, steps=5000):
+    run = jax.vmap(lambda c: sim.rollout(sim.params(k=k, c=c), steps=steps,
+                                         save_every=steps).velocity[-1, 0, 2])
+    return np.asarray(run(jnp.asarray(cs))) / 1.0
+
+
+@pytest.mark.parametrize("law", ["linear", "no_tension"])
+def test_restitution_matches_closed_form(impact_sims, law):
+    k, m = 1e4, 1.0
+    zetas = np.array([0.1, 0.3, 0.5])
+    cs = 2 * zetas * math.sqrt(k * m)
+    e = _restitution(impact_sims[law], k, cs)
+    expected = np.asarray(physical.restitution(k, cs, m, law))
+    # the table of physics-notes.md section 2
+    table = {"linear": [0.729, 0.372, 0.163], "no_tension": [0.744, 0.451, 0.298]}[law]
+    np.testing.assert_allclose(expected, table, atol=1.5e-3)
+    np.testing.assert_allclose(e, expected, rtol=5e-3)
+
+
+def test_hunt_crossley_restitution_depends_on_a_vin_only(impact_sims):
+    k = 1e4
+    a = np.array([0.1, 0.3, 1.0])            # s/m; v_in = 1 m/s
+    e = _restitution(impact_sims["hunt_crossley"], k, a * k)
+    expected = np.asarray(physical.hunt_crossley_restitution(a * 1.0))
+    np.testing.assert_allclose(e, expected, rtol=5e-3)
+    # e depends on a v_in only: 10x k with the same a gives the same e
+    e10 = _restitution(impact_sims["hunt_crossley"], 10 * k, a * 10 * k)
+    np.testing.assert_allclose(e10, expected, rtol=5e-3)
+    np.testing.assert_allclose(physical.hunt_crossley_a_from_restitution(expected, 1.0), a,
+                               rtol=1e-6)
+
+
+def test_contact_time_matches_closed_form(impact_sims):
+    k, m, zeta = 1e4, 1.0, 0.3
+    c = 2 * zeta * math.sqrt(k * m)
+    sim = impact_sims["linear"]
+    traj = sim.rollout(sim.params(k=k, c=c), steps=5000)
+    gap = np.asarray(traj.position[:, 0, 2]) - 0.1
+    t = np.asarray(traj.time)
+    inside = np.nonzero(gap < 0)[0]
+    i0, i1 = inside[0], inside[-1]
+    t_in = t[i0 - 1] - gap[i0 - 1] * (t[i0] - t[i0 - 1]) / (gap[i0] - gap[i0 - 1])
+    t_out = t[i1] - gap[i1] * (t[i1 + 1] - t[i1]) / (gap[i1 + 1] - gap[i1])
+    assert t_out - t_in == pytest.approx(float(physical.contact_time(k, c, m)), rel=2e-3)
+
+
+def test_resting_penetration_is_mg_over_k(ball_sim):
+    k, m = 1e4, 1.0
+    traj = ball_sim.rollout(ball_sim.params(k=k, c=2 * math.sqrt(k * m)), steps=3000,
+                            save_every=3000)
+    z = float(traj.position[-1, 0, 2])
+    assert 0.1 - z == pytest.approx(m * G / k, rel=1e-6)
+
+
+def test_default_smoothing_moves_restitution_less_than_0p1_percent():
+    k, c = 1e4, 2 * 0.3 * 100.0
+    es = []
+    for width in (0.0, "auto"):
+        sim = dp.compile(drop_scene(gravity=(0.0, 0.0, 0.0), z0=0.1 + 1e-3, vz=-1.0),
+                         dt=1e-5, smoothing=width)
+        es.append(_restitution(sim, k, [c], steps=5000)[0])
+    assert sim.smoothing == pytest.approx(1e-4)
+    assert abs(es[1] / es[0] - 1.0) < 1e-3
+
+
+# --------------------------------------------------------------------------- physical forms
+@pytest.mark.parametrize("law", ["linear", "no_tension"])
+def test_physical_parameterisation_round_trip(law):
+    m = 0.7
+    e, tc = jnp.array([0.2, 0.5, 0.9]), jnp.array([0.01, 0.02, 0.005])
+    k, c = physical.kc_from_restitution(e, tc, m, law)
+    np.testing.assert_allclose(physical.restitution(k, c, m, law), e, rtol=1e-9)
+    np.testing.assert_allclose(physical.contact_time(k, c, m, law), tc, rtol=1e-9)
+    # differentiable: d k / d e vs central differences
+    f = lambda ee: physical.kc_from_restitution(ee, 0.01, m, law)[1]
+    g = jax.grad(f)(0.5)
+    fd = (f(0.5 + 1e-6) - f(0.5 - 1e-6)) / 2e-6
+    assert float(g) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_time_constant_round_trip():
+    k, c = physical.kc_from_time_constant(0.02, 0.8, 1.5)
+    tau, zeta = physical.time_constant(k, c, 1.5)
+    assert float(tau) == pytest.approx(0.02, rel=1e-12)
+    assert float(zeta) == pytest.approx(0.8, rel=1e-12)
+    assert float(c) == pytest.approx(2 * 1.5 / 0.02)
+
+
+def test_simulated_restitution_from_physical_parameters(impact_sims):
+    k, c = physical.kc_from_restitution(0.5, 0.01, 1.0)
+    assert _restitution(impact_sims["linear"], float(k), [float(c)])[0] == pytest.approx(
+        0.5, rel=5e-3)
+
+
+# --------------------------------------------------------------------------- gradients
+def _central(f, x, rel):
+    h = rel * x
+    return (f(x + h) - f(x - h)) / (2 * h)
+
+
+@pytest.fixture(scope="module")
+def smooth_ball():
+    """Ball dropped from 0.5 m, dt = 1e-4, smoothing 1e-3 m (C1 in k and c)."""
+    return dp.compile(drop_scene(z0=0.5), dt=1e-4, smoothing=1e-3)
+
+
+def _apex_after_first_bounce(sim, k, c):
+    # 0.4 m of fall takes 0.286 s; the contact ~0.03 s; then flight: at t = 0.4 s the ball
+    # is rising, and the exact free-flight apex is z + v^2 / (2 g).
+    traj = sim.rollout(sim.params(k=k, c=c), steps=4000, save_every=4000)
+    z, v = traj.position[-1, 0, 2], traj.velocity[-1, 0, 2]
+    return z + v * v / (2 * G)
+
+
+def test_gradient_of_apex_matches_finite_differences(smooth_ball):
+    k, c = 1e4, 20.0
+    traj = smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=4000, save_every=4000)
+    assert float(traj.velocity[-1, 0, 2]) > 0.0 and float(traj.position[-1, 0, 2]) > 0.1
+    gk, gc = jax.grad(lambda k, c: _apex_after_first_bounce(smooth_ball, k, c), (0, 1))(k, c)
+    fk = _central(lambda x: _apex_after_first_bounce(smooth_ball, x, c), k, 1e-5)
+    fc = _central(lambda x: _apex_after_first_bounce(smooth_ball, k, x), c, 1e-5)
+    assert float(gk) == pytest.approx(float(fk), rel=1e-4)
+    assert float(gc) == pytest.approx(float(fc), rel=1e-4)
+    assert float(gc) < 0.0          # more damping, lower bounce
+
+
+def test_gradient_of_final_state_matches_finite_differences(smooth_ball):
+    def final_z(k, c):
+        return smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=3000,
+                                   save_every=3000).position[-1, 0, 2]
+    k, c = 1e4, 50.0
+    gk, gc = jax.grad(final_z, (0, 1))(k, c)
+    assert float(gk) == pytest.approx(float(_central(lambda x: final_z(x, c), k, 1e-5)),
+                                      rel=1e-4)
+    assert float(gc) == pytest.approx(float(_central(lambda x: final_z(k, x), c, 1e-5)),
+                                      rel=1e-4)
+
+
+def test_spring_gradients_match_finite_differences(spring_sim):
+    def final_x(k, c):
+        p = spring_sim.params(spring_k=k, spring_c=c)
+        return spring_sim.rollout(p, steps=500, save_every=500).position[-1, 0, 0]
+    gk, gc = jax.grad(final_x, (0, 1))(50.0, 1.0)
+    assert float(gk) == pytest.approx(float(_central(lambda x: final_x(x, 1.0), 50.0, 1e-6)),
+                                      rel=1e-6)
+    assert float(gc) == pytest.approx(float(_central(lambda x: final_x(50.0, x), 1.0, 1e-6)),
+                                      rel=1e-6)
+
+
+# --------------------------------------------------------------------------- transforms
+def test_jit_matches_eager(ball_sim):
+    params, state = ball_sim.params(k=1e4, c=20.0), ball_sim.init_state()
+    s_jit = state
+    for _ in range(5):
+        s_jit = ball_sim.step(params, s_jit)
+    with jax.disable_jit():
+        s_eager = state
+        for _ in range(5):
+            s_eager = ball_sim.step(params, s_eager)
+        traj_eager = ball_sim.rollout(params, steps=5)
+    np.testing.assert_allclose(s_jit.position, s_eager.position, rtol=1e-14)
+    np.testing.assert_allclose(traj_eager.position[-1], s_jit.position, rtol=1e-14)
+
+
+def test_vmap_matches_loop_and_does_not_recompile(ball_sim):
+    ks = jnp.array([5e3, 1e4, 2e4])
+    cs = jnp.array([10.0, 20.0, 40.0])
+
+    def apex(k, c):
+        return ball_sim.rollout(ball_sim.params(k=k, c=c), steps=600,
+                                save_every=600).position[-1, 0, 2]
+    batched = jax.vmap(apex)(ks, cs)
+    before = ball_sim._rollout_jit._cache_size()
+    looped = [float(apex(k, c)) for k, c in zip([5e3, 1e4, 2e4], [10.0, 20.0, 40.0])]
+    after_first = ball_sim._rollout_jit._cache_size()
+    for k in (1.5e4, 3e4, 7e3):          # new values, same structure: no new compilation
+        apex(k, 33.0)
+    assert ball_sim._rollout_jit._cache_size() == after_first <= before + 1
+    np.testing.assert_allclose(batched, looped, rtol=1e-12)
+
+
+def test_save_every_keeps_every_nth_state(ball_sim):
+    p = ball_sim.params(k=1e4, c=20.0)
+    full = ball_sim.rollout(p, steps=100)
+    some = ball_sim.rollout(p, steps=100, save_every=10)
+    assert some.position.shape == (10, 1, 3)
+    np.testing.assert_allclose(some.position, full.position[9::10], rtol=1e-14)
+    np.testing.assert_allclose(some.time, full.time[9::10], rtol=1e-14)
+    # a rollout continues from the final state
+    cont = ball_sim.rollout(p, steps=50, state=ball_sim.rollout(p, steps=50).final)
+    np.testing.assert_allclose(cont.position[-1], full.position[-1], rtol=1e-14)
+
+
+def test_float32_works_alongside_float64():
+    sim = dp.compile(drop_scene(), dt=1e-3, dtype=jnp.float32)
+    traj = sim.rollout(sim.params(k=1e4, c=20.0), steps=1000, save_every=10)
+    assert traj.position.dtype == jnp.float32
+    g = jax.grad(lambda k: sim.rollout(sim.params(k=k, c=20.0), steps=1000,
+                                       save_every=1000).position[-1, 0, 2])(jnp.float32(1e4))
+    assert g.dtype == jnp.float32 and np.isfinite(g) and g < 0.0
+
+
+# --------------------------------------------------------------------------- left-out terms
+def _scopes(sim, params):
+    jaxpr = jax.make_jaxpr(sim.step)(params, sim.init_state())
+    names = set()
+
+    def walk(jx):
+        for eqn in jx.eqns:
+            names.add(str(eqn.source_info.name_stack))
+            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+                walk(sub)
+    walk(jaxpr.jaxpr)
+    return " ".join(names), jaxpr
+
+
+def test_scene_without_contacts_springs_or_gravity_traces_none_of_them():
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_particle(mass=1.0, position=(0.0, 0.0, 1.0), velocity=(1.0, 0.0, 0.0))
+    sim = dp.compile(scene, dt=1e-3)
+    text, jaxpr = _scopes(sim, sim.params())
+    assert "contact" not in text and "spring" not in text and "gravity" not in text
+    # only the integrator's arithmetic is left: no sqrt, max, select, scatter or gather
+    prims = {e.primitive.name for e in jaxpr.jaxpr.eqns}
+    assert not prims & {"sqrt", "max", "select_n", "scatter-add", "gather", "pjit"}
+
+
+def test_each_term_is_traced_only_when_the_scene_has_it(ball_sim):
+    text, _ = _scopes(ball_sim, ball_sim.params(k=1e4, c=20.0))
+    assert "contact_plane" in text and "gravity" in text
+    assert "spring" not in text and "sphere_sphere" not in text and "fixed_sphere" not in text
+
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    a = scene.add_particle(1.0, (0.0, 0.0, 0.0))
+    b = scene.add_particle(1.0, (1.0, 0.0, 0.0))
+    scene.add_spring(a, b, k=10.0)
+    sim = dp.compile(scene, dt=1e-3)
+    text, _ = _scopes(sim, sim.params())
+    assert "springs" in text and "contact" not in text and "gravity" not in text
+
+
+def test_pairs_of_fixed_things_are_never_evaluated():
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.05), pinned=True)     # pinned, touching the plane
+    scene.add_sphere(0.1, 1.0, (0.15, 0.0, 0.05), pinned=True)    # overlapping the first
+    scene.add_sphere(0.1, 1.0, (5.0, 0.0, 1.0))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+    assert "contact_sphere_sphere" in sim.terms
+    # one free sphere: 1 plane pair, 2 sphere pairs (free-pinned), none pinned-pinned
+    ctx_rows = [t for t in sim._terms if t.name == "contact_sphere_sphere"]
+    jaxpr = jax.make_jaxpr(ctx_rows[0].force)(sim.params(k=1e4, c=1.0), sim.init_state())
+    shapes = {v.aval.shape for e in jaxpr.jaxpr.eqns for v in e.outvars}
+    assert (2,) in shapes and (3,) not in shapes      # per-pair depths: 2 pairs, not 3
+    f, _ = sim.forces(sim.params(k=1e4, c=1.0), sim.init_state())
+    np.testing.assert_array_equal(np.asarray(f[:2]), 0.0)   # pinned pair gets no force
+
+
+def test_spring_forces_are_equal_and_opposite():
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    a = scene.add_particle(1.0, (0.0, 0.0, 0.0), velocity=(0.3, -0.2, 0.1))
+    b = scene.add_particle(3.0, (1.0, 0.5, -0.2))
+    scene.add_spring(a, b, k=10.0, c=2.0, rest_length=0.5)
+    sim = dp.compile(scene, dt=1e-3)
+    f, _ = sim.forces(sim.params(), sim.init_state())
+    np.testing.assert_allclose(f[0], -f[1], rtol=1e-14)
+    d = np.array([-1.0, -0.5, 0.2])
+    L = np.linalg.norm(d)
+    u = d / L
+    rate = u @ np.array([0.3, -0.2, 0.1])
+    np.testing.assert_allclose(f[0], (-10.0 * (L - 0.5) - 2.0 * rate) * u, rtol=1e-13)
+
+
+# --------------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("build, match", [
+    (lambda s: s.add_sphere(radius=0.1, mass=-1.0, position=(0, 0, 1)), "mass"),
+    (lambda s: s.add_sphere(radius=0.0, mass=1.0, position=(0, 0, 1)), "radius"),
+    (lambda s: s.add_sphere(radius=0.1, mass=1.0, position=(0, float("nan"), 1)), "finite"),
+    (lambda s: s.add_particle(mass=1.0, position=(0, 0)), "3 numbers"),
+    (lambda s: s.add_particle(mass=float("inf"), position=(0, 0, 0)), "finite"),
+    (lambda s: s.add_spring(0, 5, k=1.0), "names body 5"),
+    (lambda s: s.add_spring(0, 0, k=1.0), "itself"),
+    (lambda s: s.add_spring(0, (1, 1, 1)), "give k="),
+    (lambda s: s.add_spring(0, (1, 1, 1), k=-3.0), "non-negative"),
+    (lambda s: s.add_plane(normal=(0, 0, 0)), "non-zero"),
+    (lambda s: s.add_fixed_sphere((0, 0, 0.5), 0.6), "inside fixed sphere"),
+    (lambda s: s.add_sphere(0.1, 1.0, (0, 0, 0), material="rubber"), "unknown material"),
+])
+def test_bad_scene_input_raises_clear_error(build, match):
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.5))
+    with pytest.raises(dp.SceneError, match=match):
+        build(scene)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(dt=0.0), "dt must be a positive"),
+    (dict(dt=-1e-3), "dt must be a positive"),
+    (dict(dt=float("nan")), "dt must be a positive"),
+    (dict(dt=1e-3, integrator="magic"), "unknown integrator"),
+    (dict(dt=1e-3, law="sticky"), "unknown contact law"),
+    (dict(dt=1e-3, smoothing=-1.0), "smoothing width"),
+])
+def test_bad_compile_input_raises_clear_error(kwargs, match):
+    with pytest.raises(dp.SceneError, match=match):
+        dp.compile(drop_scene(), **kwargs)
+
+
+def test_bad_params_raise_clear_error(ball_sim):
+    with pytest.raises(dp.SceneError, match="must be >= 0"):
+        ball_sim.params(k=-1.0, c=1.0)
+    with pytest.raises(dp.SceneError, match="finite"):
+        ball_sim.params(k=float("nan"), c=1.0)
+    with pytest.raises(dp.SceneError, match="has no k"):
+        ball_sim.params()
+    with pytest.raises(dp.SceneError, match="steps must be"):
+        ball_sim.rollout(ball_sim.params(k=1.0, c=1.0), steps=0)
+    with pytest.raises(dp.SceneError, match="save_every"):
+        ball_sim.rollout(ball_sim.params(k=1.0, c=1.0), steps=10, save_every=3)
+
+
+def test_empty_scene_is_rejected():
+    with pytest.raises(dp.SceneError, match="no bodies"):
+        dp.compile(dp.Scene(), dt=1e-3)
+
+
+def test_non_finite_rollout_is_reported_not_returned():
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_particle(mass=1.0, position=(0.0, 0.0, 0.0))
+    p = scene.add_particle(mass=1.0, position=(1.1, 0.0, 0.0))
+    scene.add_spring(p, (2.0, 0.0, 0.0), k=1e9, rest_length=1.0)
+    sim = dp.compile(scene, dt=1e-2)       # w h = 316: far past the limit of 2
+    with pytest.raises(dp.NonFiniteError, match="body 1") as info:
+        sim.rollout(sim.params(), steps=400)
+    assert 0 < info.value.step < 400 and info.value.body == 1
