@@ -185,7 +185,7 @@ def _spring_axis(delta, rel_vel, rest):
     length = geometry.safe_norm(delta)
     inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
     u = delta * inv
-    return length - rest, jnp.dot(u, rel_vel), u
+    return length - rest, jnp.sum(u * rel_vel, axis=-1), u
 
 
 def _body_springs(ctx: CompileContext) -> Term | None:
@@ -436,15 +436,15 @@ class Simulator:
     def forces(self, params: Params, state: State):
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
         (n_bodies, 3) N m, or None for scenes without rotating bodies."""
-        f = jnp.zeros_like(state.position)
+        f = None
         tau = None
         for term in self._terms:
             with jax.named_scope(term.name):
                 ft, tt = term.force(params, state)
-            f = f + ft
+            f = ft if f is None else f + ft
             if tt is not None:
                 tau = tt if tau is None else tau + tt
-        return f, tau
+        return (jnp.zeros_like(state.position) if f is None else f), tau
 
     def _accel(self, params: Params, state: State):
         f, tau = self.forces(params, state)

@@ -31,7 +31,7 @@ def sphere_plane(x, r, normal, offset):
     Returns:
       ``(d, n)`` with ``d = r - (normal . x - offset)`` and ``n = normal``.
     """
-    return r - (jnp.dot(normal, x) - offset), normal
+    return r - (jnp.sum(normal * x, axis=-1) - offset), normal
 
 
 def sphere_sphere(xa, ra, xb, rb):
