@@ -5,6 +5,8 @@ Scene (what exists; static) -> ``compile`` (a simulator holding only the terms t
 needs) -> ``Params`` (k, c: what you differentiate) -> ``State`` / ``Trajectory``.
 """
 from . import geometry, integrators, laws, physical
+from . import plastic  # registers the plastic-spring term  # noqa: E402
+from . import builders
 from .compile import Simulator, compile
 from .errors import NonFiniteError, SceneError, StabilityError
 from .scene import Scene
@@ -16,5 +18,5 @@ __all__ = [
     "Scene", "compile", "Simulator",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError",
-    "laws", "geometry", "integrators", "physical",
+    "laws", "geometry", "integrators", "physical", "builders", "plastic",
 ]

@@ -72,6 +72,14 @@ class CompileContext:
     radius: np.ndarray      # (n,) m
     pinned: np.ndarray      # (n,) bool
     collide: np.ndarray     # (n,) bool
+    #: Filled by term builders of extensions: defaults of their ``Params.extra`` entries
+    #: (``{name: pytree}``), initial ``State.aux`` entries (``{name: array}``), and
+    #: ``aux_update(params, state) -> {name: array}`` functions applied after every step.
+    extra_defaults: dict = dataclasses.field(default_factory=dict)
+    aux_init: dict = dataclasses.field(default_factory=dict)
+    aux_updates: list = dataclasses.field(default_factory=list)
+    #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
+    broadphase: Any = None
 
     @property
     def n(self) -> int:
@@ -228,11 +236,31 @@ def _world_springs(ctx: CompileContext) -> Term | None:
     return Term("world_springs", force)
 
 
+def _drag(ctx: CompileContext) -> Term | None:
+    """Velocity drag ``F = -c v`` per body (``scene.add_drag``); ``c`` per drag group in
+    ``params.extra["drag"][group]`` (N s/m). Absent (never traced) without drag."""
+    rows = [(d.body, d.group) for d in ctx.scene.drags if not ctx.pinned[d.body]]
+    if not rows:
+        return None
+    groups = list(dict.fromkeys(g for _, g in rows))
+    ctx.extra_defaults["drag"] = {g: ctx.scene.drag_groups[g] for g in groups}
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    gi = np.array([groups.index(r[1]) for r in rows], dtype=np.int32)
+    n = ctx.n
+
+    def force(params, state):
+        c = _select([params.extra["drag"][g] for g in groups], gi)
+        v = gather(state.velocity, bi, n)
+        f = jax.vmap(laws.drag_force, in_axes=(0, None if jnp.ndim(c) == 0 else 0))(v, c)
+        return scatter(f, bi, n), None
+    return Term("drag", force)
+
+
 #: Term builders run by ``compile``; each returns a Term or None (term absent from the scene).
 #: Extensions append their own builders here.
 TERM_BUILDERS: list[Callable[[CompileContext], Term | None]] = [
     _plane_contact, _fixed_sphere_contact, _sphere_sphere_contact, _body_springs,
-    _world_springs,
+    _world_springs, _drag,
 ]
 
 
@@ -345,7 +373,8 @@ class Simulator:
                 if not (self.pinned[i] and self.pinned[j]):
                     use(_pair_material(scene, bodies[i].material, bodies[j].material))
         self.materials = tuple(used)
-        self.spring_groups = tuple(dict.fromkeys(s.group for s in scene.springs))
+        self.spring_groups = tuple(dict.fromkeys(
+            s.group for s in (*scene.springs, *scene.plastic_springs)))
 
         base_law = laws.CONTACT_LAWS[law]
         law_fn = (base_law if law != "hunt_crossley" else
@@ -359,6 +388,8 @@ class Simulator:
         built = (build(ctx) for build in TERM_BUILDERS)
         self._terms: list[Term] = [t for t in built if t is not None]
         self.terms = tuple(t.name for t in self._terms)
+        self._extra_defaults = dict(ctx.extra_defaults)
+        self._aux_updates = list(ctx.aux_updates)
 
         self._inv_mass = ctx.const(np.where(self.pinned, 0.0, 1.0 / self.mass)[:, None])
         g = np.array(scene.gravity)
@@ -368,9 +399,24 @@ class Simulator:
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
         self._step = INTEGRATORS[integrator](self._accel, dt)
+        if self._aux_updates:
+            self._step = self._with_aux_updates(self._step)
         self._step_jit = jax.jit(self._step)
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every"))
+
+    def _with_aux_updates(self, step):
+        """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
+        rest lengths, updated from the new positions)."""
+        updates = self._aux_updates
+
+        def stepped(params, state):
+            state = step(params, state)
+            aux = dict(state.aux)
+            for update in updates:
+                aux.update(update(params, state))
+            return state._replace(aux=aux)
+        return stepped
 
     # ------------------------------------------------------------------ parameters
     def params(self, k=None, c=None, *, contact: dict | None = None, spring_k=None,
@@ -419,7 +465,21 @@ class Simulator:
             _check_value(f"spring k of group {name!r} (N/m)", kk)
             _check_value(f"spring c of group {name!r} (N s/m)", cc)
             out_s[name] = SpringParams(self._cast(kk), self._cast(cc))
-        return Params(out_c, out_s, dict(extra or {}))
+        out_x = dict(extra or {})
+        for name, default in self._extra_defaults.items():
+            given = out_x.get(name, {})
+            if isinstance(default, dict):
+                unknown = set(given) - set(default)
+                if unknown:
+                    raise SceneError(f"params extra[{name!r}] names {sorted(unknown)}, not in "
+                                     f"this scene; known: {sorted(default)}.")
+                merged = {g: given.get(g, v) for g, v in default.items()}
+                for g, v in merged.items():
+                    _check_value(f"{name} parameter of group {g!r}", v)
+                out_x[name] = {g: self._cast(v) for g, v in merged.items()}
+            elif name not in out_x:
+                out_x[name] = default
+        return Params(out_c, out_s, out_x)
 
     def _cast(self, v):
         return jnp.asarray(v, dtype=self.dtype)
@@ -430,7 +490,8 @@ class Simulator:
         b = self.scene.bodies
         return State(time=jnp.zeros((), self.dtype),
                      position=self._ctx.const([x.position for x in b]),
-                     velocity=self._ctx.const([x.velocity for x in b]))
+                     velocity=self._ctx.const([x.velocity for x in b]),
+                     aux={k: self._ctx.const(v) for k, v in self._ctx.aux_init.items()})
 
     # ------------------------------------------------------------------ dynamics
     def forces(self, params: Params, state: State):

@@ -25,6 +25,7 @@ __all__ = [
     "ramp",
     "gate",
     "spring_force",
+    "drag_force",
     "linear_contact",
     "no_tension_contact",
     "hunt_crossley_contact",
@@ -80,6 +81,16 @@ def spring_force(stretch, stretch_rate, k, c):
       Signed tension along the axis, newtons; positive pushes the ends apart.
     """
     return -k * stretch - c * stretch_rate
+
+
+def drag_force(v, c):
+    """Linear velocity drag on ONE body: ``F = -c v``.
+
+    Args:
+      v: (3,) velocity, m/s.  c: drag coefficient, N s/m (>= 0).
+    Returns: (3,) force, newtons.
+    """
+    return -c * v
 
 
 def linear_contact(d, vn, k, c, width: float = 0.0):

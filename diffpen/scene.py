@@ -16,7 +16,8 @@ import numpy as np
 
 from .errors import SceneError
 
-__all__ = ["Scene", "Body", "Spring", "Plane", "FixedSphere", "Material", "SpringGroup"]
+__all__ = ["Scene", "Body", "Spring", "Plane", "FixedSphere", "Material", "SpringGroup", "Drag",
+           "PlasticSpring"]
 
 DEFAULT = "default"
 
@@ -89,6 +90,24 @@ class FixedSphere:
     material: str
 
 
+@dataclasses.dataclass(frozen=True)
+class Drag:
+    """Velocity drag ``F = -c v`` on body ``body``; ``c`` (N s/m) is per ``group``."""
+    body: int
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PlasticSpring:
+    """Spring between bodies ``a`` and ``b`` whose rest length shortens irreversibly when it is
+    compressed by more than ``yield_strain * rest_length`` (see :mod:`diffpen.plastic`).
+    Stiffness and damping come from spring ``group``; the yield strain is per group too."""
+    a: int
+    b: int
+    rest_length: float
+    group: str
+
+
 @dataclasses.dataclass
 class Material:
     """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
@@ -125,6 +144,12 @@ class Scene:
         self.fixed_spheres: list[FixedSphere] = []
         self.materials: dict[str, Material] = {DEFAULT: Material()}
         self.spring_groups: dict[str, SpringGroup] = {}
+        self.drags: list[Drag] = []
+        self.drag_groups: dict[str, float] = {}          # group -> default c, N s/m
+        self.plastic_springs: list[PlasticSpring] = []
+        self.plastic_groups: dict[str, float] = {}       # group -> default yield strain
+        #: width, in strain, of the smooth onset of plastic flow (static; 0 = hard yield)
+        self.plastic_smoothing: float = 1e-3
 
     # ----------------------------------------------------------------- bodies
     def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide) -> int:
@@ -292,6 +317,95 @@ class Scene:
         rest_length = _positive("spring rest_length (m)", rest_length, allow_zero=True)
         self.springs.append(Spring(int(a), b_idx, anchor, rest_length, group))
         return len(self.springs) - 1
+
+    # ----------------------------------------------------------------- drag
+    def add_drag(self, bodies, c: float | None = None, *, group: str = "drag") -> str:
+        """Add a velocity drag ``F = -c v`` (v in m/s, world frame) on each of ``bodies``.
+
+        The coefficient ``c`` (N s/m, >= 0) is one entry of the params pytree per ``group``:
+        ``sim.params(extra={"drag": {group: c}})``; giving ``c`` for a new group declares its
+        default. Scenes without drag trace no drag code. Pinned bodies are skipped.
+
+        Args:
+          bodies: a body index or a sequence of body indices.
+          c: N s/m; required for a new group; must match the group's default otherwise.
+          group: drag group name.
+        Returns: the group name.
+        """
+        if not isinstance(group, str) or not group:
+            raise SceneError(f"drag group name must be a non-empty string, got {group!r}.")
+        idx = [bodies] if isinstance(bodies, (int, np.integer)) else list(np.ravel(bodies))
+        if not idx:
+            raise SceneError("add_drag got no bodies: give a body index or a list of them.")
+        for i in idx:
+            self._check_body_index(i, "drag body")
+        if group not in self.drag_groups:
+            if c is None:
+                raise SceneError(f"drag group {group!r} is new: give c= (N s/m).")
+            self.drag_groups[group] = _positive(f"drag group {group!r} c (N s/m)", c,
+                                                allow_zero=True)
+        elif c is not None and float(c) != self.drag_groups[group]:
+            raise SceneError(f"drag group {group!r} already has c={self.drag_groups[group]}; "
+                             f"got c={c}. Use another group name.")
+        have = {(d.body, d.group) for d in self.drags}
+        for i in idx:
+            if (int(i), group) in have:
+                raise SceneError(f"body {int(i)} already has drag of group {group!r}.")
+            self.drags.append(Drag(int(i), group))
+            have.add((int(i), group))
+        return group
+
+    # ----------------------------------------------------------------- plastic springs
+    def add_plastic_spring(self, a: int, b: int, *, k: float | None = None,
+                           c: float | None = None, yield_strain: float | None = None,
+                           rest_length: float | None = None, group: str = "plastic") -> int:
+        """Join bodies ``a`` and ``b`` by a plastic (crumple) spring.
+
+        It acts as a damped spring ``F = -k (l - L) - c dl/dt`` whose rest length ``L`` (m,
+        kept in ``State.aux``) shortens irreversibly whenever the compression ``L - l`` exceeds
+        ``yield_strain * L0`` (``L0`` the initial rest length); see :mod:`diffpen.plastic`.
+        ``k`` (N/m) and ``c`` (N s/m) are the spring group's (``params.springs[group]``), the
+        yield strain is ``params.extra["plastic"][group]`` (dimensionless, in (0, 1)).
+
+        Returns: the plastic spring's index.
+        """
+        self._check_body_index(a, "plastic spring end a")
+        self._check_body_index(b, "plastic spring end b")
+        a, b = int(a), int(b)
+        if a == b:
+            raise SceneError(f"plastic spring joins body {a} to itself: give two bodies.")
+        if self.bodies[a].pinned and self.bodies[b].pinned:
+            raise SceneError(f"plastic spring joins two pinned bodies ({a}, {b}): it can never "
+                             "act; remove it or unpin one end.")
+        if group not in self.plastic_groups:
+            if yield_strain is None:
+                raise SceneError(f"plastic group {group!r} is new: give yield_strain= (a "
+                                 "fraction in (0, 1), e.g. 0.05).")
+            ys = float(yield_strain)
+            if not (0.0 < ys < 1.0):
+                raise SceneError(f"yield_strain must be in (0, 1) (compression at which the "
+                                 f"spring starts to crumple, as a fraction of its rest length), "
+                                 f"got {yield_strain!r}.")
+            self.plastic_groups[group] = ys
+        elif yield_strain is not None and float(yield_strain) != self.plastic_groups[group]:
+            raise SceneError(f"plastic group {group!r} already has yield_strain="
+                             f"{self.plastic_groups[group]}; got {yield_strain}. Use another "
+                             "group name.")
+        if group not in self.spring_groups:
+            if k is None:
+                raise SceneError(f"spring group {group!r} is new: give k= (N/m).")
+            self.add_spring_group(group, k, 0.0 if c is None else c)
+        else:
+            g = self.spring_groups[group]
+            for name, given, have in (("k", k, g.k), ("c", c, g.c)):
+                if given is not None and float(given) != have:
+                    raise SceneError(f"spring group {group!r} already has {name}={have}; got "
+                                     f"{name}={given}. Use another group name.")
+        if rest_length is None:
+            rest_length = math.dist(self.bodies[a].position, self.bodies[b].position)
+        rest_length = _positive("plastic spring rest_length (m)", rest_length)
+        self.plastic_springs.append(PlasticSpring(a, b, rest_length, group))
+        return len(self.plastic_springs) - 1
 
     def _check_body_index(self, i, what: str) -> None:
         if not isinstance(i, (int, np.integer)) or isinstance(i, bool):
