@@ -1,0 +1,291 @@
+"""Trajectory metrics of a bouncing body: exact, event-located, differentiable.
+
+Every function here takes saved samples (times ``t`` (S,) in s and a height signal ``h`` (S,)
+in m, plus velocities where needed) and returns a number defined on the trajectory itself, not
+on the saved grid:
+
+* apex heights come from the free-flight parabola through the three samples around each
+  maximum (exact for any integrator whose free flight is a parabola in the samples: the
+  symplectic Euler positions lie exactly on one, so the vertex is the flight's true top);
+* crossing times (contact start/end, settling) are located by interpolation between the two
+  samples that straddle the level;
+* the settling time is *the last time* ``|z - rest| > tol``, interpolated.
+
+All functions are pure ``jax.numpy`` with static output shapes, so they work under ``jit``,
+``vmap`` and ``grad``. Event selection (which sample is the n-th apex, which interval is the
+last exceedance) is piecewise constant in the parameters; the values are smooth functions of
+the samples, so gradients are the exact derivatives of the exact metric within each piece.
+Absent events (fewer bounces than asked for, a body that never settles) are ``nan`` in the
+value and ``False`` in the companion ``valid`` mask where one is returned.
+
+Heights: ``h`` is the height of the body's *lowest point* above the contact surface
+(``n . x - offset - radius`` for a plane ``n . p = offset``): negative means penetration.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = [
+    "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",
+    "max_penetration", "resting_height", "settling_time", "BallMetrics", "ball_metrics",
+    "initial_apex",
+]
+
+
+def height_above_plane(position, radius: float, normal=(0.0, 0.0, 1.0), offset: float = 0.0):
+    """Height of a sphere's lowest point above a plane.
+
+    Args:
+      position: (..., 3) centre positions, m.
+      radius: sphere radius, m.
+      normal: (3,) unit plane normal.  offset: plane offset, m (plane ``n . p = offset``).
+    Returns:
+      (...,) height, m; negative = penetration depth.
+    """
+    n = jnp.asarray(normal, dtype=jnp.result_type(position))
+    return jnp.sum(position * n, axis=-1) - offset - radius
+
+
+def _rank_select(values, mask, n: int):
+    """The first ``n`` entries of ``values`` (S,) where ``mask`` (S,) is True, in order.
+
+    Returns (values (n,), valid (n,) bool); missing entries are nan. Differentiable w.r.t.
+    ``values``.
+    """
+    rank = jnp.cumsum(mask.astype(jnp.int32)) - 1            # rank of each selected sample
+    slots = jnp.arange(n)
+    hit = mask[None, :] & (rank[None, :] == slots[:, None])   # (n, S)
+    valid = jnp.any(hit, axis=1)
+    picked = jnp.sum(jnp.where(hit, values[None, :], 0.0), axis=1)
+    return jnp.where(valid, picked, jnp.nan), valid
+
+
+def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = True):
+    """The first ``n`` apex heights of free flights, m.
+
+    An apex is a saved sample ``i`` with ``h[i-1] <= h[i] > h[i+1]`` whose two neighbours are
+    in free flight (``h > flight_gap``; pass the simulator's ``smoothing / 2``, inside which the
+    smoothed contact force already acts). Its value is the vertex of the parabola through the
+    three samples: exact for a free flight under constant gravity (the saved samples of
+    symplectic Euler lie exactly on one parabola), and independent of the save interval.
+
+    Args:
+      h: (S,) height of the lowest point above the surface, m, uniformly sampled.
+      n: number of apexes to return (static).
+      flight_gap: m; samples with ``h <= flight_gap`` count as in contact.
+      after_contact: count only apexes after the first contact (bounce apexes; the default).
+    Returns:
+      (heights (n,), valid (n,) bool); heights of missing apexes are nan.
+    """
+    hm, h0, hp = h[:-2], h[1:-1], h[2:]
+    q = hm - 2.0 * h0 + hp                                   # second difference (< 0 at a top)
+    flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
+    is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
+    if after_contact:
+        touched = jnp.cumsum((h <= flight_gap).astype(jnp.int32))[:-2] > 0
+        is_top = is_top & touched
+    q_safe = jnp.where(is_top, q, -1.0)
+    vertex = h0 - (hp - hm) ** 2 / (8.0 * q_safe)
+    return _rank_select(vertex, is_top, n)
+
+
+def initial_apex(h0, v0, g: float):
+    """Apex of the initial free flight from height ``h0`` (m) and normal velocity ``v0`` (m/s):
+    ``h0 + max(v0, 0)^2 / (2 g)``; the drop height when released at rest."""
+    return h0 + jnp.maximum(v0, 0.0) ** 2 / (2.0 * g)
+
+
+def restitutions(apexes, first_apex):
+    """Restitution of each bounce from consecutive free-flight apexes.
+
+    With free flight before and after an impact, the impact and rebound speeds at the surface
+    are ``sqrt(2 g H)`` of the apexes around it, so ``e_n = sqrt(H_n / H_{n-1})`` exactly.
+
+    Args:
+      apexes: (n,) bounce apex heights, m (nan where absent).
+      first_apex: height of the apex before the first impact (the drop height), m.
+    Returns:
+      (n,) restitution of bounces 1..n (nan where absent).
+    """
+    prev = jnp.concatenate([jnp.reshape(first_apex, (1,)).astype(apexes.dtype), apexes[:-1]])
+    ok = (prev > 0.0) & (apexes >= 0.0)
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, apexes / jnp.where(ok, prev, 1.0), 1.0)),
+                     jnp.nan)
+
+
+def crossings(t, h, level: float, n: int, direction: int):
+    """Times at which ``h`` crosses ``level`` going down (``direction=-1``) or up (``+1``),
+    interpolated linearly between the straddling samples.
+
+    Args:
+      t: (S,) s.  h: (S,) m.  level: m.  n: how many (static).
+    Returns:
+      (times (n,), valid (n,) bool); nan where absent.
+    """
+    a, b = h[:-1] - level, h[1:] - level
+    if direction < 0:
+        hit = (a >= 0.0) & (b < 0.0)
+    else:
+        hit = (a < 0.0) & (b >= 0.0)
+    den = jnp.where(hit, a - b, 1.0)
+    frac = jnp.where(hit, a / den, 0.0)
+    tc = t[:-1] + frac * (t[1:] - t[:-1])
+    return _rank_select(tc, hit, n)
+
+
+def contact_durations(t, h, n: int, *, level: float = 0.0):
+    """Durations of the first ``n`` completed contacts (``h < level``), s.
+
+    Each contact runs from a downward crossing of ``level`` to the next upward one; the
+    trajectory is assumed to start out of contact. A contact still open at the end is nan.
+
+    Returns: (durations (n,), valid (n,) bool).
+    """
+    down, vd = crossings(t, h, level, n, -1)
+    up, vu = crossings(t, h, level, n, +1)
+    valid = vd & vu
+    return jnp.where(valid, up - down, jnp.nan), valid
+
+
+def max_penetration(h):
+    """Largest penetration depth ``max(-h)``, m (0 when never in contact), refined by the
+    parabola through the deepest sample and its neighbours."""
+    d = -h
+    i = jnp.argmax(d)
+    i = jnp.clip(i, 1, d.shape[0] - 2)
+    dm, d0, dp = d[i - 1], d[i], d[i + 1]
+    q = dm - 2.0 * d0 + dp
+    ok = (q < 0.0) & (d0 >= dm) & (d0 >= dp)
+    refined = jnp.where(ok, d0 - (dp - dm) ** 2 / (8.0 * jnp.where(ok, q, -1.0)), d0)
+    return jnp.maximum(jnp.maximum(refined, jnp.max(d)), 0.0)
+
+
+def resting_height(k, mass: float, g: float, radius: float, *, law: str = "linear",
+                   exponent: float = 1.0, width: float = 0.0):
+    """Centre height (m) of a sphere resting on a horizontal plane at z = 0 (static balance).
+
+    ``k ramp(d) = m g`` with the simulator's C1 ramp of ``width`` (m): ``d = m g / k`` once
+    past the blend band; Hunt-Crossley ``k ramp(d)^n = m g``.
+
+    Args:
+      k: contact stiffness, N/m (N/m^n).  mass: kg.  g: |gravity|, m/s^2.  radius: m.
+    """
+    if law == "hunt_crossley":
+        r = (mass * g / k) ** (1.0 / exponent)
+    else:
+        r = mass * g / k
+    if width == 0.0:
+        d = r
+    else:
+        half = 0.5 * width
+        d = jnp.where(r >= half, r, jnp.sqrt(2.0 * width * jnp.maximum(r, 0.0)) - half)
+    return radius - d
+
+
+def settling_time(t, z, rest, tol: float = 1e-3):
+    """Settling time: the last time ``|z - rest| > tol``, interpolated, s.
+
+    Exactly the definition (no soft maximum): find the last sample outside the band and
+    interpolate where ``|z - rest|`` comes down to ``tol`` between it and the next sample. The
+    value is continuous in the samples within each piece (it jumps only where an excursion's
+    peak passes through the band, as the exact definition does).
+
+    Args:
+      t: (S,) s, increasing, including the start.  z: (S,) m.  rest: resting value, m.
+      tol: band half-width, m.
+    Returns:
+      (time, settled): ``t[0]`` if always inside the band; ``nan`` with ``settled=False`` if
+      still outside at the last sample.
+    """
+    e = jnp.abs(z - rest)
+    s = e.shape[0]
+    idx = jnp.arange(s)
+    out = e > tol
+    last = jnp.max(jnp.where(out, idx, -1))
+    settled = last < s - 1
+    i = jnp.clip(last, 0, s - 2)
+    ei, ej = e[i], e[i + 1]
+    den = jnp.where(ei - ej > 0.0, ei - ej, 1.0)
+    frac = jnp.clip((ei - tol) / den, 0.0, 1.0)
+    tc = t[i] + frac * (t[i + 1] - t[i])
+    tc = jnp.where(last < 0, t[0], tc)
+    return jnp.where(settled, tc, jnp.nan), settled
+
+
+class BallMetrics(NamedTuple):
+    """Metrics of one sphere bouncing on a plane (all exact; see the module docstring).
+
+    apex_heights: (n_apex,) m, lowest point above the surface at the top of each rebound.
+    apex_valid: (n_apex,) bool.
+    restitution: (n_apex,) per bounce.
+    contact_durations: (n_apex,) s.
+    max_penetration: m.
+    resting_height: centre height at static rest, m.
+    settling_time: s (nan if not settled within the rollout).
+    settled: bool.
+    drop_height: apex before the first impact (lowest point), m.
+    """
+    apex_heights: object
+    apex_valid: object
+    restitution: object
+    contact_durations: object
+    max_penetration: object
+    resting_height: object
+    settling_time: object
+    settled: object
+    drop_height: object
+
+    def as_dict(self) -> dict:
+        """Plain Python numbers/lists (nan for absent events), for printing and JSON."""
+        def conv(v):
+            a = np.asarray(v)
+            return a.tolist() if a.ndim else a.item()
+        return {name: conv(getattr(self, name)) for name in self._fields}
+
+
+def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_tol: float = 1e-3,
+                 plane: int = 0, state0=None) -> BallMetrics:
+    """All metrics of ``body`` (a sphere) bouncing on plane ``plane`` of ``sim``'s scene.
+
+    The initial state (``state0`` or ``sim.init_state()``) is prepended to the saved samples,
+    so the trajectory starts at t = 0. Traceable: use it inside ``jit``/``vmap``/``grad``.
+
+    Args:
+      sim: a compiled :class:`diffpen.Simulator`.  traj: its :class:`diffpen.Trajectory`.
+      params: the :class:`diffpen.Params` of the rollout (k sets the resting height).
+      body: body index.  n_apex: number of bounces reported (static).
+      settle_tol: settling band, m.  plane: plane index.
+    Returns:
+      :class:`BallMetrics`.
+    """
+    scene = sim.scene
+    pl = scene.planes[plane]
+    radius = float(sim.radius[body])
+    mass = float(sim.mass[body])
+    gvec = np.asarray(scene.gravity)
+    g = float(-np.dot(gvec, pl.normal))
+    if g <= 0.0:
+        raise ValueError("ball metrics need gravity pointing into the plane.")
+    s0 = sim.init_state() if state0 is None else state0
+    t = jnp.concatenate([jnp.reshape(s0.time, (1,)), traj.time])
+    pos = jnp.concatenate([s0.position[None, body], traj.position[:, body]])
+    h = height_above_plane(pos, radius, pl.normal, pl.offset)
+    n = jnp.asarray(pl.normal, dtype=h.dtype)
+    v0n = jnp.dot(s0.velocity[body], n)
+    gap = 0.5 * sim.smoothing
+    apex, valid = apex_heights(h, n_apex, flight_gap=gap)
+    h_drop = initial_apex(h[0], v0n, g)
+    k = params.contact[pl.material].k
+    rest_z = resting_height(k, mass, g, radius, law=sim.law, exponent=sim.exponent,
+                            width=sim.smoothing)
+    centre = h + radius                                          # centre height above plane
+    ts, settled = settling_time(t, centre, rest_z, settle_tol)
+    dur, _ = contact_durations(t, h, n_apex)
+    return BallMetrics(
+        apex_heights=apex, apex_valid=valid, restitution=restitutions(apex, h_drop),
+        contact_durations=dur, max_penetration=max_penetration(h),
+        resting_height=rest_z + pl.offset, settling_time=ts, settled=settled,
+        drop_height=h_drop)

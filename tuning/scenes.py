@@ -1,0 +1,109 @@
+"""Built-in scenes for the command line and the examples.
+
+``SCENES`` maps a name to a builder ``builder(**options) -> SceneSetup``. A builder takes only
+keyword options (each with a default) and returns the scene plus what the command line needs to
+run and report it. Add a scene by adding an entry::
+
+    SCENES["chain"] = chain      # def chain(**options) -> SceneSetup
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import diffpen as dp
+
+__all__ = ["SceneSetup", "SCENES", "ball", "chain", "get_scene"]
+
+
+@dataclasses.dataclass
+class SceneSetup:
+    """A ready-to-compile scene with its run settings.
+
+    scene: the :class:`diffpen.Scene`.
+    dt: time step, s.  steps: default rollout length (steps).
+    k, c: default contact stiffness (N/m) and damping (N s/m) for every material.
+    law: contact law name.  body: the body whose metrics are reported (None: none).
+    metrics: ``metrics(sim, traj, params) -> dict`` of plain numbers/lists (None: the
+      command line reports only the final state).
+    description: one line for ``--help`` and printouts.
+    """
+    scene: dp.Scene
+    dt: float
+    steps: int
+    k: float
+    c: float
+    law: str = "linear"
+    body: int | None = 0
+    metrics: Callable | None = None
+    description: str = ""
+
+
+def _ball_metrics(settle_tol: float, n_apex: int):
+    def metrics(sim, traj, params):
+        from .metrics import ball_metrics
+        return ball_metrics(sim, traj, params, body=0, n_apex=n_apex,
+                            settle_tol=settle_tol).as_dict()
+    return metrics
+
+
+def ball(*, radius: float = 0.1, mass: float = 1.0, drop: float = 1.0, k: float = 1e4,
+         c: float = 20.0, dt: float = 1e-3, duration: float = 3.0, gravity: float = 9.81,
+         settle_tol: float = 1e-3, n_apex: int = 3, law: str = "linear") -> SceneSetup:
+    """A sphere dropped from rest onto the ground plane z = 0.
+
+    Args:
+      radius: m.  mass: kg.  drop: initial CENTRE height, m (must exceed ``radius``).
+      k: N/m.  c: N s/m.  dt: s.  duration: rollout length, s.  gravity: m/s^2 (downwards).
+      settle_tol: settling band for the reported settling time, m.
+      n_apex: number of bounce apexes reported.
+    """
+    if not drop > radius:
+        raise dp.SceneError(f"the ball's centre must start above its radius: drop={drop} m "
+                            f"<= radius={radius} m would start in contact. Raise --drop.")
+    scene = dp.Scene(gravity=(0.0, 0.0, -float(gravity)))
+    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, drop))
+    scene.add_plane()
+    steps = max(1, int(round(duration / dt)))
+    return SceneSetup(scene=scene, dt=dt, steps=steps, k=k, c=c, law=law, body=0,
+                      metrics=_ball_metrics(settle_tol, n_apex),
+                      description=f"ball r={radius} m, m={mass} kg dropped from z={drop} m "
+                                  "onto the plane z=0")
+
+
+def chain(*, seed: int = 0, dt: float = 0.1, duration: float = 200.0, k: float = 0.0,
+          c: float = 0.0) -> SceneSetup:
+    """The workshop paper's ball-spring chain (``diffpen.builders.paper_chain``): 7 balls of
+    10 kg, ends fixed at (100, 0, 100) and (500, 0, 100), zero-rest springs KS = 50 N/m, drag
+    KD = 1 N s/m per ball, g = 9.8 m/s^2, DT = 0.1 s, free balls scattered with ``seed``.
+
+    Metrics: ``final_positions`` ((7, 3) list, m), the directly solved static ``equilibrium``
+    and ``max_error_vs_equilibrium`` (m). ``k``/``c`` (contact) are unused: no contacts.
+    """
+    from diffpen.builders import paper_chain, paper_chain_equilibrium
+    scene, balls = paper_chain(seed=seed)
+
+    def metrics(sim, traj, params):
+        import numpy as np
+        final = np.asarray(traj.position[-1])
+        eq = paper_chain_equilibrium()
+        return {"final_positions": final.tolist(), "equilibrium": eq.tolist(),
+                "max_error_vs_equilibrium": float(np.abs(final - eq).max())}
+    return SceneSetup(scene=scene, dt=dt, steps=max(1, int(round(duration / dt))), k=k, c=c,
+                      body=None, metrics=metrics,
+                      description="the paper's 7-ball chain (KS=50, KD=1, MASS=10, DT=0.1)")
+
+
+#: Built-in scenes by name: ``builder(**options) -> SceneSetup``.
+SCENES: dict[str, Callable[..., SceneSetup]] = {
+    "ball": ball,
+    "chain": chain,
+}
+
+
+def get_scene(name: str, **options) -> SceneSetup:
+    """Build the built-in scene ``name`` with keyword ``options``."""
+    if name not in SCENES:
+        raise KeyError(f"unknown scene {name!r}; built-in scenes: {sorted(SCENES)} (or give "
+                       "a .toml scene file).")
+    return SCENES[name](**options)

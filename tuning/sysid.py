@@ -1,0 +1,428 @@
+"""Fit contact k and c to a measured trajectory of a bouncing ball (system identification).
+
+Input: a record of the ball centre's height ``z`` (m) at times ``t`` (s), e.g. a CSV with
+columns ``t,z``. Pipeline (each step is a public function):
+
+1. :func:`load_csv` reads and validates the record.
+2. :func:`record_events` finds the free flights, fits each with the gravity parabola (linear
+   least squares with g known) and derives apex heights, landing/take-off times, per-bounce
+   restitution ``sqrt(H_n / H_{n-1})`` and contact durations, plus the noise level (from the
+   second differences) and the initial state.
+3. :func:`first_guess` turns the median restitution and contact time into (k, c) with the
+   closed forms of :mod:`diffpen.physical` (a few percent off: gravity acts during contact).
+4. :func:`choose_dt` picks the time step from the data: the simulated trajectory at dt and
+   at dt/2 must agree far below the noise (the model's own discretisation error otherwise
+   dominates the misfit); it warns when it cannot.
+5. :func:`fit_trajectory` runs Levenberg-Marquardt on the residuals ``z_sim(t_i) - z_i``
+   (simulation resampled onto the record's times by linear interpolation) over a horizon
+   grown bounce by bounce -- the least-squares landscape over many bounces is rugged, so the
+   fit follows the record one bounce at a time -- and reports standard errors from the
+   Gauss-Newton covariance ``s^2 (J^T J)^-1`` with an autodiff (forward-mode) Jacobian.
+
+The horizon is a weight mask passed to one compiled residual/Jacobian function, so growing
+it never recompiles.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+
+from .fit import FitError, Progress, levenberg_marquardt
+
+__all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
+           "fit_trajectory", "TrajectoryFit", "synthetic_record", "RecordEvents"]
+
+
+# --------------------------------------------------------------------------- input
+def load_csv(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a record with columns ``t`` (s) and ``z`` (m, ball centre height).
+
+    The first row must be a header naming ``t`` and ``z`` (other columns are ignored).
+    Raises :class:`FitError` saying what to fix: missing file or columns, non-numeric or
+    non-finite values (with the line number), times not strictly increasing, too few rows.
+    Returns: ``(t (N,), z (N,))`` float64 arrays.
+    """
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise FitError(f"cannot read {path}: {exc.strerror}.") from None
+    rows = [r for r in rows if any(cell.strip() for cell in r)]
+    if not rows:
+        raise FitError(f"{path} is empty: expected a header 't,z' and rows of numbers.")
+    header = [h.strip().lower() for h in rows[0]]
+    if "t" not in header or "z" not in header:
+        raise FitError(f"{path}: the first row must be a header with columns 't' and 'z' "
+                       f"(time in s, ball centre height in m); got {rows[0]}.")
+    it, iz = header.index("t"), header.index("z")
+    t, z = [], []
+    for line, row in enumerate(rows[1:], start=2):
+        try:
+            tv, zv = float(row[it]), float(row[iz])
+        except (IndexError, ValueError):
+            raise FitError(f"{path}, line {line}: expected numbers in columns t and z, got "
+                           f"{row}.") from None
+        if not (math.isfinite(tv) and math.isfinite(zv)):
+            raise FitError(f"{path}, line {line}: t and z must be finite, got {row}.")
+        t.append(tv)
+        z.append(zv)
+    if len(t) < 20:
+        raise FitError(f"{path} has {len(t)} data rows; a trajectory fit needs at least 20 "
+                       "(several samples per flight).")
+    t, z = np.asarray(t), np.asarray(z)
+    bad = np.nonzero(np.diff(t) <= 0.0)[0]
+    if bad.size:
+        raise FitError(f"{path}, line {bad[0] + 3}: times must strictly increase "
+                       f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows or remove "
+                       "duplicates.")
+    return t, z
+
+
+def save_csv(path, t, z) -> None:
+    """Write a ``t,z`` record (the format :func:`load_csv` reads)."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["t", "z"])
+        for a, b in zip(np.asarray(t), np.asarray(z)):
+            w.writerow([repr(float(a)), repr(float(b))])
+
+
+# --------------------------------------------------------------------------- events
+@dataclasses.dataclass
+class RecordEvents:
+    """Events of a bouncing-ball record (heights of the lowest point, i.e. z - radius).
+
+    noise: estimated noise std, m.  apex: (F,) apex heights of the flights, m.
+    apex_time: (F,) s.  landing: (F,) time each flight reaches the surface, s.
+    takeoff: (F,) time each flight left the surface, s (nan for the first flight).
+    restitution: (F-1,) ``sqrt(H_n / H_{n-1})``.  contact: (F-1,) contact durations, s.
+    z0, v0: centre height (m) and vertical velocity (m/s) at ``t[0]`` from the first flight.
+    """
+    noise: float
+    apex: np.ndarray
+    apex_time: np.ndarray
+    landing: np.ndarray
+    takeoff: np.ndarray
+    restitution: np.ndarray
+    contact: np.ndarray
+    z0: float
+    v0: float
+
+
+def _noise(z) -> float:
+    d2 = np.diff(z, 2)
+    mad = np.median(np.abs(d2 - np.median(d2)))
+    return float(1.4826 * mad / math.sqrt(6.0))
+
+
+def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6) -> RecordEvents:
+    """Locate the flights of a record and measure them with gravity-parabola fits.
+
+    A sample is in flight when its lowest point is above ``max(5 noise, 1 mm)``; each run of
+    at least ``min_samples`` such samples is fitted with ``z = a + b s - g s^2 / 2`` (least
+    squares, ``s = t - mean t``). Raises :class:`FitError` if the record does not start in
+    free flight or has no complete bounce.
+    """
+    t, z = np.asarray(t, float), np.asarray(z, float)
+    sigma = _noise(z)
+    h = z - radius
+    margin = max(5.0 * sigma, 1e-3)
+    fly = h > margin
+    if not fly[0]:
+        raise FitError("the record must start with the ball in free flight (its first "
+                       f"height {z[0]:.4g} m is within {margin:.2g} m of contact at radius "
+                       f"{radius} m); check --radius or trim the record.")
+    edges = np.flatnonzero(np.diff(fly.astype(int)))
+    starts = [0] + [int(e) + 1 for e in edges if fly[e + 1]]
+    ends = [int(e) + 1 for e in edges if not fly[e + 1]] + ([len(z)] if fly[-1] else [])
+    arcs = [(a, b) for a, b in zip(starts, ends) if b - a >= min_samples]
+    apex, apex_t, land, take = [], [], [], []
+    z0 = v0 = None
+    for j, (a, b) in enumerate(arcs):
+        ts, hs = t[a:b], h[a:b]
+        tm = ts.mean()
+        s = ts - tm
+        A = np.stack([np.ones_like(s), s], axis=1)
+        coef, *_ = np.linalg.lstsq(A, hs + 0.5 * g * s * s, rcond=None)
+        aa, bb = coef
+        ta = tm + bb / g
+        H = aa + bb * bb / (2.0 * g)
+        disc = math.sqrt(max(2.0 * H / g, 0.0))
+        apex.append(H)
+        apex_t.append(ta)
+        land.append(ta + disc if b < len(z) else np.nan)
+        take.append(ta - disc if j > 0 else np.nan)
+        if j == 0:
+            s0 = t[0] - tm
+            z0 = aa + bb * s0 - 0.5 * g * s0 * s0 + radius
+            v0 = bb - g * s0
+    if len(arcs) < 2:
+        raise FitError("the record holds fewer than two flights: a trajectory fit needs at "
+                       "least one complete bounce (landing and rebound).")
+    apex, land, take = np.array(apex), np.array(land), np.array(take)
+    e = np.sqrt(np.maximum(apex[1:], 0.0) / apex[:-1])
+    contact = take[1:] - land[:-1]
+    return RecordEvents(sigma, apex, np.array(apex_t), land, take, e, contact, float(z0),
+                        float(v0))
+
+
+def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
+                n_bounces: int = 3) -> tuple[float, float]:
+    """(k N/m, c N s/m) from the record's events, in closed form.
+
+    Restitution and contact time are the medians over the first ``n_bounces`` bounces (the
+    largest, best resolved ones); :func:`diffpen.physical.kc_from_restitution` converts them.
+    """
+    e = events.restitution[:n_bounces]
+    tc = events.contact[:n_bounces]
+    ok = np.isfinite(e) & np.isfinite(tc) & (e > 0.0) & (e < 1.0) & (tc > 0.0)
+    if not ok.any():
+        raise FitError("no usable bounce in the record (need 0 < restitution < 1 and a "
+                       "positive contact duration).")
+    law_cf = "no_tension" if law == "no_tension" else "linear"
+    k, c = dp.physical.kc_from_restitution(float(np.median(e[ok])), float(np.median(tc[ok])),
+                                           mass, law_cf)
+    return float(k), float(c)
+
+
+# --------------------------------------------------------------------------- model
+def _ball_sim(radius, mass, z0, v0, g, dt, law, t0=0.0):
+    scene = dp.Scene(gravity=(0.0, 0.0, -g))
+    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, z0),
+                     velocity=(0.0, 0.0, v0))
+    scene.add_plane()
+    return dp.compile(scene, dt, law=law)
+
+
+def _model_heights(sim, params, t_data, t0: float, steps: int, z0=None, v0=None,
+                   every: int = 0):
+    """Simulated centre height at the record's times, m.
+
+    ``every > 0``: the record is uniform with interval ``every * dt`` starting at ``t0``, so
+    saved samples fall on the record's times (no interpolation, ``steps // every`` saves);
+    otherwise every step is saved and linearly interpolated onto ``t_data``.
+    ``z0``, ``v0`` override the start height (m) and vertical velocity (m/s).
+    """
+    s0 = sim.init_state()
+    if z0 is not None:
+        s0 = s0._replace(position=s0.position.at[0, 2].set(z0),
+                         velocity=s0.velocity.at[0, 2].set(v0))
+    if every:
+        traj = sim.rollout(params, steps, s0, save_every=every, check_finite=False)
+        return jnp.concatenate([s0.position[None, 0, 2], traj.position[:, 0, 2]])
+    traj = sim.rollout(params, steps, s0, check_finite=False)
+    ts = jnp.concatenate([jnp.zeros((1,), traj.time.dtype), traj.time]) + t0
+    zs = jnp.concatenate([s0.position[None, 0, 2], traj.position[:, 0, 2]])
+    return jnp.interp(t_data, ts, zs)
+
+
+def _uniform_step(t) -> float | None:
+    """The record's sample interval if uniform (to 1e-6 relative), else None."""
+    d = np.diff(t)
+    step = float(np.median(d))
+    return step if np.all(np.abs(d - step) <= 1e-6 * step) else None
+
+
+def _layout(t, dt: float):
+    """(steps, every) of a rollout covering the record at step ``dt``."""
+    step = _uniform_step(t)
+    span = float(t[-1] - t[0])
+    if step is not None:
+        n = step / dt
+        if abs(n - round(n)) < 1e-6:
+            every = int(round(n))
+            return every * (len(t) - 1), every
+    return int(math.ceil(span / dt)) + 1, 0
+
+
+def choose_dt(t, *, radius, mass, z0, v0, k, c, g=9.81, law="linear", noise=1e-3,
+              dt=None, w0dt: float = 0.02, max_halvings: int = 3):
+    """Time step for fitting the record, from the data.
+
+    Start from the record's sample interval divided so that ``w0 dt <= w0dt`` (w0 of the first
+    guess), then halve until the simulated heights at ``dt`` and ``dt / 2`` differ by less
+    than a sixth of the noise (rms over the record). A ``dt`` given by the user is only
+    checked. Returns ``(dt, discretisation_rms, warning or None)``.
+    """
+    t = np.asarray(t, float)
+    w0 = math.sqrt(k / mass)
+    if dt is None:
+        step = float(np.median(np.diff(t)))
+        dt = step / max(1, math.ceil(step * w0 / w0dt))
+        tries = max_halvings
+    else:
+        tries = 0
+    td = jnp.asarray(t)
+    msg = None
+    for i in range(tries + 1):
+        sims = [_ball_sim(radius, mass, z0, v0, g, h, law) for h in (dt, dt / 2)]
+        zz = []
+        for s in sims:
+            st, every = _layout(t, s.dt)
+            zz.append(np.asarray(_model_heights(s, s.params(k=k, c=c), td, t[0], st,
+                                                every=every)))
+        err = float(np.sqrt(np.mean((zz[0] - zz[1]) ** 2)))
+        if err <= noise / 6.0:
+            return dt, err, None
+        if i < tries:
+            dt /= 2.0
+    msg = (f"at dt = {dt:.3g} s the model's own discretisation error ({err * 1e3:.3g} mm rms "
+           f"between dt and dt/2) is not small against the record's noise "
+           f"({noise * 1e3:.3g} mm): the fitted k and c absorb it. Use a smaller --dt.")
+    return dt, err, msg
+
+
+# --------------------------------------------------------------------------- fit
+@dataclasses.dataclass
+class TrajectoryFit:
+    """Outcome of :func:`fit_trajectory` (SI units).
+
+    k, c: fitted N/m, N s/m.  k_stderr, c_stderr: standard errors (Gauss-Newton).
+    first_guess: (k, c) from the record's events.  rms: residual rms, m.  noise: the
+    record's estimated noise, m.  dt: time step used, s.  dt_error: rms difference of the
+    model at dt and dt/2, m.  iterations: LM iterations over all horizons.  seconds: wall
+    time.  horizons: (H,) end times of the grown horizons, s.  history: cost after each
+    accepted step.  z_fit: (N,) model heights at the record's times.  events: the
+    :class:`RecordEvents`.  notes: warnings and choices, in words.
+    """
+    k: float
+    c: float
+    k_stderr: float
+    c_stderr: float
+    first_guess: tuple
+    rms: float
+    noise: float
+    dt: float
+    dt_error: float
+    iterations: int
+    seconds: float
+    horizons: list
+    history: list
+    z_fit: np.ndarray
+    events: RecordEvents
+    converged: bool
+    message: str
+    notes: list
+
+
+def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
+                   law: str = "linear", dt: float | None = None, k0: float | None = None,
+                   c0: float | None = None, maxiter: int = 15, grow: bool = True,
+                   progress: bool | None = None) -> TrajectoryFit:
+    """Fit (k, c) of a ball bouncing on the plane z = 0 to a record of its centre height.
+
+    Args:
+      t: (N,) sample times, s, strictly increasing.  z: (N,) centre heights, m.
+      radius: m.  mass: kg.  g: gravity, m/s^2.  law: contact law.
+      dt: time step, s (default chosen from the data by :func:`choose_dt`).
+      k0, c0: start values (default: :func:`first_guess` from the record's events).
+      maxiter: LM iterations per horizon (the last, full horizon gets twice as many).
+      grow: grow the horizon bounce by bounce (otherwise fit the whole record at once).
+    Returns:
+      :class:`TrajectoryFit` with standard errors from the Gauss-Newton covariance.
+    """
+    t0_wall = time.perf_counter()
+    t, z = np.asarray(t, float), np.asarray(z, float)
+    if t.shape != z.shape or t.ndim != 1:
+        raise FitError(f"t and z must be 1-D arrays of one length, got {t.shape}, {z.shape}.")
+    notes = []
+    ev = record_events(t, z, radius=radius, g=g)
+    kg, cg = first_guess(ev, mass, law=law)
+    notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
+                 f"{np.median(ev.restitution[:3]):.4g}, contact time "
+                 f"{np.median(ev.contact[:3]) * 1e3:.4g} ms -> k={kg:.5g} N/m, c={cg:.5g} N s/m")
+    k_start = kg if k0 is None else float(k0)
+    c_start = cg if c0 is None else float(c0)
+    noise = max(ev.noise, 1e-6)
+    dt, dt_err, warn = choose_dt(t, radius=radius, mass=mass, z0=ev.z0, v0=ev.v0, k=k_start,
+                                 c=c_start, g=g, law=law, noise=noise, dt=dt)
+    if warn:
+        warnings.warn(warn, stacklevel=2)
+        notes.append("WARNING: " + warn)
+    notes.append(f"dt = {dt:.4g} s (model discretisation {dt_err * 1e3:.3g} mm rms vs noise "
+                 f"{noise * 1e3:.3g} mm)")
+    sim = _ball_sim(radius, mass, ev.z0, ev.v0, g, dt, law)
+    steps, every = _layout(t, dt)
+    td = jnp.asarray(t)
+    zd = jnp.asarray(z)
+
+    # theta = (log k, log c, z0, v0): the start state is fitted too (nuisance parameters),
+    # so its uncertainty enters the standard errors of k and c.
+    def residuals(theta, w):
+        p = sim.params(k=jnp.exp(theta[0]), c=jnp.exp(theta[1]))
+        zs = _model_heights(sim, p, td, t[0], steps, theta[2], theta[3], every)
+        return w * (zs - zd)
+
+    @jax.jit
+    def rj(theta, w):
+        r = residuals(theta, w)
+        return r, jax.jacfwd(residuals)(theta, w)
+
+    # Horizons: through the end of each flight (the next landing), then the whole record.
+    ends = [x for x in ev.landing[1:] if np.isfinite(x)] if grow else []
+    horizons = [float(x) + 0.5 * float(np.median(ev.contact[:3])) for x in ends] + [
+        float(t[-1])]
+    horizons = sorted(set(h for h in horizons if h <= t[-1]))
+    lo = np.array([math.log(k_start * 1e-3), math.log(c_start * 1e-3), ev.z0 - 0.05,
+                   ev.v0 - 1.0])
+    hi = np.array([math.log(min(k_start * 1e3, 2.0 * mass / dt ** 2)),
+                   math.log(min(c_start * 1e3, mass / dt)), ev.z0 + 0.05, ev.v0 + 1.0])
+    x = np.array([math.log(k_start), math.log(c_start), ev.z0, ev.v0])
+    hist, its, converged, message = [], 0, False, ""
+    bar = Progress(len(horizons) * maxiter, "diffpen fit --data", progress)
+    for j, hz in enumerate(horizons):
+        w = jnp.asarray((t <= hz).astype(float))
+        last = j == len(horizons) - 1
+        out = levenberg_marquardt(lambda th: rj(th, w), x, lo, hi,
+                                  maxiter=2 * maxiter if last else maxiter, xtol=1e-7,
+                                  ftol=1e-10, progress=bar, offset=its)
+        x = out.x
+        its += out.iterations
+        hist += out.cost_history
+        converged, message = out.converged, out.message
+    bar.close()
+    r, J = (np.asarray(a) for a in rj(jnp.asarray(x), jnp.ones_like(td)))
+    n, p = r.size, x.size
+    s2 = float(r @ r) / max(n - p, 1)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+        se_log = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        se_log = np.full(p, np.inf)
+        notes.append("J^T J is singular at the solution: standard errors are undefined.")
+    k, c = (float(v) for v in np.exp(x[:2]))
+    return TrajectoryFit(
+        k=k, c=c, k_stderr=k * float(se_log[0]), c_stderr=c * float(se_log[1]),
+        first_guess=(kg, cg), rms=float(np.sqrt(np.mean(r * r))), noise=noise, dt=dt,
+        dt_error=dt_err, iterations=its, seconds=time.perf_counter() - t0_wall,
+        horizons=horizons, history=hist, z_fit=np.asarray(r) + z, events=ev,
+        converged=converged, message=message, notes=notes)
+
+
+# --------------------------------------------------------------------------- synthetic data
+def synthetic_record(k: float, c: float, *, radius: float = 0.1, mass: float = 1.0,
+                     drop: float = 1.0, duration: float = 5.0, rate: float = 500.0,
+                     noise: float = 1e-3, dt: float = 2e-5, g: float = 9.81,
+                     law: str = "linear", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A record of a ball dropped from rest at centre height ``drop`` (m): centre heights at
+    ``rate`` Hz for ``duration`` s, simulated with a fine step ``dt`` (s) and Gaussian noise
+    of std ``noise`` (m). Returns ``(t (N,), z (N,))``."""
+    sim = _ball_sim(radius, mass, drop, 0.0, g, dt, law)
+    every = int(round(1.0 / (rate * dt)))
+    if abs(every * dt * rate - 1.0) > 1e-9:
+        raise ValueError(f"1/rate = {1 / rate} s must be a multiple of dt = {dt} s.")
+    n = int(round(duration * rate))
+    traj = sim.rollout(sim.params(k=k, c=c), n * every, sim.init_state(), save_every=every)
+    t = np.concatenate([[0.0], np.asarray(traj.time)])[:n]
+    zc = np.concatenate([[drop], np.asarray(traj.position[:, 0, 2])])[:n]
+    rng = np.random.default_rng(seed)
+    return t, zc + noise * rng.standard_normal(zc.shape)
