@@ -1,0 +1,344 @@
+"""Rigid bodies: quaternions, inertia, Euler's equations, and the terms that produce torque.
+
+A scene with a box (``Scene.add_box``), a rigid sphere (``Scene.add_rigid_sphere``) or an
+anchored spring between rigid bodies compiles with orientation state (unit quaternions
+``(w, x, y, z)``, body to world) and world-frame angular velocities. Nothing of this module is
+traced for scenes without rigid bodies: their ``State.orientation`` stays ``None`` and every
+term returns ``None`` torques.
+
+Dynamics (per body, world frame): ``I_w = R I R^T`` with ``I`` the body-frame principal
+moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equations give the
+angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
+``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
+
+Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
+
+* ``contact_box_plane``: each box corner below a plane is a penalty contact at that corner
+  (the contact law of the simulator), with force ``f n`` at the corner and torque
+  ``r x f n`` (``r`` corner lever arm).
+* ``contact_sphere_box``: spheres and particles against boxes (closest point on the box).
+* ``contact_box_fixed_sphere``: boxes against fixed spheres.
+* ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
+
+Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
+friction their force passes through the centres and produces no torque.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import geometry
+from .compile import TERM_BUILDERS, CompileContext, Term, _spring_axis, gather, scatter
+from .laws import spring_force
+
+__all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics",
+           "anchored_spring_pair", "sphere_box_pair", "corner_plane_pair",
+           "contact_materials"]
+
+
+# --------------------------------------------------------------------------- kinematics
+def quat_to_matrix(q):
+    """Rotation matrices (..., 3, 3) from unit quaternions q (..., 4) = (w, x, y, z)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _mv(m, v):
+    """``m @ v`` for (..., 3, 3) m and (..., 3) v, elementwise (batches better than a dot)."""
+    return jnp.sum(m * v[..., None, :], axis=-1)
+
+
+def _mtv(m, v):
+    """``m^T @ v``, elementwise."""
+    return jnp.sum(m * v[..., :, None], axis=-2)
+
+
+def inertia_diagonal(body) -> np.ndarray:
+    """Body-frame principal moments (3,) kg m^2 of a scene ``Body``: its ``inertia`` if
+    given, else a solid box ``(m/3)(hy^2 + hz^2), ...`` or a solid sphere ``(2/5) m r^2``."""
+    if body.inertia is not None:
+        return np.asarray(body.inertia, dtype=float)
+    m = body.mass
+    if body.half_extents is not None:
+        hx, hy, hz = body.half_extents
+        return m / 3.0 * np.array([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
+    return np.full(3, 0.4 * m * body.radius ** 2)
+
+
+def angular_acceleration(rot, w, tau, inertia, inv_inertia):
+    """Euler's equations for ONE body, world frame.
+
+    Args:
+      rot: (3, 3) rotation, body to world.  w: (3,) angular velocity, rad/s.
+      tau: (3,) torque about the centre of mass, N m.
+      inertia: (3,) body-frame principal moments, kg m^2.  inv_inertia: (3,) their inverses,
+        1/(kg m^2) (0 for bodies that must not rotate).
+    Returns:
+      alpha (3,) rad/s^2 = ``I_w^-1 (tau - w x I_w w)`` with ``I_w = R diag(I) R^T``.
+    """
+    ang_mom = _mv(rot, inertia * _mtv(rot, w))
+    return _mv(rot, inv_inertia * _mtv(rot, tau - jnp.cross(w, ang_mom)))
+
+
+class RigidDynamics:
+    """Static rigid-body data of a compiled scene and the angular acceleration.
+
+    Built by ``diffpen.compile`` only when the scene has rigid bodies.
+    Attributes: ``index`` (r,) int, the free rigid bodies; ``inertia`` (r, 3) kg m^2.
+    """
+
+    def __init__(self, ctx: CompileContext):
+        bodies = ctx.scene.bodies
+        self.n = ctx.n
+        self.index = np.array([i for i, b in enumerate(bodies) if b.rigid and not b.pinned],
+                              dtype=np.int32)
+        inertia = np.array([inertia_diagonal(bodies[i]) for i in self.index]).reshape(-1, 3)
+        self.inertia = ctx.const(inertia)
+        self.inv_inertia = ctx.const(1.0 / inertia) if inertia.size else self.inertia
+        self._const = ctx.const
+
+    def init(self, bodies):
+        """Initial orientations (n, 4) and world angular velocities (n, 3) rad/s; bodies that
+        do not rotate get the identity and zero."""
+        return (self._const([b.orientation for b in bodies]),
+                self._const([b.angular_velocity for b in bodies]))
+
+    def alpha(self, state, tau):
+        """Angular accelerations (n, 3) rad/s^2 from torques tau (n, 3) N m (None = zero)."""
+        idx = self.index
+        if idx.size == 0:
+            return jnp.zeros_like(state.angular_velocity)
+        w = gather(state.angular_velocity, idx, self.n)
+        tau_r = jnp.zeros_like(w) if tau is None else gather(tau, idx, self.n)
+        rot = quat_to_matrix(gather(state.orientation, idx, self.n))
+        alpha = angular_acceleration(rot, w, tau_r, self.inertia, self.inv_inertia)
+        return scatter(alpha, idx, self.n)
+
+
+def contact_materials(scene) -> list[str]:
+    """Contact materials used by the box and sphere-box pairs of ``scene`` (for the params)."""
+    from .compile import _pair_material
+    bodies = scene.bodies
+    boxes = [i for i, b in enumerate(bodies) if b.kind == "box" and b.collide]
+    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
+    used = []
+    for j in boxes:
+        for i in others:
+            if not (bodies[i].pinned and bodies[j].pinned):
+                used.append(_pair_material(scene, bodies[i].material, bodies[j].material))
+        if not bodies[j].pinned:
+            used += [p.material for p in scene.planes] + [f.material for f in
+                                                          scene.fixed_spheres]
+    return list(dict.fromkeys(used))
+
+
+# --------------------------------------------------------------------------- one pair
+def corner_plane_pair(x, v, w, rot, corner, normal, offset):
+    """Geometry of ONE box corner against ONE plane.
+
+    Args:
+      x, v, w: (3,) box centre (m), velocity (m/s), angular velocity (rad/s, world).
+      rot: (3, 3) box rotation.  corner: (3,) corner in the body frame, m.
+      normal: (3,) unit plane normal.  offset: m.
+    Returns:
+      ``(d, vn, r)``: penetration of the corner (m), normal velocity of the corner point
+      ``n . (v + w x r)`` (m/s), and its lever arm r = R corner (3,) m.
+    """
+    r = _mv(rot, corner)
+    d, _ = geometry.sphere_plane(x + r, 0.0, normal, offset)
+    vn = jnp.sum(normal * (v + jnp.cross(w, r)), axis=-1)
+    return d, vn, r
+
+
+def sphere_box_pair(xs, vs, ws, rs, xb, vb, wb, rot, half):
+    """Geometry of ONE sphere ``s`` against ONE box ``b`` (see ``geometry.sphere_box``).
+
+    Returns ``(d, vn, n, r_s, r_b)``: penetration (m), normal velocity of the contact point of
+    s relative to b's (m/s, positive separating), the unit normal (3,) from b to s, and the
+    lever arms (3,) m of the contact point from each centre.
+    """
+    d, n, p = geometry.sphere_box(xs, rs, xb, rot, half)
+    r_s, r_b = p - xs, p - xb
+    v_rel = vs + jnp.cross(ws, r_s) - vb - jnp.cross(wb, r_b)
+    return d, jnp.sum(n * v_rel, axis=-1), n, r_s, r_b
+
+
+def anchored_spring_pair(xa, va, wa, rot_a, anchor_a, xb, vb, wb, rot_b, anchor_b, rest):
+    """Geometry of ONE anchored spring (the paper's ``Spring_c``).
+
+    World anchors ``p = x + R anchor``; anchor velocities ``v + w x r``. Returns
+    ``(stretch, stretch_rate, u, r_a, r_b)``: anchor distance - rest (m), its rate (m/s), the
+    unit axis (3,) from b's anchor to a's, and the lever arms (3,) m.
+
+    The force ``F = -k stretch - c stretch_rate`` along ``u`` acts on a at its anchor and
+    ``-F`` on b at its own anchor. (The paper's listing applies both halves at ``p0`` and
+    halves them, which neither conserves angular momentum nor gives b its torque; this is
+    the physics it describes.)
+    """
+    r_a, r_b = _mv(rot_a, anchor_a), _mv(rot_b, anchor_b)
+    delta = xa + r_a - xb - r_b
+    dv = va + jnp.cross(wa, r_a) - vb - jnp.cross(wb, r_b)
+    stretch, rate, u = _spring_axis(delta, dv, rest)
+    return stretch, rate, u, r_a, r_b
+
+
+# --------------------------------------------------------------------------- terms
+def _box_rows(ctx: CompileContext):
+    return [i for i, b in enumerate(ctx.scene.bodies)
+            if b.kind == "box" and b.collide and not b.pinned]
+
+
+def _box_plane_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, p, corner, ctx.material_index[pl.material])
+            for i in _box_rows(ctx) for p, pl in enumerate(scene.planes)
+            for corner in geometry.box_corners(scene.bodies[i].half_extents)]
+    if not rows:
+        return None
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    mi = np.array([r[3] for r in rows], dtype=np.int32)
+    corners = ctx.const([r[2] for r in rows])
+    normals = ctx.const([scene.planes[r[1]].normal for r in rows])
+    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        w = gather(state.angular_velocity, bi, n)
+        rot = quat_to_matrix(gather(state.orientation, bi, n))
+        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
+        f = law(d, vn, k, c, width)[:, None] * normals
+        return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
+    return Term("contact_box_plane", force)
+
+
+def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, s, ctx.material_index[fs.material])
+            for i in _box_rows(ctx) for s, fs in enumerate(scene.fixed_spheres)]
+    if not rows:
+        return None
+    bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    centers = ctx.const([scene.fixed_spheres[s].center for s in si])
+    radii = ctx.const([scene.fixed_spheres[s].radius for s in si])
+    half = ctx.const([scene.bodies[i].half_extents for i in bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        xb, vb = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        wb = gather(state.angular_velocity, bi, n)
+        rot = quat_to_matrix(gather(state.orientation, bi, n))
+        zero = jnp.zeros_like(xb)
+        d, vn, nrm, _, r_b = jax.vmap(sphere_box_pair)(centers, zero, zero, radii, xb, vb,
+                                                        wb, rot, half)
+        f = law(d, vn, k, c, width)[:, None] * nrm          # on the fixed sphere
+        return -scatter(f, bi, n), -scatter(jnp.cross(r_b, f), bi, n)
+    return Term("contact_box_fixed_sphere", force)
+
+
+def sphere_box_rows(ctx: CompileContext):
+    """Static (sphere, box, material) rows of every sphere/particle-box pair that can move."""
+    from .compile import _pair_material
+    bodies = ctx.scene.bodies
+    boxes = [j for j, b in enumerate(bodies) if b.kind == "box" and b.collide]
+    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
+    return [(i, j, ctx.material_index[_pair_material(ctx.scene, bodies[i].material,
+                                                     bodies[j].material)])
+            for j in boxes for i in others if not (ctx.pinned[i] and ctx.pinned[j])]
+
+
+def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None):
+    """Forces and torques (n, 3) of sphere-box pairs ``(si, bi)`` (index arrays (m,), static
+    or traced) with box half extents ``half`` (m, 3) m, contact stiffness ``k`` and damping
+    ``c`` (scalars or (m,)); ``valid`` (m,) bool masks padded pairs of a broad phase."""
+    n = ctx.n
+    radius = ctx.const(ctx.radius)
+    xs, vs, ws = state.position[si], state.velocity[si], state.angular_velocity[si]
+    xb, vb, wb = state.position[bi], state.velocity[bi], state.angular_velocity[bi]
+    rot = quat_to_matrix(state.orientation[bi])
+    d, vn, nrm, r_s, r_b = jax.vmap(sphere_box_pair)(xs, vs, ws, radius[si], xb, vb, wb, rot,
+                                                      half)
+    fm = ctx.law(d, vn, k, c, ctx.width)
+    if valid is not None:
+        fm = jnp.where(valid, fm, 0.0)
+    f = fm[:, None] * nrm                                  # on the sphere
+    force = jax.ops.segment_sum(f, si, n) - jax.ops.segment_sum(f, bi, n)
+    tau = (jax.ops.segment_sum(jnp.cross(r_s, f), si, n)
+           - jax.ops.segment_sum(jnp.cross(r_b, f), bi, n))
+    return force, tau
+
+
+def _sphere_box_contact(ctx: CompileContext) -> Term | None:
+    if getattr(ctx, "broadphase", None) is not None:
+        return None                     # the broad-phase pair term handles these pairs
+    rows = sphere_box_rows(ctx)
+    if not rows:
+        return None
+    si, bi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    half = ctx.const([ctx.scene.bodies[j].half_extents for j in bi])
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        return sphere_box_force(ctx, k, c, state, si, bi, half)
+    return Term("contact_sphere_box", force)
+
+
+def _anchored_springs(ctx: CompileContext) -> Term | None:
+    springs = [s for s in ctx.scene.anchored_springs
+               if not (ctx.pinned[s.a] and (s.b is None or ctx.pinned[s.b]))]
+    if not springs:
+        return None
+    n = ctx.n
+    ia = np.array([s.a for s in springs], dtype=np.int32)
+    gi = np.array([ctx.group_index[s.group] for s in springs], dtype=np.int32)
+    rest = ctx.const([s.rest_length for s in springs])
+    anchor_a = ctx.const([s.anchor_a for s in springs])
+    anchor_b = ctx.const([s.anchor_b if s.b is not None else (0.0, 0.0, 0.0)
+                          for s in springs])
+    world = np.array([s.b is None for s in springs])
+    # a world end is a fixed point: its "body" is a zero-velocity frame at the anchor
+    ib = np.array([0 if s.b is None else s.b for s in springs], dtype=np.int32)
+    world_x = ctx.const([s.anchor_b if s.b is None else (0.0, 0.0, 0.0) for s in springs])
+    has_world, all_world = bool(world.any()), bool(world.all())
+    is_world = jnp.asarray(world)[:, None]
+
+    def end_b(state, field):
+        value = gather(field, ib, n)
+        return jnp.where(is_world, 0.0, value) if has_world else value
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        xa, va = gather(state.position, ia, n), gather(state.velocity, ia, n)
+        wa = gather(state.angular_velocity, ia, n)
+        rot_a = quat_to_matrix(gather(state.orientation, ia, n))
+        if all_world:
+            xb = world_x
+            vb = wb = jnp.zeros_like(xa)
+            rot_b = jnp.broadcast_to(jnp.eye(3, dtype=xa.dtype), rot_a.shape)
+        else:
+            xb = end_b(state, state.position) + (world_x if has_world else 0.0)
+            vb, wb = end_b(state, state.velocity), end_b(state, state.angular_velocity)
+            rot_b = quat_to_matrix(gather(state.orientation, ib, n))
+        x, xd, u, r_a, r_b = jax.vmap(anchored_spring_pair)(xa, va, wa, rot_a, anchor_a, xb,
+                                                             vb, wb, rot_b, anchor_b, rest)
+        f = spring_force(x, xd, k, c)[:, None] * u          # on a, at its anchor
+        force, tau = scatter(f, ia, n), scatter(jnp.cross(r_a, f), ia, n)
+        if not all_world:
+            fb = jnp.where(is_world, 0.0, f) if has_world else f
+            force = force - scatter(fb, ib, n)
+            tau = tau - scatter(jnp.cross(r_b, fb), ib, n)
+        return force, tau
+    return Term("anchored_springs", force)
+
+
+TERM_BUILDERS.extend([_box_plane_contact, _box_fixed_sphere_contact, _sphere_box_contact,
+                      _anchored_springs])
