@@ -23,8 +23,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry, laws
+from . import stability as _stability
 from .errors import NonFiniteError, SceneError
-from .integrators import INTEGRATORS
+from .integrators import IMPLICIT, INTEGRATORS, build_step
 from .scene import DEFAULT, Scene
 from .state import ContactParams, Params, SpringParams, State, Trajectory
 
@@ -300,7 +301,8 @@ class Simulator:
 
     def __init__(self, scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
                  law: str = "linear", smoothing: float | str = "auto",
-                 exponent: float = 1.0, dtype=None, unroll: int = 1):
+                 exponent: float = 1.0, dtype=None, unroll: int = 1,
+                 substeps: int | str = 1):
         if not isinstance(scene, Scene):
             raise SceneError(f"compile expects a diffpen.Scene, got {type(scene).__name__}.")
         if not scene.bodies:
@@ -335,6 +337,9 @@ class Simulator:
             raise SceneError(f"Hunt-Crossley exponent must be >= 1, got {exponent!r}.")
         if int(unroll) < 1:
             raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
+        if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
+                                   or isinstance(substeps, bool) or substeps < 1):
+            raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
 
         self.scene = scene
         self.dt = dt
@@ -399,11 +404,15 @@ class Simulator:
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
         self._step = INTEGRATORS[integrator](self._accel, dt)
+        self.substeps = substeps if substeps == "auto" else int(substeps)
+        if self.substeps not in (1, "auto") or integrator in IMPLICIT:
+            self._step = self._build_step(1 if substeps == "auto" else self.substeps)
         if self._aux_updates:
             self._step = self._with_aux_updates(self._step)
         self._step_jit = jax.jit(self._step)
         self._rollout_jit = jax.jit(self._rollout_impl,
-                                    static_argnames=("steps", "save_every"))
+                                    static_argnames=("steps", "save_every", "auto_n"))
+        self._auto_steps = {}
 
     def _with_aux_updates(self, step):
         """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
@@ -519,9 +528,35 @@ class Simulator:
         """Advance ``state`` by one time step ``dt``. Pure; jitted."""
         return self._step_jit(params, state)
 
-    def _rollout_impl(self, params, state, steps, save_every):
+    def _build_step(self, n: int):
+        """The integrator step over ``dt`` in ``n`` inner steps (diffpen.integrators)."""
+        return build_step(self.integrator, self._accel, self.dt, substeps=n,
+                          inv_mass=np.where(self.pinned, 0.0, 1.0 / self.mass))
+
+    def _auto_step(self, n: int):
+        """Step with ``n`` substeps picked by ``substeps="auto"`` (built once per count)."""
+        if n not in self._auto_steps:
+            step = self._build_step(n)
+            self._auto_steps[n] = (self._with_aux_updates(step) if self._aux_updates
+                                   else step)
+        return self._auto_steps[n]
+
+    def stability(self, params: Params):
+        """Largest stable step of this integrator for ``params`` and the current margin.
+
+        Returns a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
+        stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
+        Params must be concrete (not jit tracers).
+        """
+        rep = _stability.report(self, params)
+        if rep is None:
+            raise SceneError("sim.stability(params) needs concrete parameter values, not "
+                             "jit tracers.")
+        return rep
+
+    def _rollout_impl(self, params, state, steps, save_every, auto_n=1):
         params = jax.tree_util.tree_map(self._cast, params)
-        step = self._step
+        step = self._step if auto_n == 1 else self._auto_step(auto_n)
         n_saves = steps // save_every
 
         def inner(s, _):
@@ -540,7 +575,8 @@ class Simulator:
                           saved.angular_velocity, saved.aux)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
-                save_every: int = 1, check_finite: bool = True) -> Trajectory:
+                save_every: int = 1, check_finite: bool = True,
+                check_stability: bool = True) -> Trajectory:
         """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
 
         Pure and jitted: works under ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Changing
@@ -553,6 +589,9 @@ class Simulator:
           save_every: keep one state every this many steps.
           check_finite: when called with concrete values, raise :class:`NonFiniteError` naming
             the first step and body at which the state became NaN/inf.
+          check_stability: with concrete params, raise :class:`StabilityError` before running
+            when an explicit integrator's step is past its stability limit
+            (:meth:`stability`); ``substeps="auto"`` picks the substeps here instead.
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
@@ -564,7 +603,9 @@ class Simulator:
                              f"{save_every!r}.")
         if state is None:
             state = self.init_state()
-        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every))
+        auto_n = _stability.gate(self, params, check=check_stability)  # host-side only
+        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
+                                 auto_n=auto_n)
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
         return traj
@@ -589,7 +630,7 @@ class Simulator:
 
 def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
             law: str = "linear", smoothing: float | str = "auto", exponent: float = 1.0,
-            dtype=None, unroll: int = 1) -> Simulator:
+            dtype=None, unroll: int = 1, substeps: int | str = 1) -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
 
     Args:
@@ -604,8 +645,13 @@ def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
       exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).
+      substeps: inner steps of ``dt / substeps`` per step (int >= 1), or ``"auto"``: each
+        rollout with concrete params picks the smallest count that is stable
+        (``diffpen.stability``). With a fixed count, a rollout of an explicit integrator past
+        its stability limit raises :class:`diffpen.StabilityError` naming the stable dt and
+        the substeps that would make it stable. Static: changing it recompiles.
     Returns:
       :class:`Simulator`.
     """
     return Simulator(scene, dt, integrator=integrator, law=law, smoothing=smoothing,
-                     exponent=exponent, dtype=dtype, unroll=unroll)
+                     exponent=exponent, dtype=dtype, unroll=unroll, substeps=substeps)

@@ -14,11 +14,13 @@ from __future__ import annotations
 
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 
 from .state import State
 
-__all__ = ["kick", "drift", "semi_implicit_euler", "INTEGRATORS"]
+__all__ = ["kick", "drift", "semi_implicit_euler", "verlet", "rk4", "implicit_euler",
+           "substepped", "build_step", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF"]
 
 
 def kick(state: State, acc, h) -> State:
@@ -65,3 +67,221 @@ def semi_implicit_euler(accel_fn: Callable, dt: float):
 INTEGRATORS = {
     "semi_implicit_euler": semi_implicit_euler,
 }
+
+
+# --------------------------------------------------------------------------- helpers
+def _with_velocity(state: State, velocity, angular_velocity) -> State:
+    return state._replace(velocity=velocity, angular_velocity=angular_velocity)
+
+
+def _axpy(h, acc, base):
+    """``base + h * acc`` for (linear, angular) pairs, angular may be None."""
+    a, alpha = acc
+    v, w = base
+    return (v + h * a, None if (w is None or alpha is None) else w + h * alpha)
+
+
+# --------------------------------------------------------------------------- explicit
+def verlet(accel_fn: Callable, dt: float):
+    """Velocity Verlet (kick-drift-kick leapfrog).
+
+    ``v+ = v + h/2 a(x, v)``; ``x' = x + h v+``; ``v' = v+ + h/2 a(x', v*)`` with the
+    predicted end velocity ``v* = 2 v+ - v`` (so dampers stay second order). Two force
+    evaluations per step (the state carries no acceleration). Second order; symplectic for
+    position-only forces; stable for an undamped spring when ``w h < 2`` (physics-notes.md
+    section 4).
+    """
+    half = 0.5 * dt
+
+    def step(params, state: State) -> State:
+        s = drift(kick(state, accel_fn(params, state), half), dt)
+        w = s.angular_velocity
+        pred = s._replace(velocity=2.0 * s.velocity - state.velocity,
+                          angular_velocity=None if w is None
+                          else 2.0 * w - state.angular_velocity)
+        return kick(s, accel_fn(params, pred), half)
+    return step
+
+
+def rk4(accel_fn: Callable, dt: float):
+    """Classical fourth-order Runge-Kutta on ``(x, v)``; four force evaluations per step.
+
+    Stable for an undamped spring when ``w h < 2.83`` (physics-notes.md section 4). For rigid
+    bodies the orientation is advanced once with the RK4-weighted angular velocity.
+    """
+    half = 0.5 * dt
+
+    def stage(state, vel, h):
+        # position x + h * vel, velocity = vel's own stage value
+        s = drift(_with_velocity(state, *vel), h)
+        return s
+
+    def step(params, state: State) -> State:
+        v0 = (state.velocity, state.angular_velocity)
+        a1 = accel_fn(params, state)
+        v1 = v0
+        v2 = _axpy(half, a1, v0)
+        s2 = _with_velocity(stage(state, v1, half), *v2)
+        a2 = accel_fn(params, s2)
+        v3 = _axpy(half, a2, v0)
+        s3 = _with_velocity(stage(state, v2, half), *v3)
+        a3 = accel_fn(params, s3)
+        v4 = _axpy(dt, a3, v0)
+        s4 = _with_velocity(stage(state, v3, dt), *v4)
+        a4 = accel_fn(params, s4)
+
+        def comb(i):
+            parts = [p[i] for p in (v1, v2, v3, v4)]
+            if parts[0] is None:
+                return None
+            return (parts[0] + 2.0 * parts[1] + 2.0 * parts[2] + parts[3]) / 6.0
+
+        def comb_a(i):
+            parts = [p[i] for p in (a1, a2, a3, a4)]
+            if parts[0] is None:
+                return None
+            return (parts[0] + 2.0 * parts[1] + 2.0 * parts[2] + parts[3]) / 6.0
+        s = drift(_with_velocity(state, comb(0), comb(1)), dt)
+        return kick(_with_velocity(s, *v0), (comb_a(0), comb_a(1)), dt)
+    return step
+
+
+# --------------------------------------------------------------------------- implicit
+#: Largest number of degrees of freedom (3 x bodies) solved densely by ``implicit_euler``
+#: under ``solver="auto"``; larger scenes use conjugate gradients on Jacobian-vector products.
+DENSE_MAX_DOF = 96
+
+
+def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str = "auto",
+                   cg_tol: float = 1e-10, cg_maxiter: int | None = None):
+    """Linearised backward Euler (Baraff & Witkin 1998), one linear solve per step.
+
+    With ``a = accel_fn(params, state)`` and its Jacobians ``A_x = da/dx``, ``A_v = da/dv``
+    (3n x 3n) at the current state::
+
+        (I - h A_v - h^2 A_x) dv = h (a + h A_x v),   v' = v + dv,   x' = x + h v'
+
+    which is physics-notes.md section 4's ``(M - h df/dv - h^2 df/dx) dv = h (f0 + h df/dx v0)``
+    divided by the mass. Unconditionally stable on linear springs and contacts (it adds
+    numerical damping ``zeta_num ~ w h / 2``, so a fitted ``c`` depends on ``h``).
+
+    Args:
+      accel_fn, dt: as for every integrator (dt in s).
+      inv_mass: (n,) 1/kg, 0 for pinned bodies. Needed by the conjugate-gradient solver, which
+        works on the mass-weighted system ``M (I - h A_v - h^2 A_x)`` (symmetric for
+        conservative springs and contacts) restricted to free bodies.
+      solver: ``"dense"`` (Jacobians by forward mode, ``jnp.linalg.solve``), ``"cg"``
+        (matrix-free conjugate gradients on Jacobian-vector products; gradients through the
+        solve use a second CG on the transposed operator, from vector-Jacobian products), or
+        ``"auto"``: dense up to ``DENSE_MAX_DOF`` degrees of freedom, else CG.
+      cg_tol: relative residual tolerance of CG.  cg_maxiter: CG iteration cap (default 3n).
+    Differentiable with respect to params (and state) through either solve.
+    Rigid-body scenes (states with orientations) are not supported: a SceneError says so.
+    """
+    from jax import lax
+    from .errors import SceneError
+
+    if solver not in ("auto", "dense", "cg"):
+        raise SceneError(f"implicit_euler solver must be 'auto', 'dense' or 'cg', got "
+                         f"{solver!r}.")
+    h = dt
+
+    def step(params, state: State) -> State:
+        if state.orientation is not None:
+            raise SceneError(
+                "integrator 'implicit_euler' supports particle and sphere scenes only (this "
+                "scene has rotating rigid bodies): use integrator='semi_implicit_euler' with "
+                "substeps='auto' for stiff rigid-body scenes.")
+        x0, v0 = state.position, state.velocity
+        shape = x0.shape
+        ndof = x0.size
+        a0 = accel_fn(params, state)[0]
+
+        def acc_xv(x, v):
+            return accel_fn(params, state._replace(position=x.reshape(shape),
+                                                   velocity=v.reshape(shape)))[0].reshape(-1)
+        xf, vf = x0.reshape(-1), v0.reshape(-1)
+        use_dense = solver == "dense" or (solver == "auto" and ndof <= DENSE_MAX_DOF)
+        if use_dense:
+            jx = jax.jacfwd(acc_xv, argnums=0)(xf, vf)
+            jv = jax.jacfwd(acc_xv, argnums=1)(xf, vf)
+            eye = jnp.eye(ndof, dtype=xf.dtype)
+            mat = eye - h * jv - (h * h) * jx
+            rhs = h * (a0.reshape(-1) + h * (jx @ vf))
+            dv = jnp.linalg.solve(mat, rhs)
+        else:
+            if inv_mass is None:
+                raise SceneError("implicit_euler with solver='cg' needs inv_mass (n,) 1/kg; "
+                                 "diffpen.compile passes it.")
+            im = jnp.repeat(jnp.asarray(inv_mass, xf.dtype).reshape(-1), shape[-1])
+            free = (im > 0.0).astype(xf.dtype)
+            w = jnp.where(im > 0.0, 1.0 / jnp.where(im > 0.0, im, 1.0), 1.0)  # mass, kg
+
+            def jvp_x(z):
+                return jax.jvp(lambda x: acc_xv(x, vf), (xf,), (z,))[1]
+
+            def jvp_v(z):
+                return jax.jvp(lambda v: acc_xv(xf, v), (vf,), (z,))[1]
+
+            def matvec(z):
+                zp = free * z
+                az = zp - h * jvp_v(zp) - (h * h) * jvp_x(zp)
+                return free * (w * az) + (1.0 - free) * z
+
+            rhs = free * w * h * (a0.reshape(-1) + h * jvp_x(vf))
+            maxiter = cg_maxiter if cg_maxiter is not None else max(3 * ndof, 20)
+
+            def cg_solve(mv, b):
+                return jax.scipy.sparse.linalg.cg(mv, b, tol=cg_tol, atol=0.0,
+                                                  maxiter=maxiter)[0]
+
+            def transpose_solve(vecmat, b):
+                return cg_solve(vecmat, b)
+            dv = lax.custom_linear_solve(matvec, rhs, solve=cg_solve,
+                                         transpose_solve=transpose_solve)
+        v1 = (vf + dv).reshape(shape)
+        return state._replace(time=state.time + h, position=x0 + h * v1, velocity=v1)
+    return step
+
+
+# --------------------------------------------------------------------------- substeps
+def substepped(step_fn: Callable, n: int):
+    """Run ``step_fn`` (built for ``dt / n``) ``n`` times per call, with ``lax.scan``.
+
+    ``n == 1`` returns ``step_fn`` itself, so nothing extra is traced.
+    """
+    if n == 1:
+        return step_fn
+    from jax import lax
+
+    def step(params, state: State) -> State:
+        def body(s, _):
+            return step_fn(params, s), None
+        return lax.scan(body, state, None, length=n)[0]
+    return step
+
+
+def build_step(name: str, accel_fn: Callable, dt: float, *, substeps: int = 1,
+               inv_mass=None):
+    """``INTEGRATORS[name]`` for a saved step ``dt`` (s) split into ``substeps`` inner steps.
+
+    ``inv_mass`` ((n,) 1/kg, 0 = pinned) goes to integrators that take it (implicit_euler).
+    With ``substeps == 1`` this is exactly ``INTEGRATORS[name](accel_fn, dt)``.
+    """
+    make = INTEGRATORS[name]
+    h = dt / substeps if substeps != 1 else dt
+    if name == "implicit_euler":
+        inner = make(accel_fn, h, inv_mass=inv_mass)
+    else:
+        inner = make(accel_fn, h)
+    return substepped(inner, substeps)
+
+
+INTEGRATORS.update({
+    "verlet": verlet,
+    "rk4": rk4,
+    "implicit_euler": implicit_euler,
+})
+
+#: Integrators that are unconditionally stable on linear springs (no StabilityError).
+IMPLICIT = frozenset({"implicit_euler"})
