@@ -434,3 +434,16 @@ def test_non_finite_rollout_is_reported_not_returned():
     with pytest.raises(dp.NonFiniteError, match="body 1") as info:
         sim.rollout(sim.params(), steps=400, check_stability=False)
     assert 0 < info.value.step < 400 and info.value.body == 1
+
+
+def test_checkpointed_rollout_gives_the_same_values_and_gradients(smooth_ball):
+    def loss(k, c, ck):
+        traj = smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=400, save_every=4,
+                                   checkpoint=ck)
+        return jnp.sum(traj.position[:, 0, 2] ** 2)
+    plain = jax.value_and_grad(loss, (0, 1))(1e4, 20.0, None)
+    ckpt = jax.value_and_grad(loss, (0, 1))(1e4, 20.0, 20)
+    np.testing.assert_allclose(ckpt[0], plain[0], rtol=1e-12)
+    np.testing.assert_allclose(ckpt[1], plain[1], rtol=1e-9)
+    with pytest.raises(dp.SceneError, match="checkpoint"):
+        smooth_ball.rollout(smooth_ball.params(k=1e4, c=1.0), steps=400, checkpoint=30)

@@ -1,0 +1,351 @@
+"""Speed benchmarks of diffpen against baselines measured in the same process.
+
+For every standard scene this measures, after compilation and as the median of several runs
+(``jax.block_until_ready``):
+
+* ``compile_s``: wall time to lower and compile diffpen's forward rollout;
+* ``forward_s`` and ``steps_per_s`` (body-steps per second: batch x steps / forward_s for
+  batched scenes, steps / forward_s otherwise);
+* ``grad_s``: one gradient of a scalar loss of the rollout w.r.t. the scene's (k, c)
+  (per batch element under ``vmap`` for batched scenes), and ``grad_over_forward``;
+* ``memory_bytes``: XLA's memory analysis of the compiled forward and gradient executables
+  (arguments + outputs + temporaries; the peak a device must hold);
+* ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
+  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX);
+* ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy.
+
+Forward workloads return what a tuning metric needs: the ball's full height trajectory, the
+final node positions of spring networks. The functions here compute; ``tuning.cli.bench``
+prints.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+from diffpen import builders
+
+__all__ = ["Case", "CASES", "run_case", "run", "median_time", "memory_bytes"]
+
+G = 9.81
+
+
+def median_time(fn: Callable, *args, repeats: int = 5) -> float:
+    """Median wall time (s) of ``fn(*args)`` over ``repeats`` runs after one warm-up run."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def memory_bytes(compiled) -> int | None:
+    """Arguments + outputs + temporaries of a compiled XLA executable, bytes (None if the
+    backend gives no analysis)."""
+    try:
+        m = compiled.memory_analysis()
+    except Exception:            # backends without memory analysis
+        return None
+    if m is None:
+        return None
+    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
+               - m.alias_size_in_bytes)
+
+
+def _numpy_time(fn: Callable, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+class Case(NamedTuple):
+    """One benchmark configuration. ``build(dtype, quick)`` returns a dict with keys
+    ``forward``, ``grad``, ``floor``, ``numpy`` (callables or None), ``args`` (JAX inputs of
+    forward/grad/floor), ``work`` (body-steps per forward call), ``steps``, ``batch``."""
+    name: str
+    build: Callable[[object, bool], dict]
+
+
+# --------------------------------------------------------------------------- ball
+def _ball(batch: int, quick: bool):
+    def build(dtype, quick_=quick):
+        steps = 2000 if not quick_ else 500
+        b = batch if not quick_ else min(batch, 256)
+        dt, k0, c0 = 1e-3, 1e4, 20.0
+        scene = dp.Scene(gravity=(0.0, 0.0, -G))
+        scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
+        scene.add_plane()
+        sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if b == 1 else 4)
+
+        def heights(k, c):
+            return sim.rollout(sim.params(k=k, c=c), steps=steps).position[:, 0, 2]
+
+        def floor_heights(k, c):
+            one = jnp.ones((), dtype)
+
+            def step(s, _):
+                x, v = s                                  # (3,) position, velocity
+                d = 0.1 - x[2]
+                f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v[2]
+                a = jnp.stack([0.0 * f, 0.0 * f, f - G])
+                v = v + dt * a
+                x = x + dt * v
+                return (x, v), x[2]
+            x0 = jnp.array([0.0, 0.0, 1.0], dtype) * one
+            _, zs = jax.lax.scan(step, (x0, jnp.zeros(3, dtype)), None, length=steps,
+                                 unroll=8)
+            return zs
+
+        def loss(fn):
+            return lambda k, c: jnp.sum(fn(k, c) ** 2)
+
+        ks = jnp.asarray(np.geomspace(5e3, 2e4, b), dtype)
+        cs = jnp.full((b,), c0, dtype)
+        if b == 1:
+            fwd, flr = jax.jit(heights), jax.jit(floor_heights)
+            grad = jax.jit(jax.grad(loss(heights), (0, 1)))
+            fgrad = jax.jit(jax.grad(loss(floor_heights), (0, 1)))
+            args = (jnp.asarray(k0, dtype), jnp.asarray(c0, dtype))
+        else:
+            fwd, flr = jax.jit(jax.vmap(heights)), jax.jit(jax.vmap(floor_heights))
+            grad = jax.jit(jax.vmap(jax.grad(loss(heights), (0, 1))))
+            fgrad = jax.jit(jax.vmap(jax.grad(loss(floor_heights), (0, 1))))
+            args = (ks, cs)
+        npdt = np.dtype(dtype)
+        kn, cn = np.asarray(args[0], npdt), np.asarray(args[1], npdt)
+
+        def numpy_heights():
+            z = np.ones_like(kn) if kn.ndim else np.ones((), npdt)
+            v = np.zeros_like(z)
+            x = np.zeros_like(z)
+            y = np.zeros_like(z)
+            vx = np.zeros_like(z)
+            vy = np.zeros_like(z)
+            out = np.empty((steps,) + z.shape, npdt)
+            for i in range(steps):
+                d = 0.1 - z
+                f = kn * np.maximum(d, 0.0) - cn * (d > 0.0) * v
+                v = v + dt * (f - G)
+                vx = vx + dt * 0.0
+                vy = vy + dt * 0.0
+                z = z + dt * v
+                x = x + dt * vx
+                y = y + dt * vy
+                out[i] = z
+            return out
+        return dict(forward=fwd, grad=grad, floor=flr, floor_grad=fgrad, numpy=numpy_heights,
+                    args=args, work=b * steps, steps=steps, batch=b)
+    return build
+
+
+# --------------------------------------------------------------------------- spring networks
+def _network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
+    """Hand-written floor for spring networks: one spring list, per-spring k and c, symplectic
+    Euler, gravity, pinned nodes; no contact (the network scenes have none)."""
+    springs = [s for s in sim.scene.springs if s.b is not None]
+    ia = np.array([s.a for s in springs])
+    ib = np.array([s.b for s in springs])
+    rest = jnp.asarray([s.rest_length for s in springs], dtype)
+    group = [s.group for s in springs]
+    names = sorted(set(group))
+    gi = np.array([names.index(g) for g in group])
+    free = jnp.asarray((~sim.pinned)[:, None], dtype)
+    inv_m = jnp.asarray(np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None], dtype)
+    grav = jnp.asarray(sim.scene.gravity, dtype) * free
+    dt, n = sim.dt, sim.n_bodies
+    drag = [d for d in sim.scene.drags if not sim.pinned[d.body]]
+    drag_c = np.zeros(n)
+    for d in drag:
+        drag_c[d.body] += sim.scene.drag_groups[d.group]
+    drag_c = jnp.asarray(drag_c[:, None], dtype)
+    has_drag = bool(drag)
+
+    def final(kvec, cvec, x0, v0):
+        k, c = kvec[gi], cvec[gi]
+
+        def step(s, _):
+            x, v = s
+            dx = x[ia] - x[ib]
+            dv = v[ia] - v[ib]
+            length = jnp.sqrt(jnp.sum(dx * dx, -1))
+            u = dx / length[:, None]
+            f = (-k * (length - rest) - c * jnp.sum(u * dv, -1))[:, None] * u
+            force = jax.ops.segment_sum(f, ia, n) - jax.ops.segment_sum(f, ib, n)
+            if has_drag:
+                force = force - drag_c * v
+            v = v + dt * (force * inv_m + grav)
+            return (x + dt * v, v), None
+        (x, _), _ = jax.lax.scan(step, (x0, v0), None, length=steps)
+        return x
+
+    kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
+    cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
+    return final, kvec, cvec, (ia, ib, np.asarray(rest), gi, names)
+
+
+def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: int, dt: float):
+    def build(dtype, quick):
+        n_steps = quick_steps if quick else steps
+        scene = make_scene()
+        sim = dp.compile(scene, dt=dt, dtype=dtype)
+        p0 = sim.params()
+        state = sim.init_state()
+        groups = sim.spring_groups
+
+        def fwd_kc(k, c):
+            # scale every spring group's (k, c) by the same factors: 2 differentiable scalars
+            springs = {g: (p0.springs[g].k * k, p0.springs[g].c * c) for g in groups}
+            p = sim.params(springs=springs)
+            return sim.rollout(p, steps=n_steps, state=state, save_every=n_steps).position[-1]
+
+        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = _network_floor(
+            sim, p0, n_steps, dtype)
+
+        def floor_kc(k, c):
+            return floor_final(kvec * k, cvec * c, state.position, state.velocity)
+
+        def loss(fn):
+            return lambda k, c: jnp.sum(fn(k, c)[:, 2])
+        args = (jnp.asarray(1.0, dtype), jnp.asarray(1.0, dtype))
+        npdt = np.dtype(dtype)
+        kn = np.asarray(kvec, npdt)[gi]
+        cn = np.asarray(cvec, npdt)[gi]
+        inv_m = np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None].astype(npdt)
+        grav = (np.asarray(scene.gravity) * (~sim.pinned)[:, None]).astype(npdt)
+        x0, v0 = np.asarray(state.position, npdt), np.asarray(state.velocity, npdt)
+        n = sim.n_bodies
+
+        def numpy_final():
+            x, v = x0.copy(), v0.copy()
+            for _ in range(n_steps):
+                dx = x[ia] - x[ib]
+                dv = v[ia] - v[ib]
+                length = np.sqrt(np.sum(dx * dx, -1))
+                u = dx / length[:, None]
+                f = (-kn * (length - rest) - cn * np.sum(u * dv, -1))[:, None] * u
+                force = np.stack([np.bincount(ia, f[:, j], n) - np.bincount(ib, f[:, j], n)
+                                  for j in range(3)], -1)
+                v = v + dt * ((force - drag_np * v) * inv_m + grav)
+                x = x + dt * v
+            return x
+        has_only_springs = set(sim.terms) <= {"springs", "drag"}
+        drag_np = np.zeros((n, 1), npdt)
+        for d in scene.drags:
+            if not sim.pinned[d.body]:
+                drag_np[d.body] += scene.drag_groups[d.group]
+        return dict(forward=jax.jit(fwd_kc), grad=jax.jit(jax.grad(loss(fwd_kc), (0, 1))),
+                    floor=jax.jit(floor_kc) if has_only_springs else None,
+                    floor_grad=(jax.jit(jax.grad(loss(floor_kc), (0, 1)))
+                                if has_only_springs else None),
+                    numpy=numpy_final if has_only_springs else None,
+                    args=args, work=n_steps, steps=n_steps, batch=1,
+                    bodies=sim.n_bodies, springs=len(ia))
+    return build
+
+
+def _cloth_scene(n: int) -> dp.Scene:
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    # 0.1 m spacing, 0.1 kg per node: stable at dt = 1e-3 with k = 1e3 on every group
+    # (Gershgorin: 2 x 12 springs x 1e3 / 0.1 x dt^2 = 0.24 < 4)
+    builders.add_cloth(scene, n, n, 0.1, mass=0.1 * n * n, origin=(0.0, 0.0, 1.0),
+                       structural=(1e3, 0.1), shear=(1e3, 0.1), bend=(1e3, 0.1),
+                       pinned=[(0, 0), (n - 1, 0), (0, n - 1), (n - 1, n - 1)],
+                       collide=False)
+    return scene
+
+
+def _jelly_scene(n: int) -> dp.Scene:
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    builders.add_jelly(scene, n, n, n, 0.05, mass=0.1 * n ** 3, origin=(0.0, 0.0, 0.5),
+                       pinned=[(0, 0, n - 1), (n - 1, n - 1, n - 1)], collide=False)
+    return scene
+
+
+def _chain_scene() -> dp.Scene:
+    scene, _ = builders.paper_chain()
+    return scene
+
+
+CASES: dict[str, Case] = {
+    "ball_b1": Case("ball_b1", _ball(1, False)),
+    "ball_b1024": Case("ball_b1024", _ball(1024, False)),
+    "ball_b65536": Case("ball_b65536", _ball(65536, False)),
+    "chain": Case("chain", _network_case(_chain_scene, 2000, 500, 0.1)),
+    "cloth32": Case("cloth32", _network_case(lambda: _cloth_scene(32), 1000, 200, 1e-3)),
+    "cloth64": Case("cloth64", _network_case(lambda: _cloth_scene(64), 1000, 100, 1e-3)),
+    "jelly10": Case("jelly10", _network_case(lambda: _jelly_scene(10), 1000, 100, 1e-3)),
+}
+
+#: Cases run by ``--quick`` (CI-sized).
+QUICK = ("ball_b1", "ball_b1024", "chain", "cloth32")
+
+
+def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int = 5,
+             baselines: bool = True) -> dict:
+    """Measure one case; returns a flat dict of figures (see the module docstring)."""
+    case = CASES[name]
+    spec = case.build(dtype, quick)
+    args = spec["args"]
+    t0 = time.perf_counter()
+    compiled = spec["forward"].lower(*args).compile()
+    compile_s = time.perf_counter() - t0
+    grad_compiled = spec["grad"].lower(*args).compile()
+    fwd = median_time(spec["forward"], *args, repeats=repeats)
+    grad = median_time(spec["grad"], *args, repeats=repeats)
+    out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
+               compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
+               grad_s=grad, grad_over_forward=grad / fwd,
+               memory_bytes=memory_bytes(compiled), grad_memory_bytes=memory_bytes(grad_compiled))
+    for key in ("bodies", "springs"):
+        if key in spec:
+            out[key] = spec[key]
+    if baselines and spec.get("floor") is not None:
+        floor = median_time(spec["floor"], *args, repeats=repeats)
+        out.update(floor_s=floor, vs_floor=fwd / floor)
+        if spec.get("floor_grad") is not None:
+            fg = median_time(spec["floor_grad"], *args, repeats=repeats)
+            out.update(floor_grad_s=fg, grad_vs_floor=grad / fg)
+    if baselines and spec.get("numpy") is not None:
+        nrep = 1 if spec["work"] > 2e6 else 3
+        t_np = _numpy_time(spec["numpy"], nrep)
+        out.update(numpy_s=t_np, vs_numpy=fwd / t_np)
+    return out
+
+
+def run(names=None, *, dtypes=(jnp.float32,), quick: bool = False, repeats: int = 5,
+        progress: Callable[[str], None] | None = None) -> list[dict]:
+    """Run the named cases (default: all, or ``QUICK`` with ``quick=True``) for each dtype."""
+    names = list(names or (QUICK if quick else CASES))
+    for n in names:
+        if n not in CASES:
+            raise ValueError(f"unknown benchmark case {n!r}; choose from {sorted(CASES)}.")
+    rows = []
+    for dtype in dtypes:
+        if jnp.dtype(dtype) == jnp.float64 and not jax.config.jax_enable_x64:
+            raise ValueError("float64 benchmarks need jax_enable_x64 (the CLI sets it).")
+        for n in names:
+            if progress:
+                progress(f"{n} ({jnp.dtype(dtype).name})")
+            rows.append(run_case(n, dtype=dtype, quick=quick, repeats=repeats))
+    return rows
+
+
+def _scaling_exponent(sizes, times) -> float:
+    """Least-squares slope of log(time) against log(size)."""
+    return float(np.polyfit(np.log(sizes), np.log(times), 1)[0])
+
+
+if __name__ == "__main__":  # pragma: no cover
+    print(run(["ball_b1"], quick=True))
