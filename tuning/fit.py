@@ -52,7 +52,9 @@ class FitResult:
       the iteration limit).
     loss_history: (iterations + 1,) loss after each iteration (the first entry is the start).
     iterations: iterations run.  seconds: wall time of the loop, compilation included.
-    traces: how many times the iteration function was traced (1 = compiled once).
+    traces: how many times the residual function was traced (fixed per method, whatever
+      the number of iterations: the loop compiles once).
+    evaluations: compiled-function calls (iterations, LM trial points and start search).
     message: what happened, in words.  stderr: ``{path: standard error}`` or None.
     """
     params: dp.Params
@@ -69,6 +71,7 @@ class FitResult:
     message: str
     stderr: dict | None = None
     start: dict | None = None
+    evaluations: int = 0
     notes: list = dataclasses.field(default_factory=list)
 
 
@@ -323,6 +326,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     log_lo, log_hi = np.log(lo), np.log(hi)
     tgt = {k: jnp.asarray(v) for k, v in targets.items()}
     traces = [0]
+    evals = [0]
 
     def params_of(theta):
         flat = dict(flat0)
@@ -351,7 +355,11 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
             r, m = residual_fn(theta)
             J = jax.jacfwd(lambda th: residual_fn(th)[0])(theta)
             return r, J, m
-        rj_jit = jax.jit(rj)
+        rj_compiled = jax.jit(rj)
+
+        def rj_jit(theta):
+            evals[0] += 1
+            return rj_compiled(theta)
         tols = np.concatenate([np.full(c, tol * math.sqrt(w)) for _, c, w, tol in spec])
         if search is not None:   # problem-specific start search, same compiled function
             slices, pos = {}, 0
@@ -419,6 +427,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
                 iterations = it
                 break
             history.append(loss)
+            evals[0] += 1
             if loss < best[0]:
                 best = (loss, theta_d, m)
             bar.update(it, loss)
@@ -447,7 +456,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     return FitResult(params=params, values=values, targets=tlist, achieved=achieved,
                      rel_error=rel, reached=reached, converged=converged,
                      loss_history=history, iterations=int(iterations), seconds=seconds,
-                     traces=traces[0], message=message,
+                     traces=traces[0], message=message, evaluations=evals[0],
                      start={p: float(v) for p, v in zip(free, x0)})
 
 

@@ -1,0 +1,230 @@
+"""``diffpen fit``: fit contact k and c of the built-in ball scene (or a TOML scene file) to
+bounce targets or to a measured trajectory.
+
+With no arguments it fits the ball (radius 0.1 m, mass 1 kg, centre dropped from 1 m onto the
+plane z = 0) to the default targets: first apex of the lowest point ``DEFAULT_APEX`` m and
+settling time ``DEFAULT_SETTLE`` s (band 1 mm).
+"""
+from __future__ import annotations
+
+import math
+import time
+
+from ._common import CLIError, dump_json, fail, fmt, positive, setup_jax
+
+#: Default targets of ``diffpen fit`` (feasible: reached at k ~ 2.2e3 N/m, c ~ 11 N s/m).
+DEFAULT_APEX = 0.40
+DEFAULT_SETTLE = 2.6
+
+
+def add_arguments(p) -> None:
+    p.add_argument("scene", nargs="?", metavar="SCENE.toml",
+                   help="a scene file with [fit] targets (default: the built-in ball)")
+    p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m "
+                   "(default 0.1)")
+    p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg "
+                   "(default 1)")
+    p.add_argument("--drop", type=positive("--drop"), default=1.0,
+                   help="initial centre height, m (default 1)")
+    p.add_argument("--target-apex", type=positive("--target-apex"), nargs="+", metavar="M",
+                   help="apex heights of the lowest point above the plane, m, bounce by "
+                        f"bounce (default {DEFAULT_APEX} with the default settling target)")
+    p.add_argument("--target-settle", type=positive("--target-settle"), metavar="S",
+                   help=f"settling time, s (default {DEFAULT_SETTLE} when no target is given)")
+    p.add_argument("--target-contact", type=positive("--target-contact"), metavar="S",
+                   help="duration of the first contact, s")
+    p.add_argument("--settle-tol", type=positive("--settle-tol"), default=1e-3, metavar="M",
+                   help="settling band: |z - rest| <= tol, m (default 1e-3)")
+    p.add_argument("--data", metavar="FILE.csv",
+                   help="fit to a measured trajectory: CSV with columns t (s), z (ball centre "
+                        "height, m)")
+    p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
+                   "targets; chosen from the data with --data)")
+    p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"], default="linear",
+                   help="contact law (default linear)")
+    p.add_argument("--method", choices=["lm", "adam", "sgd"], default="lm",
+                   help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
+    p.add_argument("--lr", type=positive("--lr"), default=0.05,
+                   help="learning rate on log-parameters for adam/sgd (default 0.05)")
+    p.add_argument("--maxiter", type=int, help="iteration limit")
+    p.add_argument("--k0", type=positive("--k0"), help="start stiffness, N/m")
+    p.add_argument("--c0", type=positive("--c0"), help="start damping, N s/m")
+    p.add_argument("--plot", metavar="FILE.png", help="trajectory against the targets and the "
+                   "loss curve (needs matplotlib)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+
+
+def run(args) -> int:
+    try:
+        return _run(args)
+    except CLIError as exc:
+        return fail("fit", str(exc))
+    except ImportError as exc:
+        return fail("fit", str(exc))
+    except ValueError as exc:       # FitError, SceneError: bad input, said before compiling
+        return fail("fit", str(exc))
+
+
+def _targets(args) -> dict:
+    tg = {}
+    if args.target_apex:
+        tg["apex_heights"] = list(args.target_apex)
+    if args.target_settle:
+        tg["settling_time"] = args.target_settle
+    if args.target_contact:
+        tg["contact_durations"] = [args.target_contact]
+    if not tg:
+        tg = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
+    return tg
+
+
+def _run(args) -> int:
+    if args.maxiter is not None and args.maxiter < 1:
+        raise CLIError("--maxiter must be a positive integer")
+    if args.scene is not None:
+        if args.data:
+            raise CLIError("give either a scene file or --data, not both")
+        from .. import scenefile
+        return _report(args, *scenefile.fit_file(args.scene, progress=None if not args.json
+                                                 else False, method=args.method,
+                                                 lr=args.lr, maxiter=args.maxiter))
+    if args.data:
+        return _run_data(args)
+    if not args.drop > args.radius:
+        raise CLIError(f"--drop {args.drop} m must exceed --radius {args.radius} m (the ball "
+                       "would start in contact)")
+    setup_jax()
+    import optax
+
+    import diffpen as dp
+
+    from ..fit import fit_bounce
+    targets = _targets(args)
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
+    scene.add_plane()
+    dt = args.dt or 1e-3
+    method, opt = "lm", None
+    if args.method != "lm":
+        method = "optax"
+        opt = (optax.adam(args.lr) if args.method == "adam" else optax.sgd(args.lr))
+    t0 = time.perf_counter()
+    res = fit_bounce(scene, targets, dt=dt, law=args.law, settle_tol=args.settle_tol,
+                     k0=args.k0, c0=args.c0, method=method, optimizer=opt,
+                     maxiter=args.maxiter, progress=False if args.json else None)
+    seconds = time.perf_counter() - t0
+    desc = (f"ball r={args.radius:g} m, m={args.mass:g} kg, centre dropped from "
+            f"z={args.drop:g} m onto the plane z=0 (dt={dt:g} s, {args.law} law, settling band "
+            f"{args.settle_tol * 1e3:g} mm)")
+    k = res.params.contact["default"].k
+    c = res.params.contact["default"].c
+    out = {"scene": desc, "k": float(k), "c": float(c), "targets": res.targets,
+           "achieved": res.achieved, "rel_error": res.rel_error, "reached": res.reached,
+           "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds, "message": res.message,
+           "notes": res.notes, "dt": dt, "law": args.law,
+           "zeta": float(dp.physical.damping_ratio(k, c, args.mass))}
+    if args.plot:
+        _plot_targets(args, scene, res, dt)
+    return _print(args, out)
+
+
+def _report(args, out: dict, plot_fn=None) -> int:
+    if args.plot and plot_fn is not None:
+        plot_fn(args.plot)
+    return _print(args, out)
+
+
+def _print(args, out: dict) -> int:
+    if args.json:
+        dump_json(out)
+        return 0 if out.get("reached", True) else 1
+    print(f"diffpen fit: {out['scene']}")
+    if "targets" in out:
+        print("targets:   " + "   ".join(f"{n} = {fmt(v)}" for n, v in out["targets"].items()))
+    kse = out.get("k_stderr")
+    if kse is not None:
+        print(f"fitted:    k = {out['k']:.6g} +- {kse:.2g} N/m   c = {out['c']:.6g} +- "
+              f"{out['c_stderr']:.2g} N s/m   (standard errors)")
+    else:
+        print(f"fitted:    k = {out['k']:.6g} N/m   c = {out['c']:.6g} N s/m"
+              + (f"   (damping ratio {out['zeta']:.4g})" if "zeta" in out else ""))
+    if "achieved" in out:
+        parts = []
+        for n, v in out["achieved"].items():
+            err = out.get("rel_error", {}).get(n)
+            parts.append(f"{n} = {fmt(v, '', 6)}" + (f" ({err * 100:.3g}% off)"
+                                                     if err is not None else ""))
+        print("achieved:  " + "   ".join(parts))
+    for key, label in (("rms", "residual rms (m)"), ("noise", "record noise (m)"),
+                       ("first_guess", "first guess (k, c)")):
+        if key in out:
+            print(f"{label}: {fmt(out[key])}")
+    for note in out.get("notes", []):
+        print(f"note:      {note}")
+    status = "targets reached" if out.get("reached", True) else "TARGETS NOT REACHED"
+    ev = f" ({out['evaluations']} simulations with gradients)" if "evaluations" in out else ""
+    print(f"status:    {status} -- {out.get('message', '')}; {out['iterations']} iterations"
+          f"{ev}, {out['seconds']:.2f} s wall time")
+    return 0 if out.get("reached", True) else 1
+
+
+def _plot_targets(args, scene, res, dt) -> None:
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffpen as dp
+
+    from ..metrics import resting_height
+    from ..plots import fit_figure
+    sim = dp.compile(scene, dt, law=args.law)
+    dur = res.targets.get("settling_time", 3.0)
+    steps = int(math.ceil(1.3 * dur / dt))
+    s0 = sim.init_state()
+    traj = sim.rollout(res.params, steps, s0)
+    t = np.concatenate([[0.0], np.asarray(traj.time)])
+    z = np.concatenate([[args.drop], np.asarray(traj.position[:, 0, 2])])
+    k = float(res.params.contact["default"].k)
+    rest = float(resting_height(jnp.asarray(k), args.mass, 9.81, args.radius, law=args.law,
+                                width=sim.smoothing))
+    fit_figure(args.plot, t, z, targets=res.targets, achieved=res.achieved,
+               loss_history=res.loss_history, radius=args.radius, settle_tol=args.settle_tol,
+               rest=rest, title=f"k={k:.4g} N/m, c={float(res.params.contact['default'].c):.4g}"
+                                " N s/m")
+
+
+def _run_data(args) -> int:
+    if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
+        raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
+    from ..sysid import fit_trajectory, load_csv
+    t, z = load_csv(args.data)           # validated before anything is compiled
+    setup_jax()
+    res = fit_trajectory(t, z, radius=args.radius, mass=args.mass, law=args.law, dt=args.dt,
+                         k0=args.k0, c0=args.c0, maxiter=args.maxiter or 15,
+                         progress=False if args.json else None)
+    out = {"scene": f"ball r={args.radius:g} m, m={args.mass:g} kg fitted to {args.data} "
+                    f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, {args.law} "
+                    "law)",
+           "k": res.k, "c": res.c, "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
+           "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
+           "first_guess": list(res.first_guess), "rms": res.rms, "noise": res.noise,
+           "dt": res.dt, "iterations": res.iterations, "seconds": res.seconds,
+           "message": res.message, "notes": res.notes, "reached": True, "law": args.law}
+    if args.plot:
+        from ..plots import trajectory_fit_figure
+        trajectory_fit_figure(args.plot, t, z, res.z_fit, res.history,
+                              title=f"k={res.k:.5g}+-{res.k_stderr:.2g} N/m, "
+                                    f"c={res.c:.5g}+-{res.c_stderr:.2g} N s/m")
+    if args.json:
+        dump_json(out)
+        return 0
+    print(f"diffpen fit: {out['scene']}")
+    print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} N/m   c = {res.c:.6g} +- "
+          f"{res.c_stderr:.2g} N s/m   (standard errors, Gauss-Newton)")
+    print(f"first guess from the record's events: k = {res.first_guess[0]:.5g} N/m, "
+          f"c = {res.first_guess[1]:.5g} N s/m")
+    print(f"residual rms {res.rms * 1e3:.3g} mm against record noise {res.noise * 1e3:.3g} mm")
+    for note in res.notes:
+        print(f"note:      {note}")
+    print(f"status:    {res.message}; {res.iterations} LM iterations over "
+          f"{len(res.horizons)} horizons, {res.seconds:.2f} s wall time")
+    return 0

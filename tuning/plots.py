@@ -1,0 +1,105 @@
+"""Figures for fits and sweeps. matplotlib is an optional extra (``pip install diffpen[plot]``)
+and is imported only when a figure is drawn."""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["require_matplotlib", "fit_figure", "trajectory_fit_figure", "heatmap"]
+
+
+def require_matplotlib():
+    """Import matplotlib with the Agg backend, or raise ImportError saying how to install it."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise ImportError("plots need matplotlib: pip install 'diffpen[plot]' (or "
+                          "pip install matplotlib).") from None
+    return plt
+
+
+def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radius: float,
+               settle_tol: float | None = None, rest: float | None = None,
+               title: str = "") -> None:
+    """Two panels: the fitted trajectory (lowest point above the surface, m, against s) with
+    the apex targets and the settling band, and the loss against the iteration.
+
+    Args:
+      t: (S,) s.  z: (S,) centre height, m.  targets, achieved: as in ``FitResult``.
+      loss_history: (I,) loss per iteration.  radius: m.  rest: resting centre height, m.
+    """
+    plt = require_matplotlib()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [2, 1]})
+    t, z = np.asarray(t), np.asarray(z)
+    a1.plot(t, z - radius, lw=1.0, label="fitted trajectory (lowest point)")
+    for i, h in enumerate(np.atleast_1d(targets.get("apex_heights", []))):
+        a1.axhline(h, color="C1", ls="--", lw=0.8, label="apex target" if i == 0 else None)
+    ts = targets.get("settling_time")
+    if ts is not None:
+        a1.axvline(ts, color="C2", ls="--", lw=0.8, label=f"settling target {ts:.3g} s")
+        got = achieved.get("settling_time")
+        if got is not None and np.isfinite(got):
+            a1.axvline(got, color="C2", lw=0.8, label=f"settling achieved {got:.4g} s")
+    if rest is not None and settle_tol is not None:
+        a1.axhspan(rest - radius - settle_tol, rest - radius + settle_tol, color="C2",
+                   alpha=0.2, label=f"band +-{settle_tol * 1e3:.3g} mm")
+    a1.set_xlabel("time (s)")
+    a1.set_ylabel("height of lowest point (m)")
+    a1.legend(fontsize=8)
+    a1.set_title(title or "fitted trajectory")
+    a2.semilogy(np.arange(len(loss_history)), np.maximum(np.asarray(loss_history), 1e-300))
+    a2.set_xlabel("iteration")
+    a2.set_ylabel("loss")
+    a2.set_title("loss")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> None:
+    """Measured record and fitted model (m against s), residuals, and the LM cost."""
+    plt = require_matplotlib()
+    fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(9, 8), sharex=False)
+    a1.plot(t, z, ".", ms=2, label="record")
+    a1.plot(t, z_fit, lw=1.0, label="fit")
+    a1.set_ylabel("centre height (m)")
+    a1.legend(fontsize=8)
+    a1.set_title(title or "trajectory fit")
+    a2.plot(t, (np.asarray(z_fit) - np.asarray(z)) * 1e3, lw=0.6)
+    a2.set_ylabel("residual (mm)")
+    a2.set_xlabel("time (s)")
+    a3.semilogy(np.maximum(np.asarray(history), 1e-300))
+    a3.set_xlabel("LM step (all horizons)")
+    a3.set_ylabel("cost (m^2)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
+            point: tuple | None = None, title: str = "") -> None:
+    """A metric over a (k, c) grid on log axes, with the ``target`` contour.
+
+    Args:
+      k: (nk,) N/m.  c: (nc,) N s/m.  values: (nk, nc) metric values (nan where undefined).
+      point: optional (k, c) to mark (e.g. a fitted point).
+    """
+    plt = require_matplotlib()
+    fig, ax = plt.subplots(figsize=(6.5, 5))
+    v = np.ma.masked_invalid(np.asarray(values, float).T)
+    mesh = ax.pcolormesh(k, c, v, shading="nearest", cmap="viridis")
+    fig.colorbar(mesh, ax=ax, label=metric)
+    if target is not None and np.nanmin(values) < target < np.nanmax(values):
+        cs = ax.contour(k, c, v, levels=[target], colors="w", linewidths=1.5)
+        ax.clabel(cs, fmt={target: f"target {target:.3g}"}, fontsize=8)
+    if point is not None:
+        ax.plot(*point, "r*", ms=12)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("k (N/m)")
+    ax.set_ylabel("c (N s/m)")
+    ax.set_title(title or metric)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
