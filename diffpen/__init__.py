@@ -7,6 +7,7 @@ needs) -> ``Params`` (k, c: what you differentiate) -> ``State`` / ``Trajectory`
 from . import geometry, integrators, laws, physical
 from . import plastic  # registers the plastic-spring term  # noqa: E402
 from . import builders
+from . import rigid, broadphase  # register the rigid-body and broad-phase terms
 from .compile import Simulator, compile
 from .errors import NonFiniteError, SceneError, StabilityError
 from .scene import Scene
@@ -19,4 +20,5 @@ __all__ = [
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
+    "rigid", "broadphase",
 ]

@@ -23,9 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry, laws
-from . import stability as _stability
 from .errors import NonFiniteError, SceneError
-from .integrators import IMPLICIT, INTEGRATORS, build_step
+from .integrators import INTEGRATORS
 from .scene import DEFAULT, Scene
 from .state import ContactParams, Params, SpringParams, State, Trajectory
 
@@ -120,7 +119,8 @@ def _plane_contact(ctx: CompileContext) -> Term | None:
     scene = ctx.scene
     rows = [(i, p, ctx.material_index[pl.material])
             for p, pl in enumerate(scene.planes)
-            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
+            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
     if not rows:
         return None
     bi, pi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
@@ -143,7 +143,8 @@ def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
     scene = ctx.scene
     rows = [(i, s, ctx.material_index[fs.material])
             for s, fs in enumerate(scene.fixed_spheres)
-            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
+            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
     if not rows:
         return None
     bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
@@ -163,6 +164,8 @@ def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
 
 
 def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
+    if ctx.broadphase is not None:
+        return None                     # diffpen.broadphase builds the pair term instead
     scene = ctx.scene
     spheres = [i for i in range(ctx.n)
                if ctx.collide[i] and ctx.radius[i] > 0.0 and scene.bodies[i].kind == "sphere"]
@@ -301,8 +304,7 @@ class Simulator:
 
     def __init__(self, scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
                  law: str = "linear", smoothing: float | str = "auto",
-                 exponent: float = 1.0, dtype=None, unroll: int = 1,
-                 substeps: int | str = 1):
+                 exponent: float = 1.0, dtype=None, unroll: int = 1, broadphase=None):
         if not isinstance(scene, Scene):
             raise SceneError(f"compile expects a diffpen.Scene, got {type(scene).__name__}.")
         if not scene.bodies:
@@ -337,9 +339,6 @@ class Simulator:
             raise SceneError(f"Hunt-Crossley exponent must be >= 1, got {exponent!r}.")
         if int(unroll) < 1:
             raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
-        if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
-                                   or isinstance(substeps, bool) or substeps < 1):
-            raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
 
         self.scene = scene
         self.dt = dt
@@ -377,9 +376,14 @@ class Simulator:
             for j in spheres[a_pos + 1:]:
                 if not (self.pinned[i] and self.pinned[j]):
                     use(_pair_material(scene, bodies[i].material, bodies[j].material))
+        if scene.has_rotation:
+            from . import rigid
+            for name in rigid.contact_materials(scene):
+                use(name)
         self.materials = tuple(used)
         self.spring_groups = tuple(dict.fromkeys(
-            s.group for s in (*scene.springs, *scene.plastic_springs)))
+            s.group for s in (*scene.springs, *scene.plastic_springs,
+                              *scene.anchored_springs)))
 
         base_law = laws.CONTACT_LAWS[law]
         law_fn = (base_law if law != "hunt_crossley" else
@@ -388,8 +392,17 @@ class Simulator:
             scene=scene, dtype=self.dtype, law=law_fn, width=width,
             material_index={m: i for i, m in enumerate(self.materials)},
             group_index={g: i for i, g in enumerate(self.spring_groups)},
-            mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide)
+            mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
+            broadphase=broadphase)
+        if broadphase is not None:
+            from . import broadphase as _broadphase
+            _broadphase.check(broadphase, ctx)
         self._ctx = ctx
+        self.broadphase = broadphase
+        self._rigid = None
+        if scene.has_rotation:
+            from . import rigid
+            self._rigid = rigid.RigidDynamics(ctx)
         built = (build(ctx) for build in TERM_BUILDERS)
         self._terms: list[Term] = [t for t in built if t is not None]
         self.terms = tuple(t.name for t in self._terms)
@@ -404,15 +417,11 @@ class Simulator:
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
         self._step = INTEGRATORS[integrator](self._accel, dt)
-        self.substeps = substeps if substeps == "auto" else int(substeps)
-        if self.substeps not in (1, "auto") or integrator in IMPLICIT:
-            self._step = self._build_step(1 if substeps == "auto" else self.substeps)
         if self._aux_updates:
             self._step = self._with_aux_updates(self._step)
         self._step_jit = jax.jit(self._step)
         self._rollout_jit = jax.jit(self._rollout_impl,
-                                    static_argnames=("steps", "save_every", "auto_n"))
-        self._auto_steps = {}
+                                    static_argnames=("steps", "save_every"))
 
     def _with_aux_updates(self, step):
         """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
@@ -497,9 +506,11 @@ class Simulator:
     def init_state(self) -> State:
         """The scene's initial state (time 0, positions and velocities as added)."""
         b = self.scene.bodies
+        q, w = self._rigid.init(b) if self._rigid is not None else (None, None)
         return State(time=jnp.zeros((), self.dtype),
                      position=self._ctx.const([x.position for x in b]),
                      velocity=self._ctx.const([x.velocity for x in b]),
+                     orientation=q, angular_velocity=w,
                      aux={k: self._ctx.const(v) for k, v in self._ctx.aux_init.items()})
 
     # ------------------------------------------------------------------ dynamics
@@ -522,41 +533,18 @@ class Simulator:
         if self._gravity is not None:
             with jax.named_scope("gravity"):
                 a = a + self._gravity
-        return a, None
+        if self._rigid is None:
+            return a, None
+        with jax.named_scope("rigid_dynamics"):
+            return a, self._rigid.alpha(state, tau)
 
     def step(self, params: Params, state: State) -> State:
         """Advance ``state`` by one time step ``dt``. Pure; jitted."""
         return self._step_jit(params, state)
 
-    def _build_step(self, n: int):
-        """The integrator step over ``dt`` in ``n`` inner steps (diffpen.integrators)."""
-        return build_step(self.integrator, self._accel, self.dt, substeps=n,
-                          inv_mass=np.where(self.pinned, 0.0, 1.0 / self.mass))
-
-    def _auto_step(self, n: int):
-        """Step with ``n`` substeps picked by ``substeps="auto"`` (built once per count)."""
-        if n not in self._auto_steps:
-            step = self._build_step(n)
-            self._auto_steps[n] = (self._with_aux_updates(step) if self._aux_updates
-                                   else step)
-        return self._auto_steps[n]
-
-    def stability(self, params: Params):
-        """Largest stable step of this integrator for ``params`` and the current margin.
-
-        Returns a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
-        stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
-        Params must be concrete (not jit tracers).
-        """
-        rep = _stability.report(self, params)
-        if rep is None:
-            raise SceneError("sim.stability(params) needs concrete parameter values, not "
-                             "jit tracers.")
-        return rep
-
-    def _rollout_impl(self, params, state, steps, save_every, auto_n=1):
+    def _rollout_impl(self, params, state, steps, save_every):
         params = jax.tree_util.tree_map(self._cast, params)
-        step = self._step if auto_n == 1 else self._auto_step(auto_n)
+        step = self._step
         n_saves = steps // save_every
 
         def inner(s, _):
@@ -575,8 +563,7 @@ class Simulator:
                           saved.angular_velocity, saved.aux)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
-                save_every: int = 1, check_finite: bool = True,
-                check_stability: bool = True) -> Trajectory:
+                save_every: int = 1, check_finite: bool = True) -> Trajectory:
         """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
 
         Pure and jitted: works under ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Changing
@@ -589,9 +576,6 @@ class Simulator:
           save_every: keep one state every this many steps.
           check_finite: when called with concrete values, raise :class:`NonFiniteError` naming
             the first step and body at which the state became NaN/inf.
-          check_stability: with concrete params, raise :class:`StabilityError` before running
-            when an explicit integrator's step is past its stability limit
-            (:meth:`stability`); ``substeps="auto"`` picks the substeps here instead.
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
@@ -603,11 +587,12 @@ class Simulator:
                              f"{save_every!r}.")
         if state is None:
             state = self.init_state()
-        auto_n = _stability.gate(self, params, check=check_stability)  # host-side only
-        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
-                                 auto_n=auto_n)
+        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every))
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
+        if self.broadphase is not None and _is_concrete(traj.position):
+            from .broadphase import warn_overflow
+            warn_overflow(traj)
         return traj
 
     def _check_finite(self, traj: Trajectory, save_every: int) -> None:
@@ -630,7 +615,7 @@ class Simulator:
 
 def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
             law: str = "linear", smoothing: float | str = "auto", exponent: float = 1.0,
-            dtype=None, unroll: int = 1, substeps: int | str = 1) -> Simulator:
+            dtype=None, unroll: int = 1, broadphase=None) -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
 
     Args:
@@ -645,13 +630,13 @@ def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
       exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).
-      substeps: inner steps of ``dt / substeps`` per step (int >= 1), or ``"auto"``: each
-        rollout with concrete params picks the smallest count that is stable
-        (``diffpen.stability``). With a fixed count, a rollout of an explicit integrator past
-        its stability limit raises :class:`diffpen.StabilityError` naming the stable dt and
-        the substeps that would make it stable. Static: changing it recompiles.
+      broadphase: how sphere-sphere and sphere-box pairs are found: None (default) evaluates
+        every pair that can move (exact, cost ~ pairs); ``diffpen.broadphase.AABB(max_pairs)``
+        prunes them by bounding boxes, ``diffpen.broadphase.Grid(...)`` by a neighbour grid
+        (near-linear cost). Capacities are static; overflow is reported in
+        ``State.aux["broadphase_overflow"]``. Changing it recompiles.
     Returns:
       :class:`Simulator`.
     """
     return Simulator(scene, dt, integrator=integrator, law=law, smoothing=smoothing,
-                     exponent=exponent, dtype=dtype, unroll=unroll, substeps=substeps)
+                     exponent=exponent, dtype=dtype, unroll=unroll, broadphase=broadphase)

@@ -11,8 +11,9 @@ Norms are "safe" (double-where): gradients stay finite when two centres coincide
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["safe_norm", "sphere_plane", "sphere_sphere"]
+__all__ = ["safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "sphere_box"]
 
 
 def safe_norm(v, axis=-1, keepdims=False):
@@ -44,3 +45,53 @@ def sphere_sphere(xa, ra, xb, rb):
     dist = safe_norm(delta)
     inv = jnp.where(dist > 0.0, 1.0 / jnp.where(dist > 0.0, dist, 1.0), 0.0)
     return ra + rb - dist, delta * inv
+
+
+def box_corners(half_extents):
+    """The 8 corners of a box in its body frame, (8, 3) m (numpy, static), from
+    ``half_extents`` (3,) m."""
+    signs = np.array([[sx, sy, sz] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
+                      for sz in (-1.0, 1.0)])
+    return signs * np.asarray(half_extents, dtype=float)
+
+
+def sphere_box(xs, rs, xb, rot, half):
+    """Sphere (or particle, ``rs = 0``) ``s`` against the box ``b``.
+
+    Args:
+      xs: (3,) sphere centre, m.  rs: sphere radius, m.
+      xb: (3,) box centre, m.  rot: (3, 3) box rotation, body to world.
+      half: (3,) box half extents, m.
+    Returns:
+      ``(d, n, p)``: penetration depth d (m; ``rs - distance`` from the centre to the box, or
+      ``rs + depth`` of the centre inside the box along its shallowest face), the unit normal
+      n (3,) pointing from the box to the sphere, and the contact point p (3,) on the box
+      surface, world frame, m. Continuous across the box surface; finite gradients when the
+      centre lies on the surface.
+    """
+    local = _mtv(rot, xs - xb)
+    closest = jnp.clip(local, -half, half)
+    delta = local - closest
+    dist = safe_norm(delta)
+    inv = jnp.where(dist > 0.0, 1.0 / jnp.where(dist > 0.0, dist, 1.0), 0.0)
+    # centre inside: push out through the face of least depth
+    depth_in = half - jnp.abs(local)
+    axis = jnp.argmin(depth_in)
+    onehot = jnp.arange(3) == axis
+    sign = jnp.where(local[axis] >= 0.0, 1.0, -1.0)
+    inside = dist <= 0.0
+    n_local = jnp.where(inside, jnp.where(onehot, sign, 0.0), delta * inv)
+    p_local = jnp.where(inside & onehot, sign * half, closest)
+    d = jnp.where(inside, rs + jnp.min(depth_in), rs - dist)
+    return d, _mv(rot, n_local), xb + _mv(rot, p_local)
+
+
+def _mv(m, v):
+    """``m @ v`` for (3, 3) m, written elementwise (batches better than dot_general)."""
+    return jnp.sum(m * v[..., None, :], axis=-1)
+
+
+def _mtv(m, v):
+    """``m.T @ v`` for (3, 3) m, elementwise."""
+    return jnp.sum(m * v[..., :, None], axis=-2)
+

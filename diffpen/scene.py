@@ -17,7 +17,7 @@ import numpy as np
 from .errors import SceneError
 
 __all__ = ["Scene", "Body", "Spring", "Plane", "FixedSphere", "Material", "SpringGroup", "Drag",
-           "PlasticSpring"]
+           "PlasticSpring", "AnchoredSpring"]
 
 DEFAULT = "default"
 
@@ -39,6 +39,17 @@ def _vec3(name: str, value) -> tuple[float, float, float]:
     return tuple(float(a) for a in arr)
 
 
+def _finite_vec(name: str, value, size: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be {size} numbers, got {value!r}.") from None
+    if arr.shape != (size,):
+        raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
+    _finite(name, arr)
+    return arr
+
+
 def _positive(name: str, value, *, allow_zero: bool = False) -> float:
     try:
         v = float(value)
@@ -53,7 +64,13 @@ def _positive(name: str, value, *, allow_zero: bool = False) -> float:
 
 @dataclasses.dataclass(frozen=True)
 class Body:
-    """A point mass (``radius == 0``) or a sphere. ``pinned`` bodies never move."""
+    """A point mass (``radius == 0``), a sphere or a box. ``pinned`` bodies never move.
+
+    Rigid bodies (``rigid=True``: boxes and rigid spheres) also carry an orientation (unit
+    quaternion w, x, y, z, body to world), a world-frame angular velocity (rad/s) and the
+    body-frame principal moments of inertia (kg m^2). A box's ``radius`` is the radius of
+    its bounding sphere, m; ``half_extents`` are its half side lengths, m.
+    """
     kind: str
     mass: float
     radius: float
@@ -62,6 +79,11 @@ class Body:
     pinned: bool
     material: str
     collide: bool
+    rigid: bool = False
+    orientation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    angular_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float] | None = None
+    half_extents: tuple[float, float, float] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +92,21 @@ class Spring:
     a: int
     b: int | None
     anchor: tuple[float, float, float] | None
+    rest_length: float
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class AnchoredSpring:
+    """Damped spring between anchor points fixed in rigid bodies (the paper's ``Spring_c``).
+
+    ``anchor_a`` / ``anchor_b`` are in the body frames of ``a`` / ``b``, m. With ``b is None``
+    the second end is the fixed world point ``anchor_b``.
+    """
+    a: int
+    b: int | None
+    anchor_a: tuple[float, float, float]
+    anchor_b: tuple[float, float, float]
     rest_length: float
     group: str
 
@@ -140,6 +177,7 @@ class Scene:
         self.gravity = _vec3("gravity", gravity)
         self.bodies: list[Body] = []
         self.springs: list[Spring] = []
+        self.anchored_springs: list[AnchoredSpring] = []
         self.planes: list[Plane] = []
         self.fixed_spheres: list[FixedSphere] = []
         self.materials: dict[str, Material] = {DEFAULT: Material()}
@@ -406,6 +444,155 @@ class Scene:
         rest_length = _positive("plastic spring rest_length (m)", rest_length)
         self.plastic_springs.append(PlasticSpring(a, b, rest_length, group))
         return len(self.plastic_springs) - 1
+
+    # ----------------------------------------------------------------- rigid bodies
+    def _make_rigid(self, i: int, orientation, angular_velocity, inertia, half_extents) -> int:
+        """Turn the just-added body ``i`` into a rigid body (removed again on bad input)."""
+        body = self.bodies[i]
+        try:
+            q = _finite_vec("orientation (w, x, y, z)", orientation, 4)
+            norm = float(np.linalg.norm(q))
+            if norm < 1e-12:
+                raise SceneError("orientation quaternion is zero: give a rotation as "
+                                 "(w, x, y, z), e.g. (1, 0, 0, 0) for none.")
+            w = _vec3("angular_velocity (rad/s)", angular_velocity)
+            if body.pinned and any(v != 0.0 for v in w):
+                raise SceneError("a pinned body cannot have an initial angular velocity: drop "
+                                 "angular_velocity= or pinned=True.")
+            if inertia is not None:
+                inertia = tuple(_positive("inertia (kg m^2)", v)
+                                for v in _finite_vec("inertia (kg m^2)", inertia, 3))
+        except SceneError:
+            self.bodies.pop()
+            raise
+        self.bodies[i] = dataclasses.replace(
+            body, rigid=True, orientation=tuple(float(v) for v in q / norm),
+            angular_velocity=w, inertia=inertia, half_extents=half_extents)
+        return i
+
+    def add_box(self, half_extents: Sequence[float], mass: float, position: Sequence[float],
+                velocity: Sequence[float] = (0.0, 0.0, 0.0), *,
+                orientation: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+                angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
+                inertia: Sequence[float] | None = None, pinned: bool = False,
+                material: str = DEFAULT, collide: bool = True) -> int:
+        """Add a rigid box. Returns its body index.
+
+        Args:
+          half_extents: (3,) half side lengths along the body axes, m, each > 0.
+          mass: kg, > 0.  position: (3,) centre, m.  velocity: (3,) m/s.
+          orientation: quaternion (w, x, y, z), body to world; normalised here (a zero
+            quaternion is rejected).
+          angular_velocity: (3,) world frame, rad/s.
+          inertia: (3,) body-frame principal moments, kg m^2; default the solid box's
+            ``(m / 3) (hy^2 + hz^2)``, ... .
+          pinned: fixed in space.  material: contact material name.
+          collide: whether it touches planes, fixed spheres and spheres.
+        Contacts: each corner against planes, spheres against the box (see
+        :mod:`diffpen.rigid`); boxes do not collide with other boxes.
+        """
+        h = tuple(_positive("box half_extents (m)", v)
+                  for v in _finite_vec("box half_extents (m)", half_extents, 3))
+        i = self._add_body("box", mass, math.hypot(*h), position, velocity, pinned, material,
+                           collide)
+        return self._make_rigid(i, orientation, angular_velocity, inertia, h)
+
+    def add_rigid_sphere(self, radius: float, mass: float, position: Sequence[float],
+                         velocity: Sequence[float] = (0.0, 0.0, 0.0), *,
+                         orientation: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
+                         angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
+                         inertia: Sequence[float] | None = None, pinned: bool = False,
+                         material: str = DEFAULT, collide: bool = True) -> int:
+        """Add a sphere that also rotates (orientation, angular velocity, inertia).
+
+        Same arguments as :meth:`add_box`, with ``radius`` (m, > 0) for the half extents;
+        default inertia ``(2/5) m r^2`` (solid sphere). It collides like :meth:`add_sphere`.
+        """
+        i = self._add_body("sphere", mass, radius, position, velocity, pinned, material,
+                           collide)
+        return self._make_rigid(i, orientation, angular_velocity, inertia, None)
+
+    def add_anchored_spring(self, a: int, b, anchor_a: Sequence[float] = (0.0, 0.0, 0.0),
+                            anchor_b: Sequence[float] = (0.0, 0.0, 0.0), *,
+                            k: float | None = None, c: float | None = None,
+                            rest_length: float | None = None, group: str = DEFAULT) -> int:
+        """Join a point fixed in body ``a`` to a point fixed in body ``b`` (the paper's
+        ``Spring_c``), or to a world point.
+
+        The force ``F = -k x - c v`` acts along the anchor-to-anchor axis (``x`` = anchor
+        distance - rest length, ``v`` its rate, including angular velocity x lever arm), at
+        each body's own anchor, equal and opposite, so it also produces torques.
+
+        Args:
+          a: body index.  b: body index, or None to fix the second end at the world point
+            ``anchor_b``.
+          anchor_a: (3,) anchor in the body frame of ``a``, m (from its centre).
+          anchor_b: (3,) anchor in the body frame of ``b``, m; the world point, m, if ``b``
+            is None.
+          k: N/m.  c: N s/m.  rest_length: m, >= 0; default the initial anchor distance.
+          group: spring group name (groups are shared with :meth:`add_spring`).
+        A non-zero anchor needs a rigid body (:meth:`add_box`, :meth:`add_rigid_sphere`).
+        Returns: the anchored spring's index.
+        """
+        self._check_body_index(a, "anchored spring end a")
+        anchor_a = _vec3("anchor_a (m)", anchor_a)
+        anchor_b = _vec3("anchor_b (m)", anchor_b)
+        ends = [(int(a), anchor_a, "a")]
+        if b is not None:
+            self._check_body_index(b, "anchored spring end b")
+            if int(b) == int(a):
+                raise SceneError(f"anchored spring joins body {a} to itself: give two "
+                                 "different bodies.")
+            if self.bodies[int(a)].pinned and self.bodies[int(b)].pinned:
+                raise SceneError(f"anchored spring joins two pinned bodies ({a}, {b}): it "
+                                 "can never act; remove it or unpin one end.")
+            ends.append((int(b), anchor_b, "b"))
+        for i, anchor, name in ends:
+            body = self.bodies[i]
+            if not body.rigid and any(v != 0.0 for v in anchor):
+                raise SceneError(
+                    f"anchor_{name}={anchor} is off the centre of body {i}, a {body.kind} "
+                    "that does not rotate: off-centre anchors need a rigid body "
+                    "(scene.add_box or scene.add_rigid_sphere), or use anchor (0, 0, 0).")
+        self._use_spring_group(group, k, c)
+        world = [self._anchor_world(i, anc) for i, anc, _ in ends]
+        if b is None:
+            world.append(np.asarray(anchor_b))
+        if rest_length is None:
+            rest_length = float(np.linalg.norm(world[0] - world[1]))
+        rest_length = _positive("spring rest_length (m)", rest_length, allow_zero=True)
+        self.anchored_springs.append(AnchoredSpring(
+            int(a), None if b is None else int(b), anchor_a, anchor_b, rest_length, group))
+        return len(self.anchored_springs) - 1
+
+    def _use_spring_group(self, group: str, k, c) -> None:
+        """Declare spring ``group`` from ``k``/``c`` if new, else check they agree with it."""
+        if group not in self.spring_groups:
+            if k is None:
+                raise SceneError(f"spring group {group!r} is new: give k= (N/m), or declare "
+                                 f"it with scene.add_spring_group({group!r}, k=..., c=...).")
+            self.add_spring_group(group, k, 0.0 if c is None else c)
+            return
+        g = self.spring_groups[group]
+        for name, given, have in (("k", k, g.k), ("c", c, g.c)):
+            if given is not None and float(given) != have:
+                raise SceneError(
+                    f"spring group {group!r} already has {name}={have}; got {name}={given}. "
+                    "Stiffness and damping are per group: use another group name.")
+
+    def _anchor_world(self, i: int, anchor) -> np.ndarray:
+        """World position (m) of body ``i``'s body-frame ``anchor`` at its initial pose."""
+        body = self.bodies[i]
+        w, x, y, z = body.orientation
+        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        return np.asarray(body.position) + r @ np.asarray(anchor)
+
+    @property
+    def has_rotation(self) -> bool:
+        """True when some body is rigid (the compiled state then carries orientations)."""
+        return any(b.rigid for b in self.bodies)
 
     def _check_body_index(self, i, what: str) -> None:
         if not isinstance(i, (int, np.integer)) or isinstance(i, bool):
