@@ -1,0 +1,137 @@
+"""Fitting: the default `diffpen fit` problem reaches its targets, the loop compiles once,
+frozen parameters stay put, infeasible targets are refused before compiling."""
+import logging
+
+import jax
+import numpy as np
+import optax
+import pytest
+
+import diffpen as dp
+from tuning import fit as F
+from tuning.cli.fit import DEFAULT_APEX, DEFAULT_SETTLE
+
+
+def ball_scene(drop=1.0):
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, drop))
+    scene.add_plane()
+    return scene
+
+
+def test_default_fit_reaches_targets():
+    targets = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
+    res = F.fit_bounce(ball_scene(), targets, dt=1e-3)
+    assert res.reached, res.message
+    assert abs(res.achieved["apex_heights"][0] / DEFAULT_APEX - 1) < 5e-3
+    assert abs(res.achieved["settling_time"] / DEFAULT_SETTLE - 1) < 1e-2
+    # the achieved values are the exact metrics of an independent rollout at the fitted params
+    from tuning.metrics import ball_metrics
+    sim = dp.compile(ball_scene(), 1e-3)
+    s0 = sim.init_state()
+    tr = sim.rollout(res.params, 4000, s0)
+    m = ball_metrics(sim, tr, res.params, n_apex=1, state0=s0)
+    assert float(m.apex_heights[0]) == pytest.approx(res.achieved["apex_heights"][0], rel=1e-9)
+    assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def short_problem():
+    """Apex-only problem on a short rollout (c fitted, k frozen)."""
+    sim = dp.compile(ball_scene(drop=0.6), 1e-3)
+    mfn = F.bounce_metrics_fn(sim, 900, n_apex=1)
+    return sim, mfn
+
+
+def _compiles(caplog, name=""):
+    return sum(r.getMessage().startswith(f"Compiling jit({name}") for r in caplog.records)
+
+
+def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog):
+    sim, mfn = short_problem
+    p0 = sim.params(k=1e4, c=10.0)
+    counts, traces = [], []
+    for maxiter in (3, 12):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING), jax.log_compiles():
+            res = F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"],
+                        method="optax", optimizer=optax.adam(0.05), maxiter=maxiter,
+                        rtol=1e-9)
+        counts.append((_compiles(caplog), _compiles(caplog, "step)")))
+        traces.append(res.traces)
+        assert res.iterations == maxiter
+        # the frozen stiffness is exactly the start value (optax partition: set_to_zero)
+        assert float(res.params.contact["default"].k) == 1e4
+        assert res.values["contact.default.c"] != 10.0
+    assert traces[0] == traces[1] == 1
+    # the iteration function compiles once per fit, however many iterations run; 4x the
+    # iterations adds no compile at all (the second fit reuses the small helper programs)
+    assert counts[0][1] == counts[1][1] == 1
+    assert counts[1][0] <= counts[0][0]
+    assert res.loss_history[-1] < res.loss_history[0]
+
+
+def test_lm_reaches_apex_in_few_iterations(short_problem):
+    sim, mfn = short_problem
+    res = F.fit(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
+                free=["contact.default.c"], method="lm", maxiter=20)
+    assert res.reached and res.iterations <= 8
+    assert res.achieved["apex_heights"][0] == pytest.approx(0.2, rel=1e-3)
+    assert res.traces == 2                 # residual + its forward-mode Jacobian, once
+
+
+def test_optax_reaches_apex(short_problem):
+    sim, mfn = short_problem
+    res = F.fit(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
+                free=["contact.default.c"], method="optax", maxiter=300)
+    assert res.reached, res.message
+    assert res.achieved["apex_heights"][0] == pytest.approx(0.2, rel=1e-3)
+
+
+@pytest.mark.parametrize("targets, words", [
+    ({"apex_heights": [0.95]}, "not below the drop height"),
+    ({"apex_heights": [0.3, 0.4]}, "must decrease"),
+    ({"settling_time": 0.2}, "shorter than the fall"),
+    ({"apex_heights": [0.4], "settling_time": 0.8}, "shorter than the fall plus"),
+    ({"restitution": [1.2]}, "below 1"),
+    ({"bounce": [1.0]}, "unknown target"),
+    ({"apex_heights": [-0.1]}, "positive"),
+])
+def test_infeasible_targets_are_refused_before_compiling(targets, words, monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("compiled before checking the targets")
+    monkeypatch.setattr(dp, "compile", boom)
+    with pytest.raises(F.FitError, match=words):
+        F.fit_bounce(ball_scene(), targets)
+
+
+def test_heights_only_fixes_damping_ratio_and_says_so():
+    res = F.fit_bounce(ball_scene(drop=0.6), {"apex_heights": [0.2]}, k0=2e4)
+    assert list(res.values) == ["contact.default.c"]
+    assert float(res.params.contact["default"].k) == 2e4
+    assert any("fix only the damping ratio" in n for n in res.notes)
+    assert res.reached
+
+
+def test_unreachable_targets_are_marked_with_closest_values():
+    # apex 0.5 m fixes the restitution; the bounces alone then take ~2.9 s to die out, so
+    # a 2.0 s settling time is feasible by the simple bound but not reachable.
+    res = F.fit_bounce(ball_scene(), {"apex_heights": [0.5], "settling_time": 2.0},
+                       maxiter=10)
+    assert not res.reached
+    assert "NOT reached" in res.message
+    assert res.achieved["settling_time"] > 2.02
+
+
+def test_bad_fit_arguments():
+    sim = dp.compile(ball_scene(), 1e-3)
+    mfn = F.bounce_metrics_fn(sim, 10)
+    p0 = sim.params(k=1e4, c=10.0)
+    with pytest.raises(F.FitError, match="unknown parameter"):
+        F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.rubber.k"])
+    with pytest.raises(F.FitError, match="zero entry"):
+        F.fit(mfn, p0, {"apex_heights": [0.0]})
+    with pytest.raises(F.FitError, match="unknown method"):
+        F.fit(mfn, p0, {"apex_heights": [0.2]}, method="newton")
+    with pytest.raises(F.FitError, match="positive start"):
+        F.fit(mfn, sim.params(k=1e4, c=0.0), {"apex_heights": [0.2]})
