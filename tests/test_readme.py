@@ -1,0 +1,19 @@
+"""The README's quick start runs as written."""
+import pathlib
+import re
+
+import numpy as np
+
+README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_quick_start_runs_as_written():
+    text = README.read_text()
+    block = re.search(r"## Quick start\s+```python\n(.*?)```", text, re.S).group(1)
+    env: dict = {}
+    exec(compile(block, "README quick start", "exec"), env)
+    assert env["traj"].position.shape == (2000, 1, 3)
+    assert env["traj"].time.shape == (2000,)
+    z = np.asarray(env["z"])
+    assert z.shape == (2000,) and z.max() <= 1.0 and z.min() > 0.0   # bounces off the ground
+    assert np.isfinite(float(env["dz_dk"]))
