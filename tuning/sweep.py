@@ -91,6 +91,7 @@ def atomic_write(path: str, write: Callable) -> None:
     """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
     flush and fsync it, then ``os.replace`` it onto ``path``."""
     folder = os.path.dirname(os.path.abspath(path)) or "."
+    os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
     try:
         with os.fdopen(fd, "wb") as fh:
