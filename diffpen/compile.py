@@ -672,6 +672,19 @@ class Simulator:
         unroll = self.unroll if save_every == 1 else 1
         if checkpoint is None:
             _, saved = jax.lax.scan(outer, state, None, length=n_saves, unroll=unroll)
+        elif save_every % checkpoint == 0 and checkpoint < save_every:
+            # Three levels: each saved interval is checkpointed, and inside it blocks of
+            # `checkpoint` steps are: reverse mode stores n_saves + save_every / checkpoint +
+            # checkpoint states at most.
+            @jax.checkpoint
+            def block(s, _):
+                return jax.lax.scan(inner, s, None, length=checkpoint, unroll=self.unroll)[0], None
+
+            @jax.checkpoint
+            def interval(s, _):
+                s, _ = jax.lax.scan(block, s, None, length=save_every // checkpoint)
+                return s, s
+            _, saved = jax.lax.scan(interval, state, None, length=n_saves)
         else:
             # Blocks of `checkpoint` steps under jax.checkpoint: backprop stores one state per
             # block and recomputes the block's steps (memory ~ steps / checkpoint + checkpoint).
@@ -703,8 +716,9 @@ class Simulator:
           checkpoint: block size in steps for gradient checkpointing (``jax.checkpoint`` of
             each block): reverse mode then stores one state per block and recomputes inside
             it, so memory goes from O(steps) to O(steps / checkpoint + checkpoint); choose
-            ~sqrt(steps). Must divide ``steps`` and be a multiple of ``save_every``. Same
-            values and gradients as without it.
+            ~sqrt(steps). Must divide ``steps`` and be a multiple or a divisor of
+            ``save_every`` (a divisor: saved intervals are checkpointed too, three levels).
+            Same values and gradients as without it.
           check_finite: when called with concrete values, raise :class:`NonFiniteError` naming
             the first step and body at which the state became NaN/inf.
           check_stability: with concrete params, raise :class:`StabilityError` before running
@@ -726,9 +740,10 @@ class Simulator:
             state = self._init_cache
         if checkpoint is not None and (
                 not isinstance(checkpoint, (int, np.integer)) or checkpoint <= 0
-                or steps % checkpoint or checkpoint % save_every):
+                or steps % checkpoint or (checkpoint % save_every and save_every % checkpoint)):
             raise SceneError(f"checkpoint must be a positive int that divides steps={steps} and "
-                             f"is a multiple of save_every={save_every}, got {checkpoint!r}.")
+                             f"is a multiple or a divisor of save_every={save_every}, got "
+                             f"{checkpoint!r}.")
         auto_n = _stability.gate(self, params, check=check_stability)  # host-side only
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
