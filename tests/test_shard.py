@@ -29,7 +29,17 @@ SCRIPT = textwrap.dedent("""
     out = run(ks, cs)
     ref = jax.jit(jax.vmap(final))(ks, cs)
     loop = [float(final(k, c)["z"]) for k, c in zip(ks, cs)]
+    # a whole sweep through tuning.sweep (sharded by default) equals the plain vmap sweep
+    from tuning import sweep as sw
+    pts = np.stack([np.asarray(ks), np.asarray(cs)], 1)
+    names = ["contact.default.k", "contact.default.c"]
+    metrics = lambda p: {"z": sim.rollout(p, steps=500, save_every=500).position[-1, 0, 2]}
+    p0 = sim.params(k=1e4, c=10.0)
+    sharded = sw.sweep(metrics, p0, pts, names, chunk=6, progress=False)
+    single = sw.sweep(metrics, p0, pts, names, chunk=6, progress=False,
+                      batch_map=lambda f: jax.jit(jax.vmap(f)))
     print(json.dumps({
+        "sweep_diff": float(np.max(np.abs(sharded.metrics["z"] - single.metrics["z"]))),
         "devices": jax.device_count(),
         "mesh": int(run.mesh.devices.size),
         "max_diff": float(jnp.max(jnp.abs(out["z"] - ref["z"]))
@@ -51,3 +61,4 @@ def test_sharded_sweep_matches_single_device_on_four_devices():
     assert res["n"] == 10
     assert res["max_diff"] == 0.0
     assert res["loop_diff"] < 1e-12
+    assert res["sweep_diff"] == 0.0

@@ -110,7 +110,8 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     """``evaluate(batch (B, P)) -> {metric: (B, ...)}``: a pure function of the values batch.
 
     Each row sets the leaves ``names`` of ``params0``; ``batch_map(fn)`` lifts the
-    per-point function to the batch (default ``jax.jit(jax.vmap(fn))``).
+    per-point function to the batch (default :func:`tuning.shard.sharded_map`: the batch
+    axis split over every device, identical to ``jax.jit(jax.vmap(fn))`` on one).
     """
     flat0 = P.flatten(params0)
     for n in names:
@@ -123,7 +124,10 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
             flat[n] = x[i]
         m = metrics_fn(P.unflatten(params0, flat))
         return {k: jnp.asarray(v) for k, v in m.items() if keys is None or k in keys}
-    return (batch_map or (lambda f: jax.jit(jax.vmap(f))))(one)
+    if batch_map is None:
+        from .shard import sharded_map
+        batch_map = sharded_map      # every device; jax.jit(jax.vmap(f)) on a single one
+    return batch_map(one)
 
 
 def _digest(names, points) -> str:
@@ -186,8 +190,9 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         every chunk.  resume: continue an interrupted sweep found at ``out`` (same names and
         points, else it is started afresh).
       keys: metrics to keep (default all).  shape, axes: grid layout (see :func:`grid_points`).
-      batch_map: lifts the per-point function to a batch (default ``jax.jit(jax.vmap(f))``;
-        e.g. ``tuning.shard.sharded_map`` to spread it over devices).
+      batch_map: lifts the per-point function to a batch (default
+        :func:`tuning.shard.sharded_map`: split over all devices with a ``NamedSharding``;
+        ``jax.jit(jax.vmap(f))`` on a single device).
       on_chunk: ``on_chunk(i_chunk, result)`` after each chunk is saved.
       evaluate: a prebuilt :func:`make_evaluator` (reuse it across sweeps of one problem so
         that they share one compiled program).
