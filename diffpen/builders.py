@@ -319,8 +319,8 @@ def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[
 
     With ``width=None`` it is a 1D bar (n nodes, n - 1 plastic springs along it). With a
     ``width`` (m) it is a planar truss "ladder": two rails offset by +-width/2 along the
-    direction ``(0, 0, 1) x axis`` (or ``(0, 1, 0) x axis`` for a vertical bar), rungs and one
-    diagonal per cell, every member plastic; nodes[:, 0] and nodes[:, 1] are the two rails.
+    direction ``(0, 0, 1) x axis`` (or ``(0, 1, 0) x axis`` for a vertical bar), rungs and both
+    diagonals of every cell, every member plastic; nodes[:, 0] and nodes[:, 1] are the rails.
 
     All members are in group ``group`` (``params.springs[group]`` = (k, c); yield strain
     ``params.extra["plastic"][group]``, in (0, 1)): a member compressed by more than
@@ -369,7 +369,7 @@ def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[
         pos = np.stack([line - 0.5 * width * side, line + 0.5 * width * side], axis=1)
         pins = {(s, r) for s in pin_st for r in (0, 1)}
         idx = _lattice(scene, pos, mass / (2 * n), pins, velocity, collide)
-        pairs = _pairs(idx, [(1, 0), (0, 1), (1, 1)])
+        pairs = _pairs(idx, [(1, 0), (0, 1), (1, 1), (1, -1)])
     live = [(a, b) for a, b in pairs if not (scene.bodies[a].pinned and scene.bodies[b].pinned)]
     for a, b in live:
         scene.add_plastic_spring(a, b, k=k, c=c, yield_strain=ys, group=group)

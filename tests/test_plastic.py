@@ -179,6 +179,6 @@ def test_truss_crumple_bar_structure():
     idx = add_crumple_bar(scene, 4, (0, 0, 0), (0.3, 0, 0), 1.0, 100.0, width=0.05,
                           yield_strain=0.1, pinned=[0])
     assert idx.shape == (4, 2)
-    # rails 2 x 3, rungs 4 - 1 (pinned rung left out), diagonals 3
-    assert len(scene.plastic_springs) == 6 + 3 + 3
+    # rails 2 x 3, rungs 4 - 1 (pinned rung left out), diagonals 2 x 3
+    assert len(scene.plastic_springs) == 6 + 3 + 6
     np.testing.assert_allclose(np.ptp([scene.bodies[i].position[1] for i in idx[0]]), 0.05)
