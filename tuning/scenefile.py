@@ -159,9 +159,12 @@ def _metrics(fit):
     tol = (fit or {}).get("settle_tol", 1e-3)
 
     def metrics(sim, traj, params):
+        import jax
+
         from .metrics import ball_metrics
-        return ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=3,
-                            settle_tol=tol).as_dict()
+        f = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, body=body, plane=plane, n_apex=3,
+                                               settle_tol=tol))
+        return f(traj, params).as_dict()
     return metrics
 
 

@@ -1,0 +1,130 @@
+"""The `diffpen` command line: fit (JSON keys, flags, errors before compiling), simulate,
+sweep with resume, scene files, trajectory fits from CSV."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tuning.cli import main
+
+
+@pytest.fixture(autouse=True)
+def no_disk_cache(monkeypatch):
+    """Keep the command's persistent compilation cache out of the test session."""
+    monkeypatch.setenv("DIFFPEN_CACHE", "0")
+
+
+def run_json(capsys, argv):
+    rc = main(argv + ["--json"])
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1, out            # exactly one JSON object on stdout
+    return rc, json.loads(out[0])
+
+
+def test_fit_defaults_json(capsys):
+    rc, out = run_json(capsys, ["fit"])
+    assert rc == 0 and out["reached"]
+    for key in ("k", "c", "targets", "achieved", "iterations", "seconds"):
+        assert key in out
+    t, a = out["targets"], out["achieved"]
+    assert abs(a["apex_heights"][0] / t["apex_heights"] - 1) < 5e-3
+    assert abs(a["settling_time"] / t["settling_time"] - 1) < 1e-2
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["fit", "--target-apex", "0.95"], "not below the drop height"),
+    (["fit", "--target-settle", "0.1"], "shorter than the fall"),
+    (["fit", "--drop", "0.05"], "must exceed --radius"),
+    (["fit", "--data", "nope.csv"], "cannot read"),
+    (["fit", "--data", "x.csv", "--target-apex", "0.3"], "drop the --target-"),
+    (["simulate", "marble"], "unknown scene"),
+    (["simulate", "ball", "--steps", "0"], "positive integer"),
+    (["sweep", "--k", "1e5", "1e3"], "MIN < MAX"),
+    (["sweep", "--k", "1e3", "1e8"], "stability limit"),
+])
+def test_bad_input_exits_2_with_a_message(capsys, argv, words, monkeypatch):
+    import diffpen as dp
+
+    def boom(*a, **k):
+        raise AssertionError("compiled before checking the input")
+    monkeypatch.setattr(dp, "compile", boom)
+    assert main(argv) == 2
+    assert words in capsys.readouterr().err
+
+
+def test_bad_flag_value_is_an_argparse_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["fit", "--radius", "-1"])
+    assert exc.value.code == 2
+    assert "--radius must be a finite number > 0" in capsys.readouterr().err
+
+
+def test_simulate_ball_json_and_out(capsys, tmp_path):
+    path = str(tmp_path / "traj.npz")
+    rc, out = run_json(capsys, ["simulate", "ball", "--k", "1e4", "--c", "20", "--steps",
+                                "1500", "--out", path])
+    assert rc == 0
+    for key in ("apex_heights", "settling_time", "max_penetration"):
+        assert key in out
+    with np.load(path) as f:
+        assert f["position"].shape == (1501, 1, 3) and f["time"].shape == (1501,)
+    assert out["apex_heights"][0] == pytest.approx(0.4657, rel=1e-3)
+    assert out["settling_time"] is None      # 1.5 s is too short to settle: null, not a number
+
+
+def test_sweep_writes_resumes_and_plots(capsys, tmp_path):
+    pytest.importorskip("matplotlib")
+    out = str(tmp_path / "sw.npz")
+    argv = ["sweep", "--n", "6", "5", "--duration", "0.8", "--drop", "0.5", "--chunk", "8",
+            "--k", "2e3", "2e4", "--c", "2", "40", "--out", out]
+    rc, first = run_json(capsys, argv + ["--plot", str(tmp_path / "h.png"), "--target", "0.1"])
+    assert rc == 0 and first["evaluated"] == 30
+    assert os.path.getsize(str(tmp_path / "h.png")) > 1000
+    assert os.path.exists(str(tmp_path / "sw.csv"))
+    rc, again = run_json(capsys, argv)
+    assert again["evaluated"] == 0             # everything read back from the .npz
+
+
+def test_scene_file_fit_and_errors(capsys, tmp_path):
+    toml = tmp_path / "s.toml"
+    toml.write_text("""
+dt = 1e-3
+[materials.rubber]
+k = 1e4
+c = 10.0
+[[spheres]]
+radius = 0.1
+mass = 1.0
+position = [0.0, 0.0, 0.6]
+material = "rubber"
+[[planes]]
+material = "rubber"
+[fit]
+params = ["contact.rubber.c"]
+[fit.targets]
+apex_heights = [0.2]
+""")
+    rc, out = run_json(capsys, ["fit", str(toml)])
+    assert rc == 0 and out["reached"]
+    assert out["k"] == 1e4                   # only c is fitted, as the file says
+    assert out["achieved"]["apex_heights"][0] == pytest.approx(0.2, rel=1e-3)
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[[spheres]]\nradius = 0.1\nmass = -1.0\nposition = [0, 0, 1]\n[fit]\n"
+                   "[fit.targets]\napex_heights = [0.2]\n")
+    assert main(["fit", str(bad)]) == 2
+    assert "mass (kg) must be positive" in capsys.readouterr().err
+    bad.write_text("[[sphere]]\nradius = 0.1\n")
+    assert main(["fit", str(bad)]) == 2
+    assert "unknown key(s) ['sphere']" in capsys.readouterr().err
+
+
+def test_fit_data_csv(capsys, tmp_path):
+    from tuning.sysid import save_csv, synthetic_record
+    t, z = synthetic_record(1e4, 20.0, duration=1.3, noise=1e-3, dt=2e-5, seed=5)
+    path = str(tmp_path / "rec.csv")
+    save_csv(path, t, z)
+    rc, out = run_json(capsys, ["fit", "--data", path])
+    assert rc == 0
+    assert out["k"] == pytest.approx(1e4, rel=0.02) and out["c"] == pytest.approx(20, rel=0.02)
+    assert out["k_stderr"] > 0 and out["c_stderr"] > 0
