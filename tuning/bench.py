@@ -278,6 +278,71 @@ def _chain_scene() -> dp.Scene:
     return scene
 
 
+def spheres_in_box(n: int, *, radius: float = 0.05, mass: float = 0.1, seed: int = 0):
+    """``n`` spheres on a jittered lattice (spacing 2.4 radii) in a square box: a floor and
+    four walls, gravity. Returns ``(scene, side_length_m)``."""
+    rng = np.random.default_rng(seed)
+    spacing = 2.4 * radius
+    side = max(2, int(round((n / 2.0) ** (1.0 / 3.0))))        # columns twice as tall as wide
+    layers = -(-n // (side * side))
+    length = side * spacing
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    for m in range(n):
+        i, j, l = m % side, (m // side) % side, m // (side * side)
+        pos = ((i + 0.5) * spacing, (j + 0.5) * spacing, radius + 0.01 + l * spacing)
+        jitter = rng.uniform(-0.1, 0.1, 3) * radius
+        scene.add_sphere(radius, mass, tuple(np.add(pos, jitter)))
+    scene.add_plane((0.0, 0.0, 1.0), 0.0)
+    scene.add_plane((1.0, 0.0, 0.0), 0.0)
+    scene.add_plane((-1.0, 0.0, 0.0), -length)
+    scene.add_plane((0.0, 1.0, 0.0), 0.0)
+    scene.add_plane((0.0, -1.0, 0.0), -length)
+    assert layers >= 1
+    return scene, length
+
+
+def _spheres(n: int):
+    def build(dtype, quick):
+        from diffpen.broadphase import Grid
+        steps = 50 if quick else 200
+        scene, _ = spheres_in_box(n)
+        sim = dp.compile(scene, dt=5e-4, dtype=dtype,
+                         broadphase=Grid(max_per_cell=8, max_pairs=8 * n))
+        state = sim.init_state()
+
+        def final(k, c):
+            p = sim.params(k=k, c=c)
+            return sim.rollout(p, steps=steps, state=state, save_every=steps,
+                               check_stability=False).position[-1]
+
+        def loss(k, c):
+            return jnp.sum(final(k, c)[:, 2])
+        args = (jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype))
+        return dict(forward=jax.jit(final), grad=jax.jit(jax.grad(loss, (0, 1))), floor=None,
+                    numpy=None, args=args, work=n * steps, steps=steps, batch=1, bodies=n)
+    return build
+
+
+def sphere_scaling(sizes=(1000, 2000, 4000, 8000, 16000), *, steps: int = 100,
+                   repeats: int = 3, dtype=jnp.float32) -> dict:
+    """Per-step forward time of ``spheres_in_box`` with the grid neighbour search for each
+    size, and the least-squares exponent of time against size (1 = linear)."""
+    from diffpen.broadphase import Grid
+    per_step = []
+    for n in sizes:
+        scene, _ = spheres_in_box(n)
+        sim = dp.compile(scene, dt=5e-4, dtype=dtype,
+                         broadphase=Grid(max_per_cell=8, max_pairs=8 * n))
+        state = sim.init_state()
+        fn = jax.jit(lambda k, c, sim=sim, state=state: sim.rollout(
+            sim.params(k=k, c=c), steps=steps, state=state, save_every=steps,
+            check_stability=False).position[-1])
+        per_step.append(median_time(fn, jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype),
+                                    repeats=repeats) / steps)
+    return dict(sizes=list(sizes), seconds_per_step=per_step,
+                exponent=_scaling_exponent(sizes, per_step))
+
+
 CASES: dict[str, Case] = {
     "ball_b1": Case("ball_b1", _ball(1, False)),
     "ball_b1024": Case("ball_b1024", _ball(1024, False)),
@@ -286,6 +351,8 @@ CASES: dict[str, Case] = {
     "cloth32": Case("cloth32", _network_case(lambda: _cloth_scene(32), 1000, 200, 1e-3)),
     "cloth64": Case("cloth64", _network_case(lambda: _cloth_scene(64), 1000, 100, 1e-3)),
     "jelly10": Case("jelly10", _network_case(lambda: _jelly_scene(10), 1000, 100, 1e-3)),
+    "spheres1000": Case("spheres1000", _spheres(1000)),
+    "spheres10000": Case("spheres10000", _spheres(10000)),
 }
 
 #: Cases run by ``--quick`` (CI-sized).
