@@ -165,3 +165,15 @@ def test_drag_unknown_group_in_params_is_an_error():
         sim.params(extra={"drag": {"water": 2.0}})
     with pytest.raises(dp.SceneError, match=">= 0"):
         sim.params(extra={"drag": {"air": -2.0}})
+
+
+def test_cli_simulate_chain_prints_final_positions_at_the_equilibrium(capsys):
+    import json
+
+    from tuning.cli import main
+    assert main(["simulate", "chain", "--steps", "2000", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    final = np.array(out["final_positions"])
+    assert final.shape == (7, 3)
+    scene, _ = paper_chain(seed=0)
+    np.testing.assert_allclose(final, _laplacian_equilibrium(scene), atol=0.02)
