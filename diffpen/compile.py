@@ -79,6 +79,9 @@ class CompileContext:
     extra_defaults: dict = dataclasses.field(default_factory=dict)
     aux_init: dict = dataclasses.field(default_factory=dict)
     aux_updates: list = dataclasses.field(default_factory=list)
+    #: ``{extra name: check(label, value)}`` validating concrete values given to
+    #: ``sim.params`` (default: finite and >= 0); raises SceneError.
+    extra_checks: dict = dataclasses.field(default_factory=dict)
     #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
     broadphase: Any = None
 
@@ -483,6 +486,7 @@ class Simulator:
         self._terms: list[Term] = [t for t in built if t is not None]
         self.terms = tuple(t.name for t in self._terms)
         self._extra_defaults = dict(ctx.extra_defaults)
+        self._extra_checks = dict(ctx.extra_checks)
         self._aux_updates = list(ctx.aux_updates)
 
         self._inv_mass = ctx.const(np.where(self.pinned, 0.0, 1.0 / self.mass)[:, None])
@@ -501,7 +505,7 @@ class Simulator:
         self._step_jit = jax.jit(self._step)
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
-                                                     "auto_n"))
+                                                     "auto_n", "observe"))
         self._auto_steps = {}
 
     def _with_aux_updates(self, step):
@@ -573,8 +577,9 @@ class Simulator:
                     raise SceneError(f"params extra[{name!r}] names {sorted(unknown)}, not in "
                                      f"this scene; known: {sorted(default)}.")
                 merged = {g: given.get(g, v) for g, v in default.items()}
+                check = self._extra_checks.get(name, _check_value)
                 for g, v in merged.items():
-                    _check_value(f"{name} parameter of group {g!r}", v)
+                    check(f"{name} parameter of group {g!r}", v)
                 out_x[name] = {g: self._cast(v) for g, v in merged.items()}
             elif name not in out_x:
                 out_x[name] = default
@@ -651,7 +656,8 @@ class Simulator:
                              "jit tracers.")
         return rep
 
-    def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, auto_n=1):
+    def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, auto_n=1,
+                      observe=None):
         params = jax.tree_util.tree_map(self._cast, params)
         step = self._step if auto_n == 1 else self._auto_step(auto_n)
         # Rematerialise each step in reverse mode: backprop keeps only the state per step and
@@ -659,6 +665,9 @@ class Simulator:
         # gradient time on the 32x32 cloth, 2.7x on the ball; the forward pass is unchanged).
         step = jax.checkpoint(step, prevent_cse=False)
         n_saves = steps // save_every
+
+        def record(s):
+            return s if observe is None else (observe(s), s.aux)
 
         def inner(s, _):
             return step(params, s), None
@@ -668,7 +677,7 @@ class Simulator:
                 s = step(params, s)
             else:
                 s, _ = jax.lax.scan(inner, s, None, length=save_every, unroll=self.unroll)
-            return s, s
+            return s, record(s)
         unroll = self.unroll if save_every == 1 else 1
         if checkpoint is None:
             _, saved = jax.lax.scan(outer, state, None, length=n_saves, unroll=unroll)
@@ -683,7 +692,7 @@ class Simulator:
             @jax.checkpoint
             def interval(s, _):
                 s, _ = jax.lax.scan(block, s, None, length=save_every // checkpoint)
-                return s, s
+                return s, record(s)
             _, saved = jax.lax.scan(interval, state, None, length=n_saves)
         else:
             # Blocks of `checkpoint` steps under jax.checkpoint: backprop stores one state per
@@ -697,12 +706,16 @@ class Simulator:
             saved = jax.tree_util.tree_map(
                 lambda a: a.reshape((n_saves,) + a.shape[2:]), saved)
         t = state.time + self.dt * save_every * jnp.arange(1, n_saves + 1, dtype=self.dtype)
+        if observe is not None:
+            observed, aux = saved
+            return Trajectory(t, None, None, None, None, aux, observed)
         return Trajectory(t, saved.position, saved.velocity, saved.orientation,
                           saved.angular_velocity, saved.aux)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int = 1, check_finite: bool = True,
-                checkpoint: int | None = None, check_stability: bool = True) -> Trajectory:
+                checkpoint: int | None = None, check_stability: bool = True,
+                observe: Callable | None = None) -> Trajectory:
         """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
 
         Pure and jitted: works under ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Changing
@@ -724,6 +737,11 @@ class Simulator:
           check_stability: with concrete params, raise :class:`StabilityError` before running
             when an explicit integrator's step is past its stability limit
             (:meth:`stability`); ``substeps="auto"`` picks the substeps here instead.
+          observe: ``observe(state) -> pytree``: save only this at each saved step (in
+            ``Trajectory.observed``) instead of whole states, e.g.
+            ``lambda s: s.position[:, 2]``: less memory and, for batched sweeps, several
+            times faster. Static: pass the same function object each call, a new one
+            recompiles.
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
@@ -747,7 +765,21 @@ class Simulator:
         auto_n = _stability.gate(self, params, check=check_stability)  # host-side only
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
-                                 auto_n=auto_n)
+                                 auto_n=auto_n, observe=observe)
+        if observe is not None:
+            leaves = jax.tree_util.tree_leaves(traj.observed)
+            if check_finite and leaves and all(map(_is_concrete, leaves)):
+                if not all(bool(jnp.isfinite(a[-1]).all()) for a in leaves
+                           if jnp.issubdtype(a.dtype, jnp.inexact)):
+                    raise NonFiniteError(
+                        "the observed state became NaN/inf: the time step is probably past the "
+                        "stability limit for these k and c. Use a smaller dt, more substeps, or "
+                        "a stiffer-stable integrator (roll out without observe= to locate the "
+                        "step and body).")
+            if self.broadphase is not None and _is_concrete(traj.time):
+                from .broadphase import warn_overflow
+                warn_overflow(traj)
+            return traj
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
         if self.broadphase is not None and _is_concrete(traj.position):

@@ -68,6 +68,9 @@ class Trajectory(NamedTuple):
     orientation: (n_saved, n_bodies, 4) or None.  angular_velocity: (n_saved, n_bodies, 3)
       or None.
     aux: saved extension state, leading axis n_saved.
+    observed: ``observe(state)`` saved at each saved step when the rollout was given an
+      ``observe`` function (then position, velocity, orientation and angular_velocity are
+      None: only what was asked for is stored); else None.
     """
     time: Any
     position: Any
@@ -75,9 +78,13 @@ class Trajectory(NamedTuple):
     orientation: Any = None
     angular_velocity: Any = None
     aux: dict = {}
+    observed: Any = None
 
     @property
     def final(self) -> State:
         """The last saved state, usable as the start of another rollout."""
         import jax
-        return State(*jax.tree_util.tree_map(lambda a: a[-1], tuple(self)))
+        if self.position is None:
+            raise ValueError("this trajectory saved only observe(state): roll out without "
+                             "observe= to keep full states.")
+        return State(*jax.tree_util.tree_map(lambda a: a[-1], tuple(self)[:6]))

@@ -480,3 +480,25 @@ def test_banded_springs_match_direct_sum():
         expected[s.a] += fs
         expected[s.b] -= fs
     np.testing.assert_allclose(np.asarray(f), expected, rtol=1e-11, atol=1e-11)
+
+
+def _height(s):
+    return s.position[:, 2]
+
+
+def test_observe_saves_only_what_is_asked(ball_sim):
+    p = ball_sim.params(k=1e4, c=20.0)
+    full = ball_sim.rollout(p, steps=200, save_every=4)
+    obs = ball_sim.rollout(p, steps=200, save_every=4, observe=_height)
+    assert obs.position is None and obs.velocity is None
+    np.testing.assert_array_equal(obs.observed, full.position[:, :, 2])
+    np.testing.assert_array_equal(obs.time, full.time)
+
+    def loss(k, observe):
+        traj = ball_sim.rollout(ball_sim.params(k=k, c=20.0), steps=200, observe=observe)
+        z = traj.position[:, :, 2] if observe is None else traj.observed
+        return jnp.sum(z ** 2)
+    np.testing.assert_allclose(jax.grad(loss)(1e4, _height), jax.grad(loss)(1e4, None),
+                               rtol=1e-12)
+    with pytest.raises(ValueError, match="observe"):
+        obs.final

@@ -89,8 +89,11 @@ def _ball(batch: int, quick: bool):
         scene.add_plane()
         sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if b == 1 else 4)
 
+        def height(state):
+            return state.position[0, 2]
+
         def heights(k, c):
-            return sim.rollout(sim.params(k=k, c=c), steps=steps).position[:, 0, 2]
+            return sim.rollout(sim.params(k=k, c=c), steps=steps, observe=height).observed
 
         def floor_heights(k, c):
             one = jnp.ones((), dtype)
