@@ -261,7 +261,8 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
         lam = max(lam / 3.0, 1e-12)
         if progress is not None:
             progress.update(offset + it, cost)
-        if dx < xtol or rel_drop < ftol or cost == 0.0:
+        # a tiny step only means convergence when it was not forced by heavy damping
+        if (dx < xtol and lam < 1.0) or rel_drop < ftol or cost == 0.0:
             message, converged = "step below tolerance", True
             break
     return LMResult(x, r, J, hist, it, converged, message)
