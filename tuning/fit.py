@@ -186,7 +186,7 @@ def _achieved(metrics: dict, targets: dict, spec: tuple) -> tuple[dict, dict, bo
         t = targets[name]
         err = np.abs(m - t) / np.abs(t)
         err = np.where(np.isfinite(err), err, np.inf)
-        ach[name] = m.tolist() if count > 1 or np.ndim(metrics[name]) else float(m[0])
+        ach[name] = m.tolist() if np.ndim(metrics[name]) else float(m[0])
         rel[name] = float(np.max(err))
         ok = ok and bool(np.all(err <= tol))
     return ach, rel, ok
@@ -301,6 +301,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
       :class:`FitResult`.
     """
     starts_extra = starts
+    scalar = {k for k, v in targets.items() if np.ndim(v) == 0}
     targets = _normalise_targets(targets)
     spec = _spec(targets, weights, rtol)
     flat0 = P.flatten(params0)
@@ -453,7 +454,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     if not reached:
         message = (f"targets NOT reached ({message}); closest achieved values are reported"
                    + (f"; parameters at their bounds: {at_bound}" if at_bound else ""))
-    tlist = {k: (v.tolist() if v.size > 1 else float(v[0])) for k, v in targets.items()}
+    tlist = {k: (float(v[0]) if k in scalar else v.tolist()) for k, v in targets.items()}
     return FitResult(params=params, values=values, targets=tlist, achieved=achieved,
                      rel_error=rel, reached=reached, converged=converged,
                      loss_history=history, iterations=int(iterations), seconds=seconds,
@@ -674,7 +675,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         notes[-1] += ("; along the curve where the first apex is met (Newton on c), the "
                       "settling time is matched by bisection on k")
         starts = None
-    res = fit(mfn, params0, tg, free=free, bounds={p: bounds[p] for p in free if p in bounds},
+    res = fit(mfn, params0, dict(targets), free=free, bounds={p: bounds[p] for p in free if p in bounds},
               weights=weights, rtol=tol, method=method, optimizer=optimizer,
               maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
               label="diffpen fit", starts=starts, search=search)

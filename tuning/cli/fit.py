@@ -12,6 +12,9 @@ import time
 
 from ._common import CLIError, dump_json, fail, fmt, positive, setup_jax
 
+UNITS = {"apex_heights": "m", "settling_time": "s", "contact_durations": "s",
+         "max_penetration": "m", "restitution": "", "rms_residual": "m"}
+
 #: Default targets of ``diffpen fit`` (feasible: reached at k ~ 2.2e3 N/m, c ~ 11 N s/m).
 DEFAULT_APEX = 0.40
 DEFAULT_SETTLE = 2.6
@@ -140,7 +143,8 @@ def _print(args, out: dict) -> int:
         return 0 if out.get("reached", True) else 1
     print(f"diffpen fit: {out['scene']}")
     if "targets" in out:
-        print("targets:   " + "   ".join(f"{n} = {fmt(v)}" for n, v in out["targets"].items()))
+        print("targets:   " + "   ".join(f"{n} = {fmt(v, UNITS.get(n, ''))}"
+                                         for n, v in out["targets"].items()))
     kse = out.get("k_stderr")
     if kse is not None:
         print(f"fitted:    k = {out['k']:.6g} +- {kse:.2g} N/m   c = {out['c']:.6g} +- "
@@ -152,7 +156,7 @@ def _print(args, out: dict) -> int:
         parts = []
         for n, v in out["achieved"].items():
             err = out.get("rel_error", {}).get(n)
-            parts.append(f"{n} = {fmt(v, '', 6)}" + (f" ({err * 100:.3g}% off)"
+            parts.append(f"{n} = {fmt(v, UNITS.get(n, ''), 6)}" + (f" ({err * 100:.2g}% off)"
                                                      if err is not None else ""))
         print("achieved:  " + "   ".join(parts))
     for key, label in (("rms", "residual rms (m)"), ("noise", "record noise (m)"),
@@ -162,9 +166,10 @@ def _print(args, out: dict) -> int:
     for note in out.get("notes", []):
         print(f"note:      {note}")
     status = "targets reached" if out.get("reached", True) else "TARGETS NOT REACHED"
-    ev = f" ({out['evaluations']} simulations with gradients)" if "evaluations" in out else ""
-    print(f"status:    {status} -- {out.get('message', '')}; {out['iterations']} iterations"
-          f"{ev}, {out['seconds']:.2f} s wall time")
+    ev = (f" after the start search ({out['evaluations']} simulations with gradients in all)"
+          if "evaluations" in out else "")
+    print(f"status:    {status} -- {out.get('message', '')}; {out['iterations']} LM/optimiser "
+          f"iterations{ev}; {out['seconds']:.2f} s wall time")
     return 0 if out.get("reached", True) else 1
 
 
