@@ -450,11 +450,18 @@ class Simulator:
                 use(pl.material)
             for fs in scene.fixed_spheres:
                 use(fs.material)
+        # Materials of sphere-sphere pairs, in O(n): a pair (i, j) with one end free uses
+        # their shared material, or "default" when they differ.
         spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
-        for a_pos, i in enumerate(spheres):
-            for j in spheres[a_pos + 1:]:
-                if not (self.pinned[i] and self.pinned[j]):
-                    use(_pair_material(scene, bodies[i].material, bodies[j].material))
+        by_mat: dict[str, list[int]] = {}
+        for i in spheres:
+            by_mat.setdefault(bodies[i].material, []).append(i)
+        any_free = any(not self.pinned[i] for i in spheres)
+        for mat, members in by_mat.items():
+            if len(members) >= 2 and any(not self.pinned[i] for i in members):
+                use(mat)
+        if len(by_mat) >= 2 and any_free:
+            use(DEFAULT)
         if scene.has_rotation:
             from . import rigid
             for name in rigid.contact_materials(scene):
