@@ -52,6 +52,17 @@ def rest_update(length, rest, rest0, yield_strain, width: float):
     return rest - rest0 * laws.ramp(excess - 0.5 * width, width)
 
 
+def _check_yield(label: str, value) -> None:
+    """Concrete yield strains must lie in (0, 1); tracers (grad, vmap) are not checked."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value, dtype=float)
+    if not np.all((arr > 0.0) & (arr < 1.0)):
+        raise SceneError(f"{label} is a yield strain and must be in (0, 1) (compression at "
+                         f"which a member starts to crumple, as a fraction of its length), got "
+                         f"{value!r}.")
+
+
 def _length_rate(xa, xb, va, vb):
     """Length (m), its rate (m/s) and the unit axis a <- b of ONE spring."""
     delta = xa - xb
@@ -77,6 +88,7 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
                          f"yield), got {ctx.scene.plastic_smoothing!r}.")
     n = ctx.n
     ctx.extra_defaults["plastic"] = {g: ctx.scene.plastic_groups[g] for g in groups}
+    ctx.extra_checks["plastic"] = _check_yield
     ctx.aux_init[AUX_KEY] = np.array([s.rest_length for s in springs])
 
     def force(params, state):

@@ -169,6 +169,10 @@ def test_plastic_spring_bad_input():
     scene.add_plastic_spring(a, b, k=10.0, yield_strain=0.1)
     with pytest.raises(dp.SceneError, match="already has yield_strain"):
         scene.add_plastic_spring(a, b, yield_strain=0.2)
+    sim = dp.compile(scene, dt=1e-3)
+    for bad in (0.0, 1.0, -0.1, float("nan")):
+        with pytest.raises(dp.SceneError, match=r"yield strain and must be in \(0, 1\)"):
+            sim.params(extra={"plastic": {"plastic": bad}})
     scene.plastic_smoothing = -1.0
     with pytest.raises(dp.SceneError, match="plastic_smoothing"):
         dp.compile(scene, dt=1e-3)
