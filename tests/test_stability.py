@@ -86,6 +86,7 @@ def test_network_bound_is_safe_and_tight_for_a_chain():
     assert w_true <= rep.omega_max <= 1.05 * w_true
     assert rep.stable_dt == pytest.approx(2 / rep.omega_max)
     assert rep.margin == pytest.approx(rep.stable_dt / 1e-3)
+    assert math.isclose(rep.safe_dt, rep.stable_dt)    # springs only: no contact tightening
 
 
 @pytest.fixture(scope="module")
@@ -103,14 +104,18 @@ def test_stability_error_names_dt_and_substeps(ball_scene):
         sim.rollout(params, 10)
     err = info.value
     K, C = 1e8, 50.0
-    assert err.stable_dt == pytest.approx(stability.mode_stable_dt("semi_implicit_euler", K, C))
-    assert err.substeps == math.ceil(1e-3 / err.stable_dt)
-    assert f"{err.stable_dt:.3g}" in str(err)
+    # the safe step: w h <= 0.5 (tighter than linear stability, 2 / w ~ 2e-4 s)
+    assert err.stable_dt == pytest.approx(min(stability.SAFE_WH / math.sqrt(K),
+                                              stability.mode_stable_dt("semi_implicit_euler",
+                                                                       K, C)))
+    assert err.substeps == math.floor(1e-3 / err.stable_dt) + 1
+    assert f"{err.stable_dt:.3g}" in str(err) and "unstable" in str(err)
     # the advice works: with that many substeps the same run is stable and sane
     fixed = dp.compile(ball_scene, 1e-3, substeps=err.substeps)
     assert fixed.stability(params).stable
     traj = fixed.rollout(params, 1500)
-    assert np.max(np.asarray(traj.position[:, 0, 2])) <= 1.0 + 1e-9
+    # at the safe step the rebound energy error stays within (w h)^2 / 4 = 6.25%
+    assert np.max(np.asarray(traj.position[:, 0, 2])) - 0.1 <= 0.9 * (1 + 0.0625)
     # one fewer is refused
     with pytest.raises(dp.StabilityError):
         dp.compile(ball_scene, 1e-3, substeps=err.substeps - 1).rollout(params, 10)
@@ -133,6 +138,16 @@ def test_auto_substeps_pick_the_smallest_sufficient_count(ball_scene):
     assert sim._auto_last == 1
 
 
+def test_stable_but_unsafe_step_is_refused_with_its_reason(ball_scene):
+    """w h = 1: linearly stable (limit 2) but past the safe step 0.5."""
+    sim = dp.compile(ball_scene, 1e-3)
+    params = sim.params(k=1e6, c=0.0)
+    rep = sim.stability(params)
+    assert rep.stable and not rep.safe and rep.safe_dt == pytest.approx(0.5e-3)
+    with pytest.raises(dp.StabilityError, match="stable but past its safe step"):
+        sim.rollout(params, 10)
+
+
 def test_implicit_euler_never_raises(ball_scene):
     sim = dp.compile(ball_scene, 1e-2, integrator="implicit_euler")
     rep = sim.stability(sim.params(k=1e9, c=0.0))
@@ -149,4 +164,4 @@ def test_sphere_sphere_packed_bound_is_tighter():
     # one head-on contact between equal spheres: w^2 = 2 k / m
     assert rep.omega_max == pytest.approx(math.sqrt(2e4))
     assert rep.packed_dt < rep.stable_dt
-    assert "spheres" in rep.limiting
+    assert "another sphere" in rep.limiting
