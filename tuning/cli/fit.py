@@ -132,8 +132,13 @@ def _run(args) -> int:
 
 
 def _report(args, out: dict, plot_fn=None) -> int:
-    if args.plot and plot_fn is not None:
-        plot_fn(args.plot)
+    if args.plot:
+        if plot_fn is None:
+            import sys
+            sys.stderr.write("diffpen fit: note: --plot is drawn for the built-in ball and "
+                             "--data fits only, not for scene files\n")
+        else:
+            plot_fn(args.plot)
     return _print(args, out)
 
 
