@@ -177,3 +177,24 @@ def test_cli_simulate_chain_prints_final_positions_at_the_equilibrium(capsys):
     assert final.shape == (7, 3)
     scene, _ = paper_chain(seed=0)
     np.testing.assert_allclose(final, _laplacian_equilibrium(scene), atol=0.02)
+
+
+def test_tuning_fits_chain_stiffness_and_drag_params_by_path(chain):
+    """Soft-body parameters (spring groups and per-group extra entries) are fittable with
+    tuning.fit; the fitted KS matches the closed form of the zero-rest chain's sag."""
+    from tuning import fit, params as P
+    scene, balls, sim = chain
+    p0 = sim.params()
+    assert set(P.flatten(p0)) == {"springs.chain.spring.k", "springs.chain.spring.c",
+                                  "extra.drag.chain.drag"}
+
+    def metrics(p):
+        return {"sag": 100.0 - sim.rollout(p, 2000, save_every=2000).position[-1, 3, 2]}
+    res = fit.fit(metrics, p0, {"sag": 5.0}, free=["springs.chain.spring.k"], progress=False,
+                  maxiter=100, rtol=1e-4)
+    assert res.reached
+    # middle ball of 7, zero-rest springs: sag = m g / (2 KS) * 3 * 3
+    assert res.values["springs.chain.spring.k"] == pytest.approx(10 * 9.8 * 9 / (2 * 5.0),
+                                                                 rel=1e-3)
+    again = P.unflatten(p0, {"extra.drag.chain.drag": 2.0})
+    assert float(again.extra["drag"]["chain.drag"]) == 2.0

@@ -1,8 +1,9 @@
 """Addressing leaves of a :class:`diffpen.Params` pytree by dotted path.
 
 ``"contact.<material>.k"``, ``"contact.<material>.c"``, ``"springs.<group>.k"``,
-``"springs.<group>.c"`` and ``"extra.<name>"``. The fitting code works on a flat
-``{path: value}`` dict and rebuilds the pytree with :func:`unflatten`.
+``"springs.<group>.c"``, ``"extra.<name>"`` and, for extension entries that are dicts
+(drag coefficients, yield strains per group), ``"extra.<name>.<group>"``. The fitting code
+works on a flat ``{path: value}`` dict and rebuilds the pytree with :func:`unflatten`.
 """
 from __future__ import annotations
 
@@ -21,7 +22,11 @@ def flatten(params: dp.Params) -> dict:
         out[f"springs.{name}.k"] = sp.k
         out[f"springs.{name}.c"] = sp.c
     for name, v in params.extra.items():
-        out[f"extra.{name}"] = v
+        if isinstance(v, dict):
+            for group, leaf in v.items():
+                out[f"extra.{name}.{group}"] = leaf
+        else:
+            out[f"extra.{name}"] = v
     return out
 
 
@@ -33,7 +38,9 @@ def unflatten(template: dp.Params, flat: dict) -> dp.Params:
     springs = {n: dp.SpringParams(flat.get(f"springs.{n}.k", sp.k),
                                   flat.get(f"springs.{n}.c", sp.c))
                for n, sp in template.springs.items()}
-    extra = {n: flat.get(f"extra.{n}", v) for n, v in template.extra.items()}
+    extra = {n: ({g: flat.get(f"extra.{n}.{g}", leaf) for g, leaf in v.items()}
+                 if isinstance(v, dict) else flat.get(f"extra.{n}", v))
+             for n, v in template.extra.items()}
     return dp.Params(contact, springs, extra)
 
 
