@@ -25,6 +25,7 @@ import dataclasses
 import itertools
 import math
 import warnings
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -86,16 +87,18 @@ class Grid:
     margin: float = 0.0
 
 
-class Pairs:
+class Pairs(NamedTuple):
     """Candidate pairs found by a broad phase (all arrays of static length ``capacity``).
 
     i, j: (capacity,) int32 body indices (i < j); padded slots repeat pair 0.
     valid: (capacity,) bool, real overlapping pairs.  count: int32, overlapping pairs found
     (may exceed capacity).  overflow: bool, some pair was lost (capacity or a full cell).
     """
-
-    def __init__(self, i, j, valid, count, overflow):
-        self.i, self.j, self.valid, self.count, self.overflow = i, j, valid, count, overflow
+    i: Any
+    j: Any
+    valid: Any
+    count: Any
+    overflow: Any
 
 
 # --------------------------------------------------------------------------- primitives
@@ -144,15 +147,16 @@ def grid_candidates(x, cell_size: float, origin, dims, max_per_cell: int):
     own = key(cell)
     order = jnp.argsort(own)
     sorted_keys = own[order]
-    count = (jnp.searchsorted(sorted_keys, own, side="right")
-             - jnp.searchsorted(sorted_keys, own, side="left"))
+    count = (jnp.searchsorted(sorted_keys, own, side="right", method="scan_unrolled")
+             - jnp.searchsorted(sorted_keys, own, side="left", method="scan_unrolled"))
     full = jnp.any(count > max_per_cell)
 
     offsets = jnp.asarray(list(itertools.product((-1, 0, 1), repeat=3)), dtype=jnp.int32)
     near = cell[:, None, :] + offsets[None]                                   # (m, 27, 3)
     inside = jnp.all((near >= 0) & (near < dims_j), axis=-1)                  # (m, 27)
     near_key = key(near)
-    start = jnp.searchsorted(sorted_keys, near_key.reshape(-1), side="left").reshape(m, 27)
+    start = jnp.searchsorted(sorted_keys, near_key.reshape(-1), side="left",
+                             method="scan_unrolled").reshape(m, 27)
     slot = start[..., None] + jnp.arange(max_per_cell, dtype=start.dtype)     # (m, 27, M)
     slot_c = jnp.minimum(slot, m - 1)
     b = order[slot_c]
@@ -340,8 +344,8 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     half_all = ctx.const([b.half_extents or (0.0, 0.0, 0.0) for b in ctx.scene.bodies])
     law, width, n = ctx.law, ctx.width, ctx.n
 
-    init = find_pairs(bp, ctx, _initial_state(ctx))
-    ctx.aux_init[OVERFLOW] = float(bool(init.overflow))
+    init = jax.jit(lambda s: find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
+    ctx.aux_init[OVERFLOW] = float(bool(init))
 
     def update(params, state):
         flag = find_pairs(bp, ctx, state).overflow.astype(state.position.dtype)
