@@ -171,6 +171,8 @@ def _print(args, out: dict) -> int:
     for note in out.get("notes", []):
         print(f"note:      {note}")
     status = "targets reached" if out.get("reached", True) else "TARGETS NOT REACHED"
+    if out.get("message") == status:
+        out = dict(out, message="within tolerance")
     ev = (f" after the start search ({out['evaluations']} simulations with gradients in all)"
           if "evaluations" in out else "")
     print(f"status:    {status} -- {out.get('message', '')}; {out['iterations']} LM/optimiser "
