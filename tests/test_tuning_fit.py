@@ -3,7 +3,6 @@ frozen parameters stay put, infeasible targets are refused before compiling."""
 import logging
 
 import jax
-import numpy as np
 import optax
 import pytest
 

@@ -593,9 +593,10 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     """Fit contact k and c of a sphere bouncing on a plane to apex/settling/contact targets.
 
     Checks the targets against the scene first (:func:`check_bounce_targets`), then compiles,
-    starts from the closed-form first guess (:func:`first_guess_bounce`; with a settling-time
-    target but no contact-time target, k is chosen by a vmapped 1-D search at the damping
-    ratio the apex implies), and runs :func:`fit`.
+    starts from the closed-form first guess (:func:`first_guess_bounce`; with apex and
+    settling-time targets, :func:`_apex_settle_search` scans k with c solved for the apex and
+    bisects the settling time along that curve), and runs :func:`fit`. Stiffness stays below
+    the accuracy limit ``w0 dt <= 0.25`` of the explicit step.
 
     Bounce heights alone fix only the damping ratio: with apex/restitution targets but no
     settling-time or contact-duration target, k is held at ``k0`` and only c is fitted (the
@@ -662,7 +663,10 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         cc = c0
     if k0 is not None:
         kk = k0
-    kk = min(kk, kmax)
+    if kk > kmax:
+        notes.append(f"start k {kk:.4g} N/m lowered to {kmax:.4g} N/m, the accuracy limit "
+                     f"w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer contact)")
+        kk = kmax
     params0 = sim.params(contact={mat: (kk, cc)})
     bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (1e-6, m / dt)}
     tol = dict(BOUNCE_METRICS)
@@ -675,7 +679,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         notes[-1] += ("; along the curve where the first apex is met (Newton on c), the "
                       "settling time is matched by bisection on k")
         starts = None
-    res = fit(mfn, params0, dict(targets), free=free, bounds={p: bounds[p] for p in free if p in bounds},
+    res = fit(mfn, params0, dict(targets), free=free,
+              bounds={p: bounds[p] for p in free if p in bounds},
               weights=weights, rtol=tol, method=method, optimizer=optimizer,
               maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
               label="diffpen fit", starts=starts, search=search)

@@ -17,8 +17,10 @@ columns ``t,z``. Pipeline (each step is a public function):
    (simulation resampled onto the record's times by linear interpolation) over a horizon
    grown bounce by bounce -- the least-squares landscape over many bounces is rugged, so the
    fit follows the record one bounce at a time -- and reports standard errors from the
-   Gauss-Newton covariance ``s^2 (J^T J)^-1`` with an autodiff (forward-mode) Jacobian, plus in quadrature the shift of the parameters towards the
-   continuous-time model (Richardson: twice the change on halving dt).
+   Gauss-Newton covariance ``s^2 (J^T J)^-1`` with an autodiff (forward-mode) Jacobian,
+   plus in quadrature the shift of the parameters towards the continuous-time model
+   (Richardson: twice the change on halving dt). Over many bounces the model at a finite dt
+   is rough at the 0.1% scale, so on long records these errors are a lower bound.
 
 The horizon is a weight mask passed to one compiled residual/Jacobian function, so growing
 it never recompiles.

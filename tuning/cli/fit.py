@@ -123,7 +123,8 @@ def _run(args) -> int:
     c = res.params.contact["default"].c
     out = {"scene": desc, "k": float(k), "c": float(c), "targets": res.targets,
            "achieved": res.achieved, "rel_error": res.rel_error, "reached": res.reached,
-           "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds, "message": res.message,
+           "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds,
+           "message": res.message,
            "notes": res.notes, "dt": dt, "law": args.law,
            "zeta": float(dp.physical.damping_ratio(k, c, args.mass))}
     if args.plot:
