@@ -73,7 +73,7 @@ def main(argv=None) -> int:
         r = (s - target) / target
         value, grad = r ** 2, 2.0 * r * ds / target
         updates, state = opt.update(grad, state)
-        return optax.apply_updates(theta, updates), state, value
+        return optax.apply_updates(theta, updates), state, value, s
 
     theta = jnp.log(jnp.asarray(args.k0))
     state = opt.init(theta)
@@ -81,8 +81,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     for it in range(iters):
         k_now = float(jnp.exp(theta))
-        theta_next, state, value = iteration(theta, state)
-        history.append((k_now, float(value)))
+        theta_next, state, value, s_now = iteration(theta, state)
+        history.append((k_now, float(value), float(s_now)))
         if value < tol:              # quick: sag within 1e-4 relative; full: 1e-6
             break
         theta = theta_next
@@ -101,17 +101,19 @@ def _draw(history, target, sag, out):
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        import matplotlib.ticker
     except ImportError:
         print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
         return
     out.parent.mkdir(parents=True, exist_ok=True)
-    ks = np.geomspace(history[:, 0].min() * 0.7, history[:, 0].max() * 1.4, 15)
+    ks = np.geomspace(history[:, 0].min() * 0.7, history[:, 0].max() * 1.4, 9)
     sags = np.array([float(sag(k)) for k in ks])
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.4))
     a1.semilogx(ks, sags * 100, "-", color="0.5", label="sag(k)")
     a1.axhline(target * 100, color="red", ls="--", label="target")
-    a1.plot(history[:, 0], [float(sag(k)) * 100 for k in history[:, 0]], "o", ms=3,
-            color="tab:blue", label="iterates")
+    a1.plot(history[:, 0], history[:, 2] * 100, "o", ms=3, color="tab:blue", label="iterates")
+    a1.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    a1.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     a1.set_xlabel("structural k (N/m)")
     a1.set_ylabel("centre sag (cm)")
     a1.legend(fontsize=8)
