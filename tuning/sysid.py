@@ -421,6 +421,10 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     se_stat = se_log.copy()
     se_log = np.sqrt(se_log ** 2 + shift ** 2)
     k, c = (float(v) for v in np.exp(x[:2]))
+    if np.any(np.abs(shift[:2]) > 2.0 * se_stat[:2]):
+        notes.append(f"the time step dominates the standard errors (and on long records "
+                     f"may bias k and c beyond them): refit with --dt {dt / 2:.3g} for "
+                     "tighter, more reliable errors")
     notes.append(f"standard errors: noise part k {k * se_stat[0]:.3g} N/m, c "
                  f"{c * se_stat[1]:.3g} N s/m; dt part (shift to dt -> 0, Richardson) k "
                  f"{k * abs(shift[0]):.3g} N/m, c {c * abs(shift[1]):.3g} N s/m")
