@@ -70,6 +70,9 @@ def dump_json(obj) -> None:
 
 
 def fmt(v, unit: str = "", digits: int = 5) -> str:
+    """A number (or list) for printing: ``digits`` significant digits, ``n/a`` for nan."""
+    if isinstance(v, bool):
+        return "yes" if v else "no"
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(fmt(x, "", digits) for x in v) + "]" + (f" {unit}" if unit else "")
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
