@@ -22,7 +22,8 @@ from diffpen.builders import PAPER_CHAIN, paper_chain, paper_chain_equilibrium
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="accepted for uniformity; the demo is already quick")
+    ap.add_argument("--quick", action="store_true",
+                    help="accepted for uniformity; the demo is already quick")
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="examples/images/paper_chain.png")
