@@ -1,0 +1,82 @@
+"""Extreme-case matrix, sampled at its corners (the full table is `diffpen report stability`):
+every case runs sane or raises a clear error whose advice then works; the judge itself is
+shown to catch a silent NaN."""
+import math
+
+import numpy as np
+import pytest
+
+from tuning import report as R
+
+C = R.Case
+CASES = [
+    C(),                                                          # nominal
+    C(integrator="implicit_euler", k=1e9),                        # the issue's stiff case
+    C(scene="chain", integrator="implicit_euler", k=1e9),
+    C(k=1e9, mass=1e-4, dt=1e-1, label="stiffest, lightest, largest dt"),
+    C(scene="chain", k=1e9, zeta=100.0, speed=100.0, overlap=True, integrator="rk4"),
+    C(scene="chain", dtype="float32", mass=1e-4, integrator="verlet"),
+    C(dtype="float32", speed=100.0),
+    C(dtype="float32", k=1e1, mass=1e4, zeta=0.0, dt=1e-1),
+    C(zeta=0.0, gravity=False, speed=10.0, dt=1e-5, duration=0.05),
+    C(scene="chain", overlap=True, integrator="implicit_euler", dt=1e-2),
+]
+
+
+@pytest.fixture(scope="module")
+def rows():
+    return [R.run_case(c) for c in CASES]
+
+
+def test_every_sampled_case_is_sane_or_refused_clearly(rows):
+    for case, row in zip(CASES, rows):
+        assert row["outcome"] in ("ok", "refused"), (case, row["outcome"], row.get("detail"))
+        if row["outcome"] == "refused":
+            assert row["substeps"] >= 2 and row["stable_dt"] < case.dt
+            assert row["remedy"] == "ok", (case, row["remedy_detail"])
+            grads = (row["remedy_grad_k"], row["remedy_grad_c"])
+        else:
+            grads = (row["grad_k"], row["grad_c"])
+            assert row["max_penetration"] <= row["penetration_bound"]
+            assert math.isfinite(row["energy_growth"])
+        assert all(math.isfinite(g) for g in grads), (case, grads)
+
+
+def test_stiff_implicit_euler_runs_with_bounded_energy(rows):
+    for row in rows[1:3]:
+        assert row["outcome"] == "ok"
+        assert row["energy_growth"] <= R.ENERGY_TOL["float64"]
+        assert row["max_penetration"] <= 0.01
+
+
+def test_explicit_past_limit_is_refused_with_working_advice(rows):
+    row = rows[3]     # k = 1e9, m = 1e-4, dt = 0.1: ~6e5 substeps: advice is implicit_euler
+    assert row["outcome"] == "refused" and row["remedy"] == "ok"
+    assert row["remedy_detail"].startswith("implicit_euler")
+    row = rows[5]     # chain of 0.1 g spheres at dt = 1e-3: substeps
+    assert row["outcome"] == "refused" and row["remedy_detail"].startswith("substeps=")
+
+
+def test_judge_catches_blow_ups_and_silent_nans(monkeypatch):
+    """With the stability gate switched off, unstable explicit runs must be judged FAIL (an
+    energy blow-up; a NaN without an error), so the checks above cannot pass vacuously."""
+    monkeypatch.setattr(R._stab, "gate", lambda sim, params, **kw: 1)
+    row = R.run_case(C(k=1e9, duration=0.5), remedy=False)      # ball shot off the plane
+    assert row["outcome"] == "FAIL" and "energy grew" in row["detail"]
+    assert "restitution" in row["detail"]
+    row = R.run_case(C(scene="chain", dtype="float32", k=1e9, dt=1e-2, duration=2.0),
+                     remedy=False)
+    assert row["outcome"] == "FAIL" and "non-finite" in row["detail"]
+
+
+def test_matrix_lists_every_case_and_counts_outcomes():
+    cases = R.extreme_cases(quick=True)
+    assert len(cases) == len(set(cases))
+    labels = {c.label for c in cases}
+    for needed in ("k=1e+09", "mass=0.0001", "zeta=100", "speed=100", "overlap=True",
+                   "gravity=False", "dt=1e-05", "dt=0.1"):
+        assert needed in labels
+    assert {c.dtype for c in cases} == {"float32", "float64"}
+    assert {c.scene for c in cases} == {"ball", "chain"}
+    summary = R.summarize_matrix([{"outcome": "ok"}, {"outcome": "refused", "remedy": "ok"}])
+    assert summary == {"cases": 2, "ok": 1, "refused": 1, "refused->remedy ok": 1}
