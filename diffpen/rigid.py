@@ -31,6 +31,7 @@ import numpy as np
 
 from . import geometry
 from .compile import TERM_BUILDERS, CompileContext, Term, _spring_axis, gather, scatter
+from . import stability as _stability_hooks
 from .laws import spring_force
 
 __all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics",
@@ -340,5 +341,114 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
     return Term("anchored_springs", force)
 
 
+# --------------------------------------------------------------------------- stability
+def _mobility(sim, i: int, levers) -> float:
+    """Bound on ``J M^-1 J^T`` (1/kg) of a unit force of any direction n at body-frame
+    point(s) ``levers`` (k, 3) m of body i: ``1/m + max (r x n)^T I^-1 (r x n)``, the largest
+    eigenvalue of ``[r]x^T diag(1/I) [r]x`` over the given points (0 for pinned bodies; no
+    rotation term for bodies that do not rotate or forces through the centre)."""
+    body = sim.scene.bodies[i]
+    if body.pinned:
+        return 0.0
+    rot = 0.0
+    if body.rigid:
+        inv = 1.0 / inertia_diagonal(body)
+        for r in np.atleast_2d(np.asarray(levers, dtype=float)):
+            skew = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+            rot = max(rot, float(np.linalg.eigvalsh(skew.T @ (inv[:, None] * skew))[-1]))
+    return 1.0 / body.mass + rot
+
+
+def _face_mobility(body) -> float:
+    """Largest eigenvalue (1/kg) of ``M^-1 sum_c J_c^T J_c`` for a box resting on one face
+    (its 4 corners in contact, normal = the face normal), the stiffest plane contact a box
+    makes: ``J_c = [n, r_c x n]``, ``M = diag(m, m, m, I)``; the max over the 6 faces."""
+    h = np.asarray(body.half_extents)
+    inv_sqrt = 1.0 / np.sqrt(np.r_[np.full(3, body.mass), inertia_diagonal(body)])
+    best = 0.0
+    for axis in range(3):
+        n = np.eye(3)[axis]
+        face = [c for c in geometry.box_corners(h) if c[axis] < 0.0]
+        jac = np.array([np.r_[n, np.cross(r, n)] for r in face]) * inv_sqrt
+        best = max(best, float(np.linalg.eigvalsh(jac.T @ jac)[-1]))
+    return best
+
+
+def _structure(sim):
+    """Static rows ``(body, kind, key, weight)`` of the rigid terms' stiffness bounds:
+    ``kind`` "c" (contact, key = material) or "s" (spring, key = group), weight in 1/kg."""
+    cached = getattr(sim, "_rigid_stability_rows", None)
+    if cached is not None:
+        return cached
+    scene, terms, rows = sim.scene, set(sim.terms), []
+    bodies = scene.bodies
+
+    zero = np.zeros(3)
+
+    def corners(i):
+        return geometry.box_corners(bodies[i].half_extents)
+
+    def pair(i, j, kind, key, lever_i, lever_j, count=1, weight=None):
+        # one row's eigenvalue k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T), counted on both ends
+        w = weight if weight is not None else count * (
+            _mobility(sim, i, lever_i) + (_mobility(sim, j, lever_j) if j is not None else 0.0))
+        for b in (i, j):
+            if b is not None and not bodies[b].pinned:
+                rows.append((b, kind, key, w * (2.0 if j is not None else 1.0)))
+    for i, b in enumerate(bodies):
+        if b.kind != "box" or not b.collide or b.pinned:
+            continue
+        if "contact_box_plane" in terms:
+            for pl in scene.planes:          # up to the 4 corners of a face at once
+                pair(i, None, "c", pl.material, None, None, weight=_face_mobility(b))
+        if "contact_box_fixed_sphere" in terms:
+            for fs in scene.fixed_spheres:
+                pair(i, None, "c", fs.material, corners(i), zero)
+    if {"contact_sphere_box", "contact_broadphase"} & terms:
+        from .compile import _pair_material
+        for j, b in enumerate(bodies):
+            if b.kind != "box" or not b.collide:
+                continue
+            for i, s in enumerate(bodies):
+                if s.kind != "box" and s.collide and not (s.pinned and b.pinned):
+                    pair(i, j, "c", _pair_material(scene, s.material, b.material), zero,
+                         corners(j))
+    if "contact_broadphase" in terms:       # sphere-sphere pairs (the core term is left out)
+        from .compile import _pair_material
+        spheres = [i for i, b in enumerate(bodies)
+                   if b.collide and b.kind == "sphere" and b.radius > 0.0]
+        for i in spheres:
+            mats = {_pair_material(scene, bodies[i].material, bodies[j].material)
+                    for j in spheres if j != i and not (bodies[i].pinned and bodies[j].pinned)}
+            for m in mats:                  # one contact at a time, as the core bound
+                pair(i, None, "c", m, zero, zero, count=2)
+    if "anchored_springs" in terms:
+        for sp in scene.anchored_springs:
+            pair(sp.a, sp.b, "s", sp.group, sp.anchor_a, sp.anchor_b)
+    sim._rigid_stability_rows = rows
+    return rows
+
+
+def stability_bound(sim, params):
+    """``EXTRA_BOUNDS`` hook of :mod:`diffpen.stability`: per-body bounds (n,) on the
+    stiffness (1/s^2) and damping (1/s) rates that box contacts, sphere-box contacts,
+    broad-phase pairs and anchored springs add, including their rotation (``r^2 / I``).
+    Zeros for scenes without these terms; None when a parameter is an abstract tracer."""
+    from .stability import _value
+    n = sim.n_bodies
+    k_row, c_row = np.zeros(n), np.zeros(n)
+    rows = _structure(sim) if (sim.scene.has_rotation or "contact_broadphase" in sim.terms) \
+        else []
+    for body, kind, key, weight in rows:
+        p = params.contact[key] if kind == "c" else params.springs[key]
+        k, c = _value(p.k), _value(p.c)
+        if k is None or c is None:
+            return None
+        k_row[body] += weight * float(np.max(k))
+        c_row[body] += weight * float(np.max(c))
+    return k_row, c_row
+
+
 TERM_BUILDERS.extend([_box_plane_contact, _box_fixed_sphere_contact, _sphere_box_contact,
                       _anchored_springs])
+_stability_hooks.EXTRA_BOUNDS.append(stability_bound)

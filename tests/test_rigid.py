@@ -398,3 +398,19 @@ def test_non_unit_quaternion_is_normalised():
     box = scene.add_box((0.1, 0.1, 0.1), 1.0, (0, 0, 0), orientation=(2.0, 0.0, 0.0, 2.0))
     np.testing.assert_allclose(scene.bodies[box].orientation,
                                (np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)), rtol=1e-15)
+
+
+# --------------------------------------------------------------------------- stability
+def test_stability_bound_of_a_box_on_its_face_is_the_rocking_frequency():
+    """Corner springs k under a flat box (half extents a, b, c; mass m): the stiffest mode
+    rocks about y with w^2 = 4 k a^2 / I_y, I_y = m (a^2 + c^2) / 3; the rollout gate uses it."""
+    a, b, c, m, k = 0.2, 0.1, 0.05, 3.0, 2e4
+    scene = dp.Scene()
+    scene.add_box((a, b, c), m, (0.0, 0.0, 0.07))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+    rep = sim.stability(sim.params(k=k, c=0.0))
+    np.testing.assert_allclose(rep.omega_max, np.sqrt(4 * k * a * a / (m * (a * a + c * c) / 3)),
+                               rtol=1e-12)
+    with pytest.raises(dp.StabilityError, match="substeps"):
+        sim.rollout(sim.params(k=100 * k, c=0.0), steps=10)
