@@ -4,7 +4,7 @@ and damping.
 Scene (what exists; static) -> ``compile`` (a simulator holding only the terms the scene
 needs) -> ``Params`` (k, c: what you differentiate) -> ``State`` / ``Trajectory``.
 """
-from . import geometry, integrators, laws, physical
+from . import geometry, integrators, laws, physical, stability
 from . import plastic  # registers the plastic-spring term  # noqa: E402
 from . import builders
 from . import rigid, broadphase  # register the rigid-body and broad-phase terms
@@ -20,5 +20,5 @@ __all__ = [
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
-    "rigid", "broadphase",
+    "rigid", "broadphase", "stability",
 ]
