@@ -388,13 +388,19 @@ def _structure(sim):
     def corners(i):
         return geometry.box_corners(bodies[i].half_extents)
 
-    def pair(i, j, kind, key, lever_i, lever_j, count=1, weight=None):
+    one_at_a_time = {}       # candidate sphere-box contacts: the stiffest one per body
+
+    def pair(i, j, kind, key, lever_i, lever_j, count=1, weight=None, candidate=False):
         # one row's eigenvalue k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T), counted on both ends
         w = weight if weight is not None else count * (
             _mobility(sim, i, lever_i) + (_mobility(sim, j, lever_j) if j is not None else 0.0))
         for b in (i, j):
             if b is not None and not bodies[b].pinned:
-                rows.append((b, kind, key, w * (2.0 if j is not None else 1.0)))
+                row_w = w * (2.0 if j is not None else 1.0)
+                if candidate:
+                    one_at_a_time[b, key] = max(one_at_a_time.get((b, key), 0.0), row_w)
+                else:
+                    rows.append((b, kind, key, row_w))
     for i, b in enumerate(bodies):
         if b.kind != "box" or not b.collide or b.pinned:
             continue
@@ -412,7 +418,7 @@ def _structure(sim):
             for i, s in enumerate(bodies):
                 if s.kind != "box" and s.collide and not (s.pinned and b.pinned):
                     pair(i, j, "c", _pair_material(scene, s.material, b.material), zero,
-                         corners(j))
+                         corners(j), candidate=True)
     if "contact_broadphase" in terms:       # sphere-sphere pairs (the core term is left out)
         from .compile import _pair_material
         spheres = [i for i, b in enumerate(bodies)
@@ -425,6 +431,7 @@ def _structure(sim):
     if "anchored_springs" in terms:
         for sp in scene.anchored_springs:
             pair(sp.a, sp.b, "s", sp.group, sp.anchor_a, sp.anchor_b)
+    rows += [(b, "c", key, w) for (b, key), w in one_at_a_time.items()]
     sim._rigid_stability_rows = rows
     return rows
 
