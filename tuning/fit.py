@@ -55,6 +55,7 @@ class FitResult:
     traces: how many times the residual function was traced (fixed per method, whatever
       the number of iterations: the loop compiles once).
     evaluations: compiled-function calls (iterations, LM trial points and start search).
+    eval_history: (evaluations,) loss at every evaluated point, in order.
     message: what happened, in words.  stderr: ``{path: standard error}`` or None.
     """
     params: dp.Params
@@ -72,6 +73,7 @@ class FitResult:
     stderr: dict | None = None
     start: dict | None = None
     evaluations: int = 0
+    eval_history: np.ndarray | None = None
     notes: list = dataclasses.field(default_factory=list)
 
 
@@ -329,6 +331,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     tgt = {k: jnp.asarray(v) for k, v in targets.items()}
     traces = [0]
     evals = [0]
+    eval_costs: list = []
 
     def params_of(theta):
         flat = dict(flat0)
@@ -361,7 +364,10 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
 
         def rj_jit(theta):
             evals[0] += 1
-            return rj_compiled(theta)
+            out = rj_compiled(theta)
+            r0 = np.asarray(out[0])
+            eval_costs.append(float(r0 @ r0))
+            return out
         tols = np.concatenate([np.full(c, tol * math.sqrt(w)) for _, c, w, tol in spec])
         if search is not None:   # problem-specific start search, same compiled function
             slices, pos = {}, 0
@@ -430,6 +436,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
                 break
             history.append(loss)
             evals[0] += 1
+            eval_costs.append(loss)
             if loss < best[0]:
                 best = (loss, theta_d, m)
             bar.update(it, loss)
@@ -459,6 +466,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
                      rel_error=rel, reached=reached, converged=converged,
                      loss_history=history, iterations=int(iterations), seconds=seconds,
                      traces=traces[0], message=message, evaluations=evals[0],
+                     eval_history=np.asarray(eval_costs),
                      start={p: float(v) for p, v in zip(free, x0)})
 
 

@@ -21,13 +21,14 @@ def require_matplotlib():
 
 def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radius: float,
                settle_tol: float | None = None, rest: float | None = None,
-               title: str = "") -> None:
+               title: str = "", evaluations: bool = False) -> None:
     """Two panels: the fitted trajectory (lowest point above the surface, m, against s) with
     the apex targets and the settling band, and the loss against the iteration.
 
     Args:
       t: (S,) s.  z: (S,) centre height, m.  targets, achieved: as in ``FitResult``.
-      loss_history: (I,) loss per iteration.  radius: m.  rest: resting centre height, m.
+      loss_history: (I,) loss per iteration (or per evaluation with ``evaluations=True``).
+      radius: m.  rest: resting centre height, m.
     """
     plt = require_matplotlib()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), gridspec_kw={"width_ratios": [2, 1]})
@@ -48,10 +49,12 @@ def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radiu
     a1.set_ylabel("height of lowest point (m)")
     a1.legend(fontsize=8)
     a1.set_title(title or "fitted trajectory")
-    a2.semilogy(np.arange(len(loss_history)), np.maximum(np.asarray(loss_history), 1e-300))
-    a2.set_xlabel("iteration")
-    a2.set_ylabel("loss")
-    a2.set_title("loss")
+    hist = np.maximum(np.asarray(loss_history, float), 1e-300)
+    a2.semilogy(np.arange(len(hist)), hist, ".-")
+    a2.set_xlabel("evaluation" if evaluations else "iteration")
+    a2.set_ylabel("loss (sum of squared relative errors)")
+    a2.set_title("loss per simulation (search, then LM)" if evaluations
+                 else "loss")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

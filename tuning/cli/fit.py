@@ -200,7 +200,10 @@ def _plot_targets(args, scene, res, dt) -> None:
     rest = float(resting_height(jnp.asarray(k), args.mass, 9.81, args.radius, law=args.law,
                                 width=sim.smoothing))
     fit_figure(args.plot, t, z, targets=res.targets, achieved=res.achieved,
-               loss_history=res.loss_history, radius=args.radius, settle_tol=args.settle_tol,
+               loss_history=(res.eval_history if res.eval_history is not None
+                             and len(res.eval_history) else res.loss_history),
+               evaluations=res.eval_history is not None and len(res.eval_history) > 0,
+               radius=args.radius, settle_tol=args.settle_tol,
                rest=rest, title=f"k={k:.4g} N/m, c={float(res.params.contact['default'].c):.4g}"
                                 " N s/m")
 
