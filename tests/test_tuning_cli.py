@@ -22,9 +22,12 @@ def run_json(capsys, argv):
     return rc, json.loads(out[0])
 
 
-def test_fit_defaults_json(capsys):
-    rc, out = run_json(capsys, ["fit"])
+def test_fit_defaults_json(capsys, tmp_path):
+    pytest.importorskip("matplotlib")
+    png = str(tmp_path / "fit.png")
+    rc, out = run_json(capsys, ["fit", "--plot", png])
     assert rc == 0 and out["reached"]
+    assert os.path.getsize(png) > 1000
     for key in ("k", "c", "targets", "achieved", "iterations", "seconds"):
         assert key in out
     t, a = out["targets"], out["achieved"]
