@@ -387,7 +387,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         last = j == len(horizons) - 1
         out = levenberg_marquardt(lambda th: rj(th, w), x, lo, hi,
                                   maxiter=2 * maxiter if last else maxiter, xtol=1e-6,
-                                  ftol=1e-9, progress=bar, offset=its)
+                                  ftol=1e-9 if last else 1e-6, progress=bar, offset=its)
         x = out.x
         its += out.iterations
         hist += out.cost_history
