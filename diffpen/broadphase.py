@@ -124,14 +124,16 @@ def compact(mask, capacity: int):
 
 
 def grid_candidates(x, cell_size: float, origin, dims, max_per_cell: int):
-    """Neighbour-grid candidates: for each point, the points in the 27 surrounding cells.
+    """Neighbour-grid candidates: for each point, the points of its own cell and of the 13
+    neighbouring cells on the "forward" half (larger cell key), so that each unordered pair
+    of neighbouring cells is visited once.
 
     Args:
       x: (m, 3) points, m.  cell_size: m.  origin: (3,) m, corner of cell (0, 0, 0).
       dims: (3,) ints, cells per axis (static); points outside are clamped into the grid.
       max_per_cell: static number of slots looked at per neighbouring cell.
     Returns:
-      ``(a, b, ok, full)``: (m, 27 * max_per_cell) point indices ``a < b`` of candidate pairs
+      ``(a, b, ok, full)``: (m, 14 * max_per_cell) point indices ``a < b`` of candidate pairs
       with ``ok`` marking real ones (each unordered pair appears once), and ``full`` (bool)
       whether some cell holds more than ``max_per_cell`` points (candidates were missed).
     """
@@ -151,18 +153,23 @@ def grid_candidates(x, cell_size: float, origin, dims, max_per_cell: int):
              - jnp.searchsorted(sorted_keys, own, side="left", method="scan_unrolled"))
     full = jnp.any(count > max_per_cell)
 
-    offsets = jnp.asarray(list(itertools.product((-1, 0, 1), repeat=3)), dtype=jnp.int32)
-    near = cell[:, None, :] + offsets[None]                                   # (m, 27, 3)
-    inside = jnp.all((near >= 0) & (near < dims_j), axis=-1)                  # (m, 27)
+    # own cell first, then the 13 offsets (dz, dy, dx) > 0 in lexicographic (= key) order
+    offsets = jnp.asarray([(0, 0, 0)] + [(dx, dy, dz) for dz, dy, dx in
+                                          itertools.product((-1, 0, 1), repeat=3)
+                                          if (dz, dy, dx) > (0, 0, 0)], dtype=jnp.int32)
+    near = cell[:, None, :] + offsets[None]                                   # (m, 14, 3)
+    inside = jnp.all((near >= 0) & (near < dims_j), axis=-1)                  # (m, 14)
     near_key = key(near)
     start = jnp.searchsorted(sorted_keys, near_key.reshape(-1), side="left",
-                             method="scan_unrolled").reshape(m, 27)
-    slot = start[..., None] + jnp.arange(max_per_cell, dtype=start.dtype)     # (m, 27, M)
+                             method="scan_unrolled").reshape(near_key.shape)
+    slot = start[..., None] + jnp.arange(max_per_cell, dtype=start.dtype)     # (m, 14, M)
     slot_c = jnp.minimum(slot, m - 1)
     b = order[slot_c]
     a = jnp.broadcast_to(jnp.arange(m)[:, None, None], b.shape)
+    own_cell = (jnp.arange(offsets.shape[0]) == 0)[None, :, None]
     ok = (inside[..., None] & (slot < m) & (sorted_keys[slot_c] == near_key[..., None])
-          & (a < b))
+          & ((a < b) | ~own_cell))            # within a cell, each pair from its lower end
+    a, b = jnp.minimum(a, b), jnp.maximum(a, b)
     return a.reshape(m, -1), b.reshape(m, -1), ok.reshape(m, -1), full
 
 
