@@ -35,7 +35,7 @@ from . import stability as _stability_hooks
 from .laws import spring_force
 
 __all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics",
-           "anchored_spring_pair", "sphere_box_pair", "corner_plane_pair",
+           "anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
            "contact_materials"]
 
 
@@ -158,6 +158,23 @@ def corner_plane_pair(x, v, w, rot, corner, normal, offset):
     return d, vn, r
 
 
+def smooth_coulomb(v, normal, fn, mu, slip_speed):
+    """Smooth Coulomb friction of ONE contact: ``-mu max(fn, 0) v_t / sqrt(|v_t|^2 + s^2)``.
+
+    Args:
+      v: (3,) velocity of the contact point relative to the other surface, m/s.
+      normal: (3,) unit contact normal.  fn: normal force, N (only pushing counts).
+      mu: friction coefficient.  slip_speed: s, m/s > 0: below it friction grows linearly
+        with the sliding speed (a viscous law of coefficient ``mu fn / s``), so the force is
+        smooth in v (differentiable, including at rest) and tends to ``mu fn`` when sliding.
+    Returns:
+      (3,) tangential force, N.
+    """
+    v_t = v - jnp.sum(v * normal, axis=-1) * normal
+    speed = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + slip_speed * slip_speed)
+    return -mu * jnp.maximum(fn, 0.0) * v_t / speed
+
+
 def sphere_box_pair(xs, vs, ws, rs, xb, vb, wb, rot, half):
     """Geometry of ONE sphere ``s`` against ONE box ``b`` (see ``geometry.sphere_box``).
 
@@ -209,6 +226,13 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
     law, width, n = ctx.law, ctx.width, ctx.n
+    plane_mats = [scene.planes[r[1]].material for r in rows]
+    rough = list(dict.fromkeys(m for m in plane_mats if scene.materials[m].friction > 0.0))
+    if rough:   # smooth Coulomb friction only when some material has it (static choice)
+        ctx.extra_defaults.setdefault("friction", {}).update(
+            {m: scene.materials[m].friction for m in rough})
+        fi = np.array([rough.index(m) if m in rough else len(rough) for m in plane_mats])
+        slip = ctx.const([scene.materials[m].slip_speed for m in plane_mats])
 
     def force(params, state):
         k, c = ctx.contact_kc(params, mi)
@@ -216,7 +240,14 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
         w = gather(state.angular_velocity, bi, n)
         rot = quat_to_matrix(gather(state.orientation, bi, n))
         d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
-        f = law(d, vn, k, c, width)[:, None] * normals
+        fn = law(d, vn, k, c, width)
+        f = fn[:, None] * normals
+        if rough:
+            with jax.named_scope("friction"):
+                mus = jnp.stack([jnp.asarray(params.extra["friction"][m]) for m in rough]
+                                + [jnp.zeros_like(fn[0])])
+                f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn, mus[fi],
+                                                 slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
     return Term("contact_box_plane", force)
 
@@ -376,7 +407,8 @@ def _face_mobility(body) -> float:
 
 def _structure(sim):
     """Static rows ``(body, kind, key, weight)`` of the rigid terms' stiffness bounds:
-    ``kind`` "c" (contact, key = material) or "s" (spring, key = group), weight in 1/kg."""
+    ``kind`` "c" (contact, key = material) or "s" (spring, key = group), weight in 1/kg;
+    "f" (friction of material key below its slip speed), weight in 1/s per unit mu."""
     cached = getattr(sim, "_rigid_stability_rows", None)
     if cached is not None:
         return cached
@@ -407,6 +439,11 @@ def _structure(sim):
         if "contact_box_plane" in terms:
             for pl in scene.planes:          # up to the 4 corners of a face at once
                 pair(i, None, "c", pl.material, None, None, weight=_face_mobility(b))
+                mat = scene.materials[pl.material]
+                if mat.friction > 0.0:       # load ~ m |g| (at least 1 g) over slip speed
+                    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+                    rows.append((i, "f", pl.material,
+                                 load / mat.slip_speed * _mobility(sim, i, corners(i))))
         if "contact_box_fixed_sphere" in terms:
             for fs in scene.fixed_spheres:
                 pair(i, None, "c", fs.material, corners(i), zero)
@@ -447,6 +484,12 @@ def stability_bound(sim, params):
     rows = _structure(sim) if (sim.scene.has_rotation or "contact_broadphase" in sim.terms) \
         else []
     for body, kind, key, weight in rows:
+        if kind == "f":     # friction below the slip speed: viscous, mu m |g| / s per body
+            mu = _value(params.extra["friction"][key])
+            if mu is None:
+                return None
+            c_row[body] += weight * float(np.max(mu))
+            continue
         p = params.contact[key] if kind == "c" else params.springs[key]
         k, c = _value(p.k), _value(p.c)
         if k is None or c is None:

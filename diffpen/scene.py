@@ -147,9 +147,13 @@ class PlasticSpring:
 
 @dataclasses.dataclass
 class Material:
-    """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
+    """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m);
+    Coulomb ``friction`` coefficient (box corners, see :mod:`diffpen.rigid`) and the
+    ``slip_speed`` (m/s) below which friction is smoothed into a viscous law."""
     k: float | None = None
     c: float | None = None
+    friction: float = 0.0
+    slip_speed: float = 0.01
 
 
 @dataclasses.dataclass
@@ -277,12 +281,17 @@ class Scene:
                 f"inwards. Move it out of the sphere.")
 
     # ----------------------------------------------------------------- materials
-    def add_material(self, name: str, k: float | None = None, c: float | None = None) -> str:
+    def add_material(self, name: str, k: float | None = None, c: float | None = None, *,
+                     friction: float = 0.0, slip_speed: float = 0.01) -> str:
         """Declare a contact material with default stiffness ``k`` (N/m), damping ``c`` (N s/m).
 
         Contact parameters live per material in the params pytree. A body-collider contact
         uses the collider's material; a sphere-sphere contact uses the bodies' material when
         both share one, else ``"default"``.
+
+        ``friction`` (Coulomb coefficient mu >= 0) > 0 adds smooth Coulomb friction to the box
+        corner contacts of this material, ``-mu f_n v_t / sqrt(|v_t|^2 + slip_speed^2)``
+        (``slip_speed`` m/s > 0, static); mu is then ``params.extra["friction"][name]``.
         """
         if not isinstance(name, str) or not name:
             raise SceneError(f"material name must be a non-empty string, got {name!r}.")
@@ -290,7 +299,9 @@ class Scene:
             k = _positive(f"material {name!r} k (N/m)", k, allow_zero=True)
         if c is not None:
             c = _positive(f"material {name!r} c (N s/m)", c, allow_zero=True)
-        self.materials[name] = Material(k, c)
+        friction = _positive(f"material {name!r} friction", friction, allow_zero=True)
+        slip_speed = _positive(f"material {name!r} slip_speed (m/s)", slip_speed)
+        self.materials[name] = Material(k, c, friction, slip_speed)
         return name
 
     def _check_material(self, material: str) -> None:

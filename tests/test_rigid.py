@@ -10,6 +10,11 @@ import diffpen as dp
 from diffpen import geometry
 from diffpen.rigid import inertia_diagonal, quat_to_matrix
 
+try:
+    from jax.extend.core import jaxprs_in_params
+except ImportError:                                  # older jax
+    from jax.core import jaxprs_in_params
+
 G = 9.81
 
 
@@ -28,7 +33,7 @@ def _scopes(sim, params):
     def walk(jx):
         for eqn in jx.eqns:
             names.add(str(eqn.source_info.name_stack))
-            for sub in jax.core.jaxprs_in_params(eqn.params):
+            for sub in jaxprs_in_params(eqn.params):
                 walk(sub)
     walk(jaxpr.jaxpr)
     return " ".join(names)
@@ -414,3 +419,48 @@ def test_stability_bound_of_a_box_on_its_face_is_the_rocking_frequency():
                                rtol=1e-12)
     with pytest.raises(dp.StabilityError, match="substeps"):
         sim.rollout(sim.params(k=100 * k, c=0.0), steps=10)
+
+
+# --------------------------------------------------------------------------- friction
+@pytest.fixture(scope="module")
+def sliding_box():
+    """A 1 kg box sliding at 2 m/s on a plane with smooth Coulomb friction (slip 2 mm/s)."""
+    scene = dp.Scene()
+    scene.add_material("default", friction=0.4, slip_speed=2e-3)
+    scene.add_box((0.1, 0.1, 0.05), 1.0, (0.0, 0.0, 0.05 - G / 4e5), (2.0, 0.0, 0.0))
+    scene.add_plane()
+    return dp.compile(scene, dt=1e-4)
+
+
+def _slide(sim, mu, steps=6000):
+    return sim.rollout(sim.params(k=1e5, c=300.0, extra={"friction": {"default": mu}}),
+                       steps=steps, save_every=steps // 60, check_finite=False)
+
+
+def test_box_sliding_with_friction_stops_after_v0_squared_over_2_mu_g(sliding_box):
+    traj = _slide(sliding_box, 0.4)
+    t, vx = np.asarray(traj.time), np.asarray(traj.velocity[:, 0, 0])
+    sliding = vx > 0.05
+    np.testing.assert_allclose(vx[sliding], 2.0 - 0.4 * G * t[sliding], atol=2e-3)
+    np.testing.assert_allclose(float(traj.position[-1, 0, 0]), 4.0 / (2 * 0.4 * G), rtol=1e-3)
+    np.testing.assert_allclose(np.asarray(traj.velocity[-1]), 0.0, atol=1e-3)
+
+
+def test_friction_gradient_matches_closed_form_and_finite_differences(sliding_box):
+    def stop(mu):
+        return _slide(sliding_box, mu).position[-1, 0, 0]
+    mu = 0.4
+    g = float(jax.jit(jax.grad(stop))(mu))
+    f = jax.jit(stop)
+    fd = float((f(mu + 1e-5) - f(mu - 1e-5)) / 2e-5)
+    np.testing.assert_allclose(g, fd, rtol=1e-4)
+    np.testing.assert_allclose(g, -4.0 / (2 * mu * mu * G), rtol=5e-3)   # d/dmu v0^2/(2 mu g)
+
+
+def test_frictionless_box_traces_no_friction():
+    scene = dp.Scene()
+    scene.add_box((0.1, 0.1, 0.05), 1.0, (0.0, 0.0, 0.3))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+    assert "friction" not in sim.params(k=1e4, c=10.0).extra
+    assert "friction" not in _scopes(sim, sim.params(k=1e4, c=10.0))
