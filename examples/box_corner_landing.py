@@ -4,7 +4,8 @@ Run:  python examples/box_corner_landing.py [--quick] [--out examples/images/box
       [--gif]
 
 Each box corner below the plane is a penalty contact (force k d - c v_n at the corner, so it
-also makes a torque). At rest four corners share the weight: each sinks m g / (4 k), which
+also makes a torque), with smooth Coulomb friction at the corners. At rest four corners
+share the weight: each sinks m g / (4 k), which
 the script prints next to the simulated value. Saves a strip of side views (x-z) and the
 centre height over time as a PNG and, with ``--gif``, an animation. Needs the ``plot`` extra
 (matplotlib) for the pictures.
@@ -24,6 +25,7 @@ from diffpen.rigid import quat_to_matrix
 HALF = (0.1, 0.15, 0.2)           # m
 MASS = 2.0                        # kg
 K, C = 2e4, 60.0                  # N/m, N s/m per corner contact
+MU, SLIP = 0.5, 0.05              # smooth Coulomb friction of the ground, slip speed m/s
 G = 9.81
 #: the 12 edges of a box as pairs of corner indices (corners from geometry.box_corners)
 EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("1") == 1]
@@ -32,6 +34,7 @@ EDGES = [(a, b) for a in range(8) for b in range(a + 1, 8) if bin(a ^ b).count("
 def build():
     """The box, tilted so that one corner points down, 0.5 m up, spinning a little."""
     scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    scene.add_material("default", friction=MU, slip_speed=SLIP)
     q = np.array([0.88, 0.3, 0.35, 0.1])
     box = scene.add_box(HALF, MASS, (0.0, 0.0, 0.5), orientation=q,
                         angular_velocity=(0.0, 0.0, 1.0))
@@ -61,7 +64,9 @@ def main(argv=None) -> int:
           f"corner depths at rest (m): {np.round(-low[:4], 7)}; "
           f"closed form m g / (4 k) = {MASS * G / (4 * K):.7f} m")
     print(f"final centre height {x[-1, 2]:.5f} m (lying on the face of half-height "
-          f"{np.round(np.abs(quat_to_matrix(q[-1])).dot(HALF)[2], 4)} m)")
+          f"{np.round(np.abs(quat_to_matrix(q[-1])).dot(HALF)[2], 4)} m); final speed "
+          f"{np.linalg.norm(traj.velocity[-1, box]):.2e} m/s, spin "
+          f"{np.linalg.norm(traj.angular_velocity[-1, box]):.2e} rad/s (friction stops both)")
     _draw(corners, x, np.asarray(traj.time), pathlib.Path(args.out), args.gif)
     return 0
 
@@ -82,11 +87,13 @@ def _draw(corners, x, t, out, gif):
         return
     out.parent.mkdir(parents=True, exist_ok=True)
     touch = int(np.argmax(corners[:, :, 2].min(1) < 0.0))
-    frames = np.unique(np.r_[0, np.linspace(touch, len(t) - 1, 5).astype(int)])
+    times = [0.0, t[touch], t[touch] + 0.15, t[touch] + 0.3, t[touch] + 0.5, t[-1]]
+    frames = np.unique(np.searchsorted(t, times).clip(0, len(t) - 1))
+    xlim = (corners[..., 0].min() - 0.05, corners[..., 0].max() + 0.05)
     fig, axes = plt.subplots(1, len(frames) + 1, figsize=(2.3 * (len(frames) + 1), 2.7),
                              gridspec_kw={"width_ratios": [1] * len(frames) + [1.6]})
     for ax, f in zip(axes, frames):
-        _frame(ax, corners[f], t[f])
+        _frame(ax, corners[f], t[f], xlim)
     ax = axes[-1]
     ax.plot(t, x[:, 2], color="tab:blue", label="centre")
     ax.plot(t, corners[:, :, 2].min(1), color="tab:red", lw=0.8, label="lowest corner")
@@ -106,7 +113,7 @@ def _draw(corners, x, t, out, gif):
 
         def update(f):
             ax.clear()
-            _frame(ax, corners[f], t[f])
+            _frame(ax, corners[f], t[f], xlim)
         anim = FuncAnimation(fig, update, frames=range(0, len(t), step))
         path = out.with_suffix(".gif")
         anim.save(path, writer=PillowWriter(fps=20))
@@ -114,12 +121,12 @@ def _draw(corners, x, t, out, gif):
         print(f"wrote {path}")
 
 
-def _frame(ax, c, t):
+def _frame(ax, c, t, xlim):
     for a, b in EDGES:
         ax.plot(c[[a, b], 0], c[[a, b], 2], color="tab:blue", lw=1.2)
     ax.axhline(0.0, color="k", lw=0.8)
-    ax.fill_between([-0.5, 0.5], -0.1, 0.0, color="0.85")
-    ax.set_xlim(-0.4, 0.4)
+    ax.fill_between([xlim[0] - 1.0, xlim[1] + 1.0], -0.1, 0.0, color="0.85")
+    ax.set_xlim(*xlim)
     ax.set_ylim(-0.05, 0.75)
     ax.set_aspect("equal")
     ax.set_title(f"t = {t:.2f} s", fontsize=9)
