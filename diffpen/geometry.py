@@ -13,7 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "sphere_box"]
+__all__ = ["safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "sphere_box",
+           "rotate", "rotate_back"]
 
 
 def safe_norm(v, axis=-1, keepdims=False):
@@ -69,7 +70,7 @@ def sphere_box(xs, rs, xb, rot, half):
       surface, world frame, m. Continuous across the box surface; finite gradients when the
       centre lies on the surface.
     """
-    local = _mtv(rot, xs - xb)
+    local = rotate_back(rot, xs - xb)
     closest = jnp.clip(local, -half, half)
     delta = local - closest
     dist = safe_norm(delta)
@@ -83,15 +84,16 @@ def sphere_box(xs, rs, xb, rot, half):
     n_local = jnp.where(inside, jnp.where(onehot, sign, 0.0), delta * inv)
     p_local = jnp.where(inside & onehot, sign * half, closest)
     d = jnp.where(inside, rs + jnp.min(depth_in), rs - dist)
-    return d, _mv(rot, n_local), xb + _mv(rot, p_local)
+    return d, rotate(rot, n_local), xb + rotate(rot, p_local)
 
 
-def _mv(m, v):
-    """``m @ v`` for (3, 3) m, written elementwise (batches better than dot_general)."""
+def rotate(m, v):
+    """``m @ v`` for rotations (..., 3, 3) and vectors (..., 3), written elementwise (batches
+    better than a dot_general)."""
     return jnp.sum(m * v[..., None, :], axis=-1)
 
 
-def _mtv(m, v):
-    """``m.T @ v`` for (3, 3) m, elementwise."""
+def rotate_back(m, v):
+    """``m^T @ v`` (world to body frame for a body-to-world rotation m), elementwise."""
     return jnp.sum(m * v[..., :, None], axis=-2)
 

@@ -30,13 +30,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
-from .compile import TERM_BUILDERS, CompileContext, Term, _spring_axis, gather, scatter
 from . import stability as _stability_hooks
+from .compile import (TERM_BUILDERS, CompileContext, Term, _pair_material, _spring_axis, gather,
+                      scatter)
+from .geometry import rotate, rotate_back
 from .laws import spring_force
+from .stability import _value
 
 __all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics",
            "anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
-           "contact_materials"]
+           "contact_materials", "sphere_box_pairs", "stability_bound"]
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -49,16 +52,6 @@ def quat_to_matrix(q):
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def _mv(m, v):
-    """``m @ v`` for (..., 3, 3) m and (..., 3) v, elementwise (batches better than a dot)."""
-    return jnp.sum(m * v[..., None, :], axis=-1)
-
-
-def _mtv(m, v):
-    """``m^T @ v``, elementwise."""
-    return jnp.sum(m * v[..., :, None], axis=-2)
 
 
 def inertia_diagonal(body) -> np.ndarray:
@@ -84,8 +77,8 @@ def angular_acceleration(rot, w, tau, inertia, inv_inertia):
     Returns:
       alpha (3,) rad/s^2 = ``I_w^-1 (tau - w x I_w w)`` with ``I_w = R diag(I) R^T``.
     """
-    ang_mom = _mv(rot, inertia * _mtv(rot, w))
-    return _mv(rot, inv_inertia * _mtv(rot, tau - jnp.cross(w, ang_mom)))
+    ang_mom = rotate(rot, inertia * rotate_back(rot, w))
+    return rotate(rot, inv_inertia * rotate_back(rot, tau - jnp.cross(w, ang_mom)))
 
 
 class RigidDynamics:
@@ -123,18 +116,20 @@ class RigidDynamics:
         return scatter(alpha, idx, self.n)
 
 
+def sphere_box_pairs(scene) -> list[tuple[int, int, str]]:
+    """Every (sphere or particle, box, material) pair of ``scene`` that can move."""
+    bodies = scene.bodies
+    boxes = [j for j, b in enumerate(bodies) if b.kind == "box" and b.collide]
+    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
+    return [(i, j, _pair_material(scene, bodies[i].material, bodies[j].material))
+            for j in boxes for i in others if not (bodies[i].pinned and bodies[j].pinned)]
+
+
 def contact_materials(scene) -> list[str]:
     """Contact materials used by the box and sphere-box pairs of ``scene`` (for the params)."""
-    from .compile import _pair_material
-    bodies = scene.bodies
-    boxes = [i for i, b in enumerate(bodies) if b.kind == "box" and b.collide]
-    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
-    used = []
-    for j in boxes:
-        for i in others:
-            if not (bodies[i].pinned and bodies[j].pinned):
-                used.append(_pair_material(scene, bodies[i].material, bodies[j].material))
-        if not bodies[j].pinned:
+    used = [m for _, _, m in sphere_box_pairs(scene)]
+    for b in scene.bodies:
+        if b.kind == "box" and b.collide and not b.pinned:
             used += [p.material for p in scene.planes] + [f.material for f in
                                                           scene.fixed_spheres]
     return list(dict.fromkeys(used))
@@ -152,7 +147,7 @@ def corner_plane_pair(x, v, w, rot, corner, normal, offset):
       ``(d, vn, r)``: penetration of the corner (m), normal velocity of the corner point
       ``n . (v + w x r)`` (m/s), and its lever arm r = R corner (3,) m.
     """
-    r = _mv(rot, corner)
+    r = rotate(rot, corner)
     d, _ = geometry.sphere_plane(x + r, 0.0, normal, offset)
     vn = jnp.sum(normal * (v + jnp.cross(w, r)), axis=-1)
     return d, vn, r
@@ -200,7 +195,7 @@ def anchored_spring_pair(xa, va, wa, rot_a, anchor_a, xb, vb, wb, rot_b, anchor_
     halves them, which neither conserves angular momentum nor gives b its torque; this is
     the physics it describes.)
     """
-    r_a, r_b = _mv(rot_a, anchor_a), _mv(rot_b, anchor_b)
+    r_a, r_b = rotate(rot_a, anchor_a), rotate(rot_b, anchor_b)
     delta = xa + r_a - xb - r_b
     dv = va + jnp.cross(wa, r_a) - vb - jnp.cross(wb, r_b)
     stretch, rate, u = _spring_axis(delta, dv, rest)
@@ -277,17 +272,6 @@ def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
     return Term("contact_box_fixed_sphere", force)
 
 
-def sphere_box_rows(ctx: CompileContext):
-    """Static (sphere, box, material) rows of every sphere/particle-box pair that can move."""
-    from .compile import _pair_material
-    bodies = ctx.scene.bodies
-    boxes = [j for j, b in enumerate(bodies) if b.kind == "box" and b.collide]
-    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
-    return [(i, j, ctx.material_index[_pair_material(ctx.scene, bodies[i].material,
-                                                     bodies[j].material)])
-            for j in boxes for i in others if not (ctx.pinned[i] and ctx.pinned[j])]
-
-
 def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None):
     """Forces and torques (n, 3) of sphere-box pairs ``(si, bi)`` (index arrays (m,), static
     or traced) with box half extents ``half`` (m, 3) m, contact stiffness ``k`` and damping
@@ -312,7 +296,7 @@ def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None)
 def _sphere_box_contact(ctx: CompileContext) -> Term | None:
     if getattr(ctx, "broadphase", None) is not None:
         return None                     # the broad-phase pair term handles these pairs
-    rows = sphere_box_rows(ctx)
+    rows = [(i, j, ctx.material_index[m]) for i, j, m in sphere_box_pairs(ctx.scene)]
     if not rows:
         return None
     si, bi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
@@ -448,16 +432,9 @@ def _structure(sim):
             for fs in scene.fixed_spheres:
                 pair(i, None, "c", fs.material, corners(i), zero)
     if {"contact_sphere_box", "contact_broadphase"} & terms:
-        from .compile import _pair_material
-        for j, b in enumerate(bodies):
-            if b.kind != "box" or not b.collide:
-                continue
-            for i, s in enumerate(bodies):
-                if s.kind != "box" and s.collide and not (s.pinned and b.pinned):
-                    pair(i, j, "c", _pair_material(scene, s.material, b.material), zero,
-                         corners(j), candidate=True)
+        for i, j, mat in sphere_box_pairs(scene):
+            pair(i, j, "c", mat, zero, corners(j), candidate=True)
     if "contact_broadphase" in terms:       # sphere-sphere pairs (the core term is left out)
-        from .compile import _pair_material
         spheres = [i for i, b in enumerate(bodies)
                    if b.collide and b.kind == "sphere" and b.radius > 0.0]
         for i in spheres:
@@ -478,7 +455,6 @@ def stability_bound(sim, params):
     stiffness (1/s^2) and damping (1/s) rates that box contacts, sphere-box contacts,
     broad-phase pairs and anchored springs add, including their rotation (``r^2 / I``).
     Zeros for scenes without these terms; None when a parameter is an abstract tracer."""
-    from .stability import _value
     n = sim.n_bodies
     k_row, c_row = np.zeros(n), np.zeros(n)
     rows = _structure(sim) if (sim.scene.has_rotation or "contact_broadphase" in sim.terms) \

@@ -9,10 +9,11 @@ the force acts along the anchor-to-anchor axis, with damping on the relative anc
 ``v + w x r``, at each body's own anchor, equal and opposite, so it makes both bodies turn.
 Box A hangs from a world point by a spring at one of its top corners; box B hangs from A's
 opposite bottom corner by a spring at the middle of its top face. The script prints the
-total energy (kinetic + rotational + gravity + springs), which the spring dampers drain, and
-the anchors' final x positions, which line up under the world point (x = 0) as the chain
-comes to rest (a light air drag on the boxes damps the swinging). Saves a strip of side views (x-z) and the energy over time as
-a PNG and, with ``--gif``, an animation. Needs the ``plot`` extra (matplotlib).
+total energy (kinetic + rotational + gravity + springs), which the spring dampers and a
+light air drag on the boxes drain, and the anchors' final x positions, which line up under
+the world point (x = 0) as the chain comes to rest. Saves a strip of side views (x-z) and the
+energy over time as a PNG and, with ``--gif``, an animation. Needs the ``plot`` extra
+(matplotlib).
 """
 from __future__ import annotations
 
