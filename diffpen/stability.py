@@ -471,7 +471,11 @@ def gate(sim, params, *, check: bool = True) -> int:
     count it picked last for concrete parameters, or raises a SceneError saying what to do.
     """
     auto = sim.substeps == "auto"
-    if sim.integrator in IMPLICIT or not (check or auto):
+    if sim.integrator in IMPLICIT:
+        if check and np.dtype(sim.dtype).itemsize < 8:
+            _implicit_precision(sim, params)
+        return 1
+    if not (check or auto):
         return 1
     # fast path: a verdict per set of scalar parameter values, memoised on the simulator
     # (the check costs a few microseconds on a repeated rollout)
@@ -487,6 +491,31 @@ def gate(sim, params, *, check: bool = True) -> int:
             memo.clear()
         memo[key] = n
     return n
+
+
+#: implicit_euler in a float dtype of machine epsilon eps needs (w h)^2 eps <= this: past it the
+#: identity in (I - h A_v - h^2 A_x) is lost to rounding and a free body's matrix is singular.
+IMPLICIT_PRECISION = 0.1
+
+
+def _implicit_precision(sim, params) -> None:
+    """Raise StabilityError when implicit_euler's linear system cannot be resolved in the
+    simulator's dtype (float32 with a very stiff, light body and a large step)."""
+    rates = scene_rates(sim, params)
+    if rates is None:
+        return
+    K = float(np.max(rates[0], initial=0.0))
+    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
+    h = sim.dt / (sim.substeps if isinstance(sim.substeps, int) else 1)
+    if K * h * h * eps <= IMPLICIT_PRECISION:
+        return
+    h_ok = math.sqrt(IMPLICIT_PRECISION / (eps * K))
+    n = _needed(sim.dt, h_ok)
+    raise StabilityError(
+        f"implicit_euler cannot resolve this system in {np.dtype(sim.dtype).name}: "
+        f"(w h)^2 = {K * h * h:.3g} swamps the identity at machine epsilon {eps:.2g} (the "
+        f"matrix is singular in rounding). Use dtype=float64, or a step <= {h_ok:.3g} s "
+        f"(substeps={n}).", stable_dt=h_ok, substeps=n)
 
 
 def _scalar_key(params):

@@ -293,6 +293,13 @@ def _run_case(case: Case, substeps: int, max_inner_steps: int, integrator=None) 
                margin=rep.margin * 1.0, grad_k=float(gk), grad_c=float(gc))
     bad = ~(np.isfinite(pos).all(axis=-1) & np.isfinite(vel).all(axis=-1))
     if bad.any():
+        # what the user's rollout does with it: a NonFiniteError naming step and body is a
+        # clear error; anything else is a silent NaN
+        try:
+            sim.rollout(params, steps, state)
+        except dp.NonFiniteError as e:
+            out.update(outcome="error", detail=f"NonFiniteError: {e}")
+            return out
         s, b = (int(v) for v in np.argwhere(bad)[0])
         out.update(outcome="FAIL", detail=f"non-finite state at step {s + 1}, body {b} "
                    "without an error")
@@ -312,7 +319,10 @@ def _run_case(case: Case, substeps: int, max_inner_steps: int, integrator=None) 
     m = case.mass
     rest = 2.0 * m * g / case.k * (4 if case.scene == "chain" else 1) + sim.smoothing
     free = d <= rest
-    scale = abs(e0) + m * g * 0.5 * len(sim.mass) + 1e-300  # energy scale incl. the drop
+    # energy scale: |E0| + the drop's potential + the rounding floor of the springs' energy
+    eps = float(np.finfo(np.dtype(case.dtype)).eps)
+    scale = (abs(e0) + m * g * 0.5 * len(sim.mass)
+             + len(sim.mass) * 0.5 * case.k * (100 * eps * 0.2) ** 2 + 1e-300)
     growth = float(np.max(e[free]) - e0) / scale if free.any() else 0.0
     out["energy_growth"] = growth
     if growth > tol:
