@@ -221,13 +221,8 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
     law, width, n = ctx.law, ctx.width, ctx.n
-    plane_mats = [scene.planes[r[1]].material for r in rows]
-    rough = list(dict.fromkeys(m for m in plane_mats if scene.materials[m].friction > 0.0))
-    if rough:   # smooth Coulomb friction only when some material has it (static choice)
-        ctx.extra_defaults.setdefault("friction", {}).update(
-            {m: scene.materials[m].friction for m in rough})
-        fi = np.array([rough.index(m) if m in rough else len(rough) for m in plane_mats])
-        slip = ctx.const([scene.materials[m].slip_speed for m in plane_mats])
+    # smooth Coulomb friction only when some material has it (static choice)
+    rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
 
     def force(params, state):
         k, c = ctx.contact_kc(params, mi)
@@ -237,14 +232,62 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
         d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
         fn = law(d, vn, k, c, width)
         f = fn[:, None] * normals
-        if rough:
+        if rough is not None:
             with jax.named_scope("friction"):
-                mus = jnp.stack([jnp.asarray(params.extra["friction"][m]) for m in rough]
-                                + [jnp.zeros_like(fn[0])])
-                f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn, mus[fi],
-                                                 slip)
+                names, fi, slip = rough
+                f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
+                                                 _row_mu(params, names, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
     return Term("contact_box_plane", force)
+
+
+def _rough(ctx: CompileContext, materials: list[str]):
+    """Friction materials among ``materials`` (registered in ``params.extra["friction"]``),
+    each row's index into them (``len`` for frictionless rows) and slip speeds (m/s)."""
+    scene = ctx.scene
+    rough = list(dict.fromkeys(m for m in materials if scene.materials[m].friction > 0.0))
+    if not rough:
+        return None
+    ctx.extra_defaults.setdefault("friction", {}).update(
+        {m: scene.materials[m].friction for m in rough})
+    fi = np.array([rough.index(m) if m in rough else len(rough) for m in materials])
+    return rough, fi, ctx.const([scene.materials[m].slip_speed for m in materials])
+
+
+def _row_mu(params, rough, fi, like):
+    return jnp.stack([jnp.asarray(params.extra["friction"][m]) for m in rough]
+                     + [jnp.zeros_like(like)])[fi]
+
+
+def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
+    """Smooth Coulomb friction of rigid spheres on rough planes (the normal force is the
+    core's ``contact_plane`` law, recomputed here for these rows only)."""
+    scene = ctx.scene
+    rows = [(i, p) for i, b in enumerate(scene.bodies)
+            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+            for p, pl in enumerate(scene.planes) if scene.materials[pl.material].friction > 0]
+    if not rows:
+        return None
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    mats = [scene.planes[r[1]].material for r in rows]
+    mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
+    rough, fi, slip = _rough(ctx, mats)
+    normals = ctx.const([scene.planes[r[1]].normal for r in rows])
+    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    radii = ctx.const(ctx.radius[bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        w = gather(state.angular_velocity, bi, n)
+        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        fn = law(d, jnp.sum(normals * v, axis=-1), k, c, width)
+        r = -radii[:, None] * normals                    # centre to contact point
+        f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
+                                     _row_mu(params, rough, fi, fn[0]), slip)
+        return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
+    return Term("friction_sphere_plane", force)
 
 
 def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -431,6 +474,15 @@ def _structure(sim):
         if "contact_box_fixed_sphere" in terms:
             for fs in scene.fixed_spheres:
                 pair(i, None, "c", fs.material, corners(i), zero)
+    if "friction_sphere_plane" in terms:
+        for i, b in enumerate(bodies):
+            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned:
+                for pl in scene.planes:
+                    mat = scene.materials[pl.material]
+                    if mat.friction > 0.0:
+                        load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+                        rows.append((i, "f", pl.material, load / mat.slip_speed
+                                     * _mobility(sim, i, (0.0, 0.0, b.radius))))
     if {"contact_sphere_box", "contact_broadphase"} & terms:
         for i, j, mat in sphere_box_pairs(scene):
             pair(i, j, "c", mat, zero, corners(j), candidate=True)
@@ -475,6 +527,6 @@ def stability_bound(sim, params):
     return k_row, c_row
 
 
-TERM_BUILDERS.extend([_box_plane_contact, _box_fixed_sphere_contact, _sphere_box_contact,
-                      _anchored_springs])
+TERM_BUILDERS.extend([_box_plane_contact, _sphere_plane_friction, _box_fixed_sphere_contact,
+                      _sphere_box_contact, _anchored_springs])
 _stability_hooks.EXTRA_BOUNDS.append(stability_bound)

@@ -464,3 +464,22 @@ def test_frictionless_box_traces_no_friction():
     sim = dp.compile(scene, dt=1e-3)
     assert "friction" not in sim.params(k=1e4, c=10.0).extra
     assert "friction" not in _scopes(sim, sim.params(k=1e4, c=10.0))
+
+
+def test_sliding_rigid_ball_ends_rolling_at_five_sevenths_of_its_speed():
+    """A solid ball launched without spin on a rough plane: friction mu m g decelerates it
+    and spins it up until it rolls, at v = 5/7 v0 with w r = v, after t = 2 v0 / (7 mu g)."""
+    mu, v0, r, m, k = 0.3, 2.0, 0.1, 1.0, 1e5
+    scene = dp.Scene()
+    scene.add_material("default", friction=mu, slip_speed=2e-3)
+    ball = scene.add_rigid_sphere(r, m, (0.0, 0.0, r - m * G / k), (v0, 0.0, 0.0))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-4)
+    assert "friction_sphere_plane" in sim.terms
+    traj = sim.rollout(sim.params(k=k, c=np.sqrt(k * m)), steps=3000, save_every=30)
+    t, v = np.asarray(traj.time), np.asarray(traj.velocity[:, ball, 0])
+    w = np.asarray(traj.angular_velocity[:, ball, 1])
+    sliding = t < 0.9 * 2 * v0 / (7 * mu * G)
+    np.testing.assert_allclose(v[sliding], v0 - mu * G * t[sliding], atol=1e-3)
+    np.testing.assert_allclose(w[sliding] * r, 2.5 * mu * G * t[sliding], atol=2.5e-3)
+    np.testing.assert_allclose([v[-1], w[-1] * r], [5 / 7 * v0, 5 / 7 * v0], rtol=1e-4)
