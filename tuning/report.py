@@ -248,7 +248,7 @@ def run_case(case: Case, *, remedy: bool = True, max_inner_steps: int = 2_000_00
     try:
         out = _run_case(case, 1, max_inner_steps)
     except dp.StabilityError as e:
-        row.update(outcome="refused", detail=str(e).split(":")[0] + f": stable dt "
+        row.update(outcome="refused", detail=str(e).split(":")[0] + f": safe step "
                    f"{e.stable_dt:.3g} s, needs substeps={e.substeps}", substeps=e.substeps,
                    stable_dt=e.stable_dt)
         steps = max(2, int(round(case.duration / case.dt)))

@@ -46,19 +46,20 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    setup_jax(x64=True)
-    from tuning import report as R
-    integs = tuple(args.integrators or R.INTEGRATORS)
-    import diffpen as dp
-    bad = [i for i in integs if i not in dp.integrators.INTEGRATORS]
+    from diffpen.integrators import INTEGRATORS
+    integs = tuple(args.integrators or ("semi_implicit_euler", "verlet", "rk4",
+                                        "implicit_euler"))
+    bad = [i for i in integs if i not in INTEGRATORS]
     if bad:
         return fail("report", f"unknown integrator(s) {bad}; choose from "
-                              f"{sorted(dp.integrators.INTEGRATORS)}")
+                              f"{sorted(INTEGRATORS)}")
     if args.c < 0 or not math.isfinite(args.c):
         return fail("report", f"--c must be a finite number >= 0, got {args.c}")
     if args.height <= args.radius:
         return fail("report", "--height must be above --radius (the ball starts above the "
                               "plane)")
+    setup_jax(x64=True)
+    from tuning import report as R
     if args.what == "stability":
         return _stability(args, R, integs)
     if args.what == "accuracy":
