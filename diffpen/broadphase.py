@@ -293,10 +293,11 @@ def find_pairs(bp, ctx: CompileContext, state) -> Pairs:
     a, b, ok, full = grid_candidates(x, cell, ctx.const(lo0), dims, bp.max_per_cell)
     a, b, ok = a.reshape(-1), b.reshape(-1), ok.reshape(-1)
     ga, gb = jnp.asarray(gi)[a], jnp.asarray(gi)[b]
-    cls, pinned = _classes(ctx), ctx.pinned
-    allowed = jnp.asarray(_ALLOWED[cls][:, cls] & ~(pinned[:, None] & pinned[None, :]))
+    # eligibility per candidate pair from (n,) tables: O(n) constants, not an (n, n) matrix
+    cls, pinned = jnp.asarray(_classes(ctx)), jnp.asarray(ctx.pinned)
+    allowed = jnp.asarray(_ALLOWED)[cls[ga], cls[gb]] & ~(pinned[ga] & pinned[gb])
     # a < b in grid order = body order (gi is increasing), so ga < gb
-    mask = ok & allowed[ga, gb] & aabb_overlap(lo[a], hi[a], lo[b], hi[b])
+    mask = ok & allowed & aabb_overlap(lo[a], hi[a], lo[b], hi[b])
     idx, valid, count = compact(mask, cap)
     return Pairs(ga[idx], gb[idx], valid, count, (count > cap) | full)
 
@@ -334,16 +335,25 @@ def _kc(ctx: CompileContext, params, mi):
     return ks[mi], cs[mi]
 
 
+def _pair_kinds(ctx: CompileContext) -> tuple[bool, bool]:
+    """Whether any sphere-sphere / sphere-or-particle-box pair can act, in O(n) (no list of
+    all pairs): a pair acts unless both ends are pinned."""
+    cls, pinned = _classes(ctx), ctx.pinned
+    sph, box = cls == _SPHERE, cls == _BOX
+    pt = sph | (cls == _PARTICLE)
+    has_ss = bool(sph.sum() >= 2 and (sph & ~pinned).any())
+    has_sb = bool(box.any() and pt.any() and ((box & ~pinned).any() or (pt & ~pinned).any()))
+    return has_ss, has_sb
+
+
 def _broadphase_contact(ctx: CompileContext) -> Term | None:
     bp = ctx.broadphase
     if bp is None:
         return None
-    ia, ib = _static_pairs(ctx)
-    if len(ia) == 0:
+    has_ss, has_sb = _pair_kinds(ctx)
+    if not (has_ss or has_sb):
         return None
     cls = _classes(ctx)
-    has_ss = bool(np.any((cls[ia] == _SPHERE) & (cls[ib] == _SPHERE)))
-    has_sb = bool(np.any((cls[ia] == _BOX) | (cls[ib] == _BOX)))
     body_mat, table = _pair_material_table(ctx)
     body_mat, table = jnp.asarray(body_mat), jnp.asarray(table)
     is_box = jnp.asarray(cls == _BOX)
