@@ -18,7 +18,8 @@ rows). One contact per body is exact for a body on a floor, in a corner of mutua
 orthogonal planes, or in a two-sphere collision; a sphere squeezed by several spheres at once
 can need a smaller step (``packed_dt`` reports that bound, with up to 12 sphere neighbours).
 Force terms added by extensions are not included unless they append a function to
-``EXTRA_BOUNDS``.
+``EXTRA_BOUNDS``; in particular the rotational modes of rigid bodies (a contact at a lever arm
+r adds about k r^2 / I, up to ~3 k / m for a box corner) are not bounded here.
 
 Rollouts of explicit integrators are held to a *safe* step (``safe_dt``): the stability limit,
 tightened to ``w_c h <= SAFE_WH = 0.5`` and ``C_c h <= SAFE_CH = 1`` for the contact springs
