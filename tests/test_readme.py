@@ -17,3 +17,14 @@ def test_quick_start_runs_as_written():
     z = np.asarray(env["z"])
     assert z.shape == (2000,) and z.max() <= 1.0 and z.min() > 0.0   # bounces off the ground
     assert np.isfinite(float(env["dz_dk"]))
+
+
+def test_sharding_snippet_runs_as_written():
+    text = README.read_text()
+    quick = re.search(r"## Quick start\s+```python\n(.*?)```", text, re.S).group(1)
+    snippet = re.search(r"## Beyond one machine.*?```python\n(.*?)```", text, re.S).group(1)
+    env: dict = {}
+    exec(compile(quick.split("dz_dk")[0], "README quick start", "exec"), env)
+    exec(compile(snippet, "README sharding", "exec"), env)
+    heights = np.asarray(env["heights"])
+    assert heights.shape == (64,) and np.all(np.isfinite(heights))
