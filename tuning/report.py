@@ -431,7 +431,8 @@ class BallReference:
                 y[0] = r
                 if in_contact:
                     contacts.append((contacts_start, t_e))
-                    apexes.append(r + y[1] ** 2 / (2.0 * g))
+                    # no apex without gravity: the ball leaves for good
+                    apexes.append(r + y[1] ** 2 / (2.0 * g) if g > 0.0 else np.inf)
                 else:
                     contacts_start = t_e
                 t = t_e
