@@ -17,7 +17,6 @@ energy over time as a PNG and, with ``--gif``, an animation. Needs the ``plot`` 
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -26,6 +25,7 @@ import numpy as np
 import diffpen as dp
 from diffpen.geometry import box_corners
 from diffpen.rigid import inertia_diagonal, quat_to_matrix
+from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
 
 G = 9.81
 TOP = (0.0, 0.0, 2.0)                     # world anchor, m
@@ -52,10 +52,8 @@ def build():
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="shorter run (seconds)")
-    ap.add_argument("--out", default="examples/images/anchored_spring_bodies.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF next to --out")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/anchored_spring_bodies.png",
+                        gif_help="also write an animated GIF next to --out")
     args = ap.parse_args(argv)
 
     scene, a, b = build()
@@ -108,44 +106,25 @@ def total_energy(scene, x, v, w, rot):
 
 
 def _draw(scene, x, rot, t, energy, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    if example_pyplot(out) is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     corners = [x[:, i, None, :] + np.einsum("tij,kj->tki", rot[:, i], box_corners(h))
                for i, h in enumerate((HALF_A, HALF_B))]
     p = anchors(x, rot)
     frames = np.unique(np.searchsorted(t, [0.0, 0.4, 0.8, 1.5, 3.0, t[-1]]).clip(0, len(t) - 1))
-    fig, axes = plt.subplots(1, len(frames) + 1, figsize=(2.0 * (len(frames) + 1) + 0.8, 3.0),
-                             gridspec_kw={"width_ratios": [1] * len(frames) + [1.6]})
-    for ax, f in zip(axes, frames):
-        _frame(ax, [c[f] for c in corners], p[f], t[f])
-    ax = axes[-1]
-    ax.plot(t, energy, color="tab:purple")
-    ax.set_xlabel("t (s)")
-    ax.set_ylabel("total energy (J)")
-    fig.suptitle("two rigid boxes joined by anchored springs (side view x-z)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, ax = plt.subplots(figsize=(3.0, 3.6))
-        step = max(1, len(t) // 80)
 
-        def update(f):
-            ax.clear()
-            _frame(ax, [c[f] for c in corners], p[f], t[f])
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), step))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=20))
-        plt.close(fig)
-        print(f"wrote {path}")
+    def draw(ax, f):
+        _frame(ax, [c[f] for c in corners], p[f], t[f])
+
+    def energy_panel(ax):
+        ax.plot(t, energy, color="tab:purple")
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel("total energy (J)")
+    save_strip(draw, frames, out, extra=energy_panel,
+               figsize=(2.0 * (len(frames) + 1) + 0.8, 3.0),
+               title="two rigid boxes joined by anchored springs (side view x-z)")
+    if gif:
+        save_gif(draw, range(0, len(t), max(1, len(t) // 80)), out, figsize=(3.0, 3.6), fps=20)
 
 
 def _frame(ax, boxes, p, t):

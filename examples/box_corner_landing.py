@@ -12,7 +12,6 @@ centre height over time as a PNG and, with ``--gif``, an animation. Needs the ``
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -21,6 +20,7 @@ import numpy as np
 import diffpen as dp
 from diffpen.geometry import box_corners
 from diffpen.rigid import quat_to_matrix
+from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
 
 HALF = (0.1, 0.15, 0.2)           # m
 MASS = 2.0                        # kg
@@ -43,10 +43,8 @@ def build():
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="shorter run (seconds)")
-    ap.add_argument("--out", default="examples/images/box_corner_landing.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF next to --out")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/box_corner_landing.png",
+                        gif_help="also write an animated GIF next to --out")
     args = ap.parse_args(argv)
 
     scene, box = build()
@@ -78,47 +76,27 @@ def corner_positions(x, q):
 
 
 def _draw(corners, x, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    if example_pyplot(out) is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     touch = int(np.argmax(corners[:, :, 2].min(1) < 0.0))
     times = [0.0, t[touch], t[touch] + 0.15, t[touch] + 0.3, t[touch] + 0.5, t[-1]]
     frames = np.unique(np.searchsorted(t, times).clip(0, len(t) - 1))
     xlim = (corners[..., 0].min() - 0.05, corners[..., 0].max() + 0.05)
-    fig, axes = plt.subplots(1, len(frames) + 1, figsize=(2.3 * (len(frames) + 1), 2.7),
-                             gridspec_kw={"width_ratios": [1] * len(frames) + [1.6]})
-    for ax, f in zip(axes, frames):
-        _frame(ax, corners[f], t[f], xlim)
-    ax = axes[-1]
-    ax.plot(t, x[:, 2], color="tab:blue", label="centre")
-    ax.plot(t, corners[:, :, 2].min(1), color="tab:red", lw=0.8, label="lowest corner")
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_xlabel("t (s)")
-    ax.set_ylabel("height (m)")
-    ax.legend(fontsize=7)
-    fig.suptitle("rigid box landing on a corner and settling (side view x-z)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, ax = plt.subplots(figsize=(3.2, 3.2))
-        step = max(1, len(t) // 60)
 
-        def update(f):
-            ax.clear()
-            _frame(ax, corners[f], t[f], xlim)
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), step))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=20))
-        plt.close(fig)
-        print(f"wrote {path}")
+    def draw(ax, f):
+        _frame(ax, corners[f], t[f], xlim)
+
+    def heights(ax):
+        ax.plot(t, x[:, 2], color="tab:blue", label="centre")
+        ax.plot(t, corners[:, :, 2].min(1), color="tab:red", lw=0.8, label="lowest corner")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel("height (m)")
+        ax.legend(fontsize=7)
+    save_strip(draw, frames, out, extra=heights, figsize_per_frame=(2.3, 2.7),
+               title="rigid box landing on a corner and settling (side view x-z)")
+    if gif:
+        save_gif(draw, range(0, len(t), max(1, len(t) // 60)), out, figsize=(3.2, 3.2), fps=20)
 
 
 def _frame(ax, c, t, xlim):

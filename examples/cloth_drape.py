@@ -8,7 +8,6 @@ friction, no self-collision).
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -16,6 +15,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_cloth
+from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
 
 SIZE, R, HEIGHT = 0.8, 0.2, 0.5      # cloth side (m), sphere radius (m), cloth start height (m)
 
@@ -34,10 +34,8 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarser cloth, shorter run")
-    ap.add_argument("--out", default="examples/images/cloth_drape.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/cloth_drape.png",
+                        quick_help="coarser cloth, shorter run")
     args = ap.parse_args(argv)
 
     n, seconds = (11, 1.2) if args.quick else (21, 2.0)
@@ -62,37 +60,17 @@ def main(argv=None) -> int:
 
 
 def _draw(x, nodes, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    if example_pyplot(out) is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
-    frames = np.linspace(0, len(t) - 1, 4).astype(int)
-    fig = plt.figure(figsize=(12, 3.4))
-    for k, f in enumerate(frames):
-        ax = fig.add_subplot(1, len(frames), k + 1, projection="3d")
-        _frame(ax, x[f], nodes, t[f])
-    fig.suptitle("cloth draped over a fixed sphere")
-    fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    print(f"wrote {out}")
-    if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig = plt.figure(figsize=(4, 3.6))
-        ax = fig.add_subplot(projection="3d")
 
-        def update(f):
-            ax.clear()
-            _frame(ax, x[f], nodes, t[f])
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), max(1, len(t) // 50)))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=15))
-        plt.close(fig)
-        print(f"wrote {path}")
+    def draw(ax, f):
+        _frame(ax, x[f], nodes, t[f])
+    save_strip(draw, np.linspace(0, len(t) - 1, 4).astype(int), out,
+               title="cloth draped over a fixed sphere", figsize=(12, 3.4), sharey=False,
+               dpi=100, projection="3d")
+    if gif:
+        save_gif(draw, range(0, len(t), max(1, len(t) // 50)), out, figsize=(4, 3.6), fps=15,
+                 projection="3d")
 
 
 def _frame(ax, x, nodes, t):

@@ -8,7 +8,6 @@ Top view, no gravity. Members shorten irreversibly when compressed beyond the yi
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -16,6 +15,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_crumple_bar
+from tuning.plots import example_parser, example_pyplot, save_figure, save_gif
 
 WALL = 0.8            # wall plane x = WALL (m)
 SPEED = 2.0           # impact speed, m/s
@@ -32,10 +32,8 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarser bar, shorter run")
-    ap.add_argument("--out", default="examples/images/crumple_bar.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/crumple_bar.png",
+                        quick_help="coarser bar, shorter run")
     args = ap.parse_args(argv)
 
     n, seconds = (6, 0.5) if args.quick else (9, 0.6)
@@ -77,14 +75,9 @@ def _members(nodes):
 
 
 def _draw(runs, nodes, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    plt = example_pyplot(out)
+    if plt is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     members = _members(nodes)
     x_pl = next(iter(runs.values()))[0]
     length = _length(x_pl, nodes)
@@ -105,23 +98,13 @@ def _draw(runs, nodes, t, out, gif):
     ax.legend(fontsize=7)
     ax.set_title("length: permanent set", fontsize=9)
     fig.suptitle(f"crumple bar hitting a wall at {SPEED} m/s (top view)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
+    save_figure(fig, out, dpi=110)
     if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, axes = plt.subplots(2, 1, figsize=(4, 3.2))
-
-        def update(f):
-            for ax, (label, (x, _)) in zip(axes, runs.items()):
-                ax.clear()
+        def draw(axes, f):
+            for ax, (x, _) in zip(axes, runs.values()):
                 _frame(ax, x[f], members, t[f])
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), max(1, len(t) // 60)))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=20))
-        plt.close(fig)
-        print(f"wrote {path}")
+        save_gif(draw, range(0, len(t), max(1, len(t) // 60)), out, figsize=(4, 3.2), fps=20,
+                 nrows=2)
 
 
 def _frame(ax, x, members, t):

@@ -5,7 +5,6 @@ Run:  python examples/jelly_drop.py [--quick] [--out examples/images/jelly_drop.
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -13,6 +12,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_jelly
+from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
 
 
 def build(n: int):
@@ -36,10 +36,8 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarser lattice, shorter run")
-    ap.add_argument("--out", default="examples/images/jelly_drop.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/jelly_drop.png",
+                        quick_help="coarser lattice, shorter run")
     args = ap.parse_args(argv)
 
     n, seconds = (3, 1.0) if args.quick else (5, 1.5)
@@ -75,39 +73,20 @@ def _edges(nodes):
 
 
 def _draw(x, nodes, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    if example_pyplot(out) is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     edges = _edges(nodes)
     zc = x[:, nodes.ravel(), 2].mean(axis=1)
     first_low = int(np.argmin(zc[: len(zc) // 2]))
     frames = sorted({0, first_low // 2, first_low, (first_low + len(t)) // 3,
                      (2 * len(t)) // 3, len(t) - 1})
-    fig, axes = plt.subplots(1, len(frames), figsize=(1.7 * len(frames), 3.0), sharey=True)
-    for ax, f in zip(axes, frames):
-        _frame(ax, x[f], edges, t[f])
-    fig.suptitle("jelly cube dropped on the ground (side view, x-z)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, ax = plt.subplots(figsize=(3.2, 3.2))
 
-        def update(f):
-            ax.clear()
-            _frame(ax, x[f], edges, t[f])
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), max(1, len(t) // 60)))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=20))
-        plt.close(fig)
-        print(f"wrote {path}")
+    def draw(ax, f):
+        _frame(ax, x[f], edges, t[f])
+    save_strip(draw, frames, out, title="jelly cube dropped on the ground (side view, x-z)",
+               figsize_per_frame=(1.7, 3.0))
+    if gif:
+        save_gif(draw, range(0, len(t), max(1, len(t) // 60)), out, figsize=(3.2, 3.2), fps=20)
 
 
 def _frame(ax, x, edges, t):

@@ -10,7 +10,6 @@ Run:  python examples/paper_chain.py [--quick] [--steps 2000] [--seed 0] [--out 
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -18,16 +17,14 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import PAPER_CHAIN, paper_chain, paper_chain_equilibrium
+from tuning.plots import example_parser, example_pyplot, save_figure, save_gif
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="accepted for uniformity; the demo is already quick")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/paper_chain.png",
+                        quick_help="accepted for uniformity; the demo is already quick")
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default="examples/images/paper_chain.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF")
     args = ap.parse_args(argv)
 
     steps = args.steps          # 2000 steps take well under a second; --quick changes nothing
@@ -49,14 +46,9 @@ def main(argv=None) -> int:
 
 
 def _draw(x, eq, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    plt = example_pyplot(out)
+    if plt is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 3.6),
                                   gridspec_kw=dict(width_ratios=[2, 1]))
     shots = [0, 5, 10, 20, 40, 80, len(t) - 1]
@@ -74,27 +66,15 @@ def _draw(x, eq, t, out, gif):
     ax2.set_xlabel("t (s)")
     ax2.set_ylabel("max |x - x_eq| (m)")
     ax2.set_title("distance to the static equilibrium")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
+    save_figure(fig, out, dpi=110)
     if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, ax = plt.subplots(figsize=(5, 3))
-        frames = range(0, min(len(t), 400), 4)
-
-        def update(f):
-            ax.clear()
+        def draw(ax, f):
             ax.plot(eq[:, 0], eq[:, 2], "x", color="red", ms=8)
             ax.plot(x[f, :, 0], x[f, :, 2], "-o", color="tab:blue", ms=8)
             ax.set_xlim(50, 550)
             ax.set_ylim(x[..., 2].min() - 10, x[..., 2].max() + 10)
             ax.set_title(f"t = {t[f]:.1f} s", fontsize=9)
-        anim = FuncAnimation(fig, update, frames=frames)
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=25))
-        plt.close(fig)
-        print(f"wrote {path}")
+        save_gif(draw, range(0, min(len(t), 400), 4), out, figsize=(5, 3), fps=25)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,6 @@ Needs the ``plot`` extra (matplotlib) for the pictures.
 """
 from __future__ import annotations
 
-import argparse
 import pathlib
 import time
 
@@ -15,6 +14,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_rope
+from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
 
 
 def build(n: int):
@@ -29,10 +29,9 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="coarser rope, shorter run (seconds)")
-    ap.add_argument("--out", default="examples/images/rope_swing.png")
-    ap.add_argument("--gif", action="store_true", help="also write an animated GIF next to --out")
+    ap = example_parser(__doc__.splitlines()[0], "examples/images/rope_swing.png",
+                        quick_help="coarser rope, shorter run (seconds)",
+                        gif_help="also write an animated GIF next to --out")
     args = ap.parse_args(argv)
 
     n, seconds = (12, 1.5) if args.quick else (30, 3.0)
@@ -54,36 +53,15 @@ def main(argv=None) -> int:
 
 
 def _draw(x, nodes, t, out, gif):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    if example_pyplot(out) is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
-    frames = np.linspace(0, len(t) - 1, 6).astype(int)
-    fig, axes = plt.subplots(1, len(frames), figsize=(2.2 * len(frames), 2.6), sharey=True)
-    for ax, f in zip(axes, frames):
-        _frame(ax, x[f], nodes, t[f])
-    fig.suptitle("rope swinging from a pin onto a fixed peg (side view)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    print(f"wrote {out}")
-    if gif:
-        from matplotlib.animation import FuncAnimation, PillowWriter
-        fig, ax = plt.subplots(figsize=(3.5, 3.5))
-        step = max(1, len(t) // 60)
 
-        def update(f):
-            ax.clear()
-            _frame(ax, x[f], nodes, t[f])
-        anim = FuncAnimation(fig, update, frames=range(0, len(t), step))
-        path = out.with_suffix(".gif")
-        anim.save(path, writer=PillowWriter(fps=20))
-        plt.close(fig)
-        print(f"wrote {path}")
+    def draw(ax, f):
+        _frame(ax, x[f], nodes, t[f])
+    save_strip(draw, np.linspace(0, len(t) - 1, 6).astype(int), out,
+               title="rope swinging from a pin onto a fixed peg (side view)")
+    if gif:
+        save_gif(draw, range(0, len(t), max(1, len(t) // 60)), out, figsize=(3.5, 3.5), fps=20)
 
 
 def _frame(ax, x, nodes, t):

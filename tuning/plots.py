@@ -2,9 +2,12 @@
 and is imported only when a figure is drawn."""
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 
-__all__ = ["require_matplotlib", "fit_figure", "trajectory_fit_figure", "heatmap"]
+__all__ = ["require_matplotlib", "fit_figure", "trajectory_fit_figure", "heatmap",
+           "example_parser", "example_pyplot", "save_figure", "save_strip", "save_gif"]
 
 
 def require_matplotlib():
@@ -106,3 +109,104 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+# --- helpers shared by the scripts in examples/ ------------------------------------------------
+
+def example_parser(description: str, default_out: str, *,
+                   quick_help: str = "shorter run (seconds)",
+                   gif_help: str = "also write an animated GIF"):
+    """An ``argparse.ArgumentParser`` with the flags every example takes: ``--quick``,
+    ``--out`` (the PNG, default ``default_out``; the GIF goes next to it) and ``--gif``.
+    Add the example's own flags to the returned parser."""
+    import argparse
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    ap.add_argument("--out", default=default_out)
+    ap.add_argument("--gif", action="store_true", help=gif_help)
+    return ap
+
+
+def example_pyplot(out):
+    """``matplotlib.pyplot`` (Agg backend) with the parent folder of ``out`` created, or None
+    after printing that matplotlib is missing (the examples then write no picture)."""
+    try:
+        plt = require_matplotlib()
+    except ImportError:
+        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+        return None
+    pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
+    return plt
+
+
+def save_figure(fig, out, *, dpi: int = 110) -> None:
+    """Lay out ``fig``, save it to ``out``, close it and print ``wrote <out>``."""
+    plt = require_matplotlib()
+    fig.tight_layout()
+    fig.savefig(out, dpi=dpi)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
+def save_strip(draw_frame, frames, out, *, title: str, figsize_per_frame=(2.2, 2.6),
+               figsize=None, sharey: bool = True, dpi: int = 110, projection: str | None = None,
+               extra=None, extra_width: float = 1.6) -> None:
+    """A row of snapshots saved as a PNG: one panel per entry of ``frames``.
+
+    Args:
+      draw_frame: ``draw_frame(ax, i)`` draws saved frame ``i`` into ``ax``.
+      frames: the frame indices, left to right.
+      out: PNG path (its folder must exist: see :func:`example_pyplot`).
+      title: the figure's title.  figsize_per_frame: (width, height) in inches per panel;
+        ``figsize`` overrides the whole figure's size.  sharey: share the panels' y axis.
+      projection: e.g. ``"3d"`` for 3D panels.
+      extra: optional ``extra(ax)`` that draws one more, wider panel (``extra_width`` times a
+        snapshot's width) at the right end, e.g. a quantity over time.
+    """
+    plt = require_matplotlib()
+    frames = list(frames)
+    n = len(frames) + (extra is not None)
+    kw = {}
+    if projection is not None:
+        kw["subplot_kw"] = {"projection": projection}
+    if extra is not None:
+        kw["gridspec_kw"] = {"width_ratios": [1] * len(frames) + [extra_width]}
+    else:
+        kw["sharey"] = sharey
+    if figsize is None:
+        figsize = (figsize_per_frame[0] * n, figsize_per_frame[1])
+    fig, axes = plt.subplots(1, n, figsize=figsize, squeeze=False, **kw)
+    axes = axes[0]
+    for ax, f in zip(axes, frames):
+        draw_frame(ax, f)
+    if extra is not None:
+        extra(axes[-1])
+    fig.suptitle(title)
+    save_figure(fig, out, dpi=dpi)
+
+
+def save_gif(draw_frame, frames, out, *, figsize=(3.5, 3.5), fps: int = 20,
+             projection: str | None = None, nrows: int = 1) -> None:
+    """An animation saved next to ``out`` with the suffix ``.gif`` (matplotlib's PillowWriter).
+
+    Args:
+      draw_frame: ``draw_frame(ax, i)`` draws saved frame ``i``; the axes are cleared before
+        each frame. With ``nrows > 1`` it gets the array of ``nrows`` stacked axes instead.
+      frames: the frame indices to animate, in order (e.g. ``range(0, len(t), step)``).
+      figsize: inches.  fps: frames per second.  projection: e.g. ``"3d"``.
+    """
+    plt = require_matplotlib()
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    fig, axes = plt.subplots(nrows, 1, figsize=figsize, squeeze=False,
+                             subplot_kw={"projection": projection} if projection else None)
+    axes = axes[:, 0]
+
+    def update(f):
+        for ax in axes:
+            ax.clear()
+        draw_frame(axes[0] if nrows == 1 else axes, f)
+    anim = FuncAnimation(fig, update, frames=frames)
+    path = pathlib.Path(out).with_suffix(".gif")
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    print(f"wrote {path}")
