@@ -40,8 +40,8 @@ def _scipy_integrate():
     try:
         from scipy import integrate
     except ImportError:
-        raise ImportError("reference solutions need scipy: pip install scipy (it is in the "
-                          "'test' extra: pip install 'diffpen[test]').") from None
+        raise ImportError("reference solutions need scipy: pip install -e '.[report]' (or "
+                          "pip install scipy).") from None
     return integrate
 
 
