@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
-from .compile import TERM_BUILDERS, CompileContext, Term, _pair_material
+from .terms import TERM_BUILDERS, CompileContext, Term, _pair_material
 from .errors import SceneError
 
 __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_overlap",

@@ -31,7 +31,7 @@ import numpy as np
 
 from . import geometry, laws
 from .errors import SceneError
-from .compile import TERM_BUILDERS, CompileContext, Term, _select, scatter
+from .terms import TERM_BUILDERS, CompileContext, Term, _select, scatter
 
 __all__ = ["rest_update", "AUX_KEY"]
 

@@ -31,7 +31,7 @@ import numpy as np
 
 from . import geometry
 from . import stability as _stability_hooks
-from .compile import (TERM_BUILDERS, CompileContext, Term, _pair_material, _spring_axis, gather,
+from .terms import (TERM_BUILDERS, CompileContext, Term, _pair_material, _spring_axis, gather,
                       scatter)
 from .geometry import rotate, rotate_back
 from .laws import spring_force

@@ -251,7 +251,7 @@ def _structure(sim) -> _Structure:
     if "contact_sphere_sphere" in terms:
         # O(n): a sphere's candidate partners are the other colliding spheres; a pair uses
         # their shared material, else "default"; counted twice (both rows) when both are free
-        from .compile import DEFAULT
+        from .scene import DEFAULT
         spheres = [i for i in range(n) if collide[i] and radius[i] > 0.0
                    and scene.bodies[i].kind == "sphere"]
         count, free_count = {}, {}

@@ -1,26 +1,16 @@
 """Soft-body builders: structure, cloth sag against an independent scipy equilibrium, contact
 of nodes, left-out terms, bad input."""
-import jax
-import jax.extend.core
 import numpy as np
 import pytest
 from scipy.optimize import minimize
 
 import diffpen as dp
+from jaxpr_scopes import traced_scopes
 from diffpen.builders import add_cloth, add_jelly, add_rope
 
 
 def _scopes(sim, params):
-    jaxpr = jax.make_jaxpr(sim.step)(params, sim.init_state())
-    names = set()
-
-    def walk(jx):
-        for eqn in jx.eqns:
-            names.add(str(eqn.source_info.name_stack))
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                walk(sub)
-    walk(jaxpr.jaxpr)
-    return names
+    return traced_scopes(sim, params)[0]
 
 
 def _groups(scene):

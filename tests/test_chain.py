@@ -11,20 +11,12 @@ import pytest
 import scipy.linalg
 
 import diffpen as dp
+from jaxpr_scopes import traced_scopes
 from diffpen.builders import PAPER_CHAIN, paper_chain, paper_chain_equilibrium
 
 
 def _scopes(sim, params):
-    jaxpr = jax.make_jaxpr(sim.step)(params, sim.init_state())
-    names = set()
-
-    def walk(jx):
-        for eqn in jx.eqns:
-            names.add(str(eqn.source_info.name_stack))
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                walk(sub)
-    walk(jaxpr.jaxpr)
-    return " ".join(names)
+    return " ".join(traced_scopes(sim, params)[0])
 
 
 def _laplacian_equilibrium(scene):

@@ -2,12 +2,12 @@
 import math
 
 import jax
-import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import diffpen as dp
+from jaxpr_scopes import traced_scopes
 from diffpen import physical
 
 G = 9.81
@@ -303,15 +303,7 @@ def test_float32_works_alongside_float64():
 
 # --------------------------------------------------------------------------- left-out terms
 def _scopes(sim, params):
-    jaxpr = jax.make_jaxpr(sim.step)(params, sim.init_state())
-    names = set()
-
-    def walk(jx):
-        for eqn in jx.eqns:
-            names.add(str(eqn.source_info.name_stack))
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                walk(sub)
-    walk(jaxpr.jaxpr)
+    names, jaxpr = traced_scopes(sim, params)
     return " ".join(names), jaxpr
 
 
@@ -452,7 +444,7 @@ def test_checkpointed_rollout_gives_the_same_values_and_gradients(smooth_ball):
 def test_banded_springs_match_direct_sum():
     """Lattice springs go through dense index bands; forces equal a direct per-spring sum."""
     from diffpen.builders import add_cloth
-    from diffpen.compile import spring_bands
+    from diffpen.terms import spring_bands
     scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
     nodes = add_cloth(scene, 6, 5, 0.1, mass=3.0, structural=(100.0, 0.5), shear=(50.0, 0.2),
                       bend=(10.0, 0.1), pinned=[(0, 0)], collide=False)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import diffpen as dp
+from jaxpr_scopes import traced_scopes
 from diffpen.builders import add_crumple_bar
 from diffpen.plastic import AUX_KEY, rest_update
 
@@ -131,15 +132,7 @@ def test_scene_without_plastic_springs_traces_no_plastic_code():
     sim = dp.compile(scene, dt=1e-3)
     state = sim.init_state()
     assert state.aux == {} and "plastic" not in sim.params().extra
-    jaxpr = jax.make_jaxpr(sim.step)(sim.params(), state)
-    names = []
-
-    def walk(jx):
-        for eqn in jx.eqns:
-            names.append(str(eqn.source_info.name_stack))
-            for sub in jax.extend.core.jaxprs_in_params(eqn.params):
-                walk(sub)
-    walk(jaxpr.jaxpr)
+    names, _ = traced_scopes(sim, sim.params())
     assert not any("plastic" in n for n in names)
 
 

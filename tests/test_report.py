@@ -3,7 +3,7 @@ they claim, the work-precision ladder converges, recommend picks the cheapest, g
 report, plot and command line."""
 import math
 
-import jax.numpy as jnp
+
 import numpy as np
 import pytest
 

@@ -7,13 +7,9 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import diffpen as dp
+from jaxpr_scopes import traced_scopes
 from diffpen import geometry
 from diffpen.rigid import inertia_diagonal, quat_to_matrix
-
-try:
-    from jax.extend.core import jaxprs_in_params
-except ImportError:                                  # older jax
-    from jax.core import jaxprs_in_params
 
 G = 9.81
 
@@ -27,16 +23,7 @@ def rot_np(q):
 
 
 def _scopes(sim, params):
-    jaxpr = jax.make_jaxpr(sim.step)(params, sim.init_state())
-    names = set()
-
-    def walk(jx):
-        for eqn in jx.eqns:
-            names.add(str(eqn.source_info.name_stack))
-            for sub in jaxprs_in_params(eqn.params):
-                walk(sub)
-    walk(jaxpr.jaxpr)
-    return " ".join(names)
+    return " ".join(traced_scopes(sim, params)[0])
 
 
 # --------------------------------------------------------------------------- resting box

@@ -1,0 +1,327 @@
+"""Force terms: each one pair law of :mod:`diffpen.laws` / :mod:`diffpen.geometry` lifted to
+the scene by ``jax.vmap`` over static index arrays plus a segment sum onto bodies.
+
+A term builder ``build(ctx) -> Term | None`` returns None when the scene does not need the
+term, so it is never traced. ``TERM_BUILDERS`` lists the core builders; extensions
+(:mod:`diffpen.rigid`, :mod:`diffpen.plastic`, :mod:`diffpen.broadphase`) append theirs.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import geometry, laws
+from .scene import DEFAULT, Scene
+from .state import Params, State
+
+__all__ = ["Term", "CompileContext", "TERM_BUILDERS", "gather", "scatter", "spring_bands"]
+
+
+# --------------------------------------------------------------------------- lifting helpers
+def gather(x, idx: np.ndarray, n: int):
+    """``x[idx]`` along axis 0, skipped when ``idx`` is ``arange(n)`` (decided at build time)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return x
+    if np.all(idx == idx[0]):
+        return jnp.broadcast_to(x[int(idx[0])], (idx.shape[0],) + x.shape[1:])
+    return x[idx]
+
+
+def scatter(values, idx: np.ndarray, n: int):
+    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return values
+    return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+
+
+class Term(NamedTuple):
+    """One force term of a compiled scene.
+
+    name: used as ``jax.named_scope`` (visible in the jaxpr).
+    force: ``force(params, state) -> (F, tau)``: F (n, 3) newtons on body centres, tau (n, 3)
+      torques in N m about the centres, or None when the term produces no torque.
+    """
+    name: str
+    force: Callable[[Params, State], tuple[Any, Any]]
+
+
+@dataclasses.dataclass
+class CompileContext:
+    """What a term builder sees: the scene and the static per-body arrays."""
+    scene: Scene
+    dtype: Any
+    law: Callable
+    width: float
+    material_index: dict
+    group_index: dict
+    mass: np.ndarray        # (n,) kg
+    radius: np.ndarray      # (n,) m
+    pinned: np.ndarray      # (n,) bool
+    collide: np.ndarray     # (n,) bool
+    #: Filled by term builders of extensions: defaults of their ``Params.extra`` entries
+    #: (``{name: pytree}``), initial ``State.aux`` entries (``{name: array}``), and
+    #: ``aux_update(params, state) -> {name: array}`` functions applied after every step.
+    extra_defaults: dict = dataclasses.field(default_factory=dict)
+    aux_init: dict = dataclasses.field(default_factory=dict)
+    aux_updates: list = dataclasses.field(default_factory=list)
+    #: ``{extra name: check(label, value)}`` validating concrete values given to
+    #: ``sim.params`` (default: finite and >= 0); raises SceneError.
+    extra_checks: dict = dataclasses.field(default_factory=dict)
+    #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
+    broadphase: Any = None
+
+    @property
+    def n(self) -> int:
+        return len(self.mass)
+
+    def const(self, a):
+        """A static numpy array as a constant of the simulator's float dtype."""
+        return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
+
+    def contact_kc(self, params: Params, mat: np.ndarray):
+        """Per-pair (k, c) for material indices ``mat`` (m,), scalars when all pairs share one."""
+        names = list(self.material_index)
+        ks = [params.contact[name].k for name in names]
+        cs = [params.contact[name].c for name in names]
+        return _select(ks, mat), _select(cs, mat)
+
+    def spring_kc(self, params: Params, grp: np.ndarray):
+        names = list(self.group_index)
+        ks = [params.springs[name].k for name in names]
+        cs = [params.springs[name].c for name in names]
+        return _select(ks, grp), _select(cs, grp)
+
+
+def _select(values: list, idx: np.ndarray):
+    first = int(idx[0])
+    if np.all(idx == first):
+        return values[first]
+    return jnp.stack([jnp.asarray(v) for v in values])[jnp.asarray(idx)]
+
+
+# --------------------------------------------------------------------------- core terms
+def _pair_material(scene: Scene, *names: str) -> str:
+    return names[0] if len(set(names)) == 1 else DEFAULT
+
+
+def _plane_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, p, ctx.material_index[pl.material])
+            for p, pl in enumerate(scene.planes)
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
+            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
+    if not rows:
+        return None
+    bi, pi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    normals = ctx.const([scene.planes[p].normal for p in pi])
+    offsets = ctx.const([scene.planes[p].offset for p in pi])
+    radii = ctx.const(ctx.radius[bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        d, nrm = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        vn = jnp.sum(nrm * v, axis=-1)
+        f = law(d, vn, k, c, width)
+        return scatter(f[:, None] * nrm, bi, n), None
+    return Term("contact_plane", force)
+
+
+def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, s, ctx.material_index[fs.material])
+            for s, fs in enumerate(scene.fixed_spheres)
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
+            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
+    if not rows:
+        return None
+    bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    centers = ctx.const([scene.fixed_spheres[s].center for s in si])
+    rs = ctx.const([scene.fixed_spheres[s].radius for s in si])
+    radii = ctx.const(ctx.radius[bi])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, rs)
+        vn = jnp.sum(nrm * v, axis=-1)
+        f = law(d, vn, k, c, width)
+        return scatter(f[:, None] * nrm, bi, n), None
+    return Term("contact_fixed_sphere", force)
+
+
+def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
+    if ctx.broadphase is not None:
+        return None                     # diffpen.broadphase builds the pair term instead
+    scene = ctx.scene
+    spheres = [i for i in range(ctx.n)
+               if ctx.collide[i] and ctx.radius[i] > 0.0 and scene.bodies[i].kind == "sphere"]
+    rows = []
+    for a_pos, i in enumerate(spheres):
+        for j in spheres[a_pos + 1:]:
+            if ctx.pinned[i] and ctx.pinned[j]:
+                continue  # two fixed things never need evaluating
+            mat = _pair_material(scene, scene.bodies[i].material, scene.bodies[j].material)
+            rows.append((i, j, ctx.material_index[mat]))
+    if not rows:
+        return None
+    ia, ib, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
+    law, width, n = ctx.law, ctx.width, ctx.n
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mi)
+        xa, xb = state.position[ia], state.position[ib]
+        d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
+        vn = jnp.sum(nrm * (state.velocity[ia] - state.velocity[ib]), axis=-1)
+        f = (law(d, vn, k, c, width))[:, None] * nrm
+        return scatter(f, ia, n) - scatter(f, ib, n), None
+    return Term("contact_sphere_sphere", force)
+
+
+def _spring_axis(delta, rel_vel, rest):
+    """Stretch (m), stretch rate (m/s) and unit axis for ONE spring."""
+    length = geometry.safe_norm(delta)
+    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
+    u = delta * inv
+    return length - rest, jnp.sum(u * rel_vel, axis=-1), u
+
+
+def spring_bands(ia: np.ndarray, ib: np.ndarray, *, min_fill: float = 0.5,
+                 min_size: int = 8):
+    """Split springs into *bands* (families with one index offset) and the rest.
+
+    Builders add lattices with contiguous body indices, so the springs of one lattice
+    direction join ``a`` to ``a + delta`` for one ``delta``. A band with offset ``delta`` over
+    the index range ``[lo, hi)`` is evaluated with dense slices ``x[lo:hi]`` and
+    ``x[lo + delta:hi + delta]`` (slots without a spring are masked), and its forces are put
+    back with two pads: no gather or scatter in the forward or the reverse pass. A family is a
+    band when it has ``>= min_size`` springs filling ``>= min_fill`` of its range; all other
+    springs go through the generic gather / segment-sum path.
+
+    Args:
+      ia, ib: (m,) body indices of the spring ends.
+    Returns:
+      ``(bands, rest)``: ``bands`` a list of ``(delta, lo, hi, slots)`` where ``slots`` (m_b,)
+      are spring ids placed at ``a - lo`` with ``a = min(ia, ib)``; ``rest`` the ids of the
+      other springs.
+    """
+    a = np.minimum(ia, ib)
+    delta = np.abs(ib - ia)
+    bands, rest = [], []
+    for d in np.unique(delta):
+        ids = np.nonzero(delta == d)[0]
+        lo, hi = int(a[ids].min()), int(a[ids].max()) + 1
+        # one spring per slot, and enough of them to be worth a dense range
+        if (len(np.unique(a[ids])) == len(ids) and len(ids) >= min_size
+                and len(ids) >= min_fill * (hi - lo)):
+            bands.append((int(d), lo, hi, ids))
+        else:
+            rest.extend(ids.tolist())
+    return bands, np.array(sorted(rest), dtype=np.int32)
+
+
+def _body_springs(ctx: CompileContext) -> Term | None:
+    rows = [(s.a, s.b, s.rest_length, ctx.group_index[s.group])
+            for s in ctx.scene.springs if s.b is not None]
+    if not rows:
+        return None
+    ia_all = np.array([r[0] for r in rows], dtype=np.int32)
+    ib_all = np.array([r[1] for r in rows], dtype=np.int32)
+    gi_all = np.array([r[3] for r in rows], dtype=np.int32)
+    rest_all = np.array([r[2] for r in rows], dtype=float)
+    n = ctx.n
+    bands, rest_ids = spring_bands(ia_all, ib_all)
+
+    band_data = []
+    for d, lo, hi, ids in bands:
+        slot = np.minimum(ia_all[ids], ib_all[ids]) - lo
+        mask = np.zeros(hi - lo)
+        mask[slot] = 1.0
+        rest_len = np.zeros(hi - lo)
+        rest_len[slot] = rest_all[ids]
+        gidx = np.zeros(hi - lo, dtype=np.int32)
+        gidx[slot] = gi_all[ids]
+        gidx[mask == 0.0] = gi_all[ids[0]]
+        band_data.append((d, lo, hi, ctx.const(mask), ctx.const(rest_len), gidx))
+
+    ia, ib, gi = ia_all[rest_ids], ib_all[rest_ids], gi_all[rest_ids]
+    rest = ctx.const(rest_all[rest_ids])
+
+    def force(params, state):
+        x, v = state.position, state.velocity
+        total = None
+        for d, lo, hi, mask, rest_len, gidx in band_data:
+            k, c = ctx.spring_kc(params, gidx)
+            x, v = state.position, state.velocity
+            delta = x[lo + d:hi + d] - x[lo:hi]       # from the low end to the high end
+            dv = v[lo + d:hi + d] - v[lo:hi]
+            ext, rate, u = jax.vmap(_spring_axis)(delta, dv, rest_len)
+            f = (laws.spring_force(ext, rate, k, c) * mask)[:, None] * u
+            pad = [(0, 0)] * (f.ndim - 2)
+            fb = (jnp.pad(f, [(lo + d, n - hi - d), (0, 0)] + pad)
+                  - jnp.pad(f, [(lo, n - hi), (0, 0)] + pad))
+            total = fb if total is None else total + fb
+        if len(ia):
+            k, c = ctx.spring_kc(params, gi)
+            delta = x[ia] - x[ib]
+            dv = v[ia] - v[ib]
+            ext, rate, u = jax.vmap(_spring_axis)(delta, dv, rest)
+            f = laws.spring_force(ext, rate, k, c)[:, None] * u
+            fr = scatter(f, ia, n) - scatter(f, ib, n)
+            total = fr if total is None else total + fr
+        return total, None
+    return Term("springs", force)
+
+
+def _world_springs(ctx: CompileContext) -> Term | None:
+    rows = [(s.a, s.anchor, s.rest_length, ctx.group_index[s.group])
+            for s in ctx.scene.springs if s.b is None and not ctx.pinned[s.a]]
+    if not rows:
+        return None
+    ia = np.array([r[0] for r in rows], dtype=np.int32)
+    anchors = ctx.const([r[1] for r in rows])
+    rest = ctx.const([r[2] for r in rows])
+    gi = np.array([r[3] for r in rows], dtype=np.int32)
+    n = ctx.n
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        delta = gather(state.position, ia, n) - anchors
+        x, xd, u = jax.vmap(_spring_axis)(delta, gather(state.velocity, ia, n), rest)
+        return scatter(laws.spring_force(x, xd, k, c)[:, None] * u, ia, n), None
+    return Term("world_springs", force)
+
+
+def _drag(ctx: CompileContext) -> Term | None:
+    """Velocity drag ``F = -c v`` per body (``scene.add_drag``); ``c`` per drag group in
+    ``params.extra["drag"][group]`` (N s/m). Absent (never traced) without drag."""
+    rows = [(d.body, d.group) for d in ctx.scene.drags if not ctx.pinned[d.body]]
+    if not rows:
+        return None
+    groups = list(dict.fromkeys(g for _, g in rows))
+    ctx.extra_defaults["drag"] = {g: ctx.scene.drag_groups[g] for g in groups}
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    gi = np.array([groups.index(r[1]) for r in rows], dtype=np.int32)
+    n = ctx.n
+
+    def force(params, state):
+        c = _select([params.extra["drag"][g] for g in groups], gi)
+        v = gather(state.velocity, bi, n)
+        f = jax.vmap(laws.drag_force, in_axes=(0, None if jnp.ndim(c) == 0 else 0))(v, c)
+        return scatter(f, bi, n), None
+    return Term("drag", force)
+
+
+#: Term builders run by ``compile``; each returns a Term or None (term absent from the scene).
+#: Extensions append their own builders here.
+TERM_BUILDERS: list[Callable[[CompileContext], Term | None]] = [
+    _plane_contact, _fixed_sphere_contact, _sphere_sphere_contact, _body_springs,
+    _world_springs, _drag,
+]
