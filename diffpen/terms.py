@@ -227,6 +227,13 @@ def spring_bands(ia: np.ndarray, ib: np.ndarray, *, min_fill: float = 0.5,
     return bands, np.array(sorted(rest), dtype=np.int32)
 
 
+def _add_rows(total, rows, start: int):
+    """``total[start:start + len(rows)] += rows`` as a static dynamic-update-slice."""
+    z = (0,) * (rows.ndim - 1)
+    seg = jax.lax.dynamic_slice(total, (start,) + z, rows.shape)
+    return jax.lax.dynamic_update_slice(total, seg + rows, (start,) + z)
+
+
 def _body_springs(ctx: CompileContext) -> Term | None:
     rows = [(s.a, s.b, s.rest_length, ctx.group_index[s.group])
             for s in ctx.scene.springs if s.b is not None]
@@ -264,10 +271,12 @@ def _body_springs(ctx: CompileContext) -> Term | None:
             dv = v[lo + d:hi + d] - v[lo:hi]
             ext, rate, u = jax.vmap(_spring_axis)(delta, dv, rest_len)
             f = (laws.spring_force(ext, rate, k, c) * mask)[:, None] * u
-            pad = [(0, 0)] * (f.ndim - 2)
-            fb = (jnp.pad(f, [(lo + d, n - hi - d), (0, 0)] + pad)
-                  - jnp.pad(f, [(lo, n - hi), (0, 0)] + pad))
-            total = fb if total is None else total + fb
+            if total is None:
+                total = jnp.zeros((n,) + f.shape[1:], f.dtype)
+            # in-place row-block updates: XLA evaluates the band's forces once, in the
+            # update (two pads summed in one fusion recompute them per element: 2.9x slower)
+            total = _add_rows(total, f, lo + d)
+            total = _add_rows(total, -f, lo)
         if len(ia):
             k, c = ctx.spring_kc(params, gi)
             delta = x[ia] - x[ib]
