@@ -36,6 +36,8 @@ from . import geometry, integrators, laws, physical  # noqa: E402, stability
 from . import plastic  # registers the plastic-spring term  # noqa: E402
 from . import builders
 from . import rigid, broadphase  # register the rigid-body and broad-phase terms
+from . import autodiff
+from .autodiff import grad, value_and_grad
 from .compile import Simulator, compile
 from .errors import NonFiniteError, SceneError, StabilityError
 from .scene import Scene
@@ -44,9 +46,9 @@ from .state import ContactParams, Params, SpringParams, State, Trajectory
 __version__ = "0.1.0"
 
 __all__ = [
-    "Scene", "compile", "Simulator",
+    "Scene", "compile", "Simulator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
-    "rigid", "broadphase", "stability",
+    "rigid", "broadphase", "stability", "autodiff",
 ]

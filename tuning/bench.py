@@ -20,7 +20,6 @@ prints.
 """
 from __future__ import annotations
 
-import math
 import time
 from typing import Callable, NamedTuple
 
@@ -70,6 +69,20 @@ def _numpy_time(fn: Callable, repeats: int) -> float:
     return float(np.median(times))
 
 
+def _gradients(loss: Callable, floor_loss: Callable | None, *, batched: bool) -> dict:
+    """Jitted gradients of ``loss(k, c)`` w.r.t. (k, c): ``grad`` with
+    ``diffpen.value_and_grad`` (its automatic choice: forward mode for these two scalars),
+    ``grad_reverse`` with reverse mode, and ``floor_grad`` of the floor's loss the same way
+    as ``grad`` (so ``grad_vs_floor`` compares like with like). Per batch row under ``vmap``
+    when ``batched``."""
+    def make(fn, mode):
+        g = dp.value_and_grad(fn, (0, 1), mode=mode)
+        return jax.jit(jax.vmap(g) if batched else g)
+    return dict(grad=make(loss, "auto"), grad_reverse=make(loss, "reverse"),
+                floor_grad=None if floor_loss is None else make(floor_loss, "auto"),
+                grad_mode=dp.autodiff.resolve_mode("auto", 2))
+
+
 class Case(NamedTuple):
     """One benchmark configuration. ``build(dtype, quick)`` returns a dict with keys
     ``forward``, ``grad``, ``floor``, ``numpy`` (callables or None), ``args`` (JAX inputs of
@@ -116,15 +129,12 @@ def _ball(batch: int, quick: bool):
 
         ks = jnp.asarray(np.geomspace(5e3, 2e4, b), dtype)
         cs = jnp.full((b,), c0, dtype)
+        grads = _gradients(loss(heights), loss(floor_heights), batched=b > 1)
         if b == 1:
             fwd, flr = jax.jit(heights), jax.jit(floor_heights)
-            grad = jax.jit(jax.grad(loss(heights), (0, 1)))
-            fgrad = jax.jit(jax.grad(loss(floor_heights), (0, 1)))
             args = (jnp.asarray(k0, dtype), jnp.asarray(c0, dtype))
         else:
             fwd, flr = jax.jit(jax.vmap(heights)), jax.jit(jax.vmap(floor_heights))
-            grad = jax.jit(jax.vmap(jax.grad(loss(heights), (0, 1))))
-            fgrad = jax.jit(jax.vmap(jax.grad(loss(floor_heights), (0, 1))))
             args = (ks, cs)
         npdt = np.dtype(dtype)
         kn, cn = np.asarray(args[0], npdt), np.asarray(args[1], npdt)
@@ -148,19 +158,22 @@ def _ball(batch: int, quick: bool):
                 y = y + dt * vy
                 out[i] = z
             return out
-        return dict(forward=fwd, grad=grad, floor=flr, floor_grad=fgrad, numpy=numpy_heights,
-                    args=args, work=b * steps, steps=steps, batch=b)
+        return dict(forward=fwd, floor=flr, numpy=numpy_heights, args=args, work=b * steps,
+                    steps=steps, batch=b, **grads)
     return build
 
 
 # --------------------------------------------------------------------------- spring networks
 def _network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
-    """Hand-written floor for spring networks: one spring list, per-spring k and c, symplectic
-    Euler, gravity, pinned nodes; no contact (the network scenes have none)."""
+    """Hand-written floor for spring networks: per-spring k and c, symplectic Euler, gravity,
+    drag, pinned nodes; no contact (the network scenes have none). Lattice springs (one index
+    offset per family) use dense slices added back in place, the fastest way found to write
+    them in JAX; the other springs a gather and a segment sum."""
+    from diffpen.terms import spring_bands
     springs = [s for s in sim.scene.springs if s.b is not None]
     ia = np.array([s.a for s in springs])
     ib = np.array([s.b for s in springs])
-    rest = jnp.asarray([s.rest_length for s in springs], dtype)
+    rest_np = np.array([s.rest_length for s in springs])
     group = [s.group for s in springs]
     names = sorted(set(group))
     gi = np.array([names.index(g) for g in group])
@@ -174,18 +187,32 @@ def _network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
         drag_c[d.body] += sim.scene.drag_groups[d.group]
     drag_c = jnp.asarray(drag_c[:, None], dtype)
     has_drag = bool(drag)
+    bands, other = spring_bands(ia, ib)
+    dense = []
+    for d, lo, hi, ids in bands:             # slot j holds the spring from lo + j to lo + j + d
+        slot = np.minimum(ia[ids], ib[ids]) - lo
+        on, rest_b, grp = np.zeros(hi - lo), np.zeros(hi - lo), np.zeros(hi - lo, int)
+        on[slot], rest_b[slot], grp[slot] = 1.0, rest_np[ids], gi[ids]
+        dense.append((d, lo, hi, jnp.asarray(on, dtype), jnp.asarray(rest_b, dtype), grp))
+    rest = jnp.asarray(rest_np[other], dtype)
+    oa, ob, og = ia[other], ib[other], gi[other]
+
+    def tension(dx, dv, rest_len, k, c):
+        length = jnp.sqrt(jnp.sum(dx * dx, -1))
+        u = dx / length[:, None]
+        return (-k * (length - rest_len) - c * jnp.sum(u * dv, -1))[:, None] * u
 
     def final(kvec, cvec, x0, v0):
-        k, c = kvec[gi], cvec[gi]
-
         def step(s, _):
             x, v = s
-            dx = x[ia] - x[ib]
-            dv = v[ia] - v[ib]
-            length = jnp.sqrt(jnp.sum(dx * dx, -1))
-            u = dx / length[:, None]
-            f = (-k * (length - rest) - c * jnp.sum(u * dv, -1))[:, None] * u
-            force = jax.ops.segment_sum(f, ia, n) - jax.ops.segment_sum(f, ib, n)
+            force = jnp.zeros_like(x)
+            for d, lo, hi, on, rest_b, grp in dense:
+                f = tension(x[lo + d:hi + d] - x[lo:hi], v[lo + d:hi + d] - v[lo:hi], rest_b,
+                            kvec[grp], cvec[grp]) * on[:, None]
+                force = force.at[lo + d:hi + d].add(f).at[lo:hi].add(-f)
+            if len(other):
+                f = tension(x[oa] - x[ob], v[oa] - v[ob], rest, kvec[og], cvec[og])
+                force = force + jax.ops.segment_sum(f, oa, n) - jax.ops.segment_sum(f, ob, n)
             if has_drag:
                 force = force - drag_c * v
             v = v + dt * (force * inv_m + grav)
@@ -195,7 +222,7 @@ def _network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
 
     kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
     cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
-    return final, kvec, cvec, (ia, ib, np.asarray(rest), gi, names)
+    return final, kvec, cvec, (ia, ib, rest_np, gi, names)
 
 
 def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: int, dt: float):
@@ -248,11 +275,10 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
         for d in scene.drags:
             if not sim.pinned[d.body]:
                 drag_np[d.body] += scene.drag_groups[d.group]
-        return dict(forward=jax.jit(fwd_kc), grad=jax.jit(jax.grad(loss(fwd_kc), (0, 1))),
-                    floor=jax.jit(floor_kc) if has_only_springs else None,
-                    floor_grad=(jax.jit(jax.grad(loss(floor_kc), (0, 1)))
-                                if has_only_springs else None),
-                    numpy=numpy_final if has_only_springs else None,
+        grads = _gradients(loss(fwd_kc), loss(floor_kc) if has_only_springs else None,
+                           batched=False)
+        return dict(forward=jax.jit(fwd_kc), floor=jax.jit(floor_kc) if has_only_springs else None,
+                    numpy=numpy_final if has_only_springs else None, **grads,
                     args=args, work=n_steps, steps=n_steps, batch=1,
                     bodies=sim.n_bodies, springs=len(ia))
     return build
@@ -321,8 +347,8 @@ def _spheres(n: int):
         def loss(k, c):
             return jnp.sum(final(k, c)[:, 2])
         args = (jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype))
-        return dict(forward=jax.jit(final), grad=jax.jit(jax.grad(loss, (0, 1))), floor=None,
-                    numpy=None, args=args, work=n * steps, steps=steps, batch=1, bodies=n)
+        return dict(forward=jax.jit(final), floor=None, numpy=None, args=args,
+                    **_gradients(loss, None, batched=False), work=n * steps, steps=steps, batch=1, bodies=n)
     return build
 
 
@@ -374,9 +400,11 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     grad_compiled = spec["grad"].lower(*args).compile()
     fwd = median_time(spec["forward"], *args, repeats=repeats)
     grad = median_time(spec["grad"], *args, repeats=repeats)
+    grad_rev = median_time(spec["grad_reverse"], *args, repeats=max(1, repeats // 2))
     out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
                compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
-               grad_s=grad, grad_over_forward=grad / fwd,
+               grad_s=grad, grad_over_forward=grad / fwd, grad_mode=spec["grad_mode"],
+               grad_reverse_s=grad_rev, reverse_over_forward=grad_rev / fwd,
                memory_bytes=memory_bytes(compiled), grad_memory_bytes=memory_bytes(grad_compiled))
     for key in ("bodies", "springs"):
         if key in spec:

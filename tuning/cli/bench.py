@@ -8,7 +8,8 @@ import sys
 def add_arguments(p) -> None:
     p.add_argument("cases", nargs="*", metavar="CASE",
                    help="cases to run (default: all; with --quick a CI-sized subset). "
-                        "Known: ball_b1 ball_b1024 ball_b65536 chain cloth32 cloth64 jelly10")
+                        "Known: ball_b1 ball_b1024 ball_b65536 chain cloth32 cloth64 jelly10 "
+                        "spheres1000 spheres10000")
     p.add_argument("--quick", action="store_true",
                    help="CI-sized: fewer steps, batch <= 256, the quick subset of cases")
     p.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
@@ -19,7 +20,8 @@ def add_arguments(p) -> None:
 
 _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),
             ("compile_s", "{:.2f}"), ("forward_s", "{:.3g}"), ("steps_per_s", "{:.3g}"),
-            ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
+            ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("grad_mode", "{}"),
+            ("reverse_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
             ("grad_vs_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"), ("memory_bytes", "{:.3g}"),
             ("grad_memory_bytes", "{:.3g}")]
 
@@ -59,5 +61,7 @@ def run(args) -> int:
         print(_table(rows))
         print("\nvs_floor: forward time / minimal hand-written lax.scan (hard contact); "
               "vs_numpy: forward time / vectorised NumPy (< 1 is faster); steps_per_s counts "
-              "body-steps (batch x steps) for batched scenes.")
+              "body-steps (batch x steps) for batched scenes; grad_s uses "
+              "diffpen.value_and_grad's choice (grad_mode), reverse_over_forward is reverse "
+              "mode's time over the forward time.")
     return 0
