@@ -413,7 +413,8 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
 
         @jax.jit
         def step(theta_d, state):
-            (loss, (r, m)), g = jax.value_and_grad(loss_fn, has_aux=True)(theta_d)
+            # forward mode for a handful of parameters (diffpen.value_and_grad's choice)
+            (loss, (r, m)), g = dp.value_and_grad(loss_fn, has_aux=True)(theta_d)
             upd, state = tx.update(g, state, theta_d)
             new = optax.apply_updates(theta_d, upd)
             new = {p: (jnp.clip(v, log_lo[idx[p]], log_hi[idx[p]]) if p in idx else v)
