@@ -28,3 +28,18 @@ def test_sharding_snippet_runs_as_written():
     exec(compile(snippet, "README sharding", "exec"), env)
     heights = np.asarray(env["heights"])
     assert heights.shape == (64,) and np.all(np.isfinite(heights))
+
+
+def test_gradient_snippet_runs_as_written():
+    import jax
+    text = README.read_text()
+    quick = re.search(r"## Quick start\s+```python\n(.*?)```", text, re.S).group(1)
+    snippet = re.search(r"\*\*Gradients: forward or reverse\.\*\*.*?```python\n(.*?)```",
+                        text, re.S).group(1)
+    env: dict = {}
+    exec(compile(quick.split("dz_dk")[0], "README quick start", "exec"), env)
+    exec(compile(snippet, "README gradients", "exec"), env)
+    ref_value, ref_grad = jax.value_and_grad(env["loss"], (0, 1))(1e4, 20.0)
+    np.testing.assert_allclose(float(env["value"]), float(ref_value), rtol=1e-12)
+    np.testing.assert_allclose([float(env["dk"]), float(env["dc"])],
+                               [float(g) for g in ref_grad], rtol=1e-6)
