@@ -3,9 +3,10 @@ trajectories, sweep parameters with vmap, and the ``diffpen`` command line.
 
 Metrics (:mod:`tuning.metrics`) are exact on the simulated trajectory and differentiable;
 fits (:mod:`tuning.fit`) run in log space with any optax transformation or
-Levenberg-Marquardt; :mod:`tuning.sysid` identifies k and c from a measured record with
-standard errors; :mod:`tuning.sweep` evaluates grids in vmapped chunks with resumable,
-atomic output; :mod:`tuning.scenefile` reads TOML scenes. Submodules import lazily (the
+Levenberg-Marquardt; :mod:`tuning.batch_fit` runs many fits at once, sharded over devices;
+:mod:`tuning.sysid` identifies k and c from a measured record with standard errors;
+:mod:`tuning.sweep` evaluates grids in vmapped chunks with resumable, atomic output;
+:mod:`tuning.scenefile` reads TOML scenes. Submodules import lazily (the
 generic ``tuning.fit.fit`` and ``tuning.sweep.sweep`` keep their module names).
 """
 from __future__ import annotations
@@ -19,6 +20,8 @@ __all__ = [
     # fitting
     "fit_bounce", "FitResult", "FitError", "default_optimizer", "bounce_metrics_fn",
     "check_bounce_targets",
+    # batched fits
+    "fit_batch", "BatchFitter", "BatchFitResult",
     # trajectories
     "fit_trajectory", "TrajectoryFit", "load_csv", "synthetic_record",
     # sweeps
@@ -32,6 +35,7 @@ _WHERE = {
     "settling_time": "metrics", "contact_durations": "metrics", "resting_height": "metrics",
     "fit_bounce": "fit", "FitResult": "fit", "FitError": "fit",
     "default_optimizer": "fit", "bounce_metrics_fn": "fit", "check_bounce_targets": "fit",
+    "fit_batch": "batch_fit", "BatchFitter": "batch_fit", "BatchFitResult": "batch_fit",
     "fit_trajectory": "sysid", "TrajectoryFit": "sysid", "load_csv": "sysid",
     "synthetic_record": "sysid",
     "SweepResult": "sweep", "grid_points": "sweep",

@@ -1,0 +1,203 @@
+"""Batched fits: each row equals the single fit, a batch reaches its apex targets, the batch
+axis is split over 4 (forced host) devices with the single-device result, bad input is refused
+before anything is traced."""
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning import fit as F
+from tuning.batch_fit import BatchFitter, fit_batch
+from tuning.metrics import ball_metrics
+
+DT, STEPS, MAXITER = 2e-3, 250, 100     # 0.5 s rollout: the fall and the first bounce
+APEXES = (0.2, 0.12, 0.06, 0.02)        # first-apex targets (lowest point, m); drop 0.3 m
+C_STARTS = (10.0, 30.0, 15.0, 60.0)     # damping starts, N s/m (k = 1e4 N/m held)
+FREE = ["contact.default.c"]
+
+
+def ball_scene(drop=0.4):
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, drop))
+    scene.add_plane()
+    return scene
+
+
+@pytest.fixture(scope="module")
+def problem():
+    sim = dp.compile(ball_scene(), DT)
+    return sim, F.bounce_metrics_fn(sim, STEPS, n_apex=1)
+
+
+@pytest.fixture(scope="module")
+def batch(problem):
+    """One batch: a different apex target AND a different start per row."""
+    sim, mfn = problem
+    fitter = BatchFitter(mfn, sim.params(k=1e4, c=10.0), free=FREE, maxiter=MAXITER)
+    res = fitter([{"apex_heights": [a]} for a in APEXES],
+                 starts=[{"contact.default.c": c} for c in C_STARTS])
+    return fitter, res
+
+
+def test_each_row_equals_the_single_fit(problem, batch):
+    sim, mfn = problem
+    _, res = batch
+    assert len(res) == len(APEXES) and res.values.shape == (len(APEXES), 1)
+    for i in (0, 2, 3):
+        single = F.fit(mfn, sim.params(k=1e4, c=C_STARTS[i]), {"apex_heights": [APEXES[i]]},
+                       free=FREE, method="optax", optimizer=F.default_optimizer(0.05),
+                       maxiter=MAXITER, rtol=1e-3)
+        assert res.iterations[i] == single.iterations
+        assert bool(res.converged[i]) == single.converged
+        assert res.values[i, 0] == pytest.approx(single.values[FREE[0]], rel=1e-10)
+        assert res.achieved["apex_heights"][i, 0] == pytest.approx(
+            single.achieved["apex_heights"][0], rel=1e-10)
+        assert res.loss[i] == pytest.approx(np.min(single.loss_history), rel=1e-8, abs=1e-20)
+        n = len(single.loss_history)
+        np.testing.assert_allclose(res.loss_history[i, :n], single.loss_history, rtol=1e-8,
+                                   atol=1e-20)
+        assert np.all(np.isnan(res.loss_history[i, n:]))
+
+
+def test_batch_reaches_apex_targets(problem, batch):
+    sim, _ = problem
+    _, res = batch
+    assert res.converged.all() and res.reached.all(), res.messages
+    assert np.all(res.iterations < MAXITER)
+    np.testing.assert_allclose(res.achieved["apex_heights"][:, 0], APEXES, rtol=1e-3)
+    assert np.all(res.rel_error["apex_heights"] <= 1e-3)
+    # lower bounces need more damping; the frozen stiffness is untouched
+    assert np.all(np.diff(res.values[:, 0]) > 0.0)
+    # the achieved apex is the exact metric of an independent rollout at the fitted params
+    s0 = sim.init_state()
+
+    @jax.jit
+    def first_apex(p):
+        return ball_metrics(sim, sim.rollout(p, STEPS, s0), p, n_apex=1,
+                            state0=s0).apex_heights[0]
+    for i, target in enumerate(APEXES):
+        p = res.params(i)
+        assert float(p.contact["default"].k) == 1e4
+        apex = float(first_apex(p))
+        assert apex == pytest.approx(res.achieved["apex_heights"][i, 0], rel=1e-9)
+        assert apex == pytest.approx(target, rel=1e-3)
+
+
+def test_multistart_same_targets_reuses_the_program(batch):
+    fitter, _ = batch
+    run = fitter.program([{"apex_heights": [a]} for a in APEXES])
+    res = fitter({"apex_heights": [0.1]},
+                 starts=[{"contact.default.c": c} for c in C_STARTS])
+    assert fitter.program({"apex_heights": [0.1]}) is run   # same layout: the same program
+    assert res.seconds < 2.0                                 # ... and no recompilation
+    assert res.targets["apex_heights"].shape == (len(C_STARTS), 1)
+    assert res.converged.all()
+    # every start lands on the same damping (one apex fixes the damping ratio at fixed k)
+    assert np.ptp(res.values[:, 0]) / res.values[res.best(), 0] < 3e-3
+
+
+SCRIPT = textwrap.dedent("""
+    import json
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+    import diffpen as dp
+    from jax.sharding import NamedSharding, PartitionSpec
+    from tuning.batch_fit import BatchFitter
+    from tuning.fit import bounce_metrics_fn
+    from tuning.shard import batch_mesh, pad_to_multiple
+
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.4))
+    scene.add_plane()
+    sim = dp.compile(scene, 2e-3)
+    mfn = bounce_metrics_fn(sim, 250, n_apex=1)
+    p0 = sim.params(k=1e4, c=10.0)
+    # 6 rows: not a multiple of 4 devices, so 2 padding rows are added and must be dropped
+    targets = [{"apex_heights": [a]} for a in (0.2, 0.16, 0.12, 0.09, 0.06, 0.02)]
+    fitters, out = {}, {}
+    for nd in (4, 1):
+        fitters[nd] = BatchFitter(mfn, p0, free=["contact.default.c"], maxiter=100,
+                                  mesh=batch_mesh(jax.devices()[:nd]))
+        out[nd] = fitters[nd](targets)
+    four, one = out[4], out[1]
+    # how the 4-device program splits its batch: inputs and outputs on P("batch") over 4
+    run = fitters[4].program(targets)
+    spec = NamedSharding(run.mesh, PartitionSpec("batch"))
+    args, _ = pad_to_multiple((jnp.log(jnp.asarray(four.start)),
+                               {"apex_heights": jnp.asarray(four.targets["apex_heights"])}), 4)
+    placed = jax.device_put(args, spec)
+    compiled = run.jitted.lower(*placed).compile()
+    shardings = jax.tree_util.tree_leaves((compiled.input_shardings,
+                                           compiled.output_shardings))
+    print(json.dumps({
+        "devices": jax.device_count(), "mesh": [four.devices, one.devices],
+        "rows": [len(four), len(one)],
+        "split": all(s.spec == PartitionSpec("batch") and s.mesh.devices.size == 4
+                     for s in shardings),
+        "shard_rows": sorted({s.data.shape[0] for s in placed[0].addressable_shards}),
+        "shard_devices": len({s.device for s in placed[0].addressable_shards}),
+        "values": float(np.max(np.abs(four.values - one.values))),
+        "loss": float(np.max(np.abs(four.loss - one.loss))),
+        "achieved": float(np.max(np.abs(four.achieved["apex_heights"]
+                                        - one.achieved["apex_heights"]))),
+        "iterations": [four.iterations.tolist(), one.iterations.tolist()],
+        "rel_error": float(np.max(four.rel_error["apex_heights"])),
+        "last_two_differ": bool(four.values[-1, 0] != four.values[-2, 0]),
+    }))
+""")
+
+
+def test_four_device_batch_equals_single_device():
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert res["devices"] == 4 and res["mesh"] == [4, 1]
+    assert res["split"] and res["shard_devices"] == 4 and res["shard_rows"] == [2]
+    assert res["rows"] == [6, 6]
+    assert res["iterations"][0] == res["iterations"][1]
+    assert res["values"] <= 1e-12 and res["loss"] <= 1e-12 and res["achieved"] <= 1e-12
+    assert res["rel_error"] <= 1e-3 and res["last_two_differ"]
+
+
+# --------------------------------------------------------------------------- bad input
+def _never_traced(params):
+    raise AssertionError("the metrics function was traced although the input is invalid")
+
+
+@pytest.mark.parametrize("targets, starts, options, match", [
+    ([], None, {}, "empty batch"),
+    ({"apex_heights": [0.1]}, [], {}, "empty batch"),
+    ([{"apex_heights": [0.1]}] * 3, [{"contact.default.c": 5.0}] * 2, {},
+     "mismatched batch lengths"),
+    ([{"apex_heights": [0.1]}, {"apex_heights": [0.1, 0.05]}], None, {}, "layout"),
+    ([{"apex_heights": [0.1]}, {"settling_time": 1.0}], None, {}, "layout"),
+    ([{"apex_heights": [0.1]}, {"apex_heights": [math.nan]}], None, {}, "row 1.*finite"),
+    ({"apex_heights": [0.0]}, None, {}, "zero entry"),
+    ({"apex_heights": [0.1]}, None, {"learning_rate": 0.0}, "learning_rate"),
+    ({"apex_heights": [0.1]}, None, {"learning_rate": -0.1}, "learning_rate"),
+    ({"apex_heights": [0.1]}, None, {"learning_rate": math.nan}, "learning_rate"),
+    ({"apex_heights": [0.1]}, None, {"maxiter": 0}, "maxiter"),
+    ({"apex_heights": [0.1]}, None, {"maxiter": 2.5}, "maxiter"),
+    ({"apex_heights": [0.1]}, [{"contact.default.k": -1.0}], {}, "finite and > 0"),
+    ({"apex_heights": [0.1]}, [{"springs.x.k": 1.0}], {}, "not fitted"),
+    ({"apex_heights": [0.1]}, None, {"free": ["contact.steel.k"]}, "unknown parameter"),
+    ({"apex_heights": [0.1]}, None, {"free": []}, "nothing to fit"),
+    ({"apex_heights": [0.1]}, None, {"bounds": {"contact.default.c": (1.0, 0.5)}}, "bounds"),
+])
+def test_bad_input_is_refused_before_tracing(problem, targets, starts, options, match):
+    sim, _ = problem
+    with pytest.raises(ValueError, match=match) as err:
+        fit_batch(_never_traced, sim.params(k=1e4, c=10.0), targets, starts, **options)
+    assert isinstance(err.value, F.FitError)

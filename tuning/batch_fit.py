@@ -1,0 +1,340 @@
+"""Many independent fits at once: one jitted optimisation loop, vmapped over a batch of rows
+and sharded over every device.
+
+A row is one fit: its own targets (N target sets, e.g. a table of apex heights) or its own
+start point (N starts for the same targets: a multi-start fit), or both. Every row runs the
+algorithm of :func:`tuning.fit.fit` with ``method="optax"``: the free leaves of the
+:class:`diffpen.Params` are optimised in log space by an optax transformation, projected onto
+box bounds after every step, the loss is ``sum_j w_j ((m_j - t_j) / |t_j|)^2``, a row stops
+when all its targets are within tolerance (or its loss is not finite), and the row reports
+its lowest-loss point. So row ``i`` of :func:`fit_batch` is :func:`tuning.fit.fit` run alone
+on row ``i``'s targets and start, with the same optimiser and ``maxiter``.
+
+The whole loop (a ``lax.while_loop`` over iterations; rows that have stopped keep their
+state) is one per-row function lifted to the batch by :func:`tuning.shard.sharded_map`: the
+batch axis is split over a 1-D device ``Mesh`` with ``NamedSharding(mesh, P("batch"))``, and
+the results equal the single-device run. A batch that is not a multiple of the device count is
+padded by repeating its last row; the padding never reaches the result.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import diffpen as dp
+
+from . import params as P
+from .fit import (FitError, _achieved, _normalise_targets, _residuals, _spec, default_bounds,
+                  default_optimizer)
+from .shard import batch_mesh, sharded_map
+
+__all__ = ["fit_batch", "BatchFitter", "BatchFitResult"]
+
+# Row status codes of the loop (``BatchFitResult.status``).
+RUNNING, REACHED, NON_FINITE, LIMIT = 0, 1, 2, 3
+MESSAGES = {REACHED: "targets reached", LIMIT: "iteration limit reached",
+            NON_FINITE: "loss became non-finite; stopped (try a smaller learning rate or dt)"}
+
+
+@dataclasses.dataclass
+class BatchFitResult:
+    """Outcome of :func:`fit_batch` for N rows and P fitted leaves.
+
+    free: (P,) fitted leaf paths.  values: (N, P) fitted values (SI units: N/m, N s/m, ...),
+      the lowest-loss point of each row.  start: (N, P) start values (after clipping to the
+      bounds).
+    targets: ``{metric: (N, n) array}``.  achieved: ``{metric: (N, n) array}`` measured on
+      each row's fitted trajectory (nan for an absent event).
+    rel_error: ``{metric: (N,) max |achieved - target| / |target|}``.
+    loss: (N,) loss at the fitted values (inf if the first evaluation already failed).
+    loss_history: (N, maxiter) loss per iteration (nan after the row stopped).
+    converged: (N,) bool, the stopping rule fired (every target within its tolerance).
+    reached: (N,) bool, every target of the reported point is within its tolerance.
+    iterations: (N,) iterations run.  status: (N,) int code, see :data:`MESSAGES`.
+    devices: devices the batch axis was split over.  seconds: wall time of the call,
+      compilation included (a later call with the same layout reuses the program).
+    """
+    free: list
+    values: np.ndarray
+    start: np.ndarray
+    targets: dict
+    achieved: dict
+    rel_error: dict
+    loss: np.ndarray
+    loss_history: np.ndarray
+    converged: np.ndarray
+    reached: np.ndarray
+    iterations: np.ndarray
+    status: np.ndarray
+    devices: int
+    seconds: float
+    params0: dp.Params = dataclasses.field(repr=False, default=None)
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    @property
+    def messages(self) -> list:
+        """What happened to each row, in words."""
+        return [MESSAGES.get(int(s), "not run") for s in self.status]
+
+    def params(self, row: int) -> dp.Params:
+        """The fitted :class:`diffpen.Params` of ``row``."""
+        flat = dict(P.flatten(self.params0))
+        flat.update({p: float(v) for p, v in zip(self.free, self.values[row])})
+        return P.unflatten(self.params0, flat)
+
+    def best(self) -> int:
+        """Index of the row with the lowest loss (the answer of a multi-start fit)."""
+        return int(np.argmin(np.where(np.isfinite(self.loss), self.loss, np.inf)))
+
+
+def _rows(targets, starts) -> tuple[list, list | None]:
+    """Targets and starts as equal-length lists of rows (a single dict is shared)."""
+    n_t = None if isinstance(targets, dict) else len(targets)
+    n_s = None if starts is None else len(starts)
+    if n_t == 0 or n_s == 0:
+        raise FitError("empty batch: give at least one row of targets (a list of dicts) or of "
+                       "starts.")
+    if n_t is not None and n_s is not None and n_t != n_s:
+        raise FitError(f"mismatched batch lengths: {n_t} rows of targets but {n_s} starts; "
+                       "give one start per row, or a single targets dict shared by all starts.")
+    n = n_t or n_s or 1
+    rows = [targets] * n if n_t is None else list(targets)
+    return rows, None if starts is None else list(starts)
+
+
+class BatchFitter:
+    """A reusable batched fit of the ``free`` leaves of ``params0``; call it with targets.
+
+    The compiled program depends on the layout of the targets (metric names, entry counts),
+    not on their values, so calling the same fitter again with new targets or starts of the
+    same layout and batch size does not recompile.
+
+    Args:
+      metrics_fn: traceable ``params -> {metric: scalar or (n,) array}`` (e.g.
+        :func:`tuning.fit.bounce_metrics_fn`).
+      params0: :class:`diffpen.Params` giving the default start and the frozen leaves.
+      free: leaf paths to fit (default every contact k and c).
+      bounds: ``{path: (lo, hi)}`` in SI units; default :func:`tuning.fit.default_bounds` of
+        ``params0``'s value. Shared by every row.
+      weights: ``{metric: weight}`` (default 1).  rtol: relative tolerance per metric (float
+        or dict); a row stops when all its targets are within it.
+      optimizer: optax transformation acting on the log-parameters (default
+        :func:`tuning.fit.default_optimizer` with ``learning_rate``).
+      learning_rate: step of the default optimiser (relative change, 0.05 = 5 %); > 0.
+      maxiter: iteration limit per row; >= 1.
+      mesh: 1-D device mesh with axis ``"batch"`` (default :func:`tuning.shard.batch_mesh`:
+        all devices).
+    """
+
+    def __init__(self, metrics_fn: Callable, params0: dp.Params, *, free=None,
+                 bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
+                 optimizer: optax.GradientTransformation | None = None,
+                 learning_rate: float = 0.05, maxiter: int = 200, mesh=None):
+        lr = float(learning_rate)
+        if not (math.isfinite(lr) and lr > 0.0):
+            raise FitError(f"learning_rate must be a positive number (a relative step, e.g. "
+                           f"0.05), got {learning_rate!r}.")
+        if isinstance(maxiter, bool) or not isinstance(maxiter, (int, np.integer)) \
+                or maxiter < 1:
+            raise FitError(f"maxiter must be a positive integer (iterations per row), got "
+                           f"{maxiter!r}.")
+        flat0 = P.flatten(params0)
+        free = list(P.default_free(params0) if free is None else free)
+        if not free:
+            raise FitError("nothing to fit: 'free' is empty.")
+        unknown = [p for p in list(free) + list(bounds or {}) if p not in flat0]
+        if unknown:
+            raise FitError(f"unknown parameter(s) {unknown}; this scene has {list(flat0)}.")
+        x0 = np.array([float(flat0[p]) for p in free])
+        box = np.array([(bounds or {}).get(p, default_bounds(p, v)) for p, v in zip(free, x0)],
+                       dtype=float).reshape(len(free), 2)
+        if np.any(~(box[:, 0] > 0.0)) or np.any(box[:, 1] <= box[:, 0]):
+            raise FitError(f"bounds must satisfy 0 < lo < hi (fitting is in log space); got "
+                           f"{dict(zip(free, box.tolist()))}.")
+        self.metrics_fn, self.params0, self.free = metrics_fn, params0, free
+        self.x0, self.lo, self.hi = x0, box[:, 0], box[:, 1]
+        self.weights, self.rtol = weights, rtol
+        self.optimizer = default_optimizer(lr) if optimizer is None else optimizer
+        self.maxiter = int(maxiter)
+        self.mesh = batch_mesh() if mesh is None else mesh
+        self._flat0 = flat0
+        self._programs: dict = {}
+
+    # ------------------------------------------------------------------ inputs
+    def _starts(self, starts: list | None, n: int) -> np.ndarray:
+        """(n, P) start values, clipped to the bounds."""
+        if starts is None:
+            x = np.repeat(self.x0[None], n, axis=0)
+        else:
+            x = np.empty((n, len(self.free)))
+            for i, st in enumerate(starts):
+                extra = set(st) - set(self.free)
+                if extra:
+                    raise FitError(f"start row {i} sets parameters that are not fitted: "
+                                   f"{sorted(extra)}; fitted: {self.free}.")
+                x[i] = [float(st.get(p, v)) for p, v in zip(self.free, self.x0)]
+        if not np.all(np.isfinite(x)) or np.any(x <= 0.0):
+            bad = sorted({int(i) for i in np.nonzero(~(x > 0.0) | ~np.isfinite(x))[0]})
+            raise FitError(f"start values must be finite and > 0 (fitting is in log space); "
+                           f"rows {bad} are not.")
+        return np.clip(x, self.lo, self.hi)
+
+    def _targets(self, rows: list) -> tuple[dict, tuple]:
+        """``({metric: (N, n)}, spec)``; every row must have the same metrics and lengths."""
+        norm = []
+        for i, row in enumerate(rows):
+            try:
+                norm.append(_normalise_targets(dict(row)))
+            except FitError as err:
+                raise FitError(f"targets row {i}: {err}") from None
+        layout = {k: v.size for k, v in norm[0].items()}
+        for i, row in enumerate(norm[1:], start=1):
+            got = {k: v.size for k, v in row.items()}
+            if got != layout:
+                raise FitError(f"targets row {i} has the layout {got} but row 0 has {layout}: "
+                               "every row needs the same metrics with the same number of "
+                               "entries (one compiled program serves the batch).")
+        stacked = {k: np.stack([row[k] for row in norm]) for k in layout}
+        return stacked, _spec(norm[0], self.weights, self.rtol)
+
+    # ------------------------------------------------------------------ program
+    def _params_of(self, theta):
+        flat = dict(self._flat0)
+        flat.update({p: jnp.exp(theta[i]) for i, p in enumerate(self.free)})
+        return P.unflatten(self.params0, flat)
+
+    def _program(self, spec: tuple) -> Callable:
+        """The sharded batch program for one target layout (built once per layout)."""
+        if spec in self._programs:
+            return self._programs[spec]
+        tx, maxiter = self.optimizer, self.maxiter
+        log_lo, log_hi = np.log(self.lo), np.log(self.hi)
+        tols = np.concatenate([np.full(c, tol * math.sqrt(w)) for _, c, w, tol in spec])
+
+        def loss_fn(theta, tgt):
+            m = self.metrics_fn(self._params_of(theta))
+            r = _residuals(m, tgt, spec)
+            return jnp.sum(r * r), (r, {k: jnp.asarray(v) for k, v in m.items()})
+
+        value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
+
+        def one(theta0, tgt):
+            """One row: theta0 (P,) log start, tgt {metric: (n,)} -> fitted row."""
+            shapes = jax.eval_shape(loss_fn, theta0, tgt)[1][1]
+            carry = {"it": jnp.asarray(0), "theta": theta0, "state": tx.init(theta0),
+                     "best_loss": jnp.asarray(jnp.inf, theta0.dtype), "best_theta": theta0,
+                     "best_m": jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                                      shapes),
+                     "history": jnp.full((maxiter,), jnp.nan, theta0.dtype),
+                     "status": jnp.asarray(RUNNING)}
+
+            def body(c):
+                (loss, (r, m)), g = value_and_grad(c["theta"], tgt)
+                upd, state = tx.update(g, c["state"], c["theta"])
+                new = jnp.clip(optax.apply_updates(c["theta"], upd), log_lo, log_hi)
+                finite = jnp.isfinite(loss)
+                reached = finite & jnp.all(jnp.abs(r) <= tols)
+                status = jnp.where(~finite, NON_FINITE, jnp.where(
+                    reached, REACHED, jnp.where(c["it"] + 1 >= maxiter, LIMIT, RUNNING)))
+                better, go = finite & (loss < c["best_loss"]), status == RUNNING
+
+                def pick(flag, a, b):
+                    return jax.tree_util.tree_map(lambda x, y: jnp.where(flag, x, y), a, b)
+                return {"it": jnp.where(go, c["it"] + 1, c["it"]),
+                        "theta": pick(go, new, c["theta"]),
+                        "state": pick(go, state, c["state"]),
+                        "best_loss": jnp.where(better, loss, c["best_loss"]),
+                        "best_theta": pick(better, c["theta"], c["best_theta"]),
+                        "best_m": pick(better, m, c["best_m"]),
+                        "history": c["history"].at[c["it"]].set(
+                            jnp.where(finite, loss, jnp.nan)),
+                        "status": status}
+
+            c = jax.lax.while_loop(lambda c: c["status"] == RUNNING, body, carry)
+            return {"theta": c["best_theta"], "loss": c["best_loss"], "metrics": c["best_m"],
+                    "history": c["history"], "status": c["status"],
+                    "iterations": jnp.where(c["status"] == LIMIT, maxiter, c["it"])}
+
+        run = sharded_map(one, self.mesh)
+        self._programs[spec] = run
+        return run
+
+    def program(self, targets) -> Callable:
+        """The sharded batch program for the layout of ``targets`` (as in :meth:`__call__`):
+        the :func:`tuning.shard.sharded_map` runner, with ``.mesh`` and ``.jitted`` (lower it to
+        inspect how the batch axis is split). Built once per layout."""
+        return self._program(self._targets(_rows(targets, None)[0])[1])
+
+    # ------------------------------------------------------------------ call
+    def __call__(self, targets, starts: Sequence[dict] | None = None) -> BatchFitResult:
+        """Run every row's fit.
+
+        Args:
+          targets: ``{metric: value or list}`` shared by every row (a multi-start fit), or a
+            list of N such dicts, one per row (e.g. ``[{"apex_heights": [0.2]},
+            {"apex_heights": [0.1]}]``, heights in m). Every row needs the same metrics with
+            the same number of entries.
+          starts: None (every row starts at ``params0``) or a list of N ``{path: value}``
+            dicts (SI units; paths left out start at ``params0``'s value).
+        Returns: :class:`BatchFitResult` with N rows.
+        """
+        rows, starts = _rows(targets, starts)
+        tg, spec = self._targets(rows)
+        x0 = self._starts(starts, len(rows))
+        t0 = time.perf_counter()
+        run = self._program(spec)
+        out = jax.device_get(jax.block_until_ready(
+            run(jnp.asarray(np.log(x0)), {k: jnp.asarray(v) for k, v in tg.items()})))
+        seconds = time.perf_counter() - t0
+        n = len(rows)
+        if out["loss"].shape != (n,):     # sharded_map drops the padding rows
+            raise RuntimeError(f"batch program returned {out['loss'].shape[0]} rows for {n}.")
+        ach = {k: np.asarray(out["metrics"][k], float).reshape(n, -1)[:, :v.shape[1]]
+               for k, v in tg.items()}
+        rel = {k: np.empty(n) for k in tg}
+        reached = np.zeros(n, bool)
+        for i in range(n):
+            _, rel_i, reached[i] = _achieved({k: v[i] for k, v in ach.items()},
+                                             {k: v[i] for k, v in tg.items()}, spec)
+            for k in tg:
+                rel[k][i] = rel_i[k]
+        status = np.asarray(out["status"], int)
+        return BatchFitResult(
+            free=list(self.free), values=np.exp(np.asarray(out["theta"], float)), start=x0,
+            targets=tg, achieved=ach, rel_error=rel, loss=np.asarray(out["loss"], float),
+            loss_history=np.asarray(out["history"], float), converged=status == REACHED,
+            reached=reached, iterations=np.asarray(out["iterations"], int), status=status,
+            devices=int(run.mesh.devices.size), seconds=seconds, params0=self.params0)
+
+
+def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
+              starts: Sequence[dict] | None = None, **options) -> BatchFitResult:
+    """Run N independent fits at once, the batch axis sharded over every device.
+
+    ``fit_batch(metrics_fn, params0, targets, starts, **options)`` is
+    ``BatchFitter(metrics_fn, params0, **options)(targets, starts)``; see :class:`BatchFitter`
+    for the options (``free``, ``bounds``, ``weights``, ``rtol``, ``optimizer``,
+    ``learning_rate``, ``maxiter``, ``mesh``). Build a :class:`BatchFitter` once to run
+    several batches of the same layout without recompiling.
+
+    Args:
+      metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``.
+      params0: start :class:`diffpen.Params` (also supplies the frozen leaves).
+      targets: one ``{metric: value or list}`` for every row, or a list of N of them.
+      starts: None or a list of N ``{path: value}`` start points (SI units).
+    Returns: :class:`BatchFitResult`; row i equals :func:`tuning.fit.fit` with
+      ``method="optax"`` on row i alone.
+    Raises: :class:`tuning.fit.FitError` (a ``ValueError``) for an empty batch, rows of
+      different layouts or counts, non-finite or zero targets, unknown parameters, a
+      non-positive learning rate or iteration limit: before anything is compiled.
+    """
+    return BatchFitter(metrics_fn, params0, **options)(targets, starts)
