@@ -225,7 +225,8 @@ class BatchFitter:
             r = _residuals(m, tgt, spec)
             return jnp.sum(r * r), (r, {k: jnp.asarray(v) for k, v in m.items()})
 
-        value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
+        # the same gradient as tuning.fit: forward mode for a handful of parameters
+        value_and_grad = dp.value_and_grad(loss_fn, has_aux=True)
 
         def one(theta0, tgt):
             """One row: theta0 (P,) log start, tgt {metric: (n,)} -> fitted row."""
