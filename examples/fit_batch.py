@@ -19,7 +19,7 @@ jax.config.update("jax_enable_x64", True)
 
 import diffpen as dp  # noqa: E402
 from tuning.batch_fit import fit_batch  # noqa: E402
-from tuning.fit import bounce_metrics_fn, check_bounce_targets, first_guess_bounce  # noqa: E402
+from tuning.bounce import bounce_metrics_fn, check_bounce_targets, first_guess_bounce  # noqa: E402
 
 APEXES = [0.7, 0.5, 0.35, 0.2, 0.1, 0.05]    # first-apex targets, m (lowest point)
 K = 1e4                                       # contact stiffness, N/m (held)

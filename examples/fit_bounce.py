@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import diffpen as dp  # noqa: E402
-from tuning.fit import fit_bounce  # noqa: E402
+from tuning.bounce import fit_bounce  # noqa: E402
 
 TARGETS = {
     "trampoline": {"apex_heights": [0.6], "settling_time": 4.8},

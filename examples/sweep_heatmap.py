@@ -18,7 +18,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import diffpen as dp  # noqa: E402
-from tuning.fit import bounce_metrics_fn  # noqa: E402
+from tuning.bounce import bounce_metrics_fn  # noqa: E402
 from tuning.sweep import grid_points, sweep  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))

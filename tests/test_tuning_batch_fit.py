@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import diffpen as dp
+from tuning import bounce as B
 from tuning import fit as F
 from tuning.batch_fit import BatchFitter, fit_batch
 from tuning.metrics import ball_metrics
@@ -33,7 +34,7 @@ def ball_scene(drop=0.4):
 @pytest.fixture(scope="module")
 def problem():
     sim = dp.compile(ball_scene(), DT)
-    return sim, F.bounce_metrics_fn(sim, STEPS, n_apex=1)
+    return sim, B.bounce_metrics_fn(sim, STEPS, n_apex=1)
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +113,7 @@ SCRIPT = textwrap.dedent("""
     import diffpen as dp
     from jax.sharding import NamedSharding, PartitionSpec
     from tuning.batch_fit import BatchFitter
-    from tuning.fit import bounce_metrics_fn
+    from tuning.bounce import bounce_metrics_fn
     from tuning.shard import batch_mesh, pad_to_multiple
 
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))

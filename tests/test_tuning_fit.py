@@ -7,6 +7,7 @@ import optax
 import pytest
 
 import diffpen as dp
+from tuning import bounce as B
 from tuning import fit as F
 from tuning.cli.fit import DEFAULT_APEX, DEFAULT_SETTLE
 
@@ -20,7 +21,7 @@ def ball_scene(drop=1.0):
 
 def test_default_fit_reaches_targets():
     targets = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
-    res = F.fit_bounce(ball_scene(), targets, dt=1e-3)
+    res = B.fit_bounce(ball_scene(), targets, dt=1e-3)
     assert res.reached, res.message
     assert abs(res.achieved["apex_heights"][0] / DEFAULT_APEX - 1) < 5e-3
     assert abs(res.achieved["settling_time"] / DEFAULT_SETTLE - 1) < 1e-2
@@ -38,7 +39,7 @@ def test_default_fit_reaches_targets():
 def short_problem():
     """Apex-only problem on a short rollout (c fitted, k frozen)."""
     sim = dp.compile(ball_scene(drop=0.6), 1e-3)
-    mfn = F.bounce_metrics_fn(sim, 900, n_apex=1)
+    mfn = B.bounce_metrics_fn(sim, 900, n_apex=1)
     return sim, mfn
 
 
@@ -102,11 +103,11 @@ def test_infeasible_targets_are_refused_before_compiling(targets, words, monkeyp
         raise AssertionError("compiled before checking the targets")
     monkeypatch.setattr(dp, "compile", boom)
     with pytest.raises(F.FitError, match=words):
-        F.fit_bounce(ball_scene(), targets)
+        B.fit_bounce(ball_scene(), targets)
 
 
 def test_heights_only_fixes_damping_ratio_and_says_so():
-    res = F.fit_bounce(ball_scene(drop=0.6), {"apex_heights": [0.2]}, k0=2e4)
+    res = B.fit_bounce(ball_scene(drop=0.6), {"apex_heights": [0.2]}, k0=2e4)
     assert list(res.values) == ["contact.default.c"]
     assert float(res.params.contact["default"].k) == 2e4
     assert any("fix only the damping ratio" in n for n in res.notes)
@@ -116,7 +117,7 @@ def test_heights_only_fixes_damping_ratio_and_says_so():
 def test_unreachable_targets_are_marked_with_closest_values():
     # apex 0.5 m fixes the restitution; the bounces alone then take ~2.9 s to die out, so
     # a 2.0 s settling time is feasible by the simple bound but not reachable.
-    res = F.fit_bounce(ball_scene(), {"apex_heights": [0.5], "settling_time": 2.0},
+    res = B.fit_bounce(ball_scene(), {"apex_heights": [0.5], "settling_time": 2.0},
                        maxiter=10)
     assert not res.reached
     assert "NOT reached" in res.message
@@ -125,7 +126,7 @@ def test_unreachable_targets_are_marked_with_closest_values():
 
 def test_bad_fit_arguments():
     sim = dp.compile(ball_scene(), 1e-3)
-    mfn = F.bounce_metrics_fn(sim, 10)
+    mfn = B.bounce_metrics_fn(sim, 10)
     p0 = sim.params(k=1e4, c=10.0)
     with pytest.raises(F.FitError, match="unknown parameter"):
         F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.rubber.k"])

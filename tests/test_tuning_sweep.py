@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import diffpen as dp
-from tuning import fit as F
+from tuning import bounce as B
 from tuning import sweep as S
 
 NAMES = ["contact.default.k", "contact.default.c"]
@@ -18,7 +18,7 @@ def problem():
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.5))
     scene.add_plane()
     sim = dp.compile(scene, 1e-3)
-    mfn = F.bounce_metrics_fn(sim, 700, n_apex=1)
+    mfn = B.bounce_metrics_fn(sim, 700, n_apex=1)
     points, shape = S.grid_points({NAMES[0]: np.geomspace(5e3, 2e4, 4),
                                    NAMES[1]: np.geomspace(5.0, 40.0, 4)})
     keys = ["apex_heights", "max_penetration", "settled"]
@@ -33,7 +33,7 @@ def test_chunks_match_point_by_point(problem):
     assert full.done.all() and full.evaluated == 16
     assert full.grid("apex_heights", 0).shape == shape
     import jax
-    mfn = F.bounce_metrics_fn(sim, 700, n_apex=1)
+    mfn = B.bounce_metrics_fn(sim, 700, n_apex=1)
     f = jax.jit(mfn)
     for i in (0, 7, 15):                 # 15 sits in the padded last chunk
         m = f(sim.params(k=points[i, 0], c=points[i, 1]))

@@ -3,7 +3,8 @@ trajectories, sweep parameters with vmap, and the ``diffpen`` command line.
 
 Metrics (:mod:`tuning.metrics`) are exact on the simulated trajectory and differentiable;
 fits (:mod:`tuning.fit`) run in log space with any optax transformation or
-Levenberg-Marquardt; :mod:`tuning.batch_fit` runs many fits at once, sharded over devices;
+Levenberg-Marquardt (:mod:`tuning.lm`); :mod:`tuning.bounce` is the bouncing-ball problem
+behind ``diffpen fit``; :mod:`tuning.batch_fit` runs many fits at once, sharded over devices;
 :mod:`tuning.sysid` identifies k and c from a measured record with standard errors;
 :mod:`tuning.sweep` evaluates grids in vmapped chunks with resumable, atomic output;
 :mod:`tuning.scenefile` reads TOML scenes. Submodules import lazily (the
@@ -33,8 +34,8 @@ __all__ = [
 _WHERE = {
     "ball_metrics": "metrics", "BallMetrics": "metrics", "apex_heights": "metrics",
     "settling_time": "metrics", "contact_durations": "metrics", "resting_height": "metrics",
-    "fit_bounce": "fit", "FitResult": "fit", "FitError": "fit",
-    "default_optimizer": "fit", "bounce_metrics_fn": "fit", "check_bounce_targets": "fit",
+    "fit_bounce": "bounce", "FitResult": "fit", "FitError": "fit",
+    "default_optimizer": "fit", "bounce_metrics_fn": "bounce", "check_bounce_targets": "bounce",
     "fit_batch": "batch_fit", "BatchFitter": "batch_fit", "BatchFitResult": "batch_fit",
     "fit_trajectory": "sysid", "TrajectoryFit": "sysid", "load_csv": "sysid",
     "synthetic_record": "sysid",

@@ -205,7 +205,7 @@ def fit_file(path: str, *, progress=None, method: str = "lm", lr: float = 0.05,
         return out, None
     import optax
 
-    from .fit import fit_bounce
+    from .bounce import fit_bounce
     opt = None if method == "lm" else (optax.adam(lr) if method == "adam" else optax.sgd(lr))
     # with a settling-time target k is searched for; otherwise the file's k is the start
     searched = "settling_time" in fit["targets"]

@@ -39,7 +39,8 @@ import numpy as np
 
 import diffpen as dp
 
-from .fit import FitError, Progress, levenberg_marquardt
+from .fit import FitError, Progress
+from .lm import levenberg_marquardt
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
            "fit_trajectory", "TrajectoryFit", "synthetic_record", "RecordEvents"]

@@ -101,7 +101,7 @@ def _run(args) -> int:
 
     import diffpen as dp
 
-    from ..fit import fit_bounce
+    from ..bounce import fit_bounce
     targets = _targets(args)
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))

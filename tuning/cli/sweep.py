@@ -66,7 +66,7 @@ def _run(args) -> int:
 
     import diffpen as dp
 
-    from ..fit import bounce_metrics_fn
+    from ..bounce import bounce_metrics_fn
     from ..sweep import grid_points, sweep
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))

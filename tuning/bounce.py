@@ -1,0 +1,299 @@
+"""The bounce problem: fit contact k and c of a sphere bouncing on a plane to targets.
+
+Targets (:data:`BOUNCE_METRICS`): apex heights, settling time, contact durations,
+restitution, maximum penetration. :func:`check_bounce_targets` refuses targets no (k, c) can
+reach before anything is compiled; :func:`bounce_metrics_fn` is the traceable metrics
+function; :func:`first_guess_bounce` the closed-form start; :func:`fit_bounce` (behind
+``diffpen fit``) puts them together and runs :func:`tuning.fit.fit`.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+
+from .fit import FitError, FitResult, _normalise_targets, fit
+
+__all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first_guess_bounce",
+           "fit_bounce"]
+
+
+#: Metrics a bounce fit can target, with their default relative tolerances.
+BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
+                  "restitution": 1e-3, "max_penetration": 2e-3}
+
+
+def _fall_time(h0: float, v0: float, g: float) -> float:
+    """Time for the lowest point to reach the surface from height h0 (m), velocity v0 (m/s)."""
+    return (v0 + math.sqrt(v0 * v0 + 2.0 * g * h0)) / g
+
+
+def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane: int = 0,
+                         settle_tol: float = 1e-3) -> dict:
+    """Validate bounce targets against the scene BEFORE anything is compiled.
+
+    Raises :class:`FitError` saying what to change for targets no (k, c) can reach: an apex at
+    or above the drop height, apexes that do not decrease, a settling time shorter than the
+    fall to the ground (plus the flights the apex targets imply), non-positive values.
+    Returns a dict of facts used by the fit (drop apex, fall time, gravity, mass, radius).
+    """
+    unknown = set(targets) - set(BOUNCE_METRICS)
+    if unknown:
+        raise FitError(f"unknown target(s) {sorted(unknown)}; bounce fits know "
+                       f"{sorted(BOUNCE_METRICS)}.")
+    if not scene.planes:
+        raise FitError("a bounce fit needs a plane for the body to bounce on.")
+    if not 0 <= body < scene.n_bodies:
+        raise FitError(f"body {body} is not in the scene ({scene.n_bodies} bodies).")
+    b = scene.bodies[body]
+    pl = scene.planes[plane]
+    n = np.asarray(pl.normal)
+    g = float(-np.dot(scene.gravity, n))
+    if g <= 0.0:
+        raise FitError("bounce targets need gravity pointing into the plane.")
+    h0 = float(np.dot(b.position, n) - pl.offset - b.radius)
+    v0 = float(np.dot(b.velocity, n))
+    if h0 <= 0.0:
+        raise FitError(f"body {body} starts in contact (lowest point {h0:.4g} m above the "
+                       "plane): start it above the surface.")
+    drop = h0 + max(v0, 0.0) ** 2 / (2.0 * g)
+    t_fall = _fall_time(h0, v0, g)
+    tg = _normalise_targets(targets)
+    for name, arr in tg.items():
+        if np.any(arr <= 0.0):
+            raise FitError(f"target {name!r} must be positive, got {arr.tolist()}.")
+    apex = tg.get("apex_heights")
+    if apex is not None:
+        if apex[0] >= drop:
+            raise FitError(
+                f"infeasible target: first apex {apex[0]:.4g} m is not below the drop height "
+                f"{drop:.4g} m (lowest point); a passive contact cannot add energy. Give an "
+                f"apex below {drop:.4g} m or raise the drop height.")
+        if np.any(np.diff(apex) >= 0.0):
+            raise FitError(f"infeasible target: apex heights must decrease bounce by bounce, "
+                           f"got {apex.tolist()}.")
+    e = tg.get("restitution")
+    if e is not None and np.any(e >= 1.0):
+        raise FitError(f"infeasible target: restitution must be below 1, got {e.tolist()}.")
+    ts = tg.get("settling_time")
+    if ts is not None:
+        need = t_fall
+        if apex is not None:   # the flights of the targeted bounces that leave the band
+            need += float(np.sum(2.0 * np.sqrt(2.0 * apex[apex > settle_tol] / g)))
+        if ts[0] <= need:
+            what = "the fall to the ground" if apex is None else (
+                "the fall plus the flights of the targeted bounces")
+            raise FitError(
+                f"infeasible target: settling time {ts[0]:.4g} s is shorter than {what} "
+                f"({need:.4g} s); the body cannot be within {settle_tol:g} m of rest before. "
+                f"Give a settling time above {need:.4g} s.")
+    return {"drop": drop, "t_fall": t_fall, "g": g, "mass": b.mass, "radius": b.radius,
+            "h0": h0, "v0": v0, "material": pl.material}
+
+
+def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex: int = 3,
+                      settle_tol: float = 1e-3, save_every: int = 1) -> Callable:
+    """``params -> {metric: value}`` for a sphere bouncing on a plane (traceable).
+
+    Rolls out ``steps`` steps of ``sim`` and returns the fields of
+    :class:`tuning.metrics.BallMetrics` as a dict. A settling time not reached within the
+    rollout is reported as the rollout's end time (a lower bound) for the optimiser.
+    """
+    from .metrics import ball_metrics
+    t_end = steps * sim.dt
+
+    def metrics_fn(params):
+        s0 = sim.init_state()
+        traj = sim.rollout(params, steps, s0, save_every=save_every, check_finite=False)
+        m = ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=n_apex,
+                         settle_tol=settle_tol, state0=s0)._asdict()
+        m["settling_time"] = jnp.where(m["settled"], m["settling_time"], t_end)
+        return m
+    return metrics_fn
+
+
+def first_guess_bounce(info: dict, targets: dict, *, law: str = "linear", k0: float = 1e4):
+    """Closed-form start (k, c) from bounce targets (physics-notes.md section 2).
+
+    The first apex gives the restitution ``e = sqrt(A_1 / H_0)`` and so the damping ratio; a
+    contact-duration target gives w0 and hence k; otherwise k stays ``k0`` (a settling-time
+    target is then met by a 1-D search over k, see :func:`fit_bounce`).
+    Returns (k N/m, c N s/m, zeta or None).
+    """
+    m = info["mass"]
+    zeta = None
+    if "apex_heights" in targets:
+        e = math.sqrt(float(np.atleast_1d(targets["apex_heights"])[0]) / info["drop"])
+        zeta = float(dp.physical.zeta_from_restitution(e, "no_tension" if law == "no_tension"
+                                                       else "linear"))
+    elif "restitution" in targets:
+        e = float(np.atleast_1d(targets["restitution"])[0])
+        zeta = float(dp.physical.zeta_from_restitution(e, "no_tension" if law == "no_tension"
+                                                       else "linear"))
+    if zeta is not None and "contact_durations" in targets:
+        tc = float(np.atleast_1d(targets["contact_durations"])[0])
+        k, c = dp.physical.kc_from_restitution(math.exp(-math.pi * zeta / math.sqrt(
+            1 - zeta * zeta)), tc, m)
+        return float(k), float(c), zeta
+    z = 0.1 if zeta is None else zeta
+    return k0, 2.0 * z * math.sqrt(k0 * m), zeta
+
+
+def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "linear",
+               body: int = 0, plane: int = 0, settle_tol: float = 1e-3, k0: float | None = None,
+               c0: float | None = None, free=None, method: str = "lm", optimizer=None,
+               maxiter: int | None = None, rtol=None, weights: dict | None = None,
+               duration: float | None = None, progress: bool | None = None,
+               first_guess: bool = True, **compile_kw) -> FitResult:
+    """Fit contact k and c of a sphere bouncing on a plane to apex/settling/contact targets.
+
+    Checks the targets against the scene first (:func:`check_bounce_targets`), then compiles,
+    starts from the closed-form first guess (:func:`first_guess_bounce`; with apex and
+    settling-time targets, :func:`_apex_settle_search` scans k with c solved for the apex and
+    bisects the settling time along that curve), and runs :func:`fit`. Stiffness stays below
+    the accuracy limit ``w0 dt <= 0.25`` of the explicit step.
+
+    Bounce heights alone fix only the damping ratio: with apex/restitution targets but no
+    settling-time or contact-duration target, k is held at ``k0`` and only c is fitted (the
+    result's ``notes`` say so).
+
+    Args:
+      scene: the scene (the body must start above the plane).
+      targets: ``{"apex_heights": [m, ...], "settling_time": s, "contact_durations": [s],
+        "restitution": [...], "max_penetration": m}``; apexes are of the lowest point above
+        the surface.
+      dt: time step, s.  law: contact law.  settle_tol: settling band, m.
+      k0, c0: start values (N/m, N s/m); default from the first guess.
+      free: leaf paths to fit (default: k and c of the plane's material).
+      method: ``"lm"`` (default) or ``"optax"`` (with ``optimizer``).
+      maxiter: default 40 (lm) or 400 (optax).
+      rtol: per-metric relative tolerances (default :data:`BOUNCE_METRICS`).
+      duration: rollout length, s (default: covers the targets with margin).
+    Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
+    """
+    info = check_bounce_targets(scene, targets, body=body, plane=plane, settle_tol=settle_tol)
+    tg = {k: np.atleast_1d(np.asarray(v, float)) for k, v in targets.items()}
+    notes = []
+    mat = info["material"]
+    g, m = info["g"], info["mass"]
+    n_apex = max([tg[k].size for k in ("apex_heights", "restitution", "contact_durations")
+                  if k in tg] + [1])
+    if duration is None:
+        if "settling_time" in tg:
+            duration = 1.4 * float(tg["settling_time"][0]) + 0.2
+        else:
+            a = tg.get("apex_heights", np.array([0.5 * info["drop"]]))
+            flights = np.sum(2.0 * np.sqrt(2.0 * np.maximum(a, 1e-6) / g))
+            duration = 1.3 * (info["t_fall"] + flights) + 0.3
+    steps = int(math.ceil(duration / dt))
+    sim = dp.compile(scene, dt, law=law, **compile_kw)
+    mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
+                            settle_tol=settle_tol)
+    kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=1e4 * m if k0 is None else k0)
+    heights_only = (("apex_heights" in tg or "restitution" in tg)
+                    and not ({"settling_time", "contact_durations", "max_penetration"} & set(tg)))
+    kpath, cpath = f"contact.{mat}.k", f"contact.{mat}.c"
+    if free is None:
+        free = [kpath, cpath]
+        if heights_only:
+            free = [cpath]
+            notes.append(f"bounce heights alone fix only the damping ratio (zeta ~ "
+                         f"{zeta:.3g}); k is held at {kk:.4g} N/m and only c is fitted. Give a "
+                         "settling-time or contact-duration target to fit k as well.")
+    # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
+    # within ~0.5% of the continuous model (physics-notes.md section 4); beyond it a fit
+    # would tune the integrator's error instead of the contact.
+    kmax = (0.25 / dt) ** 2 * m
+    starts = None
+    if (first_guess and k0 is None and zeta is not None and "settling_time" in tg
+            and "contact_durations" not in tg and kpath in free):
+        # k is set by the settling time: start LM from the best points of a 1-D scan over k
+        # at the damping ratio the apex implies (ranked with the fit's own compiled function).
+        ks = np.geomspace(1e-3 * kmax, kmax, 32)
+        starts = [{kpath: float(k), cpath: float(2.0 * zeta * math.sqrt(k * m))}
+                  for k in ks if cpath in free]
+        notes.append(f"start: damping ratio {zeta:.4g} from the first apex; k from the best "
+                     f"of a 32-point scan over {ks[0]:.3g}..{ks[-1]:.3g} N/m (w0 dt <= 0.25)")
+    if c0 is not None:
+        cc = c0
+    if k0 is not None:
+        kk = k0
+    if kk > kmax:
+        notes.append(f"start k {kk:.4g} N/m lowered to {kmax:.4g} N/m, the accuracy limit "
+                     f"w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer contact)")
+        kk = kmax
+    params0 = sim.params(contact={mat: (kk, cc)})
+    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (1e-6, m / dt)}
+    tol = dict(BOUNCE_METRICS)
+    if rtol is not None:
+        tol.update(rtol if isinstance(rtol, dict) else {k: rtol for k in tol})
+    search = None
+    if starts is not None and method == "lm" and free == [kpath, cpath]:
+        search = _apex_settle_search([math.log(s[kpath]) for s in starts],
+                                     [math.log(s[cpath]) for s in starts])
+        notes[-1] += ("; along the curve where the first apex is met (Newton on c), the "
+                      "settling time is matched by bisection on k")
+        starts = None
+    res = fit(mfn, params0, dict(targets), free=free,
+              bounds={p: bounds[p] for p in free if p in bounds},
+              weights=weights, rtol=tol, method=method, optimizer=optimizer,
+              maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
+              label="diffpen fit", starts=starts, search=search)
+    res.notes = notes + res.notes
+    return res
+
+
+def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):
+    """Start search for (k, c) from a first-apex and a settling-time target.
+
+    The settling time is piecewise continuous in (k, c): it jumps whenever a small bounce's
+    apex crosses the settling band. A local method stalls at those jumps, so: on a scan over
+    k, c is solved by Newton so that the first apex is met exactly (smooth in c); along that
+    curve the settling-time residual is bracketed between scan points and bisected in log k.
+    A bracket holds either a root or a jump; every bracket's end point is returned, best
+    first, for Levenberg-Marquardt to polish.
+    """
+    def run(evaluate, slices, lo, hi):
+        ia = slices["apex_heights"].start
+        js = slices["settling_time"].start
+
+        def on_curve(lk, lc):
+            r = None
+            for _ in range(newton):
+                r, J, _ = evaluate(np.array([lk, lc]))
+                r, J = np.asarray(r), np.asarray(J)
+                if not np.all(np.isfinite(r)) or abs(r[ia]) < 1e-5 or J[ia, 1] == 0.0:
+                    break
+                lc = float(np.clip(lc - np.clip(r[ia] / J[ia, 1], -0.5, 0.5), lo[1], hi[1]))
+            return lc, r
+
+        pts = []
+        for lk, lc in zip(log_ks, log_cs):
+            lk = float(np.clip(lk, lo[0], hi[0]))
+            if pts:   # warm start: same damping ratio as the previous point on the curve
+                lc = pts[-1][1] + 0.5 * (lk - pts[-1][0])
+            lc, r = on_curve(lk, float(np.clip(lc, lo[1], hi[1])))
+            if r is not None and np.all(np.isfinite(r)):
+                pts.append((lk, lc, r))
+        out = []
+        for (ka, ca, ra), (kb, cb, rb) in zip(pts[:-1], pts[1:]):
+            if np.sign(ra[js]) == np.sign(rb[js]):
+                continue
+            for _ in range(bisect):
+                km = 0.5 * (ka + kb)
+                cm, rm = on_curve(km, 0.5 * (ca + cb))
+                if not np.all(np.isfinite(rm)):
+                    break
+                if np.sign(rm[js]) == np.sign(ra[js]):
+                    ka, ca, ra = km, cm, rm
+                else:
+                    kb, cb, rb = km, cm, rm
+            out += [(float(ra @ ra), ka, ca), (float(rb @ rb), kb, cb)]
+        out += [(float(r @ r), k, c) for k, c, r in pts]
+        out.sort()
+        return [np.array([k, c]) for _, k, c in out[:6]]
+    return run
