@@ -6,9 +6,9 @@ import math
 import pytest
 
 import diffpen as dp
-from tuning import report as R
+from tuning import extreme
 
-C = R.Case
+C = extreme.Case
 CASES = [
     C(),                                                          # nominal
     C(integrator="implicit_euler", k=1e9),                        # the issue's stiff case
@@ -25,7 +25,7 @@ CASES = [
 
 @pytest.fixture(scope="module")
 def rows():
-    return [R.run_case(c) for c in CASES]
+    return [extreme.run_case(c) for c in CASES]
 
 
 def test_every_sampled_case_is_sane_or_refused_clearly(rows):
@@ -45,7 +45,7 @@ def test_every_sampled_case_is_sane_or_refused_clearly(rows):
 def test_stiff_implicit_euler_runs_with_bounded_energy(rows):
     for row in rows[1:3]:
         assert row["outcome"] == "ok"
-        assert row["energy_growth"] <= R.ENERGY_TOL["float64"]
+        assert row["energy_growth"] <= extreme.ENERGY_TOL["float64"]
         assert row["max_penetration"] <= 0.01
 
 
@@ -60,20 +60,20 @@ def test_explicit_past_limit_is_refused_with_working_advice(rows):
 def test_judge_catches_blow_ups_and_silent_nans(monkeypatch):
     """With the stability gate switched off, unstable explicit runs must be judged FAIL (an
     energy blow-up; a NaN without an error), so the checks above cannot pass vacuously."""
-    monkeypatch.setattr(R._stab, "gate", lambda sim, params, **kw: 1)
-    row = R.run_case(C(k=1e9, duration=0.5), remedy=False)      # ball shot off the plane
+    monkeypatch.setattr(extreme._stab, "gate", lambda sim, params, **kw: 1)
+    row = extreme.run_case(C(k=1e9, duration=0.5), remedy=False)  # ball shot off the plane
     assert row["outcome"] == "FAIL" and "energy grew" in row["detail"]
     assert "restitution" in row["detail"]
     nan_case = C(scene="chain", dtype="float32", k=1e9, dt=1e-2, duration=2.0)
-    row = R.run_case(nan_case, remedy=False)       # the rollout names step and body: clear
+    row = extreme.run_case(nan_case, remedy=False)  # the rollout names step and body: clear
     assert row["outcome"] == "error" and "NonFiniteError" in row["detail"]
     monkeypatch.setattr(dp.Simulator, "_check_finite", lambda *a, **k: None)
-    row = R.run_case(nan_case, remedy=False)       # ... without that check: a silent NaN
+    row = extreme.run_case(nan_case, remedy=False)  # ... without that check: a silent NaN
     assert row["outcome"] == "FAIL" and "non-finite" in row["detail"]
 
 
 def test_matrix_lists_every_case_and_counts_outcomes():
-    cases = R.extreme_cases(quick=True)
+    cases = extreme.extreme_cases(quick=True)
     assert len(cases) == len(set(cases))
     labels = {c.label for c in cases}
     for needed in ("k=1e+09", "mass=0.0001", "zeta=100", "speed=100", "overlap=True",
@@ -81,5 +81,6 @@ def test_matrix_lists_every_case_and_counts_outcomes():
         assert needed in labels
     assert {c.dtype for c in cases} == {"float32", "float64"}
     assert {c.scene for c in cases} == {"ball", "chain"}
-    summary = R.summarize_matrix([{"outcome": "ok"}, {"outcome": "refused", "remedy": "ok"}])
+    summary = extreme.summarize_matrix([{"outcome": "ok"},
+                                        {"outcome": "refused", "remedy": "ok"}])
     assert summary == {"cases": 2, "ok": 1, "refused": 1, "refused->remedy ok": 1}

@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 
 import diffpen as dp
-from tuning import report as R
+from tuning.accuracy import accuracy, plot_accuracy, recommend
+from tuning.gradient_check import gradient_report
+from tuning.reference import (apex_heights, ball_reference, chain_reference, settling_time,
+                              spring_closed_form)
 from tuning.cli import main
 
 
@@ -18,7 +21,7 @@ def test_ball_reference_matches_closed_form_restitution_and_contact_time(zeta):
     t_c = pi / w_d (physics-notes.md section 2)."""
     k, m = 1e4, 1.0
     c = 2 * zeta * math.sqrt(k * m)
-    ref = R.ball_reference(k=k, c=c, m=m, r=0.1, z0=0.2, v0=-3.0, T=0.2, g=0.0)
+    ref = ball_reference(k=k, c=c, m=m, r=0.1, z0=0.2, v0=-3.0, T=0.2, g=0.0)
     (t0, t1), = ref.contacts
     w_d = math.sqrt(k / m) * math.sqrt(1 - zeta ** 2)
     assert t0 == pytest.approx(0.1 / 3.0, rel=1e-10)
@@ -29,7 +32,7 @@ def test_ball_reference_matches_closed_form_restitution_and_contact_time(zeta):
 
 
 def test_ball_reference_with_gravity_and_metrics():
-    ref = R.ball_reference(k=1e4, c=20.0, m=1.0, r=0.1, z0=1.0, T=3.0)
+    ref = ball_reference(k=1e4, c=20.0, m=1.0, r=0.1, z0=1.0, T=3.0)
     e0 = 0.729247614287671       # zeta = 0.1 without gravity; gravity lowers it slightly
     first = math.sqrt((ref.apexes[0] - 0.1) / 0.9)
     assert e0 - 0.02 < first < e0
@@ -40,15 +43,15 @@ def test_ball_reference_with_gravity_and_metrics():
     # the sampled metrics recover the reference from its own dense samples
     t = np.linspace(1e-4, 3.0, 30000)
     z, v = ref.state(t)
-    np.testing.assert_allclose(R.apex_heights(t, z, 0.1, 3), ref.apexes[:3], rtol=1e-7)
+    np.testing.assert_allclose(apex_heights(t, z, 0.1, 3), ref.apexes[:3], rtol=1e-7)
     e = ref.energy(z, v)
-    assert R.settling_time(np.r_[0.0, t], np.r_[9.81 * 0.9, e]) == pytest.approx(ts, abs=2e-4)
+    assert settling_time(np.r_[0.0, t], np.r_[9.81 * 0.9, e]) == pytest.approx(ts, abs=2e-4)
 
 
 def test_apex_heights_exact_on_parabolas():
     t = np.arange(0.0, 1.0, 1e-2) + 3e-3
     z = np.where(t < 0.2, 0.05, 0.1 + 2.0 * (t - 0.2) - 4.905 * (t - 0.2) ** 2)
-    ap = R.apex_heights(t, z, 0.1, 2)
+    ap = apex_heights(t, z, 0.1, 2)
     assert ap[0] == pytest.approx(0.1 + 2.0 ** 2 / (2 * 9.81), rel=1e-12)
     assert math.isnan(ap[1])
 
@@ -63,8 +66,8 @@ def test_chain_reference_agrees_with_simulator_at_small_dt():
         prev = b
     sim = dp.compile(scene, 1e-4, integrator="rk4")
     traj = sim.rollout(sim.params(), 2000, save_every=100)
-    ref = R.chain_reference(np.asarray(traj.time), x0=[[L * i, 0, 0] for i in range(n + 1)],
-                            m=m, k=k, c=c, rest=L)
+    ref = chain_reference(np.asarray(traj.time), x0=[[L * i, 0, 0] for i in range(n + 1)],
+                          m=m, k=k, c=c, rest=L)
     np.testing.assert_allclose(traj.position, ref, atol=1e-9)
 
 
@@ -74,15 +77,15 @@ def test_spring_closed_form_solves_the_ode():
         t = np.linspace(0, 2, 50)
         sol = solve_ivp(lambda _, y: [y[1], -100 * y[0] - c * y[1]], (0, 2), [0.1, 0.0],
                         t_eval=t, method="DOP853", rtol=1e-12, atol=1e-14)
-        np.testing.assert_allclose(R.spring_closed_form(t, k=100.0, c=c, m=1.0, x0=0.1),
+        np.testing.assert_allclose(spring_closed_form(t, k=100.0, c=c, m=1.0, x0=0.1),
                                    sol.y[0], atol=1e-11)
 
 
 @pytest.fixture(scope="module")
 def small_accuracy():
-    return R.accuracy(integrators=("semi_implicit_euler", "rk4"), dts=(2e-3, 2.5e-4),
-                      widths=(0.0, 1e-2), width_dt=5e-4, repeats=2,
-                      problems=("ball", "spring"), default_dtypes=("float32",))
+    return accuracy(integrators=("semi_implicit_euler", "rk4"), dts=(2e-3, 2.5e-4),
+                    widths=(0.0, 1e-2), width_dt=5e-4, repeats=2,
+                    problems=("ball", "spring"), default_dtypes=("float32",))
 
 
 def test_work_precision_errors_converge_at_the_integrators_order(small_accuracy):
@@ -109,21 +112,21 @@ def test_recommend_picks_the_cheapest_point_meeting_tol(small_accuracy):
     pts = [dict(p, integrator=i) for i, ps in small_accuracy["problems"]["ball"].items()
            for p in ps]
     tol = sorted(p["error"] for p in pts)[len(pts) // 2]
-    rec = R.recommend(small_accuracy, tol)
+    rec = recommend(small_accuracy, tol)
     ok = [p for p in pts if p["error"] <= tol]
     assert rec["time"] == min(p["time"] for p in ok) and rec["error"] <= tol
-    assert R.recommend(small_accuracy, 1e-300) is None
+    assert recommend(small_accuracy, 1e-300) is None
 
 
 def test_plot_writes_a_png(small_accuracy, tmp_path):
     pytest.importorskip("matplotlib")
     path = tmp_path / "wp.png"
-    R.plot_accuracy(small_accuracy, str(path))
+    plot_accuracy(small_accuracy, str(path))
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_gradient_report_against_the_continuous_derivative():
-    rows = R.gradient_report(dts=(2.5e-4,), widths=(1e-2,), rel_steps=(1e-2, 1e-3, 1e-4, 1e-5))
+    rows = gradient_report(dts=(2.5e-4,), widths=(1e-2,), rel_steps=(1e-2, 1e-3, 1e-4, 1e-5))
     by = {(r["quantity"], r["param"]): r for r in rows}
     apex_k, apex_c = by[("apex", "k")], by[("apex", "c")]
     # smoothed contact at a small step: d apex / dk and d apex / dc within 5% of the

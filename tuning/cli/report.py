@@ -59,27 +59,27 @@ def run(args) -> int:
         return fail("report", "--height must be above --radius (the ball starts above the "
                               "plane)")
     setup_jax(x64=True)
-    from tuning import report as R
     if args.what == "stability":
-        return _stability(args, R, integs)
+        return _stability(args, integs)
     if args.what == "accuracy":
-        return _accuracy(args, R, integs)
-    return _gradients(args, R)
+        return _accuracy(args, integs)
+    return _gradients(args)
 
 
 # --------------------------------------------------------------------------- stability
-def _stability(args, R, integs) -> int:
-    cases = R.extreme_cases(scenes=tuple(args.scenes), dtypes=tuple(args.dtypes),
-                            integrators=integs, quick=args.quick)
+def _stability(args, integs) -> int:
+    from tuning.extreme import extreme_cases, stability_matrix, summarize_matrix
+    cases = extreme_cases(scenes=tuple(args.scenes), dtypes=tuple(args.dtypes),
+                          integrators=integs, quick=args.quick)
 
     def progress(i, n, row):
         if not args.json:
             sys.stderr.write(f"\r{i}/{n} cases")
             sys.stderr.flush()
-    rows = R.stability_matrix(cases, progress=progress)
+    rows = stability_matrix(cases, progress=progress)
     if not args.json:
         sys.stderr.write("\n")
-    summary = R.summarize_matrix(rows)
+    summary = summarize_matrix(rows)
     if args.json:
         dump_json({"summary": summary, "rows": rows})
         return 0 if summary.get("FAIL", 0) == 0 else 1
@@ -111,25 +111,26 @@ def _stability(args, R, integs) -> int:
 
 
 # --------------------------------------------------------------------------- accuracy
-def _accuracy(args, R, integs) -> int:
+def _accuracy(args, integs) -> int:
+    from tuning.accuracy import BallSpec, accuracy, plot_accuracy, recommend
     if args.repeats < 1:
         return fail("report", "--repeats must be >= 1")
-    spec = R.BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
-                      height=args.height)
+    spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
+                    height=args.height)
     n_dt = 4 if args.quick else 6
 
     def progress(*a):
         if not args.json:
             sys.stderr.write(".")
             sys.stderr.flush()
-    res = R.accuracy(ball=spec, integrators=integs, n_dt=n_dt, repeats=args.repeats,
-                     progress=progress)
+    res = accuracy(ball=spec, integrators=integs, n_dt=n_dt, repeats=args.repeats,
+                   progress=progress)
     if not args.json:
         sys.stderr.write("\n")
-    rec = R.recommend(res, args.tol) if args.tol else None
+    rec = recommend(res, args.tol) if args.tol else None
     if args.plot:
         try:
-            R.plot_accuracy(res, args.plot)
+            plot_accuracy(res, args.plot)
         except ImportError as e:
             return fail("report", str(e))
     if args.json:
@@ -174,11 +175,13 @@ def _accuracy(args, R, integs) -> int:
 
 
 # --------------------------------------------------------------------------- gradients
-def _gradients(args, R) -> int:
-    spec = R.BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
-                      height=args.height, T=2.0)
+def _gradients(args) -> int:
+    from tuning.accuracy import BallSpec
+    from tuning.gradient_check import gradient_report
+    spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
+                    height=args.height, T=2.0)
     kw = dict(dts=(1e-3,), widths=(0.0, 1e-3)) if args.quick else {}
-    rows = R.gradient_report(spec=spec, **kw)
+    rows = gradient_report(spec=spec, **kw)
     if args.json:
         dump_json({"rows": rows})
         return 0

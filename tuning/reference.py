@@ -1,0 +1,217 @@
+"""Independent reference solutions for the trust reports, and the measurements on sampled
+trajectories that are compared with them.
+
+References never use the simulator: closed forms (damped spring), or
+``scipy.integrate.solve_ivp(method="DOP853", rtol=1e-12)`` on a right-hand side written here
+in numpy, with every contact start and end located as an event (ball), never the same
+integrator at a smaller dt. :func:`apex_heights` and :func:`settling_time` measure a sampled
+trajectory (numpy), so that a simulated run and a reference are judged by the same rule.
+
+Units: SI throughout (m, kg, s, N/m, N s/m).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = [
+    "G", "spring_closed_form", "BallReference", "ball_reference", "chain_reference",
+    "apex_heights", "settling_time",
+]
+
+G = 9.81
+
+
+def _scipy_integrate():
+    try:
+        from scipy import integrate
+    except ImportError:
+        raise ImportError("reference solutions need scipy: pip install -e '.[report]' (or "
+                          "pip install scipy).") from None
+    return integrate
+
+
+
+# --------------------------------------------------------------------------- references
+def spring_closed_form(t, *, k: float, c: float, m: float, x0: float):
+    """Free damped oscillator x'' = -(k x + c x') / m from (x0, 0): position x(t), m.
+    Under-, critically and over-damped cases."""
+    t = np.asarray(t, float)
+    w0 = math.sqrt(k / m)
+    z = c / (2.0 * math.sqrt(k * m))
+    if z < 1.0:
+        wd = w0 * math.sqrt(1.0 - z * z)
+        return x0 * np.exp(-z * w0 * t) * (np.cos(wd * t) + z * w0 / wd * np.sin(wd * t))
+    if z == 1.0:
+        return x0 * np.exp(-w0 * t) * (1.0 + w0 * t)
+    s = w0 * math.sqrt(z * z - 1.0)
+    r1, r2 = -z * w0 + s, -z * w0 - s
+    return x0 * (r2 * np.exp(r1 * t) - r1 * np.exp(r2 * t)) / (r2 - r1)
+
+
+class BallReference:
+    """Hard-contact ball on the plane z = 0 (linear law, no smoothing), solved phase by phase
+    with DOP853 at rtol 1e-12; each contact start and end (centre height = radius) is an
+    event. ``state(t) -> (z, v)``; ``contacts``: list of (t_start, t_end); ``apexes``: apex
+    centre heights after each contact (exact: z + v^2 / (2 g) at the end of contact)."""
+
+    def __init__(self, *, k: float, c: float, m: float, r: float, z0: float, v0: float = 0.0,
+                 T: float, g: float = G):
+        integrate = _scipy_integrate()
+        self.k, self.c, self.m, self.r, self.g = k, c, m, r, g
+        self.T = T
+        segs, contacts, apexes = [], [], []
+        t, y = 0.0, np.array([z0, v0], float)
+        in_contact = z0 < r
+
+        def flight(_, y):
+            return [y[1], -g]
+
+        def contact(_, y):
+            d = r - y[0]
+            return [y[1], (k * d - c * y[1]) / m - g]
+
+        def surface(_, y):
+            return y[0] - r
+        while t < T:
+            surface.terminal = True
+            surface.direction = 1.0 if in_contact else -1.0
+            sol = integrate.solve_ivp(contact if in_contact else flight, (t, T), y,
+                                      method="DOP853", rtol=1e-12, atol=1e-14,
+                                      events=surface, dense_output=True)
+            segs.append((t, sol.t[-1], sol.sol, in_contact))
+            if sol.status == 1:                      # event: contact starts or ends
+                t_e = float(sol.t_events[0][0])
+                y = np.array(sol.y_events[0][0], float)
+                y[0] = r
+                if in_contact:
+                    contacts.append((contacts_start, t_e))
+                    # no apex without gravity: the ball leaves for good
+                    apexes.append(r + y[1] ** 2 / (2.0 * g) if g > 0.0 else np.inf)
+                else:
+                    contacts_start = t_e
+                t = t_e
+                in_contact = not in_contact
+                if len(contacts) > 200:
+                    break
+            else:
+                if in_contact:
+                    contacts.append((contacts_start if contacts else 0.0, T))
+                t = T
+        self._segs = segs
+        self.contacts = contacts
+        self.apexes = apexes
+
+    def state(self, t):
+        """(z (S,), v (S,)) at times t (S,) s."""
+        t = np.atleast_1d(np.asarray(t, float))
+        z, v = np.empty_like(t), np.empty_like(t)
+        starts = np.array([s[0] for s in self._segs])
+        idx = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(self._segs) - 1)
+        for i in np.unique(idx):
+            sel = idx == i
+            y = self._segs[i][2](np.clip(t[sel], self._segs[i][0], self._segs[i][1]))
+            z[sel], v[sel] = y[0], y[1]
+        return z, v
+
+    def energy(self, z, v):
+        """Energy above rest on the plane, J: kinetic + m g (z - r) + contact spring."""
+        d = np.maximum(self.r - z, 0.0)
+        return 0.5 * self.m * v * v + self.m * self.g * (z - self.r) + 0.5 * self.k * d * d
+
+    def settling_time(self, frac: float = 0.01) -> float:
+        """First time the energy falls to ``frac`` of its initial value (s); energy decreases
+        only during contact, so the crossing is located in a contact phase with brentq."""
+        from scipy.optimize import brentq
+        z0, v0 = self.state([0.0])
+        target = frac * float(self.energy(z0, v0)[0])
+        for (t0, t1, sol, contact) in self._segs:
+            if not contact:
+                continue
+            e1 = float(self.energy(*sol(t1)))
+            if e1 <= target:
+                return brentq(lambda t: float(self.energy(*sol(t))) - target, t0, t1,
+                              xtol=1e-13)
+        return math.nan
+
+
+def ball_reference(**kw) -> BallReference:
+    """See :class:`BallReference`."""
+    return BallReference(**kw)
+
+
+def chain_reference(t_eval, *, x0, m: float, k: float, c: float, rest: float, g: float = G):
+    """Chain of particles hanging from a pinned first particle: springs between neighbours
+    (F = -k x - c x_dot along the axis), gravity -z. DOP853 at rtol 1e-12 on a numpy
+    right-hand side. x0: (n, 3) initial positions (row 0 pinned), at rest.
+    Returns positions (S, n, 3) at t_eval."""
+    integrate = _scipy_integrate()
+    x0 = np.asarray(x0, float)
+    n = len(x0)
+
+    def rhs(_, y):
+        x = np.concatenate([x0[:1], y[:3 * (n - 1)].reshape(n - 1, 3)])
+        v = np.concatenate([np.zeros((1, 3)), y[3 * (n - 1):].reshape(n - 1, 3)])
+        d = x[1:] - x[:-1]
+        L = np.linalg.norm(d, axis=1)
+        u = d / L[:, None]
+        rate = np.sum(u * (v[1:] - v[:-1]), axis=1)
+        f = (-k * (L - rest) - c * rate)[:, None] * u       # on the lower end of each spring
+        acc = np.zeros((n, 3))
+        acc[1:] += f / m
+        acc[:-1] -= f / m
+        acc[:, 2] -= g
+        return np.concatenate([y[3 * (n - 1):], acc[1:].ravel()])
+    y0 = np.concatenate([x0[1:].ravel(), np.zeros(3 * (n - 1))])
+    sol = integrate.solve_ivp(rhs, (0.0, float(t_eval[-1])), y0, method="DOP853",
+                              rtol=1e-12, atol=1e-12, t_eval=t_eval)
+    pos = sol.y[:3 * (n - 1)].T.reshape(len(t_eval), n - 1, 3)
+    return np.concatenate([np.broadcast_to(x0[:1], (len(t_eval), 1, 3)), pos], axis=1)
+
+
+# --------------------------------------------------------------------------- metrics
+def apex_heights(t, z, radius: float, n: int):
+    """Centre heights of the first ``n`` apexes after the first contact, m (NaN if missing).
+
+    Each flight (z > radius) after a contact contributes its highest sample refined by a
+    parabola through it and its neighbours (exact for samples of a parabola, which is what
+    every integrator here produces in free flight up to its own error)."""
+    z = np.asarray(z, float)
+    air = z > radius
+    out = []
+    i = int(np.argmax(~air)) if (~air).any() else len(z)   # first contact sample
+    while len(out) < n and i < len(z):
+        starts = np.flatnonzero(air[i:])
+        if not starts.size:
+            break
+        s = i + starts[0]
+        ends = np.flatnonzero(~air[s:])
+        e = s + ends[0] if ends.size else len(z)
+        if e == len(z):
+            break                                             # flight not finished
+        j = s + int(np.argmax(z[s:e]))
+        if 0 < j < len(z) - 1:
+            a, b, cc = z[j - 1], z[j], z[j + 1]
+            den = a - 2 * b + cc
+            out.append(b - (a - cc) ** 2 / (8 * den) if den < 0 else b)
+        else:
+            out.append(z[j])
+        i = e
+    return np.array(out + [math.nan] * (n - len(out)))
+
+
+def settling_time(t, energy, frac: float = 0.01) -> float:
+    """First time the energy (J, per sample) falls to ``frac`` of its first value, linearly
+    interpolated between samples (s); NaN if it never does."""
+    t, energy = np.asarray(t, float), np.asarray(energy, float)
+    e0 = energy[0]
+    below = np.flatnonzero(energy <= frac * e0)
+    if not below.size:
+        return math.nan
+    i = below[0]
+    if i == 0:
+        return float(t[0])
+    a, b = energy[i - 1], energy[i]
+    return float(t[i - 1] + (a - frac * e0) / (a - b) * (t[i] - t[i - 1]))
+
