@@ -3,7 +3,7 @@
 A 0.1 m, 1 kg ball is dropped from a centre height of 1 m onto the plane z = 0 (contact
 stiffness held at 1e4 N/m). Each row of the batch asks for a different first apex of the
 lowest point, from 0.7 m down to 0.05 m; every row starts from the closed-form damping of its
-target (tuning.fit.first_guess_bounce) and all rows are fitted together by one jitted Adam
+target (tuning.bounce.first_guess_bounce) and all rows are fitted together by one jitted Adam
 loop, vmapped over the rows and sharded over every device (tuning.batch_fit.fit_batch).
 Prints one line per row: target, achieved apex, fitted damping c and damping ratio.
 

@@ -43,3 +43,14 @@ def test_gradient_snippet_runs_as_written():
     np.testing.assert_allclose(float(env["value"]), float(ref_value), rtol=1e-12)
     np.testing.assert_allclose([float(env["dk"]), float(env["dc"])],
                                [float(g) for g in ref_grad], rtol=1e-6)
+
+
+def test_batched_fit_snippet_runs_as_written(capsys):
+    text = README.read_text()
+    snippet = re.search(r"### Batched fits.*?```python\n(.*?)```", text, re.S).group(1)
+    env: dict = {}
+    exec(compile(snippet, "README batched fits", "exec"), env)
+    res = env["res"]
+    assert len(res) == 3 and bool(np.all(res.converged))
+    np.testing.assert_allclose(res.achieved["apex_heights"][:, 0], env["apexes"], rtol=2e-3)
+    assert "target 0.50 m" in capsys.readouterr().out

@@ -120,7 +120,7 @@ class BatchFitter:
 
     Args:
       metrics_fn: traceable ``params -> {metric: scalar or (n,) array}`` (e.g.
-        :func:`tuning.fit.bounce_metrics_fn`).
+        :func:`tuning.bounce.bounce_metrics_fn`).
       params0: :class:`diffpen.Params` giving the default start and the frozen leaves.
       free: leaf paths to fit (default every contact k and c).
       bounds: ``{path: (lo, hi)}`` in SI units; default :func:`tuning.fit.default_bounds` of
