@@ -48,7 +48,7 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
 
     def ref_quantities(k, c):
         ref = ball_reference(k=k, c=c, m=spec.mass, r=spec.radius, z0=spec.height, T=T)
-        (t0, t1), t2 = ref.contacts[0], ref.contacts[1][0]
+        (_, t1), t2 = ref.contacts[0], ref.contacts[1][0]
         z, v = ref.state([T])
         return ref.apexes[0], float(z[0]), 0.5 * (t1 + t2)
     apex0, zT0, t_mid = ref_quantities(spec.k, spec.c)

@@ -64,6 +64,7 @@ class BallReference:
         segs, contacts, apexes = [], [], []
         t, y = 0.0, np.array([z0, v0], float)
         in_contact = z0 < r
+        contacts_start = 0.0                         # starting overlapped: in contact from 0
 
         def flight(_, y):
             return [y[1], -g]
