@@ -98,7 +98,7 @@ class BallReference:
                     break
             else:
                 if in_contact:
-                    contacts.append((contacts_start if contacts else 0.0, T))
+                    contacts.append((contacts_start, T))
                 t = T
         self._segs = segs
         self.contacts = contacts
