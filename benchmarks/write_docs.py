@@ -1,0 +1,71 @@
+"""Regenerate docs/bench.json: every `diffpen bench` case (float32, plus float64 for the ball
+at batch 1024 and the 32x32 cloth), the many-spheres scaling and the gradient-memory check.
+
+    python benchmarks/write_docs.py [--out docs/bench.json] [--peer newton.json] [--compare]
+
+``--peer`` merges rows written by ``benchmarks/peers/newton_cloth.py --json`` (run in that
+script's own environment). ``--compare`` also runs the float64 100,000-step gradient
+comparison (checkpointed vs plain backprop; minutes and ~5 GB). Run it on a quiet machine:
+the figures are medians after compilation, but a loaded machine still skews them. The file is
+written atomically; sections not rerun are kept from the existing file.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+
+from tuning import bench  # noqa: E402
+from tuning.sweep import atomic_write  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="docs/bench.json")
+    ap.add_argument("--peer", default=None, help="JSON rows from the Newton peer script")
+    ap.add_argument("--compare", action="store_true",
+                    help="also run the float64 100k-step checkpointed-vs-plain gradient")
+    ap.add_argument("--repeats", type=int, default=7)
+    args = ap.parse_args(argv)
+    old = {}
+    if os.path.exists(args.out):
+        with open(args.out) as f:
+            old = json.load(f)
+
+    def progress(s):
+        print(f"running {s} ...", file=sys.stderr, flush=True)
+    rows = bench.run(list(bench.CASES), dtypes=(jnp.float32,), repeats=args.repeats,
+                     progress=progress)
+    for name in ("ball_b1024", "cloth32"):
+        progress(f"{name} (float64)")
+        rows.append(bench.run_case(name, dtype=jnp.float64, repeats=args.repeats))
+    progress("sphere scaling")
+    scaling = bench.sphere_scaling()
+    progress("gradient memory")
+    memory = [bench.gradient_memory()]
+    if args.compare:
+        memory.append(bench.gradient_memory(dtype=jnp.float64, compare=True))
+    else:
+        memory += [m for m in old.get("gradient_memory", []) if "max_rel_diff" in m]
+    peer = old.get("newton_peer")
+    if args.peer:
+        with open(args.peer) as f:
+            peer = json.load(f)
+    doc = dict(machine=f"{os.cpu_count()}-core {platform.machine()}, CPU only",
+               jax=jax.__version__, cases=rows, sphere_scaling=scaling, gradient_memory=memory,
+               newton_peer=peer)
+
+    atomic_write(args.out, lambda fh: fh.write(json.dumps(doc, indent=1).encode()))
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
