@@ -13,11 +13,21 @@ by one of these strategies, passed as ``diffpen.compile(scene, dt, broadphase=..
 
 Capacities are static (changing them recompiles). When more pairs overlap than fit, or a
 cell holds more bodies than ``max_per_cell``, contacts would be lost: this is never silent.
-``State.aux["broadphase_overflow"]`` becomes 1.0 from the first such state on (sticky, saved
-in ``Trajectory.aux``), and a rollout with concrete values warns with
-:class:`BroadPhaseOverflowWarning`. The broad phase only selects pairs: the forces of the
+``State.aux["broadphase_overflow"]`` becomes 1.0 in the state returned by the first step whose
+search overflowed (and already in ``init_state()`` when the scene's initial state does) and
+stays 1.0 (sticky, saved in ``Trajectory.aux``); a rollout with concrete values then warns
+with :class:`BroadPhaseOverflowWarning`. The broad phase only selects pairs: the forces of the
 selected pairs are exactly the narrow phase's, so without overflow the result equals the
 all-pairs simulation.
+
+One search per step: each step (each inner step with ``substeps``) searches once, at the state
+it starts from; the force evaluation at that state uses the pairs found and the overflow flag
+is taken from the same search (the term's ``search`` / ``record``, see
+:class:`diffpen.terms.Term`). With semi-implicit Euler, the default, that is the step's only
+force evaluation, so a step runs exactly one search. Integrators that evaluate forces several
+times per step search again at each other state they evaluate (verlet: 2 searches per step,
+rk4: 4; implicit Euler: its Jacobian products too), so every evaluation sees the pairs of its
+own state; the flag records the step's first search, i.e. the states between steps.
 """
 from __future__ import annotations
 
@@ -39,6 +49,8 @@ __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_o
            "compact", "grid_candidates", "brute_force_pairs"]
 
 OVERFLOW = "broadphase_overflow"
+#: ``jax.named_scope`` of one pair search (:func:`find_pairs`) in traced programs.
+SEARCH_SCOPE = "broadphase_search"
 
 # body classes for pair eligibility
 _NONE, _SPHERE, _PARTICLE, _BOX = 0, 1, 2, 3
@@ -276,7 +288,13 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
 
 # --------------------------------------------------------------------------- pair search
 def find_pairs(bp, ctx: CompileContext, state) -> Pairs:
-    """Overlapping candidate pairs of the current state with the static capacity of ``bp``."""
+    """Overlapping candidate pairs of the current state with the static capacity of ``bp``
+    (traced under ``jax.named_scope(SEARCH_SCOPE)``)."""
+    with jax.named_scope(SEARCH_SCOPE):
+        return _find_pairs(bp, ctx, state)
+
+
+def _find_pairs(bp, ctx: CompileContext, state) -> Pairs:
     if isinstance(bp, AABB):
         ia, ib = _static_pairs(ctx)
         cap = bp.max_pairs or max(len(ia), 1)
@@ -364,13 +382,16 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     init = jax.jit(lambda s: find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
     ctx.aux_init[OVERFLOW] = float(bool(init))
 
-    def update(params, state):
-        flag = find_pairs(bp, ctx, state).overflow.astype(state.position.dtype)
-        return {OVERFLOW: jnp.maximum(state.aux[OVERFLOW], flag)}
-    ctx.aux_updates.append(update)
+    def search(params, state):
+        return find_pairs(bp, ctx, state)
 
-    def force(params, state):
-        pairs = find_pairs(bp, ctx, state)
+    def record(aux, pairs):
+        old = aux[OVERFLOW]
+        return {OVERFLOW: jnp.maximum(old, pairs.overflow.astype(old.dtype))}
+
+    def force(params, state, pairs=None):
+        if pairs is None:
+            pairs = find_pairs(bp, ctx, state)
         i, j, valid = pairs.i, pairs.j, pairs.valid
         k, c = _kc(ctx, params, table[body_mat[i], body_mat[j]])
         f = jnp.zeros_like(state.position)
@@ -390,7 +411,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
             fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb)
             f = f + fs
         return f, tau
-    return Term("contact_broadphase", force)
+    return Term("contact_broadphase", force, search=search, record=record)
 
 
 def _initial_state(ctx: CompileContext):

@@ -23,7 +23,7 @@ import numpy as np
 from . import laws
 from . import stability as _stability
 from .errors import NonFiniteError, SceneError
-from .integrators import IMPLICIT, INTEGRATORS, build_step
+from .integrators import IMPLICIT, INTEGRATORS, build_step, substepped
 from .scene import DEFAULT, Scene
 from .state import ContactParams, Params, SpringParams, State, Trajectory
 from .terms import TERM_BUILDERS, CompileContext, Term
@@ -185,6 +185,7 @@ class Simulator:
         built = (build(ctx) for build in TERM_BUILDERS)
         self._terms: list[Term] = [t for t in built if t is not None]
         self.terms = tuple(t.name for t in self._terms)
+        self._searching = tuple(t for t in self._terms if t.search is not None)
         self._extra_defaults = dict(ctx.extra_defaults)
         self._extra_checks = dict(ctx.extra_checks)
         self._aux_updates = list(ctx.aux_updates)
@@ -198,7 +199,7 @@ class Simulator:
 
         self._step = INTEGRATORS[integrator](self._accel, dt)
         self.substeps = substeps if substeps == "auto" else int(substeps)
-        if self.substeps not in (1, "auto") or integrator in IMPLICIT:
+        if self.substeps not in (1, "auto") or integrator in IMPLICIT or self._searching:
             self._step = self._build_step(1 if substeps == "auto" else self.substeps)
         if self._aux_updates:
             self._step = self._with_aux_updates(self._step)
@@ -302,21 +303,27 @@ class Simulator:
                      aux={k: self._ctx.const(v) for k, v in self._ctx.aux_init.items()})
 
     # ------------------------------------------------------------------ dynamics
-    def forces(self, params: Params, state: State):
+    def forces(self, params: Params, state: State, *, found: dict | None = None):
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
-        (n_bodies, 3) N m, or None for scenes without rotating bodies."""
+        (n_bodies, 3) N m, or None for scenes without rotating bodies.
+
+        ``found``: ``{term name: search result}`` already found for this very state (a step
+        passes its own searches); the terms with a search not in it search themselves."""
         f = None
         tau = None
         for term in self._terms:
             with jax.named_scope(term.name):
-                ft, tt = term.force(params, state)
+                if found is not None and term.name in found:
+                    ft, tt = term.force(params, state, found[term.name])
+                else:
+                    ft, tt = term.force(params, state)
             f = ft if f is None else f + ft
             if tt is not None:
                 tau = tt if tau is None else tau + tt
         return (jnp.zeros_like(state.position) if f is None else f), tau
 
-    def _accel(self, params: Params, state: State):
-        f, tau = self.forces(params, state)
+    def _accel(self, params: Params, state: State, found: dict | None = None):
+        f, tau = self.forces(params, state, found=found)
         a = f * self._inv_mass
         if self._gravity is not None:
             with jax.named_scope("gravity"):
@@ -332,8 +339,38 @@ class Simulator:
 
     def _build_step(self, n: int):
         """The integrator step over ``dt`` in ``n`` inner steps (diffpen.integrators)."""
-        return build_step(self.integrator, self._accel, self.dt, substeps=n,
-                          inv_mass=np.where(self.pinned, 0.0, 1.0 / self.mass))
+        inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
+        if not self._searching:
+            return build_step(self.integrator, self._accel, self.dt, substeps=n,
+                              inv_mass=inv_mass)
+        h = self.dt / n if n != 1 else self.dt
+        return substepped(self._searching_step(h, inv_mass), n)
+
+    def _searching_step(self, h: float, inv_mass):
+        """One integrator step of ``h`` s that runs each term's ``search`` once, at the state
+        the step starts from: the force evaluation at that state (the first one of every
+        integrator, the only one of semi-implicit Euler) uses it, and ``record`` writes its
+        ``State.aux`` entries. Evaluations at other states (verlet's second, rk4's stages 2-4,
+        implicit Euler's Jacobian products) search for themselves."""
+        searching = self._searching
+        integrator = self.integrator
+
+        def step(params, state):
+            found = {}
+            for term in searching:
+                with jax.named_scope(term.name):
+                    found[term.name] = term.search(params, state)
+
+            def accel(p, s):
+                # the very objects the step got: the integrator evaluates at its start state
+                return self._accel(p, s, found if (s is state and p is params) else None)
+            new = build_step(integrator, accel, h, inv_mass=inv_mass)(params, state)
+            aux = dict(new.aux)
+            for term in searching:
+                if term.record is not None:
+                    aux.update(term.record(aux, found[term.name]))
+            return new._replace(aux=aux)
+        return step
 
     def _auto_step(self, n: int):
         """Step with ``n`` substeps picked by ``substeps="auto"`` (built once per count)."""

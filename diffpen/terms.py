@@ -44,9 +44,17 @@ class Term(NamedTuple):
     name: used as ``jax.named_scope`` (visible in the jaxpr).
     force: ``force(params, state) -> (F, tau)``: F (n, 3) newtons on body centres, tau (n, 3)
       torques in N m about the centres, or None when the term produces no torque.
+    search: optional ``search(params, state) -> found``, a search the force needs (the broad
+      phase's candidate pairs). A step runs it once, at the state it starts from, and passes
+      the result to the force evaluations at that state as ``force(params, state, found)``;
+      called as ``force(params, state)`` the force searches itself.
+    record: optional ``record(aux, found) -> {name: array}``: the ``State.aux`` entries a step
+      updates from its search (``aux``: the step's current entries).
     """
     name: str
-    force: Callable[[Params, State], tuple[Any, Any]]
+    force: Callable[..., tuple[Any, Any]]
+    search: Callable[[Params, State], Any] | None = None
+    record: Callable[[dict, Any], dict] | None = None
 
 
 @dataclasses.dataclass

@@ -198,3 +198,95 @@ def test_bad_broadphase_options_raise_clear_error(strategy, match):
     scene.add_sphere(0.1, 1.0, (1.0, 0.0, 0.0))
     with pytest.raises(dp.SceneError, match=match):
         dp.compile(scene, dt=1e-3, broadphase=strategy)
+
+
+def _count_eqns(jaxpr, keep):
+    """Equations of ``jaxpr`` (nested jaxprs included) for which ``keep(eqn)`` holds."""
+    from jax.extend.core import jaxprs_in_params
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += bool(keep(eqn))
+        for sub in jaxprs_in_params(eqn.params):
+            n += _count_eqns(sub, keep)
+    return n
+
+
+def _step_jaxpr(sim):
+    return jax.make_jaxpr(sim.step)(sim.params(k=1e4, c=20.0), sim.init_state()).jaxpr
+
+
+def _searches_per_step(sim):
+    """How many pair searches one ``sim.step`` traces: equations under the search's named
+    scope in the step's jaxpr over those of one search traced alone."""
+    def scoped(eqn):
+        return bp.SEARCH_SCOPE in str(eqn.source_info.name_stack)
+    one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim._ctx, s))(
+        sim.init_state()).jaxpr, scoped)
+    assert one > 0
+    return _count_eqns(_step_jaxpr(sim), scoped) / one
+
+
+@pytest.fixture(scope="module")
+def column():
+    """Eight touching spheres stacked on a plane (spheres only: every integrator runs it)."""
+    scene = dp.Scene()
+    for i in range(8):
+        scene.add_sphere(0.1, 1.0, (0.003 * i, 0.0, 0.1 + 0.19 * i))
+    scene.add_plane()
+    return scene
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
+def test_default_step_searches_pairs_once(pile, strategy):
+    """Semi-implicit Euler evaluates forces once per step, so one step runs one pair search:
+    the force term and the overflow flag share it."""
+    sim = dp.compile(pile, dt=1e-3, broadphase=strategy)
+    if isinstance(strategy, bp.Grid):           # the grid search sorts the bodies once
+        assert _count_eqns(_step_jaxpr(sim), lambda e: e.primitive.name == "sort") == 1
+    assert _searches_per_step(sim) == 1.0
+    sub = dp.compile(pile, dt=1e-3, broadphase=strategy, substeps=3)
+    assert _searches_per_step(sub) == 1.0       # once per inner step (the scan's body)
+
+
+@pytest.mark.parametrize("integrator, evaluations",
+                         [("verlet", 2), ("rk4", 4), ("implicit_euler", None)])
+def test_multi_evaluation_integrators_search_per_evaluation_and_match_all_pairs(
+        column, integrator, evaluations):
+    """Integrators with several force evaluations per step search once per evaluation (none
+    extra for the flag) and give the all-pairs result. (The margin covers the smoothing
+    ramp, which acts up to ``smoothing / 2`` before the spheres touch.)"""
+    strategy = bp.Grid(max_pairs=40, margin=1e-3)
+    sim = dp.compile(column, dt=1e-3, integrator=integrator, broadphase=strategy)
+    ref = dp.compile(column, dt=1e-3, integrator=integrator)
+    if evaluations is not None:
+        assert _searches_per_step(sim) == evaluations
+    t = sim.rollout(sim.params(k=1e4, c=20.0), steps=60, save_every=20)
+    t_ref = ref.rollout(ref.params(k=1e4, c=20.0), steps=60, save_every=20)
+    np.testing.assert_allclose(np.asarray(t.position), np.asarray(t_ref.position), atol=1e-12)
+    np.testing.assert_array_equal(np.asarray(t.aux[bp.OVERFLOW]), 0.0)
+
+
+def test_overflow_flag_comes_from_the_step_search_and_vmaps(column):
+    """A step records the overflow of the state it starts from; under vmap each candidate
+    keeps its own flag."""
+    sim = dp.compile(column, dt=1e-3, broadphase=bp.Grid(max_pairs=3))
+    state = sim.init_state()
+    assert bool(find(sim, state).overflow) and float(state.aux[bp.OVERFLOW]) == 1.0
+    cleared = state._replace(aux={bp.OVERFLOW: jnp.zeros_like(state.aux[bp.OVERFLOW])})
+    p = sim.params(k=1e4, c=20.0)
+    assert float(sim.step(p, cleared).aux[bp.OVERFLOW]) == 1.0
+    far = cleared._replace(position=state.position * 10.0)   # nothing overlaps
+    assert not bool(find(sim, far).overflow)
+    assert float(sim.step(p, far).aux[bp.OVERFLOW]) == 0.0
+
+    def final(k, s):
+        return sim.step(sim.params(k=k, c=20.0), s)
+    both = jax.vmap(final, in_axes=(0, None))(jnp.asarray([1e4, 2e4]), cleared)
+    np.testing.assert_array_equal(np.asarray(both.aux[bp.OVERFLOW]), 1.0)
+    ref = dp.compile(column, dt=1e-3, broadphase=bp.Grid(max_pairs=40, margin=1e-3))
+    ks = jnp.asarray([5e3, 1e4, 2e4])
+    xs = jax.vmap(lambda k: ref.rollout(ref.params(k=k, c=20.0), steps=40, save_every=40,
+                                        check_finite=False).position[-1])(ks)
+    for k, x in zip(ks, xs):
+        x1 = ref.rollout(ref.params(k=float(k), c=20.0), steps=40, save_every=40).position[-1]
+        np.testing.assert_allclose(np.asarray(x), np.asarray(x1), atol=1e-12)
