@@ -72,7 +72,8 @@ class AABB:
     Args:
       max_pairs: static capacity of overlapping pairs (int > 0); default: the number of
         movable pairs (never overflows, but saves no narrow-phase work).
-      margin: m >= 0 added to every box's half widths (finds pairs slightly early).
+      margin: m >= 0 added to every box's half widths (finds pairs slightly early); half the
+        contact smoothing width is always added on top.
     """
     max_pairs: int | None = None
     margin: float = 0.0
@@ -90,7 +91,8 @@ class Grid:
       bounds: ``((x0, y0, z0), (x1, y1, z1))`` m, the gridded region; bodies outside it are
         clamped into the border cells (still correct, just more crowded). Default: the
         initial positions widened by 8 cells on each side.
-      margin: m >= 0 added to every box's half widths.
+      margin: m >= 0 added to every box's half widths (half the contact smoothing width is
+        always added on top).
     """
     cell_size: float | None = None
     max_per_cell: int = 8
@@ -216,9 +218,16 @@ def _grid_bodies(ctx: CompileContext) -> np.ndarray:
     return np.nonzero(ok)[0].astype(np.int32)
 
 
+def _margin(bp, ctx: CompileContext) -> float:
+    """Bounding-box margin, m: the user's ``margin`` plus half the contact smoothing width
+    (the smoothed laws already push at a gap of up to ``width / 2``, so such pairs must be
+    found)."""
+    return bp.margin + 0.5 * ctx.width
+
+
 def _grid_layout(bp: Grid, ctx: CompileContext, gi: np.ndarray):
     radius = ctx.radius[gi]
-    need = 2.0 * (float(radius.max()) + bp.margin)
+    need = 2.0 * (float(radius.max()) + _margin(bp, ctx))
     cell = need if bp.cell_size is None else float(bp.cell_size)
     if bp.bounds is None:
         pos = np.array([ctx.scene.bodies[i].position for i in gi])
@@ -262,7 +271,8 @@ def check(bp, ctx: CompileContext) -> None:
         cell, need, _, _, dims = _grid_layout(bp, ctx, gi)
         if cell < need * (1.0 - 1e-12):
             raise SceneError(f"Grid cell_size={cell} m is smaller than the largest bounding "
-                             f"box ({need:.6g} m = 2 x (largest bounding radius + margin)): "
+                             f"box ({need:.6g} m = 2 x (largest bounding radius + margin + half "
+                             "the smoothing width)): "
                              "overlapping bodies could be two cells apart. Use cell_size >= "
                              f"{need:.6g} or leave it None.")
         if int(np.prod(dims)) >= 2 ** 31:
@@ -298,7 +308,8 @@ def _find_pairs(bp, ctx: CompileContext, state) -> Pairs:
     if isinstance(bp, AABB):
         ia, ib = _static_pairs(ctx)
         cap = bp.max_pairs or max(len(ia), 1)
-        lo, hi = aabb(state.position, half_widths(ctx, state, np.arange(ctx.n), bp.margin))
+        lo, hi = aabb(state.position,
+                      half_widths(ctx, state, np.arange(ctx.n), _margin(bp, ctx)))
         mask = aabb_overlap(lo[ia], hi[ia], lo[ib], hi[ib])
         idx, valid, count = compact(mask, cap)
         return Pairs(jnp.asarray(ia)[idx], jnp.asarray(ib)[idx], valid, count, count > cap)
@@ -307,7 +318,7 @@ def _find_pairs(bp, ctx: CompileContext, state) -> Pairs:
     cap = bp.max_pairs or 8 * m
     cell, _, lo0, _, dims = _grid_layout(bp, ctx, gi)
     x = state.position[gi]
-    lo, hi = aabb(x, half_widths(ctx, state, gi, bp.margin))
+    lo, hi = aabb(x, half_widths(ctx, state, gi, _margin(bp, ctx)))
     a, b, ok, full = grid_candidates(x, cell, ctx.const(lo0), dims, bp.max_per_cell)
     a, b, ok = a.reshape(-1), b.reshape(-1), ok.reshape(-1)
     ga, gb = jnp.asarray(gi)[a], jnp.asarray(gi)[b]

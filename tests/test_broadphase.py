@@ -124,8 +124,9 @@ def test_overflow_flag_becomes_set_when_bodies_crowd_later():
     """Two spheres fly into a crowded cell: the flag is clear at first and set once they
     arrive (and stays set)."""
     scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
-    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.0), pinned=True)
-    scene.add_sphere(0.1, 1.0, (0.05, 0.0, 0.0), pinned=True)
+    # both pinned spheres well inside one cell (not on a cell boundary)
+    scene.add_sphere(0.1, 1.0, (0.02, 0.0, 0.0), pinned=True)
+    scene.add_sphere(0.1, 1.0, (0.07, 0.0, 0.0), pinned=True)
     scene.add_sphere(0.1, 1.0, (-2.0, 0.0, 0.0), (20.0, 0.0, 0.0))
     sim = dp.compile(scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=2, bounds=((-3, -1, -1),
                                                                                (3, 1, 1))))
@@ -290,3 +291,18 @@ def test_overflow_flag_comes_from_the_step_search_and_vmaps(column):
     for k, x in zip(ks, xs):
         x1 = ref.rollout(ref.params(k=float(k), c=20.0), steps=40, save_every=40).position[-1]
         np.testing.assert_allclose(np.asarray(x), np.asarray(x1), atol=1e-12)
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
+def test_pairs_inside_the_smoothing_ramp_are_found(strategy):
+    """Two spheres 3 mm apart with a 1 cm smoothing width already push each other (the ramp
+    starts at a gap of width / 2): with margin 0 the broad phase must still find them."""
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    scene.add_sphere(0.1, 1.0, (0.203, 0.0, 0.0), (-0.1, 0.0, 0.0))
+    forces = []
+    for b in (None, strategy):
+        sim = dp.compile(scene, dt=1e-3, smoothing=1e-2, broadphase=b)
+        forces.append(np.asarray(sim.forces(sim.params(k=1e4, c=10.0), sim.init_state())[0]))
+    assert abs(forces[0][0, 0]) > 1e-3                   # the ramp pushes at this gap
+    np.testing.assert_allclose(forces[1], forces[0], rtol=1e-12, atol=0)
