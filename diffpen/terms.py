@@ -134,7 +134,7 @@ def _plane_contact(ctx: CompileContext) -> Term | None:
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         d, nrm = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
-        vn = jnp.sum(nrm * v, axis=-1)
+        vn = geometry.dot(nrm, v)
         f = law(d, vn, k, c, width)
         return scatter(f[:, None] * nrm, bi, n), None
     return Term("contact_plane", force)
@@ -158,7 +158,7 @@ def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, rs)
-        vn = jnp.sum(nrm * v, axis=-1)
+        vn = geometry.dot(nrm, v)
         f = law(d, vn, k, c, width)
         return scatter(f[:, None] * nrm, bi, n), None
     return Term("contact_fixed_sphere", force)
@@ -187,7 +187,7 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
         k, c = ctx.contact_kc(params, mi)
         xa, xb = state.position[ia], state.position[ib]
         d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
-        vn = jnp.sum(nrm * (state.velocity[ia] - state.velocity[ib]), axis=-1)
+        vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
         f = (law(d, vn, k, c, width))[:, None] * nrm
         return scatter(f, ia, n) - scatter(f, ib, n), None
     return Term("contact_sphere_sphere", force)
