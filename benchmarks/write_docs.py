@@ -33,6 +33,8 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", action="store_true",
                     help="also run the float64 100k-step checkpointed-vs-plain gradient")
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--cases-only", action="store_true",
+                    help="rerun the bench cases only; keep the scaling and memory sections")
     args = ap.parse_args(argv)
     old = {}
     if os.path.exists(args.out):
@@ -46,14 +48,17 @@ def main(argv=None) -> int:
     for name in ("ball_b1024", "cloth32"):
         progress(f"{name} (float64)")
         rows.append(bench.run_case(name, dtype=jnp.float64, repeats=args.repeats))
-    progress("sphere scaling")
-    scaling = bench.sphere_scaling()
-    progress("gradient memory")
-    memory = [bench.gradient_memory()]
-    if args.compare:
-        memory.append(bench.gradient_memory(dtype=jnp.float64, compare=True))
+    if args.cases_only and "sphere_scaling" in old and "gradient_memory" in old:
+        scaling, memory = old["sphere_scaling"], old["gradient_memory"]
     else:
-        memory += [m for m in old.get("gradient_memory", []) if "max_rel_diff" in m]
+        progress("sphere scaling")
+        scaling = bench.sphere_scaling()
+        progress("gradient memory")
+        memory = [bench.gradient_memory()]
+        if args.compare:
+            memory.append(bench.gradient_memory(dtype=jnp.float64, compare=True))
+        else:
+            memory += [m for m in old.get("gradient_memory", []) if "max_rel_diff" in m]
     peer = old.get("newton_peer")
     if args.peer:
         with open(args.peer) as f:

@@ -30,7 +30,8 @@ import numpy as np
 import diffpen as dp
 from diffpen import builders
 
-__all__ = ["Case", "CASES", "run_case", "run", "median_time", "memory_bytes"]
+__all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
+           "memory_bytes"]
 
 G = 9.81
 
@@ -44,6 +45,32 @@ def median_time(fn: Callable, *args, repeats: int = 5) -> float:
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
+
+
+def interleaved_times(fns: dict, args: tuple, repeats: int = 5) -> dict:
+    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after
+    warm-up calls, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so that
+    every function sees the same machine load: ``repeats`` rounds, more (up to 200) when a
+    round takes under ~0.5 s / repeats, at most 3 when a round takes over 10 s."""
+    live = {k: f for k, f in fns.items() if f is not None}
+    first = 0.0
+    for f in live.values():
+        jax.block_until_ready(f(*args))
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        first += time.perf_counter() - t0
+    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; rounds
+    # of over 10 s get 3 at most
+    rounds = max(repeats, min(200, int(0.5 / max(first, 1e-9))))
+    if first > 10.0:
+        rounds = min(rounds, 3)
+    times = {k: [] for k in live}
+    for _ in range(rounds):
+        for k, f in live.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times[k].append(time.perf_counter() - t0)
+    return {k: float(np.median(v)) for k, v in times.items()}
 
 
 def memory_bytes(compiled) -> int | None:
@@ -398,8 +425,15 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     compiled = spec["forward"].lower(*args).compile()
     compile_s = time.perf_counter() - t0
     grad_compiled = spec["grad"].lower(*args).compile()
-    fwd = median_time(spec["forward"], *args, repeats=repeats)
-    grad = median_time(spec["grad"], *args, repeats=repeats)
+    # diffpen and its floor run alternately, so both see the same machine load: the ratios
+    # are taken within the same few seconds
+    with_floor = baselines and spec.get("floor") is not None
+    with_floor_grad = with_floor and spec.get("floor_grad") is not None
+    t = interleaved_times({"forward": spec["forward"], "grad": spec["grad"],
+                           "floor": spec["floor"] if with_floor else None,
+                           "floor_grad": spec["floor_grad"] if with_floor_grad else None},
+                          args, repeats=repeats)
+    fwd, grad = t["forward"], t["grad"]
     grad_rev = median_time(spec["grad_reverse"], *args, repeats=max(1, repeats // 2))
     out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
                compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
@@ -409,12 +443,10 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     for key in ("bodies", "springs"):
         if key in spec:
             out[key] = spec[key]
-    if baselines and spec.get("floor") is not None:
-        floor = median_time(spec["floor"], *args, repeats=repeats)
-        out.update(floor_s=floor, vs_floor=fwd / floor)
-        if spec.get("floor_grad") is not None:
-            fg = median_time(spec["floor_grad"], *args, repeats=repeats)
-            out.update(floor_grad_s=fg, grad_vs_floor=grad / fg)
+    if with_floor:
+        out.update(floor_s=t["floor"], vs_floor=fwd / t["floor"])
+    if with_floor_grad:
+        out.update(floor_grad_s=t["floor_grad"], grad_vs_floor=grad / t["floor_grad"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
         t_np = _numpy_time(spec["numpy"], nrep)
