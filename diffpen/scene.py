@@ -1,7 +1,8 @@
 """Scene: what exists (bodies, springs, colliders, materials). Plain Python, no JAX tracing.
 
 A :class:`Scene` is built by ``add_*`` calls, each of which validates its input at once and
-raises :class:`diffpen.SceneError` with a message saying what to change. ``diffpen.compile``
+raises :class:`diffpen.SceneError` with a message saying what to change; the records it holds
+and the checks live in :mod:`diffpen.elements`. ``diffpen.compile``
 turns a scene into a simulator; the scene itself holds no arrays of JAX.
 
 Units: SI (metres, kilograms, seconds, newtons).
@@ -14,154 +15,12 @@ from typing import Sequence
 
 import numpy as np
 
+from .elements import (DEFAULT, AnchoredSpring, Body, Drag, FixedSphere, Material,
+                       PlasticSpring, Plane, Spring, SpringGroup, finite, finite_vec, positive,
+                       vec3)
 from .errors import SceneError
 
-__all__ = ["Scene", "Body", "Spring", "Plane", "FixedSphere", "Material", "SpringGroup", "Drag",
-           "PlasticSpring", "AnchoredSpring"]
-
-DEFAULT = "default"
-
-
-def _finite(name: str, value) -> None:
-    arr = np.asarray(value, dtype=float)
-    if not np.all(np.isfinite(arr)):
-        raise SceneError(f"{name} must be finite, got {value!r}: replace NaN/inf with a number.")
-
-
-def _vec3(name: str, value) -> tuple[float, float, float]:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
-    if arr.shape != (3,):
-        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.")
-    _finite(name, arr)
-    return tuple(float(a) for a in arr)
-
-
-def _finite_vec(name: str, value, size: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be {size} numbers, got {value!r}.") from None
-    if arr.shape != (size,):
-        raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
-    _finite(name, arr)
-    return arr
-
-
-def _positive(name: str, value, *, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be a number, got {value!r}.") from None
-    _finite(name, v)
-    if v < 0.0 or (v == 0.0 and not allow_zero):
-        need = "non-negative" if allow_zero else "positive"
-        raise SceneError(f"{name} must be {need}, got {v!r}.")
-    return v
-
-
-@dataclasses.dataclass(frozen=True)
-class Body:
-    """A point mass (``radius == 0``), a sphere or a box. ``pinned`` bodies never move.
-
-    Rigid bodies (``rigid=True``: boxes and rigid spheres) also carry an orientation (unit
-    quaternion w, x, y, z, body to world), a world-frame angular velocity (rad/s) and the
-    body-frame principal moments of inertia (kg m^2). A box's ``radius`` is the radius of
-    its bounding sphere, m; ``half_extents`` are its half side lengths, m.
-    """
-    kind: str
-    mass: float
-    radius: float
-    position: tuple[float, float, float]
-    velocity: tuple[float, float, float]
-    pinned: bool
-    material: str
-    collide: bool
-    rigid: bool = False
-    orientation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
-    angular_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    inertia: tuple[float, float, float] | None = None
-    half_extents: tuple[float, float, float] | None = None
-
-
-@dataclasses.dataclass(frozen=True)
-class Spring:
-    """Damped spring between bodies ``a`` and ``b`` (``b is None``: the world point ``anchor``)."""
-    a: int
-    b: int | None
-    anchor: tuple[float, float, float] | None
-    rest_length: float
-    group: str
-
-
-@dataclasses.dataclass(frozen=True)
-class AnchoredSpring:
-    """Damped spring between anchor points fixed in rigid bodies (the paper's ``Spring_c``).
-
-    ``anchor_a`` / ``anchor_b`` are in the body frames of ``a`` / ``b``, m. With ``b is None``
-    the second end is the fixed world point ``anchor_b``.
-    """
-    a: int
-    b: int | None
-    anchor_a: tuple[float, float, float]
-    anchor_b: tuple[float, float, float]
-    rest_length: float
-    group: str
-
-
-@dataclasses.dataclass(frozen=True)
-class Plane:
-    """Fixed half-space ``normal . p <= offset`` (``normal`` unit, pointing out of the solid)."""
-    normal: tuple[float, float, float]
-    offset: float
-    material: str
-
-
-@dataclasses.dataclass(frozen=True)
-class FixedSphere:
-    """Fixed spherical obstacle."""
-    center: tuple[float, float, float]
-    radius: float
-    material: str
-
-
-@dataclasses.dataclass(frozen=True)
-class Drag:
-    """Velocity drag ``F = -c v`` on body ``body``; ``c`` (N s/m) is per ``group``."""
-    body: int
-    group: str
-
-
-@dataclasses.dataclass(frozen=True)
-class PlasticSpring:
-    """Spring between bodies ``a`` and ``b`` whose rest length shortens irreversibly when it is
-    compressed by more than ``yield_strain * rest_length`` (see :mod:`diffpen.plastic`).
-    Stiffness and damping come from spring ``group``; the yield strain is per group too."""
-    a: int
-    b: int
-    rest_length: float
-    group: str
-
-
-@dataclasses.dataclass
-class Material:
-    """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m);
-    Coulomb ``friction`` coefficient (box corners, see :mod:`diffpen.rigid`) and the
-    ``slip_speed`` (m/s) below which friction is smoothed into a viscous law."""
-    k: float | None = None
-    c: float | None = None
-    friction: float = 0.0
-    slip_speed: float = 0.01
-
-
-@dataclasses.dataclass
-class SpringGroup:
-    """Spring group sharing one stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
-    k: float
-    c: float
-
+__all__ = ["Scene", "DEFAULT"]
 
 class Scene:
     """Builder for a simulation scene.
@@ -178,7 +37,7 @@ class Scene:
     """
 
     def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81)):
-        self.gravity = _vec3("gravity", gravity)
+        self.gravity = vec3("gravity", gravity)
         self.bodies: list[Body] = []
         self.springs: list[Spring] = []
         self.anchored_springs: list[AnchoredSpring] = []
@@ -195,10 +54,10 @@ class Scene:
 
     # ----------------------------------------------------------------- bodies
     def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide) -> int:
-        mass = _positive("mass (kg)", mass)
-        radius = _positive("radius (m)", radius, allow_zero=(kind == "particle"))
-        position = _vec3("position (m)", position)
-        velocity = _vec3("velocity (m/s)", velocity)
+        mass = positive("mass (kg)", mass)
+        radius = positive("radius (m)", radius, allow_zero=(kind == "particle"))
+        position = vec3("position (m)", position)
+        velocity = vec3("velocity (m/s)", velocity)
         if pinned and any(v != 0.0 for v in velocity):
             raise SceneError("a pinned body cannot have an initial velocity: drop velocity= "
                              "or pinned=True.")
@@ -246,7 +105,7 @@ class Scene:
           offset: m, signed distance of the plane from the origin along ``normal``.
         Returns: the plane's index.
         """
-        n = np.asarray(_vec3("plane normal", normal))
+        n = np.asarray(vec3("plane normal", normal))
         norm = float(np.linalg.norm(n))
         if norm == 0.0:
             raise SceneError("plane normal must be non-zero, e.g. (0, 0, 1) for the ground.")
@@ -254,7 +113,7 @@ class Scene:
             offset = float(offset)
         except (TypeError, ValueError):
             raise SceneError(f"plane offset must be a number, got {offset!r}.") from None
-        _finite("plane offset", offset)
+        finite("plane offset", offset)
         self._check_material(material)
         self.planes.append(Plane(tuple(float(a) for a in n / norm), offset, material))
         return len(self.planes) - 1
@@ -262,8 +121,8 @@ class Scene:
     def add_fixed_sphere(self, center: Sequence[float], radius: float, *,
                          material: str = DEFAULT) -> int:
         """Add a fixed spherical obstacle of ``radius`` (m) at ``center`` (m). Returns index."""
-        center = _vec3("fixed sphere center (m)", center)
-        radius = _positive("fixed sphere radius (m)", radius)
+        center = vec3("fixed sphere center (m)", center)
+        radius = positive("fixed sphere radius (m)", radius)
         self._check_material(material)
         fs = FixedSphere(center, radius, material)
         for b in self.bodies:
@@ -296,11 +155,11 @@ class Scene:
         if not isinstance(name, str) or not name:
             raise SceneError(f"material name must be a non-empty string, got {name!r}.")
         if k is not None:
-            k = _positive(f"material {name!r} k (N/m)", k, allow_zero=True)
+            k = positive(f"material {name!r} k (N/m)", k, allow_zero=True)
         if c is not None:
-            c = _positive(f"material {name!r} c (N s/m)", c, allow_zero=True)
-        friction = _positive(f"material {name!r} friction", friction, allow_zero=True)
-        slip_speed = _positive(f"material {name!r} slip_speed (m/s)", slip_speed)
+            c = positive(f"material {name!r} c (N s/m)", c, allow_zero=True)
+        friction = positive(f"material {name!r} friction", friction, allow_zero=True)
+        slip_speed = positive(f"material {name!r} slip_speed (m/s)", slip_speed)
         self.materials[name] = Material(k, c, friction, slip_speed)
         return name
 
@@ -315,8 +174,8 @@ class Scene:
         """Declare a spring group with stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
         if not isinstance(name, str) or not name:
             raise SceneError(f"spring group name must be a non-empty string, got {name!r}.")
-        k = _positive(f"spring group {name!r} k (N/m)", k, allow_zero=True)
-        c = _positive(f"spring group {name!r} c (N s/m)", c, allow_zero=True)
+        k = positive(f"spring group {name!r} k (N/m)", k, allow_zero=True)
+        c = positive(f"spring group {name!r} c (N s/m)", c, allow_zero=True)
         self.spring_groups[name] = SpringGroup(k, c)
         return name
 
@@ -343,7 +202,7 @@ class Scene:
             b_idx, anchor = int(b), None
             pb = self.bodies[b_idx].position
         else:
-            b_idx, anchor = None, _vec3("spring anchor point (m)", b)
+            b_idx, anchor = None, vec3("spring anchor point (m)", b)
             pb = anchor
         pa = self.bodies[int(a)].position
         if b_idx is not None and self.bodies[int(a)].pinned and self.bodies[b_idx].pinned:
@@ -363,7 +222,7 @@ class Scene:
                         "Stiffness and damping are per group: use another group name.")
         if rest_length is None:
             rest_length = math.dist(pa, pb)
-        rest_length = _positive("spring rest_length (m)", rest_length, allow_zero=True)
+        rest_length = positive("spring rest_length (m)", rest_length, allow_zero=True)
         self.springs.append(Spring(int(a), b_idx, anchor, rest_length, group))
         return len(self.springs) - 1
 
@@ -391,7 +250,7 @@ class Scene:
         if group not in self.drag_groups:
             if c is None:
                 raise SceneError(f"drag group {group!r} is new: give c= (N s/m).")
-            self.drag_groups[group] = _positive(f"drag group {group!r} c (N s/m)", c,
+            self.drag_groups[group] = positive(f"drag group {group!r} c (N s/m)", c,
                                                 allow_zero=True)
         elif c is not None and float(c) != self.drag_groups[group]:
             raise SceneError(f"drag group {group!r} already has c={self.drag_groups[group]}; "
@@ -452,7 +311,7 @@ class Scene:
                                      f"{name}={given}. Use another group name.")
         if rest_length is None:
             rest_length = math.dist(self.bodies[a].position, self.bodies[b].position)
-        rest_length = _positive("plastic spring rest_length (m)", rest_length)
+        rest_length = positive("plastic spring rest_length (m)", rest_length)
         self.plastic_springs.append(PlasticSpring(a, b, rest_length, group))
         return len(self.plastic_springs) - 1
 
@@ -461,18 +320,18 @@ class Scene:
         """Turn the just-added body ``i`` into a rigid body (removed again on bad input)."""
         body = self.bodies[i]
         try:
-            q = _finite_vec("orientation (w, x, y, z)", orientation, 4)
+            q = finite_vec("orientation (w, x, y, z)", orientation, 4)
             norm = float(np.linalg.norm(q))
             if norm < 1e-12:
                 raise SceneError("orientation quaternion is zero: give a rotation as "
                                  "(w, x, y, z), e.g. (1, 0, 0, 0) for none.")
-            w = _vec3("angular_velocity (rad/s)", angular_velocity)
+            w = vec3("angular_velocity (rad/s)", angular_velocity)
             if body.pinned and any(v != 0.0 for v in w):
                 raise SceneError("a pinned body cannot have an initial angular velocity: drop "
                                  "angular_velocity= or pinned=True.")
             if inertia is not None:
-                inertia = tuple(_positive("inertia (kg m^2)", v)
-                                for v in _finite_vec("inertia (kg m^2)", inertia, 3))
+                inertia = tuple(positive("inertia (kg m^2)", v)
+                                for v in finite_vec("inertia (kg m^2)", inertia, 3))
         except SceneError:
             self.bodies.pop()
             raise
@@ -502,8 +361,8 @@ class Scene:
         Contacts: each corner against planes, spheres against the box (see
         :mod:`diffpen.rigid`); boxes do not collide with other boxes.
         """
-        h = tuple(_positive("box half_extents (m)", v)
-                  for v in _finite_vec("box half_extents (m)", half_extents, 3))
+        h = tuple(positive("box half_extents (m)", v)
+                  for v in finite_vec("box half_extents (m)", half_extents, 3))
         i = self._add_body("box", mass, math.hypot(*h), position, velocity, pinned, material,
                            collide)
         return self._make_rigid(i, orientation, angular_velocity, inertia, h)
@@ -546,8 +405,8 @@ class Scene:
         Returns: the anchored spring's index.
         """
         self._check_body_index(a, "anchored spring end a")
-        anchor_a = _vec3("anchor_a (m)", anchor_a)
-        anchor_b = _vec3("anchor_b (m)", anchor_b)
+        anchor_a = vec3("anchor_a (m)", anchor_a)
+        anchor_b = vec3("anchor_b (m)", anchor_b)
         ends = [(int(a), anchor_a, "a")]
         if b is not None:
             self._check_body_index(b, "anchored spring end b")
@@ -571,7 +430,7 @@ class Scene:
             world.append(np.asarray(anchor_b))
         if rest_length is None:
             rest_length = float(np.linalg.norm(world[0] - world[1]))
-        rest_length = _positive("spring rest_length (m)", rest_length, allow_zero=True)
+        rest_length = positive("spring rest_length (m)", rest_length, allow_zero=True)
         self.anchored_springs.append(AnchoredSpring(
             int(a), None if b is None else int(b), anchor_a, anchor_b, rest_length, group))
         return len(self.anchored_springs) - 1

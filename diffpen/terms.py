@@ -116,52 +116,41 @@ def _pair_material(scene: Scene, *names: str) -> str:
     return names[0] if len(set(names)) == 1 else DEFAULT
 
 
-def _plane_contact(ctx: CompileContext) -> Term | None:
+def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
+                      shape_args) -> Term | None:
+    """Contacts of every moving, colliding non-box body with every fixed collider of one kind
+    (``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair; boxes collide by
+    their corners, diffpen.rigid)."""
     scene = ctx.scene
-    rows = [(i, p, ctx.material_index[pl.material])
-            for p, pl in enumerate(scene.planes)
+    rows = [(i, j, ctx.material_index[col.material])
+            for j, col in enumerate(colliders)
             for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
-            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
+            and scene.bodies[i].kind != "box"]
     if not rows:
         return None
-    bi, pi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
-    normals = ctx.const([scene.planes[p].normal for p in pi])
-    offsets = ctx.const([scene.planes[p].offset for p in pi])
+    bi, ci, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    args = [ctx.const(list(a)) for a in zip(*(shape_args(colliders[j]) for j in ci))]
     radii = ctx.const(ctx.radius[bi])
     law, width, n = ctx.law, ctx.width, ctx.n
 
     def force(params, state):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        d, nrm = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        d, nrm = jax.vmap(shape_fn)(x, radii, *args)
         vn = geometry.dot(nrm, v)
         f = law(d, vn, k, c, width)
         return scatter(f[:, None] * nrm, bi, n), None
-    return Term("contact_plane", force)
+    return Term(name, force)
+
+
+def _plane_contact(ctx: CompileContext) -> Term | None:
+    return _collider_contact(ctx, "contact_plane", ctx.scene.planes, geometry.sphere_plane,
+                             lambda pl: (pl.normal, pl.offset))
 
 
 def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
-    scene = ctx.scene
-    rows = [(i, s, ctx.material_index[fs.material])
-            for s, fs in enumerate(scene.fixed_spheres)
-            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
-            and scene.bodies[i].kind != "box"]   # boxes: corner contacts, diffpen.rigid
-    if not rows:
-        return None
-    bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
-    centers = ctx.const([scene.fixed_spheres[s].center for s in si])
-    rs = ctx.const([scene.fixed_spheres[s].radius for s in si])
-    radii = ctx.const(ctx.radius[bi])
-    law, width, n = ctx.law, ctx.width, ctx.n
-
-    def force(params, state):
-        k, c = ctx.contact_kc(params, mi)
-        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, rs)
-        vn = geometry.dot(nrm, v)
-        f = law(d, vn, k, c, width)
-        return scatter(f[:, None] * nrm, bi, n), None
-    return Term("contact_fixed_sphere", force)
+    return _collider_contact(ctx, "contact_fixed_sphere", ctx.scene.fixed_spheres,
+                             geometry.sphere_sphere, lambda fs: (fs.center, fs.radius))
 
 
 def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:

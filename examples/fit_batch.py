@@ -18,6 +18,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import diffpen as dp  # noqa: E402
+from tuning import scenes  # noqa: E402
 from tuning.batch_fit import fit_batch  # noqa: E402
 from tuning.bounce import bounce_metrics_fn, check_bounce_targets, first_guess_bounce  # noqa: E402
 
@@ -26,15 +27,8 @@ K = 1e4                                       # contact stiffness, N/m (held)
 DT, DURATION = 2e-3, 1.0                      # time step and rollout, s
 
 
-def ball_scene():
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
-    return scene
-
-
 def main():
-    scene = ball_scene()
+    scene = scenes.ball().scene
     targets = [{"apex_heights": [a]} for a in APEXES]
     # closed-form start per row (the checks refuse infeasible targets before compiling)
     starts = [{"contact.default.c": first_guess_bounce(check_bounce_targets(scene, t), t,

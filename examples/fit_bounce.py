@@ -22,6 +22,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import diffpen as dp  # noqa: E402
+from tuning import scenes  # noqa: E402
 from tuning.bounce import fit_bounce  # noqa: E402
 
 TARGETS = {
@@ -30,18 +31,11 @@ TARGETS = {
 }
 
 
-def ball_scene():
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
-    return scene
-
-
 def main():
     results = {}
     for name, targets in TARGETS.items():
         t0 = time.perf_counter()
-        res = fit_bounce(ball_scene(), targets, dt=1e-3)
+        res = fit_bounce(scenes.ball().scene, targets, dt=1e-3)
         wall = time.perf_counter() - t0
         k = float(res.params.contact["default"].k)
         c = float(res.params.contact["default"].c)
@@ -62,7 +56,7 @@ def main():
     except ImportError:
         print("(matplotlib not installed: no figure)")
         return
-    sim = dp.compile(ball_scene(), 1e-3)
+    sim = dp.compile(scenes.ball().scene, 1e-3)
     fig, ax = plt.subplots(figsize=(9, 4))
     for name, res in results.items():
         steps = 6000 if name == "trampoline" else 1500

@@ -1,9 +1,7 @@
 """Sharded sweeps: identical results on 4 (forced host) devices and on one."""
-import json
-import os
-import subprocess
-import sys
 import textwrap
+
+from device_subprocess import run_on_devices
 
 SCRIPT = textwrap.dedent("""
     import json
@@ -51,12 +49,7 @@ SCRIPT = textwrap.dedent("""
 
 
 def test_sharded_sweep_matches_single_device_on_four_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    res = run_on_devices(SCRIPT, devices=4)
     assert res["devices"] == 4 and res["mesh"] == 4
     assert res["n"] == 10
     assert res["max_diff"] == 0.0

@@ -1,11 +1,7 @@
 """Batched fits: each row equals the single fit, a batch reaches its apex targets, the batch
 axis is split over 4 (forced host) devices with the single-device result, bad input is refused
 before anything is traced."""
-import json
 import math
-import os
-import subprocess
-import sys
 import textwrap
 
 import jax
@@ -17,6 +13,8 @@ from tuning import bounce as B
 from tuning import fit as F
 from tuning.batch_fit import BatchFitter, fit_batch
 from tuning.metrics import ball_metrics
+
+from device_subprocess import run_on_devices
 
 DT, STEPS, MAXITER = 2e-3, 250, 100     # 0.5 s rollout: the fall and the first bounce
 APEXES = (0.2, 0.12, 0.06, 0.02)        # first-apex targets (lowest point, m); drop 0.3 m
@@ -158,12 +156,7 @@ SCRIPT = textwrap.dedent("""
 
 
 def test_four_device_batch_equals_single_device():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    res = run_on_devices(SCRIPT, devices=4)
     assert res["devices"] == 4 and res["mesh"] == [4, 1]
     assert res["split"] and res["shard_devices"] == 4 and res["shard_rows"] == [2]
     assert res["rows"] == [6, 6]

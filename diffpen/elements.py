@@ -1,0 +1,160 @@
+"""What a :class:`diffpen.Scene` holds: bodies, springs, colliders, materials and groups as
+frozen records, and the input checks every ``Scene.add_*`` call runs (each raises
+:class:`diffpen.SceneError` saying what to change).
+
+Units: SI (metres, kilograms, seconds, newtons).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .errors import SceneError
+
+__all__ = ["DEFAULT", "Body", "Spring", "AnchoredSpring", "Plane", "FixedSphere", "Drag",
+           "PlasticSpring", "Material", "SpringGroup", "finite", "vec3", "finite_vec",
+           "positive"]
+
+DEFAULT = "default"
+
+
+def finite(name: str, value) -> None:
+    arr = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise SceneError(f"{name} must be finite, got {value!r}: replace NaN/inf with a number.")
+
+
+def vec3(name: str, value) -> tuple[float, float, float]:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
+    if arr.shape != (3,):
+        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.")
+    finite(name, arr)
+    return tuple(float(a) for a in arr)
+
+
+def finite_vec(name: str, value, size: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be {size} numbers, got {value!r}.") from None
+    if arr.shape != (size,):
+        raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
+    finite(name, arr)
+    return arr
+
+
+def positive(name: str, value, *, allow_zero: bool = False) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be a number, got {value!r}.") from None
+    finite(name, v)
+    if v < 0.0 or (v == 0.0 and not allow_zero):
+        need = "non-negative" if allow_zero else "positive"
+        raise SceneError(f"{name} must be {need}, got {v!r}.")
+    return v
+
+
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """A point mass (``radius == 0``), a sphere or a box. ``pinned`` bodies never move.
+
+    Rigid bodies (``rigid=True``: boxes and rigid spheres) also carry an orientation (unit
+    quaternion w, x, y, z, body to world), a world-frame angular velocity (rad/s) and the
+    body-frame principal moments of inertia (kg m^2). A box's ``radius`` is the radius of
+    its bounding sphere, m; ``half_extents`` are its half side lengths, m.
+    """
+    kind: str
+    mass: float
+    radius: float
+    position: tuple[float, float, float]
+    velocity: tuple[float, float, float]
+    pinned: bool
+    material: str
+    collide: bool
+    rigid: bool = False
+    orientation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    angular_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float] | None = None
+    half_extents: tuple[float, float, float] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Spring:
+    """Damped spring between bodies ``a`` and ``b`` (``b is None``: the world point ``anchor``)."""
+    a: int
+    b: int | None
+    anchor: tuple[float, float, float] | None
+    rest_length: float
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class AnchoredSpring:
+    """Damped spring between anchor points fixed in rigid bodies (the paper's ``Spring_c``).
+
+    ``anchor_a`` / ``anchor_b`` are in the body frames of ``a`` / ``b``, m. With ``b is None``
+    the second end is the fixed world point ``anchor_b``.
+    """
+    a: int
+    b: int | None
+    anchor_a: tuple[float, float, float]
+    anchor_b: tuple[float, float, float]
+    rest_length: float
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Plane:
+    """Fixed half-space ``normal . p <= offset`` (``normal`` unit, pointing out of the solid)."""
+    normal: tuple[float, float, float]
+    offset: float
+    material: str
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedSphere:
+    """Fixed spherical obstacle."""
+    center: tuple[float, float, float]
+    radius: float
+    material: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Drag:
+    """Velocity drag ``F = -c v`` on body ``body``; ``c`` (N s/m) is per ``group``."""
+    body: int
+    group: str
+
+
+@dataclasses.dataclass(frozen=True)
+class PlasticSpring:
+    """Spring between bodies ``a`` and ``b`` whose rest length shortens irreversibly when it is
+    compressed by more than ``yield_strain * rest_length`` (see :mod:`diffpen.plastic`).
+    Stiffness and damping come from spring ``group``; the yield strain is per group too."""
+    a: int
+    b: int
+    rest_length: float
+    group: str
+
+
+@dataclasses.dataclass
+class Material:
+    """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m);
+    Coulomb ``friction`` coefficient (box corners, see :mod:`diffpen.rigid`) and the
+    ``slip_speed`` (m/s) below which friction is smoothed into a viscous law."""
+    k: float | None = None
+    c: float | None = None
+    friction: float = 0.0
+    slip_speed: float = 0.01
+
+
+@dataclasses.dataclass
+class SpringGroup:
+    """Spring group sharing one stiffness ``k`` (N/m) and damping ``c`` (N s/m)."""
+    k: float
+    c: float
