@@ -52,7 +52,8 @@ def ramp(d, width: float):
     if width == 0.0:
         return jnp.maximum(d, 0.0)
     h = 0.5 * width
-    blend = (d + h) ** 2 / (2.0 * width)
+    # reciprocals folded at trace time: no divide reaches XLA (see gate)
+    blend = (d + h) ** 2 * (0.5 / width)
     return jnp.where(d >= h, d, jnp.where(d <= -h, jnp.zeros_like(d), blend))
 
 
@@ -65,7 +66,11 @@ def gate(d, width: float):
     """
     if width == 0.0:
         return (d > 0.0).astype(jnp.result_type(d))
-    t = jnp.clip((d + 0.5 * width) / width, 0.0, 1.0)
+    u = d * (1.0 / width) + 0.5
+    # selects, not clip: clip's derivative splits ties with a division, and XLA will not fuse
+    # a divide into the wide tangent update of forward mode (measured: two extra kernels per
+    # step, grad/forward 4.0 -> 3.6 on 1024 balls). The smoothstep's slope is 0 at both ends.
+    t = jnp.where(u >= 1.0, jnp.ones_like(u), jnp.where(u <= 0.0, jnp.zeros_like(u), u))
     return t * t * (3.0 - 2.0 * t)
 
 
@@ -132,8 +137,8 @@ def _ramp_traced(x, width):
     """``ramp`` with a traced width (force-space clamps); finite for any width >= 0."""
     width = jnp.maximum(width, jnp.finfo(jnp.result_type(x)).tiny)
     h = 0.5 * width
-    xc = jnp.clip(x, -h, h)
-    blend = (xc + h) ** 2 / (2.0 * width)
+    xc = jnp.where(x >= h, h, jnp.where(x <= -h, -h, x))    # selects: see gate
+    blend = (xc + h) ** 2 * (0.5 / width)
     return jnp.where(x >= h, x, jnp.where(x <= -h, jnp.zeros_like(x), blend))
 
 

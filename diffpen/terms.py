@@ -18,7 +18,8 @@ from . import geometry, laws
 from .scene import DEFAULT, Scene
 from .state import Params, State
 
-__all__ = ["Term", "CompileContext", "TERM_BUILDERS", "gather", "scatter", "spring_bands"]
+__all__ = ["Term", "CompileContext", "TERM_BUILDERS", "gather", "scatter", "static_dot",
+           "static_scale", "spring_bands"]
 
 
 # --------------------------------------------------------------------------- lifting helpers
@@ -36,6 +37,33 @@ def scatter(values, idx: np.ndarray, n: int):
     if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
         return values
     return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+
+
+def static_dot(n: np.ndarray, v):
+    """``dot(n, v)`` for a normal ``n`` (m, 3) known when the scene is compiled: components
+    that are 0 for every row are left out, and +-1 columns need no product, so the ground
+    plane's ``n . x`` is one slice of ``x``. ``v``: (m, 3) (or broadcastable)."""
+    out = None
+    for a in range(3):
+        col = n[:, a]
+        if not col.any():
+            continue
+        va = v[..., a]
+        term = va if (col == 1.0).all() else -va if (col == -1.0).all() else va * col
+        out = term if out is None else out + term
+    return jnp.zeros(jnp.shape(v)[:-1], jnp.result_type(v)) if out is None else out
+
+
+def static_scale(f, n: np.ndarray):
+    """``f[:, None] * n`` for a normal ``n`` (m, 3) known when the scene is compiled, built
+    column by column so that XLA computes ``f`` once, not once per component, and writes
+    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3)."""
+    cols = []
+    for a in range(3):
+        col = n[:, a]
+        cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
+                    else -f if (col == -1.0).all() else f * col)
+    return jnp.stack(cols, axis=-1)
 
 
 class Term(NamedTuple):
@@ -117,10 +145,12 @@ def _pair_material(scene: Scene, *names: str) -> str:
 
 
 def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
-                      shape_args) -> Term | None:
+                      shape_args, static_normal=None) -> Term | None:
     """Contacts of every moving, colliding non-box body with every fixed collider of one kind
     (``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair; boxes collide by
-    their corners, diffpen.rigid)."""
+    their corners, diffpen.rigid). ``static_normal(collider)``, for planes, gives the constant
+    normal, which then enters the step as a constant (``static_dot`` / ``static_scale``):
+    ``d = r - (n . x - offset)`` with ``shape_args = (normal, offset)``."""
     scene = ctx.scene
     rows = [(i, j, ctx.material_index[col.material])
             for j, col in enumerate(colliders)
@@ -132,20 +162,26 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
     args = [ctx.const(list(a)) for a in zip(*(shape_args(colliders[j]) for j in ci))]
     radii = ctx.const(ctx.radius[bi])
     law, width, n = ctx.law, ctx.width, ctx.n
+    normal = None if static_normal is None else np.array(
+        [static_normal(colliders[j]) for j in ci], dtype=float)
 
     def force(params, state):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        if normal is not None:          # the normal is a constant: leave out its zeros
+            d = radii - (static_dot(normal, x) - args[1])
+            f = law(d, static_dot(normal, v), k, c, width)
+            return scatter(static_scale(f, normal), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
-        vn = geometry.dot(nrm, v)
-        f = law(d, vn, k, c, width)
+        f = law(d, geometry.dot(nrm, v), k, c, width)
         return scatter(f[:, None] * nrm, bi, n), None
     return Term(name, force)
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
     return _collider_contact(ctx, "contact_plane", ctx.scene.planes, geometry.sphere_plane,
-                             lambda pl: (pl.normal, pl.offset))
+                             lambda pl: (pl.normal, pl.offset),
+                             static_normal=lambda pl: pl.normal)
 
 
 def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:

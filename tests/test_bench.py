@@ -18,6 +18,8 @@ def test_ball_case_reports_every_figure():
         assert np.isfinite(row[key]) and row[key] > 0
     assert row["steps"] == 500 and row["batch"] == 1
     assert row["vs_floor"] == row["forward_s"] / row["floor_s"]
+    assert row["stepping_vs_floor"] == row["stepping_s"] / row["floor_stepping_s"]
+    assert row["stepping_per_s"] == row["steps"] / row["stepping_s"]
 
 
 def test_floor_and_numpy_baselines_compute_the_same_physics():
@@ -28,6 +30,11 @@ def test_floor_and_numpy_baselines_compute_the_same_physics():
     # the floor has a hard contact, diffpen the default smoothing: equal to ~the width
     np.testing.assert_allclose(zf, z, atol=2e-4)
     np.testing.assert_allclose(zn, zf, rtol=1e-12)
+    # the stepping workloads end where the recorded ones do
+    np.testing.assert_allclose(np.asarray(spec["stepping"](*spec["args"]))[-1, 0, 2], z[-1],
+                               rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(spec["floor_stepping"](*spec["args"]))[2], zf[-1],
+                               rtol=1e-12)
     net = bench.CASES["cloth32"].build(jnp.float64, True)
     a = net["args"]
     np.testing.assert_allclose(net["floor"](*a), net["forward"](*a), rtol=1e-9, atol=1e-12)

@@ -93,6 +93,14 @@ def test_writes_are_atomic(problem, tmp_path, monkeypatch):
     assert [f for f in os.listdir(tmp_path) if f.startswith(".tmp-")] == []
 
 
+def test_atomic_write_gives_a_plain_files_permissions(tmp_path):
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    S.atomic_write(str(tmp_path / "atomic.txt"), lambda fh: fh.write(b"x"))
+    assert (os.stat(tmp_path / "atomic.txt").st_mode & 0o777
+            == os.stat(plain).st_mode & 0o777)
+
+
 def test_random_points_and_bad_input():
     pts = S.random_points({"a": (1.0, 100.0), "b": (0.1, 1.0)}, 500, seed=1)
     assert pts.shape == (500, 2)

@@ -12,7 +12,11 @@ For every standard scene this measures, after compilation and as the median of s
   (arguments + outputs + temporaries; the peak a device must hold);
 * ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
   hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX);
-* ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy.
+* ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
+* ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
+  rollout returning only its final state (nothing recorded), against the floor doing the
+  same: the workload of a stepping rate, the figure simulators quote and the peers' anchors
+  measure.
 
 Forward workloads return what a tuning metric needs: the ball's full height trajectory, the
 final node positions of spring networks. The functions here compute; ``tuning.cli.bench``
@@ -135,7 +139,10 @@ def _ball(batch: int, quick: bool):
         def heights(k, c):
             return sim.rollout(sim.params(k=k, c=c), steps=steps, observe=height).observed
 
-        def floor_heights(k, c):
+        def final_position(k, c):
+            return sim.rollout(sim.params(k=k, c=c), steps=steps, save_every=steps).position
+
+        def floor_rollout(k, c, record: bool):
             one = jnp.ones((), dtype)
 
             def step(s, _):
@@ -145,11 +152,17 @@ def _ball(batch: int, quick: bool):
                 a = jnp.stack([0.0 * f, 0.0 * f, f - G])
                 v = v + dt * a
                 x = x + dt * v
-                return (x, v), x[2]
+                return (x, v), (x[2] if record else None)
             x0 = jnp.array([0.0, 0.0, 1.0], dtype) * one
-            _, zs = jax.lax.scan(step, (x0, jnp.zeros(3, dtype)), None, length=steps,
-                                 unroll=8)
-            return zs
+            (x, _), zs = jax.lax.scan(step, (x0, jnp.zeros(3, dtype)), None, length=steps,
+                                      unroll=8)
+            return zs if record else x
+
+        def floor_heights(k, c):
+            return floor_rollout(k, c, True)
+
+        def floor_final(k, c):
+            return floor_rollout(k, c, False)
 
         def loss(fn):
             return lambda k, c: jnp.sum(fn(k, c) ** 2)
@@ -157,12 +170,10 @@ def _ball(batch: int, quick: bool):
         ks = jnp.asarray(np.geomspace(5e3, 2e4, b), dtype)
         cs = jnp.full((b,), c0, dtype)
         grads = _gradients(loss(heights), loss(floor_heights), batched=b > 1)
-        if b == 1:
-            fwd, flr = jax.jit(heights), jax.jit(floor_heights)
-            args = (jnp.asarray(k0, dtype), jnp.asarray(c0, dtype))
-        else:
-            fwd, flr = jax.jit(jax.vmap(heights)), jax.jit(jax.vmap(floor_heights))
-            args = (ks, cs)
+        lift = (lambda f: jax.jit(f)) if b == 1 else (lambda f: jax.jit(jax.vmap(f)))
+        fwd, flr = lift(heights), lift(floor_heights)
+        stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final))
+        args = ((jnp.asarray(k0, dtype), jnp.asarray(c0, dtype)) if b == 1 else (ks, cs))
         npdt = np.dtype(dtype)
         kn, cn = np.asarray(args[0], npdt), np.asarray(args[1], npdt)
 
@@ -186,7 +197,7 @@ def _ball(batch: int, quick: bool):
                 out[i] = z
             return out
         return dict(forward=fwd, floor=flr, numpy=numpy_heights, args=args, work=b * steps,
-                    steps=steps, batch=b, **grads)
+                    steps=steps, batch=b, **grads, **stepping)
     return build
 
 
@@ -447,6 +458,15 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
         out.update(floor_s=t["floor"], vs_floor=fwd / t["floor"])
     if with_floor_grad:
         out.update(floor_grad_s=t["floor_grad"], grad_vs_floor=grad / t["floor_grad"])
+    if spec.get("stepping") is not None:
+        # the same rollout returning only the final state: the workload of stepping-rate
+        # figures (a simulator advancing its state, nothing recorded), e.g. the peers' anchors
+        ts = interleaved_times({"stepping": spec["stepping"],
+                                "floor": spec["floor_stepping"] if with_floor else None},
+                               args, repeats=repeats)
+        out.update(stepping_s=ts["stepping"], stepping_per_s=spec["work"] / ts["stepping"])
+        if with_floor:
+            out.update(floor_stepping_s=ts["floor"], stepping_vs_floor=ts["stepping"] / ts["floor"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
         t_np = _numpy_time(spec["numpy"], nrep)

@@ -89,11 +89,15 @@ def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> n
 
 def atomic_write(path: str, write: Callable) -> None:
     """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
-    flush and fsync it, then ``os.replace`` it onto ``path``."""
+    flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
+    plain ``open(path, "w")`` would give it (``mkstemp`` alone makes it owner-only)."""
     folder = os.path.dirname(os.path.abspath(path)) or "."
     os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()

@@ -22,7 +22,8 @@ _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),
             ("compile_s", "{:.2f}"), ("forward_s", "{:.3g}"), ("steps_per_s", "{:.3g}"),
             ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("grad_mode", "{}"),
             ("reverse_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
-            ("grad_vs_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"), ("memory_bytes", "{:.3g}"),
+            ("grad_vs_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
+            ("stepping_per_s", "{:.3g}"), ("stepping_vs_floor", "{:.2f}"), ("memory_bytes", "{:.3g}"),
             ("grad_memory_bytes", "{:.3g}")]
 
 
@@ -63,5 +64,7 @@ def run(args) -> int:
               "vs_numpy: forward time / vectorised NumPy (< 1 is faster); steps_per_s counts "
               "body-steps (batch x steps) for batched scenes; grad_s uses "
               "diffpen.value_and_grad's choice (grad_mode), reverse_over_forward is reverse "
-              "mode's time over the forward time.")
+              "mode's time over the forward time; stepping_per_s (ball cases) is the rate of "
+              "the same rollout returning only its final state, stepping_vs_floor its time over "
+              "the floor doing the same.")
     return 0
