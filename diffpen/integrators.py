@@ -176,7 +176,13 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
         ``"auto"``: dense up to ``DENSE_MAX_DOF`` degrees of freedom, else CG.
       cg_tol: relative residual tolerance of CG.  cg_maxiter: CG iteration cap (default 3n).
     Differentiable with respect to params (and state) through either solve.
-    Rigid-body scenes (states with orientations) are not supported: a SceneError says so.
+
+    Rigid bodies (states with orientations): the same step on generalised coordinates. The
+    velocity is ``u = (v, w)`` (6n) and a configuration change is ``(dx, dtheta)``, a
+    translation and a world-frame rotation vector (the orientation becomes ``q`` rotated by
+    ``dtheta``); ``A_x`` and ``A_v`` are the Jacobians of ``(a, alpha)`` with respect to them.
+    After the solve, ``x' = x + h v'`` and ``q`` turns by ``h w'``. Rigid scenes use the dense
+    solve (``solver="cg"`` is refused: the rotational block is not symmetric).
     """
     from jax import lax
     from .errors import SceneError
@@ -188,10 +194,12 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
 
     def step(params, state: State) -> State:
         if state.orientation is not None:
-            raise SceneError(
-                "integrator 'implicit_euler' supports particle and sphere scenes only (this "
-                "scene has rotating rigid bodies): use integrator='semi_implicit_euler' with "
-                "substeps='auto' for stiff rigid-body scenes.")
+            if solver == "cg":
+                raise SceneError(
+                    "implicit_euler with solver='cg' supports particle and sphere scenes only "
+                    "(this scene has rotating rigid bodies, whose rotational block is not "
+                    "symmetric): use solver='dense' or 'auto'.")
+            return _rigid_step(accel_fn, h, params, state)
         x0, v0 = state.position, state.velocity
         shape = x0.shape
         ndof = x0.size
@@ -242,6 +250,33 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
         v1 = (vf + dv).reshape(shape)
         return state._replace(time=state.time + h, position=x0 + h * v1, velocity=v1)
     return step
+
+
+def _rigid_step(accel_fn: Callable, h: float, params, state: State) -> State:
+    """Linearised backward Euler on generalised coordinates (see :func:`implicit_euler`):
+    unknowns ``u = (v, w)`` (n, 6), configuration changes ``(dx, dtheta)``."""
+    x0, v0 = state.position, state.velocity
+    q0, w0 = state.orientation, state.angular_velocity
+    n = x0.shape[0]
+
+    def acc(e, u):
+        e, u = e.reshape(n, 6), u.reshape(n, 6)
+        s = state._replace(position=x0 + e[:, :3], orientation=quat_integrate(q0, e[:, 3:], 1.0),
+                           velocity=u[:, :3], angular_velocity=u[:, 3:])
+        a, alpha = accel_fn(params, s)
+        return jnp.concatenate([a, alpha], axis=-1).reshape(-1)
+
+    a, alpha = accel_fn(params, state)          # the step's own state (searches reused)
+    a0 = jnp.concatenate([a, alpha], axis=-1).reshape(-1)
+    u0 = jnp.concatenate([v0, w0], axis=-1).reshape(-1)
+    e0 = jnp.zeros_like(u0)
+    jx = jax.jacfwd(acc, argnums=0)(e0, u0)
+    jv = jax.jacfwd(acc, argnums=1)(e0, u0)
+    mat = jnp.eye(u0.size, dtype=u0.dtype) - h * jv - (h * h) * jx
+    u1 = (u0 + jnp.linalg.solve(mat, h * (a0 + h * (jx @ u0)))).reshape(n, 6)
+    v1, w1 = u1[:, :3], u1[:, 3:]
+    return state._replace(time=state.time + h, position=x0 + h * v1, velocity=v1,
+                          orientation=quat_integrate(q0, w1, h), angular_velocity=w1)
 
 
 # --------------------------------------------------------------------------- substeps

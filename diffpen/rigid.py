@@ -529,4 +529,6 @@ def stability_bound(sim, params):
 
 TERM_BUILDERS.extend([_box_plane_contact, _sphere_plane_friction, _box_fixed_sphere_contact,
                       _sphere_box_contact, _anchored_springs])
+stability_bound.label = ("box contacts, sphere-box contacts, broad-phase pairs or anchored "
+                         "springs (rotation included)")
 _stability_hooks.EXTRA_BOUNDS.append(stability_bound)

@@ -43,7 +43,8 @@ __all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE
            "scene_rates",
            "StabilityReport", "report", "gate", "EXTRA_BOUNDS", "MAX_AUTO_SUBSTEPS"]
 
-#: Hooks ``f(sim, params) -> (K_row (n,), C_row (n,))`` (1/s^2, 1/s) added to the core bounds.
+#: Hooks ``f(sim, params) -> (K_row (n,), C_row (n,))`` (1/s^2, 1/s) added to the core bounds;
+#: a hook's ``label`` attribute names it in reports when it sets a body's limit.
 EXTRA_BOUNDS: list[Callable] = []
 
 #: ``substeps="auto"`` refuses to pick more inner steps than this (the run would be too slow).
@@ -349,15 +350,21 @@ def scene_rates(sim, params, *, packed: bool = False):
     free = ~np.asarray(sim.pinned)
     K_row = np.where(free, kr / mass, 0.0)
     C_row = np.where(free, cr / mass, 0.0)
+    best_extra, extra_label = np.zeros(n), [""] * n
     for hook in EXTRA_BOUNDS:
         extra = hook(sim, params)
         if extra is None:
             return None
-        K_row = K_row + np.asarray(extra[0], float)
+        ek = np.where(free, np.asarray(extra[0], float), 0.0)
+        K_row = K_row + ek
         C_row = C_row + np.asarray(extra[1], float)
+        for i in np.flatnonzero(ek * mass > best_extra):
+            best_extra[i], extra_label[i] = ek[i] * mass[i], getattr(hook, "label", "")
 
     def source(i: int) -> str:
         """What gives body i its stiffest row entry, in words."""
+        if best_extra[i] > max(best_contact[i], best_spring[i]) and extra_label[i]:
+            return extra_label[i]
         if contact_k is not None and best_contact[i] > best_spring[i]:
             rows = np.flatnonzero(cb == i)
             return st.labels[int(cl[rows[np.argmax(contact_k[rows])]])]

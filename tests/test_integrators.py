@@ -160,13 +160,14 @@ def test_default_step_traces_nothing_extra():
     assert "scan" not in str(jax.make_jaxpr(sim._step)(*args))
 
 
-def test_implicit_euler_refuses_rigid_states_clearly():
+def test_implicit_euler_cg_refuses_rigid_states_clearly():
     sim = dp.compile(spring_scene(), 1e-3, integrator="implicit_euler")
     s = sim.init_state()
     rigid = s._replace(orientation=jnp.array([[1.0, 0.0, 0.0, 0.0]]),
                        angular_velocity=jnp.zeros((1, 3)))
-    with pytest.raises(dp.SceneError, match="rigid"):
-        sim._step(sim.params(), rigid)
+    step = integrators.implicit_euler(sim._accel, sim.dt, solver="cg")
+    with pytest.raises(dp.SceneError, match="rigid.*solver='dense'"):
+        step(sim.params(), rigid)
 
 
 def test_bad_substeps_and_solver_are_refused():
