@@ -234,9 +234,10 @@ def spring_bands(ia: np.ndarray, ib: np.ndarray, *, min_fill: float = 0.5,
     direction join ``a`` to ``a + delta`` for one ``delta``. A band with offset ``delta`` over
     the index range ``[lo, hi)`` is evaluated with dense slices ``x[lo:hi]`` and
     ``x[lo + delta:hi + delta]`` (slots without a spring are masked), and its forces are put
-    back with two pads: no gather or scatter in the forward or the reverse pass. A family is a
-    band when it has ``>= min_size`` springs filling ``>= min_fill`` of its range; all other
-    springs go through the generic gather / segment-sum path.
+    back with in-place row updates (``lax.dynamic_update_slice``): no gather or scatter in the
+    forward or the reverse pass. A family is a band when it has ``>= min_size`` springs
+    filling ``>= min_fill`` of its range; all other springs go through the generic gather /
+    segment-sum path.
 
     Args:
       ia, ib: (m,) body indices of the spring ends.

@@ -364,6 +364,37 @@ def test_spring_forces_are_equal_and_opposite():
     np.testing.assert_allclose(f[0], (-10.0 * (L - 0.5) - 2.0 * rate) * u, rtol=1e-13)
 
 
+@pytest.mark.parametrize("normals", [
+    [(0.0, 0.0, 1.0)],                                            # the ground: one slice
+    [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0)],        # walls: +-1 per column
+    [(0.3, -0.2, 0.9), (0.0, 0.6, 0.8)],                          # tilted: products
+])
+def test_plane_contact_forces_match_the_per_pair_law(normals):
+    """Plane normals enter the step as constants (zeros left out); the forces must equal the
+    pair law F = (k ramp(d) - c gate(d) n.v) n summed over planes, d = r - (n.x - offset)."""
+    from diffpen import laws
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-0.06, 0.06, (5, 3))
+    v = rng.normal(size=(5, 3))
+    for xi, vi in zip(x, v):          # particles (radius 0): no sphere-sphere contact
+        scene.add_particle(mass=1.0, position=xi, velocity=vi)
+    unit = [np.asarray(n) / np.linalg.norm(n) for n in normals]
+    offsets = [0.02 * (i + 1) for i in range(len(normals))]
+    for n, off in zip(normals, offsets):
+        scene.add_plane(normal=n, offset=off)
+    sim = dp.compile(scene, dt=1e-3, smoothing=0.05)
+    k, c = 3e3, 7.0
+    f, _ = sim.forces(sim.params(k=k, c=c), sim.init_state())
+    want = np.zeros((5, 3))
+    for n, off in zip(unit, offsets):
+        d = -(x @ n - off)
+        mag = np.asarray(laws.linear_contact(jnp.asarray(d), jnp.asarray(v @ n), k, c, 0.05))
+        want += mag[:, None] * n
+    assert np.abs(want).max() > 1.0                     # some spheres really are in contact
+    np.testing.assert_allclose(np.asarray(f), want, rtol=1e-12, atol=1e-12)
+
+
 # --------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize("build, match", [
     (lambda s: s.add_sphere(radius=0.1, mass=-1.0, position=(0, 0, 1)), "mass"),
