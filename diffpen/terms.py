@@ -49,7 +49,8 @@ def static_dot(n: np.ndarray, v):
         if not col.any():
             continue
         va = v[..., a]
-        term = va if (col == 1.0).all() else -va if (col == -1.0).all() else va * col
+        term = (va if (col == 1.0).all() else -va if (col == -1.0).all()
+                else va * jnp.asarray(col, jnp.result_type(v)))
         out = term if out is None else out + term
     return jnp.zeros(jnp.shape(v)[:-1], jnp.result_type(v)) if out is None else out
 
@@ -62,7 +63,7 @@ def static_scale(f, n: np.ndarray):
     for a in range(3):
         col = n[:, a]
         cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
-                    else -f if (col == -1.0).all() else f * col)
+                    else -f if (col == -1.0).all() else f * jnp.asarray(col, jnp.result_type(f)))
     return jnp.stack(cols, axis=-1)
 
 

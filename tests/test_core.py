@@ -393,6 +393,12 @@ def test_plane_contact_forces_match_the_per_pair_law(normals):
         want += mag[:, None] * n
     assert np.abs(want).max() > 1.0                     # some spheres really are in contact
     np.testing.assert_allclose(np.asarray(f), want, rtol=1e-12, atol=1e-12)
+    # the constant normals keep a float32 simulator in float32 (with x64 on)
+    sim32 = dp.compile(scene, dt=1e-3, smoothing=0.05, dtype=jnp.float32)
+    s32 = sim32.step(sim32.params(k=k, c=c), sim32.init_state())
+    assert s32.position.dtype == s32.velocity.dtype == jnp.float32
+    f32, _ = sim32.forces(sim32.params(k=k, c=c), sim32.init_state())
+    np.testing.assert_allclose(np.asarray(f32), want, rtol=1e-4, atol=1e-3)
 
 
 # --------------------------------------------------------------------------- bad input
