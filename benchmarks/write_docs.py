@@ -2,6 +2,7 @@
 at batch 1024 and the 32x32 cloth), the many-spheres scaling and the gradient-memory check.
 
     python benchmarks/write_docs.py [--out docs/bench.json] [--peer newton.json] [--compare]
+                                    [--only cases scaling memory]
 
 ``--peer`` merges rows written by ``benchmarks/peers/newton_cloth.py --json`` (run in that
 script's own environment). ``--compare`` also runs the float64 100,000-step gradient
@@ -33,8 +34,9 @@ def main(argv=None) -> int:
     ap.add_argument("--compare", action="store_true",
                     help="also run the float64 100k-step checkpointed-vs-plain gradient")
     ap.add_argument("--repeats", type=int, default=7)
-    ap.add_argument("--cases-only", action="store_true",
-                    help="rerun the bench cases only; keep the scaling and memory sections")
+    ap.add_argument("--only", nargs="+", choices=("cases", "scaling", "memory"),
+                    default=("cases", "scaling", "memory"),
+                    help="sections to rerun (default: all); the others are kept from --out")
     args = ap.parse_args(argv)
     old = {}
     if os.path.exists(args.out):
@@ -43,22 +45,28 @@ def main(argv=None) -> int:
 
     def progress(s):
         print(f"running {s} ...", file=sys.stderr, flush=True)
-    rows = bench.run(list(bench.CASES), dtypes=(jnp.float32,), repeats=args.repeats,
-                     progress=progress)
-    for name in ("ball_b1024", "cloth32"):
-        progress(f"{name} (float64)")
-        rows.append(bench.run_case(name, dtype=jnp.float64, repeats=args.repeats))
-    if args.cases_only and "sphere_scaling" in old and "gradient_memory" in old:
-        scaling, memory = old["sphere_scaling"], old["gradient_memory"]
-    else:
+    missing = [key for sec, key in (("cases", "cases"), ("scaling", "sphere_scaling"),
+                                    ("memory", "gradient_memory"))
+               if sec not in args.only and key not in old]
+    if missing:
+        ap.error(f"{args.out} has no {missing} to keep: rerun those sections too.")
+    rows, scaling, memory = old.get("cases"), old.get("sphere_scaling"), old.get("gradient_memory")
+    if "cases" in args.only:
+        rows = bench.run(list(bench.CASES), dtypes=(jnp.float32,), repeats=args.repeats,
+                         progress=progress)
+        for name in ("ball_b1024", "cloth32"):
+            progress(f"{name} (float64)")
+            rows.append(bench.run_case(name, dtype=jnp.float64, repeats=args.repeats))
+    if "scaling" in args.only:
         progress("sphere scaling")
         scaling = bench.sphere_scaling()
+    if "memory" in args.only:
         progress("gradient memory")
         memory = [bench.gradient_memory()]
         if args.compare:
             memory.append(bench.gradient_memory(dtype=jnp.float64, compare=True))
         else:
-            memory += [m for m in old.get("gradient_memory", []) if "max_rel_diff" in m]
+            memory += [m for m in (old.get("gradient_memory") or []) if "max_rel_diff" in m]
     peer = old.get("newton_peer")
     if args.peer:
         with open(args.peer) as f:

@@ -393,19 +393,21 @@ def _spheres(n: int):
 def sphere_scaling(sizes=(1000, 2000, 4000, 8000, 16000), *, steps: int = 100,
                    repeats: int = 3, dtype=jnp.float32) -> dict:
     """Per-step forward time of ``spheres_in_box`` with the grid neighbour search for each
-    size, and the least-squares exponent of time against size (1 = linear)."""
+    size, and the least-squares exponent of time against size (1 = linear). The sizes are
+    timed in turns (``interleaved_times``), so a change of machine load hits all of them."""
     from diffpen.broadphase import Grid
-    per_step = []
+    fns = {}
     for n in sizes:
         scene, _ = spheres_in_box(n)
         sim = dp.compile(scene, dt=5e-4, dtype=dtype,
                          broadphase=Grid(max_per_cell=8, max_pairs=8 * n))
         state = sim.init_state()
-        fn = jax.jit(lambda k, c, sim=sim, state=state: sim.rollout(
+        fns[n] = jax.jit(lambda k, c, sim=sim, state=state: sim.rollout(
             sim.params(k=k, c=c), steps=steps, state=state, save_every=steps,
             check_stability=False).position[-1])
-        per_step.append(median_time(fn, jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype),
-                                    repeats=repeats) / steps)
+    t = interleaved_times(fns, (jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype)),
+                          repeats=repeats)
+    per_step = [t[n] / steps for n in sizes]
     return dict(sizes=list(sizes), seconds_per_step=per_step,
                 exponent=_scaling_exponent(sizes, per_step))
 
