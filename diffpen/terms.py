@@ -63,7 +63,8 @@ def static_scale(f, n: np.ndarray):
     for a in range(3):
         col = n[:, a]
         cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
-                    else -f if (col == -1.0).all() else f * jnp.asarray(col, jnp.result_type(f)))
+                    else -f if (col == -1.0).all()
+                    else f * jnp.asarray(col, jnp.result_type(f)))
     return jnp.stack(cols, axis=-1)
 
 

@@ -386,7 +386,8 @@ def _spheres(n: int):
             return jnp.sum(final(k, c)[:, 2])
         args = (jnp.asarray(5e3, dtype), jnp.asarray(2.0, dtype))
         return dict(forward=jax.jit(final), floor=None, numpy=None, args=args,
-                    **_gradients(loss, None, batched=False), work=n * steps, steps=steps, batch=1, bodies=n)
+                    **_gradients(loss, None, batched=False), work=n * steps, steps=steps,
+                    batch=1, bodies=n)
     return build
 
 
@@ -468,7 +469,8 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
                                args, repeats=repeats)
         out.update(stepping_s=ts["stepping"], stepping_per_s=spec["work"] / ts["stepping"])
         if with_floor:
-            out.update(floor_stepping_s=ts["floor"], stepping_vs_floor=ts["stepping"] / ts["floor"])
+            out.update(floor_stepping_s=ts["floor"],
+                       stepping_vs_floor=ts["stepping"] / ts["floor"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
         t_np = _numpy_time(spec["numpy"], nrep)

@@ -23,7 +23,8 @@ _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),
             ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("grad_mode", "{}"),
             ("reverse_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
             ("grad_vs_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
-            ("stepping_per_s", "{:.3g}"), ("stepping_vs_floor", "{:.2f}"), ("memory_bytes", "{:.3g}"),
+            ("stepping_per_s", "{:.3g}"), ("stepping_vs_floor", "{:.2f}"),
+            ("memory_bytes", "{:.3g}"),
             ("grad_memory_bytes", "{:.3g}")]
 
 
