@@ -33,6 +33,29 @@ def test_apex_of_sampled_parabola_is_exact_vertex():
     np.testing.assert_allclose(np.asarray(apex_all), want, rtol=1e-12)
 
 
+def test_rank_select_and_max_penetration_match_numpy():
+    """The first n selected samples in order (nan and invalid past the last), and the
+    deepest sample, against plain numpy on random masks, empty and full masks included."""
+    rng = np.random.default_rng(0)
+    for density in (0.0, 0.002, 0.05, 1.0):
+        for _ in range(5):
+            values = rng.normal(size=300)
+            mask = rng.random(300) < density
+            got, valid = M._rank_select(jnp.asarray(values), jnp.asarray(mask), 3)
+            want = values[np.flatnonzero(mask)[:3]]
+            assert np.asarray(valid).sum() == len(want) and np.asarray(valid)[:len(want)].all()
+            np.testing.assert_array_equal(np.asarray(got)[:len(want)], want)
+            assert np.isnan(np.asarray(got)[len(want):]).all()
+            h = values.copy()
+            h[rng.integers(300)] = h.min()            # a tie: the first one counts
+            i = int(np.clip(np.argmax(-h), 1, 298))
+            dm, d0, dp_ = -h[i - 1], -h[i], -h[i + 1]
+            q = dm - 2 * d0 + dp_
+            ref = d0 - (dp_ - dm) ** 2 / (8 * q) if q < 0 and d0 >= dm and d0 >= dp_ else d0
+            np.testing.assert_allclose(float(M.max_penetration(jnp.asarray(h))),
+                                       max(ref, -h.min(), 0.0), rtol=1e-12)
+
+
 def test_settling_time_is_last_exceedance_interpolated():
     t = jnp.linspace(0.0, 1.0, 101)
     z = jnp.where(t < 0.5, 0.01 * (0.5 - t) / 0.5, 0.0) + 0.2     # straight line into rest
