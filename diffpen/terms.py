@@ -146,13 +146,15 @@ def _pair_material(scene: Scene, *names: str) -> str:
     return names[0] if len(set(names)) == 1 else DEFAULT
 
 
-def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
-                      shape_args, static_normal=None) -> Term | None:
+def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_args, *,
+                      shape_fn=None, static_normal=None) -> Term | None:
     """Contacts of every moving, colliding non-box body with every fixed collider of one kind
-    (``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair; boxes collide by
-    their corners, diffpen.rigid). ``static_normal(collider)``, for planes, gives the constant
-    normal, which then enters the step as a constant (``static_dot`` / ``static_scale``):
-    ``d = r - (n . x - offset)`` with ``shape_args = (normal, offset)``."""
+    (boxes collide by their corners, diffpen.rigid). Give one of:
+
+    * ``shape_fn``: ``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair;
+    * ``static_normal(collider)`` (planes, ``shape_args = (offset,)``): the normal is a
+      constant of the step (``static_dot`` / ``static_scale``) and
+      ``d = r - (n . x - offset)``, geometry.sphere_plane with its zeros left out."""
     scene = ctx.scene
     rows = [(i, j, ctx.material_index[col.material])
             for j, col in enumerate(colliders)
@@ -171,7 +173,7 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         if normal is not None:          # the normal is a constant: leave out its zeros
-            d = radii - (static_dot(normal, x) - args[1])
+            d = radii - (static_dot(normal, x) - args[0])
             f = law(d, static_dot(normal, v), k, c, width)
             return scatter(static_scale(f, normal), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
@@ -181,14 +183,13 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_fn,
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
-    return _collider_contact(ctx, "contact_plane", ctx.scene.planes, geometry.sphere_plane,
-                             lambda pl: (pl.normal, pl.offset),
-                             static_normal=lambda pl: pl.normal)
+    return _collider_contact(ctx, "contact_plane", ctx.scene.planes,
+                             lambda pl: (pl.offset,), static_normal=lambda pl: pl.normal)
 
 
 def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
     return _collider_contact(ctx, "contact_fixed_sphere", ctx.scene.fixed_spheres,
-                             geometry.sphere_sphere, lambda fs: (fs.center, fs.radius))
+                             lambda fs: (fs.center, fs.radius), shape_fn=geometry.sphere_sphere)
 
 
 def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
