@@ -67,9 +67,12 @@ def test_interrupted_sweep_resumes(problem, tmp_path):
     header = open(str(tmp_path / "s.csv")).readline().strip().split(",")
     assert header == NAMES + ["apex_heights", "max_penetration", "settled", "done"]
     assert np.loadtxt(str(tmp_path / "s.csv"), delimiter=",", skiprows=1).shape == (16, 6)
-    # other points: a fresh sweep, not a resume
+    # other points: refused (the file holds another sweep), overwritten only when asked
+    with pytest.raises(S.SweepError, match="points"):
+        S.sweep(None, sim.params(k=1e4, c=10.0), points[:3], NAMES, chunk=5, keys=keys,
+                out=out, evaluate=ev)
     res2 = S.sweep(None, sim.params(k=1e4, c=10.0), points[:3], NAMES, chunk=5, keys=keys,
-                   out=out, evaluate=ev)
+                   out=out, evaluate=ev, resume=False)
     assert res2.evaluated == 3
 
 
@@ -86,7 +89,7 @@ def test_writes_are_atomic(problem, tmp_path, monkeypatch):
     monkeypatch.setattr(os, "replace", crash)
     with pytest.raises(OSError):
         S.sweep(None, sim.params(k=1e4, c=10.0), points[5:10], NAMES, chunk=5, keys=keys,
-                out=out, evaluate=ev)
+                out=out, evaluate=ev, resume=False)
     monkeypatch.setattr(os, "replace", real)
     assert open(out, "rb").read() == before            # the old file is intact
     assert S.load_sweep(out).done.all()

@@ -110,32 +110,7 @@ def default_bounds(path: str, value: float, dt: float | None = None,
     return lo, hi
 
 
-class Progress:
-    """One-line progress bar on stderr, drawn only when stderr is a terminal."""
-
-    def __init__(self, total: int, label: str = "fit", enabled: bool | None = None):
-        self.total = total
-        self.label = label
-        self.enabled = sys.stderr.isatty() if enabled is None else enabled
-        self._last = 0.0
-
-    def update(self, i: int, loss: float, force: bool = False) -> None:
-        if not self.enabled:
-            return
-        now = time.perf_counter()
-        if not force and now - self._last < 0.05:
-            return
-        self._last = now
-        width = 24
-        done = int(width * min(i, self.total) / max(self.total, 1))
-        bar = "#" * done + "." * (width - done)
-        sys.stderr.write(f"\r{self.label} [{bar}] {i}/{self.total} loss {loss:.3e}")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
+from .progress import Progress  # noqa: E402  (re-exported: tuning.fit.Progress)
 
 
 # --------------------------------------------------------------------------- targets

@@ -17,8 +17,8 @@ def require_matplotlib():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise ImportError("plots need matplotlib: pip install 'diffpen[plot]' (or "
-                          "pip install matplotlib).") from None
+        raise ImportError("plots need matplotlib: pip install 'matplotlib>=3.7' (or, in a "
+                          "diffpen checkout, pip install -e '.[plot]').") from None
     return plt
 
 

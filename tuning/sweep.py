@@ -10,15 +10,18 @@ whole sweep compiles once.
 
 After every chunk the results so far are written to ``out`` (``.npz``) and a ``.csv`` beside
 it, each through a temporary file and ``os.replace`` (a crash never leaves a half-written
-file). Calling :func:`sweep` again with the same points and ``out`` resumes: finished chunks
-are read back, not recomputed.
+file; :mod:`tuning.io`). The file carries a key of everything that determines it
+(:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
+finished chunks are read back, not recomputed. Another key is refused with the list of what
+differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
+any computing, and temporary files of a killed run are removed.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
-import tempfile
 import time
 from typing import Callable
 
@@ -29,10 +32,20 @@ import numpy as np
 import diffpen as dp
 
 from . import params as P
-from .fit import Progress
+from .io import (OutputError, OutputLock, atomic_write, check_output, clean_orphans,
+                 key_differences, result_key)
+from .progress import Progress
 
-__all__ = ["SweepResult", "grid_points", "random_points", "sweep", "atomic_write",
-           "load_sweep", "make_evaluator"]
+__all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
+           "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "UNSTABLE"]
+
+#: name of the optional per-point metric that flags a rollout past its safe step (from
+#: ``traj.aux["unstable"][-1]``); points where it is true are returned as NaN and counted.
+UNSTABLE = "unstable"
+
+
+class SweepError(ValueError):
+    """A sweep that cannot run as asked (e.g. ``out`` holds another sweep's results)."""
 
 
 @dataclasses.dataclass
@@ -44,7 +57,8 @@ class SweepResult:
     done: (N,) bool, points computed.  shape: grid shape (for grid sweeps) or None; a grid's
     metric reshapes to ``shape + metric.shape[1:]``.  axes: per-parameter grid values.
     seconds: wall time of this call.  evaluated: points computed by this call (the rest were
-    read back from ``out``).
+    read back from ``out``).  key: the key stored with the results (see :func:`sweep_key`).
+    unstable: points whose rollout went past its safe step (their metrics are NaN).
     """
     names: list
     points: np.ndarray
@@ -54,6 +68,8 @@ class SweepResult:
     axes: dict | None = None
     seconds: float = 0.0
     evaluated: int = 0
+    key: dict | None = None
+    unstable: int = 0
 
     def grid(self, metric: str, index: int | None = None) -> np.ndarray:
         """A metric on the grid: shape ``self.shape`` (entry ``index`` of a vector metric)."""
@@ -87,28 +103,6 @@ def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> n
     return np.stack(cols, axis=1)
 
 
-def atomic_write(path: str, write: Callable) -> None:
-    """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
-    flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
-    plain ``open(path, "w")`` would give it (``mkstemp`` alone makes it owner-only)."""
-    folder = os.path.dirname(os.path.abspath(path)) or "."
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=os.path.basename(path), dir=folder)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as fh:
-            write(fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
                    keys: list | None = None, batch_map: Callable | None = None) -> Callable:
     """``evaluate(batch (B, P)) -> {metric: (B, ...)}``: a pure function of the values batch.
@@ -127,23 +121,42 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
         for i, n in enumerate(names):
             flat[n] = x[i]
         m = metrics_fn(P.unflatten(params0, flat))
-        return {k: jnp.asarray(v) for k, v in m.items() if keys is None or k in keys}
+        return {k: jnp.asarray(v) for k, v in m.items()
+                if keys is None or k in keys or k == UNSTABLE}
     if batch_map is None:
         from .shard import sharded_map
         batch_map = sharded_map      # every device; jax.jit(jax.vmap(f)) on a single one
     return batch_map(one)
 
 
-def _digest(names, points) -> str:
-    h = hashlib.sha256()
-    h.update("\n".join(names).encode())
-    h.update(np.ascontiguousarray(points, dtype=np.float64).tobytes())
-    return h.hexdigest()
+def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = None) -> dict:
+    """The key a sweep file carries: ``key`` (what determines ``metrics_fn``: scene, law,
+    integrator, dt, duration, metric settings; see :func:`tuning.io.describe_simulator`) plus
+    the swept names, the points (a digest), the grid shape, the kept metrics, the values of
+    every leaf of ``params0`` that is not swept, the float dtype and the diffpen version."""
+    flat = P.flatten(params0) if params0 is not None else {}
+    fixed = {}
+    dtypes = set()
+    for n, v in flat.items():
+        a = np.asarray(v)
+        dtypes.add(str(a.dtype))
+        if n not in names:
+            fixed[n] = a
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    digest = hashlib.sha256(pts.tobytes()).hexdigest()[:16]
+    fields = dict(key or {})
+    fields.setdefault("dtype", sorted(dtypes) or [str(jnp.result_type(float))])
+    return result_key(**fields, swept=list(names), points_sha256=digest,
+                      n_points=int(pts.shape[0]),
+                      point_range=[[float(pts[:, i].min()), float(pts[:, i].max())]
+                                   for i in range(pts.shape[1])] if pts.size else [],
+                      grid=list(shape) if shape is not None else None,
+                      metrics=sorted(keys) if keys is not None else "all", fixed=fixed)
 
 
-def _save(out: str, res: SweepResult, digest: str) -> None:
+def _save(out: str, res: SweepResult) -> None:
     arrays = {"names": np.array(res.names), "points": res.points, "done": res.done,
-              "digest": np.array(digest),
+              "key": np.array(json.dumps(res.key or {})),
               "shape": np.array(res.shape if res.shape is not None else (), dtype=np.int64)}
     for k, v in res.metrics.items():
         arrays[f"metric:{k}"] = v
@@ -168,6 +181,15 @@ def _save(out: str, res: SweepResult, digest: str) -> None:
     atomic_write(csv_path, write_csv)
 
 
+def _read_key(path: str):
+    """The key stored in a sweep file, or None (no key, or not a sweep file)."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return json.loads(str(f["key"])) if "key" in f.files else None
+    except Exception:  # noqa: BLE001 - unreadable or foreign: no key
+        return None
+
+
 def load_sweep(path: str) -> SweepResult:
     """Read a sweep written by :func:`sweep` (complete or interrupted)."""
     with np.load(path, allow_pickle=False) as f:
@@ -175,24 +197,38 @@ def load_sweep(path: str) -> SweepResult:
         metrics = {k[7:]: f[k] for k in f.files if k.startswith("metric:")}
         axes = {k[5:]: f[k] for k in f.files if k.startswith("axis:")} or None
         shape = tuple(int(s) for s in f["shape"]) or None
-        return SweepResult(names, f["points"], metrics, f["done"], shape, axes)
+        key = json.loads(str(f["key"])) if "key" in f.files else None
+        res = SweepResult(names, f["points"], metrics, f["done"], shape, axes, key=key)
+    if UNSTABLE in res.metrics:
+        res.unstable = int(np.sum(res.done & (np.asarray(res.metrics[UNSTABLE]) > 0)))
+    return res
 
 
 def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
           chunk: int = 256, out: str | None = None, resume: bool = True,
-          keys: list | None = None, shape: tuple | None = None, axes: dict | None = None,
-          batch_map: Callable | None = None, progress: bool | None = None,
-          on_chunk: Callable | None = None, evaluate: Callable | None = None) -> SweepResult:
+          key: dict | None = None, keys: list | None = None, shape: tuple | None = None,
+          axes: dict | None = None, batch_map: Callable | None = None,
+          progress: bool | None = None, on_chunk: Callable | None = None,
+          evaluate: Callable | None = None) -> SweepResult:
     """Evaluate ``metrics_fn`` at every point, ``chunk`` points per vmapped call.
 
     Args:
-      metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``.
+      metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``. A metric named
+        ``"unstable"`` (e.g. ``traj.aux["unstable"][-1]``) marks points whose rollout went
+        past its safe step: their other float metrics are NaN and they are counted in
+        ``result.unstable``.
       params0: :class:`diffpen.Params` giving the leaves that are not swept.
       points: (N, P) parameter values, SI units.  names: (P,) leaf paths.
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
       out: ``.npz`` path; results (and a ``.csv`` beside it) are written atomically after
-        every chunk.  resume: continue an interrupted sweep found at ``out`` (same names and
-        points, else it is started afresh).
+        every chunk. The paths are checked before anything is computed, and an exclusive
+        lock (``.<name>.lock`` beside it) keeps a second writer out.
+      resume: continue a sweep found at ``out`` when its key equals this sweep's (see
+        :func:`sweep_key`); a file with another key raises :class:`SweepError` naming what
+        differs. ``resume=False`` overwrites ``out``.
+      key: what determines ``metrics_fn`` beyond the swept leaves (scene, law, integrator,
+        dt, duration, metric settings...): stored in the file and compared on resume. Give
+        it whenever ``out`` is used; :func:`tuning.io.describe_simulator` builds most of it.
       keys: metrics to keep (default all).  shape, axes: grid layout (see :func:`grid_points`).
       batch_map: lifts the per-point function to a batch (default
         :func:`tuning.shard.sharded_map`: split over all devices with a ``NamedSharding``;
@@ -203,33 +239,59 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     Returns: :class:`SweepResult`.
     """
     t0 = time.perf_counter()
-    points = np.asarray(points, float)
+    try:
+        points = np.asarray(points, float)
+    except (TypeError, ValueError):
+        raise SweepError("points must be an (N, P) array of numbers.") from None
     if points.ndim != 2 or points.shape[1] != len(names):
         raise ValueError(f"points must have shape (N, {len(names)}), got {points.shape}.")
+    if points.shape[0] == 0:
+        raise SweepError("points is empty: give at least one point.")
     if not np.all(np.isfinite(points)) or np.any(points < 0.0):
         raise ValueError("sweep points must be finite and >= 0 (stiffness and damping).")
-    if chunk < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}.")
+    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise ValueError(f"chunk must be an int >= 1, got {chunk!r}.")
     n = points.shape[0]
-    digest = _digest(names, points)
-    res = None
-    if out and resume and os.path.exists(out):
-        try:
-            with np.load(out, allow_pickle=False) as f:
-                same = str(f["digest"]) == digest
-        except Exception:
-            same = False
-        if same:
-            res = load_sweep(out)
-            res.shape, res.axes = shape, axes
-    if evaluate is None:
-        evaluate = make_evaluator(metrics_fn, params0, names, keys, batch_map)
-    if res is None:
-        res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
+    full_key = sweep_key(names, points, params0, keys, shape, key)
+    lock = None
+    if out:
+        out = check_output(out, what="sweep output")
+        csv_path = os.path.splitext(out)[0] + ".csv"
+        check_output(csv_path, what="sweep table")
+        lock = OutputLock(out, what="sweep output").acquire()
+    try:
+        res = None
+        if out:
+            clean_orphans(out)
+            clean_orphans(csv_path)
+            if os.path.exists(out) and resume:
+                diff = key_differences(_read_key(out), full_key)
+                if diff:
+                    raise SweepError(
+                        f"{out} holds another sweep's results, so it cannot be resumed: "
+                        + "; ".join(diff) + ". Overwrite it with resume=False (diffpen sweep "
+                        "--fresh) or choose another output path.")
+                res = load_sweep(out)
+                res.shape, res.axes = shape, axes
+        if evaluate is None:
+            evaluate = make_evaluator(metrics_fn, params0, names, keys, batch_map)
+        if res is None:
+            res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
+        res.key = full_key
+        res.evaluated = 0
+        _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk)
+    finally:
+        if lock is not None:
+            lock.release()
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk) -> None:
+    n = points.shape[0]
     chunk = min(chunk, n)
     n_chunks = -(-n // chunk)
-    bar = Progress(n_chunks, "sweep", progress)
-    evaluated = 0
+    bar = Progress(n_chunks, "sweep chunks", progress, value="done")
     for i in range(n_chunks):
         a, b = i * chunk, min((i + 1) * chunk, n)
         if res.done[a:b].all():
@@ -237,21 +299,27 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         batch = points[a:b]
         if b - a < chunk:     # pad to the compiled batch size
             batch = np.concatenate([batch, np.repeat(batch[-1:], chunk - (b - a), axis=0)])
-        got = jax.device_get(evaluate(jnp.asarray(batch)))
+        got = {k: np.asarray(v)[: b - a]
+               for k, v in jax.device_get(evaluate(jnp.asarray(batch))).items()}
+        bad = None
+        if UNSTABLE in got:   # past the safe step: never returned as a result
+            bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)
         for k, v in got.items():
-            v = np.asarray(v)[: b - a]
+            if bad is not None and k != UNSTABLE and v.dtype.kind == "f" and bad.any():
+                v = np.array(v)
+                v[bad] = np.nan
             if k not in res.metrics:
                 res.metrics[k] = np.full((n,) + v.shape[1:], np.nan if v.dtype.kind == "f"
                                          else 0, dtype=v.dtype)
             res.metrics[k][a:b] = v
         res.done[a:b] = True
-        evaluated += b - a
+        res.evaluated += b - a
+        if UNSTABLE in res.metrics:
+            res.unstable = int(np.sum(res.done & (np.asarray(res.metrics[UNSTABLE])
+                                                  .reshape(n, -1).any(axis=1))))
         if out:
-            _save(out, res, digest)
+            _save(out, res)
         bar.update(i + 1, float(res.done.mean()))
         if on_chunk is not None:
             on_chunk(i, res)
     bar.close()
-    res.seconds = time.perf_counter() - t0
-    res.evaluated = evaluated
-    return res

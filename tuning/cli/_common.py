@@ -43,6 +43,42 @@ def positive(name: str):
     return conv
 
 
+def finite(name: str):
+    """argparse type: a finite number (``nan`` and ``inf`` are refused)."""
+    def conv(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise CLIError(f"{name} must be a number, got {text!r}") from None
+        if not math.isfinite(v):
+            raise CLIError(f"{name} must be a finite number, got {text!r}")
+        return v
+    conv.__name__ = name
+    return conv
+
+
+def count(name: str, minimum: int = 1):
+    """argparse type: an integer >= ``minimum`` written as digits (``1e9`` is refused with a
+    hint, not truncated)."""
+    def conv(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            hint = ""
+            try:
+                f = float(text)
+                if math.isfinite(f) and f == int(f):
+                    hint = f" (write it as digits, e.g. {int(f)})"
+            except (ValueError, OverflowError):
+                pass
+            raise CLIError(f"{name} must be an integer, got {text!r}{hint}") from None
+        if v < minimum:
+            raise CLIError(f"{name} must be an integer >= {minimum}, got {text!r}")
+        return v
+    conv.__name__ = name
+    return conv
+
+
 def check_positive(name: str, value) -> None:
     if value is None:
         return

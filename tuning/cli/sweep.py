@@ -4,8 +4,9 @@ draws a heatmap with the target contour."""
 from __future__ import annotations
 
 import math
+import os
 
-from ._common import CLIError, dump_json, fail, positive, setup_jax
+from ._common import CLIError, count, dump_json, fail, finite, positive, setup_jax
 
 METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
            "restitution")
@@ -16,7 +17,7 @@ def add_arguments(p) -> None:
                    metavar=("KMIN", "KMAX"), help="stiffness range, N/m (default 1e3 1e5)")
     p.add_argument("--c", type=positive("--c"), nargs=2, default=[1.0, 100.0],
                    metavar=("CMIN", "CMAX"), help="damping range, N s/m (default 1 100)")
-    p.add_argument("--n", type=int, nargs="+", default=[64], metavar="N",
+    p.add_argument("--n", type=count("--n"), nargs="+", default=[64], metavar="N",
                    help="grid points per axis (one value for both, or NK NC; default 64)")
     p.add_argument("--radius", type=positive("--radius"), default=0.1, help="m (default 0.1)")
     p.add_argument("--mass", type=positive("--mass"), default=1.0, help="kg (default 1)")
@@ -27,15 +28,18 @@ def add_arguments(p) -> None:
     p.add_argument("--dt", type=positive("--dt"), default=1e-3, help="time step, s")
     p.add_argument("--settle-tol", type=positive("--settle-tol"), default=1e-3,
                    help="settling band, m")
-    p.add_argument("--chunk", type=int, default=512, help="points per vmapped call "
+    p.add_argument("--chunk", type=count("--chunk"), default=512, help="points per vmapped call "
                    "(bounds memory; default 512)")
     p.add_argument("--out", default="sweep.npz", help="results .npz (a .csv is written "
-                   "beside it); an interrupted sweep with the same grid resumes from it")
-    p.add_argument("--fresh", action="store_true", help="ignore an existing --out file")
+                   "beside it); an interrupted sweep with the same settings resumes from it, "
+                   "a file of other settings is refused")
+    p.add_argument("--fresh", action="store_true", help="overwrite an existing --out file "
+                   "instead of resuming it")
     p.add_argument("--plot", metavar="FILE.png", help="heatmap of --metric over (k, c)")
     p.add_argument("--metric", default="apex_heights", choices=METRICS,
                    help="metric of the heatmap (default apex_heights: the first apex)")
-    p.add_argument("--target", type=float, help="draw this level of --metric as a contour")
+    p.add_argument("--target", type=finite("--target"),
+                   help="draw this level of --metric as a contour")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
@@ -46,49 +50,125 @@ def run(args) -> int:
         return fail("sweep", str(exc))
 
 
+#: ball-steps per second assumed for the time estimate (float64 sweep with metrics on a
+#: 2-core CPU measured ~3e7/s; a conservative figure)
+RATE = 1e7
+#: bytes per point and step of a chunk's live arrays (recorded heights and the metrics'
+#: intermediates; generous)
+CHUNK_BYTES = 64
+#: float columns per point kept in memory, the .npz and the .csv
+COLUMNS = 18
+
+
+def _memory_bytes() -> float:
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8.0 * 2 ** 30
+
+
+def _gib(b: float) -> str:
+    return f"{b / 2 ** 30:.3g} GiB"
+
+
+def _duration(s: float) -> str:
+    return (f"{s:.3g} s" if s < 120 else f"{s / 60:.3g} min" if s < 7200
+            else f"{s / 3600:.3g} h" if s < 172800 else f"{s / 86400:.3g} days")
+
+
+def check_size(points: int, steps: int, chunk: int, memory: float | None = None) -> dict:
+    """Estimates of a sweep's memory and time; raises CLIError when it cannot fit."""
+    memory = _memory_bytes() if memory is None else memory
+    results = points * COLUMNS * 8 * 3            # in memory, the .npz and the .csv table
+    live = min(chunk, points) * steps * CHUNK_BYTES
+    seconds = points * steps / RATE
+    est = {"points": points, "steps": steps, "result_bytes": results, "chunk_bytes": live,
+           "seconds": seconds}
+    if results > 0.5 * memory:
+        raise CLIError(f"{points} points need about {_gib(results)} for the results alone "
+                       f"(this machine has {_gib(memory)}) and about {_duration(seconds)} of "
+                       f"compute ({points} points x {steps} steps at ~{RATE:.0e} ball-steps/s):"
+                       " lower --n")
+    if live > 0.5 * memory:
+        raise CLIError(f"a chunk of {min(chunk, points)} points x {steps} steps needs about "
+                       f"{_gib(live)} (this machine has {_gib(memory)}): lower --chunk or "
+                       "--duration")
+    if seconds > 7 * 86400:
+        raise CLIError(f"{points} points x {steps} steps would take about {_duration(seconds)}"
+                       f" at ~{RATE:.0e} ball-steps/s: lower --n or --duration")
+    return est
+
+
 def _run(args) -> int:
     if len(args.n) not in (1, 2) or min(args.n) < 2:
         raise CLIError("--n takes one or two integers >= 2 (points per axis)")
     nk, nc = (args.n * 2)[:2]
     if args.k[0] >= args.k[1] or args.c[0] >= args.c[1]:
         raise CLIError("ranges must be given as MIN MAX with MIN < MAX")
-    if args.chunk < 1:
-        raise CLIError("--chunk must be >= 1")
     if not args.drop > args.radius:
         raise CLIError(f"--drop {args.drop} m must exceed --radius {args.radius} m")
+    steps = int(round(args.duration / args.dt))
+    if steps < 3:
+        raise CLIError(f"--duration {args.duration:g} s is only {steps} step(s) of --dt "
+                       f"{args.dt:g} s: give a duration of at least 3 steps "
+                       f"({3 * args.dt:g} s; the ball needs "
+                       f"{math.sqrt(2 * (args.drop - args.radius) / 9.81):.3g} s to reach "
+                       "the ground)")
     w_max = math.sqrt(args.k[1] / args.mass) * args.dt
     stable = args.k[1] * args.dt ** 2 + 2 * args.c[1] * args.dt < 4 * args.mass
     if not stable:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
+    est = check_size(nk * nc, steps, args.chunk)
+    from ..io import check_output
+    check_output(args.out, what="--out")
+    if not args.out.endswith(".npz"):
+        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
+    check_output(args.out[:-4] + ".csv", what="--out's table")
+    if args.plot:
+        check_output(args.plot, what="--plot")
+        from ..plots import require_matplotlib
+        require_matplotlib()
     setup_jax()
+    import jax.numpy as jnp
     import numpy as np
 
     import diffpen as dp
 
-    from ..bounce import bounce_metrics_fn
+    from ..io import describe_simulator
+    from ..metrics import ball_metrics
+    from ..stable import rollout_unstable
     from ..sweep import grid_points, sweep
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
     scene.add_plane()
     sim = dp.compile(scene, args.dt)
-    steps = int(round(args.duration / args.dt))
-    mfn = bounce_metrics_fn(sim, steps, n_apex=3, settle_tol=args.settle_tol)
+
+    def mfn(params):
+        s0 = sim.init_state()
+        traj = sim.rollout(params, steps, s0, check_finite=False)
+        m = ball_metrics(sim, traj, params, n_apex=3, settle_tol=args.settle_tol,
+                         state0=s0)._asdict()
+        # settling not reached within the rollout: NaN, not the rollout's end
+        m["settling_time"] = jnp.where(m["settled"], m["settling_time"], jnp.nan)
+        m["unstable"] = rollout_unstable(sim, traj, params)
+        return m
     ks = np.geomspace(args.k[0], args.k[1], nk)
     cs = np.geomspace(args.c[0], args.c[1], nc)
     names = ["contact.default.k", "contact.default.c"]
     axes = {names[0]: ks, names[1]: cs}
     points, shape = grid_points(axes)
-
-    def keep(m):     # settling not reached within the rollout: nan, not the rollout's end
-        m = dict(m)
-        m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
-        return m
+    key = dict(describe_simulator(sim), model="ball on plane z=0", radius=args.radius,
+               mass=args.mass, drop=args.drop, gravity=9.81, duration=args.duration,
+               steps=steps, settle_tol=args.settle_tol, n_apex=3)
+    if est["seconds"] > 60 and not args.json:
+        import sys
+        sys.stderr.write(f"diffpen sweep: {nk * nc} points x {steps} steps: about "
+                         f"{_duration(est['seconds'])} at ~{RATE:.0e} ball-steps/s\n")
     res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
-                resume=not args.fresh, keys=list(METRICS) + ["settled"], shape=shape,
+                resume=not args.fresh, key=key, keys=list(METRICS) + ["settled"], shape=shape,
                 axes=axes, progress=False if args.json else None)
-    vals = keep(res.metrics)
-    metric = vals[args.metric]
+    metric = res.metrics[args.metric]
     grid = (metric[:, 0] if metric.ndim > 1 else metric).reshape(shape)
     if args.plot:
         from ..plots import heatmap
@@ -98,13 +178,14 @@ def _run(args) -> int:
                  "restitution": "first restitution"}[args.metric]
         heatmap(args.plot, ks, cs, grid, metric=label, target=args.target,
                 title=f"{label}: {nk}x{nc} sweep, {args.duration:g} s ball, dt={args.dt:g} s")
-    finite = np.isfinite(grid)
+    finite_ = np.isfinite(grid)
+    unsettled = int(np.sum(~np.asarray(res.metrics["settled"], bool)))
     out = {"points": int(points.shape[0]), "grid": [nk, nc], "evaluated": res.evaluated,
            "seconds": res.seconds, "out": args.out,
-           "csv": args.out.rsplit(".", 1)[0] + ".csv", "plot": args.plot,
+           "csv": args.out[:-4] + ".csv", "plot": args.plot,
            "metric": args.metric,
-           "range": [float(np.nanmin(grid)), float(np.nanmax(grid))] if finite.any() else None,
-           "w0_dt_max": w_max}
+           "range": [float(np.nanmin(grid)), float(np.nanmax(grid))] if finite_.any() else None,
+           "w0_dt_max": w_max, "unstable": res.unstable, "unsettled": unsettled}
     if args.json:
         dump_json(out)
         return 0
@@ -116,6 +197,12 @@ def _run(args) -> int:
           f"computed {res.evaluated} points in {res.seconds:.2f} s (compilation included)")
     if out["range"]:
         print(f"{args.metric}: {out['range'][0]:.4g} .. {out['range'][1]:.4g} over the grid")
+    if unsettled:
+        print(f"{unsettled} points did not settle within {args.duration:g} s: their "
+              "settling_time is NaN")
+    if res.unstable:
+        print(f"{res.unstable} points are past the explicit step's safe limit (w0 dt > 0.5 or "
+              "c dt / m > 1): their metrics are NaN (lower --dt to compute them)")
     print(f"wrote {args.out} and {out['csv']}" + (f"; heatmap {args.plot}" if args.plot else ""))
     if w_max > 0.25:
         print(f"note: w0 dt reaches {w_max:.2f} at the stiff end; above ~0.25 the explicit "

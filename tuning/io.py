@@ -1,0 +1,267 @@
+"""Result files: output checks before computing, atomic writes, a lock per output, leftovers
+of killed runs, and the key of everything that determines a result.
+
+* :func:`check_output` says, before anything is computed, why a path cannot be written
+  (missing parent folder, a directory, no write permission).
+* :func:`atomic_write` writes through a temporary file in the output's own folder and
+  ``os.replace`` (a crash never leaves a half-written file; the temporary file is never put
+  anywhere else, e.g. in ``/``).
+* :class:`OutputLock` holds an exclusive ``fcntl`` lock on ``.<name>.lock`` beside the output
+  for the whole run: a second writer of the same output is refused at once with the first
+  writer's pid. The kernel drops the lock when a process dies, so a killed run never blocks
+  the next one.
+* :func:`clean_orphans` removes the temporary files a killed writer left behind (call it while
+  holding the lock: no live writer of that output can own them then).
+* :func:`result_key` / :func:`key_differences`: a result file stores a JSON key of everything
+  that determines it (scene, law, integrator, dt, duration, metrics, grid, dtype, version);
+  a run resumes from a file only when the keys are equal, and otherwise says what differs.
+"""
+from __future__ import annotations
+
+import errno
+import glob
+import hashlib
+import json
+import math
+import os
+import tempfile
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["OutputError", "check_output", "atomic_write", "OutputLock", "clean_orphans",
+           "result_key", "key_digest", "key_differences", "describe_simulator", "version",
+           "TMP_PREFIX"]
+
+#: prefix of the temporary files of :func:`atomic_write` (``.tmp-XXXX<basename>``)
+TMP_PREFIX = ".tmp-"
+
+
+class OutputError(ValueError):
+    """An output path that cannot be written, or is held by another writer. The message says
+    what to change (raised before anything is computed)."""
+
+
+def version() -> str:
+    """The installed diffpen version (part of every result key)."""
+    try:
+        from importlib.metadata import version as _v
+        return _v("diffpen")
+    except Exception:  # noqa: BLE001 - a plain checkout without metadata
+        return "unknown"
+
+
+# --------------------------------------------------------------------------- paths
+def check_output(path, *, what: str = "output") -> str:
+    """Check that ``path`` can be written as a file; return it as an absolute path.
+
+    Raises :class:`OutputError` naming ``what`` (e.g. ``"--out"``) when the path is empty, is
+    a directory, its parent folder does not exist or is not a folder, or either cannot be
+    written. Nothing is created.
+    """
+    if not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise OutputError(f"{what} must be a file path, got {path!r}.")
+    p = os.path.abspath(os.fspath(path))
+    if os.path.isdir(p) or str(path).endswith(os.sep):
+        raise OutputError(f"{what} {path} is a directory: give a file name inside it, e.g. "
+                          f"{os.path.join(str(path), 'result' + _ext(what))}.")
+    folder = os.path.dirname(p)
+    if not os.path.exists(folder):
+        raise OutputError(f"{what} {path}: the folder {folder} does not exist; create it "
+                          "first or choose another path.")
+    if not os.path.isdir(folder):
+        raise OutputError(f"{what} {path}: {folder} is not a folder.")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {path}: the folder {folder} is not writable; choose "
+                          "another path.")
+    if os.path.exists(p) and not os.access(p, os.W_OK):
+        raise OutputError(f"{what} {path} exists and is not writable; choose another path.")
+    return p
+
+
+def _ext(what: str) -> str:
+    return ".png" if "plot" in what else ".npz"
+
+
+def atomic_write(path, write: Callable) -> None:
+    """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
+    flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
+    plain ``open(path, "w")`` would give it (``mkstemp`` alone makes it owner-only). The
+    parent folder must exist (see :func:`check_output`)."""
+    p = os.path.abspath(os.fspath(path))
+    folder = os.path.dirname(p)
+    fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=os.path.basename(p), dir=folder)
+    try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        with os.fdopen(fd, "wb") as fh:
+            write(fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def clean_orphans(path) -> list:
+    """Remove temporary files of :func:`atomic_write` for ``path`` left by a killed writer.
+
+    Only call it while holding :class:`OutputLock` on ``path`` (a live writer's temporary file
+    would otherwise be removed). Returns the removed paths."""
+    p = os.path.abspath(os.fspath(path))
+    folder, base = os.path.dirname(p), os.path.basename(p)
+    removed = []
+    for f in glob.glob(os.path.join(glob.escape(folder), glob.escape(TMP_PREFIX) + "*"
+                                    + glob.escape(base))):
+        name = os.path.basename(f)
+        # mkstemp's name: prefix + 8 random characters + basename
+        if len(name) == len(TMP_PREFIX) + 8 + len(base):
+            try:
+                os.unlink(f)
+                removed.append(f)
+            except FileNotFoundError:
+                pass
+    return removed
+
+
+class OutputLock:
+    """Exclusive lock on an output path for one writer (``with OutputLock(path): ...``).
+
+    The lock is an ``fcntl.flock`` on ``.<basename>.lock`` beside the output, holding the
+    writer's pid; the file is removed on release. A second writer raises
+    :class:`OutputError` at once (no waiting). A killed writer's lock is released by the
+    kernel; its stale lock file is taken over.
+    """
+
+    def __init__(self, path, *, what: str = "output"):
+        p = os.path.abspath(os.fspath(path))
+        self.path = p
+        self.what = what
+        self.lock_path = os.path.join(os.path.dirname(p), "." + os.path.basename(p) + ".lock")
+        self._fd = None
+
+    def acquire(self) -> "OutputLock":
+        import fcntl
+        while True:
+            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise
+                pid = ""
+                try:
+                    with open(self.lock_path) as fh:
+                        pid = fh.read().strip()
+                except OSError:
+                    pass
+                raise OutputError(
+                    f"{self.what} {self.path} is being written by another process"
+                    + (f" (pid {pid})" if pid else "") + f" holding {self.lock_path}: wait for "
+                    "it to finish or choose another output path.") from None
+            # the file may have been unlinked by the previous holder between open and flock
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.lock_path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        import fcntl
+        try:
+            os.unlink(self.lock_path)
+        except FileNotFoundError:
+            pass
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> "OutputLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+# --------------------------------------------------------------------------- keys
+def _plain(v):
+    """JSON-safe, canonical form of a key value (floats kept exactly via repr)."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in sorted(v.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        if v.size > 16:
+            return "sha256:" + hashlib.sha256(
+                np.ascontiguousarray(v, dtype=np.float64).tobytes()).hexdigest()[:16]
+        return [_plain(x) for x in v.tolist()]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        return repr(f) if not math.isfinite(f) else f
+    if v is None or isinstance(v, str):
+        return v
+    try:
+        return _plain(np.asarray(v))
+    except Exception:  # noqa: BLE001
+        return repr(v)
+
+
+def result_key(**fields) -> dict:
+    """A canonical, JSON-safe key of the fields that determine a result; adds ``version``.
+
+    Arrays longer than 16 values are stored as their SHA-256 digest."""
+    key = {k: _plain(v) for k, v in fields.items()}
+    key.setdefault("version", version())
+    return dict(sorted(key.items()))
+
+
+def key_digest(key: dict) -> str:
+    """SHA-256 of a key's canonical JSON."""
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()
+
+
+def key_differences(old: dict | None, new: dict) -> list:
+    """``["field: file has A, this run has B", ...]`` for every field that differs."""
+    if old is None:
+        return ["the file has no key (written by an older version or another program)"]
+    out = []
+    for k in sorted(set(old) | set(new)):
+        a, b = old.get(k, "<absent>"), new.get(k, "<absent>")
+        if a != b:
+            sa, sb = json.dumps(a), json.dumps(b)
+            if len(sa) > 120:
+                sa = sa[:117] + "..."
+            if len(sb) > 120:
+                sb = sb[:117] + "..."
+            out.append(f"{k}: file has {sa}, this run has {sb}")
+    return out
+
+
+def describe_simulator(sim) -> dict:
+    """Key fields of a compiled :class:`diffpen.Simulator`: the scene's records (bodies,
+    springs, colliders, materials, gravity), law, integrator, dt, substeps, smoothing, dtype."""
+    scene = sim.scene
+    records = {k: repr(v) for k, v in sorted(vars(scene).items())}
+    return {"scene": hashlib.sha256(json.dumps(records, sort_keys=True).encode()).hexdigest()[:16],
+            "n_bodies": int(sim.n_bodies), "law": sim.law, "integrator": sim.integrator,
+            "dt": float(sim.dt), "smoothing": float(sim.smoothing),
+            "exponent": float(getattr(sim, "exponent", 1.0)),
+            "broadphase": repr(getattr(sim, "broadphase", None)),
+            "substeps": repr(getattr(sim, "substeps", 1)),
+            "dtype": str(np.dtype(sim.dtype))}

@@ -1,0 +1,84 @@
+"""Progress on long work, on stderr.
+
+On a terminal a one-line bar is redrawn in place; otherwise (a log file, a pipe, a batch
+job) a plain line is written every ``every`` seconds (default 5 s), so a long run always
+shows that it is alive and how far it is, and a short one prints nothing.
+"""
+from __future__ import annotations
+
+import sys
+import time
+
+__all__ = ["Progress"]
+
+
+class Progress:
+    """Progress of ``total`` units of work labelled ``label``.
+
+    Args:
+      total: number of units (iterations, chunks).
+      label: what is running, e.g. ``"diffpen fit"``.
+      enabled: None (default): a bar on a terminal, a line every ``every`` s otherwise;
+        True: as None; False: silent.
+      value: name of the number passed to :meth:`update` (``"loss"``; ``"done"`` prints it as
+        a percentage of the work done).
+      every: seconds between lines when stderr is not a terminal.
+      stream: where to write (default ``sys.stderr``, looked up at each write).
+    """
+
+    def __init__(self, total: int, label: str = "fit", enabled: bool | None = None, *,
+                 value: str = "loss", every: float = 5.0, stream=None):
+        self.total = total
+        self.label = label
+        self.value = value
+        self.every = float(every)
+        self._stream = stream
+        self.enabled = enabled is not False
+        out = self.stream
+        self.tty = bool(getattr(out, "isatty", lambda: False)())
+        self._t0 = time.perf_counter()
+        self._last = self._t0 if not self.tty else 0.0
+        self._drawn = False
+
+    @property
+    def stream(self):
+        return self._stream if self._stream is not None else sys.stderr
+
+    def _text(self, i: int, value) -> str:
+        frac = min(i, self.total) / max(self.total, 1)
+        if value is None:
+            tail = ""
+        elif self.value == "done":
+            tail = f" {100.0 * float(value):.1f}% done"
+        else:
+            tail = f" {self.value} {float(value):.3e}"
+        return f"{self.label} {i}/{self.total}{tail}", frac
+
+    def update(self, i: int, value=None, force: bool = False) -> None:
+        """Report that ``i`` of ``total`` units are done (``value``: the current loss, or
+        the fraction done for ``value="done"``)."""
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        text, frac = self._text(i, value)
+        if self.tty:
+            if not force and now - self._last < 0.05:
+                return
+            self._last = now
+            width = 24
+            done = int(width * frac)
+            bar = "#" * done + "." * (width - done)
+            head, _, rest = text.partition(" ")
+            self.stream.write(f"\r{head} [{bar}] {rest}")
+            self._drawn = True
+        else:
+            if not force and now - self._last < self.every:
+                return
+            self._last = now
+            self.stream.write(f"{text} ({now - self._t0:.0f} s)\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled and self.tty and self._drawn:
+            self.stream.write("\n")
+            self.stream.flush()
