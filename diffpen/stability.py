@@ -560,15 +560,17 @@ def _gate(sim, params, auto: bool) -> int:
         sim._auto_last = n
         return n
     if not rep.safe:
+        h = rep.inner_dt
         why = ("unstable" if not rep.stable else
-               f"stable but past its safe step for contact (w_c h = "
-               f"{SAFE_WH * rep.inner_dt / rep.safe_dt:.3g} > {SAFE_WH}: contact energy "
-               "errors of several % or more)")
+               f"stable but not inside its safe step for contact (needs w h < {SAFE_WH} and "
+               f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
+               f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
+               " contact energy errors of several % or more)")
         raise StabilityError(
-            f"integrator {sim.integrator!r} is {why} at step {rep.inner_dt:.4g} s: the "
-            f"largest safe step is {rep.safe_dt:.4g} s (linear stability limit "
-            f"{rep.stable_dt:.4g} s; w_max <= {rep.omega_max:.4g} rad/s, set by "
-            f"{rep.limiting or 'the springs and contacts'}). Use dt <= {rep.safe_dt:.3g} s, "
+            f"integrator {sim.integrator!r} is {why} at step {h:.6g} s: the step must be "
+            f"below {rep.safe_dt:.6g} s (linear stability limit {rep.stable_dt:.4g} s; w_max "
+            f"<= {rep.omega_max:.4g} rad/s, C/m <= {rep.damping_rate:.4g} 1/s, set by "
+            f"{rep.limiting or 'the springs and contacts'}). Use dt < {rep.safe_dt:.4g} s, "
             f"compile with substeps={rep.substeps_needed} (or substeps='auto'), or "
             "integrator='implicit_euler'.",
             stable_dt=rep.safe_dt, substeps=rep.substeps_needed)

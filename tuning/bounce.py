@@ -193,7 +193,19 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     sim = dp.compile(scene, dt, law=law, **compile_kw)
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
                             settle_tol=settle_tol)
-    kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=1e4 * m if k0 is None else k0)
+    # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
+    # within ~0.5% of the continuous model (physics-notes.md section 4); beyond it a fit
+    # would tune the integrator's error instead of the contact. A start above it is lowered
+    # BEFORE the first guess, so c is guessed for the k actually used.
+    kmax = (0.25 / dt) ** 2 * m
+    k_first = 1e4 * m if k0 is None else float(k0)
+    if k_first > kmax:
+        notes.append(f"start k {k_first:.4g} N/m lowered to {kmax:.4g} N/m, the accuracy "
+                     f"limit w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer "
+                     "contact)")
+        k_first = kmax
+        k0 = kmax if k0 is not None else None
+    kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=k_first)
     heights_only = (("apex_heights" in tg or "restitution" in tg)
                     and not ({"settling_time", "contact_durations", "max_penetration"} & set(tg)))
     kpath, cpath = f"contact.{mat}.k", f"contact.{mat}.c"
@@ -204,10 +216,6 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
             notes.append(f"bounce heights alone fix only the damping ratio (zeta ~ "
                          f"{zeta:.3g}); k is held at {kk:.4g} N/m and only c is fitted. Give a "
                          "settling-time or contact-duration target to fit k as well.")
-    # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
-    # within ~0.5% of the continuous model (physics-notes.md section 4); beyond it a fit
-    # would tune the integrator's error instead of the contact.
-    kmax = (0.25 / dt) ** 2 * m
     starts = None
     if (first_guess and k0 is None and zeta is not None and "settling_time" in tg
             and "contact_durations" not in tg and kpath in free):
@@ -227,7 +235,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                      f"w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer contact)")
         kk = kmax
     params0 = sim.params(contact={mat: (kk, cc)})
-    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (1e-6, m / dt)}
+    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (min(1e-6, 1e-3 * m / dt), m / dt)}
     tol = dict(BOUNCE_METRICS)
     if rtol is not None:
         tol.update(rtol if isinstance(rtol, dict) else {k: rtol for k in tol})

@@ -171,7 +171,23 @@ def _achieved(metrics: dict, targets: dict, spec: tuple) -> tuple[dict, dict, bo
         ach[name] = m.tolist() if np.ndim(metrics[name]) else float(m[0])
         rel[name] = float(np.max(err))
         ok = ok and bool(np.all(err <= tol))
+    if "unstable" in metrics and bool(np.any(np.asarray(metrics["unstable"]))):
+        ok = False        # past the safe step: never a result (tuning.stable)
     return ach, rel, ok
+
+
+#: a residual rms above this many times the expected noise means the model does not explain
+#: the record (a good fit leaves ~1x: the noise itself)
+RESIDUAL_FACTOR = 3.0
+
+
+def residual_reached(rms: float, noise: float, dt_error: float = 0.0,
+                     factor: float = RESIDUAL_FACTOR) -> bool:
+    """Whether a trajectory fit explains its record: the residual rms (m) is within
+    ``factor`` times what noise alone leaves, ``sqrt(noise^2 + dt_error^2)`` (the record's
+    estimated noise and the model's discretisation error, m). NaN never counts as reached."""
+    expected = math.sqrt(float(noise) ** 2 + float(dt_error) ** 2)
+    return bool(math.isfinite(rms) and rms <= factor * expected)
 
 
 # --------------------------------------------------------------------------- fit

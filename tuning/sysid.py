@@ -41,6 +41,7 @@ import diffpen as dp
 
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
+from .stable import safe_contact_bounds
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
            "fit_trajectory", "TrajectoryFit", "synthetic_record", "RecordEvents"]
@@ -378,9 +379,11 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     horizons = sorted(set(h for h in horizons if h <= t[-1]))
     lo = np.array([math.log(k_start * 1e-3), math.log(c_start * 1e-3), ev.z0 - 0.05,
                    ev.v0 - 1.0])
-    hi = np.array([math.log(min(k_start * 1e3, 2.0 * mass / dt ** 2)),
-                   math.log(min(c_start * 1e3, mass / dt)), ev.z0 + 0.05, ev.v0 + 1.0])
-    x = np.array([math.log(k_start), math.log(c_start), ev.z0, ev.v0])
+    k_safe, c_safe = safe_contact_bounds(sim, mass)     # inside the explicit safe step
+    hi = np.array([math.log(min(k_start * 1e3, k_safe)),
+                   math.log(min(c_start * 1e3, c_safe)), ev.z0 + 0.05, ev.v0 + 1.0])
+    lo = np.minimum(lo, hi - 1e-9)
+    x = np.clip(np.array([math.log(k_start), math.log(c_start), ev.z0, ev.v0]), lo, hi)
     hist, its, converged, message = [], 0, False, ""
     bar = Progress(len(horizons) * maxiter, "diffpen fit --data", progress)
     for j, hz in enumerate(horizons):

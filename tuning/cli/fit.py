@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 
-from ._common import CLIError, dump_json, fail, fmt, positive, setup_jax
+from ._common import CLIError, count, dump_json, fail, fmt, positive, setup_jax
 
 UNITS = {"apex_heights": "m", "settling_time": "s", "contact_durations": "s",
          "max_penetration": "m", "restitution": "", "rms_residual": "m"}
@@ -49,7 +49,7 @@ def add_arguments(p) -> None:
                    help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
     p.add_argument("--lr", type=positive("--lr"), default=0.05,
                    help="learning rate on log-parameters for adam/sgd (default 0.05)")
-    p.add_argument("--maxiter", type=int, help="iteration limit")
+    p.add_argument("--maxiter", type=count("--maxiter"), help="iteration limit")
     p.add_argument("--k0", type=positive("--k0"), help="start stiffness, N/m")
     p.add_argument("--c0", type=positive("--c0"), help="start damping, N s/m")
     p.add_argument("--plot", metavar="FILE.png", help="trajectory against the targets and the "
@@ -81,9 +81,19 @@ def _targets(args) -> dict:
     return tg
 
 
+def _check_plot(args) -> None:
+    """--plot: a writable path and matplotlib present, checked before anything is fitted."""
+    if args.plot:
+        from ..io import check_output
+        from ..plots import require_matplotlib
+        check_output(args.plot, what="--plot")
+        require_matplotlib()
+
+
 def _run(args) -> int:
     if args.maxiter is not None and args.maxiter < 1:
         raise CLIError("--maxiter must be a positive integer")
+    _check_plot(args)
     if args.scene is not None:
         if args.data:
             raise CLIError("give either a scene file or --data, not both")
@@ -211,6 +221,7 @@ def _plot_targets(args, scene, res, dt) -> None:
 def _run_data(args) -> int:
     if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
+    from ..fit import RESIDUAL_FACTOR, residual_reached
     from ..sysid import fit_trajectory, load_csv
     t, z = load_csv(args.data)           # validated before anything is compiled
     setup_jax()
@@ -224,7 +235,15 @@ def _run_data(args) -> int:
            "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
            "first_guess": list(res.first_guess), "rms": res.rms, "noise": res.noise,
            "dt": res.dt, "iterations": res.iterations, "seconds": res.seconds,
-           "message": res.message, "notes": res.notes, "reached": True, "law": args.law}
+           "message": res.message, "notes": res.notes, "law": args.law,
+           "reached": residual_reached(res.rms, res.noise, res.dt_error),
+           "residual_limit": RESIDUAL_FACTOR * math.hypot(res.noise, res.dt_error)}
+    if not out["reached"]:
+        out["message"] = (f"the model does NOT explain the record: residual rms "
+                          f"{res.rms:.3g} m > {RESIDUAL_FACTOR:g} x the expected "
+                          f"{math.hypot(res.noise, res.dt_error):.3g} m (noise and time step). "
+                          "Check the units (t in s, z in m), --radius and --mass, and that "
+                          "the record is a ball bouncing on the ground")
     if args.plot:
         from ..plots import trajectory_fit_figure
         trajectory_fit_figure(args.plot, t, z, res.z_fit, res.history,
@@ -232,7 +251,7 @@ def _run_data(args) -> int:
                                     f"c={res.c:.5g}+-{res.c_stderr:.2g} N s/m")
     if args.json:
         dump_json(out)
-        return 0
+        return 0 if out["reached"] else 1
     print(f"diffpen fit: {out['scene']}")
     print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} N/m   c = {res.c:.6g} +- "
           f"{res.c_stderr:.2g} N s/m   (standard errors, Gauss-Newton)")
@@ -241,6 +260,8 @@ def _run_data(args) -> int:
     print(f"residual rms {res.rms * 1e3:.3g} mm against record noise {res.noise * 1e3:.3g} mm")
     for note in res.notes:
         print(f"note:      {note}")
-    print(f"status:    {res.message}; {res.iterations} LM iterations over "
+    status = ("record explained" if out["reached"] else "RECORD NOT EXPLAINED -- "
+              + out["message"])
+    print(f"status:    {status}; LM: {res.message}; {res.iterations} LM iterations over "
           f"{len(res.horizons)} horizons, {res.seconds:.2f} s wall time")
-    return 0
+    return 0 if out["reached"] else 1
