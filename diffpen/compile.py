@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import checks as _checks
 from . import laws
 from . import stability as _stability
 from .errors import NonFiniteError, SceneError
@@ -42,9 +43,19 @@ def _is_concrete(x) -> bool:
 
 
 def _check_value(name: str, v) -> None:
-    """Validate a concrete parameter value (skipped for tracers)."""
+    """Validate a parameter value: a real scalar (no strings or bools, no arrays: vmap over
+    values instead); finite and >= 0 when concrete."""
+    if v is None or isinstance(v, (str, bytes, bool, np.bool_)):
+        raise SceneError(f"{name} must be a number, got {v!r}"
+                         + (": write it without quotes." if isinstance(v, str) else "."))
+    if jnp.ndim(v) != 0:
+        raise SceneError(f"{name} must be a scalar, got an array of shape {jnp.shape(v)}: "
+                         "for several values, jax.vmap a function that calls "
+                         "sim.params(k=...) per value (or use tuning.sweep).")
     if not _is_concrete(v):
         return
+    if np.asarray(v).dtype.kind not in "iuf":
+        raise SceneError(f"{name} must be a real number, got {v!r}.")
     arr = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(arr)):
         raise SceneError(f"{name} must be finite, got {v!r}.")
@@ -80,6 +91,8 @@ class Simulator:
             raise SceneError("the scene has no bodies: add one with scene.add_sphere(...) or "
                              "scene.add_particle(...).")
         try:
+            if isinstance(dt, (str, bytes, bool, np.bool_)):
+                raise TypeError
             dt = float(dt)
         except (TypeError, ValueError):
             raise SceneError(f"dt must be a number of seconds, got {dt!r}.") from None
@@ -482,6 +495,7 @@ class Simulator:
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
+        _checks.check_rollout(self, params, steps, state, save_every, observe)
         if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps <= 0:
             raise SceneError(f"steps must be a positive int, got {steps!r}.")
         if (not isinstance(save_every, (int, np.integer)) or save_every <= 0

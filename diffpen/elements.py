@@ -19,6 +19,21 @@ __all__ = ["DEFAULT", "Body", "Spring", "AnchoredSpring", "Plane", "FixedSphere"
 DEFAULT = "default"
 
 
+def _real_array(name: str, value, what: str) -> np.ndarray:
+    """``value`` as a float array, refusing what would only be coerced: strings, bools,
+    None, complex numbers, objects."""
+    if value is None or isinstance(value, (str, bytes, bool, np.bool_)):
+        hint = ": write it without quotes" if isinstance(value, str) else ""
+        raise SceneError(f"{name} must be {what}, got {value!r}{hint}.")
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be {what}, got {value!r}.") from None
+    if raw.dtype.kind not in "iuf":
+        raise SceneError(f"{name} must be {what} (real numbers), got {value!r}.")
+    return raw.astype(float)
+
+
 def finite(name: str, value) -> None:
     arr = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(arr)):
@@ -26,10 +41,7 @@ def finite(name: str, value) -> None:
 
 
 def vec3(name: str, value) -> tuple[float, float, float]:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
+    arr = _real_array(name, value, "3 numbers (x, y, z)").reshape(-1)
     if arr.shape != (3,):
         raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.")
     finite(name, arr)
@@ -37,10 +49,7 @@ def vec3(name: str, value) -> tuple[float, float, float]:
 
 
 def finite_vec(name: str, value, size: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be {size} numbers, got {value!r}.") from None
+    arr = _real_array(name, value, f"{size} numbers").reshape(-1)
     if arr.shape != (size,):
         raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
     finite(name, arr)
@@ -48,10 +57,10 @@ def finite_vec(name: str, value, size: int) -> np.ndarray:
 
 
 def positive(name: str, value, *, allow_zero: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be a number, got {value!r}.") from None
+    arr = _real_array(name, value, "a number")
+    if arr.shape != ():
+        raise SceneError(f"{name} must be one number, got {value!r}.")
+    v = float(arr)
     finite(name, v)
     if v < 0.0 or (v == 0.0 and not allow_zero):
         need = "non-negative" if allow_zero else "positive"
