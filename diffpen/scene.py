@@ -19,6 +19,7 @@ from .elements import (DEFAULT, AnchoredSpring, Body, Drag, FixedSphere, Materia
                        PlasticSpring, Plane, Spring, SpringGroup, finite, finite_vec, positive,
                        vec3)
 from .errors import SceneError
+from .overlap import OverlapIndex
 
 __all__ = ["Scene", "DEFAULT"]
 
@@ -36,8 +37,12 @@ class Scene:
         scene.add_plane()
     """
 
-    def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81)):
+    def __init__(self, gravity: Sequence[float] = (0.0, 0.0, -9.81), *,
+                 allow_overlap: bool = False):
         self.gravity = vec3("gravity", gravity)
+        #: start bodies overlapped on purpose (no initial-overlap check; see diffpen.overlap)
+        self.allow_overlap = bool(allow_overlap)
+        self._overlap = OverlapIndex()
         self.bodies: list[Body] = []
         self.springs: list[Spring] = []
         self.anchored_springs: list[AnchoredSpring] = []
@@ -53,7 +58,8 @@ class Scene:
         self.plastic_smoothing: float = 1e-3
 
     # ----------------------------------------------------------------- bodies
-    def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide) -> int:
+    def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide,
+                  allow_overlap=False) -> int:
         mass = positive("mass (kg)", mass)
         radius = positive("radius (m)", radius, allow_zero=(kind == "particle"))
         position = vec3("position (m)", position)
@@ -62,15 +68,23 @@ class Scene:
             raise SceneError("a pinned body cannot have an initial velocity: drop velocity= "
                              "or pinned=True.")
         self._check_material(material)
-        for i, fs in enumerate(self.fixed_spheres):
-            self._check_not_inside(position, radius, fs, i)
-        self.bodies.append(Body(kind, mass, radius, position, velocity, bool(pinned),
-                                material, bool(collide)))
+        body = Body(kind, mass, radius, position, velocity, bool(pinned), material,
+                    bool(collide))
+        if kind != "box":      # boxes are checked with their orientation (_make_rigid)
+            self._overlap.check_body(self, body, len(self.bodies),
+                                     allow=self._allowed(allow_overlap))
+        self.bodies.append(body)
         return len(self.bodies) - 1
+
+    def _allowed(self, allow_overlap) -> bool:
+        if not isinstance(allow_overlap, (bool, np.bool_)):
+            raise SceneError(f"allow_overlap must be True or False, got {allow_overlap!r}.")
+        return bool(allow_overlap) or self.allow_overlap
 
     def add_particle(self, mass: float, position: Sequence[float],
                      velocity: Sequence[float] = (0.0, 0.0, 0.0), *, pinned: bool = False,
-                     material: str = DEFAULT, collide: bool = True) -> int:
+                     material: str = DEFAULT, collide: bool = True,
+                     allow_overlap: bool = False) -> int:
         """Add a point mass. Returns its body index.
 
         Args:
@@ -78,26 +92,31 @@ class Scene:
           pinned: fixed in space (takes no force, never moves).
           material: contact material name (see :meth:`add_material`).
           collide: whether it touches planes and fixed spheres.
+          allow_overlap: start it inside a collider or another body on purpose (otherwise an
+            initial overlap deeper than 5% of the smaller size raises SceneError; see
+            :mod:`diffpen.overlap`).
         """
         return self._add_body("particle", mass, 0.0, position, velocity, pinned, material,
-                              collide)
+                              collide, allow_overlap)
 
     def add_sphere(self, radius: float, mass: float, position: Sequence[float],
                    velocity: Sequence[float] = (0.0, 0.0, 0.0), *, pinned: bool = False,
-                   material: str = DEFAULT, collide: bool = True) -> int:
+                   material: str = DEFAULT, collide: bool = True,
+                   allow_overlap: bool = False) -> int:
         """Add a sphere (translating point mass with a contact radius). Returns its index.
 
         Args:
           radius: m, > 0.  mass: kg, > 0.  position: (3,) centre, m.  velocity: (3,) m/s.
           pinned: fixed in space.  material: contact material name.
           collide: whether it touches planes, fixed spheres and other spheres.
+          allow_overlap: start it overlapping a collider or another body on purpose.
         """
         return self._add_body("sphere", mass, radius, position, velocity, pinned, material,
-                              collide)
+                              collide, allow_overlap)
 
     # ----------------------------------------------------------------- colliders
     def add_plane(self, normal: Sequence[float] = (0.0, 0.0, 1.0), offset: float = 0.0, *,
-                  material: str = DEFAULT) -> int:
+                  material: str = DEFAULT, allow_overlap: bool = False) -> int:
         """Add a fixed plane ``normal . p = offset``; the solid is on the side ``-normal``.
 
         Args:
@@ -115,29 +134,23 @@ class Scene:
             raise SceneError(f"plane offset must be a number, got {offset!r}.") from None
         finite("plane offset", offset)
         self._check_material(material)
-        self.planes.append(Plane(tuple(float(a) for a in n / norm), offset, material))
+        plane = Plane(tuple(float(a) for a in n / norm), offset, material)
+        if not self._allowed(allow_overlap):
+            self._overlap.check_collider(self, "plane", plane, len(self.planes))
+        self.planes.append(plane)
         return len(self.planes) - 1
 
     def add_fixed_sphere(self, center: Sequence[float], radius: float, *,
-                         material: str = DEFAULT) -> int:
+                         material: str = DEFAULT, allow_overlap: bool = False) -> int:
         """Add a fixed spherical obstacle of ``radius`` (m) at ``center`` (m). Returns index."""
         center = vec3("fixed sphere center (m)", center)
         radius = positive("fixed sphere radius (m)", radius)
         self._check_material(material)
         fs = FixedSphere(center, radius, material)
-        for b in self.bodies:
-            self._check_not_inside(b.position, b.radius, fs, len(self.fixed_spheres))
+        if not self._allowed(allow_overlap):
+            self._overlap.check_collider(self, "fixed sphere", fs, len(self.fixed_spheres))
         self.fixed_spheres.append(fs)
         return len(self.fixed_spheres) - 1
-
-    @staticmethod
-    def _check_not_inside(position, radius, fs: FixedSphere, index: int) -> None:
-        depth = radius + fs.radius - math.dist(position, fs.center)
-        if depth > max(radius, 0.0) and depth > 0.0:
-            raise SceneError(
-                f"a body at {position} starts inside fixed sphere {index} (penetration "
-                f"{depth:.4g} m > its radius {radius:.4g} m): its contact normal would point "
-                f"inwards. Move it out of the sphere.")
 
     # ----------------------------------------------------------------- materials
     def add_material(self, name: str, k: float | None = None, c: float | None = None, *,
@@ -316,7 +329,8 @@ class Scene:
         return len(self.plastic_springs) - 1
 
     # ----------------------------------------------------------------- rigid bodies
-    def _make_rigid(self, i: int, orientation, angular_velocity, inertia, half_extents) -> int:
+    def _make_rigid(self, i: int, orientation, angular_velocity, inertia, half_extents,
+                    allow_overlap: bool = False) -> int:
         """Turn the just-added body ``i`` into a rigid body (removed again on bad input)."""
         body = self.bodies[i]
         try:
@@ -332,12 +346,16 @@ class Scene:
             if inertia is not None:
                 inertia = tuple(positive("inertia (kg m^2)", v)
                                 for v in finite_vec("inertia (kg m^2)", inertia, 3))
+            rigid = dataclasses.replace(
+                body, rigid=True, orientation=tuple(float(v) for v in q / norm),
+                angular_velocity=w, inertia=inertia, half_extents=half_extents)
+            if body.kind == "box":
+                self._overlap.check_body(self, rigid, i, allow=self._allowed(allow_overlap))
         except SceneError:
             self.bodies.pop()
+            self._overlap.forget(i)
             raise
-        self.bodies[i] = dataclasses.replace(
-            body, rigid=True, orientation=tuple(float(v) for v in q / norm),
-            angular_velocity=w, inertia=inertia, half_extents=half_extents)
+        self.bodies[i] = rigid
         return i
 
     def add_box(self, half_extents: Sequence[float], mass: float, position: Sequence[float],
@@ -345,7 +363,8 @@ class Scene:
                 orientation: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
                 angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
                 inertia: Sequence[float] | None = None, pinned: bool = False,
-                material: str = DEFAULT, collide: bool = True) -> int:
+                material: str = DEFAULT, collide: bool = True,
+                allow_overlap: bool = False) -> int:
         """Add a rigid box. Returns its body index.
 
         Args:
@@ -365,21 +384,22 @@ class Scene:
                   for v in finite_vec("box half_extents (m)", half_extents, 3))
         i = self._add_body("box", mass, math.hypot(*h), position, velocity, pinned, material,
                            collide)
-        return self._make_rigid(i, orientation, angular_velocity, inertia, h)
+        return self._make_rigid(i, orientation, angular_velocity, inertia, h, allow_overlap)
 
     def add_rigid_sphere(self, radius: float, mass: float, position: Sequence[float],
                          velocity: Sequence[float] = (0.0, 0.0, 0.0), *,
                          orientation: Sequence[float] = (1.0, 0.0, 0.0, 0.0),
                          angular_velocity: Sequence[float] = (0.0, 0.0, 0.0),
                          inertia: Sequence[float] | None = None, pinned: bool = False,
-                         material: str = DEFAULT, collide: bool = True) -> int:
+                         material: str = DEFAULT, collide: bool = True,
+                         allow_overlap: bool = False) -> int:
         """Add a sphere that also rotates (orientation, angular velocity, inertia).
 
         Same arguments as :meth:`add_box`, with ``radius`` (m, > 0) for the half extents;
         default inertia ``(2/5) m r^2`` (solid sphere). It collides like :meth:`add_sphere`.
         """
         i = self._add_body("sphere", mass, radius, position, velocity, pinned, material,
-                           collide)
+                           collide, allow_overlap)
         return self._make_rigid(i, orientation, angular_velocity, inertia, None)
 
     def add_anchored_spring(self, a: int, b, anchor_a: Sequence[float] = (0.0, 0.0, 0.0),

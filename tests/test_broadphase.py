@@ -13,7 +13,7 @@ from diffpen import broadphase as bp
 def random_scene(seed, n_spheres=30, n_boxes=4, spread=0.5, pinned_every=0):
     """Spheres of mixed radii, a few particles and tilted boxes packed in a cube."""
     rng = np.random.default_rng(seed)
-    scene = dp.Scene()
+    scene = dp.Scene(allow_overlap=True)   # packed at random: overlaps on purpose
     scene.add_material("soft", k=5e3, c=5.0)
     for i in range(n_spheres):
         pinned = pinned_every and i % pinned_every == 0
@@ -108,7 +108,7 @@ def test_overflow_is_reported_never_silent():
 
 
 def test_full_cell_is_reported_as_overflow():
-    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0), allow_overlap=True)     # crowded on purpose
     for i in range(5):                                    # five spheres in one cell
         scene.add_sphere(0.1, 1.0, (0.01 * i, 0.0, 0.0))
     scene.add_sphere(0.1, 1.0, (3.0, 0.0, 0.0))

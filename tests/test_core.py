@@ -373,7 +373,7 @@ def test_plane_contact_forces_match_the_per_pair_law(normals):
     """Plane normals enter the step as constants (zeros left out); the forces must equal the
     pair law F = (k ramp(d) - c gate(d) n.v) n summed over planes, d = r - (n.x - offset)."""
     from diffpen import laws
-    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0), allow_overlap=True)   # particles inside planes
     rng = np.random.default_rng(3)
     x = rng.uniform(-0.06, 0.06, (5, 3))
     v = rng.normal(size=(5, 3))

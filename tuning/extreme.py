@@ -41,7 +41,7 @@ def ball_scene(*, mass: float = 1.0, radius: float = 0.1, height: float = 1.0,
     height: initial centre height, m (ignored with ``overlap``: the centre then starts ON the
     plane, i.e. overlapped by its full radius).  speed: initial downward speed, m/s.
     """
-    scene = dp.Scene(gravity=(0.0, 0.0, -G if gravity else 0.0))
+    scene = dp.Scene(gravity=(0.0, 0.0, -G if gravity else 0.0), allow_overlap=overlap)
     z0 = 0.0 if overlap else height
     scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, z0),
                      velocity=(0.0, 0.0, -speed))
@@ -55,7 +55,7 @@ def chain_scene(*, n: int = 4, mass: float = 1.0, radius: float = 0.05, spacing:
     """A horizontal chain of ``n`` spheres joined by springs (group ``"chain"``), above the
     ground plane, falling onto it. ``mass`` per sphere, kg; the springs start at rest length.
     ``overlap``: the first sphere starts centred on the plane (overlapped by its radius)."""
-    scene = dp.Scene(gravity=(0.0, 0.0, -G if gravity else 0.0))
+    scene = dp.Scene(gravity=(0.0, 0.0, -G if gravity else 0.0), allow_overlap=overlap)
     prev = None
     for i in range(n):
         z0 = 0.0 if (overlap and i == 0) else height
