@@ -1,14 +1,16 @@
 """A 64 x 64 sweep of the 2 s ball scene over (k, c) with jax.vmap, and heatmaps of the first
 apex and the maximum penetration with target contours.
 
-Results go to $TMPDIR/diffpen-sweep/sweep.npz (+ .csv); run it twice and the second run
-resumes from the file (nothing is recomputed). Figures: examples/images/sweep_apex.png and
-sweep_penetration.png (needs matplotlib).
+Results go to sweep_heatmap.npz (+ .csv) in the current folder (``--out`` to choose): run it
+twice and the second run resumes from the file (nothing is recomputed). The file carries a key
+of everything that determines it, so a file of other settings is refused, never mixed in
+(``--fresh`` overwrites it); a second run writing the same file at the same time is refused.
+Figures: examples/images/sweep_apex.png and sweep_penetration.png (needs matplotlib).
 
-Run: python examples/sweep_heatmap.py
+Run: python examples/sweep_heatmap.py [--out FILE.npz] [--fresh] [--n N]
 """
+import argparse
 import os
-import tempfile
 import time
 
 import jax
@@ -19,12 +21,13 @@ import numpy as np  # noqa: E402
 
 import diffpen as dp  # noqa: E402
 from tuning.bounce import bounce_metrics_fn  # noqa: E402
+from tuning.io import describe_simulator  # noqa: E402
 from tuning.sweep import grid_points, sweep  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def main(n=64, duration=2.0, dt=1e-3):
+def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False):
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
     scene.add_plane()
@@ -34,9 +37,10 @@ def main(n=64, duration=2.0, dt=1e-3):
     axes = {"contact.default.k": ks, "contact.default.c": cs}
     points, shape = grid_points(axes)
     t0 = time.perf_counter()
-    res = sweep(mfn, sim.params(k=1e4, c=10.0), points, list(axes), chunk=512,
-                out=os.path.join(tempfile.gettempdir(), "diffpen-sweep", "sweep.npz"),
-                shape=shape, axes=axes,
+    key = dict(describe_simulator(sim), model="ball dropped from 1 m", duration=duration,
+               n_apex=2, settle_tol=1e-3)
+    res = sweep(mfn, sim.params(k=1e4, c=10.0), points, list(axes), chunk=512, out=out,
+                resume=not fresh, key=key, shape=shape, axes=axes,
                 keys=["apex_heights", "max_penetration", "settled", "settling_time"])
     wall = time.perf_counter() - t0
     print(f"{n} x {n} sweep of the {duration:g} s ball (dt={dt:g} s): {res.evaluated} points "
@@ -60,4 +64,9 @@ def main(n=64, duration=2.0, dt=1e-3):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="sweep_heatmap.npz", help="results .npz (+ .csv)")
+    ap.add_argument("--fresh", action="store_true", help="overwrite --out instead of resuming")
+    ap.add_argument("--n", type=int, default=64, help="grid points per axis (default 64)")
+    a = ap.parse_args()
+    main(n=a.n, out=a.out, fresh=a.fresh)

@@ -341,6 +341,10 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         raise FitError(f"t and z must be 1-D arrays of one length, got {t.shape}, {z.shape}.")
     notes = []
     ev = record_events(t, z, radius=radius, g=g)
+    if not ev.z0 > 0.5 * radius or not np.all(ev.apex > 0.0):
+        raise FitError(f"the record's first flight is not a fall under gravity g = {g} m/s^2 "
+                       f"from above the ground (its parabola starts at {ev.z0:.4g} m): check "
+                       "the units (t in seconds, z in metres) and --radius.")
     kg, cg = first_guess(ev, mass, law=law)
     notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
                  f"{np.median(ev.restitution[:3]):.4g}, contact time "

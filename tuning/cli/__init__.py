@@ -17,7 +17,7 @@ COMMANDS = {
     "simulate": ("tuning.cli.simulate", "roll out a built-in scene or a scene file and report "
                                         "metrics"),
     "sweep": ("tuning.cli.sweep", "batched sweep over (k, c) with vmap; writes .npz + .csv"),
-    "report": ("tuning.cli.report", "stability and accuracy reports"),
+    "report": ("tuning.cli.report", "stability, accuracy and gradient-error reports"),
     "bench": ("tuning.cli.bench", "speed benchmarks against baselines measured in the same "
                                   "process"),
 }

@@ -221,13 +221,22 @@ def _plot_targets(args, scene, res, dt) -> None:
 def _run_data(args) -> int:
     if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
-    from ..fit import RESIDUAL_FACTOR, residual_reached
+    from ..fit import RESIDUAL_FACTOR, FitError, residual_reached
     from ..sysid import fit_trajectory, load_csv
     t, z = load_csv(args.data)           # validated before anything is compiled
     setup_jax()
-    res = fit_trajectory(t, z, radius=args.radius, mass=args.mass, law=args.law, dt=args.dt,
-                         k0=args.k0, c0=args.c0, maxiter=args.maxiter or 15,
-                         progress=False if args.json else None)
+    from diffpen import SceneError
+    try:
+        res = fit_trajectory(t, z, radius=args.radius, mass=args.mass, law=args.law,
+                             dt=args.dt, k0=args.k0, c0=args.c0, maxiter=args.maxiter or 15,
+                             progress=False if args.json else None)
+    except (FitError, SceneError) as exc:    # a valid file the ball model cannot explain
+        msg = f"the model does NOT explain {args.data}: {exc}"
+        if args.json:
+            dump_json({"reached": False, "message": msg, "data": args.data})
+        else:
+            print(f"status:    RECORD NOT EXPLAINED -- {msg}")
+        return 1
     out = {"scene": f"ball r={args.radius:g} m, m={args.mass:g} kg fitted to {args.data} "
                     f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, {args.law} "
                     "law)",

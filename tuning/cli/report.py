@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import sys
 
-from ._common import dump_json, fail, positive, setup_jax
+from ._common import count, dump_json, fail, finite, positive, setup_jax
 
 
 def add_arguments(p) -> None:
@@ -30,7 +30,7 @@ def add_arguments(p) -> None:
                    help="accuracy: recommend the cheapest integrator and dt whose relative "
                         "apex-height error on the ball is <= TOL")
     p.add_argument("--k", type=positive("--k"), default=1e4, help="ball contact k, N/m")
-    p.add_argument("--c", type=float, default=20.0, help="ball contact c, N s/m")
+    p.add_argument("--c", type=finite("--c"), default=20.0, help="ball contact c, N s/m")
     p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg")
     p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m")
     p.add_argument("--height", type=positive("--height"), default=1.0,
@@ -41,7 +41,7 @@ def add_arguments(p) -> None:
                    choices=["float32", "float64"], help="stability: dtypes of the matrix")
     p.add_argument("--integrators", nargs="+", default=None,
                    help="integrators (default: all four)")
-    p.add_argument("--repeats", type=int, default=5,
+    p.add_argument("--repeats", type=count("--repeats"), default=5,
                    help="accuracy: timed runs per point after compilation (median reported)")
 
 
@@ -58,6 +58,12 @@ def run(args) -> int:
     if args.height <= args.radius:
         return fail("report", "--height must be above --radius (the ball starts above the "
                               "plane)")
+    if args.plot:
+        from ..io import OutputError, check_output
+        try:
+            check_output(args.plot, what="--plot")
+        except OutputError as exc:
+            return fail("report", str(exc))
     setup_jax(x64=True)
     if args.what == "stability":
         return _stability(args, integs)

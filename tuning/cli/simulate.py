@@ -2,9 +2,7 @@
 scene file, print its metrics, and optionally write the trajectory (.npz)."""
 from __future__ import annotations
 
-import os
-
-from ._common import CLIError, dump_json, fail, fmt, positive, setup_jax
+from ._common import CLIError, count, dump_json, fail, finite, fmt, positive, setup_jax
 
 
 def add_arguments(p) -> None:
@@ -12,8 +10,9 @@ def add_arguments(p) -> None:
                    help="a built-in scene name (see tuning.scenes.SCENES, e.g. 'ball') or a "
                         ".toml scene file")
     p.add_argument("--k", type=positive("--k"), help="contact stiffness, N/m (every material)")
-    p.add_argument("--c", type=float, help="contact damping, N s/m (every material)")
-    p.add_argument("--steps", type=int, help="number of steps (default: the scene's)")
+    p.add_argument("--c", type=finite("--c"), help="contact damping, N s/m (every material)")
+    p.add_argument("--steps", type=count("--steps"), help="number of steps (default: the "
+                   "scene's)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default: the scene's)")
     p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"],
                    help="contact law (default: the scene's)")
@@ -37,18 +36,38 @@ def _load(args):
     return get_scene(args.scene)
 
 
+def _check_size(scene, steps: int, write: bool) -> None:
+    """Refuse a rollout whose saved trajectory cannot fit in memory (every step of every body
+    is kept, float64), with the estimate, before anything is compiled."""
+    from diffpen.checks import STEP_RATE, _human_bytes, _human_time, memory_bytes
+    n = max(scene.n_bodies, 1)
+    per_body = 6 + (7 if scene.has_rotation else 0)
+    stored = float(steps) * n * per_body * 8 * (2 if write else 1)
+    seconds = float(steps) * n / STEP_RATE
+    mem = memory_bytes()
+    if stored > 0.5 * mem:
+        raise CLIError(f"--steps {steps} keeps {steps} states of {n} bodies: about "
+                       f"{_human_bytes(stored)}, more than half of this machine's "
+                       f"{_human_bytes(mem)} (and about {_human_time(seconds)} of compute "
+                       f"at ~{STEP_RATE:.0e} body-steps/s): lower --steps or raise --dt")
+
+
 def _run(args) -> int:
     if args.steps is not None and args.steps < 1:
         raise CLIError("--steps must be a positive integer")
     if args.c is not None and not args.c >= 0.0:
         raise CLIError("--c must be >= 0 (N s/m)")
+    if args.out:
+        from ..io import check_output
+        check_output(args.out, what="--out")
     setup = _load(args)                       # scene built and validated: nothing compiled yet
+    dt = args.dt or setup.dt
+    steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
+    _check_size(setup.scene, steps, bool(args.out))
     setup_jax()
     import numpy as np
 
     import diffpen as dp
-    dt = args.dt or setup.dt
-    steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
     sim = dp.compile(setup.scene, dt, law=args.law or setup.law)
     k = setup.k if args.k is None else args.k
     c = setup.c if args.c is None else args.c
@@ -66,9 +85,7 @@ def _run(args) -> int:
     else:
         out["final_position"] = np.asarray(traj.position[-1]).tolist()
     if args.out:
-        folder = os.path.dirname(os.path.abspath(args.out))
-        os.makedirs(folder, exist_ok=True)
-        from ..sweep import atomic_write
+        from ..io import atomic_write
         arrays = {"time": np.concatenate([[0.0], np.asarray(traj.time)]),
                   "position": np.concatenate([np.asarray(s0.position)[None],
                                               np.asarray(traj.position)]),
