@@ -203,6 +203,8 @@ def _plain(v):
     if isinstance(v, (list, tuple)):
         return [_plain(x) for x in v]
     if isinstance(v, np.ndarray):
+        if v.ndim == 0:
+            return _plain(v.item())
         if v.size > 16:
             return "sha256:" + hashlib.sha256(
                 np.ascontiguousarray(v, dtype=np.float64).tobytes()).hexdigest()[:16]

@@ -1,0 +1,141 @@
+"""Library input checks: scenes refuse bodies starting inside colliders or each other (unless
+asked), numbers are never coerced from strings or bools, params() refuses vectors, rollout
+names a bad params pytree, state or size before anything is traced."""
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.overlap import OverlapIndex
+
+
+def ball_scene(**kw):
+    scene = dp.Scene(**kw)
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    scene.add_plane()
+    return scene
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return dp.compile(ball_scene(), 1e-3)
+
+
+# --------------------------------------------------------------------------- overlaps
+@pytest.mark.parametrize("build, words", [
+    # a sphere 5 m below the ground (issue: launched to 460 m)
+    (lambda s: (s.add_plane(), s.add_sphere(0.1, 1.0, (0.0, 0.0, -5.0))),
+     ["plane 0", "overlap by 5.1 m", "move it 5.1 m along the plane's normal"]),
+    # the plane added after the body: the same check
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, -5.0)), s.add_plane()),
+     ["plane 0", "overlap by 5.1 m"]),
+    # coincident spheres never separate
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)), s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))),
+     ["sphere 1", "sphere 0", "centres coincide", "0.2 m apart"]),
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)), s.add_sphere(0.1, 1.0, (0.05, 0, 1.0))),
+     ["overlap by 0.15 m", "further apart along (1, 0, 0)"]),
+    (lambda s: (s.add_box((0.2, 0.2, 0.2), 1.0, (0.0, 0.0, 1.0)),
+                s.add_sphere(0.05, 1.0, (0.0, 0.0, 1.1))), ["box 0", "out of the box"]),
+    (lambda s: (s.add_sphere(0.05, 1.0, (0.0, 0.0, 1.1)),
+                s.add_box((0.2, 0.2, 0.2), 1.0, (0.0, 0.0, 1.0))), ["box 1", "sphere 0"]),
+    (lambda s: (s.add_plane(), s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.0))),
+     ["box 0", "plane 0", "raise it by 0.1 m"]),
+    (lambda s: (s.add_fixed_sphere((0, 0, 0), 0.5), s.add_particle(1.0, (0.0, 0.0, 0.1))),
+     ["particle 0", "inside fixed sphere 0"]),
+])
+def test_bodies_starting_inside_are_refused_with_the_overlap_and_the_fix(build, words):
+    with pytest.raises(dp.SceneError) as exc:
+        build(dp.Scene())
+    for w in words:
+        assert w in str(exc.value), (w, str(exc.value))
+    assert "allow_overlap=True" in str(exc.value)
+    build(dp.Scene(allow_overlap=True))             # asked for explicitly: accepted
+
+
+def test_resting_and_pinned_overlaps_pass_and_allow_overlap_is_per_body():
+    scene = dp.Scene()
+    scene.add_plane()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.099))           # resting: 1 mm = m g / k
+    scene.add_sphere(0.1, 1.0, (0.5, 0.0, 0.5), pinned=True)
+    scene.add_sphere(0.1, 1.0, (0.55, 0.0, 0.5), pinned=True)   # two pinned: never evaluated
+    i = scene.add_sphere(0.1, 1.0, (0.0, 0.0, -0.2), allow_overlap=True)
+    assert i == 3
+    scene.add_plane((0.0, 0.0, 1.0), -0.02)       # a later plane skips the allowed body
+    with pytest.raises(dp.SceneError, match="allow_overlap must be True or False"):
+        scene.add_sphere(0.1, 1.0, (3.0, 0.0, 1.0), allow_overlap="yes")
+    # a rejected body leaves no trace in the scene or the index
+    n = scene.n_bodies
+    with pytest.raises(dp.SceneError):
+        scene.add_sphere(0.1, 1.0, (0.0, 0.0, -1.0))
+    assert scene.n_bodies == n
+    scene.add_sphere(0.1, 1.0, (2.0, 0.0, 1.0))
+
+
+def test_overlap_check_looks_only_at_neighbours():
+    """A dense lattice: each new sphere is compared with the spheres of its own cells only,
+    never with all earlier bodies (no O(n^2) loop)."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.21
+    for p in g:
+        scene.add_sphere(0.1, 1.0, tuple(p))
+    idx = scene._overlap
+    assert isinstance(idx, OverlapIndex)
+    counts = [len(idx._near(p, 0.1, scene.n_bodies)) for p in g[::97]]
+    assert max(counts) <= 27 and scene.n_bodies == 1728
+
+
+# --------------------------------------------------------------------------- numbers
+@pytest.mark.parametrize("kw, words", [
+    (dict(mass="1.0"), "mass (kg) must be a number, got '1.0': write it without quotes"),
+    (dict(mass=True), "mass (kg) must be a number, got True"),
+    (dict(radius="0.1"), "radius (m) must be a number"),
+    (dict(mass=[1.0, 2.0]), "mass (kg) must be one number"),
+    (dict(position="0 0 1"), "position (m) must be 3 numbers"),
+    (dict(velocity=(1j, 0, 0)), "velocity (m/s) must be 3 numbers"),
+])
+def test_scene_numbers_are_not_coerced(kw, words):
+    args = dict(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
+    args.update(kw)
+    with pytest.raises(dp.SceneError) as exc:
+        dp.Scene().add_sphere(**args)
+    assert words in str(exc.value)
+
+
+def test_dt_and_params_are_not_coerced_and_k_is_a_scalar(sim):
+    with pytest.raises(dp.SceneError, match="dt must be a number of seconds, got '1e-3'"):
+        dp.compile(ball_scene(), "1e-3")
+    with pytest.raises(dp.SceneError, match="dt must be a number"):
+        dp.compile(ball_scene(), True)
+    with pytest.raises(dp.SceneError, match="got '1e4': write it without quotes"):
+        sim.params(k="1e4", c=1.0)
+    with pytest.raises(dp.SceneError, match="must be a number, got True"):
+        sim.params(k=1e4, c=True)
+    with pytest.raises(dp.SceneError, match=r"must be a scalar, got an array of shape \(3,\)"
+                                            r".*jax.vmap"):
+        sim.params(k=np.array([1e3, 1e4, 1e5]), c=1.0)
+    sim.params(k=np.float32(1e4), c=np.array(1.0))          # numpy scalars are numbers
+
+
+def test_rollout_refuses_bad_params_state_and_sizes_before_tracing(sim, monkeypatch):
+    from diffpen import checks
+    monkeypatch.setattr(checks, "memory_bytes", lambda: 8.0 * 2 ** 30)
+    p = sim.params(k=1e4, c=10.0)
+    s0 = sim.init_state()
+    with pytest.raises(dp.SceneError, match="rollout needs the params pytree from sim.params"):
+        sim.rollout(None, 10)
+    with pytest.raises(dp.SceneError, match=r"state.position has shape \(2, 3\), this "
+                                            r"simulator needs \(1, 3\)"):
+        sim.rollout(p, 10, s0._replace(position=jnp.zeros((2, 3))))
+    with pytest.raises(dp.SceneError, match="state.velocity has dtype"):
+        sim.rollout(p, 10, s0._replace(velocity=s0.velocity.astype(jnp.float32)))
+    with pytest.raises(dp.SceneError) as exc:            # names the state, not the time step
+        sim.rollout(p, 10, s0._replace(position=s0.position.at[0, 2].set(jnp.nan)))
+    assert "start state is not finite: state.position of body 0" in str(exc.value)
+    assert "time step is not the cause" in str(exc.value)
+    with pytest.raises(dp.SceneError) as exc:
+        sim.rollout(p, 10 ** 12)
+    assert "int32" in str(exc.value) and "TiB" in str(exc.value)
+    with pytest.raises(dp.SceneError, match="would store .* GiB, more than half"):
+        sim.rollout(p, 2 * 10 ** 8)
+    with pytest.raises(dp.SceneError, match=r"use steps=10\)"):
+        sim.rollout(p, 10.0)

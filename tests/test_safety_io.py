@@ -1,0 +1,157 @@
+"""Result files: keyed resume (refused with what differs), one writer per output, orphan
+temporary files removed, output paths checked before computing, temporary files beside the
+output, points past the safe step and unsettled points NaN in the files."""
+import os
+import subprocess
+import sys
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.state import ContactParams
+from tuning import io as IO
+from tuning import sweep as S
+
+NAMES = ["contact.default.k"]
+PARAMS0 = dp.Params({"default": ContactParams(np.float64(1.0), np.float64(2.0))}, {}, {})
+POINTS = np.arange(1.0, 11.0)[:, None]          # (10, 1)
+
+
+def metrics_fn(p):
+    k = p.contact["default"].k
+    return {"twice": 2.0 * k, "settled": k < 8.0, "unstable": k > 9.0}
+
+
+@pytest.fixture(scope="module")
+def evaluate():
+    return S.make_evaluator(metrics_fn, PARAMS0, NAMES, batch_map=lambda f: jax.jit(jax.vmap(f)))
+
+
+def run(evaluate, out, key, **kw):
+    return S.sweep(None, PARAMS0, POINTS, NAMES, chunk=4, out=out, key=key, evaluate=evaluate,
+                   progress=False, **kw)
+
+
+def test_resume_only_on_an_exact_key_else_refuse_naming_the_difference(evaluate, tmp_path):
+    out = str(tmp_path / "s.npz")
+
+    def stop(i, res):
+        if i == 0:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):       # killed after the first chunk
+        run(evaluate, out, {"dt": 1e-3, "drop": 1.0}, on_chunk=stop)
+    assert S.load_sweep(out).done.sum() == 4
+    # other physics: refused, the file is untouched (no mixing of old and new rows)
+    before = open(out, "rb").read()
+    with pytest.raises(S.SweepError) as exc:
+        run(evaluate, out, {"dt": 1e-3, "drop": 2.0})
+    msg = str(exc.value)
+    assert "drop: file has 1.0, this run has 2.0" in msg and "--fresh" in msg
+    assert "dt: file has" not in msg                       # only what differs is named
+    assert open(out, "rb").read() == before
+    # the same key resumes: only the missing points are computed
+    res = run(evaluate, out, {"dt": 1e-3, "drop": 1.0})
+    assert res.evaluated == 6 and res.done.all()
+    # another grid over the same output: refused; resume=False overwrites
+    with pytest.raises(S.SweepError, match="n_points"):
+        S.sweep(None, PARAMS0, POINTS[:3], NAMES, chunk=4, out=out, evaluate=evaluate,
+                key={"dt": 1e-3, "drop": 1.0}, progress=False)
+    res = S.sweep(None, PARAMS0, POINTS[:3], NAMES, chunk=4, out=out, evaluate=evaluate,
+                  key={"dt": 1e-3, "drop": 1.0}, resume=False, progress=False)
+    assert res.evaluated == 3 and S.load_sweep(out).points.shape == (3, 1)
+    # the key lives in the file and names the version and the dtype
+    key = S.load_sweep(out).key
+    assert key["drop"] == 1.0 and "version" in key and "dtype" in key
+
+
+def test_a_second_writer_is_refused_and_a_killed_writer_does_not_block(evaluate, tmp_path):
+    out = str(tmp_path / "s.npz")
+    with IO.OutputLock(out):
+        with pytest.raises(IO.OutputError, match=r"being written by another process \(pid"):
+            run(evaluate, out, {})
+    assert not os.path.exists(tmp_path / ".s.npz.lock")          # released and removed
+    # a writer killed with SIGKILL leaves its lock file; the kernel dropped the lock
+    code = ("import os, sys; sys.path.insert(0, %r); from tuning.io import OutputLock; "
+            "OutputLock(%r).acquire(); os.kill(os.getpid(), 9)" % (os.getcwd(), out))
+    subprocess.run([sys.executable, "-c", code], env=dict(os.environ))
+    assert os.path.exists(tmp_path / ".s.npz.lock")
+    assert run(evaluate, out, {}).done.all()
+
+
+def test_orphans_of_a_killed_run_are_removed_and_temp_files_sit_beside_the_output(
+        evaluate, tmp_path, monkeypatch):
+    out = str(tmp_path / "s.npz")
+    orphans = [tmp_path / ".tmp-abcd1234s.npz", tmp_path / ".tmp-wxyz9876s.csv"]
+    other = tmp_path / ".tmp-abcd1234other.npz"                  # another output's: kept
+    for f in orphans + [other]:
+        f.write_bytes(b"half")
+    dirs = []
+    real = tempfile.mkstemp
+
+    def spy(*a, **k):
+        dirs.append(k.get("dir"))
+        return real(*a, **k)
+    monkeypatch.setattr(tempfile, "mkstemp", spy)
+    run(evaluate, out, {})
+    assert not any(f.exists() for f in orphans) and other.exists()
+    assert dirs and set(dirs) == {str(tmp_path)}
+
+
+@pytest.mark.parametrize("bad, words", [
+    ("{tmp}/missing/s.npz", "does not exist"),
+    ("{tmp}", "is a directory"),
+    ("/proc/nope/s.npz", "does not exist"),
+])
+def test_output_paths_are_checked_before_computing(tmp_path, bad, words):
+    def never(batch):
+        raise AssertionError("computed before checking the output")
+    with pytest.raises(IO.OutputError, match=words):
+        S.sweep(None, PARAMS0, POINTS, NAMES, out=bad.format(tmp=tmp_path), evaluate=never)
+    assert not any(f.startswith(".tmp-") for f in os.listdir(tmp_path))
+
+
+def test_points_past_the_safe_step_are_nan_and_counted_in_memory_and_files(evaluate, tmp_path):
+    out = str(tmp_path / "s.npz")
+    res = run(evaluate, out, {})
+    bad = POINTS[:, 0] > 9.0
+    assert res.unstable == int(bad.sum()) == 1
+    assert np.isnan(res.metrics["twice"][bad]).all()
+    np.testing.assert_array_equal(res.metrics["twice"][~bad], 2.0 * POINTS[~bad, 0])
+    back = S.load_sweep(out)
+    assert back.unstable == 1 and np.isnan(back.metrics["twice"][bad]).all()
+    table = np.genfromtxt(str(tmp_path / "s.csv"), delimiter=",", names=True)
+    assert np.isnan(table["twice"][bad]).all()
+
+
+def test_traced_stability_flag_under_jit_vmap_and_grad():
+    """tuning.stable reads the rollout's flag (or its parameter form) inside traced code."""
+    from tuning.stable import contact_unstable, rollout_unstable, safe_contact_bounds
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3)
+    kmax, cmax = safe_contact_bounds(sim)
+    assert np.sqrt(kmax / 1.0) * 1e-3 < dp.stability.SAFE_WH and cmax * 1e-3 < 1.0
+
+    def flag(k):
+        p = sim.params(k=k, c=1.0)
+        traj = sim.rollout(p, 20, check_finite=False, check_stability=False)
+        return rollout_unstable(sim, traj, p)
+    ks = jnp.array([0.5 * kmax, 1.5 * kmax, 4.0 * kmax])
+    np.testing.assert_array_equal(jax.jit(jax.vmap(flag))(ks), [False, True, True])
+    assert not bool(jax.jit(flag)(0.5 * kmax))
+    g = jax.grad(lambda k: jnp.where(contact_unstable(sim, sim.params(k=k, c=1.0)), 0.0, k))
+    assert float(g(0.5 * kmax)) == 1.0 and float(g(2.0 * kmax)) == 0.0
+
+
+def test_fit_is_not_reached_when_the_rollout_was_unstable():
+    from tuning.fit import _achieved
+    spec = (("apex_heights", 1, 1.0, 1e-3),)
+    tg = {"apex_heights": np.array([0.4])}
+    assert _achieved({"apex_heights": np.array([0.4])}, tg, spec)[2]
+    assert not _achieved({"apex_heights": np.array([0.4]), "unstable": np.array(True)}, tg,
+                         spec)[2]
