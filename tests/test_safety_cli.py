@@ -1,0 +1,198 @@
+"""The command line refuses bad input with exit 2 and a message before computing, measures
+`reached`, marks what it cannot trust, and reports progress off a terminal."""
+import io
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tuning.cli import main
+
+
+@pytest.fixture(autouse=True)
+def no_disk_cache(monkeypatch):
+    monkeypatch.setenv("DIFFPEN_CACHE", "0")
+
+
+@pytest.fixture
+def no_compile(monkeypatch):
+    import diffpen as dp
+
+    def boom(*a, **k):
+        raise AssertionError("compiled before checking the input")
+    monkeypatch.setattr(dp, "compile", boom)
+
+
+def err_of(capsys, argv):
+    try:
+        rc = main(argv)
+    except SystemExit as exc:          # argparse errors
+        rc = exc.code
+    return rc, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["fit", "--plot", "/proc/nope/x.png"], "--plot /proc/nope/x.png: the folder /proc/nope"),
+    (["sweep", "--n", "100000"], "GiB for the results alone"),
+    (["sweep", "--n", "100000"], "lower --n"),
+    (["sweep", "--duration", "1e-6"], "--duration 1e-06 s is only 0 step(s)"),
+    (["sweep", "--target", "nan"], "--target must be a finite number"),
+    (["sweep", "--n", "1e3"], "write it as digits, e.g. 1000"),
+    (["sweep", "--out", "/proc/nope/s.npz"], "does not exist"),
+    (["sweep", "--out", "."], "is a directory"),
+    (["sweep", "--plot", "/proc/nope/h.png"], "--plot"),
+    (["simulate", "ball", "--steps", "1e9"], "write it as digits, e.g. 1000000000"),
+    (["simulate", "ball", "--steps", "1000000000"], "GiB, more than half"),
+    (["simulate", "ball", "--out", "/proc/nope/t.npz"], "does not exist"),
+    (["simulate", "ball", "--c", "nan"], "--c must be a finite number"),
+    (["fit", "--maxiter", "many"], "--maxiter must be an integer"),
+    (["report", "accuracy", "--plot", "/proc/nope/a.png"], "does not exist"),
+])
+def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
+    rc, err = err_of(capsys, argv)
+    assert rc == 2, err
+    assert words in err and "Traceback" not in err
+
+
+def test_report_help_lists_gradients(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    line = [x for x in capsys.readouterr().out.splitlines() if x.strip().startswith("report")]
+    assert line and "gradient" in line[0]
+    with pytest.raises(SystemExit):
+        main(["report", "--help"])
+    assert "gradient" in capsys.readouterr().out.split("\n\n")[1]
+
+
+def test_matplotlib_hint_names_an_installable_spec(monkeypatch):
+    import sys
+
+    from tuning.plots import require_matplotlib
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(ImportError) as exc:
+        require_matplotlib()
+    assert "pip install 'matplotlib>=3.7'" in str(exc.value)
+    assert "pip install -e '.[plot]'" in str(exc.value)
+
+
+def test_stability_message_names_the_limit_that_applies():
+    """c h / m = 1 exactly at a tiny k: the message must not claim w h = 0.5 > 0.5."""
+    import diffpen as dp
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3)
+    with pytest.raises(dp.StabilityError) as exc:
+        sim.rollout(sim.params(k=1.0, c=1000.0), 10)
+    msg = str(exc.value)
+    assert "c h / m = 1" in msg and "w h = 0.001" in msg
+    assert "0.5 > 0.5" not in msg and "must be below 0.001 s" in msg
+
+
+def test_tiny_mass_gets_valid_bounds_and_a_huge_k0_consistent_notes(monkeypatch):
+    """fit --mass 1e-12 (bounds lo > hi before) and fit --k0 1e9 --target-apex 0.4 (c guessed
+    for k = 1e9 and pinned at its bound; notes said k held at 1e9 and lowered)."""
+    import diffpen as dp
+    from tuning import bounce
+
+    seen = {}
+
+    class Fake:
+        notes = []
+
+    def fake_fit(mfn, params0, targets, *, free, bounds, **kw):
+        seen.update(params0=params0, bounds=bounds, free=free)
+        return Fake()
+    monkeypatch.setattr(bounce, "fit", fake_fit)
+
+    def scene(m):
+        s = dp.Scene()
+        s.add_sphere(0.1, m, (0.0, 0.0, 1.0))
+        s.add_plane()
+        return s
+    bounce.fit_bounce(scene(1e-12), {"apex_heights": [0.4], "settling_time": 2.6})
+    for lo, hi in seen["bounds"].values():
+        assert 0.0 < lo < hi
+    res = bounce.fit_bounce(scene(1.0), {"apex_heights": [0.4]}, k0=1e9)
+    kmax = (0.25 / 1e-3) ** 2
+    k = float(seen["params0"].contact["default"].k)
+    c = float(seen["params0"].contact["default"].c)
+    assert k == pytest.approx(kmax)
+    assert c < 0.5 * seen["bounds"]["contact.default.c"][1]     # not pinned at its bound
+    assert c == pytest.approx(2 * 0.128 * np.sqrt(kmax), rel=0.05)
+    text = " ".join(res.notes)
+    assert "held at 6.25e+04" in text and "1e+09 N/m lowered to 6.25e+04" in text
+    assert "held at 1e+09" not in text
+
+
+def test_data_fit_reached_comes_from_the_residuals(capsys, monkeypatch, tmp_path):
+    from tuning import sysid
+    from tuning.fit import residual_reached
+    assert residual_reached(1.0e-3, 1.0e-3) and not residual_reached(15.7e3, 1e-3)
+    assert not residual_reached(float("nan"), 1e-3)
+    t, z = sysid.load_csv(os.path.join(os.path.dirname(__file__), "..", "examples",
+                                       "record.csv"))
+    path = str(tmp_path / "rec_ms.csv")          # times in milliseconds
+    sysid.save_csv(path, t * 1e3, z)
+    rc = main(["fit", "--data", path, "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 1 and out["reached"] is False and "units" in out["message"]
+
+    def fake(rms):
+        def fit_trajectory(t, z, **kw):
+            return sysid.TrajectoryFit(
+                k=1.0, c=1.0, k_stderr=0.1, c_stderr=0.1, first_guess=(1.0, 1.0), rms=rms,
+                noise=1e-3, dt=1e-4, dt_error=1e-5, iterations=3, seconds=0.1, horizons=[1.0],
+                history=[1.0], z_fit=z, events=None, converged=True, message="ok", notes=[])
+        return fit_trajectory
+    rec = os.path.join(os.path.dirname(__file__), "..", "examples", "record.csv")
+    for rms, code in ((1.1e-3, 0), (9.3e-3, 1)):
+        monkeypatch.setattr(sysid, "fit_trajectory", fake(rms))
+        rc = main(["fit", "--data", rec, "--json"])
+        out = json.loads(capsys.readouterr().out)
+        assert rc == code and out["reached"] is (code == 0)
+    rc = main(["fit", "--data", rec])
+    assert rc == 1 and "RECORD NOT EXPLAINED" in capsys.readouterr().out
+
+
+def test_progress_prints_lines_off_a_terminal():
+    from tuning.progress import Progress
+    buf = io.StringIO()
+    bar = Progress(4, "sweep chunks", None, value="done", every=0.0, stream=buf)
+    bar.update(1, 0.25)
+    bar.update(2, 0.5)
+    bar.close()
+    lines = buf.getvalue().splitlines()
+    assert lines[0].startswith("sweep chunks 1/4 25.0% done") and len(lines) == 2
+    quiet = io.StringIO()
+    Progress(4, "fit", None, stream=quiet).update(1, 0.5)       # within the first 5 s
+    assert quiet.getvalue() == ""
+    off = io.StringIO()
+    Progress(4, "fit", False, every=0.0, stream=off).update(1, 0.5)
+    assert off.getvalue() == ""
+
+
+def test_cli_sweep_keys_nan_for_unsettled_and_locks(capsys, tmp_path):
+    from tuning.io import OutputLock
+    out = str(tmp_path / "sw.npz")
+    argv = ["sweep", "--n", "3", "2", "--duration", "0.5", "--drop", "0.3", "--chunk", "8",
+            "--k", "2e3", "2e4", "--c", "2", "40", "--out", out, "--json"]
+    assert main(argv) == 0
+    first = json.loads(capsys.readouterr().out)
+    assert first["evaluated"] == 6 and first["unsettled"] > 0 and first["unstable"] == 0
+    with np.load(out) as f:
+        settled = f["metric:settled"].astype(bool)
+        ts = f["metric:settling_time"]
+    assert (~settled).any() and np.isnan(ts[~settled]).all() and np.isfinite(ts[settled]).all()
+    table = np.genfromtxt(str(tmp_path / "sw.csv"), delimiter=",", names=True)
+    assert np.isnan(table["settling_time"][~settled]).all()
+    # other physics on the same --out: refused, naming what differs (--fresh overwrites:
+    # resume=False, tested in test_safety_io)
+    other = [a if a != "0.3" else "0.35" for a in argv]
+    assert main(other) == 2
+    err = capsys.readouterr().err
+    assert "drop: file has 0.3, this run has 0.35" in err and "--fresh" in err
+    with OutputLock(out):
+        assert main(other) == 2
+    assert "being written by another process" in capsys.readouterr().err
