@@ -48,14 +48,22 @@ def _check_value(name: str, v) -> None:
     if v is None or isinstance(v, (str, bytes, bool, np.bool_)):
         raise SceneError(f"{name} must be a number, got {v!r}"
                          + (": write it without quotes." if isinstance(v, str) else "."))
-    if jnp.ndim(v) != 0:
-        raise SceneError(f"{name} must be a scalar, got an array of shape {jnp.shape(v)}: "
+    if not _is_concrete(v):
+        shape = v.shape
+    else:
+        try:
+            raw = np.asarray(v)
+        except Exception:  # noqa: BLE001 - ragged lists, odd objects
+            raw = np.asarray(None)
+        if raw.dtype.kind not in "iuf":
+            raise SceneError(f"{name} must be a real number, got {v!r}.")
+        shape = raw.shape
+    if shape != ():
+        raise SceneError(f"{name} must be a scalar, got an array of shape {shape}: "
                          "for several values, jax.vmap a function that calls "
                          "sim.params(k=...) per value (or use tuning.sweep).")
     if not _is_concrete(v):
         return
-    if np.asarray(v).dtype.kind not in "iuf":
-        raise SceneError(f"{name} must be a real number, got {v!r}.")
     arr = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(arr)):
         raise SceneError(f"{name} must be finite, got {v!r}.")

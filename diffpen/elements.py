@@ -14,7 +14,7 @@ from .errors import SceneError
 
 __all__ = ["DEFAULT", "Body", "Spring", "AnchoredSpring", "Plane", "FixedSphere", "Drag",
            "PlasticSpring", "Material", "SpringGroup", "finite", "vec3", "finite_vec",
-           "positive"]
+           "positive", "number"]
 
 DEFAULT = "default"
 
@@ -54,6 +54,15 @@ def finite_vec(name: str, value, size: int) -> np.ndarray:
         raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
     finite(name, arr)
     return arr
+
+
+def number(name: str, value) -> float:
+    """A finite real number (no strings, bools or arrays: they are refused, not coerced)."""
+    arr = _real_array(name, value, "a number")
+    if arr.shape != ():
+        raise SceneError(f"{name} must be one number, got {value!r}.")
+    finite(name, arr)
+    return float(arr)
 
 
 def positive(name: str, value, *, allow_zero: bool = False) -> float:

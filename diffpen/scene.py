@@ -16,8 +16,8 @@ from typing import Sequence
 import numpy as np
 
 from .elements import (DEFAULT, AnchoredSpring, Body, Drag, FixedSphere, Material,
-                       PlasticSpring, Plane, Spring, SpringGroup, finite, finite_vec, positive,
-                       vec3)
+                       PlasticSpring, Plane, Spring, SpringGroup, finite_vec, number,
+                       positive, vec3)
 from .errors import SceneError
 from .overlap import OverlapIndex
 
@@ -128,11 +128,7 @@ class Scene:
         norm = float(np.linalg.norm(n))
         if norm == 0.0:
             raise SceneError("plane normal must be non-zero, e.g. (0, 0, 1) for the ground.")
-        try:
-            offset = float(offset)
-        except (TypeError, ValueError):
-            raise SceneError(f"plane offset must be a number, got {offset!r}.") from None
-        finite("plane offset", offset)
+        offset = number("plane offset (m)", offset)
         self._check_material(material)
         plane = Plane(tuple(float(a) for a in n / norm), offset, material)
         if not self._allowed(allow_overlap):
