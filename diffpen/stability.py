@@ -562,7 +562,7 @@ def _gate(sim, params, auto: bool) -> int:
     if not rep.safe:
         h = rep.inner_dt
         why = ("unstable" if not rep.stable else
-               f"stable but not inside its safe step for contact (needs w h < {SAFE_WH} and "
+               f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
                f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
                f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
                " contact energy errors of several % or more)")

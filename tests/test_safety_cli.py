@@ -38,11 +38,11 @@ def err_of(capsys, argv):
     (["sweep", "--n", "100000"], "lower --n"),
     (["sweep", "--duration", "1e-6"], "--duration 1e-06 s is only 0 step(s)"),
     (["sweep", "--target", "nan"], "--target must be a finite number"),
-    (["sweep", "--n", "1e3"], "write it as digits, e.g. 1000"),
+    (["sweep", "--n", "1.5"], "--n must be an integer, got '1.5'"),
     (["sweep", "--out", "/proc/nope/s.npz"], "does not exist"),
     (["sweep", "--out", "."], "is a directory"),
     (["sweep", "--plot", "/proc/nope/h.png"], "--plot"),
-    (["simulate", "ball", "--steps", "1e9"], "write it as digits, e.g. 1000000000"),
+    (["simulate", "ball", "--steps", "1e9"], "--steps 1000000000 keeps 1000000000 states"),
     (["simulate", "ball", "--steps", "1000000000"], "GiB, more than half"),
     (["simulate", "ball", "--out", "/proc/nope/t.npz"], "does not exist"),
     (["simulate", "ball", "--c", "nan"], "--c must be a finite number"),
@@ -187,6 +187,8 @@ def test_cli_sweep_keys_nan_for_unsettled_and_locks(capsys, tmp_path):
     assert (~settled).any() and np.isnan(ts[~settled]).all() and np.isfinite(ts[settled]).all()
     table = np.genfromtxt(str(tmp_path / "sw.csv"), delimiter=",", names=True)
     assert np.isnan(table["settling_time"][~settled]).all()
+    assert main(argv) == 0                             # the same settings: resumed
+    assert json.loads(capsys.readouterr().out)["evaluated"] == 0
     # other physics on the same --out: refused, naming what differs (--fresh overwrites:
     # resume=False, tested in test_safety_io)
     other = [a if a != "0.3" else "0.35" for a in argv]

@@ -259,7 +259,7 @@ def describe_simulator(sim) -> dict:
     """Key fields of a compiled :class:`diffpen.Simulator`: the scene's records (bodies,
     springs, colliders, materials, gravity), law, integrator, dt, substeps, smoothing, dtype."""
     scene = sim.scene
-    records = {k: repr(v) for k, v in sorted(vars(scene).items())}
+    records = {k: repr(v) for k, v in sorted(vars(scene).items()) if not k.startswith("_")}
     return {"scene": hashlib.sha256(json.dumps(records, sort_keys=True).encode()).hexdigest()[:16],
             "n_bodies": int(sim.n_bodies), "law": sim.law, "integrator": sim.integrator,
             "dt": float(sim.dt), "smoothing": float(sim.smoothing),

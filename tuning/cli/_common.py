@@ -57,22 +57,21 @@ def finite(name: str):
     return conv
 
 
-def count(name: str, minimum: int = 1):
-    """argparse type: an integer >= ``minimum`` written as digits (``1e9`` is refused with a
-    hint, not truncated)."""
+def count(name: str, minimum: int | None = 1):
+    """argparse type: an integer (digits, or an exact integer in float notation such as
+    ``1e9``), >= ``minimum`` unless that is None; ``1.5``, ``nan`` and words are refused."""
     def conv(text: str) -> int:
         try:
             v = int(text)
         except ValueError:
-            hint = ""
             try:
                 f = float(text)
-                if math.isfinite(f) and f == int(f):
-                    hint = f" (write it as digits, e.g. {int(f)})"
-            except (ValueError, OverflowError):
-                pass
-            raise CLIError(f"{name} must be an integer, got {text!r}{hint}") from None
-        if v < minimum:
+            except ValueError:
+                f = math.nan
+            if not (math.isfinite(f) and f == int(f)):
+                raise CLIError(f"{name} must be an integer, got {text!r}") from None
+            v = int(f)
+        if minimum is not None and v < minimum:
             raise CLIError(f"{name} must be an integer >= {minimum}, got {text!r}")
         return v
     conv.__name__ = name

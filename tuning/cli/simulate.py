@@ -11,7 +11,7 @@ def add_arguments(p) -> None:
                         ".toml scene file")
     p.add_argument("--k", type=positive("--k"), help="contact stiffness, N/m (every material)")
     p.add_argument("--c", type=finite("--c"), help="contact damping, N s/m (every material)")
-    p.add_argument("--steps", type=count("--steps"), help="number of steps (default: the "
+    p.add_argument("--steps", type=count("--steps", None), help="number of steps (default: the "
                    "scene's)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default: the scene's)")
     p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"],
