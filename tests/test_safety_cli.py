@@ -48,6 +48,7 @@ def err_of(capsys, argv):
     (["simulate", "ball", "--c", "nan"], "--c must be a finite number"),
     (["fit", "--maxiter", "many"], "--maxiter must be an integer"),
     (["report", "accuracy", "--plot", "/proc/nope/a.png"], "does not exist"),
+    (["simulate", "nope.TOML"], "cannot read nope.TOML"),      # a file, not a scene name
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)

@@ -65,8 +65,8 @@ def test_interrupted_sweep_resumes(problem, tmp_path):
     np.testing.assert_array_equal(back.metrics["max_penetration"],
                                   full.metrics["max_penetration"])
     header = open(str(tmp_path / "s.csv")).readline().strip().split(",")
-    assert header == NAMES + ["apex_heights", "max_penetration", "settled", "done"]
-    assert np.loadtxt(str(tmp_path / "s.csv"), delimiter=",", skiprows=1).shape == (16, 6)
+    assert header == NAMES + ["apex_heights", "max_penetration", "settled", "unstable", "done"]
+    assert np.loadtxt(str(tmp_path / "s.csv"), delimiter=",", skiprows=1).shape == (16, 7)
     # other points: refused (the file holds another sweep), overwritten only when asked
     with pytest.raises(S.SweepError, match="points"):
         S.sweep(None, sim.params(k=1e4, c=10.0), points[:3], NAMES, chunk=5, keys=keys,

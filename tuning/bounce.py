@@ -17,6 +17,7 @@ import numpy as np
 import diffpen as dp
 
 from .fit import FitError, FitResult, _normalise_targets, fit
+from .stable import rollout_unstable, safe_contact_bounds
 
 __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first_guess_bounce",
            "fit_bounce"]
@@ -102,6 +103,9 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     Rolls out ``steps`` steps of ``sim`` and returns the fields of
     :class:`tuning.metrics.BallMetrics` as a dict. A settling time not reached within the
     rollout is reported as the rollout's end time (a lower bound) for the optimiser.
+    ``"unstable"`` (bool) is true when the rollout went past its safe step
+    (:func:`tuning.stable.rollout_unstable`): fits report such a point as not reached and
+    sweeps return NaN for it.
     """
     from .metrics import ball_metrics
     t_end = steps * sim.dt
@@ -112,6 +116,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
         m = ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=n_apex,
                          settle_tol=settle_tol, state0=s0)._asdict()
         m["settling_time"] = jnp.where(m["settled"], m["settling_time"], t_end)
+        m["unstable"] = rollout_unstable(sim, traj, params)   # fits and sweeps refuse these
         return m
     return metrics_fn
 
@@ -235,7 +240,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                      f"w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer contact)")
         kk = kmax
     params0 = sim.params(contact={mat: (kk, cc)})
-    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (min(1e-6, 1e-3 * m / dt), m / dt)}
+    c_safe = safe_contact_bounds(sim, m)[1]          # c dt / m < 1: inside the safe step
+    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (min(1e-6, 1e-3 * c_safe), c_safe)}
     tol = dict(BOUNCE_METRICS)
     if rtol is not None:
         tol.update(rtol if isinstance(rtol, dict) else {k: rtol for k in tol})

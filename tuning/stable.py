@@ -43,7 +43,7 @@ def contact_unstable(sim, params):
     for cp in params.contact.values():
         k, c = jnp.asarray(cp.k), jnp.asarray(cp.c)
         w = jnp.sqrt(jnp.maximum(k, 0.0) / m)
-        bad = bad | (w * h > S.SAFE_WH) | (c * h / m > S.SAFE_CH) | (
+        bad = bad | (w * h >= S.SAFE_WH) | (c * h / m >= S.SAFE_CH) | (
             k * h * h + 2.0 * c * h >= 4.0 * m) | ~jnp.isfinite(k) | ~jnp.isfinite(c)
     return bad
 

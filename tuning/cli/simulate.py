@@ -29,7 +29,7 @@ def run(args) -> int:
 
 
 def _load(args):
-    if args.scene.endswith(".toml"):
+    if args.scene.lower().endswith(".toml"):
         from ..scenefile import load_scene_file
         return load_scene_file(args.scene).setup
     from ..scenes import get_scene
