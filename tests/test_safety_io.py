@@ -155,3 +155,15 @@ def test_fit_is_not_reached_when_the_rollout_was_unstable():
     assert _achieved({"apex_heights": np.array([0.4])}, tg, spec)[2]
     assert not _achieved({"apex_heights": np.array([0.4]), "unstable": np.array(True)}, tg,
                          spec)[2]
+
+
+def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
+    from tuning.fit import fit
+
+    def mfn(p):
+        k = p.contact["default"].k
+        return {"apex_heights": jnp.atleast_1d(k / 10.0), "unstable": k > 3.0}
+    res = fit(mfn, PARAMS0, {"apex_heights": [0.5]}, free=["contact.default.k"], method="lm",
+              maxiter=20, progress=False)
+    assert res.achieved["apex_heights"][0] == pytest.approx(0.5, rel=1e-3)
+    assert not res.reached and "past its safe step" in res.message

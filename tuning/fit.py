@@ -380,7 +380,11 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     values = {p: float(np.exp(t)) for p, t in zip(free, theta)}
     at_bound = [p for p, t, a, b in zip(free, theta, log_lo, log_hi)
                 if np.isclose(t, a, atol=1e-9) or np.isclose(t, b, atol=1e-9)]
-    if not reached:
+    if not reached and "unstable" in metrics and bool(np.any(np.asarray(metrics["unstable"]))):
+        message = (f"targets NOT reached ({message}): the rollout at the fitted values is past "
+                   "its safe step (State.aux['unstable']), so its metrics are not a result; "
+                   "use a smaller dt or tighter bounds")
+    elif not reached:
         message = (f"targets NOT reached ({message}); closest achieved values are reported"
                    + (f"; parameters at their bounds: {at_bound}" if at_bound else ""))
     tlist = {k: (float(v[0]) if k in scalar else v.tolist()) for k, v in targets.items()}
