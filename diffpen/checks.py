@@ -13,7 +13,12 @@ import numpy as np
 from .errors import SceneError
 from .state import Params, State
 
-__all__ = ["check_rollout", "memory_bytes", "STEP_RATE", "MAX_STEPS"]
+__all__ = ["check_rollout", "check_pairs", "memory_bytes", "STEP_RATE", "MAX_STEPS",
+           "MAX_PAIRS"]
+
+#: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
+#: evaluated every step: 5e6 pairs already take seconds per step)
+MAX_PAIRS = 5_000_000
 
 #: body-steps per second assumed for time estimates (a single ball reaches ~1.5e7 steps/s
 #: on a 2-core CPU; scenes with springs or many contacts are slower)
@@ -68,6 +73,23 @@ def _estimate(sim, steps: int, save_every: int, observe) -> tuple[float, float]:
     saved = steps // save_every
     stored = 0.0 if observe is not None else float(saved) * n * per_body * itemsize
     return stored, float(steps) * max(n, 1) / STEP_RATE
+
+
+def check_pairs(scene, broadphase) -> None:
+    """Refuse, before anything is built, an all-pairs sphere contact list too large to
+    compile (the pair count grows as n^2 without a broad phase)."""
+    if broadphase is not None:
+        return
+    s = sum(1 for b in scene.bodies if b.collide and b.kind == "sphere" and b.radius > 0.0)
+    pairs = s * (s - 1) // 2
+    if pairs > MAX_PAIRS:
+        per_step = pairs * 1e-8 * 20          # ~20 flops per pair at ~1e8 pair-terms/s
+        raise SceneError(
+            f"{s} colliding spheres make {pairs:.3g} sphere-sphere pairs without a broad "
+            f"phase (more than {MAX_PAIRS:.0e}): about {_human_bytes(pairs * 16.0)} of pair "
+            f"indices and ~{_human_time(per_step)} per step. Compile with "
+            "broadphase=diffpen.broadphase.Grid() (near-linear cost) or "
+            "diffpen.broadphase.AABB(max_pairs).")
 
 
 def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:

@@ -98,6 +98,7 @@ class Simulator:
         if not scene.bodies:
             raise SceneError("the scene has no bodies: add one with scene.add_sphere(...) or "
                              "scene.add_particle(...).")
+        _checks.check_pairs(scene, broadphase)
         try:
             if isinstance(dt, (str, bytes, bool, np.bool_)):
                 raise TypeError

@@ -139,3 +139,15 @@ def test_rollout_refuses_bad_params_state_and_sizes_before_tracing(sim, monkeypa
         sim.rollout(p, 2 * 10 ** 8)
     with pytest.raises(dp.SceneError, match=r"use steps=10\)"):
         sim.rollout(p, 10.0)
+
+
+def test_too_many_pairs_without_a_broad_phase_are_refused_before_compiling(monkeypatch):
+    from diffpen import checks
+    monkeypatch.setattr(checks, "MAX_PAIRS", 10)
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    for i in range(6):                                   # 15 pairs
+        scene.add_sphere(0.1, 1.0, (0.3 * i, 0.0, 0.0))
+    with pytest.raises(dp.SceneError, match=r"6 colliding spheres make 15 sphere-sphere pairs"
+                                            r".*broadphase=diffpen.broadphase.Grid\(\)"):
+        dp.compile(scene, 1e-3)
+    dp.compile(scene, 1e-3, broadphase=dp.broadphase.Grid())
