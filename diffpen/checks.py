@@ -6,6 +6,7 @@ Each failure raises :class:`diffpen.SceneError` saying what to change.
 from __future__ import annotations
 
 import os
+import weakref
 
 import jax
 import numpy as np
@@ -121,12 +122,20 @@ def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
         _check_state(sim, state)
 
 
+_SPECS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
 def _spec(sim):
-    spec = getattr(sim, "_state_spec", None)
-    if spec is None:
+    """Shapes and dtypes of ``sim.init_state()`` (cached per simulator, which is frozen)."""
+    try:
+        return _SPECS[sim]
+    except (KeyError, TypeError):
         spec = jax.eval_shape(sim.init_state)
-        sim._state_spec = spec
-    return spec
+        try:
+            _SPECS[sim] = spec
+        except TypeError:
+            pass
+        return spec
 
 
 def _check_state(sim, state) -> None:
