@@ -167,3 +167,16 @@ def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
               maxiter=20, progress=False)
     assert res.achieved["apex_heights"][0] == pytest.approx(0.5, rel=1e-3)
     assert not res.reached and "past its safe step" in res.message
+
+
+def test_finalize_marks_points_of_an_evaluator_without_the_flag(tmp_path):
+    ev = S.make_evaluator(lambda p: {"twice": 2.0 * p.contact["default"].k}, PARAMS0, NAMES,
+                          batch_map=lambda f: jax.jit(jax.vmap(f)))
+
+    def finalize(m, pts):
+        m["unstable"] = pts[:, 0] > 9.0
+        return m
+    res = S.sweep(None, PARAMS0, POINTS, NAMES, chunk=4, evaluate=ev, finalize=finalize,
+                  out=str(tmp_path / "f.npz"), progress=False)
+    assert res.unstable == 1 and np.isnan(res.metrics["twice"][-1])
+    assert np.isfinite(res.metrics["twice"][:-1]).all()

@@ -209,7 +209,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
           key: dict | None = None, keys: list | None = None, shape: tuple | None = None,
           axes: dict | None = None, batch_map: Callable | None = None,
           progress: bool | None = None, on_chunk: Callable | None = None,
-          evaluate: Callable | None = None) -> SweepResult:
+          evaluate: Callable | None = None, finalize: Callable | None = None) -> SweepResult:
     """Evaluate ``metrics_fn`` at every point, ``chunk`` points per vmapped call.
 
     Args:
@@ -236,6 +236,9 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       on_chunk: ``on_chunk(i_chunk, result)`` after each chunk is saved.
       evaluate: a prebuilt :func:`make_evaluator` (reuse it across sweeps of one problem so
         that they share one compiled program).
+      finalize: ``finalize(metrics, points) -> metrics`` on each chunk's host arrays
+        (``{name: (B, ...)}``, points ``(B, P)``) before they are stored: e.g. NaN for
+        undefined values, or an ``"unstable"`` flag computed from the points.
     Returns: :class:`SweepResult`.
     """
     t0 = time.perf_counter()
@@ -279,7 +282,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
             res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
         res.key = full_key
         res.evaluated = 0
-        _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk)
+        _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
     finally:
         if lock is not None:
             lock.release()
@@ -287,7 +290,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     return res
 
 
-def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk) -> None:
+def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize) -> None:
     n = points.shape[0]
     chunk = min(chunk, n)
     n_chunks = -(-n // chunk)
@@ -301,6 +304,8 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk) -> None:
             batch = np.concatenate([batch, np.repeat(batch[-1:], chunk - (b - a), axis=0)])
         got = {k: np.asarray(v)[: b - a]
                for k, v in jax.device_get(evaluate(jnp.asarray(batch))).items()}
+        if finalize is not None:
+            got = {k: np.asarray(v) for k, v in finalize(dict(got), points[a:b]).items()}
         bad = None
         if UNSTABLE in got:   # past the safe step: never returned as a result
             bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)

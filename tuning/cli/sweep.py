@@ -130,14 +130,13 @@ def _run(args) -> int:
         from ..plots import require_matplotlib
         require_matplotlib()
     setup_jax()
-    import jax.numpy as jnp
     import numpy as np
 
     import diffpen as dp
 
     from ..io import describe_simulator
     from ..metrics import ball_metrics
-    from ..stable import rollout_unstable
+    from ..stable import contact_unstable, rollout_unstable
     from ..sweep import grid_points, sweep
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
@@ -149,9 +148,17 @@ def _run(args) -> int:
         traj = sim.rollout(params, steps, s0, check_finite=False)
         m = ball_metrics(sim, traj, params, n_apex=3, settle_tol=args.settle_tol,
                          state0=s0)._asdict()
+        m["unstable"] = rollout_unstable(sim, traj, params)      # the traced flag
+        return m
+
+    def finalize(m, pts):
         # settling not reached within the rollout: NaN, not the rollout's end
-        m["settling_time"] = jnp.where(m["settled"], m["settling_time"], jnp.nan)
-        m["unstable"] = rollout_unstable(sim, traj, params)
+        m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
+        if "unstable" not in m:     # an evaluator without the flag: its parameter form
+            p = sim.params(contact={"default": (1.0, 1.0)})
+            p = p._replace(contact={"default": p.contact["default"]._replace(
+                k=pts[:, 0], c=pts[:, 1])})
+            m["unstable"] = np.asarray(contact_unstable(sim, p))
         return m
     ks = np.geomspace(args.k[0], args.k[1], nk)
     cs = np.geomspace(args.c[0], args.c[1], nc)
@@ -167,7 +174,7 @@ def _run(args) -> int:
                          f"{_duration(est['seconds'])} at ~{RATE:.0e} ball-steps/s\n")
     res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
                 resume=not args.fresh, key=key, keys=list(METRICS) + ["settled"], shape=shape,
-                axes=axes, progress=False if args.json else None)
+                axes=axes, progress=False if args.json else None, finalize=finalize)
     metric = res.metrics[args.metric]
     grid = (metric[:, 0] if metric.ndim > 1 else metric).reshape(shape)
     if args.plot:
