@@ -125,7 +125,7 @@ def gate(d, width: float):
     force switches on continuously at impact.
     """
     if width == 0.0:
-        return (d > 0.0).astype(jnp.result_type(d))
+        return (jnp.asarray(d) > 0.0).astype(jnp.result_type(d))
     u = d * (1.0 / width) + 0.5
     # selects, not clip: clip's derivative splits ties with a division, and XLA will not fuse
     # a divide into the wide tangent update of forward mode (measured: two extra kernels per
@@ -171,15 +171,16 @@ def linear_contact(d, vn, k, c, width: float = 0.0):
 def no_tension_contact(d, vn, k, c, width: float = 0.0):
     """Linear spring-dashpot that never pulls: ``F = max(k d - c vn, 0)`` in contact.
 
-    With ``width > 0`` the clamp is smoothed by the C1 ramp in force space, of width
-    ``k width gate(d)``: it shrinks to 0 with the contact gate, so the force is exactly 0 for
-    ``d <= -width / 2`` (a fixed force-space width would leave ``ramp(0) = k width / 8`` acting
-    at any distance). Closed forms: Schwager & Poschel (2007), see physics-notes.md section 2.
+    With ``width > 0`` the clamp is smoothed by the C1 ramp in force space
+    (:func:`_soft_clamp`), whose width shrinks to 0 with the contact, so the force is exactly
+    0 for ``d <= -width / 2`` (a fixed force-space width ``k width`` left ``k width / 8``
+    acting at any distance), and which leaves the static force ``k ramp(d)`` unchanged.
+    Closed forms: Schwager & Poschel (2007), see physics-notes.md section 2.
     """
     f = linear_contact(d, vn, k, c, width)
     if width == 0.0:
         return jnp.maximum(f, 0.0)
-    return _ramp_traced(f, k * width * gate(d, width))
+    return _soft_clamp(f, k * ramp(d, width), k * width * gate(d, width))
 
 
 def hunt_crossley_contact(d, vn, k, c, width: float = 0.0, exponent: float = 1.0):
@@ -187,8 +188,8 @@ def hunt_crossley_contact(d, vn, k, c, width: float = 0.0, exponent: float = 1.0
 
     In the usual notation ``F = k d^n (1 + a ddot)`` with ``a = c / k`` (s/m). Damping vanishes
     at zero penetration; restitution depends on ``a * v_in`` only. With ``width > 0`` the
-    clamp is smoothed in force space over ``k width^n gate(d)`` (0 when apart, as
-    :func:`no_tension_contact`).
+    clamp is smoothed in force space as in :func:`no_tension_contact` (0 when apart, the
+    static force ``k ramp(d)^n`` unchanged).
     """
     r = ramp(d, width)
     if exponent == 1.0:
@@ -199,7 +200,20 @@ def hunt_crossley_contact(d, vn, k, c, width: float = 0.0, exponent: float = 1.0
     f = p * (k - c * vn)
     if width == 0.0:
         return jnp.maximum(f, 0.0)
-    return _ramp_traced(f, k * width ** exponent * gate(d, width))
+    return _soft_clamp(f, k * p, k * width ** exponent * gate(d, width))
+
+
+def _soft_clamp(f, static, wmax):
+    """C1 ``max(f, 0)`` of a contact force ``f`` whose static part (``vn = 0``) is
+    ``static >= 0``: the force-space ramp of width ``w = 2 static wmax / (2 static + wmax)``
+    (a smooth minimum of ``2 static`` and ``wmax``, N). It is 0 where the contact is apart
+    (``static = wmax = 0``: the force and its derivatives are exactly 0), and ``f = static``
+    is past the blend (``static >= w / 2``), so the static force, its energy and its resting
+    depth are the unclamped law's."""
+    den = 2.0 * static + wmax
+    pos = den > 0.0
+    w = jnp.where(pos, 2.0 * static * wmax / jnp.where(pos, den, 1.0), 0.0)
+    return _ramp_traced(f, w)
 
 
 def _ramp_traced(x, width):

@@ -81,3 +81,102 @@ def test_pair_law_zero_just_outside_the_band(law):
     for val, grads in both(d, vn, da, va):
         assert np.all(np.asarray(val) == 0.0)
         assert all(np.all(np.asarray(x) == 0.0) for x in grads)
+
+
+# --------------------------------------------------------------------------- the records
+def _hat_mean_quadrature(rec, d, vn, k, c, h, n=4001):
+    """The definition of the step average, by quadrature: the hat-weighted mean of the exact
+    pointwise force over s in [-h, h] along d(s) = d - vn s (trapezoids on each piece
+    between the force's breaks: contact start/end, the clamp, the hat's peak)."""
+    breaks = [-h, 0.0, h]
+    if vn != 0.0:
+        breaks += [d / vn, (d - c * vn / k) / vn]
+    breaks = sorted(b for b in set(breaks) if -h <= b <= h)
+    s = np.unique(np.concatenate([np.linspace(a, b, n) for a, b in zip(breaks, breaks[1:])]))
+    w = 1.0 - np.abs(s) / h
+    # the force on each piece, evaluated at its inner points and extended to its ends
+    f = np.asarray(rec.force(jnp.asarray(d - vn * s), jnp.asarray(np.full(s.size, vn)), k, c,
+                             0.0))
+    total = 0.0
+    for a, b in zip(breaks, breaks[1:]):
+        sel = (s >= a) & (s <= b)
+        ss, ww = s[sel], w[sel]
+        mid = 0.5 * (ss[1:] + ss[:-1])
+        fm = np.asarray(rec.force(jnp.asarray(d - vn * mid), jnp.asarray(np.full(mid.size, vn)),
+                                  k, c, 0.0))
+        total += float(np.sum(fm * 0.5 * (ww[1:] + ww[:-1]) * np.diff(ss)))
+    del f
+    return total / h
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_step_average_matches_its_definition(law):
+    """Closed forms against quadrature of the hat-weighted mean: window inside, apart,
+    crossing at either end, approaching and separating (no_tension: where the clamp cuts
+    inside the window too), still contacts; deep inside it is the pointwise force."""
+    rec = laws.get(law, 1.5)
+    k, c, h = 2e4, 300.0, 1e-3
+    cases = [(d, vn) for vn in (-3.0, -0.2, 0.4, 5.0)
+             for d in (-4e-3, -2e-3, -1e-4, 0.0, 1e-4, 2.5e-3, 6e-3, 2e-2)] + [(1e-3, 0.0)]
+    got = np.asarray(jax.vmap(lambda d, v: rec.averaged(d, v, k, c, h))(
+        jnp.array([x[0] for x in cases]), jnp.array([x[1] for x in cases])))
+    want = np.array([_hat_mean_quadrature(rec, d, vn, k, c, h) for d, vn in cases])
+    scale = k * 1e-3
+    np.testing.assert_allclose(got, want, atol=2e-6 * scale, rtol=1e-6)
+    deep = jnp.array([0.05, 0.08]), jnp.array([-0.3, 0.2])
+    np.testing.assert_allclose(rec.averaged(*deep, k, c, h), rec.force(*deep, k, c),
+                               rtol=5e-6 if law == "hunt_crossley" else 1e-13)  # d^n: curved
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_energy_and_resting_depth_are_the_static_force_integral_and_inverse(law):
+    rec = laws.get(law, 1.5)
+    for width in (0.0, 2e-3):
+        d = jnp.linspace(-3e-3, 4e-3, 15)
+        static = jax.vmap(lambda x: rec.force(x, 0.0, 3e4, 50.0, width))(d)
+        np.testing.assert_allclose(jax.vmap(jax.grad(lambda x: rec.energy(x, 3e4, width)))(d),
+                                   static, rtol=1e-10, atol=1e-12)
+        for load in (0.5, 20.0, 300.0):
+            depth = rec.resting_depth(load, 3e4, width)
+            assert float(rec.force(depth, 0.0, 3e4, 50.0, width)) == pytest.approx(load,
+                                                                                 rel=1e-10)
+
+
+def test_compile_takes_a_record_or_a_name():
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.105))
+    scene.add_plane()
+    a = dp.compile(scene, 1e-3, law=laws.hunt_crossley(1.5))
+    b = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    assert a.law == b.law == "hunt_crossley" and a.exponent == b.exponent == 1.5
+    assert a.contact_law.name == "hunt_crossley"
+    p = a.params(k=1e5, c=1e2)
+    np.testing.assert_array_equal(a.rollout(p, 50).position, b.rollout(p, 50).position)
+    with pytest.raises(dp.SceneError, match="unknown contact law"):
+        dp.compile(scene, 1e-3, law="hertz")
+    with pytest.raises(dp.SceneError, match="exponent"):
+        dp.compile(scene, 1e-3, law="hunt_crossley", exponent=0.5)
+
+
+# --------------------------------------------------------------------------- no length scale
+def test_restitution_does_not_depend_on_the_stiffness_scale():
+    """Two spheres (1 kg, 3 kg) colliding at 1 m/s, zeta 0.2, dt = contact time / 400: with
+    no fixed smoothing length the dimensionless problem is the same for every k, so the
+    restitution is the same from k = 1e2 to 1e9 N/m (the fixed 1e-4 m band moved it by
+    +0.57% at 1e8 and +4.6% at 1e9), and within 0.5% of the closed form."""
+    m1, m2 = 1.0, 3.0
+    mu = m1 * m2 / (m1 + m2)
+    es = []
+    for k in (1e2, 1e9):
+        c = 2.0 * 0.2 * np.sqrt(k * mu)
+        tc = float(dp.physical.contact_time(k, c, mu))
+        dt = tc / 400
+        scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        scene.add_sphere(0.1, m1, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+        scene.add_sphere(0.1, m2, (0.2 + 0.5 * dt, 0.0, 0.0))
+        sim = dp.compile(scene, dt)
+        v = sim.rollout(sim.params(k=k, c=c), 600, save_every=600).velocity[-1]
+        es.append(float((v[1, 0] - v[0, 0]) / 1.0))
+    e_closed = float(dp.physical.restitution(1e4, 2.0 * 0.2 * np.sqrt(1e4 * mu), mu))
+    assert abs(es[1] / es[0] - 1.0) < 1e-6
+    assert abs(es[0] / e_closed - 1.0) < 5e-3
