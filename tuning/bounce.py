@@ -24,7 +24,7 @@ __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
-                  "restitution": 1e-3, "max_penetration": 2e-3}
+                  "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
 
 
 def _fall_time(h0: float, v0: float, g: float) -> float:

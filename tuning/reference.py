@@ -197,26 +197,54 @@ class BallReference:
         return math.nan
 
 
+    def decay_time(self, T: float | None = None) -> float:
+        """Energy-decay time ``int_0^T E dt / E(0)`` (s) with ``E`` the energy above static
+        rest (``energy`` minus its value at rest); by quadrature of the dense solution on
+        each phase (the phases are smooth)."""
+        from scipy.integrate import quad
+        T = self.T if T is None else T
+        n = self.exponent if self.law == "hunt_crossley" else 1.0
+        d_rest = (self.m * self.g / self.k) ** (1.0 / n)
+        z_rest = self.r - d_rest
+        e_rest = float(self.energy(np.array([z_rest]), np.array([0.0]))[0])
+
+        def e(t, sol):
+            z, v = sol(t)
+            return float(self.energy(np.array([z]), np.array([v]))[0]) - e_rest
+        total = 0.0
+        for (t0, t1, sol, _) in self._segs:
+            if t0 >= T:
+                break
+            total += quad(e, t0, min(t1, T), args=(sol,), epsabs=0.0, epsrel=1e-11,
+                          limit=200)[0]
+        z0, v0 = self.state([0.0])
+        return total / (float(self.energy(z0, v0)[0]) - e_rest)
+
+
 def ball_reference(**kw) -> BallReference:
     """See :class:`BallReference`."""
     return BallReference(**kw)
 
 
 def ball_reference_derivatives(*, k: float, c: float, rel_step: float = 1e-5, n: int = 3,
-                               **kw) -> dict:
+                               decay: bool = False, **kw) -> dict:
     """Values and derivatives w.r.t. k and c of the reference ball's metrics, by central
     differences of :class:`BallReference` (relative step ``rel_step``).
 
     Metrics (arrays of length ``n``): ``apex`` (apex heights of the lowest point above the
     plane, m), ``duration`` (contact durations, s), ``penetration`` (max depth of each
-    contact, m). Returns ``{"value": {metric: (n,)}, "dk": {...}, "dc": {...}}``."""
+    contact, m); with ``decay`` also ``decay_time`` ((1,), s: :meth:`BallReference.decay_time`
+    over ``[0, T]``). Returns ``{"value": {metric: (n,)}, "dk": {...}, "dc": {...}}``."""
     def metrics(kk, cc):
         ref = BallReference(k=kk, c=cc, **kw)
         r = ref.r
         out = {"apex": np.array(ref.apexes[:n]) - r,
                "duration": np.array([b - a for a, b in ref.contacts[:n]]),
                "penetration": np.array(ref.max_penetration[:n])}
-        return {key: np.concatenate([v, np.full(n - len(v), np.nan)]) for key, v in out.items()}
+        out = {key: np.concatenate([v, np.full(n - len(v), np.nan)]) for key, v in out.items()}
+        if decay:
+            out["decay_time"] = np.array([ref.decay_time()])
+        return out
     out = {"value": metrics(k, c)}
     for name, base in (("dk", k), ("dc", c)):
         step = rel_step * base
