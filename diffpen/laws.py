@@ -284,6 +284,19 @@ def window_mean(d, vn, h, exponent: float = 1.0):
     """
     delta = jnp.abs(vn) * h
     a, b = d - delta, d + delta
+    n = float(exponent)
+    if n == 1.0:
+        # d >= 0: 1 - a-^2 / (2 delta^2) and d + a-^3 / (6 delta^2) (a- = max(-a, 0): 0 for a
+        # window inside); d < 0: b+^2 / (2 delta^2) and b+^3 / (6 delta^2) (b+ = max(b, 0): 0
+        # apart). delta^2 is kept off 0 by 1e-30 m^2, which changes nothing representable
+        # where it divides (a-, b+ <= delta there) and keeps 0 / 0 away elsewhere.
+        inv2 = 1.0 / (delta * delta + 1e-30)
+        on = d >= 0.0
+        e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
+        e2 = 0.5 * e * e * inv2
+        frac = jnp.where(on, 1.0 - e2, e2)
+        mean = jnp.where(on, d, 0.0) + e2 * e * (1.0 / 3.0)
+        return frac, mean
     inside = a >= 0.0
     upper = (d >= 0.0) & ~inside
     lower = (d < 0.0) & (b > 0.0)
@@ -294,20 +307,14 @@ def window_mean(d, vn, h, exponent: float = 1.0):
     one = jnp.ones_like(d)
     frac = jnp.where(inside, one, jnp.where(upper, 1.0 - 0.5 * au * au * inv2,
                                             0.5 * bl * bl * inv2))
-    n = float(exponent)
-    if n == 1.0:
-        mean_in = d
-        mean_up = d - au * au * au * inv2 * (1.0 / 6.0)
-        mean_lo = bl * bl * bl * inv2 * (1.0 / 6.0)
-    else:
-        q = 1.0 / ((n + 1.0) * (n + 2.0))
-        pos = inside & (d > 0.0)
-        mean_in = jnp.where(pos, _power_mean_inside(jnp.where(pos, d, 1.0),
-                                                    jnp.where(pos, delta, 0.0), n), 0.0)
-        bu = jnp.where(upper, b, 1.0)
-        du = jnp.where(upper, d, 0.0)
-        mean_up = (bu ** (n + 2.0) - 2.0 * du ** (n + 2.0)) * q * inv2
-        mean_lo = jnp.where(lower, jnp.where(lower, b, 1.0) ** (n + 2.0), 0.0) * q * inv2
+    q = 1.0 / ((n + 1.0) * (n + 2.0))
+    pos = inside & (d > 0.0)
+    mean_in = jnp.where(pos, _power_mean_inside(jnp.where(pos, d, 1.0),
+                                                jnp.where(pos, delta, 0.0), n), 0.0)
+    bu = jnp.where(upper, b, 1.0)
+    du = jnp.where(upper, d, 0.0)
+    mean_up = (bu ** (n + 2.0) - 2.0 * du ** (n + 2.0)) * q * inv2
+    mean_lo = jnp.where(lower, jnp.where(lower, b, 1.0) ** (n + 2.0), 0.0) * q * inv2
     mean = jnp.where(inside, mean_in, jnp.where(upper, mean_up, mean_lo))
     return frac, mean
 

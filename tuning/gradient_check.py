@@ -22,7 +22,7 @@ from .extreme import ball_scene
 from .reference import G, ball_reference
 
 __all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
-           "event_metrics_fn", "event_reference", "event_gradient_rows"]
+           "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table"]
 
 
 def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=(0.0, 1e-4,
@@ -222,3 +222,34 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
                         rows.append(row)
                         say(row)
     return rows
+
+
+def event_gradient_table(rows: list[dict], before: list[dict] | None = None) -> str:
+    """Plain-text table of :func:`event_gradient_rows` (one line per case, integrator, dt and
+    metric: value error, d/dk and d/dc against the continuous derivatives, relative errors),
+    with the same rows of an earlier run (``before``) side by side when given."""
+    old = {(r["case"], r["integrator"], r["dt"], r["metric"], r["param"]): r
+           for r in (before or [])}
+    head = (f"{'case':18} {'dt (s)':>7} {'metric':12} {'value err':>9} "
+            f"{'d/dk':>11} {'continuous':>11} {'err':>7} "
+            f"{'d/dc':>11} {'continuous':>11} {'err':>7}")
+    if before is not None:
+        head += f" | {'before: d/dk':>12} {'err':>7} {'d/dc':>11} {'err':>7} {'value err':>9}"
+    lines = [head]
+    by = {}
+    for r in rows:
+        by.setdefault((r["case"], r["integrator"], r["dt"], r["metric"]), {})[r["param"]] = r
+    for (case, integ, dt, metric), pr in by.items():
+        k, c = pr["k"], pr["c"]
+        verr = (k["value"] - k["value_reference"]) / k["value_reference"]
+        line = (f"{case:18} {dt:7.1e} {metric:12} {verr:+9.2%} "
+                f"{k['grad']:+11.4e} {k['reference']:+11.4e} {k['rel_error']:7.2%} "
+                f"{c['grad']:+11.4e} {c['reference']:+11.4e} {c['rel_error']:7.2%}")
+        if before is not None:
+            ok, oc = (old.get((case, integ, dt, metric, p)) for p in "kc")
+            if ok is not None and oc is not None:
+                overr = (ok["value"] - ok["value_reference"]) / ok["value_reference"]
+                line += (f" | {ok['grad']:+12.4e} {ok['rel_error']:7.2%} "
+                         f"{oc['grad']:+11.4e} {oc['rel_error']:7.2%} {overr:+9.2%}")
+        lines.append(line)
+    return "\n".join(lines)
