@@ -163,7 +163,8 @@ def test_restitution_does_not_depend_on_the_stiffness_scale():
     """Two spheres (1 kg, 3 kg) colliding at 1 m/s, zeta 0.2, dt = contact time / 400: with
     no fixed smoothing length the dimensionless problem is the same for every k, so the
     restitution is the same from k = 1e2 to 1e9 N/m (the fixed 1e-4 m band moved it by
-    +0.57% at 1e8 and +4.6% at 1e9), and within 0.5% of the closed form."""
+    +0.57% at 1e8 and +4.6% at 1e9; at this resolution +83% at 1e9), and within 0.1% of the
+    closed form (measured -0.053% for every k)."""
     m1, m2 = 1.0, 3.0
     mu = m1 * m2 / (m1 + m2)
     es = []
@@ -179,4 +180,4 @@ def test_restitution_does_not_depend_on_the_stiffness_scale():
         es.append(float((v[1, 0] - v[0, 0]) / 1.0))
     e_closed = float(dp.physical.restitution(1e4, 2.0 * 0.2 * np.sqrt(1e4 * mu), mu))
     assert abs(es[1] / es[0] - 1.0) < 1e-6
-    assert abs(es[0] / e_closed - 1.0) < 5e-3
+    assert abs(es[0] / e_closed - 1.0) < 1e-3          # measured -0.053%

@@ -235,8 +235,11 @@ def settling_time(t, z, rest, tol: float = 1e-3):
     passes through the band, as the exact definition does (the last excursion then changes:
     in k and c this happens wherever a small late bounce just reaches the band). Next to such
     a jump the exact crossing time has an unbounded slope (the peak is tangent to the band);
-    the interpolation's divisor is kept >= ``tol / 10`` so that its gradient stays bounded
-    (by ``10 dt / tol`` per metre of the samples) instead of exploding. For a measure that
+    the interpolation's divisor is kept >= ``tol / 1000`` so that its gradient stays bounded
+    (by ``1000 dt / tol`` per metre of the samples; a crossing at any speed above
+    ``tol / (1000 dt)`` is untouched) instead of exploding. Away from the jumps its derivative
+    is the continuous one (quick-start ball at dt = 1e-4 s, tol 1 mm: d/dc -0.1120 against
+    -0.1106 s per N s/m). For a measure that
     is smooth in k and c use :func:`energy_decay_time`.
 
     Args:
@@ -254,7 +257,7 @@ def settling_time(t, z, rest, tol: float = 1e-3):
     settled = last < s - 1
     i = jnp.clip(last, 0, s - 2)
     ei, ej = e[i], e[i + 1]
-    den = jnp.maximum(ei - ej, 0.1 * tol)
+    den = jnp.maximum(ei - ej, 1e-3 * tol)
     frac = jnp.clip((ei - tol) / den, 0.0, 1.0)
     tc = t[i] + frac * (t[i + 1] - t[i])
     tc = jnp.where(last < 0, t[0], tc)
