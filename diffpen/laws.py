@@ -286,16 +286,18 @@ def window_mean(d, vn, h, exponent: float = 1.0):
     a, b = d - delta, d + delta
     n = float(exponent)
     if n == 1.0:
-        # d >= 0: 1 - a-^2 / (2 delta^2) and d + a-^3 / (6 delta^2) (a- = max(-a, 0): 0 for a
-        # window inside); d < 0: b+^2 / (2 delta^2) and b+^3 / (6 delta^2) (b+ = max(b, 0): 0
-        # apart). delta^2 is kept off 0 by 1e-30 m^2, which changes nothing representable
-        # where it divides (a-, b+ <= delta there) and keeps 0 / 0 away elsewhere.
-        inv2 = 1.0 / (delta * delta + 1e-30)
+        # d >= 0: 1 - u^2 / 2 and d + e u^2 / 6 with e = max(-a, 0) (0 for a window inside);
+        # d < 0: u^2 / 2 and e u^2 / 6 with e = max(b, 0) (0 apart); u = e / delta <= 1.
+        # Where e = 0 nothing is divided (double where: a still contact, delta = 0, has
+        # finite derivatives in float32 too); delta is floored at 1e-15 m where e > 0, so
+        # the derivative of u stays finite in float32 (only sub-femtometre windows change).
         on = d >= 0.0
         e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
-        e2 = 0.5 * e * e * inv2
-        frac = jnp.where(on, 1.0 - e2, e2)
-        mean = jnp.where(on, d, 0.0) + e2 * e * (1.0 / 3.0)
+        pos = e > 0.0
+        u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
+        u2 = 0.5 * u * u
+        frac = jnp.where(on, 1.0 - u2, u2)
+        mean = jnp.where(on, d, 0.0) + e * u2 * (1.0 / 3.0)
         return frac, mean
     inside = a >= 0.0
     upper = (d >= 0.0) & ~inside
