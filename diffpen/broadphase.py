@@ -388,7 +388,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     is_box = jnp.asarray(cls == _BOX)
     radius = ctx.const(ctx.radius)
     half_all = ctx.const([b.half_extents or (0.0, 0.0, 0.0) for b in ctx.scene.bodies])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
 
     init = jax.jit(lambda s: find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
     ctx.aux_init[OVERFLOW] = float(bool(init))
@@ -400,7 +400,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
         old = aux[OVERFLOW]
         return {OVERFLOW: jnp.maximum(old, pairs.overflow.astype(old.dtype))}
 
-    def force(params, state, pairs=None):
+    def force(params, state, pairs=None, *, h=None):
         if pairs is None:
             pairs = find_pairs(bp, ctx, state)
         i, j, valid = pairs.i, pairs.j, pairs.valid
@@ -412,17 +412,18 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
             d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
                                                       state.position[j], radius[j])
             vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
-            fm = jnp.where(ss, law(d, vn, k, c, width), 0.0)[:, None] * nrm
+            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h), 0.0)[:, None] * nrm
             f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
         if has_sb:
             from .rigid import sphere_box_force
             box_j = is_box[j]
             sb = valid & (is_box[i] != box_j)
             s_idx, b_idx = jnp.where(box_j, i, j), jnp.where(box_j, j, i)
-            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb)
+            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb,
+                                       h=h)
             f = f + fs
         return f, tau
-    return Term("contact_broadphase", force, search=search, record=record)
+    return Term("contact_broadphase", force, search=search, record=record, step_aware=True)
 
 
 def _initial_state(ctx: CompileContext):
