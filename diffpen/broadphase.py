@@ -282,10 +282,14 @@ def check(bp, ctx: CompileContext) -> None:
 
 def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     """Half widths (len(idx), 3) m of the bodies' axis-aligned bounding boxes: the radius for
-    spheres and particles, ``|R| h`` for boxes (R rotation, h half extents)."""
+    spheres and particles, ``|R| h`` for boxes (R rotation, h half extents); plus, per axis,
+    ``|v| dt``: the box swept over the step window of the step-averaged contact, which acts
+    from a gap of ``|vn| h`` on (``ctx.step`` = dt)."""
     bodies = ctx.scene.bodies
     r = ctx.const(ctx.radius[idx] + margin)[:, None]
     boxes = np.array([bodies[i].kind == "box" for i in idx])
+    if ctx.step:
+        r = r + jnp.abs(state.velocity[idx]) * ctx.step
     if not boxes.any():
         return jnp.broadcast_to(r, (len(idx), 3))
     from .rigid import quat_to_matrix
@@ -293,6 +297,8 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
                       for k, i in enumerate(idx)])
     rot = quat_to_matrix(state.orientation[idx])
     box_w = jnp.sum(jnp.abs(rot) * half[:, None, :], axis=-1) + margin
+    if ctx.step:
+        box_w = box_w + jnp.abs(state.velocity[idx]) * ctx.step
     return jnp.where(jnp.asarray(boxes)[:, None], box_w, r)
 
 

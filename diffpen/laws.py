@@ -444,11 +444,13 @@ def hunt_crossley(exponent: float = 1.0) -> ContactLaw:
                       stiffness, n, None)
 
 
-#: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: factories of records.
+#: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: the records (Hunt-Crossley
+#: with n = 1; :func:`get` builds it for another exponent). Each is callable as its pointwise
+#: force ``(d, vn, k, c, width)``, as the plain functions this mapping held before.
 CONTACT_LAWS = {
-    "linear": linear,
-    "no_tension": no_tension,
-    "hunt_crossley": hunt_crossley,
+    "linear": linear(),
+    "no_tension": no_tension(),
+    "hunt_crossley": hunt_crossley(),
 }
 
 
@@ -459,6 +461,6 @@ def get(law, exponent: float = 1.0) -> ContactLaw:
     if isinstance(law, ContactLaw):
         return law
     if isinstance(law, str) and law in CONTACT_LAWS:
-        return hunt_crossley(exponent) if law == "hunt_crossley" else CONTACT_LAWS[law]()
+        return hunt_crossley(exponent) if law == "hunt_crossley" else CONTACT_LAWS[law]
     raise ValueError(f"unknown contact law {law!r}; choose one of {sorted(CONTACT_LAWS)} or "
                      "pass a diffpen.laws.ContactLaw record.")

@@ -116,6 +116,9 @@ class CompileContext:
     extra_checks: dict = dataclasses.field(default_factory=dict)
     #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
     broadphase: Any = None
+    #: The simulator's step dt, s (the longest inner step): a step-averaged contact acts from
+    #: a gap of ``|vn| h`` on, so searches for pairs reach that far.
+    step: float | None = None
 
     @property
     def n(self) -> int:

@@ -95,3 +95,20 @@ def test_settling_time_derivative_is_the_continuous_one():
     g = float(jax.jit(jax.grad(settle))(20.0))
     want = (_band_settling(20.0 + 2e-3) - _band_settling(20.0 - 2e-3)) / 4e-3
     assert abs(g - want) <= 0.02 * abs(want)
+
+
+def test_lm_fit_from_the_generic_start_without_the_scan():
+    """fit_bounce with method="lm" from k = 1e4, c = 20 (first_guess=False: no scan or
+    bisection start) reaches the continuous first apex and contact time of the ball at
+    k = 2.2e3, c = 11 (measured: 4 iterations; before 25)."""
+    from tuning.bounce import fit_bounce
+    from tuning.reference import ball_reference
+    from tuning.scenes import ball
+    ref = ball_reference(k=2.2e3, c=11.0, m=1.0, r=0.1, z0=1.0, T=1.5)
+    targets = {"apex_heights": [ref.apexes[0] - 0.1],
+               "contact_durations": [ref.contacts[0][1] - ref.contacts[0][0]]}
+    res = fit_bounce(ball().scene, targets, dt=1e-3, k0=1e4, c0=20.0, first_guess=False,
+                     method="lm", maxiter=10)
+    assert res.reached and res.iterations <= 6
+    assert res.values["contact.default.k"] == pytest.approx(2.2e3, rel=0.02)
+    assert res.values["contact.default.c"] == pytest.approx(11.0, rel=0.02)
