@@ -11,12 +11,16 @@ For every standard scene this measures, after compilation and as the median of s
 * ``memory_bytes``: XLA's memory analysis of the compiled forward and gradient executables
   (arguments + outputs + temporaries; the peak a device must hold);
 * ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
-  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX);
+  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX); for
+  the ball, the plain floor :func:`plain_ball_floor`: scalar ``z`` and ``v`` per ball, so a
+  batch is one vector per component;
 * ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
 * ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
   rollout returning only its final state (nothing recorded), against the floor doing the
   same: the workload of a stepping rate, the figure simulators quote and the peers' anchors
-  measure.
+  measure; ``natural_s`` / ``natural_vs_floor``: the code a user writes first,
+  ``sim.rollout(params, steps).position[-1, 0, 2]`` (every state recorded, the last height
+  kept), against the same floor.
 
 Forward workloads return what a tuning metric needs: the ball's full height trajectory, the
 final node positions of spring networks. The functions here compute; ``tuning.cli.bench``
@@ -35,7 +39,7 @@ import diffpen as dp
 from diffpen import builders
 
 __all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
-           "memory_bytes"]
+           "memory_bytes", "plain_ball_floor"]
 
 G = 9.81
 
@@ -123,6 +127,26 @@ class Case(NamedTuple):
 
 
 # --------------------------------------------------------------------------- ball
+def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
+                     drop: float = 1.0, record: bool = True):
+    """The plain floor of the ball workloads: a ``lax.scan`` of the scalar height ``z`` (m)
+    and vertical velocity ``v`` (m/s) of one ball of unit mass dropped from rest at ``drop``
+    onto the plane z = 0, hard contact ``f = k max(d, 0) - c [d > 0] v`` with
+    ``d = radius - z``, symplectic Euler. Scalars, no (3,) vectors, no generality: under
+    ``jax.vmap`` the carry is one (B,) array per component, which XLA vectorises along the
+    batch. Returns (steps,) heights when ``record``, else the final ``z``."""
+    def step(s, _):
+        z, v = s
+        d = radius - z
+        f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v
+        v = v + dt * (f - G)
+        z = z + dt * v
+        return (z, v), (z if record else None)
+    z0 = jnp.full_like(k, drop)
+    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps, unroll=8)
+    return zs if record else z
+
+
 def _ball(batch: int, quick: bool):
     def build(dtype, quick_=quick):
         steps = 2000 if not quick_ else 500
@@ -142,27 +166,15 @@ def _ball(batch: int, quick: bool):
         def final_position(k, c):
             return sim.rollout(sim.params(k=k, c=c), steps=steps, save_every=steps).position
 
-        def floor_rollout(k, c, record: bool):
-            one = jnp.ones((), dtype)
-
-            def step(s, _):
-                x, v = s                                  # (3,) position, velocity
-                d = 0.1 - x[2]
-                f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v[2]
-                a = jnp.stack([0.0 * f, 0.0 * f, f - G])
-                v = v + dt * a
-                x = x + dt * v
-                return (x, v), (x[2] if record else None)
-            x0 = jnp.array([0.0, 0.0, 1.0], dtype) * one
-            (x, _), zs = jax.lax.scan(step, (x0, jnp.zeros(3, dtype)), None, length=steps,
-                                      unroll=8)
-            return zs if record else x
+        def natural(k, c):
+            # what a user writes first: the whole trajectory, then its last height
+            return sim.rollout(sim.params(k=k, c=c), steps=steps).position[-1, 0, 2]
 
         def floor_heights(k, c):
-            return floor_rollout(k, c, True)
+            return plain_ball_floor(k, c, steps=steps, dt=dt)
 
         def floor_final(k, c):
-            return floor_rollout(k, c, False)
+            return plain_ball_floor(k, c, steps=steps, dt=dt, record=False)
 
         def loss(fn):
             return lambda k, c: jnp.sum(fn(k, c) ** 2)
@@ -172,7 +184,8 @@ def _ball(batch: int, quick: bool):
         grads = _gradients(loss(heights), loss(floor_heights), batched=b > 1)
         lift = (lambda f: jax.jit(f)) if b == 1 else (lambda f: jax.jit(jax.vmap(f)))
         fwd, flr = lift(heights), lift(floor_heights)
-        stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final))
+        stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final),
+                        natural=lift(natural))
         args = ((jnp.asarray(k0, dtype), jnp.asarray(c0, dtype)) if b == 1 else (ks, cs))
         npdt = np.dtype(dtype)
         kn, cn = np.asarray(args[0], npdt), np.asarray(args[1], npdt)
@@ -180,20 +193,12 @@ def _ball(batch: int, quick: bool):
         def numpy_heights():
             z = np.ones_like(kn) if kn.ndim else np.ones((), npdt)
             v = np.zeros_like(z)
-            x = np.zeros_like(z)
-            y = np.zeros_like(z)
-            vx = np.zeros_like(z)
-            vy = np.zeros_like(z)
             out = np.empty((steps,) + z.shape, npdt)
             for i in range(steps):
                 d = 0.1 - z
                 f = kn * np.maximum(d, 0.0) - cn * (d > 0.0) * v
                 v = v + dt * (f - G)
-                vx = vx + dt * 0.0
-                vy = vy + dt * 0.0
                 z = z + dt * v
-                x = x + dt * vx
-                y = y + dt * vy
                 out[i] = z
             return out
         return dict(forward=fwd, floor=flr, numpy=numpy_heights, args=args, work=b * steps,
@@ -464,13 +469,17 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     if spec.get("stepping") is not None:
         # the same rollout returning only the final state: the workload of stepping-rate
         # figures (a simulator advancing its state, nothing recorded), e.g. the peers' anchors
-        ts = interleaved_times({"stepping": spec["stepping"],
+        ts = interleaved_times({"stepping": spec["stepping"], "natural": spec.get("natural"),
                                 "floor": spec["floor_stepping"] if with_floor else None},
                                args, repeats=repeats)
         out.update(stepping_s=ts["stepping"], stepping_per_s=spec["work"] / ts["stepping"])
+        if "natural" in ts:
+            out.update(natural_s=ts["natural"])
         if with_floor:
             out.update(floor_stepping_s=ts["floor"],
                        stepping_vs_floor=ts["stepping"] / ts["floor"])
+            if "natural" in ts:
+                out.update(natural_vs_floor=ts["natural"] / ts["floor"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
         t_np = _numpy_time(spec["numpy"], nrep)
