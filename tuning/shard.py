@@ -60,12 +60,14 @@ def _host(a) -> np.ndarray:
     return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
 
 
-def sharded_map(fn: Callable, mesh: Mesh | None = None) -> Callable:
+def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False) -> Callable:
     """``jax.vmap(fn)`` over the leading axis of every argument, sharded over ``mesh``.
 
     Args:
       fn: per-candidate function of pytrees of arrays (no leading batch axis).
       mesh: a 1-D mesh with axis ``"batch"`` (default: :func:`batch_mesh`).
+      batched: ``fn`` already maps over the leading axis of every argument and output (rows
+        independent); it is sharded as it is, not wrapped in ``jax.vmap``.
     Returns:
       ``run(*batched_args)``: same outputs as ``jax.vmap(fn)(*batched_args)``. A batch that is
       not a multiple of the device count is padded (by repeating its last row) and the padding
@@ -79,7 +81,7 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None) -> Callable:
     # a mesh over several processes: gather every row onto every device inside the program
     # (a replicated output), so that each process holds the whole result
     multi = len({d.process_index for d in mesh.devices.flat}) > 1
-    batched = jax.jit(jax.vmap(fn), in_shardings=spec,
+    program = jax.jit(fn if batched else jax.vmap(fn), in_shardings=spec,
                       out_shardings=NamedSharding(mesh, P()) if multi else spec)
 
     def run(*args):
@@ -87,13 +89,13 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None) -> Callable:
             padded, n = pad_to_multiple(jax.tree_util.tree_map(_host, args), n_dev)
             placed = jax.tree_util.tree_map(
                 lambda a: jax.make_array_from_callback(a.shape, spec, lambda i: a[i]), padded)
-            out = batched(*placed)
+            out = program(*placed)
             # replicated: this process's first copy is the whole result
             return jax.tree_util.tree_map(lambda a: a.addressable_data(0)[:n], out)
         padded, n = pad_to_multiple(args, n_dev)
         placed = jax.device_put(padded, spec)
-        out = batched(*placed)
+        out = program(*placed)
         return jax.tree_util.tree_map(lambda a: a[:n], out)
     run.mesh = mesh
-    run.jitted = batched
+    run.jitted = program
     return run
