@@ -55,25 +55,28 @@ def median_time(fn: Callable, *args, repeats: int = 5) -> float:
     return float(np.median(times))
 
 
-def interleaved_times(fns: dict, args: tuple, repeats: int = 5) -> dict:
-    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after
-    warm-up calls, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so that
-    every function sees the same machine load: ``repeats`` rounds, more (up to 200) when a
-    round takes under ~0.5 s / repeats, at most 3 when a round takes over 10 s."""
+def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
+                      budget_s: float = 20.0) -> dict:
+    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after a
+    warm-up call each, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so
+    that every function sees the same machine load: ``repeats`` rounds, more (up to 200) when
+    a round takes under ~0.5 s / repeats, fewer (3 at least) when the rounds would take over
+    ``budget_s`` seconds in all. The first round follows the warm-up calls directly."""
     live = {k: f for k, f in fns.items() if f is not None}
+    times = {k: [] for k in live}
     first = 0.0
-    for f in live.values():
+    for k, f in live.items():
         jax.block_until_ready(f(*args))
         t0 = time.perf_counter()
         jax.block_until_ready(f(*args))
-        first += time.perf_counter() - t0
-    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; rounds
-    # of over 10 s get 3 at most
+        times[k].append(time.perf_counter() - t0)
+        first += times[k][-1]
+    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; long
+    # ones fewer, so that a case takes about budget_s at most
     rounds = max(repeats, min(200, int(0.5 / max(first, 1e-9))))
-    if first > 10.0:
-        rounds = min(rounds, 3)
-    times = {k: [] for k in live}
-    for _ in range(rounds):
+    if first * rounds > budget_s:
+        rounds = max(3, int(budget_s / first))
+    for _ in range(rounds - 1):
         for k, f in live.items():
             t0 = time.perf_counter()
             jax.block_until_ready(f(*args))
@@ -128,13 +131,14 @@ class Case(NamedTuple):
 
 # --------------------------------------------------------------------------- ball
 def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
-                     drop: float = 1.0, record: bool = True):
+                     drop: float = 1.0, record: bool = True, unroll: int = 8):
     """The plain floor of the ball workloads: a ``lax.scan`` of the scalar height ``z`` (m)
     and vertical velocity ``v`` (m/s) of one ball of unit mass dropped from rest at ``drop``
     onto the plane z = 0, hard contact ``f = k max(d, 0) - c [d > 0] v`` with
     ``d = radius - z``, symplectic Euler. Scalars, no (3,) vectors, no generality: under
     ``jax.vmap`` the carry is one (B,) array per component, which XLA vectorises along the
-    batch. Returns (steps,) heights when ``record``, else the final ``z``."""
+    batch. ``unroll``: of the ``lax.scan``. Returns (steps,) heights when ``record``, else
+    the final ``z``."""
     def step(s, _):
         z, v = s
         d = radius - z
@@ -143,7 +147,8 @@ def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
         z = z + dt * v
         return (z, v), (z if record else None)
     z0 = jnp.full_like(k, drop)
-    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps, unroll=8)
+    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps,
+                              unroll=unroll)
     return zs if record else z
 
 
@@ -170,18 +175,25 @@ def _ball(batch: int, quick: bool):
             # what a user writes first: the whole trajectory, then its last height
             return sim.rollout(sim.params(k=k, c=c), steps=steps).position[-1, 0, 2]
 
-        def floor_heights(k, c):
-            return plain_ball_floor(k, c, steps=steps, dt=dt)
+        # the floor's fastest form measured here: the scan unrolled 8 times at batch 1 (10-15%
+        # faster), not unrolled under vmap (unrolling made 1024 balls 1.2-1.5x slower) nor
+        # in its gradient (unrolled, the forward-mode gradient at batch 1 was 6x slower)
+        floor_unroll = 8 if b == 1 else 1
+
+        def floor_heights(k, c, unroll=floor_unroll):
+            return plain_ball_floor(k, c, steps=steps, dt=dt, unroll=unroll)
 
         def floor_final(k, c):
-            return plain_ball_floor(k, c, steps=steps, dt=dt, record=False)
+            return plain_ball_floor(k, c, steps=steps, dt=dt, record=False,
+                                    unroll=floor_unroll)
 
         def loss(fn):
             return lambda k, c: jnp.sum(fn(k, c) ** 2)
 
         ks = jnp.asarray(np.geomspace(5e3, 2e4, b), dtype)
         cs = jnp.full((b,), c0, dtype)
-        grads = _gradients(loss(heights), loss(floor_heights), batched=b > 1)
+        grads = _gradients(loss(heights), loss(lambda k, c: floor_heights(k, c, 1)),
+                           batched=b > 1)
         lift = (lambda f: jax.jit(f)) if b == 1 else (lambda f: jax.jit(jax.vmap(f)))
         fwd, flr = lift(heights), lift(floor_heights)
         stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final),
@@ -457,7 +469,9 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
                            "floor_grad": spec["floor_grad"] if with_floor_grad else None},
                           args, repeats=repeats)
     fwd, grad = t["forward"], t["grad"]
-    grad_rev = median_time(spec["grad_reverse"], *args, repeats=max(1, repeats // 2))
+    # reverse mode is shown for comparison only: one timed run when a forward takes > 0.2 s
+    grad_rev = median_time(spec["grad_reverse"], *args,
+                           repeats=1 if fwd > 0.2 else max(1, repeats // 2))
     out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
                compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
                grad_s=grad, grad_over_forward=grad / fwd, grad_mode=spec["grad_mode"],
