@@ -24,7 +24,7 @@ def test_heights_equal_the_vmapped_rollout(law):
     sim = dp.compile(ball(), 1e-3, law=law)
     ks = jnp.asarray(np.geomspace(1e3, 1e5, 5))
     cs = jnp.asarray(np.geomspace(1.0, 100.0, 5))
-    z, v = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS))(ks, cs)
+    z, v = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS, velocities=True))(ks, cs)
     traj = jax.jit(jax.vmap(lambda k, c: sim.rollout(sim.params(k=k, c=c), STEPS)))(ks, cs)
     assert z.shape == (STEPS, 5)
     np.testing.assert_array_equal(z, traj.position[:, :, 0, 2].T)
