@@ -51,12 +51,15 @@ def main(argv=None) -> int:
     if missing:
         ap.error(f"{args.out} has no {missing} to keep: rerun those sections too.")
     rows, scaling, memory = old.get("cases"), old.get("sphere_scaling"), old.get("gradient_memory")
+    load = dict(old.get("load") or {})
     if "cases" in args.only:
+        load["cases_start"] = os.getloadavg()
         rows = bench.run(list(bench.CASES), dtypes=(jnp.float32,), repeats=args.repeats,
                          progress=progress)
         for name in ("ball_b1024", "cloth32"):
             progress(f"{name} (float64)")
             rows.append(bench.run_case(name, dtype=jnp.float64, repeats=args.repeats))
+        load["cases_end"] = os.getloadavg()
     if "scaling" in args.only:
         progress("sphere scaling")
         scaling = bench.sphere_scaling()
@@ -72,7 +75,8 @@ def main(argv=None) -> int:
         with open(args.peer) as f:
             peer = json.load(f)
     doc = dict(machine=f"{os.cpu_count()}-core {platform.machine()}, CPU only",
-               jax=jax.__version__, cases=rows, sphere_scaling=scaling, gradient_memory=memory,
+               jax=jax.__version__, load=load, cases=rows, sphere_scaling=scaling,
+               gradient_memory=memory,
                newton_peer=peer)
 
     atomic_write(args.out, lambda fh: fh.write(json.dumps(doc, indent=1).encode()))

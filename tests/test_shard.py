@@ -163,11 +163,11 @@ def test_cluster_arguments_are_checked_before_anything_runs(capsys):
 
     from tuning import distributed
     from tuning.cli import main
-    for argv, words in ((["--coordinator", "localhost:1234"], "go together"),
+    for argv, words in ((["--coordinator", "localhost:1234"], "all three"),
                         (["--coordinator", "localhost", "--num-processes", "2",
                           "--process-id", "0"], "HOST:PORT"),
                         (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
-                         "--process-id must be in 0..1")):
+                         "[0, 1]")):
         assert main(["sweep", "--n", "2", *argv]) == 2
         assert words in capsys.readouterr().err
     with pytest.raises(ValueError, match="all three"):

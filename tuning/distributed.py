@@ -20,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["join", "detect", "parse_coordinator", "is_writer", "process_count",
+__all__ = ["join", "check", "detect", "parse_coordinator", "is_writer", "process_count",
            "from_process_zero", "check_same"]
 
 
@@ -53,6 +53,30 @@ def detect() -> str | None:
     return None
 
 
+def check(coordinator: str | None, num_processes: int | None,
+          process_id: int | None) -> bool:
+    """Check a cluster description before anything runs: all three given (True) or none
+    (False); a clear ``ValueError`` otherwise."""
+    given = [coordinator is not None, num_processes is not None, process_id is not None]
+    if any(given) and not all(given):
+        raise ValueError("joining a cluster needs all three of the coordinator (HOST:PORT, "
+                         "the same for every process), the number of processes and this "
+                         f"process's id; got coordinator={coordinator!r}, "
+                         f"num_processes={num_processes!r}, process_id={process_id!r}.")
+    if not all(given):
+        return False
+    parse_coordinator(coordinator)
+    if isinstance(num_processes, bool) or int(num_processes) != num_processes \
+            or num_processes < 1:
+        raise ValueError(f"the number of processes must be an integer >= 1, got "
+                         f"{num_processes!r}.")
+    if isinstance(process_id, bool) or int(process_id) != process_id \
+            or not 0 <= process_id < num_processes:
+        raise ValueError(f"the process id must be an integer in [0, {num_processes - 1}], "
+                         f"got {process_id!r}.")
+    return True
+
+
 def join(coordinator: str | None = None, num_processes: int | None = None,
          process_id: int | None = None, *, timeout_s: int = 300) -> bool:
     """Join the cluster (``jax.distributed.initialize``); call before any JAX computation.
@@ -67,25 +91,10 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
       alone. Raises ``ValueError`` for an incomplete or inconsistent set of arguments.
     """
     import jax
-    given = [coordinator is not None, num_processes is not None, process_id is not None]
-    if any(given) and not all(given):
-        raise ValueError("joining a cluster needs all three of the coordinator (HOST:PORT), "
-                         "the number of processes and this process's id; got "
-                         f"coordinator={coordinator!r}, num_processes={num_processes!r}, "
-                         f"process_id={process_id!r}.")
-    if all(given):
-        parse_coordinator(coordinator)
-        if isinstance(num_processes, bool) or int(num_processes) != num_processes \
-                or num_processes < 1:
-            raise ValueError(f"the number of processes must be an integer >= 1, got "
-                             f"{num_processes!r}.")
-        if isinstance(process_id, bool) or int(process_id) != process_id \
-                or not 0 <= process_id < num_processes:
-            raise ValueError(f"the process id must be an integer in [0, {num_processes - 1}], "
-                             f"got {process_id!r}.")
+    given = check(coordinator, num_processes, process_id)
     if jax.distributed.is_initialized():
         return True
-    if all(given):
+    if given:
         if num_processes == 1:
             return False
         jax.distributed.initialize(coordinator, int(num_processes), int(process_id),

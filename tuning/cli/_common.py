@@ -65,25 +65,12 @@ def _process_count() -> int:
 
 
 def check_cluster_arguments(args) -> None:
-    """The cluster flags' consistency, checked before JAX is set up (same rules as
-    :func:`tuning.distributed.join`)."""
-    given = [args.coordinator is not None, args.num_processes is not None,
-             args.process_id is not None]
-    if any(given) and not all(given):
-        raise CLIError("--coordinator, --num-processes and --process-id go together "
-                       "(every process gets the same --coordinator and --num-processes, "
-                       "and its own --process-id)")
-    if all(given):
-        from ..distributed import parse_coordinator
-        try:
-            parse_coordinator(args.coordinator)
-        except ValueError as exc:
-            raise CLIError(f"--coordinator: {exc}") from None
-        if args.num_processes < 1:
-            raise CLIError(f"--num-processes must be >= 1, got {args.num_processes}")
-        if not 0 <= args.process_id < args.num_processes:
-            raise CLIError(f"--process-id must be in 0..{args.num_processes - 1}, got "
-                           f"{args.process_id}")
+    """The cluster flags' consistency, checked before JAX is set up."""
+    from ..distributed import check
+    try:
+        check(args.coordinator, args.num_processes, args.process_id)
+    except ValueError as exc:
+        raise CLIError(f"--coordinator/--num-processes/--process-id: {exc}") from None
 
 
 def positive(name: str):
