@@ -112,7 +112,13 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     fits = {n: fitter([{"z": 0.08 + 0.004 * i} for i in range(n)],
                       starts=[{"contact.default.k": 3e3 * (i + 1)} for i in range(n)])
             for n in (4, 3)}
+    try:                      # process 0's error reaches every process: none hangs
+        distributed.from_process_zero(lambda: 1 / 0)
+        raised = None
+    except ZeroDivisionError as exc:
+        raised = type(exc).__name__
     print(json.dumps({
+        "raised": raised,
         "joined": joined, "processes": jax.process_count(), "devices": jax.device_count(),
         "writes": writes, "evaluated": [res.evaluated, again.evaluated],
         "z": res.metrics["z"].tolist(), "v": res.metrics["v"].tolist(),
@@ -147,6 +153,7 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
         assert r["writes"] == ([0, 0, 0] if i == 0 else [])    # three chunks, process 0 only
         assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
+        assert r["raised"] == "ZeroDivisionError"
         for key in ("z", "v", "again_z", "heights"):
             assert r[key] == alone[key], key                     # bit for bit (exact floats)
         for n in ("4", "3"):

@@ -130,11 +130,23 @@ def _broadcast_bytes(data: bytes) -> bytes:
 
 def from_process_zero(fn: Callable):
     """``fn()`` evaluated on process 0 only (e.g. reading a file that only process 0 wrote),
-    its result (picklable) returned on every process. Alone: just ``fn()``."""
+    its result (picklable) returned on every process; an exception it raises is raised on
+    every process (none waits for the others forever). Alone: just ``fn()``."""
     if process_count() == 1:
         return fn()
-    data = pickle.dumps(fn()) if is_writer() else b""
-    return pickle.loads(_broadcast_bytes(data))
+    data = b""
+    if is_writer():
+        try:
+            data = pickle.dumps((True, fn()))
+        except Exception as exc:      # raised on every process, not only on process 0
+            try:
+                data = pickle.dumps((False, exc))
+            except Exception:
+                data = pickle.dumps((False, RuntimeError(f"on process 0: {exc!r}")))
+    ok, value = pickle.loads(_broadcast_bytes(data))
+    if not ok:
+        raise value
+    return value
 
 
 def check_same(what: str, data: bytes) -> None:
