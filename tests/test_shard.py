@@ -182,3 +182,23 @@ def test_cluster_arguments_are_checked_before_anything_runs(capsys):
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         distributed.join("localhost:1234", 2, 5)
     assert distributed.join("localhost:1234", 1, 0) is False     # one process: nothing to join
+
+
+def test_cluster_launchers_are_detected(monkeypatch):
+    from tuning import distributed
+    for var in ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_NTASKS", "SLURM_PROCID",
+                "SLURM_LOCALID", "OMPI_MCA_orte_hnp_uri", "OMPI_COMM_WORLD_SIZE"):
+        monkeypatch.delenv(var, raising=False)
+    assert distributed.detect() is None
+    slurm = dict(SLURM_JOB_ID="7", SLURM_STEP_NODELIST="node[1-2]", SLURM_NTASKS="1",
+                 SLURM_PROCID="0", SLURM_LOCALID="0")
+    for k, v in slurm.items():
+        monkeypatch.setenv(k, v)
+    assert distributed.detect() is None           # one task: nothing to join
+    monkeypatch.setenv("SLURM_NTASKS", "2")
+    assert distributed.detect() == "slurm"
+    for k in slurm:
+        monkeypatch.delenv(k)
+    monkeypatch.setenv("OMPI_MCA_orte_hnp_uri", "1.0;tcp://10.0.0.1:1234")
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "4")
+    assert distributed.detect() == "ompi"
