@@ -51,17 +51,12 @@ def join_cluster(args) -> bool:
     """Join the cluster the arguments (or the launcher's environment) describe, after
     :func:`setup_jax` and before any computation; True when running as one of several
     processes. Bad flags raise :class:`CLIError`."""
-    from ..distributed import join
+    from ..distributed import join, process_count
     try:
         return join(args.coordinator, args.num_processes, args.process_id) \
-            and _process_count() > 1
+            and process_count() > 1
     except ValueError as exc:
         raise CLIError(str(exc)) from None
-
-
-def _process_count() -> int:
-    import jax
-    return jax.process_count()
 
 
 def check_cluster_arguments(args) -> None:
