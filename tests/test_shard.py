@@ -117,8 +117,13 @@ CLUSTER_SCRIPT = textwrap.dedent("""
         raised = None
     except ZeroDivisionError as exc:
         raised = type(exc).__name__
+    try:                      # processes given different work all stop with one error
+        distributed.check_same("sweep", str(jax.process_index()).encode())
+        differ = None
+    except ValueError as exc:
+        differ = str(exc)
     print(json.dumps({
-        "raised": raised,
+        "raised": raised, "differ": differ,
         "joined": joined, "processes": jax.process_count(), "devices": jax.device_count(),
         "writes": writes, "evaluated": [res.evaluated, again.evaluated],
         "z": res.metrics["z"].tolist(), "v": res.metrics["v"].tolist(),
@@ -148,12 +153,14 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
     finally:
         del os.environ["CLUSTER_TMP"]
     assert alone["processes"] == 1 and alone["devices"] == 1 and not alone["joined"]
+    assert alone["differ"] is None
     assert alone["evaluated"] == [9, 0]
     for i, r in enumerate(procs):
         assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
         assert r["writes"] == ([0, 0, 0] if i == 0 else [])    # three chunks, process 0 only
         assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
         assert r["raised"] == "ZeroDivisionError"
+        assert "processes [1] were given a different sweep" in r["differ"]
         for key in ("z", "v", "again_z", "heights"):
             assert r[key] == alone[key], key                     # bit for bit (exact floats)
         for n in ("4", "3"):
