@@ -5,10 +5,10 @@ Under ``jax.vmap`` diffpen's state is (batch, bodies, 3): its minor axis has len
 CPU cannot vectorise the step along the batch. For the most common sweep, one sphere dropped
 onto one plane ``z = offset`` with the semi-implicit Euler step, this module steps the whole
 batch as one (B,) array per component (structure of arrays, batch minor) and records the
-heights time-major, (steps, B). It evaluates the very contact law the simulator uses
-(``diffpen.laws.CONTACT_LAWS[sim.law]`` with the simulator's smoothing width and exponent)
-with the same operations in the same order as the compiled step, so every height equals the
-rollout's bit for bit (``tests/test_tuning_sweep_fast.py`` checks it against ``sim.rollout``
+heights time-major, (steps, B). It evaluates the very contact force the simulator applies
+(``sim.contact_law.step_force`` with the simulator's smoothing width and step) with the same
+operations in the same order as the compiled step, so every height equals the rollout's bit
+for bit (``tests/test_tuning_sweep_fast.py`` checks it against ``sim.rollout``
 and the whole sweep against the generic one). :func:`supports` says when it applies;
 anything else takes the generic path.
 """
@@ -71,7 +71,7 @@ def ball_heights(sim: dp.Simulator, k, c, steps: int, *, velocities: bool = Fals
     dtype = sim.dtype
     k = jnp.asarray(k, dtype)
     c = jnp.asarray(c, dtype)
-    law = dp.laws.CONTACT_LAWS[sim.law]
+    law = sim.contact_law         # the simulator's record: its step-averaged force
     width = sim.smoothing
     # NumPy constants, as the compiled step has them: XLA folds them into the arithmetic the
     # same way (e.g. (radius - z) + h becomes (radius + h) - z in the smoothing blend)
@@ -81,12 +81,8 @@ def ball_heights(sim: dp.Simulator, k, c, steps: int, *, velocities: bool = Fals
     inv_m = np.asarray(np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:1], npdt)
     g = np.asarray(sim.scene.gravity[2], npdt)
     dt = sim.dt
-    if sim.law == "hunt_crossley":
-        def force(d, vn):
-            return law(d, vn, k, c, width, sim.exponent)
-    else:
-        def force(d, vn):
-            return law(d, vn, k, c, width)
+    def force(d, vn):
+        return law.step_force(d, vn, k, c, width, h=dt)
     s0 = sim.init_state()
 
     def step(s, _):
@@ -128,18 +124,20 @@ def ball_sweep_evaluator(sim: dp.Simulator, steps: int, params0: dp.Params, name
     t_end = steps * sim.dt
     del bounce_metrics_fn       # the generic evaluator this one reproduces
 
-    def one(x, z):
+    def one(x, z, v):
         # built inside the traced function, as the rollout builds them: XLA then folds the
-        # same constants into the metrics' arithmetic (results equal bit for bit)
+        # same constants into the metrics' arithmetic (results equal bit for bit); the body
+        # never moves sideways (supports() asks for no horizontal start velocity)
         s0 = sim.init_state()
         time = s0.time + sim.dt * 1 * jnp.arange(1, steps + 1, dtype=sim.dtype)
-        xy = s0.position[0, :2]
+        xy, vxy = s0.position[0, :2], s0.velocity[0, :2]
         flat = dict(flat0)
         for i, n in enumerate(names):
             flat[n] = x[i]
         params = P.unflatten(params0, flat)
         pos = jnp.concatenate([jnp.broadcast_to(xy, (steps, 2)), z[:, None]], axis=1)
-        traj = dp.Trajectory(time, pos[:, None, :], None, None, None, {})
+        vel = jnp.concatenate([jnp.broadcast_to(vxy, (steps, 2)), v[:, None]], axis=1)
+        traj = dp.Trajectory(time, pos[:, None, :], vel[:, None, :], None, None, {})
         m = ball_metrics(sim, traj, params, n_apex=n_apex, settle_tol=settle_tol,
                          state0=s0)._asdict()
         m["settling_time"] = jnp.where(m["settled"], m["settling_time"], t_end)
@@ -150,6 +148,6 @@ def ball_sweep_evaluator(sim: dp.Simulator, steps: int, params0: dp.Params, name
                                                                      flat0[kpath])
         c = x[:, names.index(cpath)] if cpath in names else jnp.full(x.shape[:1],
                                                                      flat0[cpath])
-        z = ball_heights(sim, k, c, steps)
-        return jax.vmap(one, in_axes=(0, 1))(x, z)
+        z, v = ball_heights(sim, k, c, steps, velocities=True)
+        return jax.vmap(one, in_axes=(0, 1, 1))(x, z, v)
     return sharded_map(batched, mesh, batched=True)
