@@ -1,5 +1,6 @@
-"""A batched fast path for the ball on a plane: sweeps of (k, c) at the speed of the plain
-floor, with results identical to ``sim.rollout`` under ``jax.vmap``.
+"""A batched fast path for the ball on a plane (a prototype of a batch-minor layout): the
+rollouts of a batch of (k, c) near the speed of the plain floor, with results identical to
+``sim.rollout`` under ``jax.vmap``.
 
 Under ``jax.vmap`` diffpen's state is (batch, bodies, 3): its minor axis has length 3, so XLA
 CPU cannot vectorise the step along the batch. For the most common sweep, one sphere dropped

@@ -88,13 +88,9 @@ def _run(args) -> int:
         m = dict(m)
         m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
         return m
-    p0, keys = sim.params(k=1e4, c=10.0), list(METRICS) + ["settled"]
-    from ..ball_fast import ball_sweep_evaluator     # the same results, batch-minor
-    evaluate = ball_sweep_evaluator(sim, steps, p0, names, n_apex=3,
-                                    settle_tol=args.settle_tol, keys=keys)
-    res = sweep(mfn, p0, points, names, chunk=args.chunk, out=args.out,
-                resume=not args.fresh, keys=keys, shape=shape, axes=axes,
-                progress=False if args.json or quiet else None, evaluate=evaluate)
+    res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
+                resume=not args.fresh, keys=list(METRICS) + ["settled"], shape=shape,
+                axes=axes, progress=False if args.json or quiet else None)
     vals = keep(res.metrics)
     metric = vals[args.metric]
     grid = (metric[:, 0] if metric.ndim > 1 else metric).reshape(shape)
