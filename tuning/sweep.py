@@ -15,6 +15,11 @@ file; :mod:`tuning.io`). The file carries a key of everything that determines it
 finished chunks are read back, not recomputed. Another key is refused with the list of what
 differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
 any computing, and temporary files of a killed run are removed.
+
+Several processes (:mod:`tuning.distributed`): every process calls :func:`sweep` with the same
+points and key; each chunk is split over the devices of all of them and gathered, only process
+0 checks, locks, reads (to resume) and writes ``out``, and every process returns the same
+result.
 """
 from __future__ import annotations
 
@@ -31,9 +36,10 @@ import numpy as np
 
 import diffpen as dp
 
+from . import distributed
 from . import params as P
 from .io import (OutputError, OutputLock, atomic_write, check_output, clean_orphans,
-                 key_differences, result_key)
+                 key_differences, key_digest, result_key)
 from .progress import Progress
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
@@ -256,25 +262,35 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}.")
     n = points.shape[0]
     full_key = sweep_key(names, points, params0, keys, shape, key)
+    # several processes: all must run the same sweep; process 0 alone checks, locks, reads
+    # and writes ``out`` and hands what it resumed to the others (no shared file system)
+    distributed.check_same("sweep (key and points)", key_digest(full_key).encode())
+    writer = distributed.is_writer()
     lock = None
-    if out:
-        out = check_output(out, what="sweep output")
-        csv_path = os.path.splitext(out)[0] + ".csv"
-        check_output(csv_path, what="sweep table")
-        lock = OutputLock(out, what="sweep output").acquire()
     try:
         res = None
         if out:
-            clean_orphans(out)
-            clean_orphans(csv_path)
-            if os.path.exists(out) and resume:
+            out = os.path.abspath(os.fspath(out))
+            csv_path = os.path.splitext(out)[0] + ".csv"
+
+            def prepare():
+                nonlocal lock
+                check_output(out, what="sweep output")
+                check_output(csv_path, what="sweep table")
+                lock = OutputLock(out, what="sweep output").acquire()
+                clean_orphans(out)
+                clean_orphans(csv_path)
+                if not (os.path.exists(out) and resume):
+                    return None
                 diff = key_differences(_read_key(out), full_key)
                 if diff:
                     raise SweepError(
                         f"{out} holds another sweep's results, so it cannot be resumed: "
                         + "; ".join(diff) + ". Overwrite it with resume=False (diffpen sweep "
                         "--fresh) or choose another output path.")
-                res = load_sweep(out)
+                return load_sweep(out)
+            res = distributed.from_process_zero(prepare)
+            if res is not None:
                 res.shape, res.axes = shape, axes
         if evaluate is None:
             evaluate = make_evaluator(metrics_fn, params0, names, keys, batch_map)
@@ -282,7 +298,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
             res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
         res.key = full_key
         res.evaluated = 0
-        _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
+        _run_chunks(res, evaluate, points, chunk, out if writer else None,
+                    progress if writer else False, on_chunk, finalize)
     finally:
         if lock is not None:
             lock.release()

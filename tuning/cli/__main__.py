@@ -1,4 +1,4 @@
-"""``python -m tuning.cli ...``: the ``diffpen`` command from a checkout."""
+"""``python -m tuning.cli``: the ``diffpen`` command."""
 import sys
 
 from . import main

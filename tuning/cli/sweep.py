@@ -6,7 +6,8 @@ from __future__ import annotations
 import math
 import os
 
-from ._common import CLIError, count, dump_json, fail, finite, positive, setup_jax
+from ._common import (CLIError, add_cluster_arguments, check_cluster_arguments, count,
+                      dump_json, fail, finite, join_cluster, positive, setup_jax)
 
 METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
            "restitution")
@@ -41,6 +42,7 @@ def add_arguments(p) -> None:
     p.add_argument("--target", type=finite("--target"),
                    help="draw this level of --metric as a contour")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_cluster_arguments(p)
 
 
 def run(args) -> int:
@@ -120,16 +122,19 @@ def _run(args) -> int:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
     est = check_size(nk * nc, steps, args.chunk)
-    from ..io import check_output
-    check_output(args.out, what="--out")
     if not args.out.endswith(".npz"):
         raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
-    check_output(args.out[:-4] + ".csv", what="--out's table")
-    if args.plot:
-        check_output(args.plot, what="--plot")
-        from ..plots import require_matplotlib
-        require_matplotlib()
+    if getattr(args, "process_id", None) in (None, 0):      # process 0 alone writes
+        from ..io import check_output
+        check_output(args.out, what="--out")
+        check_output(args.out[:-4] + ".csv", what="--out's table")
+        if args.plot:
+            check_output(args.plot, what="--plot")
+            from ..plots import require_matplotlib
+            require_matplotlib()
+    check_cluster_arguments(args)
     setup_jax()
+    quiet = join_cluster(args) and not _is_writer()     # process 0 alone writes and prints
     import numpy as np
 
     import diffpen as dp
@@ -174,9 +179,11 @@ def _run(args) -> int:
                          f"{_duration(est['seconds'])} at ~{RATE:.0e} ball-steps/s\n")
     res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
                 resume=not args.fresh, key=key, keys=list(METRICS) + ["settled"], shape=shape,
-                axes=axes, progress=False if args.json else None, finalize=finalize)
+                axes=axes, progress=False if args.json or quiet else None, finalize=finalize)
     metric = res.metrics[args.metric]
     grid = (metric[:, 0] if metric.ndim > 1 else metric).reshape(shape)
+    if quiet:
+        return 0
     if args.plot:
         from ..plots import heatmap
         label = {"apex_heights": "first apex (m)", "settling_time": "settling time (s)",
@@ -215,3 +222,8 @@ def _run(args) -> int:
         print(f"note: w0 dt reaches {w_max:.2f} at the stiff end; above ~0.25 the explicit "
               "step's error in restitution exceeds ~0.5% (lower --dt for accuracy there)")
     return 0
+
+
+def _is_writer() -> bool:
+    from ..distributed import is_writer
+    return is_writer()
