@@ -122,11 +122,12 @@ def _run(args) -> int:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
     est = check_size(nk * nc, steps, args.chunk)
-    if not args.out.endswith(".npz"):
-        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
     if getattr(args, "process_id", None) in (None, 0):      # process 0 alone writes
         from ..io import check_output
         check_output(args.out, what="--out")
+    if not args.out.endswith(".npz"):
+        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
+    if getattr(args, "process_id", None) in (None, 0):
         check_output(args.out[:-4] + ".csv", what="--out's table")
         if args.plot:
             check_output(args.plot, what="--plot")
