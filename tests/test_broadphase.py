@@ -31,7 +31,7 @@ def random_scene(seed, n_spheres=30, n_boxes=4, spread=0.5, pinned_every=0):
 
 
 def find(sim, state):
-    return jax.jit(lambda s: bp.find_pairs(sim.broadphase, sim._ctx, s))(state)
+    return jax.jit(lambda s: bp.find_pairs(sim.broadphase, sim.context, s))(state)
 
 
 def pair_set(pairs):
@@ -51,7 +51,7 @@ def test_broadphase_finds_the_brute_force_pairs_and_forces(seed, strategy):
     assert "contact_sphere_sphere" not in sim.terms and "contact_sphere_box" not in sim.terms
     state = sim.init_state()
     pairs = find(sim, state)
-    want = bp.brute_force_pairs(sim._ctx, state)
+    want = bp.brute_force_pairs(sim.context, state)
     assert pair_set(pairs) == want and int(pairs.count) == len(want)
     assert not bool(pairs.overflow)
     # exact narrow phase on the found pairs: contacts (d > 0) exist and forces agree
@@ -157,7 +157,7 @@ def test_grid_cost_is_linear_in_bodies():
         for x in grid:
             scene.add_sphere(0.1, 1.0, tuple(x))
         sim = dp.compile(scene, dt=1e-3, broadphase=strategy)
-        term = [t for t in sim._terms if t.name == "contact_broadphase"][0]
+        term = sim.term("contact_broadphase")
         jaxpr = jax.make_jaxpr(term.force)(sim.params(k=1.0, c=0.0), sim.init_state())
         return max(int(np.prod(v.aval.shape)) for e in jaxpr.jaxpr.eqns for v in e.outvars)
     g1, g4 = largest(64, bp.Grid(max_per_cell=4)), largest(512, bp.Grid(max_per_cell=4))
@@ -221,7 +221,7 @@ def _searches_per_step(sim):
     scope in the step's jaxpr over those of one search traced alone."""
     def scoped(eqn):
         return bp.SEARCH_SCOPE in str(eqn.source_info.name_stack)
-    one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim._ctx, s))(
+    one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim.context, s))(
         sim.init_state()).jaxpr, scoped)
     assert one > 0
     return _count_eqns(_step_jaxpr(sim), scoped) / one

@@ -271,12 +271,12 @@ def test_vmap_matches_loop_and_does_not_recompile(ball_sim):
         return ball_sim.rollout(ball_sim.params(k=k, c=c), steps=600,
                                 save_every=600).position[-1, 0, 2]
     batched = jax.vmap(apex)(ks, cs)
-    before = ball_sim._rollout_jit._cache_size()
+    before = ball_sim.rollout_cache_size()
     looped = [float(apex(k, c)) for k, c in zip([5e3, 1e4, 2e4], [10.0, 20.0, 40.0])]
-    after_first = ball_sim._rollout_jit._cache_size()
+    after_first = ball_sim.rollout_cache_size()
     for k in (1.5e4, 3e4, 7e3):          # new values, same structure: no new compilation
         apex(k, 33.0)
-    assert ball_sim._rollout_jit._cache_size() == after_first <= before + 1
+    assert ball_sim.rollout_cache_size() == after_first <= before + 1
     np.testing.assert_allclose(batched, looped, rtol=1e-12)
 
 
@@ -341,8 +341,7 @@ def test_pairs_of_fixed_things_are_never_evaluated():
     sim = dp.compile(scene, dt=1e-3)
     assert "contact_sphere_sphere" in sim.terms
     # one free sphere: 1 plane pair, 2 sphere pairs (free-pinned), none pinned-pinned
-    ctx_rows = [t for t in sim._terms if t.name == "contact_sphere_sphere"]
-    jaxpr = jax.make_jaxpr(ctx_rows[0].force)(sim.params(k=1e4, c=1.0), sim.init_state())
+    jaxpr = jax.make_jaxpr(sim.term("contact_sphere_sphere").force)(sim.params(k=1e4, c=1.0), sim.init_state())
     shapes = {v.aval.shape for e in jaxpr.jaxpr.eqns for v in e.outvars}
     assert (2,) in shapes and (3,) not in shapes      # per-pair depths: 2 pairs, not 3
     f, _ = sim.forces(sim.params(k=1e4, c=1.0), sim.init_state())
