@@ -22,12 +22,6 @@ def drop_scene(gravity=(0.0, 0.0, -G), z0=1.0, vz=0.0, r=0.1, m=1.0):
 
 
 @pytest.fixture(scope="module")
-def ball_sim():
-    """Quick-start ball (radius 0.1 m, 1 kg, centre at 1 m), dt = 1e-3, default smoothing."""
-    return dp.compile(drop_scene(), dt=1e-3)
-
-
-@pytest.fixture(scope="module")
 def spring_sim():
     """A 2 kg particle on a world spring along x, no gravity, initial stretch 0.1 m."""
     scene = dp.Scene(gravity=(0.0, 0.0, 0.0))

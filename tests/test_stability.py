@@ -108,16 +108,8 @@ def test_network_bound_is_safe_and_tight_for_a_chain():
     assert math.isclose(rep.safe_dt, rep.stable_dt)    # springs only: no contact tightening
 
 
-@pytest.fixture(scope="module")
-def ball_scene():
-    scene = dp.Scene()
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
-    return scene
-
-
-def test_stability_error_names_dt_and_substeps(ball_scene):
-    sim = dp.compile(ball_scene, 1e-3)
+def test_stability_error_names_dt_and_substeps(ball_scene, ball_sim):
+    sim = ball_sim
     params = sim.params(k=1e8, c=50.0)
     with pytest.raises(dp.StabilityError, match="substeps=") as info:
         sim.rollout(params, 10)
@@ -176,9 +168,9 @@ def test_auto_substeps_under_jit_need_the_count_and_never_reuse_an_earlier_call(
     assert bool(run(params, need - 1).aux["unstable"][-1])
 
 
-def test_stable_but_unsafe_step_is_refused_with_its_reason(ball_scene):
+def test_stable_but_unsafe_step_is_refused_with_its_reason(ball_sim):
     """w h = 1: linearly stable (limit 2) but past the safe step 0.5."""
-    sim = dp.compile(ball_scene, 1e-3)
+    sim = ball_sim
     params = sim.params(k=1e6, c=0.0)
     rep = sim.stability(params)
     assert rep.stable and not rep.safe and rep.safe_dt == pytest.approx(0.5e-3)
@@ -249,8 +241,8 @@ def test_traced_flag_is_raised_under_jit_vmap_and_grad(cube_sim):
         jax.grad(lambda k: loss(k)[0])(2e6)
 
 
-def test_flag_is_sticky_across_rollouts(ball_scene):
-    sim = dp.compile(ball_scene, 1e-3)
+def test_flag_is_sticky_across_rollouts(ball_sim):
+    sim = ball_sim
     run = jax.jit(lambda k, s: sim.rollout(sim.params(k=k, c=20.0), 10, state=s,
                                            check_finite=False))
     first = run(1e8, sim.init_state())
