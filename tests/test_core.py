@@ -524,3 +524,19 @@ def test_observe_saves_only_what_is_asked(ball_sim):
                                rtol=1e-12)
     with pytest.raises(ValueError, match="observe"):
         obs.final
+
+
+def test_simulator_is_frozen_and_forces_compile_once(ball_sim, caplog):
+    """A Simulator holds pure jitted functions: nothing can be reassigned on it, and
+    ``forces`` is one compiled program reused for new parameter values (unjitted it was
+    dispatched op by op: seconds per first call)."""
+    with pytest.raises(AttributeError, match="frozen"):
+        ball_sim.dt = 2e-3
+    state = ball_sim.init_state()
+    ball_sim.forces(ball_sim.params(k=1e4, c=1.0), state)      # compiled here at most
+    pressed = state._replace(position=state.position - 0.95)      # 5 cm into the ground
+    params = ball_sim.params(k=2e4, c=3.0)
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        f, _ = ball_sim.forces(params, pressed)
+    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
+    np.testing.assert_allclose(np.asarray(f)[0, 2], 2e4 * 0.05, rtol=1e-2)
