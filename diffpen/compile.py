@@ -30,7 +30,7 @@ from . import rollout as _rollout
 from . import stability as _stability
 from . import terms as _terms
 from .errors import NonFiniteError, SceneError
-from .integrators import Integrator, build_step, resolve, substepped
+from .integrators import build_step, resolve, substepped
 from .scene import DEFAULT, Scene
 from .state import ContactParams, Params, SpringParams, State, Trajectory
 from .terms import CompileContext, Term
