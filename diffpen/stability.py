@@ -141,8 +141,9 @@ def stable_dt(integrator, K: float, C: float) -> float:
 
 #: Explicit integrators are held to ``w_c h <= SAFE_WH`` and ``C_c h <= SAFE_CH`` for the
 #: contact springs (w_c^2 = k_contact / m, C_c = c_contact / m) besides linear stability.
-#: Linear stability alone (w h < 2 for semi-implicit Euler) is not enough with penalty contact: a contact switches on and off between steps, and the work done by a
-#: force held over a step while the body crosses the contact boundary grows like
+#: Linear stability alone (w h < 2 for semi-implicit Euler) is not enough with penalty
+#: contact: a contact switches on and off between steps, and the work done by a force held
+#: over a step while the body crosses the contact boundary grows like
 #: ``(w h)^2 / 4`` of the energy (measured on a ball at 10 m/s and on a ball released from a
 #: full-radius overlap: 6% at w h = 0.5, 2% at 0.3, 0.2% at 0.1 for semi-implicit Euler, and
 #: up to 470% for velocity Verlet at w h = 1.9). ``C h <= 1`` keeps dashpots from overshooting
