@@ -84,8 +84,9 @@ def chain():
 
 def _chain_rollout(sim, solver, k, c, steps=100):
     """Positions (steps, n, 3) of the chain under implicit_euler with the given solver."""
-    step = integrators.implicit_euler(sim.acceleration, sim.dt, inv_mass=1.0 / sim.mass * ~sim.pinned,
-                                      solver=solver, cg_tol=1e-13)
+    step = integrators.implicit_euler(sim.acceleration, sim.dt,
+                                      inv_mass=1.0 / sim.mass * ~sim.pinned, solver=solver,
+                                      cg_tol=1e-13)
     params = sim.params(spring_k=k, spring_c=c)
 
     def body(s, _):
