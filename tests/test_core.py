@@ -335,7 +335,8 @@ def test_pairs_of_fixed_things_are_never_evaluated():
     sim = dp.compile(scene, dt=1e-3)
     assert "contact_sphere_sphere" in sim.terms
     # one free sphere: 1 plane pair, 2 sphere pairs (free-pinned), none pinned-pinned
-    jaxpr = jax.make_jaxpr(sim.term("contact_sphere_sphere").force)(sim.params(k=1e4, c=1.0), sim.init_state())
+    jaxpr = jax.make_jaxpr(sim.term("contact_sphere_sphere").force)(
+        sim.params(k=1e4, c=1.0), sim.init_state())
     shapes = {v.aval.shape for e in jaxpr.jaxpr.eqns for v in e.outvars}
     assert (2,) in shapes and (3,) not in shapes      # per-pair depths: 2 pairs, not 3
     f, _ = sim.forces(sim.params(k=1e4, c=1.0), sim.init_state())
