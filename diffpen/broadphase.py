@@ -42,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
+from .scene import DEFAULT
 from .terms import CompileContext, Term, _pair_material, with_bound
 from .errors import SceneError
 
@@ -453,14 +454,19 @@ def _broadphase_bound(ctx: CompileContext):
     zero = np.zeros(3)
     spheres = [i for i, b in enumerate(bodies)
                if b.collide and b.kind == "sphere" and b.radius > 0.0]
+    # O(n): a free sphere's partners use its own material (another sphere of it exists) or
+    # "default" (a sphere of another material exists); pairs with a free end all act
+    count: dict = {}
+    for i in spheres:
+        count[bodies[i].material] = count.get(bodies[i].material, 0) + 1
     rows = []
     for i in spheres:
         if bodies[i].pinned:
             continue
-        mats = dict.fromkeys(_pair_material(scene, bodies[i].material, bodies[j].material)
-                             for j in spheres if j != i and not (bodies[i].pinned
-                                                                 and bodies[j].pinned))
-        rows += [(i, m, 2.0 * _mobility(scene, i, zero)) for m in mats]
+        m = bodies[i].material
+        mats = dict.fromkeys(([m] if count[m] > 1 else [])
+                             + ([DEFAULT] if len(spheres) > count[m] else []))
+        rows += [(i, mat, 2.0 * _mobility(scene, i, zero)) for mat in mats]
     rows += sphere_box_rows(scene)
     out = _rows_bound(rows, "contact")
     return () if out is None else (out,)

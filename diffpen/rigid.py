@@ -495,13 +495,21 @@ def _box_fixed_sphere_bound(ctx: CompileContext):
 
 
 def sphere_box_rows(scene):
-    """Candidate sphere-box contacts, one at a time: the stiffest per (body, material)."""
-    best = {}
+    """Candidate sphere-box contacts, one at a time: the stiffest per (body, material)
+    (``_pair_rows`` of every pair, with each body's mobility computed once)."""
+    best, mob = {}, {}
     zero = np.zeros(3)
+
+    def mobility(i, box):
+        if (i, box) not in mob:
+            levers = geometry.box_corners(scene.bodies[i].half_extents) if box else zero
+            mob[i, box] = _mobility(scene, i, levers)
+        return mob[i, box]
     for i, j, mat in sphere_box_pairs(scene):
-        corners = geometry.box_corners(scene.bodies[j].half_extents)
-        for b, key, w in _pair_rows(scene, i, j, mat, zero, corners):
-            best[b, key] = max(best.get((b, key), 0.0), w)
+        w = 2.0 * (mobility(i, False) + mobility(j, True))
+        for b in (i, j):
+            if not scene.bodies[b].pinned:
+                best[b, mat] = max(best.get((b, mat), 0.0), w)
     return [(b, key, w) for (b, key), w in best.items()]
 
 
