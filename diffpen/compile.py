@@ -218,12 +218,13 @@ class Simulator:
             contact_scale=_stability.contact_scale(law, exponent), dtype=self.dtype)
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
-        self._init: list = []               # the initial state, made on first use
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
+        with jax.ensure_compile_time_eval():            # concrete even if compiled in a trace
+            self._init = self.init_state()              # arrays are immutable: shared
         self._frozen = True
 
     def __setattr__(self, name, value):
@@ -521,10 +522,7 @@ class Simulator:
                                      or isinstance(substeps, bool) or substeps < 1):
             raise SceneError(f"substeps must be a positive int or None, got {substeps!r}.")
         if state is None:
-            if not self._init:
-                with jax.ensure_compile_time_eval():     # concrete even when traced
-                    self._init.append(self.init_state())  # arrays are immutable: reuse
-            state = self._init[0]
+            state = self._init
         if checkpoint is not None and (
                 not isinstance(checkpoint, (int, np.integer)) or checkpoint <= 0
                 or steps % checkpoint or (checkpoint % save_every and save_every % checkpoint)):
