@@ -66,8 +66,11 @@ def _check_value(name: str, v) -> None:
 
 
 def _default_width(scene: Scene) -> float:
-    radii = [b.radius for b in scene.bodies if b.radius > 0.0]
-    return 1e-3 * min(radii) if radii else 1e-5
+    """``smoothing="auto"``: 0, the exact ramp. The integrators apply each contact's force
+    averaged over the step (``diffpen.laws``, "step-averaged force"), which is continuous
+    through contact start and end without moving the physics; a smoothing band is no longer
+    needed for gradients."""
+    return 0.0
 
 
 class Simulator:
@@ -90,7 +93,7 @@ class Simulator:
     """
 
     def __init__(self, scene: Scene, dt: float, *, integrator="semi_implicit_euler",
-                 law: str = "linear", smoothing: float | str = "auto",
+                 law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
                  exponent: float = 1.0, dtype=None, unroll: int = 1,
                  substeps: int | str = 1, broadphase=None):
         if not isinstance(scene, Scene):
@@ -106,9 +109,10 @@ class Simulator:
             raise SceneError(f"dt must be a positive, finite number of seconds, got {dt!r}; "
                              "try dt=1e-3.")
         method = resolve(integrator)
-        if law not in laws.CONTACT_LAWS:
-            raise SceneError(f"unknown contact law {law!r}; choose one of "
-                             f"{sorted(laws.CONTACT_LAWS)}.")
+        try:
+            contact_law = laws.get(law, exponent)
+        except ValueError as e:
+            raise SceneError(str(e)) from None
         if smoothing == "auto":
             width = _default_width(scene)
         else:
@@ -120,9 +124,7 @@ class Simulator:
             if not math.isfinite(width) or width < 0.0:
                 raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
                                  f"got {smoothing!r}.")
-        exponent = float(exponent)
-        if not exponent >= 1.0:
-            raise SceneError(f"Hunt-Crossley exponent must be >= 1, got {exponent!r}.")
+        exponent = float(contact_law.exponent)
         if int(unroll) < 1:
             raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
         if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
@@ -133,7 +135,8 @@ class Simulator:
         self.scene = scene
         self.dt = dt
         self.integrator = method.name
-        self.law = law
+        self.law = contact_law.name
+        self.contact_law = contact_law
         self.smoothing = width
         self.exponent = exponent
         self.unroll = int(unroll)
@@ -182,15 +185,12 @@ class Simulator:
             s.group for s in (*scene.springs, *scene.plastic_springs,
                               *scene.anchored_springs)))
 
-        base_law = laws.CONTACT_LAWS[law]
-        law_fn = (base_law if law != "hunt_crossley" else
-                  (lambda d, vn, k, c, w: base_law(d, vn, k, c, w, exponent)))
         ctx = CompileContext(
-            scene=scene, dtype=self.dtype, law=law_fn, width=width,
+            scene=scene, dtype=self.dtype, law=contact_law, width=width,
             material_index={m: i for i, m in enumerate(self.materials)},
             group_index={g: i for i, g in enumerate(self.spring_groups)},
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
-            broadphase=broadphase)
+            broadphase=broadphase, step=dt)
         if broadphase is not None:
             _broadphase.check(broadphase, ctx)
         self.context = ctx
@@ -215,7 +215,7 @@ class Simulator:
             integrator=method, dt=dt, substeps=self.substeps, mass=self.mass.astype(float),
             pinned=self.pinned.copy(), d_ref=np.maximum(self.radius.astype(float), 1e-3),
             bounds=tuple(b for t in self._terms for b in t.bound),
-            contact_scale=_stability.contact_scale(law, exponent), dtype=self.dtype)
+            contact_scale=contact_law.stiffness, dtype=self.dtype)
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
@@ -331,8 +331,10 @@ class Simulator:
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
         (n_bodies, 3) N m, or None for scenes without rotating bodies. Pure; jitted.
 
-        ``h``: None for the instantaneous force; a step passes its inner step (s) to the
-        forces it integrates (static: a new value recompiles)."""
+        ``h``: the integrator's inner step, s. None (default): the instantaneous, pointwise
+        forces. Given: contacts apply their force averaged over the step window of length
+        ``h`` centred on this state (``diffpen.laws.ContactLaw.averaged``), which is what the
+        step integrates (static: a new value recompiles)."""
         return self._forces_jit(params, state, h=h)
 
     def _forces(self, params: Params, state: State, found: dict | None = None, *,
@@ -344,10 +346,11 @@ class Simulator:
         tau = None
         for term in self._terms:
             with jax.named_scope(term.name):
+                kw = {"h": h} if (h is not None and term.step_aware) else {}
                 if found is not None and term.name in found:
-                    ft, tt = term.force(params, state, found[term.name])
+                    ft, tt = term.force(params, state, found[term.name], **kw)
                 else:
-                    ft, tt = term.force(params, state)
+                    ft, tt = term.force(params, state, **kw)
             f = ft if f is None else f + ft
             if tt is not None:
                 tau = tt if tau is None else tau + tt
@@ -577,7 +580,8 @@ class Simulator:
 
 
 def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
-            law: str = "linear", smoothing: float | str = "auto", exponent: float = 1.0,
+            law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
+            exponent: float = 1.0,
             dtype=None, unroll: int = 1, substeps: int | str = 1,
             broadphase=None) -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
@@ -588,11 +592,13 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
       integrator: a name in ``diffpen.integrators.INTEGRATORS`` or an
         :class:`diffpen.integrators.Integrator` record (e.g. one made outside the package:
         rollouts and the stability analysis use its own step factory and amplification).
-      law: contact law, ``"linear"`` (default; may pull at separation), ``"no_tension"`` or
-        ``"hunt_crossley"``.
-      smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"`` =
-        1e-3 x the smallest sphere radius (1e-5 m without spheres), which moves restitution by
-        well under 0.1%. Static: changing it recompiles.
+      law: contact law: a :class:`diffpen.laws.ContactLaw` record or a name, ``"linear"``
+        (default; may pull at separation), ``"no_tension"`` or ``"hunt_crossley"``.
+      smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"``
+        (default) = 0: the step applies each contact's force averaged over the step
+        (``diffpen.laws``), continuous through contact start and end, so no band is needed.
+        A width > 0 selects the smoothed pointwise law instead (no step averaging). Static:
+        changing it recompiles.
       exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).

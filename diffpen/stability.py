@@ -242,8 +242,8 @@ class Analysis(NamedTuple):
     mass: (n,) kg.  pinned: (n,) bool.  d_ref: (n,) m, reference penetration of each body
       (its radius, at least 1 mm) for contact laws whose stiffness grows with depth.
     bounds: every term's :class:`Bound` blocks, in term order.
-    contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's stiffness and
-      damping at depth d (m) for coefficients k, c (identity for the linear laws).
+    contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
+      and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
     dtype: the simulator's float dtype.
     """
     integrator: Integrator
@@ -260,17 +260,6 @@ class Analysis(NamedTuple):
     def inner_dt(self) -> float:
         """dt / substeps (s), with one substep for "auto"."""
         return self.dt / (self.substeps if isinstance(self.substeps, int) else 1)
-
-
-def contact_scale(law: str, exponent: float):
-    """``contact_scale`` of :class:`Analysis` for a contact law: Hunt-Crossley's stiffness
-    ``n k d^(n-1)`` and damping ``c d^n`` at depth d; None (identity) for the others."""
-    if law != "hunt_crossley":
-        return None
-
-    def scale(k, c, d):
-        return exponent * k * d ** (exponent - 1.0), c * d ** exponent
-    return scale
 
 
 class Rates(NamedTuple):

@@ -1,6 +1,6 @@
 """Extending diffpen from outside the package with its public records only: a toy integrator
-is rolled out, analysed and gated like the built-in ones (no registration, no edit of
-diffpen)."""
+and a toy contact law are rolled out, analysed and gated like the built-in ones (no
+registration, no edit of diffpen)."""
 import math
 
 import jax
@@ -85,3 +85,36 @@ def test_toy_integrator_gets_the_stability_analysis_and_the_gate(spring_and_ball
     p = auto.params(spring_k=5e4, spring_c=0.0)
     assert auto.stability(p).substeps_needed == 2
     assert np.all(np.isfinite(np.asarray(auto.rollout(p, 100).position)))
+
+
+# --------------------------------------------------------------------------- a toy contact law
+def _half_force(d, vn, k, c, width=0.0):
+    """Toy law: half a no-tension spring-damper, ``max(k d - c vn, 0) / 2`` in contact."""
+    return 0.5 * dp.laws.no_tension_contact(d, vn, k, c, width)
+
+
+TOY_LAW = dp.laws.ContactLaw(
+    name="half_no_tension", force=_half_force, averaged=None,
+    energy=lambda d, k, width=0.0: 0.5 * k * dp.laws.ramp_integral(d, width),
+    resting_depth=lambda load, k, width=0.0: dp.laws.ramp_inverse(2.0 * load / k, width),
+    stiffness=lambda k, c, d_ref=None: (0.5 * k, 0.5 * c))
+
+
+def test_toy_contact_law_rolls_out_and_sets_the_stability_gate(ball_scene):
+    """A ContactLaw record made here: the ball rests at its resting depth, and the stability
+    analysis sees its own stiffness (k / 2), up front and under jit."""
+    sim = dp.compile(ball_scene, 1e-3, law=TOY_LAW)
+    assert sim.law == "half_no_tension"
+    k, c = 2e4, 100.0
+    traj = sim.rollout(sim.params(k=k, c=c), 3000, save_every=3000)
+    depth = 0.1 - float(traj.position[-1, 0, 2])
+    assert depth == pytest.approx(float(TOY_LAW.resting_depth(9.81, k)), rel=1e-6)
+    # the gate uses the law's stiffness: w = sqrt(k / 2 / m)
+    rep = sim.stability(sim.params(k=k, c=c))
+    assert rep.omega_max == pytest.approx(math.sqrt(0.5 * k), rel=1e-12)
+    # past the toy's own safe step (w h = 0.5 at k / 2 = 2.5e5) it is refused and flagged
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(sim.params(k=6e5, c=0.0), 10)
+    flags = jax.jit(jax.vmap(lambda kk: sim.rollout(sim.params(k=kk, c=0.0), 5,
+                                                    check_finite=False).aux["unstable"][-1]))
+    np.testing.assert_array_equal(flags(jnp.asarray([4e5, 6e5])), [False, True])
