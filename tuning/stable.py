@@ -4,8 +4,9 @@ the stable region.
 diffpen carries ``State.aux["unstable"]`` (a sticky bool scalar set inside the traced program
 when a step was past the safe step for the traced parameter values), so
 ``traj.aux["unstable"][-1]`` says whether a rollout can be trusted; it works under ``jit``,
-``vmap`` and ``grad``. :func:`rollout_unstable` returns it. For simulators that do not carry
-the flag it falls back to the same condition computed from the parameters (contact safe step
+``vmap`` and ``grad``. :func:`rollout_unstable` returns it. For a trajectory without the flag
+(e.g. a simulator from outside diffpen) it falls back to the same condition computed from the
+parameters (contact safe step
 of the lightest movable body: ``w h <= SAFE_WH``, ``c h / m <= SAFE_CH``, and the linear limit
 ``k h^2 + 2 c h < 4 m``), which is exact for one body on colliders.
 """
@@ -16,10 +17,12 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from diffpen import stability as _dp_stability
+
 __all__ = ["FLAG", "rollout_unstable", "contact_unstable", "safe_contact_bounds"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
-FLAG = "unstable"
+FLAG = getattr(_dp_stability, "FLAG", "unstable")
 
 
 def _inner_dt(sim) -> float:
