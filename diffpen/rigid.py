@@ -32,7 +32,7 @@ import numpy as np
 from . import geometry
 from . import stability as _stability_hooks
 from .terms import (TERM_BUILDERS, CompileContext, Term, _pair_material, _spring_axis, gather,
-                      scatter)
+                      plane_offsets, scatter)
 from .geometry import rotate, rotate_back
 from .laws import spring_force
 from .stability import _value
@@ -219,7 +219,7 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     mi = np.array([r[3] for r in rows], dtype=np.int32)
     corners = ctx.const([r[2] for r in rows])
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
-    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
     law, width, n = ctx.law, ctx.width, ctx.n
     # smooth Coulomb friction only when some material has it (static choice)
     rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
@@ -229,7 +229,8 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
         rot = quat_to_matrix(gather(state.orientation, bi, n))
-        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
+        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals,
+                                               offsets(params))
         fn = law(d, vn, k, c, width)
         f = fn[:, None] * normals
         if rough is not None:
@@ -273,7 +274,7 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
     rough, fi, slip = _rough(ctx, mats)
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
-    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
     radii = ctx.const(ctx.radius[bi])
     law, width, n = ctx.law, ctx.width, ctx.n
 
@@ -281,7 +282,7 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
-        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
         fn = law(d, jnp.sum(normals * v, axis=-1), k, c, width)
         r = -radii[:, None] * normals                    # centre to contact point
         f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
