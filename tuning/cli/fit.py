@@ -88,6 +88,7 @@ def _run(args) -> int:
         if args.data:
             raise CLIError("give either a scene file or --data, not both")
         from .. import scenefile
+        setup_jax()
         return _report(args, *scenefile.fit_file(args.scene, progress=None if not args.json
                                                  else False, method=args.method,
                                                  lr=args.lr, maxiter=args.maxiter))
