@@ -821,7 +821,7 @@ class _Loader:
                     raise (w / "plane").error(f"is plane {plane}, but the scene has "
                                               f"{len(self.scene.planes)} plane(s).")
         has_t, has_d = "targets" in fit, "data" in fit
-        if has_t == has_d:
+        if has_t and has_d:
             raise w.error("needs either a [fit.targets] table or data = \"record.csv\" (an "
                           "array for several records), not both.")
         targets = None
@@ -997,6 +997,10 @@ def fit_file(path: str, *, progress=None, method: str | None = None, lr: float |
                                    "fit keeps k within its accuracy limit by itself: remove "
                                    "[fit.bounds].")
     mat = scene.planes[spec.plane].material
+    if spec.targets is None and spec.data is None:
+        raise (w / "data").error("is not given and there are no [fit.targets]: give the "
+                                 "records on the command line (diffpen fit SCENE.toml --data "
+                                 "FILES...), or data = [...] / [fit.targets] in the file.")
     if spec.data is not None:
         if len(spec.data) != 1:
             raise (w / "data").error("names several records: a ball fit reads one t,z record.")
