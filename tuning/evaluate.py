@@ -154,7 +154,7 @@ def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
     return path
 
 
-def evaluate_files(scene_path: str, data, *, estimate: str = "fit", plot: str | None = None,
+def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str | None = None,
                    n_plot: int = 4) -> dict:
     """``diffpen evaluate SCENE.toml --data FILES...``: open-loop accuracy of the scene file
     (its parameter values as written) on the records. Returns the JSON-ready summary

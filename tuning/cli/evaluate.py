@@ -11,9 +11,10 @@ def add_arguments(p) -> None:
                    "as written, e.g. the output of diffpen fit --out)")
     p.add_argument("--data", nargs="+", metavar="FILE.csv",
                    help="records to evaluate on (default: the scene file's [fit] data)")
-    p.add_argument("--first-state", choices=["fit", "record"], default="fit",
-                   help="start state of each rollout: fitted to the first frames (default) "
-                        "or row 0 with the record's velocity columns")
+    p.add_argument("--first-state", choices=["record", "fit"], default="record",
+                   help="start state of each rollout: row 0 with the record's velocity "
+                        "columns (estimated where missing; default), or pose and velocities "
+                        "fitted to the first frames (a gravity parabola in free flight)")
     p.add_argument("--plot", metavar="DIR", help="draw simulated against measured "
                    "trajectories of the first records into DIR (needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")

@@ -45,9 +45,10 @@ def add_arguments(p) -> None:
                         "jointly")
     p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
                    "scene with the fitted values")
-    p.add_argument("--first-state", choices=["fit", "record"], default="fit",
-                   help="with SCENE.toml --data: each record's start state fitted to its "
-                        "first frames (default) or row 0 with its velocity columns")
+    p.add_argument("--first-state", choices=["record", "fit"], default="record",
+                   help="with SCENE.toml --data: each record's start state from row 0 and its "
+                        "velocity columns (default), or fitted to its first frames (a gravity "
+                        "parabola in free flight)")
     p.add_argument("--loss", choices=["l2", "l1"], default="l2",
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
