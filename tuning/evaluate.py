@@ -164,7 +164,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str
     import os
 
     from .scenefile import load_scene_file
-    from .trajfit import load_records, prepare
+    from .trajfit import check_stable, load_records, prepare
     sf = load_scene_file(scene_path)
     records, bodies = load_records(sf, list(data) if data else list(
         (sf.spec.data if sf.spec is not None else None) or []))
@@ -172,6 +172,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str
         os.makedirs(plot, exist_ok=True)
     sim = sf.compile()
     params = sf.params(sim)
+    check_stable(sim, params)
     batch = prepare(sim, records, bodies=bodies, estimate=estimate)
     fn = evaluator(sim, batch)
     t0 = time.perf_counter()

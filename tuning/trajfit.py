@@ -673,6 +673,22 @@ def load_records(sf, paths: Sequence[str]):
     return records, bodies
 
 
+def check_stable(sim: dp.Simulator, params) -> None:
+    """Raise :class:`diffpen.StabilityError` (with the safe step) before any rollout when
+    ``sim``'s explicit integrator is past its limit at ``params`` -- the batched rollouts
+    run with concrete checks off."""
+    if sim.integrator in dp.integrators.IMPLICIT:
+        return
+    rep = sim.stability(params)
+    if not rep.stable:
+        raise dp.StabilityError(
+            f"the scene's integrator {sim.integrator!r} is unstable at dt = {sim.dt:g} s for "
+            f"its start parameters (stable step {rep.stable_dt:.3g} s, set by "
+            f"{rep.limiting or 'the springs and contacts'}): lower dt in the scene file or "
+            "start from softer k / smaller c.", stable_dt=rep.safe_dt,
+            substeps=rep.substeps_needed)
+
+
 def free_from_spec(spec) -> list:
     """:class:`Free` leaves from a scene file's ``[fit]`` (params, bounds, space)."""
     return [Free(p, *spec.bounds.get(p, (-math.inf, math.inf)),
@@ -703,6 +719,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     t0 = time.perf_counter()
     sim = sf.compile()
     params = sf.params(sim)
+    check_stable(sim, params)
     batch = prepare(sim, records, bodies=bodies, estimate=estimate)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
