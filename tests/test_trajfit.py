@@ -221,3 +221,15 @@ def test_bad_records_fail_before_compiling(tmp_path, capsys):
     assert main(["fit", str(scene), "--data", str(tmp_path / "none.csv")]) == 2
     # a ball t,z record still goes to the ball fit (one file, no scene)
     assert main(["fit", "--data", str(bad), "--data", str(bad), "--json"]) == 2
+
+
+def test_readme_snippet_runs_as_written():
+    """The README's vmapped start states with a fitted plane offset run as written."""
+    import pathlib
+    import re
+    text = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"## Fitting measured motion.*?```python\n(.*?)```", text, re.S).group(1)
+    env: dict = {}
+    exec(compile(block, "README fitting measured motion", "exec"), env)
+    np.testing.assert_allclose(np.asarray(env["dz"]), 1.0, rtol=1e-3)
+    assert np.all(np.abs(np.asarray(env["z"]) - 0.05) < 1e-3)
