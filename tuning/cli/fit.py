@@ -281,6 +281,12 @@ def _run_records(args) -> int:
         raise CLIError("--data fits measured records; drop the --target-* flags")
     if args.method != "lm":
         raise CLIError("fits to records use Levenberg-Marquardt (--method lm)")
+    if args.plot:
+        raise CLIError("--plot draws ball fits; for records run diffpen evaluate FITTED.toml "
+                       "--data FILES... --plot DIR on the scene written by --out")
+    if args.k0 is not None or args.c0 is not None:
+        raise CLIError("--k0/--c0 set the ball's start; a scene file's start values are its "
+                       "own (edit the file)")
     setup_jax()
     from ..trajfit import fit_files
     horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else (None,)
