@@ -88,7 +88,7 @@ GOOD = _rows()
 
 @pytest.mark.parametrize("text, words", [
     ("", "is empty"),
-    ("x,y,z\n1,2,3\n", r"line 1: the header needs a time column 't'"),
+    ("x,y,z\n1,2,3\n", r"line 1: the header \(3 column\(s\)\) has no time column 't'"),
     ("t,x,y\n0,1,2\n0.1,1,2\n", r"line 1: columns x, y are there but z is missing"),
     ("t,x,y,z,qw,qx,qy\n0,1,2,3,1,0,0\n", "but qz is missing"),
     ("t,x,y,z,foo\n0,1,2,3,4\n0.1,1,2,3,4\n", r"line 1, column 5: unknown column 'foo'"),

@@ -101,6 +101,11 @@ class Record:
                 f"{'; '.join(parts)})")
 
 
+def _q(text: str) -> str:
+    """A header cell for a message, cut short (a record's content is never quoted at length)."""
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
 # --------------------------------------------------------------------------- raw reading
 def _estimate(path: str, size: int, sample: bytes) -> tuple[int, int]:
     """(estimated rows, estimated columns) of a text file from its first bytes."""
@@ -210,7 +215,7 @@ def _check_lengths(path: str, header, data) -> None:
     for no, cells in data:
         if len(cells) != len(header):
             raise RecordError(f"{path}, line {no}: {len(cells)} cells but the header has "
-                              f"{len(header)} ({','.join(header)[:80]}); every row needs one "
+                              f"{len(header)}; every row needs one "
                               "cell per column (empty for a missing sample).")
 
 
@@ -235,24 +240,25 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
     """t column index and {body: {group: [column index per component]}} from the header."""
     if len(set(header)) != len(header):
         dup = next(h for h in header if header.count(h) > 1)
-        raise RecordError(f"{path}, line {hline}: column {dup!r} appears twice in the header; "
+        raise RecordError(f"{path}, line {hline}: column {_q(dup)} appears twice in the header; "
                           "name each column once.")
     if "t" not in header:
-        raise RecordError(f"{path}, line {hline}: the header needs a time column 't' (s); got "
-                          f"{','.join(header)[:120]}. Expected t,x,y,z[,qw,qx,qy,qz]"
-                          "[,vx,vy,vz][,wx,wy,wz] or t,NAME.x,NAME.y,NAME.z,...")
+        raise RecordError(f"{path}, line {hline}: the header ({len(header)} column(s)) has no "
+                          "time column 't' (s); expected t,x,y,z[,qw,qx,qy,qz][,vx,vy,vz]"
+                          "[,wx,wy,wz] or t,NAME.x,NAME.y,NAME.z,... (the file's content is "
+                          "not shown: is it the record you meant?)")
     names = None if body_names is None else [str(n) for n in body_names]
     prefixed = [h for h in header if "." in h]
     plain = [h for h in header if "." not in h and h != "t"]
     if prefixed and plain:
         raise RecordError(f"{path}, line {hline}, column {header.index(plain[0]) + 1}: "
-                          f"{plain[0]!r} has no body name while other columns do "
-                          f"({prefixed[0]!r}); write NAME.{plain[0]} for every body column.")
+                          f"{_q(plain[0])} has no body name while other columns do "
+                          f"({_q(prefixed[0])}); write NAME.x etc. for every body column.")
     if plain:
         if names is not None and len(names) > 1:
             raise RecordError(f"{path}, line {hline}: the columns carry no body name but the "
-                              f"scene observes {len(names)} bodies ({', '.join(names)}); write "
-                              "NAME.x, NAME.y, ... for each.")
+                              f"scene observes {len(names)} bodies "
+                              f"({', '.join(names[:10])}); write NAME.x, NAME.y, ... for each.")
         default = names[0] if names else "body"
     cols: dict = {}
     for j, h in enumerate(header):
@@ -260,16 +266,17 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
             continue
         body, _, comp = h.rpartition(".") if "." in h else (default, "", h)
         if comp not in _SUFFIX:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: unknown column {h!r}; "
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: unknown column {_q(h)}; "
                               "body columns end in one of "
                               f"{', '.join(_SUFFIX)} (t is the time).")
         if not body:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: {h!r} has an empty body "
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} has an empty body "
                               "name; write NAME.x etc.")
         if names is not None and body not in names:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: {h!r} names body "
-                              f"{body!r}, which the scene does not have; named bodies: "
-                              f"{', '.join(names) or 'none'}.")
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
+                              f"{_q(body)}, which the scene does not have; named bodies: "
+                              f"{', '.join(names[:10]) or 'none'}"
+                              f"{', ...' if len(names) > 10 else ''}.")
         group, i = _SUFFIX[comp]
         cols.setdefault(body, {}).setdefault(group, [None] * len(GROUPS[group]))[i] = j
     if not cols:
@@ -366,8 +373,9 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     low = [h.lower() for h in header]
     if "t" not in low or "z" not in low:
         raise RecordError(f"{path}, line {hline}: the first row must be a header with columns "
-                          f"'t' and 'z' (time in s, ball centre height in m); got "
-                          f"{','.join(header)[:120]}.")
+                          f"'t' and 'z' (time in s, ball centre height in m); it has "
+                          f"{len(header)} column(s) and lacks {'t' if 't' not in low else 'z'} "
+                          "(the file's content is not shown: is it the record you meant?).")
     _check_lengths(path, header, data)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "

@@ -137,7 +137,7 @@ def tables(w: Where, v, *, header: str) -> list:
 def number(w: Where, v, *, low: float | None = None, high: float | None = None,
            low_open: bool = False, high_open: bool = False, unit: str = "") -> float:
     """A finite number (TOML integer or float, never a string or boolean) in the range."""
-    u = f" {unit}" if unit else ""
+    u = f" ({unit})" if unit else ""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         fix = (f"; write it without quotes, e.g. {w.key.rsplit('.', 1)[-1]} = {v}"
                if isinstance(v, str) and _numeric(v) else "")
