@@ -53,7 +53,7 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 QUAT_TOL = 1e-3
 #: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
 MS_SPAN = 60.0
-#: a position coordinate beyond this looks like millimetres
+#: a height |z| beyond this (m) looks like millimetres
 MM_LIMIT = 20.0
 
 
@@ -347,16 +347,16 @@ def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
                                   f"the quaternion has norm {n[r]:.6g}, not 1; normalise it "
                                   "(qw, qx, qy, qz).")
         p = arrays["position"]
-        if check_units and np.nanmax(np.abs(p), initial=0.0) > MM_LIMIT:
-            r, c = np.unravel_index(np.nanargmax(np.abs(p)), p.shape)
-            j = groups["position"][int(c)]
-            raise RecordError(f"{path}, line {data[int(r)][0]}, column {j + 1} ({header[j]}): "
-                              f"{p[r, c]:g} m is beyond {MM_LIMIT:g} m: positions look like "
+        if np.isnan(p).all():
+            raise RecordError(f"{path}: body {_q(body)} has no position sample; a record needs "
+                              "at least one.")
+        if check_units and np.nanmax(np.abs(p[:, 2])) > MM_LIMIT:
+            r = int(np.nanargmax(np.abs(p[:, 2])))
+            j = groups["position"][2]
+            raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                              f"{p[r, 2]:g} m is beyond {MM_LIMIT:g} m: positions look like "
                               "millimetres, but they are in metres. Divide by 1000 (or pass "
                               "check_units=False if they really are metres).")
-        if np.isnan(p).all():
-            raise RecordError(f"{path}: body {body!r} has no position sample; a record needs at "
-                              "least one.")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 

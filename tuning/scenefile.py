@@ -893,8 +893,9 @@ class _Loader:
         if not names and not fit.get("bounds") and not fit.get("space"):
             return [], {}, {}
         try:
-            sim = dp.compile(self.scene, 1.0, law=sf.compile_options.get("law", "linear"))
-            params = _default_params(sim, k, c)
+            with np.errstate(over="ignore"):      # only the structure is needed here
+                sim = dp.compile(self.scene, 1.0, law=sf.compile_options.get("law", "linear"))
+                params = _default_params(sim, k, c)
         except dp.SceneError as exc:
             raise w.error(f"cannot build the parameters: {exc}") from None
         leaves = param_leaves(params)
