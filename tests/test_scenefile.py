@@ -498,3 +498,19 @@ def test_examples_ball_toml_reads():
     assert sf.spec.free == ["contact.rubber.k", "contact.rubber.c"]
     assert sf.spec.targets == {"apex_heights": [0.35], "settling_time": 2.4}
     assert math.isclose(sf.setup.dt * sf.setup.steps, 3.0)
+
+
+def test_readme_scene_file_example_reads(tmp_path):
+    """The README's TOML example is a valid scene file, as written."""
+    readme = open(os.path.join(os.path.dirname(__file__), "..", "README.md")).read()
+    block = readme.split("```toml\n", 1)[1].split("```", 1)[0]
+    for name in ("toss_003.csv", "toss_006.csv"):
+        (tmp_path / name).write_text("t,x,y,z\n0,0,0,0.15\n0.01,0,0,0.14\n")
+    p = tmp_path / "cube.toml"
+    p.write_text(block)
+    sf = load_scene_file(str(p))
+    assert sf.names["cube"] == 0 and sf.body_index("rope[-1]") == 10
+    assert sf.spec.free == ["contact.wood.k", "contact.wood.c", "extra.friction.wood"]
+    assert sf.spec.bounds == {"extra.friction.wood": (0.01, 1.0)}
+    assert len(sf.spec.data) == 2 and sf.planes == {"board": 0}
+    assert isinstance(sf.setup.compile_options["broadphase"], dp.broadphase.Grid)
