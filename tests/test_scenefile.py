@@ -514,3 +514,18 @@ def test_readme_scene_file_example_reads(tmp_path):
     assert sf.spec.bounds == {"extra.friction.wood": (0.01, 1.0)}
     assert len(sf.spec.data) == 2 and sf.planes == {"board": 0}
     assert isinstance(sf.setup.compile_options["broadphase"], dp.broadphase.Grid)
+
+
+@pytest.mark.skipif("name" not in __import__("inspect").signature(dp.Scene.add_plane).parameters,
+                    reason="planes have no differentiable offset in this build")
+def test_named_plane_offset_is_a_linear_space_fit_leaf(tmp_path):
+    """A named plane's offset is the params leaf extra.plane_offset.NAME: [fit] accepts it and
+    fits it in linear space (it is signed: the cube-toss board sits ~2 mm below z = 0)."""
+    p = tmp_path / "g.toml"
+    p.write_text(BALL.replace("[[planes]]", "[[planes]]\nname = \"ground\"\noffset = -0.002")
+                 + '[fit]\nparams = ["contact.rubber.k", "extra.plane_offset.ground"]\n'
+                 'data = "r.csv"\n[fit.bounds]\n"extra.plane_offset.ground" = [-0.01, 0.01]\n')
+    (tmp_path / "r.csv").write_text("t,x,y,z\n0,0,0,1\n0.01,0,0,0.99\n")
+    spec = load_scene_file(str(p)).spec
+    assert spec.space == {"contact.rubber.k": "log", "extra.plane_offset.ground": "linear"}
+    assert spec.bounds["extra.plane_offset.ground"] == (-0.01, 0.01)
