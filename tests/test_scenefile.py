@@ -67,8 +67,8 @@ offset = -0.002
 material = "rubber"
 
 [[planes]]
-normal = [1.0, 0.0, 0.0]
-offset = 10.0
+normal = [-1.0, 0.0, 0.0]
+offset = -10.0
 
 [[fixed_spheres]]
 center = [5.0, 0.0, 0.0]
@@ -190,7 +190,7 @@ def _api_scene():
     builders.add_crumple_bar(s, 4, (0.0, 4.0, 0.5), (0.3, 4.0, 0.5), 0.1, 1000.0, 1.0,
                              yield_strain=0.05, width=0.05, pinned=[0])
     s.add_plane(offset=-0.002, material="rubber")
-    s.add_plane(normal=(1.0, 0.0, 0.0), offset=10.0)
+    s.add_plane(normal=(-1.0, 0.0, 0.0), offset=-10.0)
     s.add_fixed_sphere((5.0, 0.0, 0.0), 0.5)
     s.add_spring(ball, dot, k=100.0, group="link")
     s.add_spring(dot, (1.0, 0.0, 2.0), group="tether", rest_length=0.9)
@@ -299,8 +299,8 @@ mass = 1.0
 position = [1.0, 0.0, 1.0]
 [[planes]]
 name = "wall"
-normal = [1.0, 0.0, 0.0]
-offset = 3.0
+normal = [-1.0, 0.0, 0.0]
+offset = -3.0
 [[planes]]
 name = "ground"
 [fit]

@@ -17,6 +17,8 @@ The schema (SI units; every table is optional except one body; unknown keys are 
                                     # cell_size, max_per_cell, bounds = [[x0,y0,z0],[x1,y1,z1]]
     k = 1e4                         # default contact k (N/m) and c (N s/m) of materials
     c = 10.0                        # that do not give their own
+    allow_overlap = false           # bodies may start overlapping (also per body, plane and
+                                    #   fixed sphere), where the library checks overlaps
 
     [materials.rubber]              # contact material ("default" exists already)
     k = 1e4                         # N/m
@@ -105,10 +107,13 @@ MAX_STEPS = 10_000_000
 MAX_BODIES = 200_000
 MAX_DENSE_PAIRS = 500_000          # contact pairs evaluated every step without a broad phase
 MAX_TRAJECTORY_BYTES = 8 * 2**30   # a rollout saving every step
+#: positions, centres and anchor points must lie within this distance of the origin, m
+MAX_COORD = 1e6
 
 BODY_TABLES = ("spheres", "particles", "boxes", "rigid_spheres")
 BUILDER_TABLES = ("ropes", "cloths", "jellies", "crumple_bars")
 TOP = {"description", "gravity", "dt", "duration", "law", "exponent", "integrator",
+       "allow_overlap",
        "smoothing", "substeps", "plastic_smoothing", "broadphase", "k", "c", "materials",
        *BODY_TABLES, "planes", "fixed_spheres", "spring_groups", "springs",
        "anchored_springs", "plastic_springs", "drag", *BUILDER_TABLES, "fit"}
@@ -367,6 +372,11 @@ class _Loader:
             raise w.error(f"{v!r} is used twice: names must differ.")
         return v
 
+    @staticmethod
+    def point(w: Where, v, unit: str = "m") -> tuple:
+        """A position (m) within MAX_COORD of the origin."""
+        return V.vector(w, v, unit=unit, limit=MAX_COORD)
+
     def require(self, w: Where, e: dict, key: str):
         if key not in e:
             raise w.error(f"is missing required key {key!r}.")
@@ -404,7 +414,9 @@ class _Loader:
         c = V.number(self.w("c"), doc["c"], low=0.0, unit="N s/m") if "c" in doc else None
         self.check_sizes(dt, duration, bp is not None)
 
-        scene = dp.Scene(gravity=gravity)
+        overlap = V.boolean(self.w("allow_overlap"), doc.get("allow_overlap", False))
+        scene = (dp.Scene(gravity=gravity, allow_overlap=True)
+                 if overlap and _takes(dp.Scene, "allow_overlap") else dp.Scene(gravity=gravity))
         self.scene = scene
         if "plastic_smoothing" in doc:
             scene.plastic_smoothing = V.number(self.w("plastic_smoothing"),
@@ -578,7 +590,8 @@ class _Loader:
 
     # ---------------------------------------------------------------- bodies
     def bodies(self):
-        common = {"name", "mass", "position", "velocity", "pinned", "material", "collide"}
+        common = {"name", "mass", "position", "velocity", "pinned", "material", "collide",
+                  "allow_overlap"}
         rigid = common | {"orientation", "angular_velocity", "body_angular_velocity", "inertia"}
         allowed = {"spheres": common | {"radius"}, "particles": common,
                    "boxes": rigid | {"half_extents"}, "rigid_spheres": rigid | {"radius"}}
@@ -589,8 +602,7 @@ class _Loader:
                 kw = dict(
                     mass=V.number(w / "mass", self.require(w, e, "mass"), low=0.0,
                                   low_open=True, unit="kg"),
-                    position=V.vector(w / "position", self.require(w, e, "position"),
-                                      unit="m"),
+                    position=self.point(w / "position", self.require(w, e, "position")),
                     velocity=V.vector(w / "velocity", e.get("velocity", [0.0, 0.0, 0.0]),
                                       unit="m/s"),
                     pinned=V.boolean(w / "pinned", e.get("pinned", False)),
@@ -598,19 +610,27 @@ class _Loader:
                     collide=V.boolean(w / "collide", e.get("collide", True)))
                 if key in ("spheres", "rigid_spheres"):
                     kw["radius"] = V.number(w / "radius", self.require(w, e, "radius"),
-                                            low=0.0, low_open=True, unit="m")
+                                            low=0.0, low_open=True, high=MAX_COORD, unit="m")
                 if key == "boxes":
-                    kw["half_extents"] = V.vector(w / "half_extents",
-                                                  self.require(w, e, "half_extents"), unit="m")
+                    kw["half_extents"] = self.point(w / "half_extents",
+                                                    self.require(w, e, "half_extents"))
                 if key in ("boxes", "rigid_spheres"):
                     self.rigid_kw(w, e, kw)
                 name = self.name(w / "name", e["name"], self.names) if "name" in e else None
                 fn = {"spheres": self.scene.add_sphere, "particles": self.scene.add_particle,
                       "boxes": self.scene.add_box,
                       "rigid_spheres": self.scene.add_rigid_sphere}[key]
+                self.overlap(w, e, fn, kw)
                 idx = self.call(w, fn, **kw)
                 if name is not None:
                     self.names[name] = idx
+
+    def overlap(self, w, e, fn, kw):
+        """``allow_overlap = true``: start overlapping a collider or body on purpose (passed
+        on where the library checks initial overlaps; without that check it is the default)."""
+        if "allow_overlap" in e and V.boolean(w / "allow_overlap", e["allow_overlap"]):
+            if _takes(fn, "allow_overlap"):
+                kw["allow_overlap"] = True
 
     def rigid_kw(self, w, e, kw):
         q = V.vector(w / "orientation", e.get("orientation", [1.0, 0.0, 0.0, 0.0]), 4,
@@ -664,8 +684,8 @@ class _Loader:
                                   V.number(w / "drag", e["drag"], low=0.0, unit="N s/m"))
                 if key in ("ropes", "crumple_bars"):
                     kw["n"] = V.integer(w / "n", self.require(w, e, "n"), low=2)
-                    kw["start"] = V.vector(w / "start", self.require(w, e, "start"), unit="m")
-                    kw["end"] = V.vector(w / "end", self.require(w, e, "end"), unit="m")
+                    kw["start"] = self.point(w / "start", self.require(w, e, "start"))
+                    kw["end"] = self.point(w / "end", self.require(w, e, "end"))
                     kw["k"] = V.number(w / "k", self.require(w, e, "k"), low=0.0, unit="N/m")
                     kw["c"] = V.number(w / "c", e.get("c", 0.0), low=0.0, unit="N s/m")
                     if "pinned" in e:
@@ -675,9 +695,9 @@ class _Loader:
                     for d in ("nx", "ny", "nz")[:dims]:
                         kw[d] = V.integer(w / d, self.require(w, e, d), low=2)
                     kw["spacing"] = V.number(w / "spacing", self.require(w, e, "spacing"),
-                                             low=0.0, low_open=True, unit="m")
+                                             low=0.0, low_open=True, high=MAX_COORD, unit="m")
                     if "origin" in e:
-                        kw["origin"] = V.vector(w / "origin", e["origin"], unit="m")
+                        kw["origin"] = self.point(w / "origin", e["origin"])
                     if "pinned" in e:
                         kw["pinned"] = _int_grid(w / "pinned", e["pinned"], dims)
                 if key == "ropes":
@@ -717,13 +737,15 @@ class _Loader:
 
     # ---------------------------------------------------------------- colliders
     def colliders(self):
-        plane_kw = "name" in inspect.signature(self.scene.add_plane).parameters
+        plane_kw = _takes(self.scene.add_plane, "name")
         for i, e in enumerate(self.entries("planes")):
             w = self.w("planes", i)
-            V.check_keys(w, e, {"normal", "offset", "material", "name"})
+            V.check_keys(w, e, {"normal", "offset", "material", "name", "allow_overlap"})
             kw = dict(normal=V.vector(w / "normal", e.get("normal", [0.0, 0.0, 1.0])),
-                      offset=V.number(w / "offset", e.get("offset", 0.0), unit="m"),
+                      offset=V.number(w / "offset", e.get("offset", 0.0), low=-MAX_COORD,
+                                      high=MAX_COORD, unit="m"),
                       material=self.material_of(w, e))
+            self.overlap(w, e, self.scene.add_plane, kw)
             name = None
             if "name" in e:
                 name = self.name(w / "name", e["name"], self.plane_names)
@@ -734,12 +756,13 @@ class _Loader:
                 self.plane_names[name] = idx
         for i, e in enumerate(self.entries("fixed_spheres")):
             w = self.w("fixed_spheres", i)
-            V.check_keys(w, e, {"center", "radius", "material"})
-            self.call(w, self.scene.add_fixed_sphere,
-                      center=V.vector(w / "center", self.require(w, e, "center"), unit="m"),
+            V.check_keys(w, e, {"center", "radius", "material", "allow_overlap"})
+            kw = dict(center=self.point(w / "center", self.require(w, e, "center")),
                       radius=V.number(w / "radius", self.require(w, e, "radius"), low=0.0,
-                                      low_open=True, unit="m"),
+                                      low_open=True, high=MAX_COORD, unit="m"),
                       material=self.material_of(w, e))
+            self.overlap(w, e, self.scene.add_fixed_sphere, kw)
+            self.call(w, self.scene.add_fixed_sphere, **kw)
 
     # ---------------------------------------------------------------- springs
     def refs(self) -> _Refs:
@@ -758,7 +781,7 @@ class _Loader:
             V.check_keys(w, e, {"a", "b", "k", "c", "rest_length", "group"})
             a = refs.body(w / "a", self.require(w, e, "a"))
             b = self.require(w, e, "b")
-            b = (V.vector(w / "b", b, unit="m (a world point)") if isinstance(b, list)
+            b = (self.point(w / "b", b, "m (a world point)") if isinstance(b, list)
                  else refs.body(w / "b", b))
             kw = {}
             self.spring_common(w, e, kw, default_group=dp.scene.DEFAULT)
@@ -769,10 +792,8 @@ class _Loader:
                                 "group"})
             a = refs.body(w / "a", self.require(w, e, "a"))
             b = refs.body(w / "b", e["b"]) if "b" in e else None
-            kw = {"anchor_a": V.vector(w / "anchor_a", e.get("anchor_a", [0.0, 0.0, 0.0]),
-                                       unit="m (body frame)"),
-                  "anchor_b": V.vector(w / "anchor_b", e.get("anchor_b", [0.0, 0.0, 0.0]),
-                                       unit="m")}
+            kw = {"anchor_a": self.point(w / "anchor_a", e.get("anchor_a", [0.0, 0.0, 0.0])),
+                  "anchor_b": self.point(w / "anchor_b", e.get("anchor_b", [0.0, 0.0, 0.0]))}
             self.spring_common(w, e, kw, default_group=dp.scene.DEFAULT)
             self.call(w, self.scene.add_anchored_spring, a, b, **kw)
         for i, e in enumerate(self.entries("plastic_springs")):
@@ -945,6 +966,14 @@ class _Loader:
                                            "which log space cannot hold; give it a positive "
                                            "start value or fit it in linear space.")
         return free, bounds, space
+
+
+def _takes(fn, name: str) -> bool:
+    """Whether ``fn`` accepts keyword ``name`` (options newer than some library builds)."""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _bytes(n: float) -> str:

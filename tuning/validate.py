@@ -190,12 +190,18 @@ def choice(w: Where, v, options) -> str:
     return v
 
 
-def vector(w: Where, v, n: int = 3, *, what: str = "x, y, z", unit: str = "") -> tuple:
-    """``n`` finite numbers."""
+def vector(w: Where, v, n: int = 3, *, what: str = "x, y, z", unit: str = "",
+           limit: float | None = None) -> tuple:
+    """``n`` finite numbers (each of magnitude <= ``limit`` when given)."""
     if not isinstance(v, list) or len(v) != n:
         raise w.error(f"must be {n} numbers [{what}]{' in ' + unit if unit else ''}, got "
                       f"{_kind(v)} {_show(v)}.")
-    return tuple(number(w / i, x) for i, x in enumerate(v))
+    out = tuple(number(w / i, x) for i, x in enumerate(v))
+    if limit is not None and max(abs(x) for x in out) > limit:
+        raise w.error(f"= {_show(v)} is farther than {limit:g} {unit or 'units'} from the "
+                      f"origin: at that distance float32 positions resolve only "
+                      f"{limit * 2**-24:.2g} {unit}; move the scene near the origin.")
+    return out
 
 
 def number_list(w: Where, v, *, low: float | None = None, low_open: bool = False,
