@@ -529,3 +529,18 @@ def test_named_plane_offset_is_a_linear_space_fit_leaf(tmp_path):
     spec = load_scene_file(str(p)).spec
     assert spec.space == {"contact.rubber.k": "log", "extra.plane_offset.ground": "linear"}
     assert spec.bounds["extra.plane_offset.ground"] == (-0.01, 0.01)
+
+
+@pytest.mark.skipif("allow_overlap" not in __import__("inspect").signature(
+    dp.Scene.add_sphere).parameters, reason="no initial-overlap check in this build")
+def test_allow_overlap_passes_through(tmp_path):
+    p = tmp_path / "o.toml"
+    deep = BALL.replace("position = [0.0, 0.0, 1.0]", "position = [0.0, 0.0, 0.02]")
+    p.write_text(deep)
+    with pytest.raises(SceneFileError, match=r"o\.toml: planes\[0\] .*allow_overlap"):
+        load_scene_file(str(p))
+    p.write_text(deep.replace('material = "rubber"\n[[planes]]',
+                              'material = "rubber"\nallow_overlap = true\n[[planes]]'))
+    assert load_scene_file(str(p)).scene.n_bodies == 1
+    p.write_text("allow_overlap = true\n" + deep)
+    assert load_scene_file(str(p)).scene.n_bodies == 1
