@@ -430,9 +430,11 @@ def test_20000_spheres_need_a_broad_phase(tmp_path):
                                              r"\{ kind = \"grid\" \}"):
         load_scene_file(str(p))
     # with a broad phase the same count passes the guard (tested on 600 to stay fast)
-    p.write_text('broadphase = { kind = "grid", max_per_cell = 16 }\n' + _spheres(600))
+    p.write_text('broadphase = { kind = "grid", max_per_cell = 16 }\n' + _spheres(600)
+                 + '[fit]\nparams = ["contact.default.k"]\ndata = "r.csv"\n')
+    (tmp_path / "r.csv").write_text("t,x,y,z\n0,0,0,1\n0.01,0,0,0.99\n")
     sf = load_scene_file(str(p), max_dense_pairs=1000)
-    assert sf.scene.n_bodies == 600
+    assert sf.scene.n_bodies == 600 and sf.spec.free == ["contact.default.k"]
     assert isinstance(sf.setup.compile_options["broadphase"], dp.broadphase.Grid)
     p.write_text(_spheres(600))
     with pytest.raises(SceneFileError, match="179,700 contact pairs"):

@@ -413,6 +413,7 @@ class _Loader:
         k = V.number(self.w("k"), doc["k"], low=0.0, unit="N/m") if "k" in doc else None
         c = V.number(self.w("c"), doc["c"], low=0.0, unit="N s/m") if "c" in doc else None
         self.check_sizes(dt, duration, bp is not None)
+        self.dt = dt
 
         overlap = V.boolean(self.w("allow_overlap"), doc.get("allow_overlap", False))
         scene = (dp.Scene(gravity=gravity, allow_overlap=True)
@@ -915,7 +916,7 @@ class _Loader:
             return [], {}, {}
         try:
             with np.errstate(over="ignore"):      # only the structure is needed here
-                sim = dp.compile(self.scene, 1.0, law=sf.compile_options.get("law", "linear"))
+                sim = dp.compile(self.scene, self.dt, **sf.compile_options)
                 params = _default_params(sim, k, c)
         except dp.SceneError as exc:
             raise w.error(f"cannot build the parameters: {exc}") from None
