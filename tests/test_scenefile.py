@@ -260,7 +260,11 @@ maxiter = 30
     (tmp_path / "rec.csv").write_text("t,cube.x,cube.y,cube.z\n0,2,0,0.5\n0.01,2,0,0.49\n")
     p = tmp_path / "fit.toml"
     p.write_text(body)
-    spec = load_scene_file(str(p)).spec
+    sf = load_scene_file(str(p))
+    spec = sf.spec
+    # the simulator built to check the paths is the one sf.compile() gives (built once)
+    assert sf.compile() is sf.compile() and sf.compile().dt == 5e-4
+    assert sf.compile(dt=1e-4).dt == 1e-4
     assert spec.free == ["contact.rubber.k", "contact.rubber.c", "extra.friction.rubber",
                          "springs.rope.stretch.k", "springs.sheet.structural.c",
                          "extra.drag.air", "extra.plastic.crush", "extra.drag.rope.drag"]

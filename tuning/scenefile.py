@@ -175,6 +175,7 @@ class SceneFile:
     planes: dict = dataclasses.field(default_factory=dict)
     nodes: dict = dataclasses.field(default_factory=dict)
     compile_options: dict = dataclasses.field(default_factory=dict)
+    _sim: tuple | None = dataclasses.field(default=None, repr=False)
 
     @property
     def scene(self) -> dp.Scene:
@@ -186,7 +187,10 @@ class SceneFile:
 
     def compile(self, **overrides) -> dp.Simulator:
         """``diffpen.compile`` with the file's dt and options (``overrides`` win). Lazy: JAX
-        compiles on the first rollout."""
+        compiles on the first rollout. Without overrides, the simulator built while checking
+        ``[fit] params`` is reused (same scene, dt, options and dtype)."""
+        if not overrides and self._sim is not None and self._sim[0] == _x64():
+            return self._sim[1]
         kw = dict(self.compile_options)
         kw.update(overrides)
         dt = kw.pop("dt", self.setup.dt)
@@ -918,6 +922,7 @@ class _Loader:
             with np.errstate(over="ignore"):      # only the structure is needed here
                 sim = dp.compile(self.scene, self.dt, **sf.compile_options)
                 params = _default_params(sim, k, c)
+            sf._sim = (_x64(), sim)
         except dp.SceneError as exc:
             raise w.error(f"cannot build the parameters: {exc}") from None
         leaves = param_leaves(params)
@@ -967,6 +972,11 @@ class _Loader:
                                            "which log space cannot hold; give it a positive "
                                            "start value or fit it in linear space.")
         return free, bounds, space
+
+
+def _x64() -> bool:
+    import jax
+    return bool(jax.config.jax_enable_x64)
 
 
 def _takes(fn, name: str) -> bool:
