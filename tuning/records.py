@@ -429,7 +429,8 @@ def write_record(path, record: Record) -> None:
     table = np.concatenate(blocks, axis=1)
     tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
     with open(tmp, "w", newline="") as fh:
-        fh.write(",".join(header) + "\n")
+        w = csv.writer(fh, lineterminator="\n")     # quotes names such as "cloth[1,2].x"
+        w.writerow(header)
         for row in table:
-            fh.write(",".join("" if math.isnan(v) else repr(float(v)) for v in row) + "\n")
+            w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
     os.replace(tmp, path)
