@@ -412,7 +412,9 @@ BAD = [
     (BALL + "[fit]\n[fit.targets]\napex_heights = [0.3]\n[fit.weights]\nsettling = 1.0\n",
      r"fit\.weights\.settling weights a target that is not given"),
     ("[[spheres]]\nradius = 0.1\nmass = 1.0\nposition = [0, 0, 1]\n[fit]\n",
-     r"fit needs either a \[fit.targets\] table or data"),
+     r"fit says nothing to fit: add a \[fit.targets\] table, data = \"record.csv\", or "
+     r"params"),
+    (BALL + FIT.replace("[fit]", '[fit]\ndata = "r.csv"'), r"fit has both \[fit.targets\] and data"),
 ]
 
 

@@ -458,7 +458,7 @@ class _Loader:
             body=body if scene.planes else None,
             metrics=_metrics(body, plane, spec.settle_tol if spec else 1e-3)
             if ball_like else None, description=desc,
-            compile_options={k: v for k, v in opts.items() if k != "law"})
+            compile_options={key: v for key, v in opts.items() if key != "law"})
         sf.spec = spec
         return sf
 
@@ -847,9 +847,13 @@ class _Loader:
                     raise (w / "plane").error(f"is plane {plane}, but the scene has "
                                               f"{len(self.scene.planes)} plane(s).")
         has_t, has_d = "targets" in fit, "data" in fit
-        if has_t == has_d:
-            raise w.error("needs either a [fit.targets] table or data = \"record.csv\" (an "
-                          "array for several records), not both.")
+        if has_t and has_d:
+            raise w.error("has both [fit.targets] and data: give either targets (a bounce fit) "
+                          "or data = \"record.csv\" (an array for several records), not both.")
+        if not (has_t or has_d or fit.get("params")):
+            raise w.error("says nothing to fit: add a [fit.targets] table, data = "
+                          "\"record.csv\", or params = [...] (with records given on the "
+                          "command line, diffpen fit SCENE.toml --data FILE.csv ...).")
         targets = None
         if has_t:
             targets = self.targets(w / "targets", fit["targets"])
@@ -1024,6 +1028,9 @@ def fit_file(path: str, *, progress=None, method: str | None = None, lr: float |
                              "say what to fit.", path=path, key="fit")
     spec, scene = sf.spec, sf.scene
     w = Where(path, "fit")
+    if spec.targets is None and spec.data is None:
+        raise w.error("has no targets or data: add [fit.targets], data = \"record.csv\", or "
+                      "give the records on the command line (--data FILE.csv ...).")
     method = method or spec.method
     lr = spec.lr if lr is None else lr
     if not scene.planes:
