@@ -552,3 +552,20 @@ def test_allow_overlap_passes_through(tmp_path):
     assert load_scene_file(str(p)).scene.n_bodies == 1
     p.write_text("allow_overlap = true\n" + deep)
     assert load_scene_file(str(p)).scene.n_bodies == 1
+
+
+@pytest.mark.parametrize("extra, words", [
+    ('[fit.bounds]\n"contact.rubber.k" = [1e5, 1e3]\n', r"needs lo < hi"),
+    ('[fit.bounds]\n"contact.rubber.k" = "wide"\n', r"must be \[lo, hi\], got a string"),
+    ('[fit.space]\n"contact.rubber.k" = "exp"\n', r"must be one of 'log', 'linear'"),
+    ("[fit.weights]\napex_heights = -1\n", r"fit\.weights\.apex_heights must be >= 0"),
+])
+def test_fit_table_errors_come_before_any_simulator_is_built(tmp_path, monkeypatch, extra,
+                                                             words):
+    def boom(*a, **k):
+        raise AssertionError("a simulator was built before the [fit] table was checked")
+    monkeypatch.setattr(dp, "compile", boom)
+    p = tmp_path / "f.toml"
+    p.write_text(BALL + FIT + extra)
+    with pytest.raises(SceneFileError, match=words):
+        load_scene_file(str(p))

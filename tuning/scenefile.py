@@ -922,6 +922,18 @@ class _Loader:
                 V.table(w / key, fit[key], example=f'[fit.{key}] "contact.default.k" = ...')
         if not names and not fit.get("bounds") and not fit.get("space"):
             return [], {}, {}
+        # everything that needs no parameter structure is checked before the simulator is built
+        given_space = {p: V.choice(w / "space" / p, s, ["log", "linear"])
+                       for p, s in fit.get("space", {}).items()}
+        given_bounds = {}
+        for p, b in fit.get("bounds", {}).items():
+            wp = w / "bounds" / p
+            if not isinstance(b, list) or len(b) != 2:
+                raise wp.error(f"must be [lo, hi], got {V._kind(b)} {V._show(b)}.")
+            lo, hi = (V.number(wp / j, x) for j, x in enumerate(b))
+            if not lo < hi:
+                raise wp.error(f"needs lo < hi, got [{lo:g}, {hi:g}].")
+            given_bounds[p] = (lo, hi)
         try:
             with np.errstate(over="ignore"):      # only the structure is needed here
                 sim = dp.compile(self.scene, self.dt, **sf.compile_options)
@@ -947,21 +959,18 @@ class _Loader:
                 raise (w / "params" / i).error(f"names {q!r} twice.")
             free.append(q)
         space = {p: leaf_space(p, leaves[p]) for p in free}
-        for p, s in fit.get("space", {}).items():
-            wp = w / "space" / p
-            q = resolve(wp, p)
-            space[q] = V.choice(wp, s, ["log", "linear"])
+        for p, s in given_space.items():
+            q = resolve(w / "space" / p, p)
+            if q not in free:
+                raise (w / "space" / p).error(f"sets the space of {q!r}, which is not in [fit] "
+                                              "params; add it there.")
+            space[q] = s
         bounds = {}
-        for p, b in fit.get("bounds", {}).items():
+        for p, (lo, hi) in given_bounds.items():
             wp = w / "bounds" / p
             q = resolve(wp, p)
             if q not in free:
                 raise wp.error(f"bounds {q!r}, which is not in [fit] params; add it there.")
-            if not isinstance(b, list) or len(b) != 2:
-                raise wp.error(f"must be [lo, hi], got {V._show(b)}.")
-            lo, hi = (V.number(wp / j, x) for j, x in enumerate(b))
-            if not lo < hi:
-                raise wp.error(f"needs lo < hi, got [{lo:g}, {hi:g}].")
             v = float(np.asarray(leaves[q]))
             if space.get(q) == "log" and lo <= 0.0:
                 raise wp.error(f"has lo = {lo:g} <= 0 for a leaf fitted in log space; give lo "
