@@ -18,7 +18,7 @@ columns                   meaning                                               
 
 A missing sample is an empty cell (or ``nan``); a group (position, quaternion, velocity, angular
 velocity) is either complete or empty in each row. Every problem raises :class:`RecordError`
-naming the file, the line and the column, and saying what to change. Nothing here imports JAX.
+naming the file, the line and the column, and saying what to change. Nothing is compiled.
 
 :func:`read_record` reads such a record; :func:`read_height_record` reads the bouncing ball's
 ``t,z`` record (``diffpen fit --data``) with the same checks.

@@ -6,7 +6,7 @@ size guards that estimate memory and time before anything big is built.
 The checkers take a :class:`Where` (file + dotted key) and return the checked value as a
 plain Python float/int/str/tuple. They raise :class:`SceneFileError`, which is both a
 :class:`diffpen.SceneError` and a :class:`tuning.fit.FitError` (so every ``ValueError``
-handler sees it). Nothing here imports JAX or compiles anything.
+handler sees it). Nothing here compiles anything.
 """
 from __future__ import annotations
 
