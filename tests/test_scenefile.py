@@ -280,6 +280,15 @@ maxiter = 30
         load_scene_file(str(p))
 
 
+def test_drag_on_every_node_of_a_builder(tmp_path):
+    p = tmp_path / "d.toml"
+    p.write_text("[[ropes]]\nn = 4\nstart = [0, 0, 1]\nend = [0.3, 0, 1]\nmass = 0.1\n"
+                 "k = 100.0\n[[drag]]\nbodies = \"rope\"\nc = 0.02\ngroup = \"air\"\n")
+    sf = load_scene_file(str(p))
+    assert [d.body for d in sf.scene.drags if d.group == "air"] == [0, 1, 2, 3]
+    assert sf.scene.drag_groups == {"air": 0.02}
+
+
 def test_leaf_space_signed_offsets_linear_positive_log():
     assert leaf_space("extra.plane_offset.ground", -0.002) == "linear"
     assert leaf_space("extra.plane_offset.ground", 0.01) == "linear"

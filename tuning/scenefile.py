@@ -42,7 +42,8 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     [[anchored_springs]]            # a, b (omit b for a world point), anchor_a, anchor_b
                                     #   (body frame, m), k, c, rest_length, group
     [[plastic_springs]]             # a, b, k, c, yield_strain in (0, 1), rest_length, group
-    [[drag]]                        # bodies (a ref or array of refs), c (N s/m), group
+    [[drag]]                        # bodies (a ref or array of refs; a builder's name means
+                                    #   all its nodes), c (N s/m), group
     [[ropes]]                       # n, start, end, mass, k, c; name ("rope"), pinned [0],
                                     #   bend (k | [k, c] | false), drag, velocity, collide
     [[cloths]]                      # nx, ny, spacing, mass; name ("cloth"), origin, axes,
@@ -822,8 +823,13 @@ class _Loader:
             items = b if isinstance(b, list) else [b]
             if not items:
                 raise (w / "bodies").error("is empty: give a body or an array of bodies.")
-            idx = [refs.body(w / "bodies" / j if isinstance(b, list) else w / "bodies", x)
-                   for j, x in enumerate(items)]
+            idx = []
+            for j, x in enumerate(items):
+                wj = w / "bodies" / j if isinstance(b, list) else w / "bodies"
+                if isinstance(x, str) and x in self.nodes:      # every node of a builder
+                    idx += [int(i) for i in self.nodes[x].ravel()]
+                else:
+                    idx.append(refs.body(wj, x))
             kw = {"group": V.string(w / "group", e.get("group", "drag"))}
             if "c" in e:
                 kw["c"] = V.number(w / "c", e["c"], low=0.0, unit="N s/m")
