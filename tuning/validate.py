@@ -139,8 +139,10 @@ def number(w: Where, v, *, low: float | None = None, high: float | None = None,
     """A finite number (TOML integer or float, never a string or boolean) in the range."""
     u = f" ({unit})" if unit else ""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        fix = (f"; write it without quotes, e.g. {w.key.rsplit('.', 1)[-1]} = {v}"
-               if isinstance(v, str) and _numeric(v) else "")
+        name = _leaf(w)
+        fix = (f"; write it without quotes, e.g. {name} = {v}"
+               if isinstance(v, str) and _numeric(v) else
+               f"; write a number without quotes, e.g. {name} = 1.0")
         raise w.error(f"must be a number{u}, got {_kind(v)} {_show(v)}{fix}.")
     x = float(v)
     if not math.isfinite(x):
@@ -150,6 +152,12 @@ def number(w: Where, v, *, low: float | None = None, high: float | None = None,
     if high is not None and (x > high or (high_open and x == high)):
         raise w.error(f"must be {'<' if high_open else '<='} {high:g}{u}, got {v!r}.")
     return x
+
+
+def _leaf(w: Where) -> str:
+    """The last key of ``w`` ("radius" of "spheres[0].radius"; "x" for an array item)."""
+    last = w.key.rsplit(".", 1)[-1]
+    return last.split("[", 1)[0] or "x"
 
 
 def _numeric(text: str) -> bool:
@@ -163,7 +171,9 @@ def _numeric(text: str) -> bool:
 def integer(w: Where, v, *, low: int | None = None, high: int | None = None) -> int:
     """An integer (a TOML integer; ``2.0``, ``"2"`` and ``true`` are refused)."""
     if isinstance(v, bool) or not isinstance(v, int):
-        raise w.error(f"must be an integer, got {_kind(v)} {_show(v)}.")
+        fix = (f"; write {int(v)} instead of {v!r}" if isinstance(v, float) and v.is_integer()
+               else f"; write a whole number without quotes, e.g. {_leaf(w)} = 10")
+        raise w.error(f"must be an integer, got {_kind(v)} {_show(v)}{fix}.")
     if low is not None and v < low:
         raise w.error(f"must be an integer >= {low}, got {v}.")
     if high is not None and v > high:
@@ -173,7 +183,7 @@ def integer(w: Where, v, *, low: int | None = None, high: int | None = None) -> 
 
 def boolean(w: Where, v) -> bool:
     if not isinstance(v, bool):
-        raise w.error(f"must be true or false, got {_kind(v)} {_show(v)}.")
+        raise w.error(f"must be true or false (without quotes), got {_kind(v)} {_show(v)}.")
     return v
 
 
@@ -223,7 +233,7 @@ def path_list(w: Where, v, *, suffix: str) -> list:
     items = [v] if isinstance(v, str) else v
     if not isinstance(items, list) or not items:
         raise w.error(f"must be a file name or an array of file names ({suffix}), got "
-                      f"{_kind(v)} {_show(v)}.")
+                      f"{_kind(v)} {_show(v)}; e.g. {_leaf(w)} = \"record{suffix}\".")
     base = os.path.dirname(os.path.abspath(w.path))
     out = []
     for i, name in enumerate(items):
