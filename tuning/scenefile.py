@@ -277,11 +277,11 @@ class _Refs:
             idx = self.nodes[m.group(1)]
             ij = tuple(int(s) for s in m.group(2).split(","))
             if len(ij) != idx.ndim or not all(-s <= v < s for v, s in zip(ij, idx.shape)):
-                raise w.error(f"{ref!r} is outside {m.group(1)!r}, whose nodes have shape "
+                raise w.error(f"{V._show(ref)} is outside {m.group(1)!r}, whose nodes have shape "
                               f"{idx.shape}: write {m.group(1)}[" + ",".join(
                                   f"0..{s - 1}" for s in idx.shape) + "].")
             return int(idx[ij])
-        known = list(self.names)[:8] + [f"{g}[...]" for g in self.nodes]
+        known = [n for n in self.names if "[" not in n][:8] + [f"{g}[...]" for g in self.nodes]
         raise w.error(f"names body {V._show(ref)}, which the scene does not have; known: "
                       f"{', '.join(known) or 'no named bodies'} (or an index 0.."
                       f"{self.n - 1}). Give the body a name = \"...\" first.")
