@@ -88,7 +88,7 @@ GOOD = _rows()
 
 @pytest.mark.parametrize("text, words", [
     ("", "is empty"),
-    ("x,y,z\n1,2,3\n", r"line 1: the header needs a time column 't'"),
+    ("x,y,z\n1,2,3\n", r"line 1: the header \(3 column\(s\)\) has no time column 't'"),
     ("t,x,y\n0,1,2\n0.1,1,2\n", r"line 1: columns x, y are there but z is missing"),
     ("t,x,y,z,qw,qx,qy\n0,1,2,3,1,0,0\n", "but qz is missing"),
     ("t,x,y,z,foo\n0,1,2,3,4\n0.1,1,2,3,4\n", r"line 1, column 5: unknown column 'foo'"),
@@ -156,3 +156,16 @@ def test_ball_height_record_reads_through_the_same_module(tmp_path):
                                                          for i in range(40)), name="ok.csv")
     t, z = read_height_record(ok)
     assert t.shape == z.shape == (40,) and z[1] == 0.999
+
+
+def test_builder_node_names_round_trip(tmp_path):
+    """Builder nodes are named like "cloth[1,2]": the header cell is quoted and read back."""
+    t = np.array([0.0, 0.01, 0.02])
+    p = np.arange(9.0).reshape(3, 3) * 0.1
+    rec = Record(path="x", t=t, bodies={"cloth[1,2]": BodyRecord(position=p),
+                                        "rope[3]": BodyRecord(position=p + 1)})
+    path = str(tmp_path / "nodes.csv")
+    write_record(path, rec)
+    back = read_record(path, body_names=["cloth[1,2]", "rope[3]"])
+    np.testing.assert_array_equal(back.bodies["cloth[1,2]"].position, p)
+    np.testing.assert_array_equal(back.bodies["rope[3]"].position, p + 1)

@@ -18,7 +18,7 @@ columns                   meaning                                               
 
 A missing sample is an empty cell (or ``nan``); a group (position, quaternion, velocity, angular
 velocity) is either complete or empty in each row. Every problem raises :class:`RecordError`
-naming the file, the line and the column, and saying what to change. Nothing here imports JAX.
+naming the file, the line and the column, and saying what to change. Nothing is compiled.
 
 :func:`read_record` reads such a record; :func:`read_height_record` reads the bouncing ball's
 ``t,z`` record (``diffpen fit --data``) with the same checks.
@@ -53,7 +53,7 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 QUAT_TOL = 1e-3
 #: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
 MS_SPAN = 60.0
-#: a position coordinate beyond this looks like millimetres
+#: a height |z| beyond this (m) looks like millimetres
 MM_LIMIT = 20.0
 
 
@@ -99,6 +99,11 @@ class Record:
             parts.append(f"{name}: {'+'.join(have)}")
         return (f"Record({self.path!r}, {len(self)} samples over {self.duration:g} s, "
                 f"{'; '.join(parts)})")
+
+
+def _q(text: str) -> str:
+    """A header cell for a message, cut short (a record's content is never quoted at length)."""
+    return repr(text if len(text) <= 40 else text[:37] + "...")
 
 
 # --------------------------------------------------------------------------- raw reading
@@ -159,19 +164,22 @@ def _read_text(path: str, max_rows: int, max_bytes: int) -> str:
 def _rows(path: str, text: str) -> tuple[list[str], int, list[tuple[int, list[str]]]]:
     """(header cells, header line number, [(line number, cells)] of the data rows)."""
     lines = text.splitlines()
+    quoted = '"' in text               # plain files are split without the csv module (fast)
     header, hline, data = None, 0, []
     for no, line in enumerate(lines, start=1):
         s = line.strip()
-        if not s or s.startswith("#"):
+        if not s or s[0] == "#":
             continue
-        try:
-            cells = next(csv.reader([line]))
-        except csv.Error as exc:
-            raise RecordError(f"{path}, line {no}: cannot split the line into cells ({exc}); "
-                              "write plain comma-separated numbers.") from None
-        cells = [c.strip() for c in cells]
+        if quoted:
+            try:
+                cells = next(csv.reader([line]))
+            except csv.Error as exc:
+                raise RecordError(f"{path}, line {no}: cannot split the line into cells "
+                                  f"({exc}); write plain comma-separated numbers.") from None
+        else:
+            cells = line.split(",")
         if header is None:
-            header, hline = cells, no
+            header, hline = [c.strip() for c in cells], no
         else:
             data.append((no, cells))
     if header is None:
@@ -181,10 +189,25 @@ def _rows(path: str, text: str) -> tuple[list[str], int, list[tuple[int, list[st
 
 
 def _column(path: str, data, j: int, name: str, *, allow_missing: bool) -> np.ndarray:
-    """Column ``j`` of the data rows as float64; empty (or nan) cells -> NaN when allowed."""
+    """Column ``j`` of the data rows as float64; empty (or nan) cells -> NaN when allowed.
+    Converted in one vectorised pass; any problem is located cell by cell."""
+    raw = np.array([cells[j] for _, cells in data], dtype=str)
+    try:
+        if raw.size and (np.char.find(raw, "_") >= 0).any():
+            raise ValueError
+        vals = np.where(np.char.strip(raw) == "", "nan", raw).astype(np.float64)
+    except ValueError:
+        return _column_slow(path, data, j, name, allow_missing=allow_missing)
+    if np.isinf(vals).any() or (not allow_missing and np.isnan(vals).any()):
+        return _column_slow(path, data, j, name, allow_missing=allow_missing)
+    return vals
+
+
+def _column_slow(path: str, data, j: int, name: str, *, allow_missing: bool) -> np.ndarray:
+    """:func:`_column` cell by cell, raising at the first bad cell with its line."""
     out = np.empty(len(data))
     for r, (no, cells) in enumerate(data):
-        cell = cells[j]
+        cell = cells[j].strip()
         if cell == "" or cell.lower() in ("nan", "+nan", "-nan"):
             if not allow_missing:
                 raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): a value is "
@@ -210,7 +233,7 @@ def _check_lengths(path: str, header, data) -> None:
     for no, cells in data:
         if len(cells) != len(header):
             raise RecordError(f"{path}, line {no}: {len(cells)} cells but the header has "
-                              f"{len(header)} ({','.join(header)[:80]}); every row needs one "
+                              f"{len(header)}; every row needs one "
                               "cell per column (empty for a missing sample).")
 
 
@@ -235,24 +258,25 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
     """t column index and {body: {group: [column index per component]}} from the header."""
     if len(set(header)) != len(header):
         dup = next(h for h in header if header.count(h) > 1)
-        raise RecordError(f"{path}, line {hline}: column {dup!r} appears twice in the header; "
+        raise RecordError(f"{path}, line {hline}: column {_q(dup)} appears twice in the header; "
                           "name each column once.")
     if "t" not in header:
-        raise RecordError(f"{path}, line {hline}: the header needs a time column 't' (s); got "
-                          f"{','.join(header)[:120]}. Expected t,x,y,z[,qw,qx,qy,qz]"
-                          "[,vx,vy,vz][,wx,wy,wz] or t,NAME.x,NAME.y,NAME.z,...")
+        raise RecordError(f"{path}, line {hline}: the header ({len(header)} column(s)) has no "
+                          "time column 't' (s); expected t,x,y,z[,qw,qx,qy,qz][,vx,vy,vz]"
+                          "[,wx,wy,wz] or t,NAME.x,NAME.y,NAME.z,... (the file's content is "
+                          "not shown: is it the record you meant?)")
     names = None if body_names is None else [str(n) for n in body_names]
     prefixed = [h for h in header if "." in h]
     plain = [h for h in header if "." not in h and h != "t"]
     if prefixed and plain:
         raise RecordError(f"{path}, line {hline}, column {header.index(plain[0]) + 1}: "
-                          f"{plain[0]!r} has no body name while other columns do "
-                          f"({prefixed[0]!r}); write NAME.{plain[0]} for every body column.")
+                          f"{_q(plain[0])} has no body name while other columns do "
+                          f"({_q(prefixed[0])}); write NAME.x etc. for every body column.")
     if plain:
         if names is not None and len(names) > 1:
             raise RecordError(f"{path}, line {hline}: the columns carry no body name but the "
-                              f"scene observes {len(names)} bodies ({', '.join(names)}); write "
-                              "NAME.x, NAME.y, ... for each.")
+                              f"scene observes {len(names)} bodies "
+                              f"({', '.join(names[:10])}); write NAME.x, NAME.y, ... for each.")
         default = names[0] if names else "body"
     cols: dict = {}
     for j, h in enumerate(header):
@@ -260,16 +284,17 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
             continue
         body, _, comp = h.rpartition(".") if "." in h else (default, "", h)
         if comp not in _SUFFIX:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: unknown column {h!r}; "
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: unknown column {_q(h)}; "
                               "body columns end in one of "
                               f"{', '.join(_SUFFIX)} (t is the time).")
         if not body:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: {h!r} has an empty body "
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} has an empty body "
                               "name; write NAME.x etc.")
         if names is not None and body not in names:
-            raise RecordError(f"{path}, line {hline}, column {j + 1}: {h!r} names body "
-                              f"{body!r}, which the scene does not have; named bodies: "
-                              f"{', '.join(names) or 'none'}.")
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
+                              f"{_q(body)}, which the scene does not have; named bodies: "
+                              f"{', '.join(names[:10]) or 'none'}"
+                              f"{', ...' if len(names) > 10 else ''}.")
         group, i = _SUFFIX[comp]
         cols.setdefault(body, {}).setdefault(group, [None] * len(GROUPS[group]))[i] = j
     if not cols:
@@ -340,16 +365,16 @@ def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
                                   f"the quaternion has norm {n[r]:.6g}, not 1; normalise it "
                                   "(qw, qx, qy, qz).")
         p = arrays["position"]
-        if check_units and np.nanmax(np.abs(p), initial=0.0) > MM_LIMIT:
-            r, c = np.unravel_index(np.nanargmax(np.abs(p)), p.shape)
-            j = groups["position"][int(c)]
-            raise RecordError(f"{path}, line {data[int(r)][0]}, column {j + 1} ({header[j]}): "
-                              f"{p[r, c]:g} m is beyond {MM_LIMIT:g} m: positions look like "
+        if np.isnan(p).all():
+            raise RecordError(f"{path}: body {_q(body)} has no position sample; a record needs "
+                              "at least one.")
+        if check_units and np.nanmax(np.abs(p[:, 2])) > MM_LIMIT:
+            r = int(np.nanargmax(np.abs(p[:, 2])))
+            j = groups["position"][2]
+            raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                              f"{p[r, 2]:g} m is beyond {MM_LIMIT:g} m: positions look like "
                               "millimetres, but they are in metres. Divide by 1000 (or pass "
                               "check_units=False if they really are metres).")
-        if np.isnan(p).all():
-            raise RecordError(f"{path}: body {body!r} has no position sample; a record needs at "
-                              "least one.")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 
@@ -366,8 +391,9 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     low = [h.lower() for h in header]
     if "t" not in low or "z" not in low:
         raise RecordError(f"{path}, line {hline}: the first row must be a header with columns "
-                          f"'t' and 'z' (time in s, ball centre height in m); got "
-                          f"{','.join(header)[:120]}.")
+                          f"'t' and 'z' (time in s, ball centre height in m); it has "
+                          f"{len(header)} column(s) and lacks {'t' if 't' not in low else 'z'} "
+                          "(the file's content is not shown: is it the record you meant?).")
     _check_lengths(path, header, data)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
@@ -403,7 +429,8 @@ def write_record(path, record: Record) -> None:
     table = np.concatenate(blocks, axis=1)
     tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
     with open(tmp, "w", newline="") as fh:
-        fh.write(",".join(header) + "\n")
+        w = csv.writer(fh, lineterminator="\n")     # quotes names such as "cloth[1,2].x"
+        w.writerow(header)
         for row in table:
-            fh.write(",".join("" if math.isnan(v) else repr(float(v)) for v in row) + "\n")
+            w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
     os.replace(tmp, path)

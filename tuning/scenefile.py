@@ -17,6 +17,8 @@ The schema (SI units; every table is optional except one body; unknown keys are 
                                     # cell_size, max_per_cell, bounds = [[x0,y0,z0],[x1,y1,z1]]
     k = 1e4                         # default contact k (N/m) and c (N s/m) of materials
     c = 10.0                        # that do not give their own
+    allow_overlap = false           # bodies may start overlapping (also per body, plane and
+                                    #   fixed sphere), where the library checks overlaps
 
     [materials.rubber]              # contact material ("default" exists already)
     k = 1e4                         # N/m
@@ -40,7 +42,8 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     [[anchored_springs]]            # a, b (omit b for a world point), anchor_a, anchor_b
                                     #   (body frame, m), k, c, rest_length, group
     [[plastic_springs]]             # a, b, k, c, yield_strain in (0, 1), rest_length, group
-    [[drag]]                        # bodies (a ref or array of refs), c (N s/m), group
+    [[drag]]                        # bodies (a ref or array of refs; a builder's name means
+                                    #   all its nodes), c (N s/m), group
     [[ropes]]                       # n, start, end, mass, k, c; name ("rope"), pinned [0],
                                     #   bend (k | [k, c] | false), drag, velocity, collide
     [[cloths]]                      # nx, ny, spacing, mass; name ("cloth"), origin, axes,
@@ -105,10 +108,13 @@ MAX_STEPS = 10_000_000
 MAX_BODIES = 200_000
 MAX_DENSE_PAIRS = 500_000          # contact pairs evaluated every step without a broad phase
 MAX_TRAJECTORY_BYTES = 8 * 2**30   # a rollout saving every step
+#: positions, centres and anchor points must lie within this distance of the origin, m
+MAX_COORD = 1e6
 
 BODY_TABLES = ("spheres", "particles", "boxes", "rigid_spheres")
 BUILDER_TABLES = ("ropes", "cloths", "jellies", "crumple_bars")
 TOP = {"description", "gravity", "dt", "duration", "law", "exponent", "integrator",
+       "allow_overlap",
        "smoothing", "substeps", "plastic_smoothing", "broadphase", "k", "c", "materials",
        *BODY_TABLES, "planes", "fixed_spheres", "spring_groups", "springs",
        "anchored_springs", "plastic_springs", "drag", *BUILDER_TABLES, "fit"}
@@ -170,6 +176,7 @@ class SceneFile:
     planes: dict = dataclasses.field(default_factory=dict)
     nodes: dict = dataclasses.field(default_factory=dict)
     compile_options: dict = dataclasses.field(default_factory=dict)
+    _sim: tuple | None = dataclasses.field(default=None, repr=False)
 
     @property
     def scene(self) -> dp.Scene:
@@ -181,7 +188,10 @@ class SceneFile:
 
     def compile(self, **overrides) -> dp.Simulator:
         """``diffpen.compile`` with the file's dt and options (``overrides`` win). Lazy: JAX
-        compiles on the first rollout."""
+        compiles on the first rollout. Without overrides, the simulator built while checking
+        ``[fit] params`` is reused (same scene, dt, options and dtype)."""
+        if not overrides and self._sim is not None and self._sim[0] == _x64():
+            return self._sim[1]
         kw = dict(self.compile_options)
         kw.update(overrides)
         dt = kw.pop("dt", self.setup.dt)
@@ -267,11 +277,11 @@ class _Refs:
             idx = self.nodes[m.group(1)]
             ij = tuple(int(s) for s in m.group(2).split(","))
             if len(ij) != idx.ndim or not all(-s <= v < s for v, s in zip(ij, idx.shape)):
-                raise w.error(f"{ref!r} is outside {m.group(1)!r}, whose nodes have shape "
+                raise w.error(f"{V._show(ref)} is outside {m.group(1)!r}, whose nodes have shape "
                               f"{idx.shape}: write {m.group(1)}[" + ",".join(
                                   f"0..{s - 1}" for s in idx.shape) + "].")
             return int(idx[ij])
-        known = list(self.names)[:8] + [f"{g}[...]" for g in self.nodes]
+        known = [n for n in self.names if "[" not in n][:8] + [f"{g}[...]" for g in self.nodes]
         raise w.error(f"names body {V._show(ref)}, which the scene does not have; known: "
                       f"{', '.join(known) or 'no named bodies'} (or an index 0.."
                       f"{self.n - 1}). Give the body a name = \"...\" first.")
@@ -367,6 +377,11 @@ class _Loader:
             raise w.error(f"{v!r} is used twice: names must differ.")
         return v
 
+    @staticmethod
+    def point(w: Where, v, unit: str = "m") -> tuple:
+        """A position (m) within MAX_COORD of the origin."""
+        return V.vector(w, v, unit=unit, limit=MAX_COORD)
+
     def require(self, w: Where, e: dict, key: str):
         if key not in e:
             raise w.error(f"is missing required key {key!r}.")
@@ -403,8 +418,11 @@ class _Loader:
         k = V.number(self.w("k"), doc["k"], low=0.0, unit="N/m") if "k" in doc else None
         c = V.number(self.w("c"), doc["c"], low=0.0, unit="N s/m") if "c" in doc else None
         self.check_sizes(dt, duration, bp is not None)
+        self.dt = dt
 
-        scene = dp.Scene(gravity=gravity)
+        overlap = V.boolean(self.w("allow_overlap"), doc.get("allow_overlap", False))
+        scene = (dp.Scene(gravity=gravity, allow_overlap=True)
+                 if overlap and _takes(dp.Scene, "allow_overlap") else dp.Scene(gravity=gravity))
         self.scene = scene
         if "plastic_smoothing" in doc:
             scene.plastic_smoothing = V.number(self.w("plastic_smoothing"),
@@ -441,7 +459,7 @@ class _Loader:
             body=body if scene.planes else None,
             metrics=_metrics(body, plane, spec.settle_tol if spec else 1e-3)
             if ball_like else None, description=desc,
-            compile_options={k: v for k, v in opts.items() if k != "law"})
+            compile_options={key: v for key, v in opts.items() if key != "law"})
         sf.spec = spec
         return sf
 
@@ -578,7 +596,8 @@ class _Loader:
 
     # ---------------------------------------------------------------- bodies
     def bodies(self):
-        common = {"name", "mass", "position", "velocity", "pinned", "material", "collide"}
+        common = {"name", "mass", "position", "velocity", "pinned", "material", "collide",
+                  "allow_overlap"}
         rigid = common | {"orientation", "angular_velocity", "body_angular_velocity", "inertia"}
         allowed = {"spheres": common | {"radius"}, "particles": common,
                    "boxes": rigid | {"half_extents"}, "rigid_spheres": rigid | {"radius"}}
@@ -589,8 +608,7 @@ class _Loader:
                 kw = dict(
                     mass=V.number(w / "mass", self.require(w, e, "mass"), low=0.0,
                                   low_open=True, unit="kg"),
-                    position=V.vector(w / "position", self.require(w, e, "position"),
-                                      unit="m"),
+                    position=self.point(w / "position", self.require(w, e, "position")),
                     velocity=V.vector(w / "velocity", e.get("velocity", [0.0, 0.0, 0.0]),
                                       unit="m/s"),
                     pinned=V.boolean(w / "pinned", e.get("pinned", False)),
@@ -598,19 +616,27 @@ class _Loader:
                     collide=V.boolean(w / "collide", e.get("collide", True)))
                 if key in ("spheres", "rigid_spheres"):
                     kw["radius"] = V.number(w / "radius", self.require(w, e, "radius"),
-                                            low=0.0, low_open=True, unit="m")
+                                            low=0.0, low_open=True, high=MAX_COORD, unit="m")
                 if key == "boxes":
-                    kw["half_extents"] = V.vector(w / "half_extents",
-                                                  self.require(w, e, "half_extents"), unit="m")
+                    kw["half_extents"] = self.point(w / "half_extents",
+                                                    self.require(w, e, "half_extents"))
                 if key in ("boxes", "rigid_spheres"):
                     self.rigid_kw(w, e, kw)
                 name = self.name(w / "name", e["name"], self.names) if "name" in e else None
                 fn = {"spheres": self.scene.add_sphere, "particles": self.scene.add_particle,
                       "boxes": self.scene.add_box,
                       "rigid_spheres": self.scene.add_rigid_sphere}[key]
+                self.overlap(w, e, fn, kw)
                 idx = self.call(w, fn, **kw)
                 if name is not None:
                     self.names[name] = idx
+
+    def overlap(self, w, e, fn, kw):
+        """``allow_overlap = true``: start overlapping a collider or body on purpose (passed
+        on where the library checks initial overlaps; without that check it is the default)."""
+        if "allow_overlap" in e and V.boolean(w / "allow_overlap", e["allow_overlap"]):
+            if _takes(fn, "allow_overlap"):
+                kw["allow_overlap"] = True
 
     def rigid_kw(self, w, e, kw):
         q = V.vector(w / "orientation", e.get("orientation", [1.0, 0.0, 0.0, 0.0]), 4,
@@ -664,8 +690,8 @@ class _Loader:
                                   V.number(w / "drag", e["drag"], low=0.0, unit="N s/m"))
                 if key in ("ropes", "crumple_bars"):
                     kw["n"] = V.integer(w / "n", self.require(w, e, "n"), low=2)
-                    kw["start"] = V.vector(w / "start", self.require(w, e, "start"), unit="m")
-                    kw["end"] = V.vector(w / "end", self.require(w, e, "end"), unit="m")
+                    kw["start"] = self.point(w / "start", self.require(w, e, "start"))
+                    kw["end"] = self.point(w / "end", self.require(w, e, "end"))
                     kw["k"] = V.number(w / "k", self.require(w, e, "k"), low=0.0, unit="N/m")
                     kw["c"] = V.number(w / "c", e.get("c", 0.0), low=0.0, unit="N s/m")
                     if "pinned" in e:
@@ -675,9 +701,9 @@ class _Loader:
                     for d in ("nx", "ny", "nz")[:dims]:
                         kw[d] = V.integer(w / d, self.require(w, e, d), low=2)
                     kw["spacing"] = V.number(w / "spacing", self.require(w, e, "spacing"),
-                                             low=0.0, low_open=True, unit="m")
+                                             low=0.0, low_open=True, high=MAX_COORD, unit="m")
                     if "origin" in e:
-                        kw["origin"] = V.vector(w / "origin", e["origin"], unit="m")
+                        kw["origin"] = self.point(w / "origin", e["origin"])
                     if "pinned" in e:
                         kw["pinned"] = _int_grid(w / "pinned", e["pinned"], dims)
                 if key == "ropes":
@@ -717,13 +743,15 @@ class _Loader:
 
     # ---------------------------------------------------------------- colliders
     def colliders(self):
-        plane_kw = "name" in inspect.signature(self.scene.add_plane).parameters
+        plane_kw = _takes(self.scene.add_plane, "name")
         for i, e in enumerate(self.entries("planes")):
             w = self.w("planes", i)
-            V.check_keys(w, e, {"normal", "offset", "material", "name"})
+            V.check_keys(w, e, {"normal", "offset", "material", "name", "allow_overlap"})
             kw = dict(normal=V.vector(w / "normal", e.get("normal", [0.0, 0.0, 1.0])),
-                      offset=V.number(w / "offset", e.get("offset", 0.0), unit="m"),
+                      offset=V.number(w / "offset", e.get("offset", 0.0), low=-MAX_COORD,
+                                      high=MAX_COORD, unit="m"),
                       material=self.material_of(w, e))
+            self.overlap(w, e, self.scene.add_plane, kw)
             name = None
             if "name" in e:
                 name = self.name(w / "name", e["name"], self.plane_names)
@@ -734,12 +762,13 @@ class _Loader:
                 self.plane_names[name] = idx
         for i, e in enumerate(self.entries("fixed_spheres")):
             w = self.w("fixed_spheres", i)
-            V.check_keys(w, e, {"center", "radius", "material"})
-            self.call(w, self.scene.add_fixed_sphere,
-                      center=V.vector(w / "center", self.require(w, e, "center"), unit="m"),
+            V.check_keys(w, e, {"center", "radius", "material", "allow_overlap"})
+            kw = dict(center=self.point(w / "center", self.require(w, e, "center")),
                       radius=V.number(w / "radius", self.require(w, e, "radius"), low=0.0,
-                                      low_open=True, unit="m"),
+                                      low_open=True, high=MAX_COORD, unit="m"),
                       material=self.material_of(w, e))
+            self.overlap(w, e, self.scene.add_fixed_sphere, kw)
+            self.call(w, self.scene.add_fixed_sphere, **kw)
 
     # ---------------------------------------------------------------- springs
     def refs(self) -> _Refs:
@@ -758,7 +787,7 @@ class _Loader:
             V.check_keys(w, e, {"a", "b", "k", "c", "rest_length", "group"})
             a = refs.body(w / "a", self.require(w, e, "a"))
             b = self.require(w, e, "b")
-            b = (V.vector(w / "b", b, unit="m (a world point)") if isinstance(b, list)
+            b = (self.point(w / "b", b, "m (a world point)") if isinstance(b, list)
                  else refs.body(w / "b", b))
             kw = {}
             self.spring_common(w, e, kw, default_group=dp.scene.DEFAULT)
@@ -769,10 +798,8 @@ class _Loader:
                                 "group"})
             a = refs.body(w / "a", self.require(w, e, "a"))
             b = refs.body(w / "b", e["b"]) if "b" in e else None
-            kw = {"anchor_a": V.vector(w / "anchor_a", e.get("anchor_a", [0.0, 0.0, 0.0]),
-                                       unit="m (body frame)"),
-                  "anchor_b": V.vector(w / "anchor_b", e.get("anchor_b", [0.0, 0.0, 0.0]),
-                                       unit="m")}
+            kw = {"anchor_a": self.point(w / "anchor_a", e.get("anchor_a", [0.0, 0.0, 0.0])),
+                  "anchor_b": self.point(w / "anchor_b", e.get("anchor_b", [0.0, 0.0, 0.0]))}
             self.spring_common(w, e, kw, default_group=dp.scene.DEFAULT)
             self.call(w, self.scene.add_anchored_spring, a, b, **kw)
         for i, e in enumerate(self.entries("plastic_springs")):
@@ -796,8 +823,13 @@ class _Loader:
             items = b if isinstance(b, list) else [b]
             if not items:
                 raise (w / "bodies").error("is empty: give a body or an array of bodies.")
-            idx = [refs.body(w / "bodies" / j if isinstance(b, list) else w / "bodies", x)
-                   for j, x in enumerate(items)]
+            idx = []
+            for j, x in enumerate(items):
+                wj = w / "bodies" / j if isinstance(b, list) else w / "bodies"
+                if isinstance(x, str) and x in self.nodes:      # every node of a builder
+                    idx += [int(i) for i in self.nodes[x].ravel()]
+                else:
+                    idx.append(refs.body(wj, x))
             kw = {"group": V.string(w / "group", e.get("group", "drag"))}
             if "c" in e:
                 kw["c"] = V.number(w / "c", e["c"], low=0.0, unit="N s/m")
@@ -822,8 +854,12 @@ class _Loader:
                                               f"{len(self.scene.planes)} plane(s).")
         has_t, has_d = "targets" in fit, "data" in fit
         if has_t and has_d:
-            raise w.error("needs either a [fit.targets] table or data = \"record.csv\" (an "
-                          "array for several records), not both.")
+            raise w.error("has both [fit.targets] and data: give either targets (a bounce fit) "
+                          "or data = \"record.csv\" (an array for several records), not both.")
+        if not (has_t or has_d or fit.get("params")):
+            raise w.error("says nothing to fit: add a [fit.targets] table, data = "
+                          "\"record.csv\", or params = [...] (with records given on the "
+                          "command line, diffpen fit SCENE.toml --data FILE.csv ...).")
         targets = None
         if has_t:
             targets = self.targets(w / "targets", fit["targets"])
@@ -892,9 +928,23 @@ class _Loader:
                 V.table(w / key, fit[key], example=f'[fit.{key}] "contact.default.k" = ...')
         if not names and not fit.get("bounds") and not fit.get("space"):
             return [], {}, {}
+        # everything that needs no parameter structure is checked before the simulator is built
+        given_space = {p: V.choice(w / "space" / p, s, ["log", "linear"])
+                       for p, s in fit.get("space", {}).items()}
+        given_bounds = {}
+        for p, b in fit.get("bounds", {}).items():
+            wp = w / "bounds" / p
+            if not isinstance(b, list) or len(b) != 2:
+                raise wp.error(f"must be [lo, hi], got {V._kind(b)} {V._show(b)}.")
+            lo, hi = (V.number(wp / j, x) for j, x in enumerate(b))
+            if not lo < hi:
+                raise wp.error(f"needs lo < hi, got [{lo:g}, {hi:g}].")
+            given_bounds[p] = (lo, hi)
         try:
-            sim = dp.compile(self.scene, 1.0, law=sf.compile_options.get("law", "linear"))
-            params = _default_params(sim, k, c)
+            with np.errstate(over="ignore"):      # only the structure is needed here
+                sim = dp.compile(self.scene, self.dt, **sf.compile_options)
+                params = _default_params(sim, k, c)
+            sf._sim = (_x64(), sim)
         except dp.SceneError as exc:
             raise w.error(f"cannot build the parameters: {exc}") from None
         leaves = param_leaves(params)
@@ -915,21 +965,18 @@ class _Loader:
                 raise (w / "params" / i).error(f"names {q!r} twice.")
             free.append(q)
         space = {p: leaf_space(p, leaves[p]) for p in free}
-        for p, s in fit.get("space", {}).items():
-            wp = w / "space" / p
-            q = resolve(wp, p)
-            space[q] = V.choice(wp, s, ["log", "linear"])
+        for p, s in given_space.items():
+            q = resolve(w / "space" / p, p)
+            if q not in free:
+                raise (w / "space" / p).error(f"sets the space of {q!r}, which is not in [fit] "
+                                              "params; add it there.")
+            space[q] = s
         bounds = {}
-        for p, b in fit.get("bounds", {}).items():
+        for p, (lo, hi) in given_bounds.items():
             wp = w / "bounds" / p
             q = resolve(wp, p)
             if q not in free:
                 raise wp.error(f"bounds {q!r}, which is not in [fit] params; add it there.")
-            if not isinstance(b, list) or len(b) != 2:
-                raise wp.error(f"must be [lo, hi], got {V._show(b)}.")
-            lo, hi = (V.number(wp / j, x) for j, x in enumerate(b))
-            if not lo < hi:
-                raise wp.error(f"needs lo < hi, got [{lo:g}, {hi:g}].")
             v = float(np.asarray(leaves[q]))
             if space.get(q) == "log" and lo <= 0.0:
                 raise wp.error(f"has lo = {lo:g} <= 0 for a leaf fitted in log space; give lo "
@@ -944,6 +991,19 @@ class _Loader:
                                            "which log space cannot hold; give it a positive "
                                            "start value or fit it in linear space.")
         return free, bounds, space
+
+
+def _x64() -> bool:
+    import jax
+    return bool(jax.config.jax_enable_x64)
+
+
+def _takes(fn, name: str) -> bool:
+    """Whether ``fn`` accepts keyword ``name`` (options newer than some library builds)."""
+    try:
+        return name in inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _bytes(n: float) -> str:
@@ -983,6 +1043,9 @@ def fit_file(path: str, *, progress=None, method: str | None = None, lr: float |
                              "say what to fit.", path=path, key="fit")
     spec, scene = sf.spec, sf.scene
     w = Where(path, "fit")
+    if spec.targets is None and spec.data is None:
+        raise w.error("has no targets or data: add [fit.targets], data = \"record.csv\", or "
+                      "give the records on the command line (--data FILE.csv ...).")
     method = method or spec.method
     lr = spec.lr if lr is None else lr
     if not scene.planes:
@@ -997,10 +1060,6 @@ def fit_file(path: str, *, progress=None, method: str | None = None, lr: float |
                                    "fit keeps k within its accuracy limit by itself: remove "
                                    "[fit.bounds].")
     mat = scene.planes[spec.plane].material
-    if spec.targets is None and spec.data is None:
-        raise (w / "data").error("is not given and there are no [fit.targets]: give the "
-                                 "records on the command line (diffpen fit SCENE.toml --data "
-                                 "FILES...), or data = [...] / [fit.targets] in the file.")
     if spec.data is not None:
         if len(spec.data) != 1:
             raise (w / "data").error("names several records: a ball fit reads one t,z record.")

@@ -6,7 +6,7 @@ size guards that estimate memory and time before anything big is built.
 The checkers take a :class:`Where` (file + dotted key) and return the checked value as a
 plain Python float/int/str/tuple. They raise :class:`SceneFileError`, which is both a
 :class:`diffpen.SceneError` and a :class:`tuning.fit.FitError` (so every ``ValueError``
-handler sees it). Nothing here imports JAX or compiles anything.
+handler sees it). Nothing here compiles anything.
 """
 from __future__ import annotations
 
@@ -137,10 +137,12 @@ def tables(w: Where, v, *, header: str) -> list:
 def number(w: Where, v, *, low: float | None = None, high: float | None = None,
            low_open: bool = False, high_open: bool = False, unit: str = "") -> float:
     """A finite number (TOML integer or float, never a string or boolean) in the range."""
-    u = f" {unit}" if unit else ""
+    u = f" ({unit})" if unit else ""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        fix = (f"; write it without quotes, e.g. {w.key.rsplit('.', 1)[-1]} = {v}"
-               if isinstance(v, str) and _numeric(v) else "")
+        name = _leaf(w)
+        fix = (f"; write it without quotes, e.g. {name} = {v}"
+               if isinstance(v, str) and _numeric(v) else
+               f"; write a number without quotes, e.g. {name} = 1.0")
         raise w.error(f"must be a number{u}, got {_kind(v)} {_show(v)}{fix}.")
     x = float(v)
     if not math.isfinite(x):
@@ -150,6 +152,12 @@ def number(w: Where, v, *, low: float | None = None, high: float | None = None,
     if high is not None and (x > high or (high_open and x == high)):
         raise w.error(f"must be {'<' if high_open else '<='} {high:g}{u}, got {v!r}.")
     return x
+
+
+def _leaf(w: Where) -> str:
+    """The last key of ``w`` ("radius" of "spheres[0].radius"; "x" for an array item)."""
+    last = w.key.rsplit(".", 1)[-1]
+    return last.split("[", 1)[0] or "x"
 
 
 def _numeric(text: str) -> bool:
@@ -163,7 +171,9 @@ def _numeric(text: str) -> bool:
 def integer(w: Where, v, *, low: int | None = None, high: int | None = None) -> int:
     """An integer (a TOML integer; ``2.0``, ``"2"`` and ``true`` are refused)."""
     if isinstance(v, bool) or not isinstance(v, int):
-        raise w.error(f"must be an integer, got {_kind(v)} {_show(v)}.")
+        fix = (f"; write {int(v)} instead of {v!r}" if isinstance(v, float) and v.is_integer()
+               else f"; write a whole number without quotes, e.g. {_leaf(w)} = 10")
+        raise w.error(f"must be an integer, got {_kind(v)} {_show(v)}{fix}.")
     if low is not None and v < low:
         raise w.error(f"must be an integer >= {low}, got {v}.")
     if high is not None and v > high:
@@ -173,7 +183,7 @@ def integer(w: Where, v, *, low: int | None = None, high: int | None = None) -> 
 
 def boolean(w: Where, v) -> bool:
     if not isinstance(v, bool):
-        raise w.error(f"must be true or false, got {_kind(v)} {_show(v)}.")
+        raise w.error(f"must be true or false (without quotes), got {_kind(v)} {_show(v)}.")
     return v
 
 
@@ -190,12 +200,18 @@ def choice(w: Where, v, options) -> str:
     return v
 
 
-def vector(w: Where, v, n: int = 3, *, what: str = "x, y, z", unit: str = "") -> tuple:
-    """``n`` finite numbers."""
+def vector(w: Where, v, n: int = 3, *, what: str = "x, y, z", unit: str = "",
+           limit: float | None = None) -> tuple:
+    """``n`` finite numbers (each of magnitude <= ``limit`` when given)."""
     if not isinstance(v, list) or len(v) != n:
         raise w.error(f"must be {n} numbers [{what}]{' in ' + unit if unit else ''}, got "
                       f"{_kind(v)} {_show(v)}.")
-    return tuple(number(w / i, x) for i, x in enumerate(v))
+    out = tuple(number(w / i, x) for i, x in enumerate(v))
+    if limit is not None and max(abs(x) for x in out) > limit:
+        raise w.error(f"= {_show(v)} is farther than {limit:g} {unit or 'units'} from the "
+                      f"origin: at that distance float32 positions resolve only "
+                      f"{limit * 2**-24:.2g} {unit}; move the scene near the origin.")
+    return out
 
 
 def number_list(w: Where, v, *, low: float | None = None, low_open: bool = False,
@@ -217,7 +233,7 @@ def path_list(w: Where, v, *, suffix: str) -> list:
     items = [v] if isinstance(v, str) else v
     if not isinstance(items, list) or not items:
         raise w.error(f"must be a file name or an array of file names ({suffix}), got "
-                      f"{_kind(v)} {_show(v)}.")
+                      f"{_kind(v)} {_show(v)}; e.g. {_leaf(w)} = \"record{suffix}\".")
     base = os.path.dirname(os.path.abspath(w.path))
     out = []
     for i, name in enumerate(items):
