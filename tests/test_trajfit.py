@@ -13,7 +13,7 @@ import pytest
 import diffpen as dp
 from tuning import trajfit as tf
 from tuning.cli import main
-from tuning.records import read_record, write_record
+from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
 ROPE = """
@@ -219,8 +219,11 @@ def test_bad_records_fail_before_compiling(tmp_path, capsys):
     assert main(["fit", str(scene), "--data", str(bad), "--json"]) == 2
     assert "bad.csv" in capsys.readouterr().err
     assert main(["fit", str(scene), "--data", str(tmp_path / "none.csv")]) == 2
-    # a ball t,z record still goes to the ball fit (one file, no scene)
-    assert main(["fit", "--data", str(bad), "--data", str(bad), "--json"]) == 2
+    capsys.readouterr()
+    # without a scene file --data is the ball's one t,z record
+    assert main(["fit", "--data", str(bad), str(bad)]) == 2
+    assert "one t,z record" in capsys.readouterr().err
+    assert main(["fit", "--out", str(tmp_path / "x.toml")]) == 2
 
 
 def test_readme_snippet_runs_as_written():
@@ -233,3 +236,45 @@ def test_readme_snippet_runs_as_written():
     exec(compile(block, "README fitting measured motion", "exec"), env)
     np.testing.assert_allclose(np.asarray(env["dz"]), 1.0, rtol=1e-3)
     assert np.all(np.abs(np.asarray(env["z"]) - 0.05) < 1e-3)
+
+
+def test_write_fitted_places_every_kind_of_leaf(tmp_path):
+    """Materials (k, c, friction), a named plane's offset, a cloth's spring groups and drag
+    are written where the file declares them and read back equal."""
+    from tuning.fitted_scene import write_fitted
+    src = tmp_path / "s.toml"
+    src.write_text("""
+[materials.board]
+k = 1e4
+c = 100.0
+friction = 0.2
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.5]
+material = "board"
+[[planes]]
+name = "ground"
+material = "board"
+[[cloths]]
+nx = 3
+ny = 3
+spacing = 0.1
+mass = 0.1
+origin = [1.0, 0.0, 1.0]
+structural = [100.0, 0.1]
+shear = 50.0
+drag = 0.01
+""")
+    values = {"contact.board.k": 2024.5, "contact.board.c": 25.25,
+              "extra.friction.board": 0.175, "extra.plane_offset.ground": -0.001,
+              "springs.cloth.structural.k": 123.0, "springs.cloth.shear.c": 0.5,
+              "extra.drag.cloth.drag": 0.02}
+    out = tmp_path / "out.toml"
+    write_fitted(str(src), values, str(out))
+    sf = load_scene_file(str(out))
+    params = sf.params(sf.compile())
+    for name, v in values.items():
+        assert float(tf.get_leaf(params, name)) == v
+    assert float(tf.get_leaf(params, "springs.cloth.structural.c")) == 0.1
