@@ -278,3 +278,20 @@ drag = 0.01
     for name, v in values.items():
         assert float(tf.get_leaf(params, name)) == v
     assert float(tf.get_leaf(params, "springs.cloth.structural.c")) == 0.1
+
+
+def test_directions_a_record_cannot_determine_are_reported(cube):
+    """A toss that never reaches the ground says nothing about the contact: both contact
+    parameters come back unchanged and reported as undetermined directions."""
+    params = cube.params()
+    s = cube.state_from(body=0, position=(0, 0, 0.5), velocity=(0.2, 0, 1.0),
+                        orientation=(1.0, 0, 0, 0), angular_velocity=(1.0, 2.0, 0.0))
+    rec = tf.synthetic_record(cube, params, 0.1, 5e-3, {"cube": 0}, state=s, noise=1e-4)
+    batch = tf.prepare(cube, [rec])
+    res = tf.fit_records(cube, params, batch, [tf.Free("contact.board.k", 1.0, 1e6),
+                                               tf.Free("contact.board.c", 0.1, 1e3)],
+                         maxiter=3, progress=False)
+    assert res.values == pytest.approx({"contact.board.k": 3e3, "contact.board.c": 30.0},
+                                       rel=1e-12)
+    assert len(res.undetermined) == 2
+    assert res.stderr == {"contact.board.k": math.inf, "contact.board.c": math.inf}

@@ -522,8 +522,10 @@ class TrajFitResult:
 
     params: fitted :class:`diffpen.Params`.  values: ``{name: value}`` of the fitted leaves.
     stderr: ``{name: standard error}`` (Gauss-Newton ``s^2 (J^T J)^-1``; the residuals of
-      one record are correlated in time, so these are lower bounds).
-    correlation: (p, p) parameter correlation matrix (rows/columns in ``names`` order).
+      one record are correlated in time, so these are lower bounds; inf for a parameter
+      the records do not depend on).
+    correlation: (p, p) parameter correlation matrix (rows/columns in ``names`` order; NaN
+      in the rows of parameters the records do not depend on).
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
       eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest.
@@ -628,9 +630,12 @@ def fit_records(sim: dp.Simulator, params, batch: Batch, free: Sequence[Free], *
                      "direction": {names[j]: float(evec[j, i]) for j in range(p)}}
                     for i in range(p) if ev[i] < 1e-8 * max(ev[-1], 1e-300)]
     s2 = cost / max(m - p, 1)
-    cov = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale) * s2
-    se_x = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    corr = cov / np.outer(np.maximum(se_x, 1e-300), np.maximum(se_x, 1e-300))
+    blind = np.diag(JtJ) <= 0.0             # the records do not depend on these at all
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cov = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale) * s2
+        se_x = np.where(blind, np.inf, np.sqrt(np.maximum(np.diag(cov), 0.0)))
+        corr = np.where(np.outer(blind, blind) | np.outer(blind, ~blind)
+                        | np.outer(~blind, blind), np.nan, cov / np.outer(se_x, se_x))
     stderr = {f.name: float(values[f.name] * se_x[i] if f.log else se_x[i])
               for i, f in enumerate(free)}
     fitted = with_leaves(params, {n: jnp.asarray(v, sim.dtype) for n, v in values.items()})
