@@ -80,7 +80,8 @@ def main(argv=None) -> int:
     b_all = tf.prepare(sim, recs_all, bodies=bodies, estimate=est)
 
     t0 = time.perf_counter()
-    res = tf.fit_records(sim, start, b_fit, tf.free_from_spec(sf.spec),
+    buckets = tf.prepare_buckets(sim, recs_fit, bodies=bodies, estimate=est)
+    res = tf.fit_records(sim, start, buckets, tf.free_from_spec(sf.spec),
                          horizons=tuple(args.horizon) + (None,), maxiter=args.maxiter,
                          progress=not args.json)
     fit_s = time.perf_counter() - t0

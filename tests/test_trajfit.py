@@ -159,6 +159,13 @@ def test_unequal_lengths_are_masked(cube):
     # each record weighs 1/R in the batch: the batch cost is the mean of the costs alone
     assert float(jnp.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
     assert both.pos_mask[1, len(short.t):].sum() == 0
+    # buckets of similar length give the same loss as one padded batch
+    buckets = tf.prepare_buckets(cube, [long, short], buckets=2, estimate="record")
+    assert [len(b.paths) for b in buckets] == [1, 1] and buckets[0].steps < both.steps
+    r_buckets = jnp.concatenate([tf.pose_residuals(*tf.simulate(cube, p2, b), b)
+                                 for b in buckets])
+    assert float(jnp.sum(r_buckets ** 2)) == pytest.approx(float(jnp.sum(r_both ** 2)),
+                                                           rel=1e-10)
 
 
 def test_plane_offset_is_a_differentiable_parameter(cube):

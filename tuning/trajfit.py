@@ -51,7 +51,7 @@ from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
-           "body_size", "first_state", "prepare", "simulate", "pose_residuals",
+           "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
            "fit_records", "ROT_WEIGHT"]
 
 #: default weight of the rotation residual, per radian, against the position in units of
@@ -320,6 +320,8 @@ class Batch:
     pos: (R, T, B, 3) m.  pos_mask: (R, T, B) 1 where measured.
     quat: (R, T, B, 4).  quat_mask: (R, T, B) 1 where measured (all 0 without quaternions).
     weight: (R,) per-record weight ``1 / (number of valid samples)``.
+    n_records: how many records the loss averages over (R, or all the buckets' records
+    when this batch is one of :func:`prepare_buckets`).
     bodies: (B,) body indices.  names: B body names.  size: (B,) m.  time: (R, T) s from
     each record's first frame.  length: (R,) frames per record.  paths: R record paths.
     """
@@ -339,6 +341,7 @@ class Batch:
     time: np.ndarray
     length: np.ndarray
     paths: list
+    n_records: int = 0
 
     @property
     def has_rotation(self) -> bool:
@@ -495,7 +498,8 @@ def pose_residuals(pos, quat, batch: Batch, *, rot_weight: float = ROT_WEIGHT,
     1e-3 at zero), so the cost is the mean error itself, the quantity
     :mod:`tuning.evaluate` reports, and a record that drifts apart weighs less than in
     the squared loss."""
-    w = jnp.sqrt(jnp.asarray(batch.weight / len(batch.weight)))[:, None, None]
+    w = jnp.sqrt(jnp.asarray(batch.weight / (batch.n_records or len(batch.weight))))[
+        :, None, None]
     live = 1.0 if horizon is None else (jnp.asarray(batch.time) <= horizon)[:, :, None]
     pm = jnp.asarray(batch.pos_mask) * live
     e_pos = (pos - batch.pos) / jnp.asarray(batch.size)[None, None, :, None]
@@ -557,11 +561,31 @@ class TrajFitResult:
                 "seconds": self.seconds, "message": self.message}
 
 
-def fit_records(sim: dp.Simulator, params, batch: Batch, free: Sequence[Free], *,
+def prepare_buckets(sim: dp.Simulator, records, *, buckets: int = 3, **kw) -> list:
+    """:func:`prepare` the records in ``buckets`` batches of similar duration (sorted by
+    duration, equal counts), each rolled out only as long as its longest record: records of
+    0.5-3 s then cost about their own length, not the longest one's. The pose loss over the
+    list is the loss over all records (each batch averages over all of them). ``kw``: as
+    :func:`prepare`."""
+    if not records:
+        raise FitError("no records: give at least one record file.")
+    order = sorted(range(len(records)), key=lambda i: float(records[i].t[-1] - records[i].t[0]))
+    groups = [g for g in np.array_split(np.array(order), max(1, min(buckets, len(records))))
+              if len(g)]
+    out = []
+    for g in groups:
+        b = prepare(sim, [records[i] for i in g], **kw)
+        b.n_records = len(records)
+        out.append(b)
+    return out
+
+
+def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 rot_weight: float = ROT_WEIGHT, horizons: Sequence[float | None] = (None,),
                 loss: str = "l2", maxiter: int = 30,
                 progress: bool | None = None) -> TrajFitResult:
-    """Fit the ``free`` leaves of ``params`` to all records of ``batch`` jointly.
+    """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
+    or the list :func:`prepare_buckets` makes) jointly.
 
     Levenberg-Marquardt on :func:`pose_residuals` with a forward-mode Jacobian
     (``jax.jacfwd``, one tangent per parameter) through the vmapped rollouts. ``horizons``
@@ -589,12 +613,14 @@ def fit_records(sim: dp.Simulator, params, batch: Batch, free: Sequence[Free], *
     lo = np.array([f.x_bounds()[0] for f in free])
     hi = np.array([f.x_bounds()[1] for f in free])
 
+    batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
+
     def resid(x, horizon):
         p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
                                  for i, f in enumerate(free)})
-        pos, quat = simulate(sim, p, batch)
-        return pose_residuals(pos, quat, batch, rot_weight=rot_weight, horizon=horizon,
-                              loss=loss)
+        return jnp.concatenate([
+            pose_residuals(*simulate(sim, p, b), b, rot_weight=rot_weight, horizon=horizon,
+                           loss=loss) for b in batches])
 
     @jax.jit
     def res_jac(x, horizon):
@@ -728,7 +754,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     batch = prepare(sim, records, bodies=bodies, estimate=estimate)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
-    res = fit_records(sim, params, batch, free, loss=loss, horizons=horizons,
+    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate)
+    res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, progress=progress)
     after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
     if out is not None:
