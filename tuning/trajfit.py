@@ -740,8 +740,9 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     from .scenefile import load_scene_file
     sf = load_scene_file(scene_path)
     if sf.spec is None or not sf.spec.free:
-        raise FitError(f"{scene_path}: [fit] params names nothing to fit; add e.g. params = "
-                       "[\"contact.default.k\", \"contact.default.c\"].")
+        raise FitError(f"{scene_path}: say what to fit in a [fit] table, e.g. [fit] params = "
+                       "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
+                       "fit, with optional [fit.bounds]).")
     free = free_from_spec(sf.spec)
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
