@@ -282,10 +282,14 @@ def check(bp, ctx: CompileContext) -> None:
 
 def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     """Half widths (len(idx), 3) m of the bodies' axis-aligned bounding boxes: the radius for
-    spheres and particles, ``|R| h`` for boxes (R rotation, h half extents)."""
+    spheres and particles, ``|R| h`` for boxes (R rotation, h half extents); plus, per axis,
+    ``|v| dt``: the box swept over the step window of the step-averaged contact, which acts
+    from a gap of ``|vn| h`` on (``ctx.step`` = dt)."""
     bodies = ctx.scene.bodies
     r = ctx.const(ctx.radius[idx] + margin)[:, None]
     boxes = np.array([bodies[i].kind == "box" for i in idx])
+    if ctx.step:
+        r = r + jnp.abs(state.velocity[idx]) * ctx.step
     if not boxes.any():
         return jnp.broadcast_to(r, (len(idx), 3))
     from .rigid import quat_to_matrix
@@ -293,6 +297,8 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
                       for k, i in enumerate(idx)])
     rot = quat_to_matrix(state.orientation[idx])
     box_w = jnp.sum(jnp.abs(rot) * half[:, None, :], axis=-1) + margin
+    if ctx.step:
+        box_w = box_w + jnp.abs(state.velocity[idx]) * ctx.step
     return jnp.where(jnp.asarray(boxes)[:, None], box_w, r)
 
 
@@ -388,7 +394,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     is_box = jnp.asarray(cls == _BOX)
     radius = ctx.const(ctx.radius)
     half_all = ctx.const([b.half_extents or (0.0, 0.0, 0.0) for b in ctx.scene.bodies])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
 
     init = jax.jit(lambda s: find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
     ctx.aux_init[OVERFLOW] = float(bool(init))
@@ -400,7 +406,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
         old = aux[OVERFLOW]
         return {OVERFLOW: jnp.maximum(old, pairs.overflow.astype(old.dtype))}
 
-    def force(params, state, pairs=None):
+    def force(params, state, pairs=None, *, h=None):
         if pairs is None:
             pairs = find_pairs(bp, ctx, state)
         i, j, valid = pairs.i, pairs.j, pairs.valid
@@ -412,17 +418,18 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
             d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
                                                       state.position[j], radius[j])
             vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
-            fm = jnp.where(ss, law(d, vn, k, c, width), 0.0)[:, None] * nrm
+            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h), 0.0)[:, None] * nrm
             f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
         if has_sb:
             from .rigid import sphere_box_force
             box_j = is_box[j]
             sb = valid & (is_box[i] != box_j)
             s_idx, b_idx = jnp.where(box_j, i, j), jnp.where(box_j, j, i)
-            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb)
+            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb,
+                                       h=h)
             f = f + fs
         return f, tau
-    return Term("contact_broadphase", force, search=search, record=record)
+    return Term("contact_broadphase", force, search=search, record=record, step_aware=True)
 
 
 def _initial_state(ctx: CompileContext):

@@ -13,6 +13,7 @@ runs under its own ``jax.named_scope``, which tests use to prove it).
 """
 from __future__ import annotations
 
+import functools
 import math
 from typing import Callable
 
@@ -54,8 +55,11 @@ def _check_value(name: str, v) -> None:
 
 
 def _default_width(scene: Scene) -> float:
-    radii = [b.radius for b in scene.bodies if b.radius > 0.0]
-    return 1e-3 * min(radii) if radii else 1e-5
+    """``smoothing="auto"``: 0, the exact ramp. The integrators apply each contact's force
+    averaged over the step (``diffpen.laws``, "step-averaged force"), which is continuous
+    through contact start and end without moving the physics; a smoothing band is no longer
+    needed for gradients."""
+    return 0.0
 
 
 class Simulator:
@@ -71,7 +75,7 @@ class Simulator:
     """
 
     def __init__(self, scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
-                 law: str = "linear", smoothing: float | str = "auto",
+                 law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
                  exponent: float = 1.0, dtype=None, unroll: int = 1,
                  substeps: int | str = 1, broadphase=None):
         if not isinstance(scene, Scene):
@@ -89,9 +93,10 @@ class Simulator:
         if integrator not in INTEGRATORS:
             raise SceneError(f"unknown integrator {integrator!r}; choose one of "
                              f"{sorted(INTEGRATORS)}.")
-        if law not in laws.CONTACT_LAWS:
-            raise SceneError(f"unknown contact law {law!r}; choose one of "
-                             f"{sorted(laws.CONTACT_LAWS)}.")
+        try:
+            contact_law = laws.get(law, exponent)
+        except ValueError as e:
+            raise SceneError(str(e)) from None
         if smoothing == "auto":
             width = _default_width(scene)
         else:
@@ -103,9 +108,7 @@ class Simulator:
             if not math.isfinite(width) or width < 0.0:
                 raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
                                  f"got {smoothing!r}.")
-        exponent = float(exponent)
-        if not exponent >= 1.0:
-            raise SceneError(f"Hunt-Crossley exponent must be >= 1, got {exponent!r}.")
+        exponent = float(contact_law.exponent)
         if int(unroll) < 1:
             raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
         if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
@@ -115,7 +118,8 @@ class Simulator:
         self.scene = scene
         self.dt = dt
         self.integrator = integrator
-        self.law = law
+        self.law = contact_law.name
+        self.contact_law = contact_law
         self.smoothing = width
         self.exponent = exponent
         self.unroll = int(unroll)
@@ -164,15 +168,12 @@ class Simulator:
             s.group for s in (*scene.springs, *scene.plastic_springs,
                               *scene.anchored_springs)))
 
-        base_law = laws.CONTACT_LAWS[law]
-        law_fn = (base_law if law != "hunt_crossley" else
-                  (lambda d, vn, k, c, w: base_law(d, vn, k, c, w, exponent)))
         ctx = CompileContext(
-            scene=scene, dtype=self.dtype, law=law_fn, width=width,
+            scene=scene, dtype=self.dtype, law=contact_law, width=width,
             material_index={m: i for i, m in enumerate(self.materials)},
             group_index={g: i for i, g in enumerate(self.spring_groups)},
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
-            broadphase=broadphase)
+            broadphase=broadphase, step=dt)
         if broadphase is not None:
             from . import broadphase as _broadphase
             _broadphase.check(broadphase, ctx)
@@ -197,7 +198,7 @@ class Simulator:
             free = (~self.pinned).astype(float)[:, None]
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
-        self._step = INTEGRATORS[integrator](self._accel, dt)
+        self._step = INTEGRATORS[integrator](functools.partial(self._accel, h=dt), dt)
         self.substeps = substeps if substeps == "auto" else int(substeps)
         if self.substeps not in (1, "auto") or integrator in IMPLICIT or self._searching:
             self._step = self._build_step(1 if substeps == "auto" else self.substeps)
@@ -303,9 +304,15 @@ class Simulator:
                      aux={k: self._ctx.const(v) for k, v in self._ctx.aux_init.items()})
 
     # ------------------------------------------------------------------ dynamics
-    def forces(self, params: Params, state: State, *, found: dict | None = None):
+    def forces(self, params: Params, state: State, *, found: dict | None = None,
+               h: float | None = None):
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
         (n_bodies, 3) N m, or None for scenes without rotating bodies.
+
+        ``h``: the integrator's inner step, s. None (default): the instantaneous, pointwise
+        forces. Given: contacts apply their force averaged over the step window of length
+        ``h`` centred on this state (``diffpen.laws.ContactLaw.averaged``), which is what the
+        step integrates.
 
         ``found``: ``{term name: search result}`` already found for this very state (a step
         passes its own searches); the terms with a search not in it search themselves."""
@@ -313,17 +320,19 @@ class Simulator:
         tau = None
         for term in self._terms:
             with jax.named_scope(term.name):
+                kw = {"h": h} if (h is not None and term.step_aware) else {}
                 if found is not None and term.name in found:
-                    ft, tt = term.force(params, state, found[term.name])
+                    ft, tt = term.force(params, state, found[term.name], **kw)
                 else:
-                    ft, tt = term.force(params, state)
+                    ft, tt = term.force(params, state, **kw)
             f = ft if f is None else f + ft
             if tt is not None:
                 tau = tt if tau is None else tau + tt
         return (jnp.zeros_like(state.position) if f is None else f), tau
 
-    def _accel(self, params: Params, state: State, found: dict | None = None):
-        f, tau = self.forces(params, state, found=found)
+    def _accel(self, params: Params, state: State, found: dict | None = None, *,
+               h: float | None = None):
+        f, tau = self.forces(params, state, found=found, h=h)
         a = f * self._inv_mass
         if self._gravity is not None:
             with jax.named_scope("gravity"):
@@ -340,10 +349,10 @@ class Simulator:
     def _build_step(self, n: int):
         """The integrator step over ``dt`` in ``n`` inner steps (diffpen.integrators)."""
         inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
-        if not self._searching:
-            return build_step(self.integrator, self._accel, self.dt, substeps=n,
-                              inv_mass=inv_mass)
         h = self.dt / n if n != 1 else self.dt
+        if not self._searching:
+            return build_step(self.integrator, functools.partial(self._accel, h=h), self.dt,
+                              substeps=n, inv_mass=inv_mass)
         return substepped(self._searching_step(h, inv_mass), n)
 
     def _searching_step(self, h: float, inv_mass):
@@ -363,7 +372,7 @@ class Simulator:
 
             def accel(p, s):
                 # the very objects the step got: the integrator evaluates at its start state
-                return self._accel(p, s, found if (s is state and p is params) else None)
+                return self._accel(p, s, found if (s is state and p is params) else None, h=h)
             new = build_step(integrator, accel, h, inv_mass=inv_mass)(params, state)
             aux = dict(new.aux)
             for term in searching:
@@ -547,7 +556,8 @@ class Simulator:
 
 
 def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
-            law: str = "linear", smoothing: float | str = "auto", exponent: float = 1.0,
+            law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
+            exponent: float = 1.0,
             dtype=None, unroll: int = 1, substeps: int | str = 1,
             broadphase=None) -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
@@ -556,11 +566,13 @@ def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
       scene: a :class:`diffpen.Scene`.
       dt: time step, s, > 0.
       integrator: name in ``diffpen.integrators.INTEGRATORS``.
-      law: contact law, ``"linear"`` (default; may pull at separation), ``"no_tension"`` or
-        ``"hunt_crossley"``.
-      smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"`` =
-        1e-3 x the smallest sphere radius (1e-5 m without spheres), which moves restitution by
-        well under 0.1%. Static: changing it recompiles.
+      law: contact law: a :class:`diffpen.laws.ContactLaw` record or a name, ``"linear"``
+        (default; may pull at separation), ``"no_tension"`` or ``"hunt_crossley"``.
+      smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"``
+        (default) = 0: the step applies each contact's force averaged over the step
+        (``diffpen.laws``), continuous through contact start and end, so no band is needed.
+        A width > 0 selects the smoothed pointwise law instead (no step averaging). Static:
+        changing it recompiles.
       exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).

@@ -1,4 +1,4 @@
-"""Pointwise force laws: one pair in, one scalar force out.
+"""Pointwise force laws and contact-law records: one pair in, one scalar force out.
 
 Every function here acts on ONE spring or ONE contact (scalars, or arrays that broadcast
 elementwise) and knows nothing about bodies, index arrays or the scene. `diffpen.compile`
@@ -12,23 +12,58 @@ Conventions (SI units throughout):
 * ``c``      damping, N s/m (Hunt-Crossley: N s/m^(exponent + 1)).
 * ``width``  smoothing width, metres. A *static* Python float: 0 gives the exact kink
              ``max(d, 0)``; a positive width replaces the kink by a C1 quadratic blend on
-             ``|d| < width / 2`` so that gradients exist before and through impact.
+             ``|d| < width / 2``. Every law is exactly 0, with derivative 0, for
+             ``d <= -width / 2``.
+* ``h``      the integrator's inner step, s (step-averaged forces, below).
 
 The returned contact force is the magnitude along the contact normal, positive pushing the
 bodies apart.
+
+A contact law is a :class:`ContactLaw` record holding everything about it: the pointwise force,
+its step-averaged force, the elastic energy (the integral of the ramp), the resting depth
+(the inverse of the static force), the stiffness seen by the stability analysis, and its name.
+Build one with :func:`linear`, :func:`no_tension` or :func:`hunt_crossley`, or write a new
+record; ``diffpen.compile(..., law=)`` takes a record or one of the names in
+:data:`CONTACT_LAWS`.
+
+**Step-averaged force** (what the integrators use; ``ContactLaw.averaged``). A contact that
+starts or ends inside a step makes a pointwise force jump between steps, so the step is a
+discontinuous function of the state and its derivative misses the contact events. Instead, each
+contact applies the mean of its force over the window ``s in [-h, h]`` around the evaluation,
+weighted by the hat ``1 - |s| / h`` of the step grid, along the straight path of the
+penetration ``d(s) = d - vn s`` (``h`` the integrator's inner step). In the leapfrog view of
+semi-implicit Euler (and verlet) the kicks ``h F_n`` then carry the force history's impulse
+and its first moment, so the velocity and the position after a contact event do not depend on
+where in the step the event fell (:func:`window_mean`). The mean is a continuous function of
+``d``, ``vn``, ``k`` and ``c`` through contact start and end, and its derivative carries the
+event terms (the saltation of a contact starting or ending inside the window). Deep in contact
+(the window entirely inside) it equals the pointwise law: ``k d - c vn`` is linear in ``s``.
+Closed forms are written piecewise, without dividing by ``vn`` and without cancellation.
 """
 from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
 
 import jax.numpy as jnp
 
 __all__ = [
     "ramp",
+    "ramp_integral",
+    "ramp_inverse",
     "gate",
     "spring_force",
     "drag_force",
     "linear_contact",
     "no_tension_contact",
     "hunt_crossley_contact",
+    "window_mean",
+    "ContactLaw",
+    "linear",
+    "no_tension",
+    "hunt_crossley",
+    "get",
     "CONTACT_LAWS",
 ]
 
@@ -57,6 +92,31 @@ def ramp(d, width: float):
     return jnp.where(d >= h, d, jnp.where(d <= -h, jnp.zeros_like(d), blend))
 
 
+def ramp_integral(d, width: float, exponent: float = 1.0):
+    """``int_{-inf}^d ramp(x, width)^exponent dx`` (m^(exponent + 1)): the contact's elastic
+    energy divided by ``k``. Piecewise closed form; 0 for ``d <= -width / 2``."""
+    n = float(exponent)
+    if width == 0.0:
+        r = jnp.maximum(d, 0.0)
+        return r ** (n + 1.0) / (n + 1.0)
+    h = 0.5 * width
+    u = jnp.maximum(d + h, 0.0)
+    blend = jnp.minimum(u, width) ** (2.0 * n + 1.0) / ((2.0 * n + 1.0) * (2.0 * width) ** n)
+    pos = d >= h
+    ds = jnp.where(pos, d, h)
+    tail = (ds ** (n + 1.0) - h ** (n + 1.0)) / (n + 1.0)
+    return jnp.where(pos, blend + tail, blend)
+
+
+def ramp_inverse(r, width: float):
+    """The depth ``d`` (m) at which ``ramp(d, width) = r`` for ``r >= 0`` (the ramp is one to
+    one there): ``r`` past the blend band, ``sqrt(2 width r) - width / 2`` inside it."""
+    if width == 0.0:
+        return r
+    half = 0.5 * width
+    return jnp.where(r >= half, r, jnp.sqrt(2.0 * width * jnp.maximum(r, 0.0)) - half)
+
+
 def gate(d, width: float):
     """Smooth step from 0 (apart) to 1 (in contact) over ``|d| < width / 2``.
 
@@ -65,7 +125,7 @@ def gate(d, width: float):
     force switches on continuously at impact.
     """
     if width == 0.0:
-        return (d > 0.0).astype(jnp.result_type(d))
+        return (jnp.asarray(d) > 0.0).astype(jnp.result_type(d))
     u = d * (1.0 / width) + 0.5
     # selects, not clip: clip's derivative splits ties with a division, and XLA will not fuse
     # a divide into the wide tangent update of forward mode (measured: two extra kernels per
@@ -98,6 +158,7 @@ def drag_force(v, c):
     return -c * v
 
 
+# --------------------------------------------------------------------------- pointwise laws
 def linear_contact(d, vn, k, c, width: float = 0.0):
     """Linear spring-dashpot penalty contact (the workshop paper's law).
 
@@ -108,20 +169,27 @@ def linear_contact(d, vn, k, c, width: float = 0.0):
 
 
 def no_tension_contact(d, vn, k, c, width: float = 0.0):
-    """Linear spring-dashpot that never pulls: ``F = max(k d - c vn, 0)``.
+    """Linear spring-dashpot that never pulls: ``F = max(k d - c vn, 0)`` in contact.
 
-    The clamp is smoothed with the same C1 ramp in force space, of width ``k * width``.
+    With ``width > 0`` the clamp is smoothed by the C1 ramp in force space
+    (:func:`_soft_clamp`), whose width shrinks to 0 with the contact, so the force is exactly
+    0 for ``d <= -width / 2`` (a fixed force-space width ``k width`` left ``k width / 8``
+    acting at any distance), and which leaves the static force ``k ramp(d)`` unchanged.
     Closed forms: Schwager & Poschel (2007), see physics-notes.md section 2.
     """
     f = linear_contact(d, vn, k, c, width)
-    return ramp(f, 0.0) if width == 0.0 else _ramp_traced(f, k * width)
+    if width == 0.0:
+        return jnp.maximum(f, 0.0)
+    return _soft_clamp(f, k * ramp(d, width), k * width * gate(d, width))
 
 
 def hunt_crossley_contact(d, vn, k, c, width: float = 0.0, exponent: float = 1.0):
     """Hunt-Crossley contact: ``F = max(d^n (k + c ddot), 0)`` with ``ddot = -vn``.
 
     In the usual notation ``F = k d^n (1 + a ddot)`` with ``a = c / k`` (s/m). Damping vanishes
-    at zero penetration; restitution depends on ``a * v_in`` only.
+    at zero penetration; restitution depends on ``a * v_in`` only. With ``width > 0`` the
+    clamp is smoothed in force space as in :func:`no_tension_contact` (0 when apart, the
+    static force ``k ramp(d)^n`` unchanged).
     """
     r = ramp(d, width)
     if exponent == 1.0:
@@ -130,21 +198,269 @@ def hunt_crossley_contact(d, vn, k, c, width: float = 0.0, exponent: float = 1.0
         pos = r > 0.0
         p = jnp.where(pos, jnp.where(pos, r, 1.0) ** exponent, 0.0)
     f = p * (k - c * vn)
-    return ramp(f, 0.0) if width == 0.0 else _ramp_traced(f, k * width ** exponent)
+    if width == 0.0:
+        return jnp.maximum(f, 0.0)
+    return _soft_clamp(f, k * p, k * width ** exponent * gate(d, width))
+
+
+def _soft_clamp(f, static, wmax):
+    """C1 ``max(f, 0)`` of a contact force ``f`` whose static part (``vn = 0``) is
+    ``static >= 0``: the force-space ramp of width ``w = 2 static wmax / (2 static + wmax)``
+    (a smooth minimum of ``2 static`` and ``wmax``, N). It is 0 where the contact is apart
+    (``static = wmax = 0``: the force and its derivatives are exactly 0), and ``f = static``
+    is past the blend (``static >= w / 2``), so the static force, its energy and its resting
+    depth are the unclamped law's."""
+    den = 2.0 * static + wmax
+    pos = den > 0.0
+    w = jnp.where(pos, 2.0 * static * wmax / jnp.where(pos, den, 1.0), 0.0)
+    return _ramp_traced(f, w)
 
 
 def _ramp_traced(x, width):
-    """``ramp`` with a traced width (force-space clamps); finite for any width >= 0."""
-    width = jnp.maximum(width, jnp.finfo(jnp.result_type(x)).tiny)
-    h = 0.5 * width
+    """``ramp`` with a traced width (force-space clamps): exactly ``max(x, 0)`` where the
+    width is 0, finite values and derivatives for any width >= 0."""
+    pos = width > 0.0
+    w = jnp.where(pos, width, 1.0)
+    h = 0.5 * w
     xc = jnp.where(x >= h, h, jnp.where(x <= -h, -h, x))    # selects: see gate
-    blend = (xc + h) ** 2 * (0.5 / width)
-    return jnp.where(x >= h, x, jnp.where(x <= -h, jnp.zeros_like(x), blend))
+    blend = (xc + h) ** 2 * (0.5 / w)
+    smooth = jnp.where(x >= h, x, jnp.where(x <= -h, jnp.zeros_like(x), blend))
+    return jnp.where(pos, smooth, jnp.maximum(x, 0.0))
 
 
-#: Contact laws by name, for ``diffpen.compile(..., law=NAME)``.
+# --------------------------------------------------------------------------- step averages
+def _power_mean_inside(d, delta, n: float):
+    """Hat-weighted mean of ``x^n`` over ``[d - delta, d + delta]``, ``0 <= delta <= d``
+    (``d > 0``), without the cancellation of the second difference for a narrow window:
+    with ``u = delta / d``, ``d^n sum_j C(n, 2j) u^(2j) 2 / ((2j + 1)(2j + 2))`` (six terms,
+    relative error < 1e-13) for ``u < 0.2``, the second difference of
+    ``x^(n+2) / ((n+1)(n+2))`` divided by ``delta^2`` otherwise."""
+    u = delta / d
+    small = u < 0.2
+    us = jnp.where(small, u, 0.0)
+    u2 = us * us
+    series, coef, term = jnp.ones_like(us), 1.0, jnp.ones_like(us)
+    for j in range(1, 6):
+        coef *= (n - 2 * j + 2) * (n - 2 * j + 1) / ((2 * j) * (2 * j - 1))
+        term = term * u2
+        series = series + coef * 2.0 / ((2 * j + 1) * (2 * j + 2)) * term
+    dl = jnp.where(small, 1.0, delta)
+    p = n + 2.0
+    direct = ((d + dl) ** p - 2.0 * d ** p + (d - dl) ** p) / ((n + 1.0) * p * dl * dl)
+    return jnp.where(small, d ** n * series, direct)
+
+
+def window_mean(d, vn, h, exponent: float = 1.0):
+    """Hat-weighted means over the window ``s in [-h, h]`` of the path ``d(s) = d - vn s``.
+
+    The weight is the hat ``(1 - |s| / h) / h`` (the linear B-spline of the step grid): a
+    force history represented by kicks ``h F_n`` at the step times with these weights keeps
+    both its impulse and its first moment (where in time it acts), so where the contact
+    starts or ends inside a step changes neither the velocity nor the position that follows.
+    (A box window keeps only the impulse: the positions then depend on the phase of the
+    contact event within the step to O(h^3), which shows as an O(h) error of derivatives.)
+
+    Returns ``(frac, mean)``: the weighted fraction of the window in contact (``d(s) > 0``)
+    and the weighted mean of ``max(d(s), 0)^exponent``. With ``delta = |vn| h`` and
+    ``a, b = d -+ delta``, piecewise and without dividing by ``vn``:
+
+    * inside (``a >= 0``): ``1`` and ``d`` (exponent 1; :func:`_power_mean_inside` else);
+    * apart (``b <= 0``): exactly ``0`` and ``0`` (zero derivatives too);
+    * ``a < 0 <= d``: ``1 - a^2 / (2 delta^2)`` and ``d + |a|^3 / (6 delta^2)``
+      (``(b^(n+2) - 2 d^(n+2)) / ((n+1)(n+2) delta^2)``);
+    * ``d < 0 < b``: ``b^2 / (2 delta^2)`` and ``b^3 / (6 delta^2)``
+      (``b^(n+2) / ((n+1)(n+2) delta^2)``);
+
+    the second differences of ``max(x, 0)^2 / 2`` and ``max(x, 0)^(n+2) / ((n+1)(n+2))``,
+    written so that nothing cancels (``|a|, |b| <= delta`` where they are divided by
+    ``delta^2``). Both are continuous in ``d``, ``vn`` and ``h`` (C1 in ``d`` for the mean);
+    unselected branches are masked before any division or power (double ``where``), so
+    gradients are finite everywhere. Deep in contact the mean of a force linear in ``s``
+    (``k d - c vn``) is the pointwise force.
+
+    Args:
+      d: penetration at the window's centre, m.  vn: separating normal speed, m/s.
+      h: the integrator's inner step, s (> 0).  exponent: n >= 1 (static).
+    """
+    delta = jnp.abs(vn) * h
+    a, b = d - delta, d + delta
+    n = float(exponent)
+    if n == 1.0:
+        # d >= 0: 1 - u^2 / 2 and d + e u^2 / 6 with e = max(-a, 0) (0 for a window inside);
+        # d < 0: u^2 / 2 and e u^2 / 6 with e = max(b, 0) (0 apart); u = e / delta <= 1.
+        # Where e = 0 nothing is divided (double where: a still contact, delta = 0, has
+        # finite derivatives in float32 too); delta is floored at 1e-15 m where e > 0, so
+        # the derivative of u stays finite in float32 (only sub-femtometre windows change).
+        on = d >= 0.0
+        e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
+        pos = e > 0.0
+        u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
+        u2 = 0.5 * u * u
+        frac = jnp.where(on, 1.0 - u2, u2)
+        mean = jnp.where(on, d, 0.0) + e * u2 * (1.0 / 3.0)
+        return frac, mean
+    inside = a >= 0.0
+    upper = (d >= 0.0) & ~inside
+    lower = (d < 0.0) & (b > 0.0)
+    dl = jnp.where(upper | lower, delta, 1.0)
+    inv2 = 1.0 / (dl * dl)
+    au = jnp.where(upper, a, 0.0)
+    bl = jnp.where(lower, b, 0.0)
+    one = jnp.ones_like(d)
+    frac = jnp.where(inside, one, jnp.where(upper, 1.0 - 0.5 * au * au * inv2,
+                                            0.5 * bl * bl * inv2))
+    q = 1.0 / ((n + 1.0) * (n + 2.0))
+    pos = inside & (d > 0.0)
+    mean_in = jnp.where(pos, _power_mean_inside(jnp.where(pos, d, 1.0),
+                                                jnp.where(pos, delta, 0.0), n), 0.0)
+    bu = jnp.where(upper, b, 1.0)
+    du = jnp.where(upper, d, 0.0)
+    mean_up = (bu ** (n + 2.0) - 2.0 * du ** (n + 2.0)) * q * inv2
+    mean_lo = jnp.where(lower, jnp.where(lower, b, 1.0) ** (n + 2.0), 0.0) * q * inv2
+    mean = jnp.where(inside, mean_in, jnp.where(upper, mean_up, mean_lo))
+    return frac, mean
+
+
+def _linear_averaged(d, vn, k, c, h):
+    """Step average of ``k max(d, 0) - c vn [d > 0]`` (see the module docstring)."""
+    frac, mean = window_mean(d, vn, h)
+    return k * mean - c * vn * frac
+
+
+def _no_tension_averaged(d, vn, k, c, h):
+    """Step average of ``[d > 0] max(k d - c vn, 0)``. In the window ``vn`` is constant, so
+    the force is ``k (d(s) - d*)`` where ``d(s) > t = max(0, d*)``, ``d* = c vn / k``, and 0
+    elsewhere: ``k mean(d - t) + max(-c vn, 0) frac(d - t)``."""
+    kp = k > 0.0
+    t = jnp.maximum(c * vn, 0.0) / jnp.where(kp, k, 1.0)   # k = 0: t is multiplied by 0
+    frac, mean = window_mean(d - t, vn, h)
+    return k * mean + jnp.maximum(-c * vn, 0.0) * frac
+
+
+def _hunt_crossley_averaged(exponent: float):
+    def averaged(d, vn, k, c, h):
+        """Step average of ``max(k - c vn, 0) max(d, 0)^n``."""
+        _, mean = window_mean(d, vn, h, exponent)
+        return jnp.maximum(k - c * vn, 0.0) * mean
+    return averaged
+
+
+# --------------------------------------------------------------------------- records
+@dataclasses.dataclass(frozen=True)
+class ContactLaw:
+    """Everything about one contact law (a penalty force along the contact normal).
+
+    Fields (all functions pure ``jax.numpy``, elementwise, differentiable):
+
+    name: str, how reports and ``repr`` name it.
+    force: ``force(d, vn, k, c, width=0.0) -> F`` N, the pointwise force (``d`` m, ``vn``
+      m/s separating, ``width`` the static smoothing width, m). Exactly 0 for
+      ``d <= -width / 2``.
+    averaged: ``averaged(d, vn, k, c, h) -> F`` N, the hat-weighted mean of the exact
+      (``width = 0``) force over the window ``[-h, h]`` along ``d(s) = d - vn s`` (``h`` the
+      integrator's inner step, s; :func:`window_mean`): continuous
+      through contact start and end. None: the law has none (the integrators then use the
+      pointwise force).
+    energy: ``energy(d, k, width=0.0) -> E`` J, the elastic energy stored at depth ``d`` (the
+      integral of the static force over depth; 0 when apart).
+    resting_depth: ``resting_depth(load, k, width=0.0) -> d`` m, the depth at which the static
+      force equals ``load`` N (a body of weight ``load`` resting on the contact).
+    stiffness: ``stiffness(k, c, d_ref) -> (k_eff N/m, c_eff N s/m)``, the largest normal
+      stiffness and damping of the law for depths up to ``d_ref`` m (what the explicit
+      stability bound uses).
+    exponent: the depth exponent n (1 for the linear laws; Hunt-Crossley's n).
+    closed_form: the name of the family of closed forms in :mod:`diffpen.physical`
+      (restitution, contact time) that hold for this law, or None.
+
+    A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
+    """
+    name: str
+    force: Callable
+    averaged: Callable | None
+    energy: Callable
+    resting_depth: Callable
+    stiffness: Callable
+    exponent: float = 1.0
+    closed_form: str | None = None
+
+    def __call__(self, d, vn, k, c, width: float = 0.0):
+        return self.force(d, vn, k, c, width)
+
+    def step_force(self, d, vn, k, c, width: float = 0.0, h: float | None = None):
+        """The force an integrator with inner step ``h`` (s) applies: the step average when
+        ``h`` is given, the law has one and ``width == 0``; otherwise the pointwise force
+        (``h=None``: the instantaneous force; ``width > 0``: the smoothed pointwise law)."""
+        if h is None or width != 0.0 or self.averaged is None:
+            return self.force(d, vn, k, c, width)
+        return self.averaged(d, vn, k, c, h)
+
+
+def _linear_energy(d, k, width=0.0):
+    return k * ramp_integral(d, width)
+
+
+def _linear_rest(load, k, width=0.0):
+    return ramp_inverse(load / k, width)
+
+
+def _linear_stiffness(k, c, d_ref=None):
+    return k, c
+
+
+def linear() -> ContactLaw:
+    """``F = k d - c vn`` in contact (may pull at the end of contact); closed forms
+    ``t_c = pi / w_d``, ``e = exp(-pi zeta / sqrt(1 - zeta^2))``."""
+    return ContactLaw("linear", linear_contact, _linear_averaged, _linear_energy, _linear_rest,
+                      _linear_stiffness, 1.0, "linear")
+
+
+def no_tension() -> ContactLaw:
+    """``F = max(k d - c vn, 0)`` in contact (never pulls); Schwager & Poschel's closed
+    forms."""
+    return ContactLaw("no_tension", no_tension_contact, _no_tension_averaged, _linear_energy,
+                      _linear_rest, _linear_stiffness, 1.0, "no_tension")
+
+
+def hunt_crossley(exponent: float = 1.0) -> ContactLaw:
+    """``F = max(k - c vn, 0) d^n`` (Hunt-Crossley; ``n = 1.5`` is Hertz), ``n >= 1``."""
+    n = float(exponent)
+    if not (math.isfinite(n) and n >= 1.0):
+        raise ValueError(f"Hunt-Crossley exponent must be a finite number >= 1, got "
+                         f"{exponent!r}.")
+
+    def force(d, vn, k, c, width=0.0):
+        return hunt_crossley_contact(d, vn, k, c, width, n)
+
+    def energy(d, k, width=0.0):
+        return k * ramp_integral(d, width, n)
+
+    def rest(load, k, width=0.0):
+        return ramp_inverse((load / k) ** (1.0 / n), width)
+
+    def stiffness(k, c, d_ref):
+        # dF/dd = n k d^(n-1), dF/dvn = c d^n: largest at the deepest depth considered
+        return n * k * d_ref ** (n - 1.0), c * d_ref ** n
+    return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
+                      stiffness, n, None)
+
+
+#: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: the records (Hunt-Crossley
+#: with n = 1; :func:`get` builds it for another exponent). Each is callable as its pointwise
+#: force ``(d, vn, k, c, width)``, as the plain functions this mapping held before.
 CONTACT_LAWS = {
-    "linear": linear_contact,
-    "no_tension": no_tension_contact,
-    "hunt_crossley": hunt_crossley_contact,
+    "linear": linear(),
+    "no_tension": no_tension(),
+    "hunt_crossley": hunt_crossley(),
 }
+
+
+def get(law, exponent: float = 1.0) -> ContactLaw:
+    """The :class:`ContactLaw` for ``law``: a record (returned as is) or a name in
+    :data:`CONTACT_LAWS` (``exponent`` goes to ``hunt_crossley``). Raises ValueError naming
+    the choices otherwise."""
+    if isinstance(law, ContactLaw):
+        return law
+    if isinstance(law, str) and law in CONTACT_LAWS:
+        return hunt_crossley(exponent) if law == "hunt_crossley" else CONTACT_LAWS[law]
+    raise ValueError(f"unknown contact law {law!r}; choose one of {sorted(CONTACT_LAWS)} or "
+                     "pass a diffpen.laws.ContactLaw record.")

@@ -17,6 +17,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from . import laws as _laws
+
 __all__ = [
     "damping_ratio", "natural_frequency",
     "restitution", "contact_time", "kc_from_restitution",
@@ -36,53 +38,64 @@ def damping_ratio(k, c, mass):
     return c / (2.0 * jnp.sqrt(k * mass))
 
 
+def _family(law, what: str) -> str:
+    """The closed-form family (``"linear"`` or ``"no_tension"``) of ``law``, a
+    :class:`diffpen.laws.ContactLaw` or a law name (``ContactLaw.closed_form``)."""
+    try:
+        rec = _laws.get(law)
+    except ValueError as e:
+        raise ValueError(str(e)) from None
+    if rec.closed_form not in ("linear", "no_tension"):
+        raise ValueError(f"{what} closed form exists for the 'linear' and 'no_tension' laws, not "
+                         f"{rec.name!r}; use hunt_crossley_restitution for Hunt-Crossley.")
+    return rec.closed_form
+
+
 def _nt_log_e(z):
     """ln e for the no-tension law as a function of zeta in (0, 1)."""
     return -2.0 * z * jnp.arccos(z) / jnp.sqrt(1.0 - z * z)
 
 
-def restitution(k, c, mass, law: str = "linear"):
+def restitution(k, c, mass, law="linear"):
     """Coefficient of restitution of a ball on a fixed plane (no gravity during contact).
 
     linear: ``exp(-pi zeta / sqrt(1 - zeta^2))``; no_tension: Schwager & Poschel (2007).
-    Returns 0 for ``zeta >= 1`` (no rebound).
+    ``law``: a :class:`diffpen.laws.ContactLaw` or its name. Returns 0 for ``zeta >= 1``.
     """
+    family = _family(law, "restitution")
     z = damping_ratio(k, c, mass)
     under = z < 1.0
     zs = jnp.where(under, z, 0.5)
-    if law == "linear":
+    if family == "linear":
         log_e = -jnp.pi * zs / jnp.sqrt(1.0 - zs * zs)
-    elif law == "no_tension":
-        log_e = _nt_log_e(zs)
     else:
-        raise ValueError(f"restitution closed form exists for 'linear' and 'no_tension', "
-                         f"not {law!r}; use hunt_crossley_restitution for Hunt-Crossley.")
+        log_e = _nt_log_e(zs)
     return jnp.where(under, jnp.exp(log_e), 0.0)
 
 
-def contact_time(k, c, mass, law: str = "linear"):
-    """Contact duration of a ball on a fixed plane, s (underdamped, no gravity)."""
+def contact_time(k, c, mass, law="linear"):
+    """Contact duration of a ball on a fixed plane, s (underdamped, no gravity); ``law`` a
+    :class:`diffpen.laws.ContactLaw` or its name."""
+    family = _family(law, "contact_time")
     w0 = natural_frequency(k, mass)
     z = damping_ratio(k, c, mass)
     s = jnp.sqrt(1.0 - z * z)
-    if law == "linear":
+    if family == "linear":
         return jnp.pi / (w0 * s)
-    if law == "no_tension":
-        return 2.0 * jnp.arccos(z) / (w0 * s)
-    raise ValueError(f"contact_time closed form exists for 'linear' and 'no_tension', not {law!r}.")
+    return 2.0 * jnp.arccos(z) / (w0 * s)
 
 
-def zeta_from_restitution(e, law: str = "linear"):
-    """Damping ratio giving restitution ``e`` in (0, 1).
+def zeta_from_restitution(e, law="linear"):
+    """Damping ratio giving restitution ``e`` in (0, 1); ``law`` a
+    :class:`diffpen.laws.ContactLaw` or its name.
 
     linear: ``zeta = -ln e / sqrt(pi^2 + ln^2 e)``. no_tension: solved by bisection with an
     implicit-function gradient (one Newton step outside ``stop_gradient``).
     """
+    family = _family(law, "zeta_from_restitution")
     log_e = jnp.log(e)
-    if law == "linear":
+    if family == "linear":
         return -log_e / jnp.sqrt(jnp.pi ** 2 + log_e ** 2)
-    if law != "no_tension":
-        raise ValueError(f"law must be 'linear' or 'no_tension', not {law!r}.")
     target = jax.lax.stop_gradient(log_e)
 
     def body(_, lohi):
@@ -98,14 +111,14 @@ def zeta_from_restitution(e, law: str = "linear"):
     return z0 - (_nt_log_e(z0) - log_e) / slope
 
 
-def kc_from_restitution(e, t_c, mass, law: str = "linear"):
+def kc_from_restitution(e, t_c, mass, law="linear"):
     """(k [N/m], c [N s/m]) giving restitution ``e`` in (0, 1) and contact time ``t_c`` [s].
 
     Inverse of :func:`restitution` and :func:`contact_time` (no gravity during contact).
     """
     z = zeta_from_restitution(e, law)
     s = jnp.sqrt(1.0 - z * z)
-    if law == "linear":
+    if _family(law, "kc_from_restitution") == "linear":
         w0 = jnp.pi / (t_c * s)
     else:
         w0 = 2.0 * jnp.arccos(z) / (t_c * s)

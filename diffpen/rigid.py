@@ -220,17 +220,17 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     corners = ctx.const([r[2] for r in rows])
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
     # smooth Coulomb friction only when some material has it (static choice)
     rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
         rot = quat_to_matrix(gather(state.orientation, bi, n))
         d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
-        fn = law(d, vn, k, c, width)
+        fn = ctx.contact_force(d, vn, k, c, h)
         f = fn[:, None] * normals
         if rough is not None:
             with jax.named_scope("friction"):
@@ -238,7 +238,7 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
                 f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
                                                  _row_mu(params, names, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
-    return Term("contact_box_plane", force)
+    return Term("contact_box_plane", force, step_aware=True)
 
 
 def _rough(ctx: CompileContext, materials: list[str]):
@@ -275,19 +275,19 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
     radii = ctx.const(ctx.radius[bi])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
         d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
-        fn = law(d, jnp.sum(normals * v, axis=-1), k, c, width)
+        fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h)
         r = -radii[:, None] * normals                    # centre to contact point
         f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
                                      _row_mu(params, rough, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
-    return Term("friction_sphere_plane", force)
+    return Term("friction_sphere_plane", force, step_aware=True)
 
 
 def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -300,9 +300,9 @@ def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
     centers = ctx.const([scene.fixed_spheres[s].center for s in si])
     radii = ctx.const([scene.fixed_spheres[s].radius for s in si])
     half = ctx.const([scene.bodies[i].half_extents for i in bi])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         xb, vb = gather(state.position, bi, n), gather(state.velocity, bi, n)
         wb = gather(state.angular_velocity, bi, n)
@@ -310,15 +310,16 @@ def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
         zero = jnp.zeros_like(xb)
         d, vn, nrm, _, r_b = jax.vmap(sphere_box_pair)(centers, zero, zero, radii, xb, vb,
                                                         wb, rot, half)
-        f = law(d, vn, k, c, width)[:, None] * nrm          # on the fixed sphere
+        f = ctx.contact_force(d, vn, k, c, h)[:, None] * nrm    # on the fixed sphere
         return -scatter(f, bi, n), -scatter(jnp.cross(r_b, f), bi, n)
-    return Term("contact_box_fixed_sphere", force)
+    return Term("contact_box_fixed_sphere", force, step_aware=True)
 
 
-def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None):
+def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None, h=None):
     """Forces and torques (n, 3) of sphere-box pairs ``(si, bi)`` (index arrays (m,), static
     or traced) with box half extents ``half`` (m, 3) m, contact stiffness ``k`` and damping
-    ``c`` (scalars or (m,)); ``valid`` (m,) bool masks padded pairs of a broad phase."""
+    ``c`` (scalars or (m,)); ``valid`` (m,) bool masks padded pairs of a broad phase; ``h``
+    the inner step (s) for the step-averaged force, None for the pointwise one."""
     n = ctx.n
     radius = ctx.const(ctx.radius)
     xs, vs, ws = state.position[si], state.velocity[si], state.angular_velocity[si]
@@ -326,7 +327,7 @@ def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None)
     rot = quat_to_matrix(state.orientation[bi])
     d, vn, nrm, r_s, r_b = jax.vmap(sphere_box_pair)(xs, vs, ws, radius[si], xb, vb, wb, rot,
                                                       half)
-    fm = ctx.law(d, vn, k, c, ctx.width)
+    fm = ctx.contact_force(d, vn, k, c, h)
     if valid is not None:
         fm = jnp.where(valid, fm, 0.0)
     f = fm[:, None] * nrm                                  # on the sphere
@@ -345,10 +346,10 @@ def _sphere_box_contact(ctx: CompileContext) -> Term | None:
     si, bi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
     half = ctx.const([ctx.scene.bodies[j].half_extents for j in bi])
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
-        return sphere_box_force(ctx, k, c, state, si, bi, half)
-    return Term("contact_sphere_box", force)
+        return sphere_box_force(ctx, k, c, state, si, bi, half, h=h)
+    return Term("contact_sphere_box", force, step_aware=True)
 
 
 def _anchored_springs(ctx: CompileContext) -> Term | None:

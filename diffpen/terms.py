@@ -80,11 +80,15 @@ class Term(NamedTuple):
       called as ``force(params, state)`` the force searches itself.
     record: optional ``record(aux, found) -> {name: array}``: the ``State.aux`` entries a step
       updates from its search (``aux``: the step's current entries).
+    step_aware: True when ``force`` takes the integrator's inner step as a keyword,
+      ``force(..., h=h)`` (s): contact terms then apply their step-averaged force
+      (``ContactLaw.step_force``); without it (or ``h=None``) the instantaneous force.
     """
     name: str
     force: Callable[..., tuple[Any, Any]]
     search: Callable[[Params, State], Any] | None = None
     record: Callable[[dict, Any], dict] | None = None
+    step_aware: bool = False
 
 
 @dataclasses.dataclass
@@ -92,6 +96,7 @@ class CompileContext:
     """What a term builder sees: the scene and the static per-body arrays."""
     scene: Scene
     dtype: Any
+    #: the contact law (``diffpen.laws.ContactLaw``; callable as its pointwise force)
     law: Callable
     width: float
     material_index: dict
@@ -111,6 +116,9 @@ class CompileContext:
     extra_checks: dict = dataclasses.field(default_factory=dict)
     #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
     broadphase: Any = None
+    #: The simulator's step dt, s (the longest inner step): a step-averaged contact acts from
+    #: a gap of ``|vn| h`` on, so searches for pairs reach that far.
+    step: float | None = None
 
     @property
     def n(self) -> int:
@@ -119,6 +127,12 @@ class CompileContext:
     def const(self, a):
         """A static numpy array as a constant of the simulator's float dtype."""
         return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
+
+    def contact_force(self, d, vn, k, c, h=None):
+        """Normal force (N) of contacts at depth ``d`` (m), separating speed ``vn`` (m/s):
+        the law's step average over an inner step ``h`` (s), or its pointwise force for
+        ``h=None`` (``diffpen.laws.ContactLaw.step_force``)."""
+        return self.law.step_force(d, vn, k, c, self.width, h)
 
     def contact_kc(self, params: Params, mat: np.ndarray):
         """Per-pair (k, c) for material indices ``mat`` (m,), scalars when all pairs share one."""
@@ -165,21 +179,21 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     bi, ci, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
     args = [ctx.const(list(a)) for a in zip(*(shape_args(colliders[j]) for j in ci))]
     radii = ctx.const(ctx.radius[bi])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
     normal = None if static_normal is None else np.array(
         [static_normal(colliders[j]) for j in ci], dtype=float)
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         if normal is not None:          # the normal is a constant: leave out its zeros
             d = radii - (static_dot(normal, x) - args[0])
-            f = law(d, static_dot(normal, v), k, c, width)
+            f = ctx.contact_force(d, static_dot(normal, v), k, c, h)
             return scatter(static_scale(f, normal), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
-        f = law(d, geometry.dot(nrm, v), k, c, width)
+        f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h)
         return scatter(f[:, None] * nrm, bi, n), None
-    return Term(name, force)
+    return Term(name, force, step_aware=True)
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
@@ -209,16 +223,16 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
         return None
     ia, ib, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
     ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
-    law, width, n = ctx.law, ctx.width, ctx.n
+    n = ctx.n
 
-    def force(params, state):
+    def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         xa, xb = state.position[ia], state.position[ib]
         d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
         vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
-        f = (law(d, vn, k, c, width))[:, None] * nrm
+        f = ctx.contact_force(d, vn, k, c, h)[:, None] * nrm
         return scatter(f, ia, n) - scatter(f, ib, n), None
-    return Term("contact_sphere_sphere", force)
+    return Term("contact_sphere_sphere", force, step_aware=True)
 
 
 def _spring_axis(delta, rel_vel, rest):

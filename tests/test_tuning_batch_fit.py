@@ -124,7 +124,7 @@ SCRIPT = textwrap.dedent("""
     targets = [{"apex_heights": [a]} for a in (0.2, 0.16, 0.12, 0.09, 0.06, 0.02)]
     fitters, out = {}, {}
     for nd in (4, 1):
-        fitters[nd] = BatchFitter(mfn, p0, free=["contact.default.c"], maxiter=100,
+        fitters[nd] = BatchFitter(mfn, p0, free=["contact.default.c"], maxiter=150,
                                   mesh=batch_mesh(jax.devices()[:nd]))
         out[nd] = fitters[nd](targets)
     four, one = out[4], out[1]

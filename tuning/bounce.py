@@ -24,7 +24,7 @@ __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
-                  "restitution": 1e-3, "max_penetration": 2e-3}
+                  "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
 
 
 def _fall_time(h0: float, v0: float, g: float) -> float:
@@ -116,7 +116,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     return metrics_fn
 
 
-def first_guess_bounce(info: dict, targets: dict, *, law: str = "linear", k0: float = 1e4):
+def first_guess_bounce(info: dict, targets: dict, *, law="linear", k0: float = 1e4):
     """Closed-form start (k, c) from bounce targets (physics-notes.md section 2).
 
     The first apex gives the restitution ``e = sqrt(A_1 / H_0)`` and so the damping ratio; a
@@ -126,14 +126,14 @@ def first_guess_bounce(info: dict, targets: dict, *, law: str = "linear", k0: fl
     """
     m = info["mass"]
     zeta = None
+    # the law's closed forms, or the linear law's as a start for laws without any
+    family = dp.laws.get(law).closed_form or "linear"
     if "apex_heights" in targets:
         e = math.sqrt(float(np.atleast_1d(targets["apex_heights"])[0]) / info["drop"])
-        zeta = float(dp.physical.zeta_from_restitution(e, "no_tension" if law == "no_tension"
-                                                       else "linear"))
+        zeta = float(dp.physical.zeta_from_restitution(e, family))
     elif "restitution" in targets:
         e = float(np.atleast_1d(targets["restitution"])[0])
-        zeta = float(dp.physical.zeta_from_restitution(e, "no_tension" if law == "no_tension"
-                                                       else "linear"))
+        zeta = float(dp.physical.zeta_from_restitution(e, family))
     if zeta is not None and "contact_durations" in targets:
         tc = float(np.atleast_1d(targets["contact_durations"])[0])
         k, c = dp.physical.kc_from_restitution(math.exp(-math.pi * zeta / math.sqrt(

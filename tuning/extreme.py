@@ -326,7 +326,8 @@ def _run_case(case: Case, substeps: int, max_inner_steps: int, integrator=None) 
         problems.append(f"penetration {np.max(d):.3g} m > bound {bound:.3g} m")
     # restitution of the first impact (body 0)
     vz = vel[:, 0, 2]
-    touching = np.flatnonzero(d > sim.smoothing)
+    # the step-averaged contact (smoothing 0) acts from a gap of |v| h on
+    touching = np.flatnonzero(d > (sim.smoothing if sim.smoothing else -np.abs(vz) * h))
     if touching.size and case.overlap is False:
         first = touching[0]
         v_in = max(case.speed, float(-np.min(np.concatenate([[-case.speed], vz[:first + 1]]))))

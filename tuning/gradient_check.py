@@ -9,7 +9,7 @@ Units: SI throughout (m, kg, s, N/m, N s/m).
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -21,7 +21,8 @@ from .accuracy import BallSpec
 from .extreme import ball_scene
 from .reference import G, ball_reference
 
-__all__ = ["gradient_report"]
+__all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
+           "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table"]
 
 
 def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=(0.0, 1e-4,
@@ -103,3 +104,152 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
                     say(rows[-1])
     return rows
 
+
+
+# --------------------------------------------------------------------------- events
+class GradientCase(NamedTuple):
+    """A ball dropped from rest onto the plane z = 0, for the event-gradient table.
+
+    name: label.  law: contact law name.  exponent: Hunt-Crossley n.  mass: kg.  radius: m.
+    drop: initial centre height, m.  k: N/m (N/m^n).  c: N s/m.  T: rollout length, s.
+    """
+    name: str
+    law: str
+    mass: float
+    k: float
+    c: float
+    exponent: float = 1.0
+    radius: float = 0.1
+    drop: float = 1.0
+    T: float = 3.0
+
+
+#: The cases of the gradient table: the quick-start ball (tuning.scenes.ball), a light stiff
+#: ball, a heavy no_tension ball and a Hertz (Hunt-Crossley n = 1.5) ball.
+EVENT_CASES = (
+    GradientCase("quick-start ball", "linear", 1.0, 1e4, 20.0),
+    GradientCase("0.3 kg ball", "linear", 0.3, 3e4, 15.0),
+    GradientCase("2 kg no_tension", "no_tension", 2.0, 5e4, 60.0),
+    GradientCase("Hertz ball", "hunt_crossley", 1.0, 1e6, 3e4, exponent=1.5),
+)
+
+#: The metrics compared, in the order of :func:`event_metrics_fn`'s output.
+EVENT_METRICS = ("apex1", "apex2", "apex3", "duration1", "duration2", "duration3",
+                 "penetration")
+
+
+def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_implicit_euler",
+                     smoothing="auto", dtype=None):
+    """``f(k, c) -> (7,)`` the metrics :data:`EVENT_METRICS` of ``case`` simulated at ``dt``
+    (s): apex heights of the lowest point (m), contact durations (s) and the largest
+    penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable."""
+    import jax
+    import jax.numpy as jnp
+
+    from .metrics import ball_metrics
+    scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
+    sim = dp.compile(scene, dt, law=case.law, exponent=case.exponent, smoothing=smoothing,
+                     integrator=integrator, dtype=dtype or jnp.float64)
+    steps = int(round(case.T / dt))
+
+    def f(k, c):
+        p = sim.params(k=k, c=c)
+        bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
+        return jnp.concatenate([bm.apex_heights, bm.contact_durations,
+                                jnp.reshape(bm.max_penetration, (1,))])
+    return jax.jit(f), sim
+
+
+def event_reference(case: GradientCase, rel_step: float = 1e-5) -> dict:
+    """The continuous system's metrics and derivatives for ``case``
+    (:func:`tuning.reference.ball_reference_derivatives`): ``{"value", "dk", "dc"}`` each a
+    (7,) array in :data:`EVENT_METRICS` order."""
+    from .reference import ball_reference_derivatives
+    ref = ball_reference_derivatives(k=case.k, c=case.c, m=case.mass, r=case.radius,
+                                     z0=case.drop, T=case.T, law=case.law,
+                                     exponent=case.exponent, rel_step=rel_step)
+
+    def flat(d):
+        return np.concatenate([d["apex"], d["duration"], d["penetration"][:1]])
+    return {key: flat(ref[key]) for key in ("value", "dk", "dc")}
+
+
+def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_implicit_euler",),
+                        smoothing="auto", fd_steps=(), progress: Callable | None = None
+                        ) -> list[dict]:
+    """jax derivatives of the event metrics w.r.t. k and c against the continuous system's.
+
+    One row per (case, integrator, dt, metric, parameter): ``grad`` (jax.jacfwd of the
+    simulated metric), ``reference`` (central differences of the DOP853 event-located
+    reference), ``rel_error`` = |grad - reference| / |reference|, ``value`` and
+    ``value_reference`` (the metric itself), and, for each relative step in ``fd_steps``, the
+    library's own central difference (``fd``) and its relative gap to ``grad``
+    (``fd_gap``; item 4 of the gradient issue: the landscape has no jumps).
+    """
+    import jax
+    say = progress or (lambda *_: None)
+    rows = []
+    for case in cases:
+        ref = event_reference(case)
+        for integ in integrators:
+            for dt in dts:
+                f, _ = event_metrics_fn(case, dt, integrator=integ, smoothing=smoothing)
+                val = np.asarray(f(case.k, case.c))
+                jk, jc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(case.k, case.c))
+                fds = {}
+                for s in fd_steps:
+                    hk, hc = s * case.k, s * case.c
+                    fds[s] = ((np.asarray(f(case.k + hk, case.c))
+                               - np.asarray(f(case.k - hk, case.c))) / (2 * hk),
+                              (np.asarray(f(case.k, case.c + hc))
+                               - np.asarray(f(case.k, case.c - hc))) / (2 * hc))
+                for i, metric in enumerate(EVENT_METRICS):
+                    for p, (g, r) in enumerate((("k", (jk[i], ref["dk"][i])),
+                                                ("c", (jc[i], ref["dc"][i])))[j][1]
+                                               for j in range(2)):
+                        pname = "kc"[p]
+                        row = {"case": case.name, "law": case.law, "integrator": integ,
+                               "dt": dt, "metric": metric, "param": pname,
+                               "grad": float(g), "reference": float(r),
+                               "rel_error": abs(float(g) - float(r)) / abs(float(r)),
+                               "value": float(val[i]),
+                               "value_reference": float(ref["value"][i])}
+                        if fd_steps:
+                            row["fd"] = [float(fds[s][p][i]) for s in fd_steps]
+                            row["fd_gap"] = [abs(float(fds[s][p][i]) - float(g)) / abs(float(g))
+                                             for s in fd_steps]
+                            row["fd_steps"] = list(fd_steps)
+                        rows.append(row)
+                        say(row)
+    return rows
+
+
+def event_gradient_table(rows: list[dict], before: list[dict] | None = None) -> str:
+    """Plain-text table of :func:`event_gradient_rows` (one line per case, integrator, dt and
+    metric: value error, d/dk and d/dc against the continuous derivatives, relative errors),
+    with the same rows of an earlier run (``before``) side by side when given."""
+    old = {(r["case"], r["integrator"], r["dt"], r["metric"], r["param"]): r
+           for r in (before or [])}
+    head = (f"{'case':18} {'dt (s)':>7} {'metric':12} {'value err':>9} "
+            f"{'d/dk':>11} {'continuous':>11} {'err':>7} "
+            f"{'d/dc':>11} {'continuous':>11} {'err':>7}")
+    if before is not None:
+        head += f" | {'before: d/dk':>12} {'err':>7} {'d/dc':>11} {'err':>7} {'value err':>9}"
+    lines = [head]
+    by = {}
+    for r in rows:
+        by.setdefault((r["case"], r["integrator"], r["dt"], r["metric"]), {})[r["param"]] = r
+    for (case, integ, dt, metric), pr in by.items():
+        k, c = pr["k"], pr["c"]
+        verr = (k["value"] - k["value_reference"]) / k["value_reference"]
+        line = (f"{case:18} {dt:7.1e} {metric:12} {verr:+9.2%} "
+                f"{k['grad']:+11.4e} {k['reference']:+11.4e} {k['rel_error']:7.2%} "
+                f"{c['grad']:+11.4e} {c['reference']:+11.4e} {c['rel_error']:7.2%}")
+        if before is not None:
+            ok, oc = (old.get((case, integ, dt, metric, p)) for p in "kc")
+            if ok is not None and oc is not None:
+                overr = (ok["value"] - ok["value_reference"]) / ok["value_reference"]
+                line += (f" | {ok['grad']:+12.4e} {ok['rel_error']:7.2%} "
+                         f"{oc['grad']:+11.4e} {oc['rel_error']:7.2%} {overr:+9.2%}")
+        lines.append(line)
+    return "\n".join(lines)

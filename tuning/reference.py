@@ -16,7 +16,8 @@ import math
 import numpy as np
 
 __all__ = [
-    "G", "spring_closed_form", "BallReference", "ball_reference", "chain_reference",
+    "G", "spring_closed_form", "BallReference", "ball_reference",
+    "ball_reference_derivatives", "chain_reference",
     "apex_heights", "settling_time",
 ]
 
@@ -51,58 +52,114 @@ def spring_closed_form(t, *, k: float, c: float, m: float, x0: float):
 
 
 class BallReference:
-    """Hard-contact ball on the plane z = 0 (linear law, no smoothing), solved phase by phase
-    with DOP853 at rtol 1e-12; each contact start and end (centre height = radius) is an
-    event. ``state(t) -> (z, v)``; ``contacts``: list of (t_start, t_end); ``apexes``: apex
-    centre heights after each contact (exact: z + v^2 / (2 g) at the end of contact)."""
+    """Hard-contact ball on the plane z = 0, solved phase by phase with DOP853 at rtol 1e-12;
+    every contact start and end (centre height = radius) is an event, and so is every switch
+    of a clamped law (``no_tension``: ``k d - c v`` through 0; ``hunt_crossley``: ``k - c v``
+    through 0), so each phase has a smooth right-hand side.
+
+    Laws (``d = r - z`` penetration, ``v = dz/dt`` the separating speed), written here in
+    numpy, independently of :mod:`diffpen.laws`:
+
+    * ``linear``: ``F = k d - c v`` while ``d > 0``;
+    * ``no_tension``: ``F = max(k d - c v, 0)`` while ``d > 0``;
+    * ``hunt_crossley``: ``F = max(k - c v, 0) d^n`` while ``d > 0`` (``exponent`` n).
+
+    Attributes: ``state(t) -> (z, v)``; ``contacts``: list of (t_start, t_end) (geometric
+    contact, ``d > 0``); ``apexes``: apex centre heights after each contact (exact:
+    ``z + v^2 / (2 g)`` at the end of contact); ``max_penetration``: the largest depth of each
+    contact, m (located as the event ``v = 0`` inside it)."""
 
     def __init__(self, *, k: float, c: float, m: float, r: float, z0: float, v0: float = 0.0,
-                 T: float, g: float = G):
+                 T: float, g: float = G, law: str = "linear", exponent: float = 1.0):
         integrate = _scipy_integrate()
+        if law not in ("linear", "no_tension", "hunt_crossley"):
+            raise ValueError(f"the reference knows the laws linear, no_tension and "
+                             f"hunt_crossley, not {law!r}.")
         self.k, self.c, self.m, self.r, self.g = k, c, m, r, g
+        self.law, self.exponent = law, float(exponent)
         self.T = T
-        segs, contacts, apexes = [], [], []
-        t, y = 0.0, np.array([z0, v0], float)
-        in_contact = z0 < r
-        contacts_start = 0.0                         # starting overlapped: in contact from 0
+        n = self.exponent
 
-        def flight(_, y):
-            return [y[1], -g]
+        def switch(y):
+            """The clamped quantity of the law (its sign says whether the contact pushes)."""
+            d, v = r - y[0], y[1]
+            if law == "no_tension":
+                return k * d - c * v
+            if law == "hunt_crossley":
+                return k - c * v
+            return 1.0
 
-        def contact(_, y):
-            d = r - y[0]
-            return [y[1], (k * d - c * y[1]) / m - g]
+        def rhs_for(mode):
+            contact, pushing = mode
+
+            def rhs(_, y):
+                if not (contact and pushing):
+                    return [y[1], -g]
+                d, v = r - y[0], y[1]
+                if law == "hunt_crossley":
+                    f = (k - c * v) * max(d, 0.0) ** n
+                else:
+                    f = k * d - c * v
+                return [y[1], f / m - g]
+            return rhs
 
         def surface(_, y):
             return y[0] - r
+
+        def clamp(_, y):
+            return switch(y)
+
+        def turn(_, y):
+            return y[1]
+        segs, contacts, apexes, deepest = [], [], [], []
+        t, y = 0.0, np.array([z0, v0], float)
+        contact = z0 < r
+        pushing = contact and switch(y) > 0.0
+        start = 0.0                                  # starting overlapped: in contact from 0
+        depth = max(r - z0, 0.0)
         while t < T:
-            surface.terminal = True
-            surface.direction = 1.0 if in_contact else -1.0
-            sol = integrate.solve_ivp(contact if in_contact else flight, (t, T), y,
+            surface.terminal, clamp.terminal, turn.terminal = True, True, False
+            surface.direction = 1.0 if contact else -1.0
+            clamp.direction = -1.0 if pushing else 1.0
+            turn.direction = 0.0
+            events = [surface] + ([clamp, turn] if contact else [])
+            sol = integrate.solve_ivp(rhs_for((contact, pushing)), (t, T), y,
                                       method="DOP853", rtol=1e-12, atol=1e-14,
-                                      events=surface, dense_output=True)
-            segs.append((t, sol.t[-1], sol.sol, in_contact))
-            if sol.status == 1:                      # event: contact starts or ends
-                t_e = float(sol.t_events[0][0])
-                y = np.array(sol.y_events[0][0], float)
+                                      events=events, dense_output=True)
+            segs.append((t, sol.t[-1], sol.sol, contact and pushing))
+            if contact:
+                for yz in sol.y_events[2]:
+                    depth = max(depth, r - float(yz[0]))
+                depth = max(depth, float(np.max(r - sol.y[0])))
+            if sol.status != 1:
+                if contact:
+                    contacts.append((start, T))
+                    deepest.append(depth)
+                t = T
+                break
+            hit = [(float(te[0]), i) for i, te in enumerate(sol.t_events[:2]) if len(te)]
+            t_e, which = min(hit)
+            y = np.array(sol.y_events[which][0], float)
+            t = t_e
+            if which == 0:                           # contact starts or ends
                 y[0] = r
-                if in_contact:
-                    contacts.append((contacts_start, t_e))
+                if contact:
+                    contacts.append((start, t_e))
+                    deepest.append(depth)
                     # no apex without gravity: the ball leaves for good
                     apexes.append(r + y[1] ** 2 / (2.0 * g) if g > 0.0 else np.inf)
                 else:
-                    contacts_start = t_e
-                t = t_e
-                in_contact = not in_contact
-                if len(contacts) > 200:
-                    break
-            else:
-                if in_contact:
-                    contacts.append((contacts_start, T))
-                t = T
+                    start, depth = t_e, 0.0
+                contact = not contact
+                pushing = contact and (switch(y) > 0.0 or (law == "no_tension" and y[1] < 0))
+            else:                                    # the clamp switches inside contact
+                pushing = not pushing
+            if len(contacts) > 200:
+                break
         self._segs = segs
         self.contacts = contacts
         self.apexes = apexes
+        self.max_penetration = deepest
 
     def state(self, t):
         """(z (S,), v (S,)) at times t (S,) s."""
@@ -119,11 +176,14 @@ class BallReference:
     def energy(self, z, v):
         """Energy above rest on the plane, J: kinetic + m g (z - r) + contact spring."""
         d = np.maximum(self.r - z, 0.0)
-        return 0.5 * self.m * v * v + self.m * self.g * (z - self.r) + 0.5 * self.k * d * d
+        n = self.exponent if self.law == "hunt_crossley" else 1.0
+        return (0.5 * self.m * v * v + self.m * self.g * (z - self.r)
+                + self.k * d ** (n + 1.0) / (n + 1.0))
 
     def settling_time(self, frac: float = 0.01) -> float:
         """First time the energy falls to ``frac`` of its initial value (s); energy decreases
-        only during contact, so the crossing is located in a contact phase with brentq."""
+        only while the contact pushes, so the crossing is located in such a phase with
+        brentq."""
         from scipy.optimize import brentq
         z0, v0 = self.state([0.0])
         target = frac * float(self.energy(z0, v0)[0])
@@ -137,9 +197,61 @@ class BallReference:
         return math.nan
 
 
+    def decay_time(self, T: float | None = None) -> float:
+        """Energy-decay time ``int_0^T E dt / E(0)`` (s) with ``E`` the energy above static
+        rest (``energy`` minus its value at rest); by quadrature of the dense solution on
+        each phase (the phases are smooth)."""
+        from scipy.integrate import quad
+        T = self.T if T is None else T
+        n = self.exponent if self.law == "hunt_crossley" else 1.0
+        d_rest = (self.m * self.g / self.k) ** (1.0 / n)
+        z_rest = self.r - d_rest
+        e_rest = float(self.energy(np.array([z_rest]), np.array([0.0]))[0])
+
+        def e(t, sol):
+            z, v = sol(t)
+            return float(self.energy(np.array([z]), np.array([v]))[0]) - e_rest
+        total = 0.0
+        for (t0, t1, sol, _) in self._segs:
+            if t0 >= T:
+                break
+            total += quad(e, t0, min(t1, T), args=(sol,), epsabs=0.0, epsrel=1e-11,
+                          limit=200)[0]
+        z0, v0 = self.state([0.0])
+        return total / (float(self.energy(z0, v0)[0]) - e_rest)
+
+
 def ball_reference(**kw) -> BallReference:
     """See :class:`BallReference`."""
     return BallReference(**kw)
+
+
+def ball_reference_derivatives(*, k: float, c: float, rel_step: float = 1e-5, n: int = 3,
+                               decay: bool = False, **kw) -> dict:
+    """Values and derivatives w.r.t. k and c of the reference ball's metrics, by central
+    differences of :class:`BallReference` (relative step ``rel_step``).
+
+    Metrics (arrays of length ``n``): ``apex`` (apex heights of the lowest point above the
+    plane, m), ``duration`` (contact durations, s), ``penetration`` (max depth of each
+    contact, m); with ``decay`` also ``decay_time`` ((1,), s: :meth:`BallReference.decay_time`
+    over ``[0, T]``). Returns ``{"value": {metric: (n,)}, "dk": {...}, "dc": {...}}``."""
+    def metrics(kk, cc):
+        ref = BallReference(k=kk, c=cc, **kw)
+        r = ref.r
+        out = {"apex": np.array(ref.apexes[:n]) - r,
+               "duration": np.array([b - a for a, b in ref.contacts[:n]]),
+               "penetration": np.array(ref.max_penetration[:n])}
+        out = {key: np.concatenate([v, np.full(n - len(v), np.nan)]) for key, v in out.items()}
+        if decay:
+            out["decay_time"] = np.array([ref.decay_time()])
+        return out
+    out = {"value": metrics(k, c)}
+    for name, base in (("dk", k), ("dc", c)):
+        step = rel_step * base
+        up = metrics(k + step, c) if name == "dk" else metrics(k, c + step)
+        dn = metrics(k - step, c) if name == "dk" else metrics(k, c - step)
+        out[name] = {key: (up[key] - dn[key]) / (2.0 * step) for key in up}
+    return out
 
 
 def chain_reference(t_eval, *, x0, m: float, k: float, c: float, rest: float, g: float = G):

@@ -182,9 +182,17 @@ def _gradients(args) -> int:
                     height=args.height, T=2.0)
     kw = dict(dts=(1e-3,), widths=(0.0, 1e-3)) if args.quick else {}
     rows = gradient_report(spec=spec, **kw)
+    from tuning.gradient_check import EVENT_CASES, event_gradient_rows, event_gradient_table
+    ev_dts = (1e-3,) if args.quick else (1e-3, 1e-4)
+    events = event_gradient_rows(EVENT_CASES, ev_dts)
     if args.json:
-        dump_json({"rows": rows})
+        dump_json({"rows": rows, "events": events})
         return 0
+    print("event metrics (apex heights, contact durations, max penetration) against the "
+          "continuous derivatives (event-located DOP853 reference), semi-implicit Euler, "
+          "default smoothing:")
+    print(event_gradient_table(events))
+    print()
     print("ball dropped from {:g} m, k = {:g} N/m, c = {:g} N s/m; apex = first rebound apex, "
           "z_T = height at 2 s".format(spec.height, spec.k, spec.c))
     print(f"  {'dt (s)':>8} {'width (m)':>9} {'quantity':8} {'wrt':3} {'jax.grad':>12} "

@@ -1,0 +1,235 @@
+"""Contact laws and contact events: zero force apart (every contact kind, every law), the
+step-averaged force against its definition, and the step's continuity through contact start
+and end."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen import laws
+
+LAWS = ["linear", "no_tension", "hunt_crossley"]
+
+
+# --------------------------------------------------------------------------- zero apart
+def _apart_scene():
+    """One body of every contact kind, each 0.3 m from whatever it could touch and moving
+    towards it at 1 m/s: sphere-plane, particle-plane, sphere-sphere, sphere-box, box corners
+    on the plane, sphere and box against a fixed sphere."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_plane()
+    scene.add_fixed_sphere((20.0, 0.0, 1.0), 0.5)
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.4), velocity=(0.0, 0.0, -1.0))     # plane
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.9), velocity=(0.0, 0.0, -1.0))     # sphere
+    scene.add_particle(1.0, (3.0, 0.0, 0.3), velocity=(0.0, 0.0, -1.0))        # plane
+    scene.add_box((0.1, 0.1, 0.1), 1.0, (6.0, 0.0, 0.4), velocity=(0.0, 0.0, -1.0))
+    scene.add_sphere(0.1, 1.0, (6.0, 0.0, 0.9), velocity=(0.0, 0.0, -1.0))     # box
+    scene.add_sphere(0.1, 1.0, (20.0, 0.0, 1.9), velocity=(0.0, 0.0, -1.0))    # fixed sph.
+    scene.add_box((0.1, 0.1, 0.1), 1.0, (20.0, 0.0, 0.1 + 0.3 + 0.4 - 0.5),
+                  velocity=(0.0, 0.0, 1.0))                                     # fixed sph.
+    return scene
+
+
+@pytest.mark.parametrize("law,width,h", [("hunt_crossley", 0.05, None),
+                                         ("linear", 0.0, 1e-3)],
+                         ids=["hunt_crossley-smoothed", "linear-step-averaged"])
+def test_zero_force_and_derivative_apart_every_contact_kind(law, width, h):
+    """Bodies 0.3 m apart (more than the smoothing band, 2.5 cm, and the step window,
+    1 mm): exactly zero force and torque, and exactly zero derivatives w.r.t. k, c and the
+    state. (The force-space clamp of no_tension / hunt_crossley left k width^n / 8 acting at
+    any distance: 1.25 N at k = 1e5, width = 1e-2.) Per pair, every law and both forms are
+    checked by the next test; here every contact kind routes through the law."""
+    sim = dp.compile(_apart_scene(), 1e-3, law=law, smoothing=width, exponent=1.5)
+    kinds = {"contact_plane", "contact_sphere_sphere", "contact_sphere_box",
+             "contact_box_plane", "contact_fixed_sphere", "contact_box_fixed_sphere"}
+    assert kinds <= set(sim.terms)
+    state = sim.init_state()
+
+    def total(k, c, x, v):
+        f, tau = sim.forces(sim.params(k=k, c=c),
+                            state._replace(position=x, velocity=v), h=h)
+        return jnp.concatenate([f.ravel(), tau.ravel()])
+    args = (jnp.float64(1e5), jnp.float64(30.0), state.position, state.velocity)
+    value, jacs = jax.jit(lambda *a: (total(*a), jax.jacfwd(total, (0, 1, 2, 3))(*a)))(*args)
+    assert np.all(np.asarray(value) == 0.0)
+    for i, jac in enumerate(jacs):
+        assert np.all(np.asarray(jac) == 0.0), i
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_pair_law_zero_just_outside_the_band(law):
+    """Per pair: 0 and zero slope from ``d = -width / 2`` on (pointwise), and from
+    ``d = -|vn| h`` on (step-averaged), for approaching, still and separating contacts."""
+    rec = laws.get(law, 1.5)
+    w, h = 1e-2, 1e-3
+    d = jnp.array([-0.5 * w, -0.5 * w - 1e-9, -1.0, -1e3] * 3)
+    vn = jnp.repeat(jnp.array([-2.0, 0.0, 3.0]), 4)
+    da = jnp.array([-2.0 * h, -2.0 * h - 1e-9, -1.0, -1e-9, -1.0, -0.1, -3.0 * h,
+                    -3.0 * h - 1e-9, -1.0])
+    va = jnp.repeat(jnp.array([-2.0, 0.0, 3.0]), 3)
+
+    @jax.jit
+    def both(d, vn, da, va):
+        f = jax.vmap(jax.value_and_grad(lambda d_, v_, k_, c_: rec(d_, v_, k_, c_, w),
+                                        argnums=(0, 1, 2, 3)))
+        g = jax.vmap(jax.value_and_grad(lambda d_, v_, k_, c_: rec.averaged(d_, v_, k_, c_, h),
+                                        argnums=(0, 1, 2, 3)))
+        one = jnp.ones_like(d)
+        return f(d, vn, 1e5 * one, 40.0 * one), g(da, va, 1e5 * one[:9], 40.0 * one[:9])
+    for val, grads in both(d, vn, da, va):
+        assert np.all(np.asarray(val) == 0.0)
+        assert all(np.all(np.asarray(x) == 0.0) for x in grads)
+
+
+# --------------------------------------------------------------------------- the records
+def _hat_mean_quadrature(rec, d, vn, k, c, h, n=4001):
+    """The definition of the step average, by quadrature: the hat-weighted mean of the exact
+    pointwise force over s in [-h, h] along d(s) = d - vn s (trapezoids on each piece
+    between the force's breaks: contact start/end, the clamp, the hat's peak)."""
+    breaks = [-h, 0.0, h]
+    if vn != 0.0:
+        breaks += [d / vn, (d - c * vn / k) / vn]
+    breaks = sorted(b for b in set(breaks) if -h <= b <= h)
+    s = np.unique(np.concatenate([np.linspace(a, b, n) for a, b in zip(breaks, breaks[1:])]))
+    w = 1.0 - np.abs(s) / h
+    # the force on each piece, evaluated at its inner points and extended to its ends
+    f = np.asarray(rec.force(jnp.asarray(d - vn * s), jnp.asarray(np.full(s.size, vn)), k, c,
+                             0.0))
+    total = 0.0
+    for a, b in zip(breaks, breaks[1:]):
+        sel = (s >= a) & (s <= b)
+        ss, ww = s[sel], w[sel]
+        mid = 0.5 * (ss[1:] + ss[:-1])
+        fm = np.asarray(rec.force(jnp.asarray(d - vn * mid), jnp.asarray(np.full(mid.size, vn)),
+                                  k, c, 0.0))
+        total += float(np.sum(fm * 0.5 * (ww[1:] + ww[:-1]) * np.diff(ss)))
+    del f
+    return total / h
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_step_average_matches_its_definition(law):
+    """Closed forms against quadrature of the hat-weighted mean: window inside, apart,
+    crossing at either end, approaching and separating (no_tension: where the clamp cuts
+    inside the window too), still contacts; deep inside it is the pointwise force."""
+    rec = laws.get(law, 1.5)
+    k, c, h = 2e4, 300.0, 1e-3
+    cases = [(d, vn) for vn in (-3.0, -0.2, 0.4, 5.0)
+             for d in (-4e-3, -2e-3, -1e-4, 0.0, 1e-4, 2.5e-3, 6e-3, 2e-2)] + [(1e-3, 0.0)]
+    got = np.asarray(jax.vmap(lambda d, v: rec.averaged(d, v, k, c, h))(
+        jnp.array([x[0] for x in cases]), jnp.array([x[1] for x in cases])))
+    want = np.array([_hat_mean_quadrature(rec, d, vn, k, c, h) for d, vn in cases])
+    scale = k * 1e-3
+    np.testing.assert_allclose(got, want, atol=2e-6 * scale, rtol=1e-6)
+    deep = jnp.array([0.05, 0.08]), jnp.array([-0.3, 0.2])
+    np.testing.assert_allclose(rec.averaged(*deep, k, c, h), rec.force(*deep, k, c),
+                               rtol=5e-6 if law == "hunt_crossley" else 1e-13)  # d^n: curved
+
+
+@pytest.mark.parametrize("law", LAWS)
+def test_energy_and_resting_depth_are_the_static_force_integral_and_inverse(law):
+    rec = laws.get(law, 1.5)
+    for width in (0.0, 2e-3):
+        d = jnp.linspace(-3e-3, 4e-3, 15)
+        static = jax.vmap(lambda x: rec.force(x, 0.0, 3e4, 50.0, width))(d)
+        np.testing.assert_allclose(jax.vmap(jax.grad(lambda x: rec.energy(x, 3e4, width)))(d),
+                                   static, rtol=1e-10, atol=1e-12)
+        for load in (0.5, 20.0, 300.0):
+            depth = rec.resting_depth(load, 3e4, width)
+            assert float(rec.force(depth, 0.0, 3e4, 50.0, width)) == pytest.approx(load,
+                                                                                 rel=1e-10)
+
+
+def test_compile_takes_a_record_or_a_name():
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.105))
+    scene.add_plane()
+    a = dp.compile(scene, 1e-3, law=laws.hunt_crossley(1.5))
+    b = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    assert a.law == b.law == "hunt_crossley" and a.exponent == b.exponent == 1.5
+    assert a.contact_law.name == "hunt_crossley"
+    p = a.params(k=1e5, c=1e2)
+    np.testing.assert_array_equal(a.rollout(p, 50).position, b.rollout(p, 50).position)
+    with pytest.raises(dp.SceneError, match="unknown contact law"):
+        dp.compile(scene, 1e-3, law="hertz")
+    with pytest.raises(dp.SceneError, match="exponent"):
+        dp.compile(scene, 1e-3, law="hunt_crossley", exponent=0.5)
+
+
+# --------------------------------------------------------------------------- no length scale
+def test_restitution_does_not_depend_on_the_stiffness_scale():
+    """Two spheres (1 kg, 3 kg) colliding at 1 m/s, zeta 0.2, dt = contact time / 400: with
+    no fixed smoothing length the dimensionless problem is the same for every k, so the
+    restitution is the same from k = 1e2 to 1e9 N/m (the fixed 1e-4 m band moved it by
+    +0.57% at 1e8 and +4.6% at 1e9; at this resolution +83% at 1e9), and within 0.1% of the
+    closed form (measured -0.053% for every k)."""
+    m1, m2 = 1.0, 3.0
+    mu = m1 * m2 / (m1 + m2)
+    es = []
+    for k in (1e2, 1e9):
+        c = 2.0 * 0.2 * np.sqrt(k * mu)
+        tc = float(dp.physical.contact_time(k, c, mu))
+        dt = tc / 400
+        scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        scene.add_sphere(0.1, m1, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+        scene.add_sphere(0.1, m2, (0.2 + 0.5 * dt, 0.0, 0.0))
+        sim = dp.compile(scene, dt)
+        v = sim.rollout(sim.params(k=k, c=c), 600, save_every=600).velocity[-1]
+        es.append(float((v[1, 0] - v[0, 0]) / 1.0))
+    e_closed = float(dp.physical.restitution(1e4, 2.0 * 0.2 * np.sqrt(1e4 * mu), mu))
+    assert abs(es[1] / es[0] - 1.0) < 1e-6
+    assert abs(es[0] / e_closed - 1.0) < 1e-3          # measured -0.053%
+
+
+# --------------------------------------------------------------------------- friction
+@pytest.fixture(scope="module")
+def sliding_box():
+    """A 1 kg cube (0.2 m) set down with its face exactly on a rough plane (corner depths 0:
+    the step windows have zero length) and sliding at 2 m/s; mu 0.4, slip speed 5 cm/s."""
+    def build(dtype):
+        scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+        scene.add_material("rough", k=1e5, c=200.0, friction=0.4, slip_speed=0.05)
+        scene.add_plane(material="rough")
+        scene.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.1), velocity=(2.0, 0.0, 0.0))
+        sim = dp.compile(scene, 1e-3, dtype=dtype)
+
+        def stop(mu):
+            p = sim.params(extra={"friction": {"rough": mu}})
+            return sim.rollout(p, 1000, save_every=1000).position[-1, 0, 0]
+        return jax.jit(jax.value_and_grad(stop))
+    return build
+
+
+def test_sliding_box_stop_distance_gradient_float32_and_float64(sliding_box):
+    """d (stop distance) / d mu against Coulomb's -v^2 / (2 mu^2 g) = -1.274 m (smooth
+    Coulomb with a 5 cm/s slip speed: -1.278, 0.3% off), and float32 against float64 within
+    0.5%: a contact starting exactly at d = 0 with vn = 0 (zero-length step window) has
+    finite derivatives in float32 (a 1e-30 m^2 guard overflowed its square)."""
+    x64, g64 = sliding_box(jnp.float64)(jnp.float64(0.4))
+    x32, g32 = sliding_box(jnp.float32)(jnp.float32(0.4))
+    coulomb = -2.0 ** 2 / (2.0 * 0.4 ** 2 * 9.81)
+    assert float(x64) == pytest.approx(2.0 ** 2 / (2 * 0.4 * 9.81), rel=0.01)
+    assert float(g64) == pytest.approx(coulomb, rel=0.01)
+    assert np.isfinite(float(g32)) and float(g32) == pytest.approx(float(g64), rel=5e-3)
+
+
+def test_rolling_sphere_spin_up_gradient_float32_and_float64():
+    """A rigid sphere set sliding at 2 m/s without spin rolls from t_r = 2 v0 / (7 mu g) on
+    at 5/7 v0: x(1 s) = 5/7 v0 + 2 v0^2 / (49 mu g), d/d mu = -2 v0^2 / (49 mu^2 g)
+    = -0.10402 m. Measured -0.10393 (float64 and float32)."""
+    out = {}
+    for dtype in (jnp.float64, jnp.float32):
+        scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+        scene.add_material("rough", k=1e5, c=200.0, friction=0.4, slip_speed=0.01)
+        scene.add_plane(material="rough")
+        scene.add_rigid_sphere(0.1, 1.0, (0.0, 0.0, 0.1), velocity=(2.0, 0.0, 0.0))
+        sim = dp.compile(scene, 1e-3, dtype=dtype)
+
+        def x(mu, sim=sim):
+            p = sim.params(extra={"friction": {"rough": mu}})
+            return sim.rollout(p, 1000, save_every=1000).position[-1, 0, 0]
+        out[dtype] = float(jax.jit(jax.grad(x))(dtype(0.4)))
+    want = -2 * 2.0 ** 2 / (49 * 0.4 ** 2 * 9.81)
+    assert out[jnp.float64] == pytest.approx(want, rel=2e-3)
+    assert out[jnp.float32] == pytest.approx(out[jnp.float64], rel=1e-3)
