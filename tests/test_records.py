@@ -76,7 +76,7 @@ def test_named_bodies_missing_samples_and_round_trip(tmp_path):
 
 
 def test_bom_comments_and_one_named_body(tmp_path):
-    path = _write(tmp_path, b"\xef\xbb\xbf# recorded 2026\nt,x,y,z\n0,0,0,1\n\n0.1,0,0,0.9\n")
+    path = _write(tmp_path, b"\xef\xbb\xbf# recorded 2026\nT,X,Y,Z\n0,0,0,1\n\n0.1,0,0,0.9\n")
     rec = read_record(path, body_names=["ball"])
     assert list(rec.bodies) == ["ball"] and len(rec) == 2
     with pytest.raises(RecordError, match="carry no body name but the scene observes 2"):

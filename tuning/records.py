@@ -255,7 +255,10 @@ def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) ->
 
 # --------------------------------------------------------------------------- records
 def _parse_header(path: str, header: list[str], hline: int, body_names):
-    """t column index and {body: {group: [column index per component]}} from the header."""
+    """t column index and {body: {group: [column index per component]}} from the header.
+    Column letters are read in any case (``T,X,Y,Z``); body names keep theirs."""
+    header = [f"{h.rpartition('.')[0]}.{h.rpartition('.')[2].lower()}" if "." in h
+              else h.lower() for h in header]
     if len(set(header)) != len(header):
         dup = next(h for h in header if header.count(h) > 1)
         raise RecordError(f"{path}, line {hline}: column {_q(dup)} appears twice in the header; "
