@@ -302,3 +302,18 @@ def test_directions_a_record_cannot_determine_are_reported(cube):
                                        rel=1e-12)
     assert len(res.undetermined) == 2
     assert res.stderr == {"contact.board.k": math.inf, "contact.board.c": math.inf}
+
+
+def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
+    """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
+    a growing horizon."""
+    truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
+    scene, rec = _record_file(tmp_path, ROPE.format(k=250.0, c=0.4), truth,
+                              ["rope[1]", "rope[2]", "rope[3]"], "rope", integrator="rk4",
+                              dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4, seed=1)
+    with open(scene, "a") as fh:
+        fh.write('data = ["rope.csv"]\n')
+    out = _fit_cli(capsys, ["fit", scene, "--horizon", "0.2"])
+    assert out["horizons"] == [0.2, None] and out["records"] == 1
+    for name, v in truth.items():
+        assert out["fitted"][name] == pytest.approx(v, rel=0.02)
