@@ -48,7 +48,8 @@ def supports(sim: dp.Simulator) -> str | None:
         return "the fast path needs gravity along z"
     with jax.ensure_compile_time_eval():     # concrete even inside a traced function
         s0 = sim.init_state()
-    if s0.orientation is not None or s0.aux or bool(np.any(np.asarray(s0.velocity)[0, :2])):
+    extra_aux = set(s0.aux) - {dp.stability.FLAG}          # the stability flag is not state
+    if s0.orientation is not None or extra_aux or bool(np.any(np.asarray(s0.velocity)[0, :2])):
         return "the fast path needs a sphere without horizontal start velocity"
     return None
 
