@@ -116,12 +116,16 @@ class Scene:
 
     # ----------------------------------------------------------------- colliders
     def add_plane(self, normal: Sequence[float] = (0.0, 0.0, 1.0), offset: float = 0.0, *,
-                  material: str = DEFAULT, allow_overlap: bool = False) -> int:
+                  material: str = DEFAULT, name: str | None = None,
+                  allow_overlap: bool = False) -> int:
         """Add a fixed plane ``normal . p = offset``; the solid is on the side ``-normal``.
 
         Args:
           normal: (3,) outward normal (normalised here; must be non-zero).
           offset: m, signed distance of the plane from the origin along ``normal``.
+          name: opt-in: a named plane's offset is a differentiable parameter,
+            ``params.extra["plane_offset"][name]`` (m, any sign; default ``offset``), e.g. to
+            fit where a measured ground really is. Unnamed planes keep a constant offset.
         Returns: the plane's index.
         """
         n = np.asarray(vec3("plane normal", normal))
@@ -130,7 +134,12 @@ class Scene:
             raise SceneError("plane normal must be non-zero, e.g. (0, 0, 1) for the ground.")
         offset = number("plane offset (m)", offset)
         self._check_material(material)
-        plane = Plane(tuple(float(a) for a in n / norm), offset, material)
+        if name is not None:
+            if not isinstance(name, str) or not name:
+                raise SceneError(f"plane name must be a non-empty string, got {name!r}.")
+            if any(pl.name == name for pl in self.planes):
+                raise SceneError(f"a plane named {name!r} exists already: names must differ.")
+        plane = Plane(tuple(float(a) for a in n / norm), offset, material, name)
         if not self._allowed(allow_overlap):
             self._overlap.check_collider(self, "plane", plane, len(self.planes))
         self.planes.append(plane)
