@@ -113,6 +113,7 @@ def ball_sweep_evaluator(sim: dp.Simulator, steps: int, params0: dp.Params, name
     """
     from .bounce import bounce_metrics_fn
     from .metrics import ball_metrics
+    from .stable import rollout_unstable
     from .shard import sharded_map
     why = supports(sim)
     if why is not None:
@@ -143,7 +144,9 @@ def ball_sweep_evaluator(sim: dp.Simulator, steps: int, params0: dp.Params, name
         m = ball_metrics(sim, traj, params, n_apex=n_apex, settle_tol=settle_tol,
                          state0=s0)._asdict()
         m["settling_time"] = jnp.where(m["settled"], m["settling_time"], t_end)
-        return {kk: jnp.asarray(v) for kk, v in m.items() if keys is None or kk in keys}
+        m["unstable"] = rollout_unstable(sim, traj, params)     # as bounce_metrics_fn
+        return {kk: jnp.asarray(v) for kk, v in m.items()
+                if keys is None or kk in keys or kk == "unstable"}
 
     def batched(x):
         k = x[:, names.index(kpath)] if kpath in names else jnp.full(x.shape[:1],
