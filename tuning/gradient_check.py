@@ -139,16 +139,24 @@ EVENT_METRICS = ("apex1", "apex2", "apex3", "duration1", "duration2", "duration3
 
 
 def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_implicit_euler",
-                     smoothing="auto", dtype=None):
+                     smoothing="auto", dtype=None, centred: bool = False):
     """``f(k, c) -> (7,)`` the metrics :data:`EVENT_METRICS` of ``case`` simulated at ``dt``
     (s): apex heights of the lowest point (m), contact durations (s) and the largest
-    penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable."""
+    penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable.
+    ``centred``: the law's record with its damping at the step window's centre speed
+    (``diffpen.laws``, e.g. ``linear(centred=True)``)."""
     import jax
     import jax.numpy as jnp
 
+    from diffpen import laws
+
     from .metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
-    sim = dp.compile(scene, dt, law=case.law, exponent=case.exponent, smoothing=smoothing,
+    law = case.law
+    if centred:
+        law = (laws.hunt_crossley(case.exponent, centred=True) if case.law == "hunt_crossley"
+               else {"linear": laws.linear, "no_tension": laws.no_tension}[case.law](True))
+    sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
                      integrator=integrator, dtype=dtype or jnp.float64)
     steps = int(round(case.T / dt))
 
