@@ -23,7 +23,7 @@ from .reference import G, ball_reference
 
 __all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
            "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table",
-           "event_phase_errors"]
+           "event_phase_errors", "cube_toss_gradients"]
 
 
 def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=(0.0, 1e-4,
@@ -255,6 +255,65 @@ def event_phase_errors(case: GradientCase, dt: float = 1e-3, phases: int = 6, *,
         out["dk"].append(np.abs(jk / ref["dk"] - 1.0))
         out["dc"].append(np.abs(jc / ref["dc"] - 1.0))
     return {key: np.array(a) for key, a in out.items()}
+
+
+def cube_toss_gradients(path, *, frames: int | None = None, k: float = 2e4, c: float = 20.0,
+                        mu: float = 0.18, dt: float = 1e-3, dtype=None,
+                        rel_steps=(1e-6, 1e-4, 0.03, 0.1)) -> dict:
+    """Pose-loss gradient of a recorded cube toss (``/work/shared/data/cube-toss`` format:
+    columns t, x, y, z, qw..qz, vx..vz, wx..wz with the angular velocity in the body frame):
+    a 0.37 kg cube of half-width 0.0524 m (inertia 8.1e-4 kg m^2) started from row 0 on a
+    rough plane (material ``board``: ``k`` N/m, ``c`` N s/m, friction ``mu``), loss = mean
+    over the first ``frames`` frames of |p_sim - p_data| / 0.1048 (edge lengths).
+
+    Returns ``{"loss", "ad": (3,), "fd": {step: (3,)}}``: jax.grad w.r.t. (log k, log c,
+    log mu) and central differences of the same loss at each relative step of ``rel_steps``
+    (in log space, so absolute steps of the log)."""
+    import jax
+    import jax.numpy as jnp
+    data = np.genfromtxt(path, delimiter=",", names=True)
+    n = len(data["t"]) if frames is None else int(frames)
+    t = data["t"][:n]
+    pos = np.stack([data["x"], data["y"], data["z"]], 1)[:n]
+    q0 = [float(data[a][0]) for a in ("qw", "qx", "qy", "qz")]
+    w, x, y, z = q0
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    w_world = rot @ np.array([data[a][0] for a in ("wx", "wy", "wz")])
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    scene.add_material("board", k=k, c=c, friction=mu, slip_speed=0.01)
+    scene.add_plane(material="board")
+    scene.add_box((0.0524,) * 3, 0.37, tuple(pos[0]),
+                  tuple(float(data[a][0]) for a in ("vx", "vy", "vz")), orientation=tuple(q0),
+                  angular_velocity=tuple(w_world), inertia=(8.1e-4,) * 3)
+    dtype = dtype or jnp.float64
+    sim = dp.compile(scene, dt, dtype=dtype)
+    steps = int(round(t[-1] / dt))
+    idx = np.clip(np.round(t / dt).astype(int) - 1, 0, steps - 1)
+    target = jnp.asarray(pos, dtype)
+
+    def loss(lk, lc, lmu):
+        base = sim.params()
+        con = dict(base.contact)
+        con["board"] = con["board"]._replace(k=jnp.exp(lk), c=jnp.exp(lc))
+        extra = dict(base.extra)
+        extra["friction"] = {"board": jnp.exp(lmu)}
+        traj = sim.rollout(base._replace(contact=con, extra=extra), steps,
+                           check_stability=False)
+        return jnp.mean(jnp.linalg.norm(traj.position[idx, 0] - target, axis=-1)) / 0.1048
+    x0 = [jnp.asarray(np.log(v), dtype) for v in (k, c, mu)]
+    f = jax.jit(loss)
+    ad = np.array([float(a) for a in jax.jit(jax.grad(loss, (0, 1, 2)))(*x0)])
+    fd = {}
+    for s in rel_steps:
+        row = []
+        for i in range(3):
+            up, dn = list(x0), list(x0)
+            up[i], dn[i] = up[i] + s, dn[i] - s
+            row.append((float(f(*up)) - float(f(*dn))) / (2 * s))
+        fd[s] = np.array(row)
+    return {"loss": float(f(*x0)), "ad": ad, "fd": fd}
 
 
 def event_gradient_table(rows: list[dict], before: list[dict] | None = None) -> str:
