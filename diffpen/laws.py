@@ -50,9 +50,10 @@ explicit pass: ``F0`` the step average at ``vn``; the window is still taken alon
 ``d - vn s``, so the force stays continuous). At dt 1e-3 the apexes are then within 0.5%
 (quick-start ball +0.03/+0.08/+0.13% against -0.29/-0.59/-0.91%; 0.3 kg ball <= +0.48%
 against -1.21%) and d duration1 / dc is 0.4% off the continuous derivative (37% without).
-It is not the default: its few extra operations per contact push XLA's CPU loop past a
-cliff, and a batched ball rollout (vmap 1024, float32) costs 1.7x (batch-1 rollouts and
-gradients 1.04-1.10x).
+It is not the default: batched ball rollouts (vmap 1024, float32) cost 0.87-1.03x with k
+and c both batched (as ``diffpen bench`` runs them) but 1.7-2.1x with k batched and c
+shared, where its few extra operations per contact push XLA's CPU loop past a cliff (one
+more multiply-add anywhere in the step shows the same cliff); batch-1 gradients 0.93-1.06x.
 """
 from __future__ import annotations
 
