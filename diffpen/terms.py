@@ -141,7 +141,7 @@ class CompileContext:
         separating acceleration, m/s^2: gravity) the step average takes its damping at the
         window centre's speed where the integrator's velocity lags (``velocity_lag``)."""
         if (h is None or inv_mass is None or self.velocity_lag == 0.0 or self.width != 0.0
-                or self.law.averaged is None):
+                or getattr(self.law, "centred", None) is None):
             return self.law.step_force(d, vn, k, c, self.width, h)
         return self.law.centred_force(d, vn, k, c, h, self.velocity_lag * h, inv_mass, accel)
 

@@ -163,6 +163,38 @@ def test_centred_damping_is_the_average_at_the_centre_speed(law):
         assert abs(float(a - b)) < 1e-3
 
 
+def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
+    """The centred linear law through the sphere-sphere term (effective mass 1/m1 + 1/m2, no
+    relative gravity): two spheres (1 kg, 3 kg) at 1 m/s, zeta 0.2, dt = contact time / 20,
+    restitution within 0.2% of the closed form (measured +0.10 ... +0.15% over impact phases;
+    the default record -0.88 ... -0.91%); through the fixed-sphere term (normal and gravity
+    along it per step): a ball dropped onto a large fixed sphere straight below follows the
+    ball dropped onto the plane (same depth, normal and gravity) to 1e-12 m."""
+    m1, m2, k = 1.0, 3.0, 1e4
+    mu = m1 * m2 / (m1 + m2)
+    c = 2.0 * 0.2 * np.sqrt(k * mu)
+    tc = float(dp.physical.contact_time(k, c, mu))
+    e_closed = float(dp.physical.restitution(k, c, mu))
+    centred = laws.linear(centred=True)
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_sphere(0.1, m1, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+    scene.add_sphere(0.1, m2, (0.2 + 2.4 * tc / 20, 0.0, 0.0))
+    sim = dp.compile(scene, tc / 20, law=centred)
+    v = sim.rollout(sim.params(k=k, c=c), 60, save_every=60).velocity[-1]
+    assert abs(float(v[1, 0] - v[0, 0]) / e_closed - 1.0) < 2e-3
+    z = []
+    for kind in ("plane", "fixed"):
+        scene = dp.Scene()
+        if kind == "plane":
+            scene.add_plane()
+        else:
+            scene.add_fixed_sphere((0.0, 0.0, -10.0), 10.0)
+        scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+        sim = dp.compile(scene, 1e-3, law=centred)
+        z.append(np.asarray(sim.rollout(sim.params(k=1e4, c=20.0), 1500).position[:, 0, 2]))
+    assert np.abs(z[0] - z[1]).max() < 1e-12
+
+
 @pytest.mark.parametrize("law", LAWS)
 def test_energy_and_resting_depth_are_the_static_force_integral_and_inverse(law):
     rec = laws.get(law, 1.5)
