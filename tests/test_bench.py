@@ -1,6 +1,10 @@
-"""Benchmarks measure what they name (not timed tests: no speed is asserted here)."""
+"""Benchmarks measure what they name (not timed tests: no speed of diffpen is asserted here)."""
+import time
+
+import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from tuning import bench
 
@@ -12,14 +16,76 @@ def test_checkpointed_gradient_memory_is_bounded_and_exact():
     assert out["max_rel_diff"] <= 1e-6
 
 
-def test_ball_case_reports_every_figure():
-    row = bench.run_case("ball_b1", quick=True, repeats=1)
-    for key in ("compile_s", "forward_s", "grad_s", "floor_s", "numpy_s", "steps_per_s"):
-        assert np.isfinite(row[key]) and row[key] > 0
-    assert row["steps"] == 500 and row["batch"] == 1
-    assert row["vs_floor"] == row["forward_s"] / row["floor_s"]
-    assert row["stepping_vs_floor"] == row["stepping_s"] / row["floor_stepping_s"]
-    assert row["stepping_per_s"] == row["steps"] / row["stepping_s"]
+U = 0.02     # s: the unit of the known costs below
+
+
+class _Sleeper:
+    """A workload of known cost: each call takes ``units`` x U seconds. It stands in for a
+    jitted function (``lower(...).compile()`` gives an executable without memory analysis)."""
+
+    def __init__(self, units: float):
+        self.units = units
+
+    def __call__(self, *args):
+        time.sleep(self.units * U)
+        return np.zeros(())
+
+    def lower(self, *args):
+        return self
+
+    def compile(self):
+        return self
+
+    def memory_analysis(self):
+        return None
+
+
+@pytest.fixture
+def known_case(monkeypatch):
+    """A case whose every workload has a known cost, so that each reported figure has a known
+    value: forward 4 U, floor 1 U, gradient 6 U, floor gradient 2 U, reverse mode 8 U,
+    stepping 3 U, the natural code 5 U, the floor's stepping 1 U, NumPy 2 U."""
+    def build(dtype, quick):
+        return dict(forward=_Sleeper(4), floor=_Sleeper(1), grad=_Sleeper(6),
+                    floor_grad=_Sleeper(2), grad_reverse=_Sleeper(8), grad_mode="forward",
+                    stepping=_Sleeper(3), natural=_Sleeper(5), floor_stepping=_Sleeper(1),
+                    numpy=lambda: time.sleep(2 * U), args=(jnp.ones(()), jnp.ones(())),
+                    work=1000, steps=10, batch=100)
+    monkeypatch.setitem(bench.CASES, "known", bench.Case("known", build))
+
+
+def test_ratios_are_those_of_the_workloads_they_name(known_case):
+    row = bench.run_case("known", repeats=5)
+    # each figure within 25% of its known value: a ratio of the wrong pair of workloads (or
+    # of one workload with itself) is off by 1.5x at least
+    expect = dict(forward_s=4 * U, floor_s=U, grad_s=6 * U, floor_grad_s=2 * U,
+                  grad_reverse_s=8 * U, stepping_s=3 * U, natural_s=5 * U,
+                  floor_stepping_s=U, numpy_s=2 * U, vs_floor=4.0, grad_vs_floor=3.0,
+                  grad_over_forward=1.5, reverse_over_forward=2.0, stepping_vs_floor=3.0,
+                  natural_vs_floor=5.0, vs_numpy=2.0, steps_per_s=1000 / (4 * U),
+                  stepping_per_s=1000 / (3 * U))
+    for key, value in expect.items():
+        assert row[key] == pytest.approx(value, rel=0.25), key
+    assert row["steps"] == 10 and row["batch"] == 100 and row["grad_mode"] == "forward"
+
+
+def test_interleaved_times_are_medians_of_turns():
+    """Calls are taken in turns, so a slow spell hits every function alike: a function whose
+    every 4th call is slow still gets its typical time."""
+    calls = {"a": 0}
+
+    def a():
+        calls["a"] += 1
+        time.sleep((3 if calls["a"] % 4 == 0 else 1) * U)
+        return jnp.zeros(())
+
+    def b():
+        time.sleep(2 * U)
+        return jnp.zeros(())
+    t = bench.interleaved_times({"a": a, "b": b, "none": None}, (), repeats=7)
+    assert set(t) == {"a", "b"}
+    assert t["a"] == pytest.approx(U, rel=0.25) and t["b"] == pytest.approx(2 * U, rel=0.25)
+    assert calls["a"] >= 1 + 7                 # a warm-up call, then one per round
 
 
 def test_floor_and_numpy_baselines_compute_the_same_physics():
@@ -31,12 +97,26 @@ def test_floor_and_numpy_baselines_compute_the_same_physics():
     # up to 2.2e-4 m after the impacts (0.2 mm; the forward cost is what is compared)
     np.testing.assert_allclose(zf, z, atol=5e-4)
     np.testing.assert_allclose(zn, zf, rtol=1e-12)
-    # the stepping workloads end where the recorded ones do
+    # the stepping workloads (and the natural user code) end where the recorded ones do
     np.testing.assert_allclose(np.asarray(spec["stepping"](*spec["args"]))[-1, 0, 2], z[-1],
                                rtol=1e-12)
-    np.testing.assert_allclose(np.asarray(spec["floor_stepping"](*spec["args"]))[2], zf[-1],
-                               rtol=1e-12)
+    np.testing.assert_allclose(spec["natural"](*spec["args"]), z[-1], rtol=1e-12)
+    np.testing.assert_allclose(spec["floor_stepping"](*spec["args"]), zf[-1], rtol=1e-12)
     net = bench.CASES["cloth32"].build(jnp.float64, True)
     a = net["args"]
     np.testing.assert_allclose(net["floor"](*a), net["forward"](*a), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(net["numpy"](), net["floor"](*a), rtol=1e-9, atol=1e-12)
+
+
+def test_plain_floor_is_batch_vectorisable_and_matches_its_scalar_runs():
+    """The plain floor carries one scalar per component: vmapped, its carry is (B,) arrays
+    (no (B, 3) minor axis), and each row equals the row run alone."""
+    ks = jnp.asarray([5e3, 1e4, 2e4])
+    cs = jnp.asarray([5.0, 20.0, 40.0])
+    batched = jax.vmap(lambda k, c: bench.plain_ball_floor(k, c, steps=400))
+    jaxpr = jax.make_jaxpr(batched)(ks, cs)
+    scan = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan"][0]
+    assert all(v.aval.shape == (3,) for v in scan.outvars[:2])    # the carry: z and v
+    out = batched(ks, cs)
+    for i in range(3):
+        np.testing.assert_array_equal(out[i], bench.plain_ball_floor(ks[i], cs[i], steps=400))

@@ -1,6 +1,8 @@
 """Sharded sweeps: identical results on 4 (forced host) devices and on one."""
 import textwrap
 
+import numpy as np
+
 from device_subprocess import run_on_devices
 
 SCRIPT = textwrap.dedent("""
@@ -55,3 +57,155 @@ def test_sharded_sweep_matches_single_device_on_four_devices():
     assert res["max_diff"] == 0.0
     assert res["loop_diff"] < 1e-12
     assert res["sweep_diff"] == 0.0
+
+
+CLUSTER_SCRIPT = textwrap.dedent("""
+    import json, os, tempfile
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    from tuning import distributed
+    n_proc = int(os.environ["CLUSTER_PROCESSES"])
+    joined = distributed.join(os.environ["CLUSTER_COORDINATOR"] or None if n_proc > 1
+                              else None, n_proc if n_proc > 1 else None,
+                              int(os.environ["CLUSTER_ID"]) if n_proc > 1 else None,
+                              timeout_s=60)
+    import jax.numpy as jnp
+    import numpy as np
+    import diffpen as dp
+    from tuning import sweep as sw
+    from tuning.batch_fit import BatchFitter
+    from tuning.shard import sharded_map
+
+    writes = []
+    save = sw._save
+    sw._save = lambda *a: (writes.append(jax.process_index()), save(*a))
+
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.15))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=2e-3)
+
+    def final(p):
+        s = sim.rollout(p, steps=60, save_every=60)
+        return {"z": s.position[-1, 0, 2], "v": s.velocity[-1, 0, 2]}
+
+    # a 3 x 3 grid in chunks of 4: three chunks, the last padded
+    ks, cs = np.geomspace(2e3, 2e4, 3), np.linspace(2.0, 20.0, 3)
+    axes = {"contact.default.k": ks, "contact.default.c": cs}
+    pts, shape = sw.grid_points(axes)
+    names = list(axes)
+    out = os.path.join(tempfile.mkdtemp() if n_proc == 1 else
+                       os.environ["CLUSTER_TMP"], "sweep.npz")
+    p0 = sim.params(k=1e4, c=10.0)
+    ev = sw.make_evaluator(final, p0, names)
+    res = sw.sweep(final, p0, pts, names, chunk=4, out=out, progress=False, evaluate=ev)
+    again = sw.sweep(final, p0, pts, names, chunk=4, out=out, progress=False, evaluate=ev)
+    saved = sw.load_sweep(out) if jax.process_index() == 0 else None
+
+    # the README's snippet
+    final_height = lambda k, c: sim.rollout(sim.params(k=k, c=c), 60,
+                                            save_every=60).position[-1, 0, 2]
+    heights = sharded_map(final_height)(jnp.geomspace(1e3, 1e5, 6), jnp.full(6, 20.0))
+
+    # batched fits: 4 rows (divide 4 devices evenly) and 3 (do not)
+    fitter = BatchFitter(lambda p: {"z": final(p)["z"]}, p0, maxiter=4)
+    fits = {n: fitter([{"z": 0.08 + 0.004 * i} for i in range(n)],
+                      starts=[{"contact.default.k": 3e3 * (i + 1)} for i in range(n)])
+            for n in (4, 3)}
+    try:                      # process 0's error reaches every process: none hangs
+        distributed.from_process_zero(lambda: 1 / 0)
+        raised = None
+    except ZeroDivisionError as exc:
+        raised = type(exc).__name__
+    try:                      # processes given different work all stop with one error
+        distributed.check_same("sweep", str(jax.process_index()).encode())
+        differ = None
+    except ValueError as exc:
+        differ = str(exc)
+    print(json.dumps({
+        "raised": raised, "differ": differ,
+        "joined": joined, "processes": jax.process_count(), "devices": jax.device_count(),
+        "writes": writes, "evaluated": [res.evaluated, again.evaluated],
+        "z": res.metrics["z"].tolist(), "v": res.metrics["v"].tolist(),
+        "again_z": again.metrics["z"].tolist(), "done": bool(again.done.all()),
+        "saved_z": None if saved is None else saved.metrics["z"].tolist(),
+        "heights_type": type(heights).__name__,
+        "heights": np.asarray(heights).tolist(),
+        "fits": {str(n): {"values": f.values.tolist(), "loss": f.loss.tolist(),
+                          "history": f.loss_history.tolist(),
+                          "iterations": f.iterations.tolist(), "devices": f.devices}
+                 for n, f in fits.items()},
+    }))
+""")
+
+
+def test_two_processes_gather_the_single_process_results(tmp_path):
+    """Two local processes of two devices each, joined through a localhost coordinator: the
+    sweep, the README's sharded_map snippet and batched fits (rows that divide the 4 devices
+    and rows that do not) return, on both processes, the single-process results bit for bit;
+    only process 0 writes the sweep file, and a rerun resumes from it on both."""
+    from device_subprocess import run_cluster
+    import os
+    os.environ["CLUSTER_TMP"] = str(tmp_path)
+    try:
+        *procs, alone = run_cluster(CLUSTER_SCRIPT, processes=2, devices=2, timeout=120,
+                                    alone=True)
+    finally:
+        del os.environ["CLUSTER_TMP"]
+    assert alone["processes"] == 1 and alone["devices"] == 1 and not alone["joined"]
+    assert alone["differ"] is None
+    assert alone["evaluated"] == [9, 0]
+    for i, r in enumerate(procs):
+        assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
+        assert r["writes"] == ([0, 0, 0] if i == 0 else [])    # three chunks, process 0 only
+        assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
+        assert r["raised"] == "ZeroDivisionError"
+        assert "processes [1] were given a different sweep" in r["differ"]
+        for key in ("z", "v", "again_z", "heights"):
+            assert r[key] == alone[key], key                     # bit for bit (exact floats)
+        for n in ("4", "3"):
+            assert r["fits"][n].pop("devices") == 4 and alone["fits"][n]["devices"] == 1
+            r["fits"][n]["devices"] = 1
+            assert r["fits"][n] == alone["fits"][n], n
+    assert procs[0]["saved_z"] == alone["z"]
+    assert all(np.isfinite(alone["z"])) and len(set(alone["heights"])) == 6
+
+
+def test_cluster_arguments_are_checked_before_anything_runs(capsys):
+    """Incomplete or inconsistent cluster flags: a clear error, exit status 2, no JAX setup."""
+    import pytest
+
+    from tuning import distributed
+    from tuning.cli import main
+    for argv, words in ((["--coordinator", "localhost:1234"], "all three"),
+                        (["--coordinator", "localhost", "--num-processes", "2",
+                          "--process-id", "0"], "HOST:PORT"),
+                        (["--coordinator", "h:1", "--num-processes", "2", "--process-id", "2"],
+                         "[0, 1]")):
+        assert main(["sweep", "--n", "2", *argv]) == 2
+        assert words in capsys.readouterr().err
+    with pytest.raises(ValueError, match="all three"):
+        distributed.join("localhost:1234")
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        distributed.join("localhost:1234", 2, 5)
+    assert distributed.join("localhost:1234", 1, 0) is False     # one process: nothing to join
+
+
+def test_cluster_launchers_are_detected(monkeypatch):
+    from tuning import distributed
+    for var in ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_NTASKS", "SLURM_PROCID",
+                "SLURM_LOCALID", "OMPI_MCA_orte_hnp_uri", "OMPI_COMM_WORLD_SIZE"):
+        monkeypatch.delenv(var, raising=False)
+    assert distributed.detect() is None
+    slurm = dict(SLURM_JOB_ID="7", SLURM_STEP_NODELIST="node[1-2]", SLURM_NTASKS="1",
+                 SLURM_PROCID="0", SLURM_LOCALID="0")
+    for k, v in slurm.items():
+        monkeypatch.setenv(k, v)
+    assert distributed.detect() is None           # one task: nothing to join
+    monkeypatch.setenv("SLURM_NTASKS", "2")
+    assert distributed.detect() == "slurm"
+    for k in slurm:
+        monkeypatch.delenv(k)
+    monkeypatch.setenv("OMPI_MCA_orte_hnp_uri", "1.0;tcp://10.0.0.1:1234")
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "4")
+    assert distributed.detect() == "ompi"

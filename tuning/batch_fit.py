@@ -14,7 +14,8 @@ The whole loop (a ``lax.while_loop`` over iterations; rows that have stopped kee
 state) is one per-row function lifted to the batch by :func:`tuning.shard.sharded_map`: the
 batch axis is split over a 1-D device ``Mesh`` with ``NamedSharding(mesh, P("batch"))``, and
 the results equal the single-device run. A batch that is not a multiple of the device count is
-padded by repeating its last row; the padding never reaches the result.
+padded by repeating its last row; the padding never reaches the result. Over several processes
+(:mod:`tuning.distributed`) every process calls with the same rows and gets every row back.
 """
 from __future__ import annotations
 

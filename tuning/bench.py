@@ -11,12 +11,16 @@ For every standard scene this measures, after compilation and as the median of s
 * ``memory_bytes``: XLA's memory analysis of the compiled forward and gradient executables
   (arguments + outputs + temporaries; the peak a device must hold);
 * ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
-  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX);
+  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX); for
+  the ball, the plain floor :func:`plain_ball_floor`: scalar ``z`` and ``v`` per ball, so a
+  batch is one vector per component;
 * ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
 * ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
   rollout returning only its final state (nothing recorded), against the floor doing the
   same: the workload of a stepping rate, the figure simulators quote and the peers' anchors
-  measure.
+  measure; ``natural_s`` / ``natural_vs_floor``: the code a user writes first,
+  ``sim.rollout(params, steps).position[-1, 0, 2]`` (every state recorded, the last height
+  kept), against the same floor.
 
 Forward workloads return what a tuning metric needs: the ball's full height trajectory, the
 final node positions of spring networks. The functions here compute; ``tuning.cli.bench``
@@ -35,7 +39,7 @@ import diffpen as dp
 from diffpen import builders
 
 __all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
-           "memory_bytes"]
+           "memory_bytes", "plain_ball_floor"]
 
 G = 9.81
 
@@ -51,25 +55,28 @@ def median_time(fn: Callable, *args, repeats: int = 5) -> float:
     return float(np.median(times))
 
 
-def interleaved_times(fns: dict, args: tuple, repeats: int = 5) -> dict:
-    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after
-    warm-up calls, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so that
-    every function sees the same machine load: ``repeats`` rounds, more (up to 200) when a
-    round takes under ~0.5 s / repeats, at most 3 when a round takes over 10 s."""
+def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
+                      budget_s: float = 20.0) -> dict:
+    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after a
+    warm-up call each, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so
+    that every function sees the same machine load: ``repeats`` rounds, more (up to 200) when
+    a round takes under ~0.5 s / repeats, fewer (3 at least) when the rounds would take over
+    ``budget_s`` seconds in all. The first round follows the warm-up calls directly."""
     live = {k: f for k, f in fns.items() if f is not None}
+    times = {k: [] for k in live}
     first = 0.0
-    for f in live.values():
+    for k, f in live.items():
         jax.block_until_ready(f(*args))
         t0 = time.perf_counter()
         jax.block_until_ready(f(*args))
-        first += time.perf_counter() - t0
-    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; rounds
-    # of over 10 s get 3 at most
+        times[k].append(time.perf_counter() - t0)
+        first += times[k][-1]
+    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; long
+    # ones fewer, so that a case takes about budget_s at most
     rounds = max(repeats, min(200, int(0.5 / max(first, 1e-9))))
-    if first > 10.0:
-        rounds = min(rounds, 3)
-    times = {k: [] for k in live}
-    for _ in range(rounds):
+    if first * rounds > budget_s:
+        rounds = max(3, int(budget_s / first))
+    for _ in range(rounds - 1):
         for k, f in live.items():
             t0 = time.perf_counter()
             jax.block_until_ready(f(*args))
@@ -123,6 +130,28 @@ class Case(NamedTuple):
 
 
 # --------------------------------------------------------------------------- ball
+def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
+                     drop: float = 1.0, record: bool = True, unroll: int = 8):
+    """The plain floor of the ball workloads: a ``lax.scan`` of the scalar height ``z`` (m)
+    and vertical velocity ``v`` (m/s) of one ball of unit mass dropped from rest at ``drop``
+    onto the plane z = 0, hard contact ``f = k max(d, 0) - c [d > 0] v`` with
+    ``d = radius - z``, symplectic Euler. Scalars, no (3,) vectors, no generality: under
+    ``jax.vmap`` the carry is one (B,) array per component, which XLA vectorises along the
+    batch. ``unroll``: of the ``lax.scan``. Returns (steps,) heights when ``record``, else
+    the final ``z``."""
+    def step(s, _):
+        z, v = s
+        d = radius - z
+        f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v
+        v = v + dt * (f - G)
+        z = z + dt * v
+        return (z, v), (z if record else None)
+    z0 = jnp.full_like(k, drop)
+    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps,
+                              unroll=unroll)
+    return zs if record else z
+
+
 def _ball(batch: int, quick: bool):
     def build(dtype, quick_=quick):
         steps = 2000 if not quick_ else 500
@@ -142,37 +171,33 @@ def _ball(batch: int, quick: bool):
         def final_position(k, c):
             return sim.rollout(sim.params(k=k, c=c), steps=steps, save_every=steps).position
 
-        def floor_rollout(k, c, record: bool):
-            one = jnp.ones((), dtype)
+        def natural(k, c):
+            # what a user writes first: the whole trajectory, then its last height
+            return sim.rollout(sim.params(k=k, c=c), steps=steps).position[-1, 0, 2]
 
-            def step(s, _):
-                x, v = s                                  # (3,) position, velocity
-                d = 0.1 - x[2]
-                f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v[2]
-                a = jnp.stack([0.0 * f, 0.0 * f, f - G])
-                v = v + dt * a
-                x = x + dt * v
-                return (x, v), (x[2] if record else None)
-            x0 = jnp.array([0.0, 0.0, 1.0], dtype) * one
-            (x, _), zs = jax.lax.scan(step, (x0, jnp.zeros(3, dtype)), None, length=steps,
-                                      unroll=8)
-            return zs if record else x
+        # the floor's fastest form measured here: the scan unrolled 8 times at batch 1 (10-15%
+        # faster), not unrolled under vmap (unrolling made 1024 balls 1.2-1.5x slower) nor
+        # in its gradient (unrolled, the forward-mode gradient at batch 1 was 6x slower)
+        floor_unroll = 8 if b == 1 else 1
 
-        def floor_heights(k, c):
-            return floor_rollout(k, c, True)
+        def floor_heights(k, c, unroll=floor_unroll):
+            return plain_ball_floor(k, c, steps=steps, dt=dt, unroll=unroll)
 
         def floor_final(k, c):
-            return floor_rollout(k, c, False)
+            return plain_ball_floor(k, c, steps=steps, dt=dt, record=False,
+                                    unroll=floor_unroll)
 
         def loss(fn):
             return lambda k, c: jnp.sum(fn(k, c) ** 2)
 
         ks = jnp.asarray(np.geomspace(5e3, 2e4, b), dtype)
         cs = jnp.full((b,), c0, dtype)
-        grads = _gradients(loss(heights), loss(floor_heights), batched=b > 1)
+        grads = _gradients(loss(heights), loss(lambda k, c: floor_heights(k, c, 1)),
+                           batched=b > 1)
         lift = (lambda f: jax.jit(f)) if b == 1 else (lambda f: jax.jit(jax.vmap(f)))
         fwd, flr = lift(heights), lift(floor_heights)
-        stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final))
+        stepping = dict(stepping=lift(final_position), floor_stepping=lift(floor_final),
+                        natural=lift(natural))
         args = ((jnp.asarray(k0, dtype), jnp.asarray(c0, dtype)) if b == 1 else (ks, cs))
         npdt = np.dtype(dtype)
         kn, cn = np.asarray(args[0], npdt), np.asarray(args[1], npdt)
@@ -180,20 +205,12 @@ def _ball(batch: int, quick: bool):
         def numpy_heights():
             z = np.ones_like(kn) if kn.ndim else np.ones((), npdt)
             v = np.zeros_like(z)
-            x = np.zeros_like(z)
-            y = np.zeros_like(z)
-            vx = np.zeros_like(z)
-            vy = np.zeros_like(z)
             out = np.empty((steps,) + z.shape, npdt)
             for i in range(steps):
                 d = 0.1 - z
                 f = kn * np.maximum(d, 0.0) - cn * (d > 0.0) * v
                 v = v + dt * (f - G)
-                vx = vx + dt * 0.0
-                vy = vy + dt * 0.0
                 z = z + dt * v
-                x = x + dt * vx
-                y = y + dt * vy
                 out[i] = z
             return out
         return dict(forward=fwd, floor=flr, numpy=numpy_heights, args=args, work=b * steps,
@@ -368,10 +385,14 @@ def spheres_in_box(n: int, *, radius: float = 0.05, mass: float = 0.1, seed: int
     return scene, length
 
 
-def _spheres(n: int):
+def _spheres(n: int, steps: int):
+    """``n`` spheres in a box for ``steps`` steps (a tenth of them, at least 5, with quick): a
+    per-step rate, so a few dozen steps measure it (10000 spheres take ~0.2 s per step here)."""
+    full = steps
+
     def build(dtype, quick):
         from diffpen.broadphase import Grid
-        steps = 50 if quick else 200
+        steps = max(5, full // 10) if quick else full
         scene, _ = spheres_in_box(n)
         sim = dp.compile(scene, dt=5e-4, dtype=dtype,
                          broadphase=Grid(max_per_cell=8, max_pairs=8 * n))
@@ -421,8 +442,8 @@ CASES: dict[str, Case] = {
     "cloth32": Case("cloth32", _network_case(lambda: _cloth_scene(32), 1000, 200, 1e-3)),
     "cloth64": Case("cloth64", _network_case(lambda: _cloth_scene(64), 1000, 100, 1e-3)),
     "jelly10": Case("jelly10", _network_case(lambda: _jelly_scene(10), 1000, 100, 1e-3)),
-    "spheres1000": Case("spheres1000", _spheres(1000)),
-    "spheres10000": Case("spheres10000", _spheres(10000)),
+    "spheres1000": Case("spheres1000", _spheres(1000, 100)),
+    "spheres10000": Case("spheres10000", _spheres(10000, 20)),
 }
 
 #: Cases run by ``--quick`` (CI-sized).
@@ -448,7 +469,9 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
                            "floor_grad": spec["floor_grad"] if with_floor_grad else None},
                           args, repeats=repeats)
     fwd, grad = t["forward"], t["grad"]
-    grad_rev = median_time(spec["grad_reverse"], *args, repeats=max(1, repeats // 2))
+    # reverse mode is shown for comparison only: one timed run when a forward takes > 0.2 s
+    grad_rev = median_time(spec["grad_reverse"], *args,
+                           repeats=1 if fwd > 0.2 else max(1, repeats // 2))
     out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
                compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
                grad_s=grad, grad_over_forward=grad / fwd, grad_mode=spec["grad_mode"],
@@ -464,13 +487,17 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     if spec.get("stepping") is not None:
         # the same rollout returning only the final state: the workload of stepping-rate
         # figures (a simulator advancing its state, nothing recorded), e.g. the peers' anchors
-        ts = interleaved_times({"stepping": spec["stepping"],
+        ts = interleaved_times({"stepping": spec["stepping"], "natural": spec.get("natural"),
                                 "floor": spec["floor_stepping"] if with_floor else None},
                                args, repeats=repeats)
         out.update(stepping_s=ts["stepping"], stepping_per_s=spec["work"] / ts["stepping"])
+        if "natural" in ts:
+            out.update(natural_s=ts["natural"])
         if with_floor:
             out.update(floor_stepping_s=ts["floor"],
                        stepping_vs_floor=ts["stepping"] / ts["floor"])
+            if "natural" in ts:
+                out.update(natural_vs_floor=ts["natural"] / ts["floor"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
         t_np = _numpy_time(spec["numpy"], nrep)

@@ -5,9 +5,12 @@ its leading axis split across a 1-D device ``Mesh`` (``NamedSharding(mesh, P("ba
 results are gathered back and are identical to the single-device ``jax.vmap``. On one device
 it is exactly ``jax.jit(jax.vmap(fn))``.
 
-Multi-host: call ``jax.distributed.initialize()`` on every host before anything else (see
-the README, "Beyond one machine"); ``jax.devices()`` then lists the devices of all hosts and
-the same code shards over them. Each host must run the same program with the same batch.
+Several processes (hosts): every process calls :func:`tuning.distributed.join` (or
+``jax.distributed.initialize``) before anything else (see the README, "Beyond one machine");
+``jax.devices()`` then lists the devices of all processes and the same code shards over them.
+Every process must run the same program with the same batch; each gets the whole result back
+as ordinary arrays on its own first device (the program gathers the rows of every device), so
+the results are identical on every process and readable anywhere.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ def pad_to_multiple(tree, multiple: int):
     """Pad every leaf's leading axis to a multiple of ``multiple`` by repeating the last row.
 
     Returns ``(padded_tree, n)`` with ``n`` the original batch size (slice results ``[:n]``).
+    NumPy leaves stay NumPy arrays (on the host), others become ``jax.Array``s.
     """
     leaves = jax.tree_util.tree_leaves(tree)
     if not leaves:
@@ -39,38 +43,59 @@ def pad_to_multiple(tree, multiple: int):
     extra = (-n) % multiple
 
     def pad(a):
-        a = jnp.asarray(a)
+        xp = np if isinstance(a, np.ndarray) else jnp
+        a = xp.asarray(a)
         if a.shape[0] != n:
             raise ValueError(f"all batched arguments need the same leading size; got "
                              f"{a.shape[0]} and {n}.")
         if extra == 0:
             return a
-        return jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)], axis=0)
+        return xp.concatenate([a, xp.repeat(a[-1:], extra, axis=0)], axis=0)
     return jax.tree_util.tree_map(pad, tree), n
 
 
-def sharded_map(fn: Callable, mesh: Mesh | None = None) -> Callable:
+def _host(a) -> np.ndarray:
+    """``a`` as a NumPy array of the dtype JAX would give it (float32 without x64)."""
+    a = np.asarray(a)
+    return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
+
+
+def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False) -> Callable:
     """``jax.vmap(fn)`` over the leading axis of every argument, sharded over ``mesh``.
 
     Args:
       fn: per-candidate function of pytrees of arrays (no leading batch axis).
       mesh: a 1-D mesh with axis ``"batch"`` (default: :func:`batch_mesh`).
+      batched: ``fn`` already maps over the leading axis of every argument and output (rows
+        independent); it is sharded as it is, not wrapped in ``jax.vmap``.
     Returns:
       ``run(*batched_args)``: same outputs as ``jax.vmap(fn)(*batched_args)``. A batch that is
       not a multiple of the device count is padded (by repeating its last row) and the padding
       is dropped from the outputs. The jitted program is built once per mesh, shapes and
-      dtypes, so repeated calls with new values do not recompile.
+      dtypes, so repeated calls with new values do not recompile. Over several processes
+      every process passes the same batch and gets the same, whole result.
     """
     mesh = batch_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
     spec = NamedSharding(mesh, P("batch"))
-    batched = jax.jit(jax.vmap(fn), in_shardings=spec, out_shardings=spec)
+    # a mesh over several processes: gather every row onto every device inside the program
+    # (a replicated output), so that each process holds the whole result
+    multi = len({d.process_index for d in mesh.devices.flat}) > 1
+    program = jax.jit(fn if batched else jax.vmap(fn), in_shardings=spec,
+                      out_shardings=NamedSharding(mesh, P()) if multi else spec)
 
     def run(*args):
+        if multi:     # every process holds the whole batch; each device takes its rows
+            padded, n = pad_to_multiple(jax.tree_util.tree_map(_host, args), n_dev)
+            placed = jax.tree_util.tree_map(
+                lambda a: jax.make_array_from_callback(a.shape, spec, lambda i: a[i]), padded)
+            out = program(*placed)
+            # replicated: this process's first copy is the whole result
+            return jax.tree_util.tree_map(lambda a: a.addressable_data(0)[:n], out)
         padded, n = pad_to_multiple(args, n_dev)
         placed = jax.device_put(padded, spec)
-        out = batched(*placed)
+        out = program(*placed)
         return jax.tree_util.tree_map(lambda a: a[:n], out)
     run.mesh = mesh
-    run.jitted = batched
+    run.jitted = program
     return run

@@ -12,6 +12,10 @@ After every chunk the results so far are written to ``out`` (``.npz``) and a ``.
 it, each through a temporary file and ``os.replace`` (a crash never leaves a half-written
 file). Calling :func:`sweep` again with the same points and ``out`` resumes: finished chunks
 are read back, not recomputed.
+
+Several processes (:mod:`tuning.distributed`): every process calls :func:`sweep` with the same
+points; each chunk is split over the devices of all of them and gathered, only process 0
+writes ``out`` (and reads it back to resume), and every process returns the same result.
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ import numpy as np
 
 import diffpen as dp
 
+from . import distributed
 from . import params as P
 from .fit import Progress
 
@@ -178,6 +183,18 @@ def load_sweep(path: str) -> SweepResult:
         return SweepResult(names, f["points"], metrics, f["done"], shape, axes)
 
 
+def _resumed(out: str, digest: str) -> SweepResult | None:
+    """The sweep saved at ``out`` if it holds the same names and points, else None."""
+    if not os.path.exists(out):
+        return None
+    try:
+        with np.load(out, allow_pickle=False) as f:
+            same = str(f["digest"]) == digest
+    except Exception:
+        same = False
+    return load_sweep(out) if same else None
+
+
 def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
           chunk: int = 256, out: str | None = None, resume: bool = True,
           keys: list | None = None, shape: tuple | None = None, axes: dict | None = None,
@@ -212,23 +229,21 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         raise ValueError(f"chunk must be >= 1, got {chunk}.")
     n = points.shape[0]
     digest = _digest(names, points)
-    res = None
-    if out and resume and os.path.exists(out):
-        try:
-            with np.load(out, allow_pickle=False) as f:
-                same = str(f["digest"]) == digest
-        except Exception:
-            same = False
-        if same:
-            res = load_sweep(out)
-            res.shape, res.axes = shape, axes
+    # several processes: all must sweep the same points; process 0 alone reads and writes
+    # ``out`` and hands what it resumed to the others (no shared file system needed)
+    distributed.check_same("sweep (names and points)", digest.encode())
+    writer = distributed.is_writer()
+    res = distributed.from_process_zero(lambda: _resumed(out, digest) if out and resume
+                                        else None)
+    if res is not None:
+        res.shape, res.axes = shape, axes
     if evaluate is None:
         evaluate = make_evaluator(metrics_fn, params0, names, keys, batch_map)
     if res is None:
         res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
     chunk = min(chunk, n)
     n_chunks = -(-n // chunk)
-    bar = Progress(n_chunks, "sweep", progress)
+    bar = Progress(n_chunks, "sweep", progress if writer else False)
     evaluated = 0
     for i in range(n_chunks):
         a, b = i * chunk, min((i + 1) * chunk, n)
@@ -246,7 +261,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
             res.metrics[k][a:b] = v
         res.done[a:b] = True
         evaluated += b - a
-        if out:
+        if out and writer:
             _save(out, res, digest)
         bar.update(i + 1, float(res.done.mean()))
         if on_chunk is not None:

@@ -13,20 +13,59 @@ class CLIError(argparse.ArgumentTypeError):
 
 
 def setup_jax(x64: bool = True) -> None:
-    """float64 for fitting accuracy, and a persistent compilation cache so that a second run
-    of the same command skips most of the compile time (``DIFFPEN_CACHE=0`` turns it off)."""
+    """float64 for fitting accuracy, and a persistent compilation cache that keeps every
+    compiled program, however small or quick to compile, so that a second run of the same
+    command compiles nothing (most of the default fit's programs are small eager operations
+    that take 5-70 ms each to compile: JAX's default thresholds would skip them).
+
+    The cache lives in ``$DIFFPEN_CACHE_DIR``, else ``$JAX_COMPILATION_CACHE_DIR``, else
+    ``~/.cache/diffpen/jax``; ``DIFFPEN_CACHE=0`` turns it off."""
     import jax
     if x64:
         jax.config.update("jax_enable_x64", True)
     if os.environ.get("DIFFPEN_CACHE", "1") != "0":
-        path = os.environ.get("DIFFPEN_CACHE_DIR",
-                              os.path.join(os.path.expanduser("~"), ".cache", "diffpen", "jax"))
+        path = (os.environ.get("DIFFPEN_CACHE_DIR")
+                or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+                or os.path.join(os.path.expanduser("~"), ".cache", "diffpen", "jax"))
         try:
             os.makedirs(path, exist_ok=True)
             jax.config.update("jax_compilation_cache_dir", path)
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+            jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
         except Exception:        # a read-only home must not stop the command
             pass
+
+
+def add_cluster_arguments(p) -> None:
+    """``--coordinator HOST:PORT --num-processes N --process-id I``: run as one process of a
+    cluster (without them a SLURM ``srun`` or Open MPI ``mpirun`` launch is detected)."""
+    g = p.add_argument_group("cluster (several processes or hosts; see the README, "
+                             "'Beyond one machine')")
+    g.add_argument("--coordinator", metavar="HOST:PORT",
+                   help="address of process 0, the same on every process")
+    g.add_argument("--num-processes", type=int, metavar="N", help="processes in all")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..N-1")
+
+
+def join_cluster(args) -> bool:
+    """Join the cluster the arguments (or the launcher's environment) describe, after
+    :func:`setup_jax` and before any computation; True when running as one of several
+    processes. Bad flags raise :class:`CLIError`."""
+    from ..distributed import join, process_count
+    try:
+        return join(args.coordinator, args.num_processes, args.process_id) \
+            and process_count() > 1
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+
+
+def check_cluster_arguments(args) -> None:
+    """The cluster flags' consistency, checked before JAX is set up."""
+    from ..distributed import check
+    try:
+        check(args.coordinator, args.num_processes, args.process_id)
+    except ValueError as exc:
+        raise CLIError(f"--coordinator/--num-processes/--process-id: {exc}") from None
 
 
 def positive(name: str):

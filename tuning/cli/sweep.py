@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import math
 
-from ._common import CLIError, dump_json, fail, positive, setup_jax
+from ._common import (CLIError, add_cluster_arguments, check_cluster_arguments, dump_json,
+                      fail, join_cluster, positive, setup_jax)
 
 METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
            "restitution")
@@ -37,6 +38,7 @@ def add_arguments(p) -> None:
                    help="metric of the heatmap (default apex_heights: the first apex)")
     p.add_argument("--target", type=float, help="draw this level of --metric as a contour")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_cluster_arguments(p)
 
 
 def run(args) -> int:
@@ -61,7 +63,9 @@ def _run(args) -> int:
     if not stable:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
+    check_cluster_arguments(args)
     setup_jax()
+    quiet = join_cluster(args) and not _is_writer()     # process 0 alone writes and prints
     import numpy as np
 
     import diffpen as dp
@@ -86,10 +90,12 @@ def _run(args) -> int:
         return m
     res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
                 resume=not args.fresh, keys=list(METRICS) + ["settled"], shape=shape,
-                axes=axes, progress=False if args.json else None)
+                axes=axes, progress=False if args.json or quiet else None)
     vals = keep(res.metrics)
     metric = vals[args.metric]
     grid = (metric[:, 0] if metric.ndim > 1 else metric).reshape(shape)
+    if quiet:
+        return 0
     if args.plot:
         from ..plots import heatmap
         label = {"apex_heights": "first apex (m)", "settling_time": "settling time (s)",
@@ -121,3 +127,8 @@ def _run(args) -> int:
         print(f"note: w0 dt reaches {w_max:.2f} at the stiff end; above ~0.25 the explicit "
               "step's error in restitution exceeds ~0.5% (lower --dt for accuracy there)")
     return 0
+
+
+def _is_writer() -> bool:
+    from ..distributed import is_writer
+    return is_writer()

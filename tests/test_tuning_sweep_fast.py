@@ -1,0 +1,61 @@
+"""The batched ball fast path equals the generic rollout and sweep bit for bit."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning import ball_fast
+from tuning import sweep as sw
+from tuning.bounce import bounce_metrics_fn
+
+STEPS = 600      # dropped from 0.4 m: the first contact at ~0.24 s, then bounces
+
+
+def ball(drop=0.4, **extra):
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, drop), **extra)
+    scene.add_plane()
+    return scene
+
+
+@pytest.mark.parametrize("law", ["linear", "no_tension", "hunt_crossley"])
+def test_heights_equal_the_vmapped_rollout(law):
+    sim = dp.compile(ball(), 1e-3, law=law)
+    ks = jnp.asarray(np.geomspace(1e3, 1e5, 5))
+    cs = jnp.asarray(np.geomspace(1.0, 100.0, 5))
+    z, v = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS, velocities=True))(ks, cs)
+    traj = jax.jit(jax.vmap(lambda k, c: sim.rollout(sim.params(k=k, c=c), STEPS)))(ks, cs)
+    assert z.shape == (STEPS, 5)
+    np.testing.assert_array_equal(z, traj.position[:, :, 0, 2].T)
+    np.testing.assert_array_equal(v, traj.velocity[:, :, 0, 2].T)
+    assert float(jnp.min(z)) < 0.1           # the rows reach the plane: the contact is tested
+
+
+def test_sweep_equals_the_generic_sweep():
+    sim = dp.compile(ball(), 1e-3)
+    mfn = bounce_metrics_fn(sim, STEPS, n_apex=2)
+    axes = {"contact.default.k": np.geomspace(1e3, 1e5, 4),
+            "contact.default.c": np.geomspace(1.0, 100.0, 3)}
+    pts, shape = sw.grid_points(axes)
+    names = list(axes)
+    p0 = sim.params(k=1e4, c=10.0)
+    generic = sw.sweep(mfn, p0, pts, names, chunk=5, progress=False, shape=shape)
+    fast = sw.sweep(mfn, p0, pts, names, chunk=5, progress=False, shape=shape,
+                    evaluate=ball_fast.ball_sweep_evaluator(sim, STEPS, p0, names, n_apex=2))
+    assert set(fast.metrics) == set(generic.metrics)
+    for key, value in generic.metrics.items():
+        np.testing.assert_array_equal(fast.metrics[key], value, err_msg=key)
+    assert np.isfinite(generic.metrics["contact_durations"][:, 0]).sum() >= 8    # contacts
+
+
+def test_other_scenes_take_the_generic_path():
+    assert ball_fast.supports(dp.compile(ball(), 1e-3)) is None
+    assert "semi-implicit" in ball_fast.supports(dp.compile(ball(), 1e-3, integrator="rk4"))
+    two = ball()
+    two.add_sphere(radius=0.1, mass=1.0, position=(1.0, 0.0, 0.5))
+    assert "one body" in ball_fast.supports(dp.compile(two, 1e-3))
+    assert "horizontal" in ball_fast.supports(dp.compile(ball(velocity=(1.0, 0.0, 0.0)), 1e-3))
+    sim = dp.compile(ball(), 1e-3)
+    with pytest.raises(ValueError, match="sweeps"):
+        ball_fast.ball_sweep_evaluator(sim, STEPS, sim.params(k=1e4, c=10.0), ["gravity"])
