@@ -195,6 +195,17 @@ def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
     assert np.abs(z[0] - z[1]).max() < 1e-12
 
 
+def test_ball_fast_path_declines_centred_laws():
+    """tuning.ball_fast applies the plain step average: it must not take a simulator whose
+    law is centred (it would differ from the rollout), and still takes the default one."""
+    from tuning.ball_fast import supports
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    scene.add_plane()
+    assert supports(dp.compile(scene, 1e-3)) is None
+    assert "centred" in supports(dp.compile(scene, 1e-3, law=laws.linear(centred=True)))
+
+
 @pytest.mark.parametrize("law", LAWS)
 def test_energy_and_resting_depth_are_the_static_force_integral_and_inverse(law):
     rec = laws.get(law, 1.5)
