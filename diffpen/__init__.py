@@ -32,23 +32,21 @@ def _configure_xla_cpu() -> None:
 
 _configure_xla_cpu()
 
-from . import geometry, integrators, laws, physical  # noqa: E402, stability
-from . import plastic  # registers the plastic-spring term  # noqa: E402
-from . import builders
-from . import rigid, broadphase  # register the rigid-body and broad-phase terms
-from . import autodiff
-from .autodiff import grad, value_and_grad
-from .compile import Simulator, compile
-from .errors import NonFiniteError, SceneError, StabilityError
-from .scene import Scene
-from .state import ContactParams, Params, SpringParams, State, Trajectory
+from . import geometry, integrators, laws, physical, stability  # noqa: E402
+from . import autodiff, broadphase, builders, plastic, rigid, rollout, terms  # noqa: E402
+from .autodiff import grad, value_and_grad  # noqa: E402
+from .compile import Simulator, compile  # noqa: E402
+from .errors import NonFiniteError, SceneError, StabilityError  # noqa: E402
+from .integrators import Integrator  # noqa: E402
+from .scene import Scene  # noqa: E402
+from .state import ContactParams, Params, SpringParams, State, Trajectory  # noqa: E402
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "Scene", "compile", "Simulator", "value_and_grad", "grad",
+    "Scene", "compile", "Simulator", "Integrator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
-    "rigid", "broadphase", "stability", "autodiff",
+    "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

@@ -42,11 +42,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
-from .terms import TERM_BUILDERS, CompileContext, Term, _pair_material
+from .scene import DEFAULT
+from .terms import CompileContext, Term, _pair_material, with_bound
 from .errors import SceneError
 
 __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_overlap",
-           "compact", "grid_candidates", "brute_force_pairs"]
+           "compact", "grid_candidates", "brute_force_pairs", "find_pairs", "TERMS"]
 
 OVERFLOW = "broadphase_overflow"
 #: ``jax.named_scope`` of one pair search (:func:`find_pairs`) in traced programs.
@@ -450,4 +451,33 @@ def warn_overflow(traj) -> None:
                       stacklevel=3)
 
 
-TERM_BUILDERS.append(_broadphase_contact)
+def _broadphase_bound(ctx: CompileContext):
+    """Stability rows of the broad-phase pair term: each sphere's contact with another
+    sphere, one at a time per material (``2 / m``), and the stiffest candidate sphere-box
+    contact per body (rotation included)."""
+    from .rigid import _mobility, _rows_bound, sphere_box_rows
+    scene = ctx.scene
+    bodies = scene.bodies
+    zero = np.zeros(3)
+    spheres = [i for i, b in enumerate(bodies)
+               if b.collide and b.kind == "sphere" and b.radius > 0.0]
+    # O(n): a free sphere's partners use its own material (another sphere of it exists) or
+    # "default" (a sphere of another material exists); pairs with a free end all act
+    count: dict = {}
+    for i in spheres:
+        count[bodies[i].material] = count.get(bodies[i].material, 0) + 1
+    rows = []
+    for i in spheres:
+        if bodies[i].pinned:
+            continue
+        m = bodies[i].material
+        mats = dict.fromkeys(([m] if count[m] > 1 else [])
+                             + ([DEFAULT] if len(spheres) > count[m] else []))
+        rows += [(i, mat, 2.0 * _mobility(scene, i, zero)) for mat in mats]
+    rows += sphere_box_rows(scene)
+    out = _rows_bound(rows, "contact")
+    return () if out is None else (out,)
+
+
+#: The broad-phase pair term builder with its stability bound.
+TERMS: tuple = (with_bound(_broadphase_contact, _broadphase_bound),)

@@ -1,19 +1,22 @@
 """Scene -> simulator: static index arrays, the Params/State pytrees, and a step built from
 ONLY the force terms the scene has.
 
-``diffpen.compile(scene, dt)`` returns a :class:`Simulator` with pure functions
-``step(params, state)``, ``rollout(params, steps)`` and ``forces(params, state)``. The scene's
-structure (bodies, pairs, springs, law, smoothing width, integrator) is static: changing it
-means compiling a new simulator. Parameter values are call-time arguments: changing them, or
-vmapping and differentiating over them, never recompiles.
+``diffpen.compile(scene, dt)`` assembles a :class:`Simulator`, a frozen holder of pure,
+jitted functions ``step(params, state)``, ``rollout(params, steps)`` and
+``forces(params, state)``. The scene's structure (bodies, pairs, springs, law, smoothing
+width, integrator) is static: changing it means compiling a new simulator. Parameter values
+are call-time arguments: changing them, or vmapping and differentiating over them, never
+recompiles.
 
-The force terms live in :mod:`diffpen.terms` (one pair law lifted by ``jax.vmap`` and a
-segment sum); a term the scene does not need is never built, so it is never traced (each term
-runs under its own ``jax.named_scope``, which tests use to prove it).
+The force terms come from ``BUILTIN_TERMS``, one fixed tuple of term builders (core terms of
+:mod:`diffpen.terms`, then :mod:`diffpen.plastic`, :mod:`diffpen.rigid` and
+:mod:`diffpen.broadphase`): its order is the force summation order. A term the scene does
+not need is never built, so it is never traced (each term runs under its own
+``jax.named_scope``, which tests use to prove it). Each term carries its stability bound,
+which :mod:`diffpen.stability` sums; the pure rollout is :func:`diffpen.rollout.rollout`.
 """
 from __future__ import annotations
 
-import functools
 import math
 from typing import Callable
 
@@ -21,15 +24,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import laws
+from . import broadphase as _broadphase
+from . import laws, plastic, rigid
+from . import rollout as _rollout
 from . import stability as _stability
+from . import terms as _terms
 from .errors import NonFiniteError, SceneError
-from .integrators import IMPLICIT, INTEGRATORS, build_step, substepped
+from .integrators import build_step, resolve, substepped
 from .scene import DEFAULT, Scene
 from .state import ContactParams, Params, SpringParams, State, Trajectory
-from .terms import TERM_BUILDERS, CompileContext, Term
+from .terms import CompileContext, Term
 
-__all__ = ["compile", "Simulator", "Term", "CompileContext", "TERM_BUILDERS"]
+__all__ = ["compile", "Simulator", "Term", "CompileContext", "BUILTIN_TERMS"]
+
+#: Every built-in term builder, in force summation order (fixed; nothing is appended on
+#: import). Each returns a Term (carrying its stability bound) or None when the scene does
+#: not need it.
+BUILTIN_TERMS: tuple = (*_terms.CORE, *plastic.TERMS, *rigid.TERMS, *_broadphase.TERMS)
 
 
 # --------------------------------------------------------------------------- simulator
@@ -63,18 +74,25 @@ def _default_width(scene: Scene) -> float:
 
 
 class Simulator:
-    """A compiled scene. Build it with :func:`compile`.
+    """A compiled scene: a frozen holder of pure, jitted functions. Build it with
+    :func:`compile`; its attributes cannot be reassigned.
 
     Attributes:
       scene: the Scene it was built from.  dt: time step, s.  n_bodies: int.
-      law: contact law name.  smoothing: smoothing width used, m.  integrator: name.
+      law: contact law name.  smoothing: smoothing width used, m.
+      integrator: the integrator's name.  substeps: int or "auto".
       materials: contact material names present in some contact pair (params keys).
       spring_groups: spring group names (params keys).
-      terms: names of the force terms this simulator evaluates.
+      terms: names of the force terms this simulator evaluates, in summation order
+        (:meth:`term` gives the :class:`diffpen.terms.Term` records).
       mass: (n_bodies,) kg.  radius: (n_bodies,) m.  pinned: (n_bodies,) bool.
+      context: the :class:`diffpen.terms.CompileContext` the terms were built from.
+      analysis: the :class:`diffpen.stability.Analysis` (the integrator record, the terms'
+        stability bounds).
+      gate_cache: the :class:`diffpen.stability.GateCache` of up-front stability verdicts.
     """
 
-    def __init__(self, scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
+    def __init__(self, scene: Scene, dt: float, *, integrator="semi_implicit_euler",
                  law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
                  exponent: float = 1.0, dtype=None, unroll: int = 1,
                  substeps: int | str = 1, broadphase=None):
@@ -90,9 +108,7 @@ class Simulator:
         if not math.isfinite(dt) or dt <= 0.0:
             raise SceneError(f"dt must be a positive, finite number of seconds, got {dt!r}; "
                              "try dt=1e-3.")
-        if integrator not in INTEGRATORS:
-            raise SceneError(f"unknown integrator {integrator!r}; choose one of "
-                             f"{sorted(INTEGRATORS)}.")
+        method = resolve(integrator)
         try:
             contact_law = laws.get(law, exponent)
         except ValueError as e:
@@ -115,9 +131,10 @@ class Simulator:
                                    or isinstance(substeps, bool) or substeps < 1):
             raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
 
+
         self.scene = scene
         self.dt = dt
-        self.integrator = integrator
+        self.integrator = method.name
         self.law = contact_law.name
         self.contact_law = contact_law
         self.smoothing = width
@@ -176,22 +193,17 @@ class Simulator:
             broadphase=broadphase, step=dt,
             velocity_lag=0.5 if integrator == "semi_implicit_euler" else 0.0)
         if broadphase is not None:
-            from . import broadphase as _broadphase
             _broadphase.check(broadphase, ctx)
-        self._ctx = ctx
+        self.context = ctx
         self.broadphase = broadphase
-        self._rigid = None
-        if scene.has_rotation:
-            from . import rigid
-            self._rigid = rigid.RigidDynamics(ctx)
-        built = (build(ctx) for build in TERM_BUILDERS)
-        self._terms: list[Term] = [t for t in built if t is not None]
+        self._rigid = rigid.RigidDynamics(ctx) if scene.has_rotation else None
+        built = (build(ctx) for build in BUILTIN_TERMS)
+        self._terms: tuple[Term, ...] = tuple(t for t in built if t is not None)
         self.terms = tuple(t.name for t in self._terms)
         self._searching = tuple(t for t in self._terms if t.search is not None)
         self._extra_defaults = dict(ctx.extra_defaults)
         self._extra_checks = dict(ctx.extra_checks)
-        self._aux_updates = list(ctx.aux_updates)
-
+        self._aux_updates = tuple(ctx.aux_updates)
         self._inv_mass = ctx.const(np.where(self.pinned, 0.0, 1.0 / self.mass)[:, None])
         g = np.array(scene.gravity)
         self._gravity = None
@@ -199,30 +211,35 @@ class Simulator:
             free = (~self.pinned).astype(float)[:, None]
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
-        self._step = INTEGRATORS[integrator](functools.partial(self._accel, h=dt), dt)
         self.substeps = substeps if substeps == "auto" else int(substeps)
-        if self.substeps not in (1, "auto") or integrator in IMPLICIT or self._searching:
-            self._step = self._build_step(1 if substeps == "auto" else self.substeps)
-        if self._aux_updates:
-            self._step = self._with_aux_updates(self._step)
-        self._step_jit = jax.jit(self._step)
+        self.analysis = _stability.Analysis(
+            integrator=method, dt=dt, substeps=self.substeps, mass=self.mass.astype(float),
+            pinned=self.pinned.copy(), d_ref=np.maximum(self.radius.astype(float), 1e-3),
+            bounds=tuple(b for t in self._terms for b in t.bound),
+            contact_scale=contact_law.stiffness, dtype=self.dtype)
+        self.gate_cache = _stability.GateCache()
+        self._steps: dict = {}              # substep count -> pure step (built once each)
+        self._step_jit = jax.jit(self.step_function())
+        self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
-                                                     "auto_n", "observe"))
-        self._auto_steps = {}
+                                                     "substeps", "observe"))
+        with jax.ensure_compile_time_eval():            # concrete even if compiled in a trace
+            self._init = self.init_state()              # arrays are immutable: shared
+        self._frozen = True
 
-    def _with_aux_updates(self, step):
-        """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
-        rest lengths, updated from the new positions)."""
-        updates = self._aux_updates
+    def __setattr__(self, name, value):
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"Simulator is frozen: compile a new one instead of setting "
+                                 f"{name!r}.")
+        object.__setattr__(self, name, value)
 
-        def stepped(params, state):
-            state = step(params, state)
-            aux = dict(state.aux)
-            for update in updates:
-                aux.update(update(params, state))
-            return state._replace(aux=aux)
-        return stepped
+    def term(self, name: str) -> Term:
+        """The :class:`diffpen.terms.Term` record named ``name`` (see :attr:`terms`)."""
+        for t in self._terms:
+            if t.name == name:
+                return t
+        raise KeyError(f"this simulator has no term {name!r}; terms: {list(self.terms)}.")
 
     # ------------------------------------------------------------------ parameters
     def params(self, k=None, c=None, *, contact: dict | None = None, spring_k=None,
@@ -295,28 +312,37 @@ class Simulator:
 
     # ------------------------------------------------------------------ state
     def init_state(self) -> State:
-        """The scene's initial state (time 0, positions and velocities as added)."""
+        """The scene's initial state (time 0, positions and velocities as added).
+
+        ``aux`` holds the terms' entries (plastic rest lengths, the broad-phase overflow
+        flag) and ``aux["unstable"]`` (False), the traced stability flag a rollout sets
+        (:mod:`diffpen.stability`)."""
         b = self.scene.bodies
+        ctx = self.context
         q, w = self._rigid.init(b) if self._rigid is not None else (None, None)
+        aux = {k: ctx.const(v) for k, v in ctx.aux_init.items()}
+        aux[_stability.FLAG] = jnp.zeros((), bool)
         return State(time=jnp.zeros((), self.dtype),
-                     position=self._ctx.const([x.position for x in b]),
-                     velocity=self._ctx.const([x.velocity for x in b]),
-                     orientation=q, angular_velocity=w,
-                     aux={k: self._ctx.const(v) for k, v in self._ctx.aux_init.items()})
+                     position=ctx.const([x.position for x in b]),
+                     velocity=ctx.const([x.velocity for x in b]),
+                     orientation=q, angular_velocity=w, aux=aux)
 
     # ------------------------------------------------------------------ dynamics
-    def forces(self, params: Params, state: State, *, found: dict | None = None,
-               h: float | None = None):
+    def forces(self, params: Params, state: State, *, h: float | None = None):
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques
-        (n_bodies, 3) N m, or None for scenes without rotating bodies.
+        (n_bodies, 3) N m, or None for scenes without rotating bodies. Pure; jitted.
 
         ``h``: the integrator's inner step, s. None (default): the instantaneous, pointwise
         forces. Given: contacts apply their force averaged over the step window of length
         ``h`` centred on this state (``diffpen.laws.ContactLaw.averaged``), which is what the
-        step integrates.
+        step integrates (static: a new value recompiles)."""
+        return self._forces_jit(params, state, h=h)
 
-        ``found``: ``{term name: search result}`` already found for this very state (a step
-        passes its own searches); the terms with a search not in it search themselves."""
+    def _forces(self, params: Params, state: State, found: dict | None = None, *,
+                h: float | None = None):
+        """``forces`` unjitted. ``found``: ``{term name: search result}`` already found for
+        this very state (a step passes its own searches); the terms with a search not in it
+        search themselves."""
         f = None
         tau = None
         for term in self._terms:
@@ -331,9 +357,12 @@ class Simulator:
                 tau = tt if tau is None else tau + tt
         return (jnp.zeros_like(state.position) if f is None else f), tau
 
-    def _accel(self, params: Params, state: State, found: dict | None = None, *,
-               h: float | None = None):
-        f, tau = self.forces(params, state, found=found, h=h)
+    def acceleration(self, params: Params, state: State, found: dict | None = None, *,
+                     h: float | None = None):
+        """``(a, alpha)``: linear accelerations (n_bodies, 3) m/s^2 with gravity, and angular
+        accelerations (n_bodies, 3) rad/s^2 (None without rotating bodies). Pure, not jitted:
+        what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`)."""
+        f, tau = self._forces(params, state, found, h=h)
         a = f * self._inv_mass
         if self._gravity is not None:
             with jax.named_scope("gravity"):
@@ -347,14 +376,47 @@ class Simulator:
         """Advance ``state`` by one time step ``dt``. Pure; jitted."""
         return self._step_jit(params, state)
 
+    def step_function(self, substeps: int | None = None):
+        """The pure (unjitted) step ``step(params, state) -> state`` over ``dt`` in
+        ``substeps`` inner steps (default: the simulator's; 1 for "auto"), built once per
+        count: what :meth:`step` jits and :meth:`rollout` scans."""
+        n = substeps if substeps is not None else (
+            self.substeps if isinstance(self.substeps, int) else 1)
+        if n not in self._steps:
+            self._steps[n] = self._build_step(n)
+        return self._steps[n]
+
     def _build_step(self, n: int):
-        """The integrator step over ``dt`` in ``n`` inner steps (diffpen.integrators)."""
-        inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
+        """The integrator step over ``dt`` in ``n`` inner steps of ``h = dt / n``
+        (:mod:`diffpen.integrators`), with the terms' aux updates after each step."""
         h = self.dt / n if n != 1 else self.dt
-        if not self._searching:
-            return build_step(self.integrator, functools.partial(self._accel, h=h), self.dt,
-                              substeps=n, inv_mass=inv_mass)
-        return substepped(self._searching_step(h, inv_mass), n)
+        method = self.analysis.integrator
+        inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
+        if self._searching:
+            step = substepped(self._searching_step(h, inv_mass), n)
+        else:
+            step = build_step(method, self._accel_at(h), self.dt, substeps=n,
+                              inv_mass=inv_mass)
+        return self._with_aux_updates(step) if self._aux_updates else step
+
+    def _accel_at(self, h: float):
+        """``accel_fn(params, state)`` of an integrator whose inner step is ``h`` s."""
+        def accel(params, state):
+            return self.acceleration(params, state, h=h)
+        return accel
+
+    def _with_aux_updates(self, step):
+        """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
+        rest lengths, updated from the new positions)."""
+        updates = self._aux_updates
+
+        def stepped(params, state):
+            state = step(params, state)
+            aux = dict(state.aux)
+            for update in updates:
+                aux.update(update(params, state))
+            return state._replace(aux=aux)
+        return stepped
 
     def _searching_step(self, h: float, inv_mass):
         """One integrator step of ``h`` s that runs each term's ``search`` once, at the state
@@ -363,7 +425,7 @@ class Simulator:
         ``State.aux`` entries. Evaluations at other states (verlet's second, rk4's stages 2-4,
         implicit Euler's Jacobian products) search for themselves."""
         searching = self._searching
-        integrator = self.integrator
+        method = self.analysis.integrator
 
         def step(params, state):
             found = {}
@@ -373,8 +435,9 @@ class Simulator:
 
             def accel(p, s):
                 # the very objects the step got: the integrator evaluates at its start state
-                return self._accel(p, s, found if (s is state and p is params) else None, h=h)
-            new = build_step(integrator, accel, h, inv_mass=inv_mass)(params, state)
+                return self.acceleration(p, s, found if (s is state and p is params) else None,
+                                         h=h)
+            new = build_step(method, accel, h, inv_mass=inv_mass)(params, state)
             aux = dict(new.aux)
             for term in searching:
                 if term.record is not None:
@@ -382,87 +445,43 @@ class Simulator:
             return new._replace(aux=aux)
         return step
 
-    def _auto_step(self, n: int):
-        """Step with ``n`` substeps picked by ``substeps="auto"`` (built once per count)."""
-        if n not in self._auto_steps:
-            step = self._build_step(n)
-            self._auto_steps[n] = (self._with_aux_updates(step) if self._aux_updates
-                                   else step)
-        return self._auto_steps[n]
-
     def stability(self, params: Params):
         """Largest stable step of this integrator for ``params`` and the current margin.
 
         Returns a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
         stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
-        Params must be concrete (not jit tracers).
+        Params must be concrete (not jit tracers): inside jit the rollout's
+        ``State.aux["unstable"]`` flag says the same.
         """
-        rep = _stability.report(self, params)
+        rep = _stability.report(self.analysis, params)
         if rep is None:
             raise SceneError("sim.stability(params) needs concrete parameter values, not "
                              "jit tracers.")
         return rep
 
-    def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, auto_n=1,
+    # ------------------------------------------------------------------ rollout
+    def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, substeps=1,
                       observe=None):
         params = jax.tree_util.tree_map(self._cast, params)
-        step = self._step if auto_n == 1 else self._auto_step(auto_n)
-        # Rematerialise each step in reverse mode: backprop keeps only the state per step and
-        # recomputes the step's intermediates instead of storing them all (measured: 4.6x less
-        # gradient time on the 32x32 cloth, 2.7x on the ball; the forward pass is unchanged).
-        step = jax.checkpoint(step, prevent_cse=False)
-        n_saves = steps // save_every
+        # the traced stability flag: past the safe step for these (possibly traced) values
+        flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
+        old = state.aux.get(_stability.FLAG)
+        flag = flag if old is None else (jnp.asarray(old, bool) | flag)
+        state = state._replace(aux={**state.aux, _stability.FLAG: flag})
+        return _rollout.rollout(self.step_function(substeps), params, state, steps=steps,
+                                save_every=save_every, dt=self.dt, checkpoint=checkpoint,
+                                unroll=self.unroll, observe=observe, dtype=self.dtype)
 
-        def record(s):
-            return s if observe is None else (observe(s), s.aux)
-
-        def inner(s, _):
-            return step(params, s), None
-
-        def outer(s, _):
-            if save_every == 1:
-                s = step(params, s)
-            else:
-                s, _ = jax.lax.scan(inner, s, None, length=save_every, unroll=self.unroll)
-            return s, record(s)
-        unroll = self.unroll if save_every == 1 else 1
-        if checkpoint is None:
-            _, saved = jax.lax.scan(outer, state, None, length=n_saves, unroll=unroll)
-        elif save_every % checkpoint == 0 and checkpoint < save_every:
-            # Three levels: each saved interval is checkpointed, and inside it blocks of
-            # `checkpoint` steps are: reverse mode stores n_saves + save_every / checkpoint +
-            # checkpoint states at most.
-            @jax.checkpoint
-            def block(s, _):
-                return jax.lax.scan(inner, s, None, length=checkpoint, unroll=self.unroll)[0], None
-
-            @jax.checkpoint
-            def interval(s, _):
-                s, _ = jax.lax.scan(block, s, None, length=save_every // checkpoint)
-                return s, record(s)
-            _, saved = jax.lax.scan(interval, state, None, length=n_saves)
-        else:
-            # Blocks of `checkpoint` steps under jax.checkpoint: backprop stores one state per
-            # block and recomputes the block's steps (memory ~ steps / checkpoint + checkpoint).
-            per_block = checkpoint // save_every
-
-            @jax.checkpoint
-            def block(s, _):
-                return jax.lax.scan(outer, s, None, length=per_block, unroll=unroll)
-            _, saved = jax.lax.scan(block, state, None, length=steps // checkpoint)
-            saved = jax.tree_util.tree_map(
-                lambda a: a.reshape((n_saves,) + a.shape[2:]), saved)
-        t = state.time + self.dt * save_every * jnp.arange(1, n_saves + 1, dtype=self.dtype)
-        if observe is not None:
-            observed, aux = saved
-            return Trajectory(t, None, None, None, None, aux, observed)
-        return Trajectory(t, saved.position, saved.velocity, saved.orientation,
-                          saved.angular_velocity, saved.aux)
+    def rollout_cache_size(self) -> int:
+        """How many rollout programs this simulator has compiled (one per static
+        combination of steps, save_every, checkpoint, substeps, observe and argument
+        shapes): a test hook for "does not recompile"."""
+        return self._rollout_jit._cache_size()
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int = 1, check_finite: bool = True,
                 checkpoint: int | None = None, check_stability: bool = True,
-                observe: Callable | None = None) -> Trajectory:
+                observe: Callable | None = None, substeps: int | None = None) -> Trajectory:
         """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
 
         Pure and jitted: works under ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Changing
@@ -482,13 +501,18 @@ class Simulator:
           check_finite: when called with concrete values, raise :class:`NonFiniteError` naming
             the first step and body at which the state became NaN/inf.
           check_stability: with concrete params, raise :class:`StabilityError` before running
-            when an explicit integrator's step is past its stability limit
-            (:meth:`stability`); ``substeps="auto"`` picks the substeps here instead.
+            when an explicit integrator's step is past its safe step (:meth:`stability`);
+            ``substeps="auto"`` picks the substeps here instead. With traced params (jit,
+            vmap, grad) nothing is raised: the rollout sets ``State.aux["unstable"]``
+            (saved in ``Trajectory.aux``) instead, whatever ``check_stability`` says.
           observe: ``observe(state) -> pytree``: save only this at each saved step (in
             ``Trajectory.observed``) instead of whole states, e.g.
             ``lambda s: s.position[:, 2]``: less memory and, for batched sweeps, several
             times faster. Static: pass the same function object each call, a new one
             recompiles.
+          substeps: inner steps per step for this call (static int >= 1; default the
+            simulator's, or the pick of ``substeps="auto"``). A traced rollout of an "auto"
+            simulator needs it.
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
@@ -498,21 +522,23 @@ class Simulator:
                 or steps % save_every):
             raise SceneError(f"save_every must be a positive int dividing steps={steps}, got "
                              f"{save_every!r}.")
+        if substeps is not None and (not isinstance(substeps, (int, np.integer))
+                                     or isinstance(substeps, bool) or substeps < 1):
+            raise SceneError(f"substeps must be a positive int or None, got {substeps!r}.")
         if state is None:
-            if getattr(self, "_init_cache", None) is None:
-                with jax.ensure_compile_time_eval():     # concrete even when traced
-                    self._init_cache = self.init_state()  # arrays are immutable: reuse
-            state = self._init_cache
+            state = self._init
         if checkpoint is not None and (
                 not isinstance(checkpoint, (int, np.integer)) or checkpoint <= 0
                 or steps % checkpoint or (checkpoint % save_every and save_every % checkpoint)):
             raise SceneError(f"checkpoint must be a positive int that divides steps={steps} and "
                              f"is a multiple or a divisor of save_every={save_every}, got "
                              f"{checkpoint!r}.")
-        auto_n = _stability.gate(self, params, check=check_stability)  # host-side only
+        n = _stability.gate(self.analysis, params, check=check_stability,
+                            substeps=None if substeps is None else int(substeps),
+                            cache=self.gate_cache)                # host-side only
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
-                                 auto_n=auto_n, observe=observe)
+                                 substeps=int(n), observe=observe)
         if observe is not None:
             leaves = jax.tree_util.tree_leaves(traj.observed)
             if check_finite and leaves and all(map(_is_concrete, leaves)):
@@ -524,14 +550,12 @@ class Simulator:
                         "a stiffer-stable integrator (roll out without observe= to locate the "
                         "step and body).")
             if self.broadphase is not None and _is_concrete(traj.time):
-                from .broadphase import warn_overflow
-                warn_overflow(traj)
+                _broadphase.warn_overflow(traj)
             return traj
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
         if self.broadphase is not None and _is_concrete(traj.position):
-            from .broadphase import warn_overflow
-            warn_overflow(traj)
+            _broadphase.warn_overflow(traj)
         return traj
 
     def _check_finite(self, traj: Trajectory, save_every: int) -> None:
@@ -556,7 +580,7 @@ class Simulator:
                 f"terms={list(self.terms)})")
 
 
-def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
+def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
             law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
             exponent: float = 1.0,
             dtype=None, unroll: int = 1, substeps: int | str = 1,
@@ -566,7 +590,9 @@ def compile(scene: Scene, dt: float, *, integrator: str = "semi_implicit_euler",
     Args:
       scene: a :class:`diffpen.Scene`.
       dt: time step, s, > 0.
-      integrator: name in ``diffpen.integrators.INTEGRATORS``.
+      integrator: a name in ``diffpen.integrators.INTEGRATORS`` or an
+        :class:`diffpen.integrators.Integrator` record (e.g. one made outside the package:
+        rollouts and the stability analysis use its own step factory and amplification).
       law: contact law: a :class:`diffpen.laws.ContactLaw` record or a name, ``"linear"``
         (default; may pull at separation), ``"no_tension"`` or ``"hunt_crossley"``.
       smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"``

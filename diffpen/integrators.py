@@ -1,26 +1,35 @@
-"""Time integrators, one function per method, all with the same signature.
+"""Time integrators: one step factory per method, all with the same signature, and the
+:class:`Integrator` record that carries everything else about a method.
 
-``integrator(accel_fn, dt) -> step(params, state) -> state``
+``make(accel_fn, h) -> step(params, state) -> state``
 
 ``accel_fn(params, state) -> (a, alpha)`` returns the linear acceleration ``a`` (n, 3) in
 m/s^2 and the angular acceleration ``alpha`` (n, 3) in rad/s^2 (``None`` for scenes without
 rotating bodies). Integrators only move the state with :func:`kick` (velocities) and
 :func:`drift` (positions and orientations), so they work for particles and rigid bodies alike.
 
-``INTEGRATORS`` maps the names accepted by ``diffpen.compile(..., integrator=NAME)`` to
-these functions.
+An :class:`Integrator` holds the step factory, the amplification matrix of one step on a
+damped linear mode (what :mod:`diffpen.stability` analyses; ``None`` for unconditionally
+stable methods) and the number of force evaluations per step. ``BUILTIN`` holds the built-in
+records and ``INTEGRATORS`` maps their names (accepted by ``diffpen.compile(...,
+integrator=NAME)``) to them; a record made elsewhere is passed to ``compile`` as it is (no
+registration).
 """
 from __future__ import annotations
 
-from typing import Callable
+import math
+import types
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .state import State
 
-__all__ = ["kick", "drift", "semi_implicit_euler", "verlet", "rk4", "implicit_euler",
-           "substepped", "build_step", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF"]
+__all__ = ["Integrator", "kick", "drift", "semi_implicit_euler", "verlet", "rk4",
+           "implicit_euler", "backward_euler_amplification", "substepped", "build_step",
+           "resolve", "BUILTIN", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF"]
 
 
 def kick(state: State, acc, h) -> State:
@@ -61,12 +70,6 @@ def semi_implicit_euler(accel_fn: Callable, dt: float):
     def step(params, state: State) -> State:
         return drift(kick(state, accel_fn(params, state), dt), dt)
     return step
-
-
-#: Integrators by name, for ``diffpen.compile(..., integrator=NAME)``.
-INTEGRATORS = {
-    "semi_implicit_euler": semi_implicit_euler,
-}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -296,27 +299,157 @@ def substepped(step_fn: Callable, n: int):
     return step
 
 
-def build_step(name: str, accel_fn: Callable, dt: float, *, substeps: int = 1,
+def build_step(integrator, accel_fn: Callable, dt: float, *, substeps: int = 1,
                inv_mass=None):
-    """``INTEGRATORS[name]`` for a saved step ``dt`` (s) split into ``substeps`` inner steps.
+    """The step of ``integrator`` (a name or an :class:`Integrator`) for a saved step ``dt``
+    (s) split into ``substeps`` inner steps.
 
     ``inv_mass`` ((n,) 1/kg, 0 = pinned) goes to integrators that take it (implicit_euler).
-    With ``substeps == 1`` this is exactly ``INTEGRATORS[name](accel_fn, dt)``.
+    With ``substeps == 1`` this is exactly ``integrator.make(accel_fn, dt)``.
     """
-    make = INTEGRATORS[name]
+    rec = resolve(integrator)
     h = dt / substeps if substeps != 1 else dt
-    if name == "implicit_euler":
-        inner = make(accel_fn, h, inv_mass=inv_mass)
+    if rec.takes_inv_mass:
+        inner = rec.make(accel_fn, h, inv_mass=inv_mass)
     else:
-        inner = make(accel_fn, h)
+        inner = rec.make(accel_fn, h)
     return substepped(inner, substeps)
 
 
-INTEGRATORS.update({
-    "verlet": verlet,
-    "rk4": rk4,
-    "implicit_euler": implicit_euler,
-})
+# --------------------------------------------------------------------------- analysis
+def _mode_matrix(K, C, xp):
+    """``A`` (..., 2, 2) of ``d/dt (x, v) = A (x, v)`` for ``x'' = -K x - C v``."""
+    zero, one = xp.zeros_like(K), xp.ones_like(K)
+    return xp.stack([xp.stack([zero, one], axis=-1), xp.stack([-K, -C], axis=-1)], axis=-2)
 
-#: Integrators that are unconditionally stable on linear springs (no StabilityError).
-IMPLICIT = frozenset({"implicit_euler"})
+
+def _broadcast(K, C, h, xp):
+    if xp is np:
+        return np.broadcast_arrays(np.asarray(K, float), np.asarray(C, float),
+                                   np.asarray(h, float))
+    K, C, h = (xp.asarray(a) for a in (K, C, h))
+    dtype = xp.result_type(K, C, h, float)
+    shape = xp.broadcast_shapes(K.shape, C.shape, h.shape)
+    return tuple(xp.broadcast_to(a.astype(dtype), shape) for a in (K, C, h))
+
+
+def _columns(x1, v1, x2, v2, xp):
+    """Matrix (..., 2, 2) with columns (x1, v1) and (x2, v2)."""
+    return xp.stack([xp.stack([x1, x2], axis=-1), xp.stack([v1, v2], axis=-1)], axis=-2)
+
+
+def semi_implicit_euler_amplification(K, C, h, xp=np):
+    """One semi-implicit Euler step on ``x'' = -K x - C v`` (K 1/s^2, C 1/s, h s; arrays that
+    broadcast): ``v' = v + h a(x, v)``, ``x' = x + h v'``. Returns (..., 2, 2)."""
+    K, C, h = _broadcast(K, C, h, xp)
+    vx, vv = -h * K, 1.0 - h * C                 # v' = vx x + vv v
+    return _columns(1.0 + h * vx, vx, h * vv, vv, xp)
+
+
+def semi_implicit_euler_stable_dt(K, C, xp=np):
+    """Closed-form limit of semi-implicit Euler: ``K h^2 + 2 C h = 4`` (``2 / C`` without
+    stiffness; ``inf`` for K = C = 0)."""
+    if xp is np:
+        K, C = float(K), float(C)
+        if K <= 0.0 and C <= 0.0:
+            return math.inf
+        if K <= 0.0:
+            return 2.0 / C
+        return (-C + math.sqrt(C * C + 4.0 * K)) / K
+    safe_k = xp.where(K > 0.0, K, 1.0)
+    root = (-C + xp.sqrt(C * C + 4.0 * K)) / safe_k
+    dashpot = xp.where(C > 0.0, 2.0 / xp.where(C > 0.0, C, 1.0), xp.inf)
+    return xp.where(K > 0.0, root, dashpot)
+
+
+def verlet_amplification(K, C, h, xp=np):
+    """One velocity-Verlet step (:func:`verlet`, predicted end velocity) on
+    ``x'' = -K x - C v``. Returns (..., 2, 2)."""
+    K, C, h = _broadcast(K, C, h, xp)
+    cols = []
+    for x, v in ((1.0, 0.0), (0.0, 1.0)):
+        vh = v + 0.5 * h * (-K * x - C * v)
+        x1 = x + h * vh
+        v1 = vh + 0.5 * h * (-K * x1 - C * (2.0 * vh - v))
+        cols.append((x1, v1))
+    return _columns(*cols[0], *cols[1], xp)
+
+
+def rk4_amplification(K, C, h, xp=np):
+    """One classical RK4 step on ``x'' = -K x - C v``: ``sum_{j<=4} (h A)^j / j!``."""
+    K, C, h = _broadcast(K, C, h, xp)
+    A = _mode_matrix(K, C, xp)
+    eye = xp.broadcast_to(xp.eye(2, dtype=A.dtype), A.shape)
+    hA = h[..., None, None] * A
+    hA2 = hA @ hA
+    hA3 = hA2 @ hA
+    return eye + hA + hA2 / 2.0 + hA3 / 6.0 + hA3 @ hA / 24.0
+
+
+def backward_euler_amplification(K, C, h, xp=np):
+    """One linearised backward Euler step (:func:`implicit_euler`) on ``x'' = -K x - C v``:
+    ``(1 + h C + h^2 K) dv = -h (K x + C v + h K v)``, ``x' = x + h v'``. Its spectral
+    radius is below 1 for every h > 0 when K, C >= 0 (no step limit), which is why the
+    :class:`Integrator` record of implicit Euler has no amplification."""
+    K, C, h = _broadcast(K, C, h, xp)
+    Kx, Cv = -K, -C
+    denom = 1.0 - h * Cv - h * h * Kx
+    dvx = h * Kx / denom
+    dvv = h * (Cv + h * Kx) / denom
+    return _columns(1.0 + h * dvx, dvx, h * (1.0 + dvv), 1.0 + dvv, xp)
+
+
+class Integrator(NamedTuple):
+    """Everything about one time integration method (a record; no registration needed).
+
+    name: shown in reports and errors.
+    make: ``make(accel_fn, h, **options) -> step(params, state) -> state``, the step of one
+      inner step of ``h`` seconds (:func:`semi_implicit_euler` is the model).
+    amplification: ``amplification(K, C, h, xp=numpy) -> (..., 2, 2)``: the matrix mapping
+      ``(x, v)`` through one step of ``h`` s on the damped mode ``x'' = -K x - C v`` (K in
+      1/s^2, C in 1/s; arrays that broadcast; ``xp`` is numpy or ``jax.numpy``). What
+      :mod:`diffpen.stability` analyses (step limit, traced stability flag). ``None`` for
+      methods stable at every step (implicit ones): no limit, no contact tightening.
+    evaluations: force evaluations per step (``None`` when it varies, e.g. Jacobian products).
+    stable_dt: optional closed form ``stable_dt(K, C, xp=numpy) -> h``, the largest stable
+      step on one mode (else found by bisection on ``amplification``).
+    takes_inv_mass: ``make`` accepts ``inv_mass=`` ((n,) 1/kg, 0 for pinned bodies).
+    """
+    name: str
+    make: Callable
+    amplification: Callable | None
+    evaluations: int | None = 1
+    stable_dt: Callable | None = None
+    takes_inv_mass: bool = False
+
+    @property
+    def explicit(self) -> bool:
+        """Whether the method has a step limit (an amplification matrix to analyse)."""
+        return self.amplification is not None
+
+
+#: The built-in integrators, built once.
+BUILTIN: tuple[Integrator, ...] = (
+    Integrator("semi_implicit_euler", semi_implicit_euler, semi_implicit_euler_amplification,
+               1, stable_dt=semi_implicit_euler_stable_dt),
+    Integrator("verlet", verlet, verlet_amplification, 2),
+    Integrator("rk4", rk4, rk4_amplification, 4),
+    Integrator("implicit_euler", implicit_euler, None, None, takes_inv_mass=True),
+)
+
+#: Built-in integrators by name, for ``diffpen.compile(..., integrator=NAME)`` (read-only).
+INTEGRATORS = types.MappingProxyType({rec.name: rec for rec in BUILTIN})
+
+#: Names of the built-in integrators that are unconditionally stable on linear springs.
+IMPLICIT = frozenset(rec.name for rec in BUILTIN if not rec.explicit)
+
+
+def resolve(integrator) -> Integrator:
+    """The :class:`Integrator` for a built-in name or a record (returned as it is)."""
+    if isinstance(integrator, Integrator):
+        return integrator
+    from .errors import SceneError
+    if isinstance(integrator, str) and integrator in INTEGRATORS:
+        return INTEGRATORS[integrator]
+    raise SceneError(f"unknown integrator {integrator!r}; choose one of {sorted(INTEGRATORS)} "
+                     "or pass a diffpen.integrators.Integrator record.")

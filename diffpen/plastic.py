@@ -31,9 +31,9 @@ import numpy as np
 
 from . import geometry, laws
 from .errors import SceneError
-from .terms import TERM_BUILDERS, CompileContext, Term, _select, scatter
+from .terms import CompileContext, Term, _select, scatter
 
-__all__ = ["rest_update", "AUX_KEY"]
+__all__ = ["rest_update", "AUX_KEY", "TERMS"]
 
 #: ``State.aux`` key of the plastic rest lengths, (m,) metres.
 AUX_KEY = "plastic_rest"
@@ -110,4 +110,5 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
     return Term("plastic_springs", force)
 
 
-TERM_BUILDERS.append(_plastic_springs)
+#: The plastic-spring term builder (no stability bound: its rows are not in the step limit).
+TERMS: tuple = (_plastic_springs,)

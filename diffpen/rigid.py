@@ -30,16 +30,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
-from . import stability as _stability_hooks
-from .terms import (TERM_BUILDERS, CompileContext, Term, _pair_material, _spring_axis, gather,
-                      scatter)
+from .terms import (CompileContext, Term, _pair_material, _spring_axis, gather, scatter,
+                    with_bound)
 from .geometry import rotate, rotate_back
 from .laws import spring_force
-from .stability import _value
+from .stability import Bound
 
 __all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics",
            "anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
-           "contact_materials", "sphere_box_pairs", "stability_bound"]
+           "contact_materials", "sphere_box_pairs", "sphere_box_rows", "TERMS", "BOUND_LABEL"]
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -401,12 +400,17 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
 
 
 # --------------------------------------------------------------------------- stability
-def _mobility(sim, i: int, levers) -> float:
+#: Names the rigid terms' bounds in stability reports (their rows summed per body).
+BOUND_LABEL = ("box contacts, sphere-box contacts, broad-phase pairs or anchored springs "
+               "(rotation included)")
+
+
+def _mobility(scene, i: int, levers) -> float:
     """Bound on ``J M^-1 J^T`` (1/kg) of a unit force of any direction n at body-frame
     point(s) ``levers`` (k, 3) m of body i: ``1/m + max (r x n)^T I^-1 (r x n)``, the largest
     eigenvalue of ``[r]x^T diag(1/I) [r]x`` over the given points (0 for pinned bodies; no
     rotation term for bodies that do not rotate or forces through the centre)."""
-    body = sim.scene.bodies[i]
+    body = scene.bodies[i]
     if body.pinned:
         return 0.0
     rot = 0.0
@@ -433,103 +437,101 @@ def _face_mobility(body) -> float:
     return best
 
 
-def _structure(sim):
-    """Static rows ``(body, kind, key, weight)`` of the rigid terms' stiffness bounds:
-    ``kind`` "c" (contact, key = material) or "s" (spring, key = group), weight in 1/kg;
-    "f" (friction of material key below its slip speed), weight in 1/s per unit mu."""
-    cached = getattr(sim, "_rigid_stability_rows", None)
-    if cached is not None:
-        return cached
-    scene, terms, rows = sim.scene, set(sim.terms), []
-    bodies = scene.bodies
+def _rows_bound(rows, param: str):
+    """A mobility-weighted :class:`diffpen.stability.Bound` (the same weight on k and c) from
+    rows ``(body, name, weight 1/kg)``."""
+    return Bound.of([(b, key, w, w, BOUND_LABEL) for b, key, w in rows], param,
+                    per_mass=False, label=BOUND_LABEL)
 
+
+def _pair_rows(scene, i, j, key, lever_i, lever_j, count=1):
+    """Rows of ONE contact or spring between bodies i and j (None: the world): its eigenvalue
+    bound ``k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T)`` counted on both free ends."""
+    w = count * (_mobility(scene, i, lever_i)
+                 + (_mobility(scene, j, lever_j) if j is not None else 0.0))
+    return [(b, key, w * (2.0 if j is not None else 1.0)) for b in (i, j)
+            if b is not None and not scene.bodies[b].pinned]
+
+
+def _friction_row(scene, i: int, material: str, levers):
+    """Friction below the slip speed is viscous: ``mu m |g| / s`` (at least 1 g) per body,
+    as a damping rate weight (1/s per unit mu)."""
+    b, mat = scene.bodies[i], scene.materials[material]
+    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+    return (i, material, load / mat.slip_speed * _mobility(scene, i, levers))
+
+
+def _box_plane_bound(ctx: CompileContext):
+    """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
+    scene, contact, friction = ctx.scene, [], []
+    for i in _box_rows(ctx):
+        b = scene.bodies[i]
+        for pl in scene.planes:
+            contact.append((i, pl.material, _face_mobility(b)))
+            if scene.materials[pl.material].friction > 0.0:
+                friction.append(_friction_row(scene, i, pl.material,
+                                              geometry.box_corners(b.half_extents)))
+    return tuple(x for x in (_rows_bound(contact, "contact"),
+                             _rows_bound(friction, "friction")) if x is not None)
+
+
+def _sphere_plane_friction_bound(ctx: CompileContext):
+    scene = ctx.scene
+    rows = [_friction_row(scene, i, pl.material, (0.0, 0.0, b.radius))
+            for i, b in enumerate(scene.bodies)
+            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+            for pl in scene.planes if scene.materials[pl.material].friction > 0.0]
+    out = _rows_bound(rows, "friction")
+    return () if out is None else (out,)
+
+
+def _box_fixed_sphere_bound(ctx: CompileContext):
+    scene, rows = ctx.scene, []
+    for i in _box_rows(ctx):
+        corners = geometry.box_corners(scene.bodies[i].half_extents)
+        for fs in scene.fixed_spheres:
+            rows += _pair_rows(scene, i, None, fs.material, corners, np.zeros(3))
+    out = _rows_bound(rows, "contact")
+    return () if out is None else (out,)
+
+
+def sphere_box_rows(scene):
+    """Candidate sphere-box contacts, one at a time: the stiffest per (body, material)
+    (``_pair_rows`` of every pair, with each body's mobility computed once)."""
+    best, mob = {}, {}
     zero = np.zeros(3)
 
-    def corners(i):
-        return geometry.box_corners(bodies[i].half_extents)
-
-    one_at_a_time = {}       # candidate sphere-box contacts: the stiffest one per body
-
-    def pair(i, j, kind, key, lever_i, lever_j, count=1, weight=None, candidate=False):
-        # one row's eigenvalue k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T), counted on both ends
-        w = weight if weight is not None else count * (
-            _mobility(sim, i, lever_i) + (_mobility(sim, j, lever_j) if j is not None else 0.0))
+    def mobility(i, box):
+        if (i, box) not in mob:
+            levers = geometry.box_corners(scene.bodies[i].half_extents) if box else zero
+            mob[i, box] = _mobility(scene, i, levers)
+        return mob[i, box]
+    for i, j, mat in sphere_box_pairs(scene):
+        w = 2.0 * (mobility(i, False) + mobility(j, True))
         for b in (i, j):
-            if b is not None and not bodies[b].pinned:
-                row_w = w * (2.0 if j is not None else 1.0)
-                if candidate:
-                    one_at_a_time[b, key] = max(one_at_a_time.get((b, key), 0.0), row_w)
-                else:
-                    rows.append((b, kind, key, row_w))
-    for i, b in enumerate(bodies):
-        if b.kind != "box" or not b.collide or b.pinned:
-            continue
-        if "contact_box_plane" in terms:
-            for pl in scene.planes:          # up to the 4 corners of a face at once
-                pair(i, None, "c", pl.material, None, None, weight=_face_mobility(b))
-                mat = scene.materials[pl.material]
-                if mat.friction > 0.0:       # load ~ m |g| (at least 1 g) over slip speed
-                    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
-                    rows.append((i, "f", pl.material,
-                                 load / mat.slip_speed * _mobility(sim, i, corners(i))))
-        if "contact_box_fixed_sphere" in terms:
-            for fs in scene.fixed_spheres:
-                pair(i, None, "c", fs.material, corners(i), zero)
-    if "friction_sphere_plane" in terms:
-        for i, b in enumerate(bodies):
-            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned:
-                for pl in scene.planes:
-                    mat = scene.materials[pl.material]
-                    if mat.friction > 0.0:
-                        load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
-                        rows.append((i, "f", pl.material, load / mat.slip_speed
-                                     * _mobility(sim, i, (0.0, 0.0, b.radius))))
-    if {"contact_sphere_box", "contact_broadphase"} & terms:
-        for i, j, mat in sphere_box_pairs(scene):
-            pair(i, j, "c", mat, zero, corners(j), candidate=True)
-    if "contact_broadphase" in terms:       # sphere-sphere pairs (the core term is left out)
-        spheres = [i for i, b in enumerate(bodies)
-                   if b.collide and b.kind == "sphere" and b.radius > 0.0]
-        for i in spheres:
-            mats = {_pair_material(scene, bodies[i].material, bodies[j].material)
-                    for j in spheres if j != i and not (bodies[i].pinned and bodies[j].pinned)}
-            for m in mats:                  # one contact at a time, as the core bound
-                pair(i, None, "c", m, zero, zero, count=2)
-    if "anchored_springs" in terms:
-        for sp in scene.anchored_springs:
-            pair(sp.a, sp.b, "s", sp.group, sp.anchor_a, sp.anchor_b)
-    rows += [(b, "c", key, w) for (b, key), w in one_at_a_time.items()]
-    sim._rigid_stability_rows = rows
-    return rows
+            if not scene.bodies[b].pinned:
+                best[b, mat] = max(best.get((b, mat), 0.0), w)
+    return [(b, key, w) for (b, key), w in best.items()]
 
 
-def stability_bound(sim, params):
-    """``EXTRA_BOUNDS`` hook of :mod:`diffpen.stability`: per-body bounds (n,) on the
-    stiffness (1/s^2) and damping (1/s) rates that box contacts, sphere-box contacts,
-    broad-phase pairs and anchored springs add, including their rotation (``r^2 / I``).
-    Zeros for scenes without these terms; None when a parameter is an abstract tracer."""
-    n = sim.n_bodies
-    k_row, c_row = np.zeros(n), np.zeros(n)
-    rows = _structure(sim) if (sim.scene.has_rotation or "contact_broadphase" in sim.terms) \
-        else []
-    for body, kind, key, weight in rows:
-        if kind == "f":     # friction below the slip speed: viscous, mu m |g| / s per body
-            mu = _value(params.extra["friction"][key])
-            if mu is None:
-                return None
-            c_row[body] += weight * float(np.max(mu))
-            continue
-        p = params.contact[key] if kind == "c" else params.springs[key]
-        k, c = _value(p.k), _value(p.c)
-        if k is None or c is None:
-            return None
-        k_row[body] += weight * float(np.max(k))
-        c_row[body] += weight * float(np.max(c))
-    return k_row, c_row
+def _sphere_box_bound(ctx: CompileContext):
+    out = _rows_bound(sphere_box_rows(ctx.scene), "contact")
+    return () if out is None else (out,)
 
 
-TERM_BUILDERS.extend([_box_plane_contact, _sphere_plane_friction, _box_fixed_sphere_contact,
-                      _sphere_box_contact, _anchored_springs])
-stability_bound.label = ("box contacts, sphere-box contacts, broad-phase pairs or anchored "
-                         "springs (rotation included)")
-_stability_hooks.EXTRA_BOUNDS.append(stability_bound)
+def _anchored_bound(ctx: CompileContext):
+    scene, rows = ctx.scene, []
+    for sp in scene.anchored_springs:
+        rows += _pair_rows(scene, sp.a, sp.b, sp.group, sp.anchor_a, sp.anchor_b)
+    out = _rows_bound(rows, "springs")
+    return () if out is None else (out,)
+
+
+#: The rigid-body term builders with their stability bounds, in force summation order.
+TERMS: tuple = (
+    with_bound(_box_plane_contact, _box_plane_bound),
+    with_bound(_sphere_plane_friction, _sphere_plane_friction_bound),
+    with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound),
+    with_bound(_sphere_box_contact, _sphere_box_bound),
+    with_bound(_anchored_springs, _anchored_bound),
+)

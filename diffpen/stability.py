@@ -17,9 +17,10 @@ stiffest contact it can make: a plane, a fixed sphere, or another sphere, counte
 rows). One contact per body is exact for a body on a floor, in a corner of mutually
 orthogonal planes, or in a two-sphere collision; a sphere squeezed by several spheres at once
 can need a smaller step (``packed_dt`` reports that bound, with up to 12 sphere neighbours).
-Force terms added by extensions are not included unless they append a function to
-``EXTRA_BOUNDS``; in particular the rotational modes of rigid bodies (a contact at a lever arm
-r adds about k r^2 / I, up to ~3 k / m for a box corner) are not bounded here.
+Each force term carries its own rows of these bounds (a :class:`Bound` on its
+:class:`diffpen.terms.Term`): this module only sums them, so a new term brings its bound with
+it (the rigid-body terms' rows include rotation: a contact at a lever arm r adds about
+k r^2 / I, up to ~3 k / m for a box corner). A term without a bound adds nothing.
 
 Rollouts of explicit integrators are held to a *safe* step (``safe_dt``): the stability limit,
 tightened to ``w_c h <= SAFE_WH = 0.5`` and ``C_c h <= SAFE_CH = 1`` for the contact springs
@@ -27,104 +28,87 @@ tightened to ``w_c h <= SAFE_WH = 0.5`` and ``C_c h <= SAFE_CH = 1`` for the con
 contact that switches on or off between steps injects energy ~ (w h)^2 / 4 (see SAFE_WH).
 Past it, ``Simulator.rollout`` raises StabilityError naming the safe step and the substeps
 that reach it; ``substeps="auto"`` picks that count instead.
+
+Traced stability: the same rows and limits are also evaluated inside the traced rollout
+(:func:`unsafe`, with ``jax.numpy``), so a rollout under ``jax.jit``, ``jax.vmap`` or
+``jax.grad`` (where the up-front check cannot see the parameter values) records in
+``State.aux["unstable"]`` (``FLAG``) whether its step is past the safe step for the
+parameter values it was given. The flag is sticky and saved in ``Trajectory.aux``.
 """
 from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
 from .errors import SceneError, StabilityError
-from .integrators import IMPLICIT
+from .integrators import Integrator, resolve
 
 __all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH", "SAFE_CH",
-           "scene_rates",
-           "StabilityReport", "report", "gate", "EXTRA_BOUNDS", "MAX_AUTO_SUBSTEPS"]
-
-#: Hooks ``f(sim, params) -> (K_row (n,), C_row (n,))`` (1/s^2, 1/s) added to the core bounds;
-#: a hook's ``label`` attribute names it in reports when it sets a body's limit.
-EXTRA_BOUNDS: list[Callable] = []
+           "Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG",
+           "StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
 
 #: ``substeps="auto"`` refuses to pick more inner steps than this (the run would be too slow).
 MAX_AUTO_SUBSTEPS = 100_000
 
-_KISSING = 12  # most equal spheres that can touch one sphere at once
+#: ``State.aux`` key of the traced stability flag: a bool scalar, True once a rollout ran a
+#: step past the safe step for its parameter values (sticky).
+FLAG = "unstable"
 
 
 # --------------------------------------------------------------------------- one mode
-def mode_amplification(integrator: str, K, C, h):
-    """Amplification matrix (..., 2, 2) of one step of ``integrator`` on ``x'' = -K x - C v``.
+def mode_amplification(integrator, K, C, h):
+    """Amplification matrix (..., 2, 2) of one step of ``integrator`` (a name or an
+    :class:`diffpen.integrators.Integrator`) on ``x'' = -K x - C v``.
 
     Args: K (1/s^2), C (1/s), h (s): arrays that broadcast. Maps (x, v) -> (x', v').
-    Mirrors diffpen.integrators exactly (tests compare against the JAX steps).
+    It is the integrator record's own ``amplification`` (tests compare it against the JAX
+    steps). Raises SceneError for methods without a step limit (no amplification).
     """
-    K, C, h = np.broadcast_arrays(np.asarray(K, float), np.asarray(C, float),
-                                  np.asarray(h, float))
-    A = np.zeros(K.shape + (2, 2))
-    A[..., 0, 1] = 1.0
-    A[..., 1, 0] = -K
-    A[..., 1, 1] = -C
-    eye = np.broadcast_to(np.eye(2), A.shape)
-    hA = h[..., None, None] * A
-    if integrator == "semi_implicit_euler":
-        # v' = v + h a(x, v); x' = x + h v'
-        kick = eye + h[..., None, None] * (A * np.array([[0, 0], [1, 1]]))
-        drift = eye + h[..., None, None] * np.array([[0.0, 1.0], [0.0, 0.0]])
-        return drift @ kick
-    if integrator == "verlet":
-        # v+ = v + h/2 a(x, v); x' = x + h v+; v' = v+ + h/2 a(x', 2 v+ - v)
-        out = np.zeros(K.shape + (2, 2))
-        for col, (x, v) in enumerate(((1.0, 0.0), (0.0, 1.0))):
-            vh = v + 0.5 * h * (-K * x - C * v)
-            x1 = x + h * vh
-            v1 = vh + 0.5 * h * (-K * x1 - C * (2.0 * vh - v))
-            out[..., 0, col] = x1
-            out[..., 1, col] = v1
-        return out
-    if integrator == "rk4":
-        hA2 = hA @ hA
-        hA3 = hA2 @ hA
-        return eye + hA + hA2 / 2.0 + hA3 / 6.0 + hA3 @ hA / 24.0
-    if integrator == "implicit_euler":
-        # (I - h A_v - h^2 A_x) dv = h (a + h A_x v); x' = x + h v'
-        Kx, Cv = -K, -C
-        denom = 1.0 - h * Cv - h * h * Kx
-        out = np.zeros(K.shape + (2, 2))
-        # dv = h (Kx x + Cv v + h Kx v) / denom
-        dvx = h * Kx / denom
-        dvv = h * (Cv + h * Kx) / denom
-        out[..., 1, 0] = dvx
-        out[..., 1, 1] = 1.0 + dvv
-        out[..., 0, 0] = 1.0 + h * dvx
-        out[..., 0, 1] = h * (1.0 + dvv)
-        return out
-    raise SceneError(f"no stability analysis for integrator {integrator!r}.")
+    rec = resolve(integrator)
+    if rec.amplification is None:
+        raise SceneError(f"integrator {rec.name!r} has no step limit (no amplification "
+                         "matrix to analyse).")
+    return rec.amplification(K, C, h)
 
 
 def _spectral_radius(M):
     return np.max(np.abs(np.linalg.eigvals(M)), axis=-1)
 
 
-@functools.lru_cache(maxsize=4096)
-def mode_stable_dt(integrator: str, K: float, C: float) -> float:
-    """Largest step h (s) for which ``integrator`` is stable on ``x'' = -K x - C v``.
+def _spectral_radius_2x2(M, xp):
+    """Spectral radius of (..., 2, 2) matrices from their trace and determinant (traceable)."""
+    tr = M[..., 0, 0] + M[..., 1, 1]
+    det = M[..., 0, 0] * M[..., 1, 1] - M[..., 0, 1] * M[..., 1, 0]
+    disc = tr * tr - 4.0 * det
+    root = xp.sqrt(xp.abs(disc))
+    real = 0.5 * xp.maximum(xp.abs(tr + root), xp.abs(tr - root))
+    return xp.where(disc >= 0.0, real, xp.sqrt(xp.abs(det)))
 
-    ``inf`` for implicit integrators or a mode with K = C = 0. Found by bisection on the
-    spectral radius of :func:`mode_amplification` (stable: radius <= 1 + 1e-9), starting from
-    the closed-form undamped / pure-dashpot limits; exact for semi-implicit Euler.
+
+def mode_stable_dt(integrator, K: float, C: float) -> float:
+    """Largest step h (s) for which ``integrator`` (a name or an
+    :class:`diffpen.integrators.Integrator`) is stable on ``x'' = -K x - C v``.
+
+    ``inf`` for methods without amplification (implicit) or a mode with K = C = 0. The
+    integrator's closed form when it has one (semi-implicit Euler: exact), else found by
+    bisection on the spectral radius of its amplification matrix (stable: radius <= 1 + 1e-9),
+    starting from the closed-form undamped / pure-dashpot limits.
     """
-    K, C = float(K), float(C)
-    if integrator in IMPLICIT or (K <= 0.0 and C <= 0.0):
+    return _mode_stable_dt(resolve(integrator), float(K), float(C))
+
+
+@functools.lru_cache(maxsize=4096)
+def _mode_stable_dt(rec: Integrator, K: float, C: float) -> float:
+    if rec.amplification is None or (K <= 0.0 and C <= 0.0):
         return math.inf
-    if integrator == "semi_implicit_euler":
-        if K <= 0.0:
-            return 2.0 / C
-        return (-C + math.sqrt(C * C + 4.0 * K)) / K      # K h^2 + 2 C h = 4
+    if rec.stable_dt is not None:
+        return float(rec.stable_dt(K, C))
 
     def unstable(h):
-        return _spectral_radius(mode_amplification(integrator, K, C, h)) > 1.0 + 1e-9
+        return _spectral_radius(rec.amplification(K, C, h)) > 1.0 + 1e-9
     guess = min(2.0 / math.sqrt(K) if K > 0 else math.inf, 2.0 / C if C > 0 else math.inf)
     lo, hi = 0.0, guess
     while not unstable(hi):
@@ -133,7 +117,7 @@ def mode_stable_dt(integrator: str, K: float, C: float) -> float:
             return math.inf
     # first crossing below hi: scan down in a fine log grid, then bisect
     grid = np.geomspace(guess * 1e-3, hi, 400)
-    bad = _spectral_radius(mode_amplification(integrator, K, C, grid)) > 1.0 + 1e-9
+    bad = _spectral_radius(rec.amplification(K, C, grid)) > 1.0 + 1e-9
     first = int(np.argmax(bad))
     lo, hi = (grid[first - 1] if first > 0 else 0.0), grid[first]
     for _ in range(60):
@@ -145,7 +129,7 @@ def mode_stable_dt(integrator: str, K: float, C: float) -> float:
     return lo
 
 
-def stable_dt(integrator: str, K: float, C: float) -> float:
+def stable_dt(integrator, K: float, C: float) -> float:
     """Largest stable step (s) of ``integrator`` for a scene whose largest mode rates are
     bounded by K (1/s^2) and C (1/s): the smallest of the mode limits at (K, C), (K, 0) and
     (0, C), since the stiffest and the most damped modes need not be the same."""
@@ -156,9 +140,10 @@ def stable_dt(integrator: str, K: float, C: float) -> float:
 
 
 #: Explicit integrators are held to ``w_c h <= SAFE_WH`` and ``C_c h <= SAFE_CH`` for the
-#: contact springs (w_c^2 = k_contact / m, C_c = c_contact / m) besides linear stability. Linear stability alone (w h < 2 for semi-implicit Euler) is not enough
-#: with penalty contact: a contact switches on and off between steps, and the work done by a
-#: force held over a step while the body crosses the contact boundary grows like
+#: contact springs (w_c^2 = k_contact / m, C_c = c_contact / m) besides linear stability.
+#: Linear stability alone (w h < 2 for semi-implicit Euler) is not enough with penalty
+#: contact: a contact switches on and off between steps, and the work done by a force held
+#: over a step while the body crosses the contact boundary grows like
 #: ``(w h)^2 / 4`` of the energy (measured on a ball at 10 m/s and on a ball released from a
 #: full-radius overlap: 6% at w h = 0.5, 2% at 0.3, 0.2% at 0.1 for semi-implicit Euler, and
 #: up to 470% for velocity Verlet at w h = 1.9). ``C h <= 1`` keeps dashpots from overshooting
@@ -167,13 +152,13 @@ SAFE_WH = 0.5
 SAFE_CH = 1.0
 
 
-def safe_dt(integrator: str, Kc: float, Cc: float, stable: float) -> float:
+def safe_dt(integrator, Kc: float, Cc: float, stable: float) -> float:
     """Largest inner step (s) the rollout accepts: the stability limit ``stable`` (s),
     tightened for explicit integrators to ``sqrt(Kc) h <= SAFE_WH`` and ``Cc h <= SAFE_CH``
     where Kc (1/s^2), Cc (1/s) bound the contact springs alone (springs that never switch
     off need linear stability only)."""
     sdt, K, C = stable, Kc, Cc
-    if integrator in IMPLICIT:
+    if not resolve(integrator).explicit:
         return sdt
     cands = [sdt]
     if K > 0.0:
@@ -197,183 +182,269 @@ def _value(x):
     return np.asarray(x, dtype=float)
 
 
-class _Structure(NamedTuple):
-    """Static part of the bounds, built once per simulator: rows are contributions."""
-    spring_rows: tuple      # (body (m,), group index (m,), factor (m,))
-    contact_rows: tuple     # (body, material index, factor, label index, neighbour count)
-    labels: list            # text of each source
-    spring_labels: list
-    d_ref: np.ndarray       # (n,) m, Hunt-Crossley reference penetration
+class Bound(NamedTuple):
+    """Static rows of one force term's Gershgorin bounds on ``M^-1 K`` and ``M^-1 C``
+    (physics-notes.md section 4), carried by the term (:class:`diffpen.terms.Term`).
+
+    Row r adds ``k_weight[r] * k`` and ``c_weight[r] * c`` of its parameter to the stiffness
+    (1/s^2) and damping (1/s) rows of body ``body[r]``.
+
+    body: (m,) int body indices.
+    param: ``"contact"`` (params.contact), ``"springs"`` (params.springs), or the name of a
+      ``Params.extra`` entry whose values act as damping (``"friction"``: mu, with
+      ``c_weight`` in 1/s per unit mu and no stiffness).
+    names: the material / group names that ``key`` indexes.  key: (m,) int.
+    k_weight, c_weight: (m,): dimensionless factors when ``per_mass`` (the row is divided by
+      its body's mass), else mobilities in 1/kg that include rotation (``r^2 / I``).
+    per_mass: see above.
+    combine: ``"sum"`` (rows add), or ``"contact"``: one contact at a time: a body's contact
+      rows of every term give their largest (the stiffest contact it can make), scaled by the
+      contact law's stiffness at a reference depth, and counted in the contact rates that set
+      the safe step (``SAFE_WH``).
+    packed: (m,) multiplicities for the packed bound (every candidate neighbour touching at
+      once; 0 for rows that stay one at a time), or None.
+    labels: (m,) what each row is, in words (names the limit in reports).
+    label: one text for all the rows of the block (their per-body sum names the limit), or
+      None (then ``labels``).
+    """
+    body: np.ndarray
+    param: str
+    names: tuple
+    key: np.ndarray
+    k_weight: np.ndarray
+    c_weight: np.ndarray
+    per_mass: bool = True
+    combine: str = "sum"
+    packed: np.ndarray | None = None
+    labels: tuple = ()
+    label: str | None = None
+
+    @staticmethod
+    def of(rows, param: str, **kw) -> "Bound | None":
+        """A Bound from rows ``(body, name, k_weight, c_weight, label)``, or None if empty."""
+        if not rows:
+            return None
+        names = tuple(dict.fromkeys(r[1] for r in rows))
+        packed = kw.pop("packed", None)
+        return Bound(np.array([r[0] for r in rows], dtype=int), param, names,
+                     np.array([names.index(r[1]) for r in rows], dtype=int),
+                     np.array([r[2] for r in rows], dtype=float),
+                     np.array([r[3] for r in rows], dtype=float),
+                     packed=None if packed is None else np.asarray(packed, dtype=float),
+                     labels=tuple(r[4] for r in rows), **kw)
 
 
-def _structure(sim) -> _Structure:
-    cached = getattr(sim, "_stability_structure", None)
-    if cached is not None:
-        return cached
-    scene = sim.scene
-    n = sim.n_bodies
-    pinned = np.asarray(sim.pinned)
-    radius = np.asarray(sim.radius, float)
-    groups = list(sim.spring_groups)
-    sb, sg, sf = [], [], []
-    for s in scene.springs:
-        ends = [s.a] if s.b is None else [s.a, s.b]
-        both_free = s.b is not None and not pinned[s.a] and not pinned[s.b]
-        for i in ends:
-            if not pinned[i]:
-                sb.append(i)
-                sg.append(groups.index(s.group))
-                sf.append(2.0 if both_free else 1.0)
-    mats = list(sim.materials)
-    labels: list[str] = []
-    cb, cm, cf, cl = [], [], [], []
-    collide = np.array([b.collide for b in scene.bodies])
-    terms = set(sim.terms)
+class Analysis(NamedTuple):
+    """Static data of one simulator's stability analysis (built by ``diffpen.compile``).
 
-    cmult = []
+    integrator: :class:`diffpen.integrators.Integrator`.  dt: saved step, s.
+    substeps: the simulator's inner steps per step (int), or "auto".
+    mass: (n,) kg.  pinned: (n,) bool.  d_ref: (n,) m, reference penetration of each body
+      (its radius, at least 1 mm) for contact laws whose stiffness grows with depth.
+    bounds: every term's :class:`Bound` blocks, in term order.
+    contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
+      and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
+    dtype: the simulator's float dtype.
+    """
+    integrator: Integrator
+    dt: float
+    substeps: Any
+    mass: np.ndarray
+    pinned: np.ndarray
+    d_ref: np.ndarray
+    bounds: tuple
+    contact_scale: Callable | None
+    dtype: Any
 
-    def add(i, mat, factor, label, mult=1):
-        cb.append(i)
-        cm.append(mats.index(mat))
-        cf.append(factor)
-        cl.append(len(labels))
-        cmult.append(mult)
-        labels.append(label)
-    for i in range(n):
-        if pinned[i] or not collide[i]:
-            continue
-        if "contact_plane" in terms:
-            for p_i, pl in enumerate(scene.planes):
-                add(i, pl.material, 1.0, f"contact with plane {p_i} (material {pl.material!r})")
-        if "contact_fixed_sphere" in terms:
-            for s_i, fs in enumerate(scene.fixed_spheres):
-                add(i, fs.material, 1.0,
-                    f"contact with fixed sphere {s_i} (material {fs.material!r})")
-    if "contact_sphere_sphere" in terms:
-        # O(n): a sphere's candidate partners are the other colliding spheres; a pair uses
-        # their shared material, else "default"; counted twice (both rows) when both are free
-        from .scene import DEFAULT
-        spheres = [i for i in range(n) if collide[i] and radius[i] > 0.0
-                   and scene.bodies[i].kind == "sphere"]
-        count, free_count = {}, {}
-        for i in spheres:
-            m = scene.bodies[i].material
-            count[m] = count.get(m, 0) + 1
-            free_count[m] = free_count.get(m, 0) + (0 if pinned[i] else 1)
-        total, total_free = len(spheres), sum(free_count.values())
-        for i in spheres:
-            if pinned[i]:
-                continue
-            m = scene.bodies[i].material
-            same, same_free = count[m] - 1, free_count[m] - 1
-            other, other_free = total - count[m], total_free - free_count[m]
-            n_same = min(same, _KISSING)
-            if same > 0:
-                add(i, m, 2.0 if same_free > 0 else 1.0,
-                    f"contact between sphere {i} and another sphere (material {m!r})", n_same)
-            if other > 0:
-                add(i, DEFAULT, 2.0 if other_free > 0 else 1.0,
-                    f"contact between sphere {i} and a sphere of another material",
-                    min(other, _KISSING - n_same))
-    arr = lambda x, t=float: np.array(x, dtype=t)  # noqa: E731
-    out = _Structure((arr(sb, int), arr(sg, int), arr(sf)),
-                     (arr(cb, int), arr(cm, int), arr(cf), arr(cl, int), arr(cmult)), labels,
-                     [f"spring group {g!r}" for g in groups], np.maximum(radius, 1e-3))
-    sim._stability_structure = out
-    return out
+    @property
+    def inner_dt(self) -> float:
+        """dt / substeps (s), with one substep for "auto"."""
+        return self.dt / (self.substeps if isinstance(self.substeps, int) else 1)
 
 
-def _values(pairs: list):
-    """(k (m,), c (m,)) max over any batch axis, or None when some value is abstract."""
+class Rates(NamedTuple):
+    """Gershgorin rows per body: K_row (n,) 1/s^2 of ``M^-1 K``, C_row (n,) 1/s of
+    ``M^-1 C``; Kc, Cc (n,) the contact parts alone; ``source(i)`` names what sets body i's
+    stiffest entry (numpy evaluation only, else None)."""
+    K_row: Any
+    C_row: Any
+    Kc: Any
+    Cc: Any
+    source: Callable | None
+
+
+def _block_values(block: Bound, params, xp):
+    """(k (p,) or None, c (p,)) of the block's parameters, each the max over any batch axis,
+    or None when some value is abstract (numpy evaluation)."""
+    if block.param == "contact":
+        pairs = [params.contact[n] for n in block.names]
+    elif block.param == "springs":
+        pairs = [params.springs[n] for n in block.names]
+    else:
+        pairs = [(None, params.extra[block.param][n]) for n in block.names]
     ks, cs = [], []
     for k, c in pairs:
-        k, c = _value(k), _value(c)
-        if k is None or c is None:
-            return None
-        ks.append(float(np.max(k)))
-        cs.append(float(np.max(c)))
-    return np.array(ks), np.array(cs)
-
-
-def scene_rates(sim, params, *, packed: bool = False):
-    """Gershgorin rows of ``M^-1 K`` (1/s^2) and ``M^-1 C`` (1/s) per body, with the source
-    of each row's largest stiffness, or None when some parameter is an abstract tracer.
-
-    Returns ``(K_row (n,), C_row (n,), source, Kc (n,), Cc (n,))``; pinned bodies have rows 0;
-    ``source(i)`` names what sets body i's stiffest entry; ``Kc``, ``Cc`` are the contact
-    parts alone (1/s^2, 1/s).
-    ``packed=True`` counts every candidate sphere neighbour (at most 12) instead of one.
-    """
-    st = _structure(sim)
-    n = sim.n_bodies
-    mass = np.asarray(sim.mass, float)
-    kr, cr = np.zeros(n), np.zeros(n)
-    best_spring, best_contact = np.zeros(n), np.zeros(n)
-    spring_k = contact_k = None
-    ck, ccr = np.zeros(n), np.zeros(n)
-    sb, sg, sf = st.spring_rows
-    if sb.size:
-        vals = _values([params.springs[g] for g in sim.spring_groups])
-        if vals is None:
-            return None
-        kk, cc = sf * vals[0][sg], sf * vals[1][sg]
-        np.add.at(kr, sb, kk)
-        np.add.at(cr, sb, cc)
-        np.maximum.at(best_spring, sb, kk)
-        spring_k = kk
-    cb, cm, cf, cl, cmult = st.contact_rows
-    if cb.size:
-        vals = _values([params.contact[m] for m in sim.materials])
-        if vals is None:
-            return None
-        kk, cc = cf * vals[0][cm], cf * vals[1][cm]
-        if sim.law == "hunt_crossley":
-            # stiffness n k d^(n-1), damping c d^n at a reference penetration (the body's
-            # radius, at least 1 mm): conservative for penetrations below it
-            e, d = sim.exponent, st.d_ref[cb]
-            kk, cc = e * kk * d ** (e - 1.0), cc * d ** e
-        if packed:
-            # every candidate sphere neighbour at once (at most _KISSING per body) plus the
-            # stiffest fixed collider
-            sphere = cmult != 1.0
-            sphere |= np.array([st.labels[j].startswith("contact between") for j in cl])
-            np.maximum.at(ck, cb[~sphere], kk[~sphere])
-            np.maximum.at(ccr, cb[~sphere], cc[~sphere])
-            np.add.at(ck, cb[sphere], (kk * cmult)[sphere])
-            np.add.at(ccr, cb[sphere], (cc * cmult)[sphere])
+        if xp is np:
+            c = _value(c)
+            k = None if k is None else _value(k)
+            if c is None or (k is None and block.param in ("contact", "springs")):
+                return None
+            cs.append(float(np.max(c)))
+            if k is not None:
+                ks.append(float(np.max(k)))
         else:
-            np.maximum.at(ck, cb, kk)
-            np.maximum.at(ccr, cb, cc)
-        best_contact, contact_k = ck, kk
-        kr += ck
-        cr += ccr
-    free = ~np.asarray(sim.pinned)
-    K_row = np.where(free, kr / mass, 0.0)
-    C_row = np.where(free, cr / mass, 0.0)
-    best_extra, extra_label = np.zeros(n), [""] * n
-    for hook in EXTRA_BOUNDS:
-        extra = hook(sim, params)
-        if extra is None:
+            cs.append(xp.max(xp.asarray(c)))
+            if k is not None:
+                ks.append(xp.max(xp.asarray(k)))
+    return (xp.stack(ks) if xp is not np else np.array(ks)) if ks else None, \
+        (xp.stack(cs) if xp is not np else np.array(cs))
+
+
+def _at(xp, arr, idx, vals, op):
+    if xp is np:
+        (np.add if op == "add" else np.maximum).at(arr, idx, vals)
+        return arr
+    ref = arr.at[idx]
+    return ref.add(vals) if op == "add" else ref.max(vals)
+
+
+def rates(an: Analysis, params, *, xp=np, packed: bool = False) -> Rates | None:
+    """Sum the terms' bounds for ``params``: :class:`Rates`, or None when some parameter is
+    an abstract tracer (numpy evaluation).
+
+    ``xp=jax.numpy`` evaluates the same rows on traced values (inside jit, vmap, grad);
+    ``packed=True`` counts every candidate sphere neighbour (at most 12) instead of one.
+    Pinned bodies have rows 0.
+    """
+    n = len(an.mass)
+    zeros = (lambda: np.zeros(n)) if xp is np else (lambda: xp.zeros(n, an.dtype))
+    cast = (lambda a: a) if xp is np else (lambda a: xp.asarray(a, an.dtype))
+    kr, cr, ck, ccr, ek, ec = (zeros() for _ in range(6))
+    spring_rows, contact_rows, grouped = [], [], {}
+    contacts = []
+    for block in an.bounds:
+        vals = _block_values(block, params, xp)
+        if vals is None:
             return None
-        ek = np.where(free, np.asarray(extra[0], float), 0.0)
-        K_row = K_row + ek
-        C_row = C_row + np.asarray(extra[1], float)
-        for i in np.flatnonzero(ek * mass > best_extra):
-            best_extra[i], extra_label[i] = ek[i] * mass[i], getattr(hook, "label", "")
+        kv, cv = vals
+        if xp is not np:
+            kv = None if kv is None else cast(kv)
+            cv = cast(cv)
+        kk = None if kv is None else cast(block.k_weight) * kv[block.key]
+        cc = cast(block.c_weight) * cv[block.key]
+        if block.combine == "contact":
+            if an.contact_scale is not None:
+                kk, cc = an.contact_scale(kk, cc, cast(an.d_ref[block.body]))
+            contacts.append((block, kk, cc))
+            continue
+        if block.per_mass:
+            if kk is not None:
+                kr = _at(xp, kr, block.body, kk, "add")
+            cr = _at(xp, cr, block.body, cc, "add")
+        else:
+            if kk is not None:
+                ek = _at(xp, ek, block.body, kk, "add")
+            ec = _at(xp, ec, block.body, cc, "add")
+        if xp is np and kk is not None:
+            if block.label is not None:
+                tot = grouped.setdefault(block.label, np.zeros(n))
+                np.add.at(tot, block.body, kk)
+            elif block.per_mass:
+                spring_rows += [(int(b), float(v), lab)
+                                for b, v, lab in zip(block.body, kk, block.labels)]
+    # one contact at a time: the stiffest contact of each body; packed: every candidate
+    # neighbour at once (rows with a multiplicity) on top of the stiffest other contact
+    for block, kk, cc in contacts:
+        keep = None if not packed or block.packed is None else block.packed == 0.0
+        if keep is None:
+            ck = _at(xp, ck, block.body, kk, "max")
+            ccr = _at(xp, ccr, block.body, cc, "max")
+        elif keep.any():
+            ck = _at(xp, ck, block.body[keep], kk[keep], "max")
+            ccr = _at(xp, ccr, block.body[keep], cc[keep], "max")
+        if xp is np:
+            contact_rows += [(int(b), float(v), lab)
+                             for b, v, lab in zip(block.body, kk, block.labels)]
+    if packed:
+        for block, kk, cc in contacts:
+            if block.packed is not None and (block.packed != 0.0).any():
+                sel = block.packed != 0.0
+                ck = _at(xp, ck, block.body[sel], (kk * cast(block.packed))[sel], "add")
+                ccr = _at(xp, ccr, block.body[sel], (cc * cast(block.packed))[sel], "add")
+    kr = kr + ck
+    cr = cr + ccr
+    mass = an.mass
+    free = ~np.asarray(an.pinned)
+    K_row = xp.where(free, kr / cast(mass), 0.0)
+    C_row = xp.where(free, cr / cast(mass), 0.0)
+    K_row = K_row + xp.where(free, ek, 0.0)
+    C_row = C_row + ec
+    free_mass = cast(np.where(free, mass, np.inf))
+    if xp is not np:
+        return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, None)
+    best_contact = ck
+    best_spring = np.zeros(n)
+    for b, v, _ in spring_rows:
+        best_spring[b] = max(best_spring[b], v)
 
     def source(i: int) -> str:
         """What gives body i its stiffest row entry, in words."""
-        if best_extra[i] > max(best_contact[i], best_spring[i]) and extra_label[i]:
-            return extra_label[i]
-        if contact_k is not None and best_contact[i] > best_spring[i]:
-            rows = np.flatnonzero(cb == i)
-            return st.labels[int(cl[rows[np.argmax(contact_k[rows])]])]
-        if spring_k is not None and best_spring[i] > 0.0:
-            rows = np.flatnonzero(sb == i)
-            return st.spring_labels[int(sg[rows[np.argmax(spring_k[rows])]])]
+        for label, tot in grouped.items():
+            if tot[i] * mass[i] > max(best_contact[i], best_spring[i]) and label:
+                return label
+        if contact_rows and best_contact[i] > best_spring[i]:
+            rows = [r for r in contact_rows if r[0] == i]
+            return max(rows, key=lambda r: r[1])[2]
+        if spring_rows and best_spring[i] > 0.0:
+            rows = [r for r in spring_rows if r[0] == i]
+            return max(rows, key=lambda r: r[1])[2]
         return ""
-    free_mass = np.where(free, mass, np.inf)
-    return K_row, C_row, source, ck / free_mass, ccr / free_mass
+    return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, source)
+
+
+def scene_rates(sim, params, *, packed: bool = False):
+    """Gershgorin rows of ``M^-1 K`` (1/s^2) and ``M^-1 C`` (1/s) per body of a compiled
+    simulator, or None when some parameter is an abstract tracer.
+
+    Returns ``(K_row (n,), C_row (n,), source, Kc (n,), Cc (n,))`` (see :func:`rates`).
+    """
+    r = rates(sim.analysis, params, packed=packed)
+    return None if r is None else (r.K_row, r.C_row, r.source, r.Kc, r.Cc)
+
+
+def unsafe(an: Analysis, params, h=None):
+    """Traced stability flag: a bool scalar, True when an inner step of ``h`` s (default the
+    simulator's) is past the safe step for ``params`` (tracers welcome: jit, vmap, grad).
+
+    The same rows as the up-front check (:func:`rates` with ``jax.numpy``) and the same
+    limits: ``h >= min(stable_dt, SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
+    from the integrator's closed form when it has one (then it agrees with the up-front check
+    to rounding), else from the spectral radius of its amplification matrix at ``h`` for the
+    modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
+    """
+    import jax
+    import jax.numpy as jnp
+    rec = an.integrator
+    if not rec.explicit:
+        return jnp.zeros((), bool)
+    h = an.inner_dt if h is None else h
+    params = jax.lax.stop_gradient(params)
+    r = rates(an, params, xp=jnp)
+    K, C = jnp.max(r.K_row, initial=0.0), jnp.max(r.C_row, initial=0.0)
+    Kc, Cc = jnp.max(r.Kc, initial=0.0), jnp.max(r.Cc, initial=0.0)
+    if rec.stable_dt is not None:
+        sdt = rec.stable_dt(K, C, xp=jnp)
+        sdt = jnp.where((K <= 0.0) & (C <= 0.0), jnp.inf, sdt)
+        bad = sdt <= h
+    else:
+        Ks = jnp.stack([K, K, jnp.zeros_like(K)])
+        Cs = jnp.stack([C, jnp.zeros_like(C), C])
+        rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, h, xp=jnp), jnp)
+        bad = jnp.any(rho > 1.0 + 1e-9)
+    wc = jnp.sqrt(Kc)
+    bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) <= h))
+    bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) <= h))
+    return bad
 
 
 # --------------------------------------------------------------------------- report
@@ -436,68 +507,101 @@ def _needed(dt: float, sdt: float) -> int:
     return n
 
 
+def _analysis(sim) -> Analysis:
+    return sim if isinstance(sim, Analysis) else sim.analysis
+
+
 def report(sim, params, *, substeps: int | None = None,
            packed: bool = True) -> StabilityReport | None:
-    """Stability report of ``sim`` for ``params`` (None when params are abstract tracers).
+    """Stability report of ``sim`` (a Simulator or its :class:`Analysis`) for ``params``
+    (None when params are abstract tracers).
 
     ``substeps`` defaults to the simulator's (1 for ``"auto"``). ``packed=False`` skips the
     packed-spheres bound (``packed_dt`` is then ``stable_dt``).
     """
-    rates = scene_rates(sim, params)
-    if rates is None:
+    an = _analysis(sim)
+    r = rates(an, params)
+    if r is None:
         return None
-    K_row, C_row, source, Kc, Cc = rates
+    K_row, C_row, source, Kc, Cc = r.K_row, r.C_row, r.source, r.Kc, r.Cc
+    rec = an.integrator
     K, C = float(np.max(K_row, initial=0.0)), float(np.max(C_row, initial=0.0))
-    sdt = stable_dt(sim.integrator, K, C)
+    sdt = stable_dt(rec, K, C)
     pdt = sdt
-    if packed and "contact_sphere_sphere" in sim.terms:
-        pk = scene_rates(sim, params, packed=True)
-        pdt = stable_dt(sim.integrator, float(np.max(pk[0], initial=0.0)),
-                        float(np.max(pk[1], initial=0.0)))
+    if packed and any(b.packed is not None for b in an.bounds):
+        pk = rates(an, params, packed=True)
+        pdt = stable_dt(rec, float(np.max(pk.K_row, initial=0.0)),
+                        float(np.max(pk.C_row, initial=0.0)))
     if substeps is None:
-        substeps = sim.substeps if isinstance(sim.substeps, int) else 1
-    h = sim.dt / substeps
+        substeps = an.substeps if isinstance(an.substeps, int) else 1
+    h = an.dt / substeps
     margin = math.inf if math.isinf(sdt) else sdt / h
-    safe = safe_dt(sim.integrator, float(np.max(Kc, initial=0.0)),
-                   float(np.max(Cc, initial=0.0)), sdt)
+    safe = safe_dt(rec, float(np.max(Kc, initial=0.0)), float(np.max(Cc, initial=0.0)), sdt)
     safe_margin = math.inf if math.isinf(safe) else safe / h
     body = int(np.argmax(K_row)) if K > 0.0 else None
-    return StabilityReport(sim.integrator, sim.dt, substeps, h, sdt, margin, margin > 1.0,
+    return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
                            safe, safe_margin, safe_margin > 1.0,
-                           _needed(sim.dt, safe), math.sqrt(K), C, body,
+                           _needed(an.dt, safe), math.sqrt(K), C, body,
                            (f"{source(body)} on body {body}" if body is not None else ""),
                            pdt)
 
 
-def gate(sim, params, *, check: bool = True) -> int:
-    """Called by ``Simulator.rollout`` before running. Returns the substep count to use
-    (1 unless ``substeps="auto"``; the simulator's fixed count is already in its step).
-
-    Raises StabilityError when an explicit integrator would run past its limit (fixed
-    substeps), or when ``"auto"`` would need more than MAX_AUTO_SUBSTEPS. With abstract
-    (jit-traced) parameters a fixed-substep simulator is not checked; ``"auto"`` reuses the
-    count it picked last for concrete parameters, or raises a SceneError saying what to do.
+class GateCache:
+    """Verdicts of the up-front check (:func:`gate`) per set of scalar parameter values, so
+    a repeated rollout pays a dictionary look-up, not the analysis. An explicit object held
+    by the simulator (``sim.gate_cache``); a traced rollout never reads it (abstract values
+    have no key), so a traced program never depends on earlier calls.
     """
-    auto = sim.substeps == "auto"
-    if sim.integrator in IMPLICIT:
-        if check and np.dtype(sim.dtype).itemsize < 8:
-            _implicit_precision(sim, params)
-        return 1
+
+    def __init__(self, size: int = 1024):
+        self.size = size
+        self._verdicts: dict = {}
+
+    def get(self, key):
+        return None if key is None else self._verdicts.get(key)
+
+    def put(self, key, n: int) -> None:
+        if key is None:
+            return
+        if len(self._verdicts) >= self.size:
+            self._verdicts.clear()
+        self._verdicts[key] = n
+
+    def __len__(self) -> int:
+        return len(self._verdicts)
+
+
+def gate(sim, params, *, check: bool = True, substeps: int | None = None,
+         cache: GateCache | None = None) -> int:
+    """The up-front check ``Simulator.rollout`` runs before tracing. Returns the substep
+    count to use: ``substeps`` when given, the pick of ``substeps="auto"``, else the
+    simulator's own count.
+
+    Raises StabilityError when an explicit integrator would run past its safe step (fixed
+    substeps), or when ``"auto"`` would need more than MAX_AUTO_SUBSTEPS. With abstract
+    (jit-traced) parameters nothing is checked here (the traced flag :func:`unsafe` records
+    it in the rollout instead) and ``"auto"`` raises a SceneError: under tracing the count
+    must be given (``rollout(..., substeps=N)``). ``cache`` memoises verdicts per set of
+    concrete scalar values.
+    """
+    an = _analysis(sim)
+    auto = an.substeps == "auto" and substeps is None
+    fixed = substeps if substeps is not None else (an.substeps if not auto else None)
+    if not an.integrator.explicit:
+        if check and np.dtype(an.dtype).itemsize < 8:
+            _implicit_precision(an, params, fixed or 1)
+        return fixed or 1
     if not (check or auto):
-        return 1
-    # fast path: a verdict per set of scalar parameter values, memoised on the simulator
-    # (the check costs a few microseconds on a repeated rollout)
+        return fixed
     key = _scalar_key(params)
-    memo = sim.__dict__.setdefault("_stability_memo", {})
-    if key is not None and key in memo:
-        if auto:
-            sim._auto_last = memo[key]
-        return memo[key]
-    n = _gate(sim, params, auto)
-    if key is not None:
-        if len(memo) > 1024:
-            memo.clear()
-        memo[key] = n
+    key = None if key is None else (fixed, key)
+    if cache is not None:
+        hit = cache.get(key)
+        if hit is not None:
+            return hit
+    n = _gate(an, params, auto, fixed)
+    if cache is not None:
+        cache.put(key, n)
     return n
 
 
@@ -506,58 +610,55 @@ def gate(sim, params, *, check: bool = True) -> int:
 IMPLICIT_PRECISION = 0.1
 
 
-def _implicit_precision(sim, params) -> None:
+def _implicit_precision(an: Analysis, params, substeps: int) -> None:
     """Raise StabilityError when implicit_euler's linear system cannot be resolved in the
     simulator's dtype (float32 with a very stiff, light body and a large step)."""
-    rates = scene_rates(sim, params)
-    if rates is None:
+    r = rates(an, params)
+    if r is None:
         return
-    K = float(np.max(rates[0], initial=0.0))
-    eps = float(np.finfo(np.dtype(sim.dtype)).eps)
-    h = sim.dt / (sim.substeps if isinstance(sim.substeps, int) else 1)
+    K = float(np.max(r.K_row, initial=0.0))
+    eps = float(np.finfo(np.dtype(an.dtype)).eps)
+    h = an.dt / substeps
     if K * h * h * eps <= IMPLICIT_PRECISION:
         return
     h_ok = math.sqrt(IMPLICIT_PRECISION / (eps * K))
-    n = _needed(sim.dt, h_ok)
+    n = _needed(an.dt, h_ok)
     raise StabilityError(
-        f"implicit_euler cannot resolve this system in {np.dtype(sim.dtype).name}: "
+        f"{an.integrator.name} cannot resolve this system in {np.dtype(an.dtype).name}: "
         f"(w h)^2 = {K * h * h:.3g} swamps the identity at machine epsilon {eps:.2g} (the "
         f"matrix is singular in rounding). Use dtype=float64, or a step <= {h_ok:.3g} s "
         f"(substeps={n}).", stable_dt=h_ok, substeps=n)
 
 
 def _scalar_key(params):
-    """Tuple of the float values of all contact and spring parameters, or None (arrays,
-    abstract tracers)."""
+    """Tuple of the float values of every parameter (contact, springs, extra), or None
+    (arrays, abstract tracers)."""
+    import jax
     try:
-        return tuple(float(v) for p in (*params.contact.values(), *params.springs.values())
-                     for v in p)
+        return tuple(float(v) for v in jax.tree_util.tree_leaves(params))
     except Exception:  # noqa: BLE001 - non-scalar or abstract: take the slow path
         return None
 
 
-def _gate(sim, params, auto: bool) -> int:
-    rep = report(sim, params, packed=False)
+def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
+    rep = report(an, params, packed=False, substeps=fixed)
     if rep is None:
         if not auto:
-            return 1
-        last = getattr(sim, "_auto_last", None)
-        if last is None:
-            raise SceneError(
-                "substeps='auto' picks the substep count from concrete k and c, but rollout "
-                "was traced with abstract parameters (inside jax.jit or vmap). Call "
-                "sim.rollout once with concrete params first (the count is then reused), or "
-                "compile with substeps=N (see sim.stability(params).substeps_needed).")
-        return last
+            return fixed
+        raise SceneError(
+            "substeps='auto' picks the substep count from concrete k and c, but rollout "
+            "was traced with abstract parameters (inside jax.jit, vmap or grad). Give the "
+            "count: sim.rollout(params, steps, substeps=N) with N = "
+            "sim.stability(concrete_params).substeps_needed, or compile with substeps=N; "
+            "the rollout's State.aux['unstable'] flag then says whether N was enough.")
     if auto:
         n = rep.substeps_needed
         if n > MAX_AUTO_SUBSTEPS:
             raise StabilityError(
-                f"substeps='auto' would need {n} substeps per step of dt={sim.dt:g} s "
+                f"substeps='auto' would need {n} substeps per step of dt={an.dt:g} s "
                 f"(safe step {rep.safe_dt:.3g} s, {rep.limiting}): too slow. Lower the "
                 "stiffness, raise the mass, or use integrator='implicit_euler'.",
                 stable_dt=rep.safe_dt, substeps=n)
-        sim._auto_last = n
         return n
     if not rep.safe:
         why = ("unstable" if not rep.stable else
@@ -565,11 +666,11 @@ def _gate(sim, params, auto: bool) -> int:
                f"{SAFE_WH * rep.inner_dt / rep.safe_dt:.3g} > {SAFE_WH}: contact energy "
                "errors of several % or more)")
         raise StabilityError(
-            f"integrator {sim.integrator!r} is {why} at step {rep.inner_dt:.4g} s: the "
+            f"integrator {an.integrator.name!r} is {why} at step {rep.inner_dt:.4g} s: the "
             f"largest safe step is {rep.safe_dt:.4g} s (linear stability limit "
             f"{rep.stable_dt:.4g} s; w_max <= {rep.omega_max:.4g} rad/s, set by "
             f"{rep.limiting or 'the springs and contacts'}). Use dt <= {rep.safe_dt:.3g} s, "
             f"compile with substeps={rep.substeps_needed} (or substeps='auto'), or "
             "integrator='implicit_euler'.",
             stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
-    return 1
+    return fixed

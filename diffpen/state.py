@@ -50,7 +50,10 @@ class State(NamedTuple):
     orientation: (n_bodies, 4) unit quaternions (w, x, y, z), or None for scenes without
       rotating bodies (then no orientation code is traced).
     angular_velocity: (n_bodies, 3) world-frame rad/s, or None (as orientation).
-    aux: extension state (e.g. plastic rest lengths), a dict; empty for the core terms.
+    aux: a dict of what terms carry between steps (e.g. plastic rest lengths, the broad
+      phase's overflow flag) and ``"unstable"``: a bool scalar, set (and kept) by a rollout
+      whose step is past the safe step for its parameter values (:mod:`diffpen.stability`;
+      computed inside the traced program, so it works under jit, vmap and grad).
     """
     time: Any
     position: Any
@@ -67,7 +70,8 @@ class Trajectory(NamedTuple):
     position: (n_saved, n_bodies, 3) m.  velocity: (n_saved, n_bodies, 3) m/s.
     orientation: (n_saved, n_bodies, 4) or None.  angular_velocity: (n_saved, n_bodies, 3)
       or None.
-    aux: saved extension state, leading axis n_saved.
+    aux: saved ``State.aux`` entries, leading axis n_saved (``aux["unstable"][-1]``: whether
+      the rollout ran past its safe step).
     observed: ``observe(state)`` saved at each saved step when the rollout was given an
       ``observe`` function (then position, velocity, orientation and angular_velocity are
       None: only what was asked for is stored); else None.

@@ -2,8 +2,9 @@
 the scene by ``jax.vmap`` over static index arrays plus a segment sum onto bodies.
 
 A term builder ``build(ctx) -> Term | None`` returns None when the scene does not need the
-term, so it is never traced. ``TERM_BUILDERS`` lists the core builders; extensions
-(:mod:`diffpen.rigid`, :mod:`diffpen.plastic`, :mod:`diffpen.broadphase`) append theirs.
+term, so it is never traced. ``CORE`` lists the core builders with their stability bounds;
+``diffpen.compile.BUILTIN_TERMS`` is the one fixed tuple of every built-in builder (core,
+plastic, rigid, broad phase), in force summation order. Nothing registers itself on import.
 """
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ import numpy as np
 
 from . import geometry, laws
 from .scene import DEFAULT, Scene
+from .stability import Bound
 from .state import Params, State
 
-__all__ = ["Term", "CompileContext", "TERM_BUILDERS", "gather", "scatter", "static_dot",
+__all__ = ["Term", "CompileContext", "CORE", "with_bound", "gather", "scatter", "static_dot",
            "static_scale", "spring_bands"]
 
 
@@ -83,12 +85,15 @@ class Term(NamedTuple):
     step_aware: True when ``force`` takes the integrator's inner step as a keyword,
       ``force(..., h=h)`` (s): contact terms then apply their step-averaged force
       (``ContactLaw.step_force``); without it (or ``h=None``) the instantaneous force.
+    bound: the term's rows of the stability bounds, a tuple of
+      :class:`diffpen.stability.Bound` (empty: the term adds nothing to the step limit).
     """
     name: str
     force: Callable[..., tuple[Any, Any]]
     search: Callable[[Params, State], Any] | None = None
     record: Callable[[dict, Any], dict] | None = None
     step_aware: bool = False
+    bound: tuple = ()
 
 
 @dataclasses.dataclass
@@ -418,9 +423,108 @@ def _drag(ctx: CompileContext) -> Term | None:
     return Term("drag", force)
 
 
-#: Term builders run by ``compile``; each returns a Term or None (term absent from the scene).
-#: Extensions append their own builders here.
-TERM_BUILDERS: list[Callable[[CompileContext], Term | None]] = [
-    _plane_contact, _fixed_sphere_contact, _sphere_sphere_contact, _body_springs,
-    _world_springs, _drag,
-]
+# --------------------------------------------------------------------------- stability bounds
+_KISSING = 12  # most equal spheres that can touch one sphere at once
+
+
+def _movers(ctx: CompileContext):
+    return [i for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+
+
+def _plane_bound(ctx: CompileContext):
+    """One contact spring per (free, colliding body, plane), k / m (one contact at a time)."""
+    rows = [(i, pl.material, 1.0, 1.0, f"contact with plane {p} (material {pl.material!r})")
+            for i in _movers(ctx) for p, pl in enumerate(ctx.scene.planes)]
+    return _one(Bound.of(rows, "contact", combine="contact"))
+
+
+def _fixed_sphere_bound(ctx: CompileContext):
+    rows = [(i, fs.material, 1.0, 1.0,
+             f"contact with fixed sphere {s} (material {fs.material!r})")
+            for i in _movers(ctx) for s, fs in enumerate(ctx.scene.fixed_spheres)]
+    return _one(Bound.of(rows, "contact", combine="contact"))
+
+
+def _sphere_sphere_bound(ctx: CompileContext):
+    """In O(n): a sphere's candidate partners are the other colliding spheres; a pair uses
+    their shared material, else "default"; 2 k / m when both are free (a two-sphere
+    collision), counted once per material (one contact at a time), with the number of
+    candidate neighbours (at most 12) for the packed bound."""
+    scene, pinned = ctx.scene, ctx.pinned
+    spheres = [i for i in range(ctx.n) if ctx.collide[i] and ctx.radius[i] > 0.0
+               and scene.bodies[i].kind == "sphere"]
+    count, free_count = {}, {}
+    for i in spheres:
+        m = scene.bodies[i].material
+        count[m] = count.get(m, 0) + 1
+        free_count[m] = free_count.get(m, 0) + (0 if pinned[i] else 1)
+    total, total_free = len(spheres), sum(free_count.values())
+    rows, mult = [], []
+    for i in spheres:
+        if pinned[i]:
+            continue
+        m = scene.bodies[i].material
+        same, same_free = count[m] - 1, free_count[m] - 1
+        other, other_free = total - count[m], total_free - free_count[m]
+        n_same = min(same, _KISSING)
+        if same > 0:
+            f = 2.0 if same_free > 0 else 1.0
+            rows.append((i, m, f, f,
+                         f"contact between sphere {i} and another sphere (material {m!r})"))
+            mult.append(n_same)
+        if other > 0:
+            f = 2.0 if other_free > 0 else 1.0
+            rows.append((i, DEFAULT, f, f,
+                         f"contact between sphere {i} and a sphere of another material"))
+            mult.append(min(other, _KISSING - n_same))
+    return _one(Bound.of(rows, "contact", combine="contact", packed=mult))
+
+
+def _spring_rows(ctx: CompileContext, springs):
+    rows = []
+    for s in springs:
+        ends = [s.a] if s.b is None else [s.a, s.b]
+        both_free = s.b is not None and not ctx.pinned[s.a] and not ctx.pinned[s.b]
+        f = 2.0 if both_free else 1.0
+        rows += [(i, s.group, f, f, f"spring group {s.group!r}") for i in ends
+                 if not ctx.pinned[i]]
+    return _one(Bound.of(rows, "springs"))
+
+
+def _body_springs_bound(ctx: CompileContext):
+    """Gershgorin: (sum_j k_ij + sum_{j free} k_ij) / m_i over a body's springs."""
+    return _spring_rows(ctx, [s for s in ctx.scene.springs if s.b is not None])
+
+
+def _world_springs_bound(ctx: CompileContext):
+    return _spring_rows(ctx, [s for s in ctx.scene.springs if s.b is None])
+
+
+def _one(bound):
+    return () if bound is None else (bound,)
+
+
+def with_bound(build: Callable[[CompileContext], Term | None],
+               bound: Callable[[CompileContext], tuple] | None):
+    """A term builder whose Term carries ``bound(ctx)`` (a tuple of
+    :class:`diffpen.stability.Bound`): how a term and its stability bound are registered
+    together (one line per term)."""
+    if bound is None:
+        return build
+
+    def built(ctx: CompileContext) -> Term | None:
+        term = build(ctx)
+        return None if term is None else term._replace(bound=tuple(bound(ctx)))
+    built.__name__ = getattr(build, "__name__", "term")
+    return built
+
+
+#: The core term builders with their stability bounds, in force summation order.
+CORE: tuple = (
+    with_bound(_plane_contact, _plane_bound),
+    with_bound(_fixed_sphere_contact, _fixed_sphere_bound),
+    with_bound(_sphere_sphere_contact, _sphere_sphere_bound),
+    with_bound(_body_springs, _body_springs_bound),
+    with_bound(_world_springs, _world_springs_bound),
+    _drag,
+)

@@ -30,8 +30,14 @@ def random_scene(seed, n_spheres=30, n_boxes=4, spread=0.5, pinned_every=0):
     return scene
 
 
+_FINDERS = {}
+
+
 def find(sim, state):
-    return jax.jit(lambda s: bp.find_pairs(sim.broadphase, sim._ctx, s))(state)
+    """The pairs ``sim``'s broad phase finds in ``state`` (one compiled search per sim)."""
+    if sim not in _FINDERS:
+        _FINDERS[sim] = jax.jit(lambda s: bp.find_pairs(sim.broadphase, sim.context, s))
+    return _FINDERS[sim](state)
 
 
 def pair_set(pairs):
@@ -41,23 +47,33 @@ def pair_set(pairs):
 STRATEGIES = [bp.AABB(max_pairs=300), bp.Grid(max_per_cell=12, max_pairs=300)]
 
 
+@pytest.fixture(scope="module")
+def random_refs():
+    """``{seed: (scene, all-pairs simulator)}``: the reference forces compile once per seed
+    for both strategies (``sim.forces`` is jitted per simulator)."""
+    out = {}
+    for seed in (0, 1):
+        scene = random_scene(seed, pinned_every=5)
+        out[seed] = scene, dp.compile(scene, dt=1e-3)
+    return out
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
-def test_broadphase_finds_the_brute_force_pairs_and_forces(seed, strategy):
-    scene = random_scene(seed, pinned_every=5)
-    ref = dp.compile(scene, dt=1e-3)
+def test_broadphase_finds_the_brute_force_pairs_and_forces(random_refs, seed, strategy):
+    scene, ref = random_refs[seed]
     sim = dp.compile(scene, dt=1e-3, broadphase=strategy)
     assert "contact_broadphase" in sim.terms
     assert "contact_sphere_sphere" not in sim.terms and "contact_sphere_box" not in sim.terms
     state = sim.init_state()
     pairs = find(sim, state)
-    want = bp.brute_force_pairs(sim._ctx, state)
+    want = bp.brute_force_pairs(sim.context, state)
     assert pair_set(pairs) == want and int(pairs.count) == len(want)
     assert not bool(pairs.overflow)
     # exact narrow phase on the found pairs: contacts (d > 0) exist and forces agree
     params = dict(contact={"default": (1e4, 10.0), "soft": (5e3, 5.0)})
-    f0, t0 = jax.jit(ref.forces)(ref.params(**params), ref.init_state())
-    f1, t1 = jax.jit(sim.forces)(sim.params(**params), state)
+    f0, t0 = ref.forces(ref.params(**params), ref.init_state())
+    f1, t1 = sim.forces(sim.params(**params), state)
     assert np.abs(np.asarray(f0)).max() > 1.0
     np.testing.assert_allclose(np.asarray(f1), np.asarray(f0), rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(np.asarray(t1), np.asarray(t0), rtol=1e-10, atol=1e-9)
@@ -92,12 +108,24 @@ def test_grid_rollout_equals_all_pairs_rollout_and_keeps_overflow_clear(pile):
     assert dist.min() < 0.2
 
 
-def test_overflow_is_reported_never_silent():
+@pytest.fixture(scope="module")
+def column():
+    """Eight touching spheres stacked on a plane (spheres only: every integrator runs it)."""
     scene = dp.Scene()
-    for i in range(8):                                   # a column of touching spheres
-        scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1 + 0.19 * i))
+    for i in range(8):
+        scene.add_sphere(0.1, 1.0, (0.003 * i, 0.0, 0.1 + 0.19 * i))
     scene.add_plane()
-    sim = dp.compile(scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=8, max_pairs=3))
+    return scene
+
+
+@pytest.fixture(scope="module")
+def crowded(column):
+    """The column with room for 3 pairs only: its searches overflow."""
+    return dp.compile(column, dt=1e-3, broadphase=bp.Grid(max_per_cell=8, max_pairs=3))
+
+
+def test_overflow_is_reported_never_silent(crowded):
+    sim = crowded                                        # a column of touching spheres
     state = sim.init_state()
     pairs = find(sim, state)
     assert int(pairs.count) > 3 and bool(pairs.overflow)
@@ -157,7 +185,7 @@ def test_grid_cost_is_linear_in_bodies():
         for x in grid:
             scene.add_sphere(0.1, 1.0, tuple(x))
         sim = dp.compile(scene, dt=1e-3, broadphase=strategy)
-        term = [t for t in sim._terms if t.name == "contact_broadphase"][0]
+        term = sim.term("contact_broadphase")
         jaxpr = jax.make_jaxpr(term.force)(sim.params(k=1.0, c=0.0), sim.init_state())
         return max(int(np.prod(v.aval.shape)) for e in jaxpr.jaxpr.eqns for v in e.outvars)
     g1, g4 = largest(64, bp.Grid(max_per_cell=4)), largest(512, bp.Grid(max_per_cell=4))
@@ -221,20 +249,12 @@ def _searches_per_step(sim):
     scope in the step's jaxpr over those of one search traced alone."""
     def scoped(eqn):
         return bp.SEARCH_SCOPE in str(eqn.source_info.name_stack)
-    one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim._ctx, s))(
+    one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim.context, s))(
         sim.init_state()).jaxpr, scoped)
     assert one > 0
     return _count_eqns(_step_jaxpr(sim), scoped) / one
 
 
-@pytest.fixture(scope="module")
-def column():
-    """Eight touching spheres stacked on a plane (spheres only: every integrator runs it)."""
-    scene = dp.Scene()
-    for i in range(8):
-        scene.add_sphere(0.1, 1.0, (0.003 * i, 0.0, 0.1 + 0.19 * i))
-    scene.add_plane()
-    return scene
 
 
 @pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
@@ -267,13 +287,14 @@ def test_multi_evaluation_integrators_search_per_evaluation_and_match_all_pairs(
     np.testing.assert_array_equal(np.asarray(t.aux[bp.OVERFLOW]), 0.0)
 
 
-def test_overflow_flag_comes_from_the_step_search_and_vmaps(column):
+def test_overflow_flag_comes_from_the_step_search_and_vmaps(column, crowded):
     """A step records the overflow of the state it starts from; under vmap each candidate
     keeps its own flag."""
-    sim = dp.compile(column, dt=1e-3, broadphase=bp.Grid(max_pairs=3))
+    sim = crowded
     state = sim.init_state()
     assert bool(find(sim, state).overflow) and float(state.aux[bp.OVERFLOW]) == 1.0
-    cleared = state._replace(aux={bp.OVERFLOW: jnp.zeros_like(state.aux[bp.OVERFLOW])})
+    cleared = state._replace(aux={**state.aux,
+                                  bp.OVERFLOW: jnp.zeros_like(state.aux[bp.OVERFLOW])})
     p = sim.params(k=1e4, c=20.0)
     assert float(sim.step(p, cleared).aux[bp.OVERFLOW]) == 1.0
     far = cleared._replace(position=state.position * 10.0)   # nothing overlaps

@@ -22,12 +22,6 @@ def drop_scene(gravity=(0.0, 0.0, -G), z0=1.0, vz=0.0, r=0.1, m=1.0):
 
 
 @pytest.fixture(scope="module")
-def ball_sim():
-    """Quick-start ball (radius 0.1 m, 1 kg, centre at 1 m), dt = 1e-3, default smoothing."""
-    return dp.compile(drop_scene(), dt=1e-3)
-
-
-@pytest.fixture(scope="module")
 def spring_sim():
     """A 2 kg particle on a world spring along x, no gravity, initial stretch 0.1 m."""
     scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
@@ -260,12 +254,12 @@ def test_vmap_matches_loop_and_does_not_recompile(ball_sim):
         return ball_sim.rollout(ball_sim.params(k=k, c=c), steps=600,
                                 save_every=600).position[-1, 0, 2]
     batched = jax.vmap(apex)(ks, cs)
-    before = ball_sim._rollout_jit._cache_size()
+    before = ball_sim.rollout_cache_size()
     looped = [float(apex(k, c)) for k, c in zip([5e3, 1e4, 2e4], [10.0, 20.0, 40.0])]
-    after_first = ball_sim._rollout_jit._cache_size()
+    after_first = ball_sim.rollout_cache_size()
     for k in (1.5e4, 3e4, 7e3):          # new values, same structure: no new compilation
         apex(k, 33.0)
-    assert ball_sim._rollout_jit._cache_size() == after_first <= before + 1
+    assert ball_sim.rollout_cache_size() == after_first <= before + 1
     np.testing.assert_allclose(batched, looped, rtol=1e-12)
 
 
@@ -331,8 +325,8 @@ def test_pairs_of_fixed_things_are_never_evaluated():
     sim = dp.compile(scene, dt=1e-3)
     assert "contact_sphere_sphere" in sim.terms
     # one free sphere: 1 plane pair, 2 sphere pairs (free-pinned), none pinned-pinned
-    ctx_rows = [t for t in sim._terms if t.name == "contact_sphere_sphere"]
-    jaxpr = jax.make_jaxpr(ctx_rows[0].force)(sim.params(k=1e4, c=1.0), sim.init_state())
+    jaxpr = jax.make_jaxpr(sim.term("contact_sphere_sphere").force)(
+        sim.params(k=1e4, c=1.0), sim.init_state())
     shapes = {v.aval.shape for e in jaxpr.jaxpr.eqns for v in e.outvars}
     assert (2,) in shapes and (3,) not in shapes      # per-pair depths: 2 pairs, not 3
     f, _ = sim.forces(sim.params(k=1e4, c=1.0), sim.init_state())
@@ -521,3 +515,19 @@ def test_observe_saves_only_what_is_asked(ball_sim):
                                rtol=1e-12)
     with pytest.raises(ValueError, match="observe"):
         obs.final
+
+
+def test_simulator_is_frozen_and_forces_compile_once(ball_sim, caplog):
+    """A Simulator holds pure jitted functions: nothing can be reassigned on it, and
+    ``forces`` is one compiled program reused for new parameter values (unjitted it was
+    dispatched op by op: seconds per first call)."""
+    with pytest.raises(AttributeError, match="frozen"):
+        ball_sim.dt = 2e-3
+    state = ball_sim.init_state()
+    ball_sim.forces(ball_sim.params(k=1e4, c=1.0), state)      # compiled here at most
+    pressed = state._replace(position=state.position - 0.95)      # 5 cm into the ground
+    params = ball_sim.params(k=2e4, c=3.0)
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        f, _ = ball_sim.forces(params, pressed)
+    assert not [r for r in caplog.records if "Compiling" in r.getMessage()]
+    np.testing.assert_allclose(np.asarray(f)[0, 2], 2e4 * 0.05, rtol=1e-2)

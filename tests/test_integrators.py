@@ -84,8 +84,9 @@ def chain():
 
 def _chain_rollout(sim, solver, k, c, steps=100):
     """Positions (steps, n, 3) of the chain under implicit_euler with the given solver."""
-    step = integrators.implicit_euler(sim._accel, sim.dt, inv_mass=1.0 / sim.mass * ~sim.pinned,
-                                      solver=solver, cg_tol=1e-13)
+    step = integrators.implicit_euler(sim.acceleration, sim.dt,
+                                      inv_mass=1.0 / sim.mass * ~sim.pinned, solver=solver,
+                                      cg_tol=1e-13)
     params = sim.params(spring_k=k, spring_c=c)
 
     def body(s, _):
@@ -154,10 +155,11 @@ def test_default_step_traces_nothing_extra():
     """substeps=1 with the default integrator: the step is the plain semi-implicit Euler."""
     scene = chain_scene(n=2)
     sim = dp.compile(scene, 1e-3)
-    plain = integrators.semi_implicit_euler(sim._accel, 1e-3)
+    plain = integrators.semi_implicit_euler(sim.acceleration, 1e-3)
     args = (sim.params(), sim.init_state())
-    assert str(jax.make_jaxpr(sim._step)(*args)) == str(jax.make_jaxpr(plain)(*args))
-    assert "scan" not in str(jax.make_jaxpr(sim._step)(*args))
+    step = sim.step_function()
+    assert str(jax.make_jaxpr(step)(*args)) == str(jax.make_jaxpr(plain)(*args))
+    assert "scan" not in str(jax.make_jaxpr(step)(*args))
 
 
 def test_implicit_euler_cg_refuses_rigid_states_clearly():
@@ -165,7 +167,7 @@ def test_implicit_euler_cg_refuses_rigid_states_clearly():
     s = sim.init_state()
     rigid = s._replace(orientation=jnp.array([[1.0, 0.0, 0.0, 0.0]]),
                        angular_velocity=jnp.zeros((1, 3)))
-    step = integrators.implicit_euler(sim._accel, sim.dt, solver="cg")
+    step = integrators.implicit_euler(sim.acceleration, sim.dt, solver="cg")
     with pytest.raises(dp.SceneError, match="rigid.*solver='dense'"):
         step(sim.params(), rigid)
 

@@ -131,7 +131,8 @@ def test_scene_without_plastic_springs_traces_no_plastic_code():
     scene.add_spring(a, b, k=10.0)
     sim = dp.compile(scene, dt=1e-3)
     state = sim.init_state()
-    assert state.aux == {} and "plastic" not in sim.params().extra
+    assert "plastic_rest" not in state.aux and "plastic" not in sim.params().extra
+    assert set(state.aux) == {"unstable"}          # only the stability flag
     names, _ = traced_scopes(sim, sim.params())
     assert not any("plastic" in n for n in names)
 

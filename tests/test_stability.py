@@ -37,13 +37,32 @@ def test_amplification_matrix_is_the_jax_step(integrator):
 
     def accel(params, state):
         return -K * state.position - C * state.velocity, None
-    step = integrators.INTEGRATORS[integrator](accel, h)
+    record = integrators.INTEGRATORS[integrator]
+    step = record.make(accel, h)
     cols = []
     for x, v in ((1.0, 0.0), (0.0, 1.0)):
         s = step(None, State(jnp.zeros(()), jnp.full((1, 3), x), jnp.full((1, 3), v)))
         cols.append([float(s.position[0, 0]), float(s.velocity[0, 0])])
-    np.testing.assert_allclose(np.array(cols).T,
-                               stability.mode_amplification(integrator, K, C, h), atol=1e-12)
+    if record.explicit:
+        amp = stability.mode_amplification(integrator, K, C, h)
+    else:       # implicit: the record has no step limit; its analysis is still the step
+        amp = integrators.backward_euler_amplification(K, C, h)
+        with pytest.raises(dp.SceneError, match="no step limit"):
+            stability.mode_amplification(integrator, K, C, h)
+    np.testing.assert_allclose(np.array(cols).T, amp, atol=1e-12)
+    # the same matrix evaluated with jax.numpy (what the traced stability flag uses)
+    fn = record.amplification or integrators.backward_euler_amplification
+    np.testing.assert_allclose(np.asarray(fn(K, C, h, xp=jnp)), amp, rtol=1e-14, atol=0)
+
+
+def test_backward_euler_has_no_step_limit():
+    """The implicit record has no amplification because its radius stays below 1."""
+    h = np.geomspace(1e-4, 1e3, 50)
+    for K, C in ((1e4, 0.0), (1e8, 10.0), (0.0, 50.0)):
+        amp = integrators.backward_euler_amplification(K, C, h)
+        radius = np.max(np.abs(np.linalg.eigvals(amp)), axis=-1)
+        assert np.all(radius < 1.0 if K > 0.0 else radius <= 1.0 + 1e-12)  # dashpot: x kept
+    assert integrators.INTEGRATORS["implicit_euler"].amplification is None
 
 
 @pytest.mark.parametrize("integrator", EXPLICIT)
@@ -89,16 +108,8 @@ def test_network_bound_is_safe_and_tight_for_a_chain():
     assert math.isclose(rep.safe_dt, rep.stable_dt)    # springs only: no contact tightening
 
 
-@pytest.fixture(scope="module")
-def ball_scene():
-    scene = dp.Scene()
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
-    return scene
-
-
-def test_stability_error_names_dt_and_substeps(ball_scene):
-    sim = dp.compile(ball_scene, 1e-3)
+def test_stability_error_names_dt_and_substeps(ball_scene, ball_sim):
+    sim = ball_sim
     params = sim.params(k=1e8, c=50.0)
     with pytest.raises(dp.StabilityError, match="substeps=") as info:
         sim.rollout(params, 10)
@@ -124,23 +135,42 @@ def test_stability_error_names_dt_and_substeps(ball_scene):
 def test_auto_substeps_pick_the_smallest_sufficient_count(ball_scene):
     sim = dp.compile(ball_scene, 1e-3, substeps="auto")
     params = sim.params(k=1e8, c=50.0)
-    with pytest.raises(dp.SceneError, match="auto"):
-        jax.jit(lambda p: sim.rollout(p, 10).position)(params)   # no count picked yet
-    traj = sim.rollout(params, 200)
     need = sim.stability(params).substeps_needed
-    assert sim._auto_last == need > 1
+    assert need > 1
+    traj = sim.rollout(params, 200)
     assert np.all(np.isfinite(np.asarray(traj.position)))
-    # jit-traced params then reuse the picked count
-    out = jax.jit(lambda p: sim.rollout(p, 200).position)(params)
-    np.testing.assert_allclose(out, traj.position, atol=1e-12)
-    # soft contact: one substep
-    sim.rollout(sim.params(k=1e4, c=20.0), 10)
-    assert sim._auto_last == 1
+    # the pick is the count needed: the same as giving it, and one fewer is refused
+    np.testing.assert_allclose(sim.rollout(params, 200, substeps=need).position,
+                               traj.position, rtol=0, atol=0)
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(params, 10, substeps=need - 1)
+    # soft contact: one substep (the plain step)
+    soft = sim.params(k=1e4, c=20.0)
+    assert sim.stability(soft).substeps_needed == 1
+    np.testing.assert_allclose(sim.rollout(soft, 10).position,
+                               sim.rollout(soft, 10, substeps=1).position, rtol=0, atol=0)
 
 
-def test_stable_but_unsafe_step_is_refused_with_its_reason(ball_scene):
+def test_auto_substeps_under_jit_need_the_count_and_never_reuse_an_earlier_call(ball_scene):
+    """Under jit the traced program depends only on its arguments: an earlier concrete call
+    picks nothing for it. Without a count "auto" refuses; with one, it runs, and the traced
+    flag says whether the count was enough."""
+    sim = dp.compile(ball_scene, 1e-3, substeps="auto")
+    params = sim.params(k=1e8, c=50.0)
+    need = sim.stability(params).substeps_needed
+    sim.rollout(params, 20)                            # a concrete call first ...
+    with pytest.raises(dp.SceneError, match="substeps=N"):  # ... is not reused under jit
+        jax.jit(lambda p: sim.rollout(p, 20).position)(params)
+    run = jax.jit(lambda p, n: sim.rollout(p, 200, substeps=n), static_argnums=1)
+    traj = run(params, need)
+    np.testing.assert_allclose(traj.position, sim.rollout(params, 200).position, atol=1e-12)
+    assert not bool(traj.aux["unstable"][-1])
+    assert bool(run(params, need - 1).aux["unstable"][-1])
+
+
+def test_stable_but_unsafe_step_is_refused_with_its_reason(ball_sim):
     """w h = 1: linearly stable (limit 2) but past the safe step 0.5."""
-    sim = dp.compile(ball_scene, 1e-3)
+    sim = ball_sim
     params = sim.params(k=1e6, c=0.0)
     rep = sim.stability(params)
     assert rep.stable and not rep.safe and rep.safe_dt == pytest.approx(0.5e-3)
@@ -165,3 +195,87 @@ def test_sphere_sphere_packed_bound_is_tighter():
     assert rep.omega_max == pytest.approx(math.sqrt(2e4))
     assert rep.packed_dt < rep.stable_dt
     assert "another sphere" in rep.limiting
+
+
+# --------------------------------------------------------------------------- traced flag
+CUBE_HALF, CUBE_MASS, CUBE_I = 0.0524, 0.37, 8.1e-4     # the cube-toss cube (data README)
+
+
+@pytest.fixture(scope="module")
+def cube_sim():
+    """The issue's case: the tossed cube at an inner step h = 1/1480 s."""
+    scene = dp.Scene()
+    scene.add_box((CUBE_HALF,) * 3, CUBE_MASS, (0.0, 0.0, 0.145), (0.3, 0.0, -0.5),
+                  orientation=(0.96, 0.2, 0.15, 0.1), angular_velocity=(1.0, -2.0, 0.5),
+                  inertia=(CUBE_I,) * 3)
+    scene.add_plane()
+    return dp.compile(scene, 1.0 / 1480.0)
+
+
+def test_traced_flag_is_raised_under_jit_vmap_and_grad(cube_sim):
+    """k = 2e6 N/m at h = 1/1480 s: outside jit rollout raises StabilityError; under jit,
+    vmap and grad nothing can be raised, and the rollout's flag is set instead (sticky,
+    saved at every step); a safe k leaves it clear."""
+    sim = cube_sim
+    stiff, soft = sim.params(k=2e6, c=20.0), sim.params(k=2e4, c=20.0)
+    assert not sim.stability(stiff).safe and sim.stability(soft).safe
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(stiff, 40)
+
+    def run(k):
+        return sim.rollout(sim.params(k=k, c=20.0), 40, check_finite=False)
+    flags = np.asarray(jax.jit(run)(2e6).aux["unstable"])
+    assert flags.dtype == bool and flags.shape == (40,) and flags.all()
+
+    # vmap and grad (as batched fits run them, under jit): each candidate keeps its own flag,
+    # which comes out with the value; the gradient is computed as usual
+    def loss(k):
+        traj = run(k)
+        return traj.position[-1, 0, 2], traj.aux["unstable"][-1]
+    (z, flag), g = jax.jit(jax.vmap(jax.value_and_grad(loss, has_aux=True)))(
+        jnp.asarray([2e4, 2e6, 5e4]))
+    np.testing.assert_array_equal(np.asarray(flag), [False, True, False])
+    assert np.all(np.isfinite(np.asarray(g)))
+    # grad of concrete values outside jit still gets the up-front check
+    with pytest.raises(dp.StabilityError):
+        jax.grad(lambda k: loss(k)[0])(2e6)
+
+
+def test_flag_is_sticky_across_rollouts(ball_sim):
+    sim = ball_sim
+    run = jax.jit(lambda k, s: sim.rollout(sim.params(k=k, c=20.0), 10, state=s,
+                                           check_finite=False))
+    first = run(1e8, sim.init_state())
+    assert np.asarray(first.aux["unstable"]).all()
+    after = run(1e4, first.final)                        # a safe run does not clear it
+    assert np.asarray(after.aux["unstable"]).all()
+    assert not np.asarray(run(1e4, sim.init_state()).aux["unstable"]).any()
+
+
+@pytest.mark.parametrize("integrator", EXPLICIT)
+def test_traced_flag_agrees_with_the_up_front_check(integrator, ball_scene):
+    """Over stiffnesses across the limit, the traced flag is set exactly where the concrete
+    gate refuses (contacts: the safe step; a spring chain: linear stability from the
+    integrator's amplification matrix)."""
+    ks = np.geomspace(1e3, 1e9, 41)
+    for scene, c in ((ball_scene, 30.0), (_chain(4, 1.0, 0.1), 0.5)):
+        sim = dp.compile(scene, 1e-3, integrator=integrator)
+        if scene is ball_scene:
+            params = [sim.params(k=k, c=c) for k in ks]
+        else:
+            params = [sim.params(spring_k=k, spring_c=c) for k in ks]
+        want = np.array([not sim.stability(p).safe for p in params])
+        assert want.any() and not want.all()
+
+        def flag(k, sim=sim, chain=scene is not ball_scene):
+            p = sim.params(spring_k=k, spring_c=c) if chain else sim.params(k=k, c=c)
+            return sim.rollout(p, 1, check_finite=False).aux["unstable"][-1]
+        got = np.asarray(jax.jit(jax.vmap(flag))(jnp.asarray(ks)))
+        np.testing.assert_array_equal(got, want)
+
+
+def test_implicit_flag_stays_clear(ball_scene):
+    sim = dp.compile(ball_scene, 1e-2, integrator="implicit_euler")
+    assert not bool(stability.unsafe(sim.analysis, sim.params(k=1e9, c=0.0)))
+    explicit = dp.compile(ball_scene, 1e-2)
+    assert bool(stability.unsafe(explicit.analysis, explicit.params(k=1e9, c=0.0)))

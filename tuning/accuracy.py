@@ -127,7 +127,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 wall = time_call(lambda: sim.rollout(params, steps).position, repeats)
                 pts.append({"dt": dt, "error": errs["apex_rel_error"], "time": wall,
                             "settling_error": errs["settling_error"],
-                            "substeps": getattr(sim, "_auto_last", 1)})
+                            "substeps": sim.stability(params).substeps_needed})
                 say("ball", integ, pts[-1])
             res[integ] = pts
         out["problems"]["ball"] = res

@@ -50,7 +50,8 @@ def supports(sim: dp.Simulator) -> str | None:
         return "the fast path applies the plain step average, not a centred law's"
     with jax.ensure_compile_time_eval():     # concrete even inside a traced function
         s0 = sim.init_state()
-    if s0.orientation is not None or s0.aux or bool(np.any(np.asarray(s0.velocity)[0, :2])):
+    extra_aux = set(s0.aux) - {dp.stability.FLAG}          # the stability flag is not state
+    if s0.orientation is not None or extra_aux or bool(np.any(np.asarray(s0.velocity)[0, :2])):
         return "the fast path needs a sphere without horizontal start velocity"
     return None
 

@@ -1,0 +1,120 @@
+"""Extending diffpen from outside the package with its public records only: a toy integrator
+and a toy contact law are rolled out, analysed and gated like the built-in ones (no
+registration, no edit of diffpen)."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.integrators import Integrator, drift, kick
+
+
+def drift_kick_euler(accel_fn, h):
+    """Toy method: ``x' = x + h v``, then ``v' = v + h a(x', v)`` (semi-implicit Euler with
+    the two halves swapped)."""
+    def step(params, state):
+        moved = drift(state, h)
+        return kick(moved, accel_fn(params, moved), h)
+    return step
+
+
+def drift_kick_amplification(K, C, h, xp=np):
+    """The toy step on ``x'' = -K x - C v``: x' = x + h v; v' = v + h (-K x' - C v)."""
+    K, C, h = (xp.asarray(a, dtype=float) for a in (K, C, h))
+    shape = xp.broadcast_shapes(K.shape, C.shape, h.shape)
+    K, C, h = (xp.broadcast_to(a, shape) for a in (K, C, h))
+    xx, xv = xp.ones_like(K), h
+    vx, vv = -h * K, 1.0 - h * h * K - h * C
+    return xp.stack([xp.stack([xx, xv], axis=-1), xp.stack([vx, vv], axis=-1)], axis=-2)
+
+
+TOY = Integrator(name="drift_kick_euler", make=drift_kick_euler,
+                 amplification=drift_kick_amplification, evaluations=1)
+
+
+@pytest.fixture(scope="module")
+def spring_and_ball():
+    """A 1 kg particle on a world spring (no gravity) and the quick-start ball."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    p = scene.add_particle(mass=1.0, position=(0.0, 0.0, 1.1))
+    scene.add_spring(p, (0.0, 0.0, 0.0), k=100.0, c=0.0, rest_length=1.0)
+    return scene
+
+
+def test_toy_integrator_rolls_out_as_written(spring_and_ball):
+    sim = dp.compile(spring_and_ball, 1e-2, integrator=TOY)
+    assert sim.integrator == "drift_kick_euler"
+    traj = sim.rollout(sim.params(), 50)
+    # the same recurrence by hand
+    x, v, w2 = 0.1, 0.0, 100.0
+    for _ in range(50):
+        x = x + 1e-2 * v
+        v = v + 1e-2 * (-w2 * x)
+    np.testing.assert_allclose(float(traj.position[-1, 0, 2]) - 1.0, x, rtol=1e-12)
+    np.testing.assert_allclose(float(traj.velocity[-1, 0, 2]), v, rtol=1e-12)
+    # substeps go through the record's step factory too
+    fine = dp.compile(spring_and_ball, 1e-3, integrator=TOY)
+    coarse = dp.compile(spring_and_ball, 1e-2, integrator=TOY, substeps=10)
+    np.testing.assert_allclose(coarse.rollout(coarse.params(), 5).position,
+                               fine.rollout(fine.params(), 50, save_every=10).position,
+                               atol=1e-12)
+
+
+def test_toy_integrator_gets_the_stability_analysis_and_the_gate(spring_and_ball):
+    """Its limit comes from its own amplification matrix (w h < 2 for this method); past it
+    the rollout is refused up front and flagged under jit."""
+    sim = dp.compile(spring_and_ball, 1e-2, integrator=TOY)
+    k = 3e4                                           # w = 173 rad/s: w h = 1.73 < 2
+    rep = sim.stability(sim.params(spring_k=k, spring_c=0.0))
+    assert rep.integrator == "drift_kick_euler"
+    assert rep.stable_dt == pytest.approx(2.0 / math.sqrt(k), rel=1e-8)
+    assert rep.stable and rep.safe                    # no contact: safe = stable
+    with pytest.raises(dp.StabilityError, match="drift_kick_euler"):
+        sim.rollout(sim.params(spring_k=5e4, spring_c=0.0), 10)    # w h = 2.24
+
+    def flag(k):
+        p = sim.params(spring_k=k, spring_c=0.0)
+        return sim.rollout(p, 10, check_finite=False).aux["unstable"][-1]
+    np.testing.assert_array_equal(jax.jit(jax.vmap(flag))(jnp.asarray([3e4, 5e4])),
+                                  [False, True])
+    # substeps="auto" picks the count from the record's analysis
+    auto = dp.compile(spring_and_ball, 1e-2, integrator=TOY, substeps="auto")
+    p = auto.params(spring_k=5e4, spring_c=0.0)
+    assert auto.stability(p).substeps_needed == 2
+    assert np.all(np.isfinite(np.asarray(auto.rollout(p, 100).position)))
+
+
+# --------------------------------------------------------------------------- a toy contact law
+def _half_force(d, vn, k, c, width=0.0):
+    """Toy law: half a no-tension spring-damper, ``max(k d - c vn, 0) / 2`` in contact."""
+    return 0.5 * dp.laws.no_tension_contact(d, vn, k, c, width)
+
+
+TOY_LAW = dp.laws.ContactLaw(
+    name="half_no_tension", force=_half_force, averaged=None,
+    energy=lambda d, k, width=0.0: 0.5 * k * dp.laws.ramp_integral(d, width),
+    resting_depth=lambda load, k, width=0.0: dp.laws.ramp_inverse(2.0 * load / k, width),
+    stiffness=lambda k, c, d_ref=None: (0.5 * k, 0.5 * c))
+
+
+def test_toy_contact_law_rolls_out_and_sets_the_stability_gate(ball_scene):
+    """A ContactLaw record made here: the ball rests at its resting depth, and the stability
+    analysis sees its own stiffness (k / 2), up front and under jit."""
+    sim = dp.compile(ball_scene, 1e-3, law=TOY_LAW)
+    assert sim.law == "half_no_tension"
+    k, c = 2e4, 100.0
+    traj = sim.rollout(sim.params(k=k, c=c), 3000, save_every=3000)
+    depth = 0.1 - float(traj.position[-1, 0, 2])
+    assert depth == pytest.approx(float(TOY_LAW.resting_depth(9.81, k)), rel=1e-6)
+    # the gate uses the law's stiffness: w = sqrt(k / 2 / m)
+    rep = sim.stability(sim.params(k=k, c=c))
+    assert rep.omega_max == pytest.approx(math.sqrt(0.5 * k), rel=1e-12)
+    # past the toy's own safe step (w h = 0.5 at k / 2 = 2.5e5) it is refused and flagged
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(sim.params(k=6e5, c=0.0), 10)
+    flags = jax.jit(jax.vmap(lambda kk: sim.rollout(sim.params(k=kk, c=0.0), 5,
+                                                    check_finite=False).aux["unstable"][-1]))
+    np.testing.assert_array_equal(flags(jnp.asarray([4e5, 6e5])), [False, True])
