@@ -327,6 +327,57 @@ class Simulator:
                      velocity=ctx.const([x.velocity for x in b]),
                      orientation=q, angular_velocity=w, aux=aux)
 
+    def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
+                   orientation=None, angular_velocity=None, frame: str = "body") -> State:
+        """A start state with the given bodies' pose and velocities replaced.
+
+        Pure array updates (no recompilation, no scene rebuild): works under ``jax.jit``,
+        ``jax.vmap`` (e.g. one start state per measured record) and ``jax.grad``.
+
+        Args:
+          state: the state to start from (default :meth:`init_state`).
+          body: a body index, or a sequence of b indices.
+          position: (3,) or (b, 3) centres, m.  velocity: (3,) or (b, 3) m/s, world frame.
+          orientation: (4,) or (b, 4) quaternions (w, x, y, z), body to world (normalised
+            here); rigid bodies only.
+          angular_velocity: (3,) or (b, 3) rad/s, in the BODY frame (``frame="body"``, as
+            gyroscopes and most pose trackers give it) or the world frame
+            (``frame="world"``); rigid bodies only.
+        Returns: :class:`State` (None arguments leave that part unchanged).
+        """
+        if frame not in ("body", "world"):
+            raise SceneError(f"frame must be 'body' or 'world', got {frame!r}.")
+        idx = np.atleast_1d(np.asarray(body))
+        if idx.dtype.kind not in "iu" or idx.ndim != 1 or np.any(idx < 0) or np.any(
+                idx >= self.n_bodies):
+            raise SceneError(f"body must be a body index or a list of them in 0.."
+                             f"{self.n_bodies - 1}, got {body!r}.")
+        if (orientation is not None or angular_velocity is not None) and (
+                self._rigid is None or not all(self.scene.bodies[i].rigid for i in idx)):
+            raise SceneError("orientation and angular_velocity can be set for rigid bodies "
+                             "only (scene.add_box / scene.add_rigid_sphere).")
+        s = self.init_state() if state is None else state
+
+        def rows(v, width):
+            return jnp.broadcast_to(jnp.asarray(v, self.dtype), (len(idx), width))
+        upd = {}
+        if position is not None:
+            upd["position"] = s.position.at[idx].set(rows(position, 3))
+        if velocity is not None:
+            upd["velocity"] = s.velocity.at[idx].set(rows(velocity, 3))
+        q = s.orientation
+        if orientation is not None:
+            qn = rows(orientation, 4)
+            q = q.at[idx].set(qn / jnp.linalg.norm(qn, axis=-1, keepdims=True))
+            upd["orientation"] = q
+        if angular_velocity is not None:
+            w = rows(angular_velocity, 3)
+            if frame == "body":
+                from .rigid import quat_to_matrix
+                w = jnp.einsum("bij,bj->bi", quat_to_matrix(q[idx]), w)
+            upd["angular_velocity"] = s.angular_velocity.at[idx].set(w)
+        return s._replace(**upd)
+
     # ------------------------------------------------------------------ dynamics
     def forces(self, params: Params, state: State, *, h: float | None = None):
         """Total force on each body, (n_bodies, 3) newtons, gravity excluded; plus torques

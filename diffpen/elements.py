@@ -114,6 +114,8 @@ class Plane:
     normal: tuple[float, float, float]
     offset: float
     material: str
+    #: when set, the offset is the differentiable ``params.extra["plane_offset"][name]`` (m)
+    name: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)

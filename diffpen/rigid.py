@@ -30,8 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import geometry
-from .terms import (CompileContext, Term, _pair_material, _spring_axis, gather, scatter,
-                    with_bound)
+from .terms import (CompileContext, Term, _pair_material, _spring_axis, gather,
+                    plane_offsets, scatter, with_bound)
 from .geometry import rotate, rotate_back
 from .laws import spring_force
 from .stability import Bound
@@ -218,7 +218,7 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     mi = np.array([r[3] for r in rows], dtype=np.int32)
     corners = ctx.const([r[2] for r in rows])
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
-    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
     n = ctx.n
     # smooth Coulomb friction only when some material has it (static choice)
     rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
@@ -228,7 +228,8 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
         rot = quat_to_matrix(gather(state.orientation, bi, n))
-        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals, offsets)
+        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals,
+                                               offsets(params))
         fn = ctx.contact_force(d, vn, k, c, h)
         f = fn[:, None] * normals
         if rough is not None:
@@ -272,7 +273,7 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
     rough, fi, slip = _rough(ctx, mats)
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
-    offsets = ctx.const([scene.planes[r[1]].offset for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
     radii = ctx.const(ctx.radius[bi])
     n = ctx.n
 
@@ -280,7 +281,7 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
-        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets)
+        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
         fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h)
         r = -radii[:, None] * normals                    # centre to contact point
         f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,

@@ -97,12 +97,15 @@ class Scene:
 
     # ----------------------------------------------------------------- colliders
     def add_plane(self, normal: Sequence[float] = (0.0, 0.0, 1.0), offset: float = 0.0, *,
-                  material: str = DEFAULT) -> int:
+                  material: str = DEFAULT, name: str | None = None) -> int:
         """Add a fixed plane ``normal . p = offset``; the solid is on the side ``-normal``.
 
         Args:
           normal: (3,) outward normal (normalised here; must be non-zero).
           offset: m, signed distance of the plane from the origin along ``normal``.
+          name: opt-in: a named plane's offset is a differentiable parameter,
+            ``params.extra["plane_offset"][name]`` (m, any sign; default ``offset``), e.g. to
+            fit where a measured ground really is. Unnamed planes keep a constant offset.
         Returns: the plane's index.
         """
         n = np.asarray(vec3("plane normal", normal))
@@ -115,7 +118,12 @@ class Scene:
             raise SceneError(f"plane offset must be a number, got {offset!r}.") from None
         finite("plane offset", offset)
         self._check_material(material)
-        self.planes.append(Plane(tuple(float(a) for a in n / norm), offset, material))
+        if name is not None:
+            if not isinstance(name, str) or not name:
+                raise SceneError(f"plane name must be a non-empty string, got {name!r}.")
+            if any(pl.name == name for pl in self.planes):
+                raise SceneError(f"a plane named {name!r} exists already: names must differ.")
+        self.planes.append(Plane(tuple(float(a) for a in n / norm), offset, material, name))
         return len(self.planes) - 1
 
     def add_fixed_sphere(self, center: Sequence[float], radius: float, *,

@@ -21,7 +21,7 @@ from .stability import Bound
 from .state import Params, State
 
 __all__ = ["Term", "CompileContext", "CORE", "with_bound", "gather", "scatter", "static_dot",
-           "static_scale", "spring_bands"]
+           "static_scale", "spring_bands", "plane_offsets"]
 
 
 # --------------------------------------------------------------------------- lifting helpers
@@ -194,8 +194,38 @@ def _pair_material(scene: Scene, *names: str) -> str:
     return names[0] if len(set(names)) == 1 else DEFAULT
 
 
+def plane_offsets(ctx: CompileContext, plane_ids):
+    """``offsets(params) -> (m,)`` offsets (m) of the planes ``plane_ids`` (m,): constants,
+    except for planes named in ``Scene.add_plane(name=...)``, whose offset is the leaf
+    ``params.extra["plane_offset"][name]`` (registered here with the scene's value as
+    default; any finite sign)."""
+    planes = ctx.scene.planes
+    const = ctx.const([planes[j].offset for j in plane_ids])
+    names = list(dict.fromkeys(planes[j].name for j in plane_ids if planes[j].name))
+    if not names:
+        return lambda params: const
+    ctx.extra_defaults.setdefault("plane_offset", {}).update(
+        {pl.name: pl.offset for pl in planes if pl.name in names})
+    ctx.extra_checks["plane_offset"] = _check_finite
+    sel = np.array([names.index(planes[j].name) if planes[j].name else -1 for j in plane_ids])
+
+    def offsets(params):
+        vals = jnp.stack([jnp.asarray(params.extra["plane_offset"][g], ctx.dtype)
+                          for g in names])
+        return jnp.where(sel >= 0, vals[np.maximum(sel, 0)], const)
+    return offsets
+
+
+def _check_finite(label: str, v) -> None:
+    if isinstance(v, jax.core.Tracer):
+        return
+    if not np.all(np.isfinite(np.asarray(v, dtype=float))):
+        from .errors import SceneError
+        raise SceneError(f"{label} must be a finite number of metres, got {v!r}.")
+
+
 def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_args, *,
-                      shape_fn=None, static_normal=None) -> Term | None:
+                      shape_fn=None, static_normal=None, offsets=None) -> Term | None:
     """Contacts of every moving, colliding non-box body with every fixed collider of one kind
     (boxes collide by their corners, diffpen.rigid). Give one of:
 
@@ -216,6 +246,7 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     n = ctx.n
     normal = None if static_normal is None else np.array(
         [static_normal(colliders[j]) for j in ci], dtype=float)
+    offset_fn = offsets(ctx, ci) if offsets is not None else None
     inv_m = _uniform(ctx, ctx.inv_mass(bi))
     g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
     g_vec = ctx.const(ctx.scene.gravity)
@@ -224,7 +255,8 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         if normal is not None:          # the normal is a constant: leave out its zeros
-            d = radii - (static_dot(normal, x) - args[0])
+            off = args[0] if offset_fn is None else offset_fn(params)
+            d = radii - (static_dot(normal, x) - off)
             f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
             return scatter(static_scale(f, normal), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
@@ -236,7 +268,8 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
     return _collider_contact(ctx, "contact_plane", ctx.scene.planes,
-                             lambda pl: (pl.offset,), static_normal=lambda pl: pl.normal)
+                             lambda pl: (pl.offset,), static_normal=lambda pl: pl.normal,
+                             offsets=plane_offsets)
 
 
 def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:

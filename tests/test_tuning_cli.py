@@ -118,7 +118,7 @@ apex_heights = [0.2]
     bad.write_text("[[spheres]]\nradius = 0.1\nmass = -1.0\nposition = [0, 0, 1]\n[fit]\n"
                    "[fit.targets]\napex_heights = [0.2]\n")
     assert main(["fit", str(bad)]) == 2
-    assert "mass (kg) must be positive" in capsys.readouterr().err
+    assert "spheres[0].mass must be > 0 (kg), got -1.0" in capsys.readouterr().err
     bad.write_text("[[sphere]]\nradius = 0.1\n")
     assert main(["fit", str(bad)]) == 2
     assert "unknown key(s) ['sphere']" in capsys.readouterr().err

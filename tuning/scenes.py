@@ -27,6 +27,8 @@ class SceneSetup:
     metrics: ``metrics(sim, traj, params) -> dict`` of plain numbers/lists (None: the
       command line reports only the final state).
     description: one line for ``--help`` and printouts.
+    compile_options: further keyword arguments of :func:`diffpen.compile` (integrator,
+      smoothing, substeps, broadphase, exponent), e.g. from a scene file.
     """
     scene: dp.Scene
     dt: float
@@ -37,6 +39,7 @@ class SceneSetup:
     body: int | None = 0
     metrics: Callable | None = None
     description: str = ""
+    compile_options: dict = dataclasses.field(default_factory=dict)
 
 
 def _ball_metrics(settle_tol: float, n_apex: int):

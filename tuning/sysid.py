@@ -51,44 +51,14 @@ def load_csv(path) -> tuple[np.ndarray, np.ndarray]:
     """Read a record with columns ``t`` (s) and ``z`` (m, ball centre height).
 
     The first row must be a header naming ``t`` and ``z`` (other columns are ignored).
-    Raises :class:`FitError` saying what to fix: missing file or columns, non-numeric or
-    non-finite values (with the line number), times not strictly increasing, too few rows.
+    Raises :class:`tuning.records.RecordError` (a :class:`FitError`) saying what to fix, with
+    the file, line and column: missing file or columns, non-numeric or non-finite values,
+    times not strictly increasing, too few rows, times in ms or heights in mm, binary files,
+    files too large (see :func:`tuning.records.read_height_record`).
     Returns: ``(t (N,), z (N,))`` float64 arrays.
     """
-    try:
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as exc:
-        raise FitError(f"cannot read {path}: {exc.strerror}.") from None
-    rows = [r for r in rows if any(cell.strip() for cell in r)]
-    if not rows:
-        raise FitError(f"{path} is empty: expected a header 't,z' and rows of numbers.")
-    header = [h.strip().lower() for h in rows[0]]
-    if "t" not in header or "z" not in header:
-        raise FitError(f"{path}: the first row must be a header with columns 't' and 'z' "
-                       f"(time in s, ball centre height in m); got {rows[0]}.")
-    it, iz = header.index("t"), header.index("z")
-    t, z = [], []
-    for line, row in enumerate(rows[1:], start=2):
-        try:
-            tv, zv = float(row[it]), float(row[iz])
-        except (IndexError, ValueError):
-            raise FitError(f"{path}, line {line}: expected numbers in columns t and z, got "
-                           f"{row}.") from None
-        if not (math.isfinite(tv) and math.isfinite(zv)):
-            raise FitError(f"{path}, line {line}: t and z must be finite, got {row}.")
-        t.append(tv)
-        z.append(zv)
-    if len(t) < 20:
-        raise FitError(f"{path} has {len(t)} data rows; a trajectory fit needs at least 20 "
-                       "(several samples per flight).")
-    t, z = np.asarray(t), np.asarray(z)
-    bad = np.nonzero(np.diff(t) <= 0.0)[0]
-    if bad.size:
-        raise FitError(f"{path}, line {bad[0] + 3}: times must strictly increase "
-                       f"({t[bad[0]]} then {t[bad[0] + 1]}); sort the rows or remove "
-                       "duplicates.")
-    return t, z
+    from .records import read_height_record
+    return read_height_record(path)
 
 
 def save_csv(path, t, z) -> None:

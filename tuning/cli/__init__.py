@@ -14,6 +14,7 @@ import sys
 COMMANDS = {
     "fit": ("tuning.cli.fit", "fit contact stiffness and damping to targets or a measured "
                               "trajectory (default: the built-in ball scene)"),
+    "evaluate": ("tuning.cli.evaluate", "open-loop accuracy of a scene file on measured records"),
     "simulate": ("tuning.cli.simulate", "roll out a built-in scene or a scene file and report "
                                         "metrics"),
     "sweep": ("tuning.cli.sweep", "batched sweep over (k, c) with vmap; writes .npz + .csv"),

@@ -38,9 +38,22 @@ def add_arguments(p) -> None:
                    help="duration of the first contact, s")
     p.add_argument("--settle-tol", type=positive("--settle-tol"), default=1e-3, metavar="M",
                    help="settling band: |z - rest| <= tol, m (default 1e-3)")
-    p.add_argument("--data", metavar="FILE.csv",
-                   help="fit to a measured trajectory: CSV with columns t (s), z (ball centre "
-                        "height, m)")
+    p.add_argument("--data", metavar="FILE.csv", nargs="+",
+                   help="fit to measured records: without a scene file, one CSV with columns "
+                        "t (s), z (ball centre height, m); with SCENE.toml, any number of "
+                        "motion records (t, x, y, z[, qw, qx, qy, qz][, vx..][, wx..]) fitted "
+                        "jointly")
+    p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
+                   "scene with the fitted values")
+    p.add_argument("--first-state", choices=["record", "fit"], default="record",
+                   help="with SCENE.toml --data: each record's start state from row 0 and its "
+                        "velocity columns (default), or fitted to its first frames (a gravity "
+                        "parabola in free flight)")
+    p.add_argument("--loss", choices=["l2", "l1"], default="l2",
+                   help="with SCENE.toml --data: squared pose error (default) or its norm")
+    p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
+                   help="with SCENE.toml --data: fit the first S seconds of every record "
+                        "first, then longer (growing horizon), the whole records last")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
     p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"], default="linear",
@@ -84,10 +97,18 @@ def _targets(args) -> dict:
 def _run(args) -> int:
     if args.maxiter is not None and args.maxiter < 1:
         raise CLIError("--maxiter must be a positive integer")
+    if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
+        return _run_records(args)
+    if args.out or args.horizon:
+        raise CLIError("--out and --horizon need a scene file and --data records")
+    if args.data and len(args.data) > 1:
+        raise CLIError("without a scene file --data reads one t,z record of the ball; give "
+                       "SCENE.toml to fit several records")
+    if args.data:
+        args.data = args.data[0]
     if args.scene is not None:
-        if args.data:
-            raise CLIError("give either a scene file or --data, not both")
         from .. import scenefile
+        setup_jax()
         return _report(args, *scenefile.fit_file(args.scene, progress=None if not args.json
                                                  else False, method=args.method,
                                                  lr=args.lr, maxiter=args.maxiter))
@@ -243,4 +264,58 @@ def _run_data(args) -> int:
         print(f"note:      {note}")
     print(f"status:    {res.message}; {res.iterations} LM iterations over "
           f"{len(res.horizons)} horizons, {res.seconds:.2f} s wall time")
+    return 0
+
+
+def _records_in_file(path: str) -> bool:
+    """Whether scene file ``path`` names motion records in [fit] data for a body other than a
+    bouncing ball (those are fitted like --data records)."""
+    from ..scenefile import load_scene_file
+    sf = load_scene_file(path)
+    return bool(sf.spec is not None and sf.spec.data and sf.setup.metrics is None)
+
+
+def _run_records(args) -> int:
+    """SCENE.toml --data FILES...: the scene file's [fit] params fitted to all records."""
+    if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
+        raise CLIError("--data fits measured records; drop the --target-* flags")
+    if args.method != "lm":
+        raise CLIError("fits to records use Levenberg-Marquardt (--method lm)")
+    if args.plot:
+        raise CLIError("--plot draws ball fits; for records run diffpen evaluate FITTED.toml "
+                       "--data FILES... --plot DIR on the scene written by --out")
+    if args.k0 is not None or args.c0 is not None:
+        raise CLIError("--k0/--c0 set the ball's start; a scene file's start values are its "
+                       "own (edit the file)")
+    setup_jax()
+    from ..trajfit import fit_files
+    horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else (None,)
+    out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
+                    loss=args.loss, horizons=horizons, maxiter=args.maxiter,
+                    progress=False if args.json else None)
+    if args.json:
+        dump_json(out)
+        return 0
+    print(f"diffpen fit: {args.scene} on {out['records']} record(s) "
+          f"({args.first_state} first state, {args.loss} pose loss)")
+    for name, v in out["fitted"].items():
+        print(f"fitted:    {name} = {v:.6g} +- {out['stderr'][name]:.2g}")
+    names = list(out["fitted"])
+    if len(names) > 1:
+        print("correlations:")
+        for a in names:
+            print("  " + " ".join(f"{out['correlation'][a][b]:+.2f}" for b in names) + f"  {a}")
+    for u in out["undetermined"]:
+        d = ", ".join(f"{c:+.2f} {n}" for n, c in u["direction"].items())
+        print(f"undetermined direction (eigenvalue ratio {u['eigenvalue_ratio']:.1e}): {d}")
+    for key, label in (("before", "start"), ("after", "fitted")):
+        pe, re = out[key]["position_error_pct"], out[key]["rotation_error_deg"]
+        rot = "" if re is None else (f", rotation mean {re['mean']:.2f} deg (median "
+                                     f"{re['median']:.2f})")
+        print(f"{label:7s}   position mean {pe['mean']:.2f}% (median {pe['median']:.2f}%)"
+              + rot)
+    if out["out"]:
+        print(f"wrote:     {out['out']}")
+    print(f"status:    {out['message']}; {out['iterations']} LM iterations, "
+          f"{out['seconds']:.2f} s wall time ({out['fit_seconds']:.2f} s fitting)")
     return 0

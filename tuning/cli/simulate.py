@@ -30,8 +30,8 @@ def run(args) -> int:
 
 
 def _load(args):
-    if args.scene.endswith(".toml"):
-        from ..scenefile import load_scene_file
+    from ..scenefile import is_scene_path, load_scene_file
+    if is_scene_path(args.scene):             # ball.TOML is a file, not the built-in "ball"
         return load_scene_file(args.scene).setup
     from ..scenes import get_scene
     return get_scene(args.scene)
@@ -49,7 +49,7 @@ def _run(args) -> int:
     import diffpen as dp
     dt = args.dt or setup.dt
     steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
-    sim = dp.compile(setup.scene, dt, law=args.law or setup.law)
+    sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
     k = setup.k if args.k is None else args.k
     c = setup.c if args.c is None else args.c
     kw = {}

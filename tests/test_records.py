@@ -1,0 +1,171 @@
+"""Motion records (tuning.records): the real cube tosses read as they are, every malformed
+record is refused with its file, line and column, and write/read round-trips."""
+import glob
+import os
+
+import numpy as np
+import pytest
+
+from tuning.records import (BodyRecord, Record, RecordError, read_height_record, read_record,
+                            write_record)
+from tuning.sysid import load_csv
+
+CUBE = sorted(glob.glob(os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared",
+                                     "data", "cube-toss", "toss_*.csv")))
+CUBE = CUBE or sorted(glob.glob("/work/shared/data/cube-toss/toss_*.csv"))
+
+
+def _write(tmp_path, text, name="rec.csv", mode="w"):
+    p = tmp_path / name
+    if isinstance(text, bytes):
+        p.write_bytes(text)
+    else:
+        p.write_text(text)
+    return str(p)
+
+
+def _rows(n=5, cols="x,y,z", fmt=None):
+    k = len(cols.split(","))
+    lines = [f"t,{cols}"]
+    for i in range(n):
+        vals = fmt(i) if fmt else [0.1 * (j + 1) + 0.01 * i for j in range(k)]
+        lines.append(",".join([f"{0.01 * i:.4f}"] + [f"{v:.6g}" for v in vals]))
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.skipif(not CUBE, reason="cube-toss data not present")
+def test_cube_tosses_read_as_they_are():
+    for path in CUBE:
+        rec = read_record(path, body_names=["cube"])
+        b = rec.bodies["cube"]
+        T = len(rec)
+        assert set(rec.bodies) == {"cube"} and 80 <= T <= 442
+        assert b.position.shape == (T, 3) and b.quaternion.shape == (T, 4)
+        assert b.velocity.shape == (T, 3) and b.angular_velocity.shape == (T, 3)
+        assert np.all(np.diff(rec.t) > 0) and rec.t[0] == 0.0
+        np.testing.assert_allclose(np.linalg.norm(b.quaternion, axis=1), 1.0, atol=1e-5)
+    # the values are the file's own (first data row of the first toss, by hand)
+    raw = np.loadtxt(CUBE[0], delimiter=",", skiprows=1)
+    rec = read_record(CUBE[0])
+    assert list(rec.bodies) == ["body"]
+    np.testing.assert_array_equal(rec.bodies["body"].position, raw[:, 1:4])
+    np.testing.assert_array_equal(rec.bodies["body"].angular_velocity, raw[:, 11:14])
+
+
+def test_named_bodies_missing_samples_and_round_trip(tmp_path):
+    t = np.linspace(0.0, 0.1, 6)
+    pa = np.stack([t, 2 * t, 0.5 + t], 1)
+    pb = pa + 1.0
+    pb[2] = np.nan                                   # a missing sample
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (6, 1))
+    rec = Record(path="x", t=t, bodies={"box": BodyRecord(position=pa, quaternion=q),
+                                        "lid": BodyRecord(position=pb,
+                                                          velocity=np.ones((6, 3)))})
+    path = str(tmp_path / "two.csv")
+    write_record(path, rec)
+    assert open(path).readline().strip() == ("t,box.x,box.y,box.z,box.qw,box.qx,box.qy,box.qz,"
+                                             "lid.x,lid.y,lid.z,lid.vx,lid.vy,lid.vz")
+    back = read_record(path, body_names=["box", "lid", "other"])
+    np.testing.assert_array_equal(back.t, t)
+    np.testing.assert_array_equal(back.bodies["box"].position, pa)
+    np.testing.assert_array_equal(back.bodies["lid"].position, pb)   # NaN row kept
+    assert back.bodies["box"].velocity is None and back.bodies["lid"].quaternion is None
+    with pytest.raises(RecordError, match=r"two.csv, line 1, column 9: 'lid.x' names body "
+                                          r"'lid', which the scene does not have"):
+        read_record(path, body_names=["box"])
+
+
+def test_bom_comments_and_one_named_body(tmp_path):
+    path = _write(tmp_path, b"\xef\xbb\xbf# recorded 2026\nT,X,Y,Z\n0,0,0,1\n\n0.1,0,0,0.9\n")
+    rec = read_record(path, body_names=["ball"])
+    assert list(rec.bodies) == ["ball"] and len(rec) == 2
+    with pytest.raises(RecordError, match="carry no body name but the scene observes 2"):
+        read_record(path, body_names=["a", "b"])
+
+
+GOOD = _rows()
+
+
+@pytest.mark.parametrize("text, words", [
+    ("", "is empty"),
+    ("x,y,z\n1,2,3\n", r"line 1: the header \(3 column\(s\)\) has no time column 't'"),
+    ("t,x,y\n0,1,2\n0.1,1,2\n", r"line 1: columns x, y are there but z is missing"),
+    ("t,x,y,z,qw,qx,qy\n0,1,2,3,1,0,0\n", "but qz is missing"),
+    ("t,x,y,z,foo\n0,1,2,3,4\n0.1,1,2,3,4\n", r"line 1, column 5: unknown column 'foo'"),
+    ("t,x,x,y,z\n", "appears twice"),
+    ("t,a.x,a.y,a.z,z\n", r"column 5: 'z' has no body name"),
+    ("t,qw,qx,qy,qz\n0,1,0,0,0\n0.1,1,0,0,0\n", "has no position columns"),
+    (GOOD.replace("0.0200,0.12", "0.0200,abc"), r"line 4, column 2 \(x\): 'abc' is not a number"),
+    (GOOD.replace("0.0200,0.12", "0.0200,inf"), r"line 4, column 2 \(x\): 'inf' is not finite"),
+    (GOOD.replace("0.0200,", ","), r"line 4, column 1 \(t\): a value is required"),
+    (GOOD.replace("0.0200,", "0.0100,"), r"line 4, column 1 \(t\): times must strictly increase"),
+    (GOOD.replace("0.0200,0.12", "0.0200,"), r"line 4, column 2 \(x\): the position of this "
+                                             "row is incomplete"),
+    (GOOD.replace("0.0300,0.13,0.23,0.33", "0.0300,0.13,0.23"), r"line 5: 3 cells but the "
+                                                                  "header has 4"),
+    (_rows(3, "x,y,z,qw,qx,qy,qz", lambda i: [0, 0, 1, 1, 0, 0, 0.5 * i]),
+     r"line 3, column 5 \(qw\): the quaternion has norm 1.11803, not 1"),
+    ("t,x,y,z\n" + "".join(f"{i * 10},0,0,1\n" for i in range(10)), "look like milliseconds"),
+    ("t,x,y,z\n0,0,0,1\n0.1,0,0,145\n", r"line 3, column 4 \(z\): 145 m .* look like "
+                                        "millimetres"),
+    ("t,x,y,z\n0,1,2,3\n", "1 data row"),
+    ('t,x,y,z\n0,"1,2,3\n', "cells"),
+    ("t,x,y,z\n0,1_0,2,3\n0.1,1,2,3\n", "'1_0' is not a number"),
+    (b"t,x,y,z\n0,1,2\x00\x01,3\n", r"binary file \(a zero byte at offset 13\)"),
+    (b"t,x,y,z\n0,1,2,3\n0.1,\xff\xfe,2,3\n", r"line 3: byte 0xff at offset 20 is not UTF-8"),
+])
+def test_bad_records_name_file_line_and_column(tmp_path, text, words):
+    path = _write(tmp_path, text)
+    with pytest.raises(RecordError, match=words) as exc:
+        read_record(path)
+    assert str(exc.value).startswith(path)
+
+
+def test_unit_hints_can_be_turned_off(tmp_path):
+    path = _write(tmp_path, "t,x,y,z\n" + "".join(f"{i * 10},0,0,{i * 100}\n" for i in range(10)))
+    rec = read_record(path, check_units=False)
+    assert rec.t[-1] == 90.0 and rec.bodies["body"].position[-1, 2] == 900.0
+
+
+def test_size_guard_refuses_before_parsing(tmp_path):
+    body = "".join(f"{i * 1e-3:.6f},0.1,0.2,0.3\n" for i in range(20000))
+    path = _write(tmp_path, "t,x,y,z\n" + body)
+    with pytest.raises(RecordError, match=r"about 2\d,\d{3} rows of 4 columns .* limit is "
+                                          r"1,000 rows.*max_rows="):
+        read_record(path, max_rows=1000)
+    with pytest.raises(RecordError, match=r"MiB.*max_bytes="):
+        read_record(path, max_bytes=10_000)
+    assert len(read_record(path, max_rows=30_000)) == 20000
+    with pytest.raises(RecordError, match="is a directory"):
+        read_record(str(tmp_path))
+    with pytest.raises(RecordError, match="cannot read"):
+        read_record(str(tmp_path / "nope.csv"))
+
+
+def test_ball_height_record_reads_through_the_same_module(tmp_path):
+    """The ball's t,z record (diffpen fit --data) goes through tuning.records: the same unit
+    hints and binary checks apply (a t,z record in milliseconds used to be fitted to nonsense)."""
+    ms = _write(tmp_path, "t,z\n" + "".join(f"{i * 5},{1.0 - 1e-6 * i * i}\n" for i in range(40)))
+    with pytest.raises(RecordError, match="look like milliseconds"):
+        load_csv(ms)
+    mm = _write(tmp_path, "t,z\n" + "".join(f"{i * 0.005},{1000 - i}\n" for i in range(40)),
+                name="mm.csv")
+    with pytest.raises(RecordError, match="look like millimetres"):
+        load_csv(mm)
+    ok = _write(tmp_path, "\ufefft,z,extra\n" + "".join(f"{i * 0.005},{1 - i * 1e-3},x\n"
+                                                         for i in range(40)), name="ok.csv")
+    t, z = read_height_record(ok)
+    assert t.shape == z.shape == (40,) and z[1] == 0.999
+
+
+def test_builder_node_names_round_trip(tmp_path):
+    """Builder nodes are named like "cloth[1,2]": the header cell is quoted and read back."""
+    t = np.array([0.0, 0.01, 0.02])
+    p = np.arange(9.0).reshape(3, 3) * 0.1
+    rec = Record(path="x", t=t, bodies={"cloth[1,2]": BodyRecord(position=p),
+                                        "rope[3]": BodyRecord(position=p + 1)})
+    path = str(tmp_path / "nodes.csv")
+    write_record(path, rec)
+    back = read_record(path, body_names=["cloth[1,2]", "rope[3]"])
+    np.testing.assert_array_equal(back.bodies["cloth[1,2]"].position, p)
+    np.testing.assert_array_equal(back.bodies["rope[3]"].position, p + 1)

@@ -1,0 +1,578 @@
+"""TOML scene files (tuning.scenefile): every element kind builds the same scene as the Python
+API, [fit] names any params leaf by its key path, and every bad file is refused with the file,
+the key and the fix before anything is compiled (regressions of issue 13's bad inputs)."""
+import math
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen import builders
+from tuning.cli import main
+from tuning.scenefile import (SceneFileError, is_scene_path, leaf_space, load_scene_file,
+                              param_leaves)
+
+ALL = """
+description = "every element"
+gravity = [0.0, 0.0, -9.81]
+dt = 5e-4
+duration = 0.05
+integrator = "semi_implicit_euler"
+smoothing = 1e-4
+
+[materials.rubber]
+k = 2e4
+c = 15.0
+friction = 0.3
+slip_speed = 0.02
+
+[spring_groups.tether]
+k = 300.0
+c = 0.5
+
+[[spheres]]
+name = "ball"
+radius = 0.1
+mass = 1.0
+position = [0.0, 0.0, 1.0]
+velocity = [0.5, 0.0, 0.0]
+material = "rubber"
+
+[[particles]]
+name = "dot"
+mass = 0.1
+position = [1.0, 0.0, 1.0]
+
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.04, 0.03]
+mass = 0.37
+position = [2.0, 0.0, 0.5]
+orientation = [0.9, 0.1, 0.3, 0.2]
+body_angular_velocity = [0.5, -1.0, 2.0]
+inertia = [8.1e-4, 7e-4, 6e-4]
+material = "rubber"
+
+[[rigid_spheres]]
+name = "wheel"
+radius = 0.05
+mass = 0.5
+position = [3.0, 0.0, 0.5]
+angular_velocity = [0.0, 2.0, 0.0]
+
+[[planes]]
+offset = -0.002
+material = "rubber"
+
+[[planes]]
+normal = [-1.0, 0.0, 0.0]
+offset = -10.0
+
+[[fixed_spheres]]
+center = [5.0, 0.0, 0.0]
+radius = 0.5
+
+[[springs]]
+a = "ball"
+b = "dot"
+k = 100.0
+group = "link"
+
+[[springs]]
+a = 1
+b = [1.0, 0.0, 2.0]
+group = "tether"
+rest_length = 0.9
+
+[[anchored_springs]]
+a = "cube"
+anchor_a = [0.05, 0.04, 0.03]
+anchor_b = [2.0, 0.0, 1.0]
+k = 50.0
+c = 0.2
+group = "hang"
+
+[[anchored_springs]]
+a = "cube"
+b = "wheel"
+anchor_a = [-0.05, 0.0, 0.0]
+anchor_b = [0.0, 0.0, 0.05]
+group = "hang"
+
+[[ropes]]
+n = 5
+start = [0.0, 1.0, 1.0]
+end = [0.5, 1.0, 1.0]
+mass = 0.1
+k = 200.0
+c = 0.1
+bend = [20.0, 0.01]
+drag = 0.01
+pinned = [0, -1]
+
+[[cloths]]
+name = "sheet"
+nx = 3
+ny = 4
+spacing = 0.1
+mass = 0.2
+origin = [0.0, 2.0, 1.0]
+axes = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+structural = 150.0
+shear = false
+bend = [5.0, 0.02]
+pinned = [[0, 0], [0, -1]]
+
+[[jellies]]
+nx = 2
+ny = 2
+nz = 3
+spacing = 0.05
+mass = 0.1
+origin = [0.0, 3.0, 0.5]
+edge = [400.0, 0.4]
+body = false
+
+[[crumple_bars]]
+n = 4
+start = [0.0, 4.0, 0.5]
+end = [0.3, 4.0, 0.5]
+mass = 0.1
+k = 1000.0
+c = 1.0
+yield_strain = 0.05
+width = 0.05
+pinned = [0]
+
+[[plastic_springs]]
+a = "rope[-2]"
+b = "sheet[2,3]"
+k = 10.0
+yield_strain = 0.1
+group = "crush"
+
+[[drag]]
+bodies = ["ball", "cube"]
+c = 0.05
+group = "air"
+"""
+
+
+def _quat_matrix(q):
+    w, x, y, z = np.asarray(q) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _api_scene():
+    """The scene of ALL, built with the Python API."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    s.add_material("rubber", k=2e4, c=15.0, friction=0.3, slip_speed=0.02)
+    s.add_spring_group("tether", 300.0, 0.5)
+    ball = s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0), (0.5, 0.0, 0.0), material="rubber")
+    dot = s.add_particle(0.1, (1.0, 0.0, 1.0))
+    q = (0.9, 0.1, 0.3, 0.2)
+    cube = s.add_box((0.05, 0.04, 0.03), 0.37, (2.0, 0.0, 0.5), orientation=q,
+                     angular_velocity=tuple(_quat_matrix(q) @ np.array([0.5, -1.0, 2.0])),
+                     inertia=(8.1e-4, 7e-4, 6e-4), material="rubber")
+    wheel = s.add_rigid_sphere(0.05, 0.5, (3.0, 0.0, 0.5), angular_velocity=(0.0, 2.0, 0.0))
+    rope = builders.add_rope(s, 5, (0.0, 1.0, 1.0), (0.5, 1.0, 1.0), 0.1, 200.0, 0.1,
+                             bend=(20.0, 0.01), drag=0.01, pinned=(0, -1))
+    sheet = builders.add_cloth(s, 3, 4, 0.1, 0.2, origin=(0.0, 2.0, 1.0),
+                               axes=((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)), structural=150.0,
+                               shear=None, bend=(5.0, 0.02), pinned=[(0, 0), (0, -1)],
+                               group="sheet")
+    builders.add_jelly(s, 2, 2, 3, 0.05, 0.1, origin=(0.0, 3.0, 0.5), edge=(400.0, 0.4),
+                       body=None)
+    builders.add_crumple_bar(s, 4, (0.0, 4.0, 0.5), (0.3, 4.0, 0.5), 0.1, 1000.0, 1.0,
+                             yield_strain=0.05, width=0.05, pinned=[0])
+    s.add_plane(offset=-0.002, material="rubber")
+    s.add_plane(normal=(-1.0, 0.0, 0.0), offset=-10.0)
+    s.add_fixed_sphere((5.0, 0.0, 0.0), 0.5)
+    s.add_spring(ball, dot, k=100.0, group="link")
+    s.add_spring(dot, (1.0, 0.0, 2.0), group="tether", rest_length=0.9)
+    s.add_anchored_spring(cube, None, (0.05, 0.04, 0.03), (2.0, 0.0, 1.0), k=50.0, c=0.2,
+                          group="hang")
+    s.add_anchored_spring(cube, wheel, (-0.05, 0.0, 0.0), (0.0, 0.0, 0.05), group="hang")
+    s.add_plastic_spring(int(rope[-2]), int(sheet[2, 3]), k=10.0, yield_strain=0.1,
+                         group="crush")
+    s.add_drag([ball, cube], c=0.05, group="air")
+    return s
+
+
+RECORDS = ("bodies", "springs", "anchored_springs", "planes", "fixed_spheres", "materials",
+           "spring_groups", "drags", "drag_groups", "plastic_springs", "plastic_groups",
+           "gravity", "plastic_smoothing")
+
+
+@pytest.fixture(scope="module")
+def all_file(tmp_path_factory):
+    p = tmp_path_factory.mktemp("scenes") / "all.toml"
+    p.write_text(ALL)
+    return str(p)
+
+
+def test_every_element_kind_builds_the_python_api_scene(all_file):
+    sf = load_scene_file(all_file)
+    api = _api_scene()
+    for rec in RECORDS:
+        got, want = getattr(sf.scene, rec), getattr(api, rec)
+        assert got == want, rec
+    # the body-frame angular velocity was turned into the world frame the API takes
+    cube = sf.scene.bodies[sf.names["cube"]]
+    assert not np.allclose(cube.angular_velocity, (0.5, -1.0, 2.0))
+    # names: user names and builder nodes, negative node indices resolved
+    assert sf.names["ball"] == 0 and sf.names["dot"] == 1 and sf.names["wheel"] == 3
+    assert sf.body_index("rope[-1]") == sf.names["rope[4]"] == 8
+    assert sf.body_index("sheet[1, 2]") == sf.names["sheet[1,2]"]
+    assert sf.nodes["sheet"].shape == (3, 4) and sf.nodes["bar"].shape == (4, 2)
+    assert sf.setup.steps == 100 and sf.setup.dt == 5e-4
+    sim = sf.compile()
+    assert sim.integrator == "semi_implicit_euler" and sim.smoothing == 1e-4
+    # and the compiled parameters equal the API scene's (a material without k and c takes
+    # those of the first material that has them, as documented)
+    sim_api = dp.compile(api, 5e-4, smoothing=1e-4)
+    pa = param_leaves(sf.params(sim))
+    pb = param_leaves(sim_api.params(contact={"default": (2e4, 15.0)}))
+    assert pa.keys() == pb.keys()
+    for key in pa:
+        assert float(pa[key]) == float(pb[key]), key
+
+
+def test_fit_params_are_key_paths_of_the_params_pytree(tmp_path):
+    body = ALL + """
+[fit]
+params = ["contact.rubber.k", ".contact['rubber'].c", "extra.friction.rubber",
+          "springs.rope.stretch.k", "springs.sheet.structural.c", "extra.drag.air",
+          "extra.plastic.crush", "extra.drag.rope.drag"]
+data = ["rec.csv"]
+observe = ["cube", "rope[2]"]
+method = "adam"
+maxiter = 30
+[fit.bounds]
+"contact.rubber.k" = [1e3, 1e6]
+[fit.space]
+"extra.drag.air" = "linear"
+"""
+    (tmp_path / "rec.csv").write_text("t,cube.x,cube.y,cube.z\n0,2,0,0.5\n0.01,2,0,0.49\n")
+    p = tmp_path / "fit.toml"
+    p.write_text(body)
+    sf = load_scene_file(str(p))
+    spec = sf.spec
+    # the simulator built to check the paths is the one sf.compile() gives (built once)
+    assert sf.compile() is sf.compile() and sf.compile().dt == 5e-4
+    assert sf.compile(dt=1e-4).dt == 1e-4
+    assert spec.free == ["contact.rubber.k", "contact.rubber.c", "extra.friction.rubber",
+                         "springs.rope.stretch.k", "springs.sheet.structural.c",
+                         "extra.drag.air", "extra.plastic.crush", "extra.drag.rope.drag"]
+    assert spec.bounds == {"contact.rubber.k": (1e3, 1e6)}
+    assert spec.space["extra.drag.air"] == "linear" and spec.space["contact.rubber.c"] == "log"
+    assert spec.data == [str(tmp_path / "rec.csv")] and spec.observe == ["cube", "rope[2]"]
+    assert spec.method == "adam" and spec.maxiter == 30
+    # a leaf that is not in the pytree lists the ones that are
+    p.write_text(body.replace('"extra.plastic.crush"', '"extra.slip_speed.rubber"'))
+    with pytest.raises(SceneFileError, match=r"fit\.params\[6\] 'extra.slip_speed.rubber' is "
+                                             r"not a parameter of this scene; its parameters "
+                                             r"are: contact.default.k"):
+        load_scene_file(str(p))
+
+
+def test_drag_on_every_node_of_a_builder(tmp_path):
+    p = tmp_path / "d.toml"
+    p.write_text("[[ropes]]\nn = 4\nstart = [0, 0, 1]\nend = [0.3, 0, 1]\nmass = 0.1\n"
+                 "k = 100.0\n[[drag]]\nbodies = \"rope\"\nc = 0.02\ngroup = \"air\"\n")
+    sf = load_scene_file(str(p))
+    assert [d.body for d in sf.scene.drags if d.group == "air"] == [0, 1, 2, 3]
+    assert sf.scene.drag_groups == {"air": 0.02}
+
+
+def test_leaf_space_signed_offsets_linear_positive_log():
+    assert leaf_space("extra.plane_offset.ground", -0.002) == "linear"
+    assert leaf_space("extra.plane_offset.ground", 0.01) == "linear"
+    assert leaf_space("contact.offset_rubber.k", 1e4) == "log"       # a material's name
+    assert leaf_space("extra.slip_speed.rubber", 0.01) == "log"
+    assert leaf_space("extra.plastic.bar", 0.05) == "log"
+
+
+def test_named_plane_and_body_references(tmp_path):
+    p = tmp_path / "b.toml"
+    p.write_text("""
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.2]
+[[spheres]]
+name = "ball"
+radius = 0.1
+mass = 1.0
+position = [1.0, 0.0, 1.0]
+[[planes]]
+name = "wall"
+normal = [-1.0, 0.0, 0.0]
+offset = -3.0
+[[planes]]
+name = "ground"
+[fit]
+body = "ball"
+plane = "ground"
+[fit.targets]
+apex_heights = [0.3]
+""")
+    sf = load_scene_file(str(p))
+    assert sf.names == {"ball": 0, "cube": 1}         # spheres are numbered before boxes
+    assert sf.planes == {"wall": 0, "ground": 1}
+    assert sf.spec.body == 0 and sf.spec.plane == 1 and sf.spec.observe == ["ball", "cube"]
+    assert sf.setup.metrics is not None                # the ball bounces: bounce metrics
+
+
+# --------------------------------------------------------------------------- bad input
+BALL = """
+[materials.rubber]
+k = 1e4
+c = 10.0
+[[spheres]]
+radius = 0.1
+mass = 1.0
+position = [0.0, 0.0, 1.0]
+material = "rubber"
+[[planes]]
+material = "rubber"
+"""
+FIT = "[fit]\nparams = [\"contact.rubber.k\"]\n[fit.targets]\napex_heights = [0.3]\n"
+
+
+def _spheres(n):
+    rows = "".join(f"{{radius = 0.01, mass = 0.1, position = [{i % 100 * 0.03:.2f}, "
+                   f"{i // 100 * 0.03:.2f}, 1.0]}},\n" for i in range(n))
+    return f"spheres = [\n{rows}]\n"
+
+
+BAD = [
+    # types without coercion
+    (BALL.replace("radius = 0.1", 'radius = "0.1"'),
+     r"spheres\[0\]\.radius must be a number \(m\), got a string '0.1'; write it without "
+     r"quotes, e\.g\. radius = 0\.1"),
+    (BALL.replace("mass = 1.0", "mass = true"),
+     r"spheres\[0\]\.mass must be a number \(kg\), got a boolean True"),
+    (BALL.replace("[[spheres]]", "[spheres]"),
+     r"spheres must be an array of tables: write each entry as \[\[spheres\]\]"),
+    ("materials = 5\n" + BALL.split("[[spheres]]")[1].join(["[[spheres]]", ""]),
+     r"materials must be a table, got an integer 5"),
+    (BALL.replace("k = 1e4", 'k = "stiff"'),
+     r"materials\.rubber\.k must be a number \(N/m\), got a string 'stiff'"),
+    (BALL + FIT.replace("apex_heights = [0.3]", "").replace("[fit.targets]",
+                                                              'targets = "lots"'),
+     r"fit\.targets must be a table, got a string 'lots'"),
+    (BALL + FIT + "", None),
+    (BALL + FIT.replace("[fit]", "[fit]\nsettle_tol = -1"), r"fit\.settle_tol must be > 0"),
+    (BALL + FIT.replace("[fit]", '[fit]\nbody = "zero"'),
+     r"fit\.body names body 'zero', which the scene does not have"),
+    (BALL + '[fit]\ndata = 42\n', r"fit\.data must be a file name or an array of file names"),
+    (BALL + FIT.replace("[fit]", '[fit]\nweights = "heavy"'),
+     r"fit\.weights must be a table, got a string 'heavy'"),
+    (BALL + FIT.replace("[fit]", '[fit]\nmaxiter = "many"'),
+     r"fit\.maxiter must be an integer, got a string 'many'"),
+    (BALL + FIT.replace("[fit]", "[fit]\nmaxiter = 2.0"), r"fit\.maxiter must be an integer"),
+    ("duration = 1e9\n" + BALL,
+     r"duration = 1e\+09 s at dt = 0\.001 s is 1e\+12 steps: a rollout saving every step "
+     r"would hold about .* TiB and run for roughly .* days.*max_steps="),
+    ("dt = 0\n" + BALL, r"dt must be > 0 \(s\), got 0"),
+    (BALL + "[[springs]]\na = 0\nb = 7\nk = 1.0\n",
+     r"springs\[0\]\.b is body 7, but the scene has 1 bodies"),
+    (BALL + "[[springs]]\na = 0\nb = [0, 0]\nk = 1.0\n",
+     r"springs\[0\]\.b must be 3 numbers \[x, y, z\]"),
+    (BALL.replace('material = "rubber"\n[[planes]]', 'material = "steel"\n[[planes]]'),
+     r"spheres\[0\]\.material names material 'steel', which is not declared; add a "
+     r"\[materials\.steel\] table"),
+    (BALL.replace("mass = 1.0", "mass = 1.0\nangular_velocity = [0, 0, 1]"),
+     r"unknown key\(s\) \['angular_velocity'\] in \[spheres\[0\]\]"),
+    (BALL + "[[boxes]]\nhalf_extents = [0.1, 0.1, 0.1]\nmass = 1.0\nposition = [2, 0, 1]\n"
+     "orientation = [0, 0, 0, 0]\n", r"boxes\[0\]\.orientation is the zero quaternion"),
+    (BALL + "[[boxes]]\nhalf_extents = [0.1, 0.1]\nmass = 1.0\nposition = [2, 0, 1]\n",
+     r"boxes\[0\]\.half_extents must be 3 numbers"),
+    (BALL + "[[ropes]]\nn = 1\nstart = [0, 1, 1]\nend = [1, 1, 1]\nmass = 0.1\nk = 10.0\n",
+     r"ropes\[0\]\.n must be an integer >= 2, got 1"),
+    (BALL + "[[cloths]]\nnx = 3\nny = 3\nspacing = 0.1\nmass = 0.1\npinned = [[0, 7]]\n",
+     r"cloths\[0\] cloth pinned: pinned node \(0, 7\) is outside the grid"),
+    (BALL + "[[ropes]]\nn = 3\nstart = [0, 1, 1]\nend = [1, 1, 1]\nmass = 0.1\nk = 10.0\n"
+     "[[springs]]\na = \"rope[3]\"\nb = 0\nk = 1.0\n",
+     r"springs\[0\]\.a 'rope\[3\]' is outside 'rope', whose nodes have shape \(3,\)"),
+    (BALL + "[[spheres]]\nname = \"1st\"\nradius = 0.1\nmass = 1.0\nposition = [1, 0, 1]\n",
+     r"spheres\[1\]\.name '1st' is not a valid name"),
+    (BALL + FIT.replace("[fit]", '[fit]\nmethod = "newton"'),
+     r"fit\.method must be one of 'lm', 'adam', 'sgd'"),
+    (BALL + FIT.replace("apex_heights = [0.3]", "apex_heights = [-0.3]"),
+     r"fit\.targets\.apex_heights\[0\] must be > 0"),
+    (BALL + FIT + "[fit.bounds]\n\"contact.rubber.k\" = [0, 1e5]\n",
+     r"fit\.bounds\.contact\.rubber\.k has lo = 0 <= 0 for a leaf fitted in log space"),
+    (BALL + FIT + "[fit.bounds]\n\"contact.rubber.k\" = [1e5, 1e6]\n",
+     r"does not contain the start value 10000"),
+    (BALL + FIT + "[fit.bounds]\n\"contact.rubber.c\" = [1, 100]\n",
+     r"bounds 'contact.rubber.c', which is not in \[fit\] params"),
+    ('broadphase = { kind = "octree" }\n' + BALL,
+     r"broadphase\.kind must be one of 'aabb', 'grid'"),
+    ('law = "soft"\n' + BALL, r"law must be one of 'hunt_crossley', 'linear', 'no_tension'"),
+    ("[[particles]]\nmass = 1.0\n", r"particles\[0\] is missing required key 'position'"),
+    ("gravity = [0, 0, -9.81]\n", r"has no bodies"),
+    (BALL + "[fit]\n[fit.targets]\napex_heights = [0.3]\n[fit.weights]\nsettling = 1.0\n",
+     r"fit\.weights\.settling weights a target that is not given"),
+    ("[[spheres]]\nradius = 0.1\nmass = 1.0\nposition = [0, 0, 1]\n[fit]\n",
+     r"fit says nothing to fit: add a \[fit.targets\] table, data = \"record.csv\", or "
+     r"params"),
+    (BALL + FIT.replace("[fit]", '[fit]\ndata = "r.csv"'), r"fit has both \[fit.targets\] and data"),
+]
+
+
+@pytest.mark.parametrize("text, words", [b for b in BAD if b[1] is not None])
+def test_bad_scene_files_name_file_key_and_fix(tmp_path, text, words):
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    with pytest.raises(SceneFileError, match=words) as exc:
+        load_scene_file(str(p))
+    assert str(exc.value).startswith(str(p))
+    assert isinstance(exc.value, dp.SceneError) and isinstance(exc.value, ValueError)
+
+
+def test_20000_spheres_need_a_broad_phase(tmp_path):
+    p = tmp_path / "crowd.toml"
+    p.write_text(_spheres(20000))
+    with pytest.raises(SceneFileError, match=r"20,000 colliding spheres and 0 boxes: "
+                                             r"199,990,000 contact pairs .* GiB .*broadphase = "
+                                             r"\{ kind = \"grid\" \}"):
+        load_scene_file(str(p))
+    # with a broad phase the same count passes the guard (tested on 200 to stay fast)
+    p.write_text('broadphase = { kind = "grid", max_per_cell = 16 }\n' + _spheres(200))
+    sf = load_scene_file(str(p), max_dense_pairs=1000)
+    assert sf.scene.n_bodies == 200
+    assert isinstance(sf.setup.compile_options["broadphase"], dp.broadphase.Grid)
+    p.write_text(_spheres(200))
+    with pytest.raises(SceneFileError, match="19,900 contact pairs"):
+        load_scene_file(str(p), max_dense_pairs=1000)
+
+
+def test_builder_node_counts_are_guarded_before_building(tmp_path):
+    p = tmp_path / "huge.toml"
+    p.write_text("[[cloths]]\nnx = 3000\nny = 3000\nspacing = 0.01\nmass = 1.0\n")
+    with pytest.raises(SceneFileError, match=r"describes 9,000,000 bodies \(9,000,000 of them "
+                                             r"builder nodes\); the limit is 200,000"):
+        load_scene_file(str(p))
+
+
+def test_binary_and_bom_files(tmp_path):
+    p = tmp_path / "bin.toml"
+    p.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    with pytest.raises(SceneFileError, match=r"bin.toml: is a binary file \(a zero byte at "
+                                             r"offset 8\)"):
+        load_scene_file(str(p))
+    p.write_bytes(b"radius = \xff\xfe\n")
+    with pytest.raises(SceneFileError, match=r"line 1: byte 0xff .* not UTF-8"):
+        load_scene_file(str(p))
+    p.write_bytes(b"\xef\xbb\xbf" + BALL.encode())
+    assert load_scene_file(str(p)).scene.n_bodies == 1
+    with pytest.raises(SceneFileError, match="is not valid TOML"):
+        p.write_text("[[spheres]\n")
+        load_scene_file(str(p))
+    with pytest.raises(SceneFileError, match="cannot read"):
+        load_scene_file(str(tmp_path / "missing.toml"))
+    with pytest.raises(SceneFileError, match="is a directory"):
+        load_scene_file(str(tmp_path))
+
+
+def test_fit_data_must_be_a_csv_record_and_is_never_quoted(tmp_path, capsys):
+    """[fit] data = "/etc/passwd" used to print the file's first line in the error."""
+    secret = tmp_path / "secret.txt"
+    secret.write_text("root:x:0:0:SECRET-LINE:/root:/bin/bash\n")
+    p = tmp_path / "s.toml"
+    p.write_text(BALL + f'[fit]\ndata = "{secret}"\n')
+    with pytest.raises(SceneFileError, match=r"fit\.data must name a \.csv record") as exc:
+        load_scene_file(str(p))
+    assert "SECRET" not in str(exc.value)
+    # a .csv that is not a record: the error names the file, never its content
+    shutil.copy(secret, tmp_path / "secret.csv")
+    p.write_text(BALL + '[fit]\ndata = "secret.csv"\n')
+    assert main(["fit", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "secret.csv, line 1" in err and "SECRET" not in err and "root:x" not in err
+
+
+def test_ball_TOML_is_a_file_not_the_built_in_ball(tmp_path, capsys):
+    assert is_scene_path("ball.TOML") and is_scene_path("x/y.Toml")
+    assert not is_scene_path("ball")
+    missing = str(tmp_path / "ball.TOML")
+    assert main(["simulate", missing]) == 2
+    assert f"cannot read {missing}" in capsys.readouterr().err
+
+
+def test_examples_ball_toml_reads():
+    here = os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")
+    sf = load_scene_file(here)
+    assert sf.spec.free == ["contact.rubber.k", "contact.rubber.c"]
+    assert sf.spec.targets == {"apex_heights": [0.35], "settling_time": 2.4}
+    assert math.isclose(sf.setup.dt * sf.setup.steps, 3.0)
+
+
+def test_readme_scene_file_example_reads(tmp_path):
+    """The README's TOML example is a valid scene file, as written."""
+    readme = open(os.path.join(os.path.dirname(__file__), "..", "README.md")).read()
+    block = readme.split("```toml\n", 1)[1].split("```", 1)[0]
+    for name in ("toss_003.csv", "toss_006.csv"):
+        (tmp_path / name).write_text("t,x,y,z\n0,0,0,0.15\n0.01,0,0,0.14\n")
+    p = tmp_path / "cube.toml"
+    p.write_text(block)
+    sf = load_scene_file(str(p))
+    assert sf.names["cube"] == 0 and sf.body_index("rope[-1]") == 10
+    assert sf.spec.free == ["contact.wood.k", "contact.wood.c", "extra.friction.wood"]
+    assert sf.spec.bounds == {"extra.friction.wood": (0.01, 1.0)}
+    assert len(sf.spec.data) == 2 and sf.planes == {"board": 0}
+    assert isinstance(sf.setup.compile_options["broadphase"], dp.broadphase.Grid)
+
+
+@pytest.mark.skipif("name" not in __import__("inspect").signature(dp.Scene.add_plane).parameters,
+                    reason="planes have no differentiable offset in this build")
+def test_named_plane_offset_is_a_linear_space_fit_leaf(tmp_path):
+    """A named plane's offset is the params leaf extra.plane_offset.NAME: [fit] accepts it and
+    fits it in linear space (it is signed: the cube-toss board sits ~2 mm below z = 0)."""
+    p = tmp_path / "g.toml"
+    p.write_text(BALL.replace("[[planes]]", "[[planes]]\nname = \"ground\"\noffset = -0.002")
+                 + '[fit]\nparams = ["contact.rubber.k", "extra.plane_offset.ground"]\n'
+                 'data = "r.csv"\n[fit.bounds]\n"extra.plane_offset.ground" = [-0.01, 0.01]\n')
+    (tmp_path / "r.csv").write_text("t,x,y,z\n0,0,0,1\n0.01,0,0,0.99\n")
+    spec = load_scene_file(str(p)).spec
+    assert spec.space == {"contact.rubber.k": "log", "extra.plane_offset.ground": "linear"}
+    assert spec.bounds["extra.plane_offset.ground"] == (-0.01, 0.01)
+
+
+@pytest.mark.skipif("allow_overlap" not in __import__("inspect").signature(
+    dp.Scene.add_sphere).parameters, reason="no initial-overlap check in this build")
+def test_allow_overlap_passes_through(tmp_path):
+    p = tmp_path / "o.toml"
+    deep = BALL.replace("position = [0.0, 0.0, 1.0]", "position = [0.0, 0.0, 0.02]")
+    p.write_text(deep)
+    with pytest.raises(SceneFileError, match=r"o\.toml: planes\[0\] .*allow_overlap"):
+        load_scene_file(str(p))
+    p.write_text(deep.replace('material = "rubber"\n[[planes]]',
+                              'material = "rubber"\nallow_overlap = true\n[[planes]]'))
+    assert load_scene_file(str(p)).scene.n_bodies == 1
+    p.write_text("allow_overlap = true\n" + deep)
+    assert load_scene_file(str(p)).scene.n_bodies == 1
+
+
+@pytest.mark.parametrize("extra, words", [
+    ('[fit.bounds]\n"contact.rubber.k" = [1e5, 1e3]\n', r"needs lo < hi"),
+    ('[fit.bounds]\n"contact.rubber.k" = "wide"\n', r"must be \[lo, hi\], got a string"),
+    ('[fit.space]\n"contact.rubber.k" = "exp"\n', r"must be one of 'log', 'linear'"),
+    ("[fit.weights]\napex_heights = -1\n", r"fit\.weights\.apex_heights must be >= 0"),
+])
+def test_fit_table_errors_come_before_any_simulator_is_built(tmp_path, monkeypatch, extra,
+                                                             words):
+    def boom(*a, **k):
+        raise AssertionError("a simulator was built before the [fit] table was checked")
+    monkeypatch.setattr(dp, "compile", boom)
+    p = tmp_path / "f.toml"
+    p.write_text(BALL + FIT + extra)
+    with pytest.raises(SceneFileError, match=words):
+        load_scene_file(str(p))

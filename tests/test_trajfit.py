@@ -1,0 +1,319 @@
+"""Fitting scenes to measured motion (tuning.trajfit, diffpen fit SCENE.toml --data FILES):
+recovery of known parameters from records made by another integrator and time step plus
+noise, the first-state estimate, masks for records of unequal length, and the library pieces
+it needs (named planes with a fitted offset, Simulator.state_from)."""
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning import trajfit as tf
+from tuning.cli import main
+from tuning.records import write_record
+from tuning.scenefile import load_scene_file
+
+ROPE = """
+dt = 1e-3
+[[ropes]]
+n = 4
+start = [0.0, 0.0, 1.0]
+end = [0.3, 0.0, 1.0]
+mass = 0.3
+k = {k}
+c = {c}
+pinned = [0]
+[fit]
+params = ["springs.rope.stretch.k", "springs.rope.stretch.c"]
+"""
+
+BOX = """
+dt = 1e-3
+[[boxes]]
+name = "box"
+half_extents = [0.1, 0.05, 0.03]
+mass = 1.0
+position = [0.0, 0.0, 0.0]
+orientation = [0.98, 0.1, 0.15, 0.0]
+collide = false
+[[anchored_springs]]
+a = "box"
+anchor_a = [0.1, 0.05, 0.03]
+anchor_b = [0.05, 0.02, 0.3]
+k = {k}
+c = {c}
+rest_length = 0.2
+group = "hang"
+[[anchored_springs]]
+a = "box"
+anchor_a = [-0.1, -0.05, 0.03]
+anchor_b = [-0.12, 0.0, 0.3]
+group = "hang"
+rest_length = 0.2
+[fit]
+params = ["springs.hang.k", "springs.hang.c"]
+"""
+
+
+def _record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
+                 noise, seed):
+    """Write the scene (start values) and a record of the truth made by ``integrator`` at
+    ``dt``; returns (scene path, record path)."""
+    scene = tmp_path / f"{name}.toml"
+    scene.write_text(text)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile(integrator=integrator, dt=dt)
+    params = tf.with_leaves(sf.params(sim), truth)
+    ids = {b: sf.names[b] for b in bodies}
+    rec = tf.synthetic_record(sim, params, duration, every, ids, noise=noise, seed=seed)
+    path = tmp_path / f"{name}.csv"
+    write_record(str(path), rec)
+    return str(scene), str(path)
+
+
+def _fit_cli(capsys, argv):
+    capsys.readouterr()
+    assert main(argv + ["--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("case", ["rope", "box_springs"])
+def test_record_fit_recovers_parameters(tmp_path, capsys, case):
+    """diffpen fit SCENE.toml --data REC.csv recovers spring k and c within 2% from a record
+    made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise."""
+    if case == "rope":
+        truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
+        text = ROPE.format(k=200.0, c=0.3)
+        bodies = ["rope[1]", "rope[2]", "rope[3]"]
+        noise = 1e-4
+    else:
+        truth = {"springs.hang.k": 400.0, "springs.hang.c": 2.0}
+        text = BOX.format(k=250.0, c=1.0)
+        bodies = ["box"]
+        noise = 2e-4
+    scene, rec = _record_file(tmp_path, text, truth, bodies, case, integrator="rk4",
+                              dt=2.5e-4, every=5e-3, duration=0.6, noise=noise, seed=1)
+    out_toml = tmp_path / "fitted.toml"
+    out = _fit_cli(capsys, ["fit", scene, "--data", rec, "--out", str(out_toml)])
+    for name, v in truth.items():
+        assert out["fitted"][name] == pytest.approx(v, rel=0.02), (name, out["fitted"])
+        assert 0 < out["stderr"][name] < 0.05 * v
+    assert out["after"]["position_error_pct"]["mean"] < out["before"]["position_error_pct"][
+        "mean"]
+    assert out["undetermined"] == []
+    # the written scene holds the fitted values
+    sf = load_scene_file(str(out_toml))
+    leaves = tf.leaf_names(sf.params(sf.compile()))
+    got = sf.params(sf.compile())
+    for name in truth:
+        assert float(tf.get_leaf(got, name)) == pytest.approx(out["fitted"][name], rel=1e-12)
+    assert set(truth) <= set(leaves)
+
+
+# --------------------------------------------------------------------------- pieces
+@pytest.fixture(scope="module")
+def cube():
+    scene = dp.Scene()
+    scene.add_material("board", k=3e3, c=30.0, friction=0.2)
+    scene.add_box((0.05, 0.05, 0.05), 0.37, (0.0, 0.0, 0.3), inertia=(8e-4,) * 3)
+    scene.add_plane(material="board", name="ground", offset=-0.002)
+    return dp.compile(scene, 1e-3)
+
+
+def test_first_state_removes_the_finite_difference_bias(cube):
+    """A gravity parabola through the first flight frames gives the exact start velocity;
+    row 0 with a biased velocity column keeps the bias."""
+    t = np.arange(12) / 148.0
+    v0 = np.array([0.3, -0.2, 0.5])
+    w = np.array([1.0, -2.0, 3.0])
+    pos = np.array([0.0, 0.0, 0.3]) + v0 * t[:, None] + 0.5 * np.array(cube.scene.gravity) * \
+        t[:, None] ** 2
+    quat = np.array([tf._qmul(tf._exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
+    vel = np.tile(v0 + np.array([0, 0, 0.023]), (12, 1))
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="fit")
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    np.testing.assert_allclose(om, w, atol=1e-9)
+    np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="record")
+    assert v[2] - v0[2] == pytest.approx(0.023)
+
+
+def test_unequal_lengths_are_masked(cube):
+    """Records of different lengths in one batch give each record the residuals it gives
+    alone (padding weighs nothing)."""
+    params = cube.params()
+    s = cube.state_from(body=0, position=(0, 0, 0.2), velocity=(0.4, 0, 0),
+                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
+    long = tf.synthetic_record(cube, params, 0.3, 5e-3, {"cube": 0}, state=s, noise=1e-3)
+    short = tf.synthetic_record(cube, params, 0.12, 5e-3, {"cube": 0}, noise=1e-3, seed=3)
+    both = tf.prepare(cube, [long, short], estimate="record")
+    alone = [tf.prepare(cube, [r], estimate="record") for r in (long, short)]
+    p2 = tf.with_leaves(params, {"contact.board.c": 20.0})
+    r_both = tf.pose_residuals(*tf.simulate(cube, p2, both), both)
+    cost_alone = [float(jnp.sum(tf.pose_residuals(*tf.simulate(cube, p2, b), b) ** 2))
+                  for b in alone]
+    # each record weighs 1/R in the batch: the batch cost is the mean of the costs alone
+    assert float(jnp.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
+    assert both.pos_mask[1, len(short.t):].sum() == 0
+    # buckets of similar length give the same loss as one padded batch
+    buckets = tf.prepare_buckets(cube, [long, short], buckets=2, estimate="record")
+    assert [len(b.paths) for b in buckets] == [1, 1] and buckets[0].steps < both.steps
+    r_buckets = jnp.concatenate([tf.pose_residuals(*tf.simulate(cube, p2, b), b)
+                                 for b in buckets])
+    assert float(jnp.sum(r_buckets ** 2)) == pytest.approx(float(jnp.sum(r_both ** 2)),
+                                                           rel=1e-10)
+
+
+def test_plane_offset_is_a_differentiable_parameter(cube):
+    """A named plane's offset is params.extra["plane_offset"][name]: moving it moves the
+    resting box by the same amount, and its gradient matches central differences."""
+    params = cube.params()
+    assert float(params.extra["plane_offset"]["ground"]) == -0.002
+    s = cube.state_from(body=0, position=(0, 0, 0.1))
+
+    def rest_z(off):
+        p = tf.with_leaves(params, {"extra.plane_offset.ground": off})
+        return cube.rollout(p, 400, s).position[-1, 0, 2]
+    z0, z1 = float(rest_z(-0.002)), float(rest_z(0.003))
+    assert z1 - z0 == pytest.approx(0.005, rel=1e-3)
+    g = float(jax.grad(rest_z)(jnp.asarray(0.0)))
+    h = 1e-6
+    fd = (float(rest_z(h)) - float(rest_z(-h))) / (2 * h)
+    assert g == pytest.approx(fd, rel=1e-5)
+    with pytest.raises(dp.SceneError, match="finite"):
+        cube.params(extra={"plane_offset": {"ground": float("nan")}})
+    with pytest.raises(dp.SceneError, match="exists already"):
+        cube.scene.add_plane(name="ground")
+
+
+def test_state_from_under_vmap_matches_a_loop(cube):
+    """state_from sets pose, velocity and BODY-frame angular velocity; vmapped over start
+    states it equals one call per state, and the world angular velocity is R w_body."""
+    q = jnp.array([[1.0, 0, 0, 0], [0.0, 0, 0, 1.0]])
+    wb = jnp.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
+    pos = jnp.array([[0, 0, 0.2], [0.1, 0, 0.3]])
+    many = jax.vmap(lambda p, qq, w: cube.state_from(body=0, position=p, orientation=qq,
+                                                     angular_velocity=w))(pos, q, wb)
+    for i in range(2):
+        one = cube.state_from(body=0, position=pos[i], orientation=q[i],
+                              angular_velocity=wb[i])
+        np.testing.assert_allclose(many.angular_velocity[i], one.angular_velocity)
+    # a half turn about z maps body (1, 2, 3) to world (-1, -2, 3)
+    np.testing.assert_allclose(many.angular_velocity[1, 0], [-1.0, -2.0, 3.0], atol=1e-12)
+    with pytest.raises(dp.SceneError, match="body"):
+        cube.state_from(body=3, position=(0, 0, 0))
+
+
+def test_leaf_names_accept_keystr():
+    assert tf._normalise(".contact['board'].k") == "contact.board.k"
+    assert tf._normalise("springs.rope.stretch.c") == "springs.rope.stretch.c"
+    assert tf.Free("extra.plane_offset.ground", -0.01, 0.01).resolved().log is False
+    assert tf.Free("contact.board.k", 1.0, 1e5).resolved().log is True
+    with pytest.raises(ValueError, match="lo >= 0"):
+        tf.Free("contact.board.k", -1.0, 1.0, log=True).resolved()
+    assert math.isclose(tf.ROT_WEIGHT, 0.5729577951308232)
+
+
+def test_bad_records_fail_before_compiling(tmp_path, capsys):
+    scene = tmp_path / "rope.toml"
+    scene.write_text(ROPE.format(k=200.0, c=0.3))
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x,y\n0,1,2\n")
+    assert main(["fit", str(scene), "--data", str(bad), "--json"]) == 2
+    assert "bad.csv" in capsys.readouterr().err
+    assert main(["fit", str(scene), "--data", str(tmp_path / "none.csv")]) == 2
+    capsys.readouterr()
+    # without a scene file --data is the ball's one t,z record
+    assert main(["fit", "--data", str(bad), str(bad)]) == 2
+    assert "one t,z record" in capsys.readouterr().err
+    assert main(["fit", "--out", str(tmp_path / "x.toml")]) == 2
+
+
+def test_readme_snippet_runs_as_written():
+    """The README's vmapped start states with a fitted plane offset run as written."""
+    import pathlib
+    import re
+    text = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"## Fitting measured motion.*?```python\n(.*?)```", text, re.S).group(1)
+    env: dict = {}
+    exec(compile(block, "README fitting measured motion", "exec"), env)
+    np.testing.assert_allclose(np.asarray(env["dz"]), 1.0, rtol=1e-3)
+    assert np.all(np.abs(np.asarray(env["z"]) - 0.05) < 1e-3)
+
+
+def test_write_fitted_places_every_kind_of_leaf(tmp_path):
+    """Materials (k, c, friction), a named plane's offset, a cloth's spring groups and drag
+    are written where the file declares them and read back equal."""
+    from tuning.fitted_scene import write_fitted
+    src = tmp_path / "s.toml"
+    src.write_text("""
+[materials.board]
+k = 1e4
+c = 100.0
+friction = 0.2
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.5]
+material = "board"
+[[planes]]
+name = "ground"
+material = "board"
+[[cloths]]
+nx = 3
+ny = 3
+spacing = 0.1
+mass = 0.1
+origin = [1.0, 0.0, 1.0]
+structural = [100.0, 0.1]
+shear = 50.0
+drag = 0.01
+""")
+    values = {"contact.board.k": 2024.5, "contact.board.c": 25.25,
+              "extra.friction.board": 0.175, "extra.plane_offset.ground": -0.001,
+              "springs.cloth.structural.k": 123.0, "springs.cloth.shear.c": 0.5,
+              "extra.drag.cloth.drag": 0.02}
+    out = tmp_path / "out.toml"
+    write_fitted(str(src), values, str(out))
+    sf = load_scene_file(str(out))
+    params = sf.params(sf.compile())
+    for name, v in values.items():
+        assert float(tf.get_leaf(params, name)) == v
+    assert float(tf.get_leaf(params, "springs.cloth.structural.c")) == 0.1
+
+
+def test_directions_a_record_cannot_determine_are_reported(cube):
+    """A toss that never reaches the ground says nothing about the contact: both contact
+    parameters come back unchanged and reported as undetermined directions."""
+    params = cube.params()
+    s = cube.state_from(body=0, position=(0, 0, 0.5), velocity=(0.2, 0, 1.0),
+                        orientation=(1.0, 0, 0, 0), angular_velocity=(1.0, 2.0, 0.0))
+    rec = tf.synthetic_record(cube, params, 0.1, 5e-3, {"cube": 0}, state=s, noise=1e-4)
+    batch = tf.prepare(cube, [rec])
+    res = tf.fit_records(cube, params, batch, [tf.Free("contact.board.k", 1.0, 1e6),
+                                               tf.Free("contact.board.c", 0.1, 1e3)],
+                         maxiter=3, progress=False)
+    assert res.values == pytest.approx({"contact.board.k": 3e3, "contact.board.c": 30.0},
+                                       rel=1e-12)
+    assert len(res.undetermined) == 2
+    assert res.stderr == {"contact.board.k": math.inf, "contact.board.c": math.inf}
+
+
+def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
+    """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
+    a growing horizon."""
+    truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
+    scene, rec = _record_file(tmp_path, ROPE.format(k=250.0, c=0.4), truth,
+                              ["rope[1]", "rope[2]", "rope[3]"], "rope", integrator="rk4",
+                              dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4, seed=1)
+    with open(scene, "a") as fh:
+        fh.write('data = ["rope.csv"]\n')
+    out = _fit_cli(capsys, ["fit", scene, "--horizon", "0.2"])
+    assert out["horizons"] == [0.2, None] and out["records"] == 1
+    for name, v in truth.items():
+        assert out["fitted"][name] == pytest.approx(v, rel=0.02)

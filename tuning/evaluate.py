@@ -1,0 +1,191 @@
+"""Open-loop accuracy of a scene against measured records.
+
+Each record is rolled out from its first state (:func:`tuning.trajfit.first_state`) to its
+last frame, with no correction on the way, and the simulated pose is sampled at the frame
+times. Per record:
+
+* position error: mean over samples of ``|p_sim - p_data| / L`` in % (``L`` the body's
+  size, :func:`tuning.trajfit.body_size`: the cube's edge 0.1048 m), over every observed
+  body and measured frame (the first frame included, as measured);
+* rotation error: mean over samples of the angle of ``q_sim^-1 q_data``, degrees (bodies
+  with measured orientations only).
+
+The summary gives the mean and the median over records. All records run in one vmapped
+rollout: :func:`evaluator` compiles it once for a batch shape, then each call is one
+dispatch.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+
+from .trajfit import Batch, rotation_angle, simulate
+
+__all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
+
+
+@dataclasses.dataclass
+class Evaluation:
+    """Accuracy over records.
+
+    position_error_pct, rotation_error_deg: ``{"mean": ..., "median": ...}`` over records
+      (rotation None when no record has orientations).
+    records: per record ``{"path", "frames", "duration_s", "position_error_pct",
+      "rotation_error_deg"}``.
+    pos, quat: the simulated poses (R, T, B, 3) / (R, T, B, 4) at the frame times.
+    seconds: wall time of the rollouts (after compilation).
+    """
+    position_error_pct: dict
+    rotation_error_deg: dict | None
+    records: list
+    pos: np.ndarray
+    quat: np.ndarray | None
+    seconds: float
+
+    def as_dict(self) -> dict:
+        return {"position_error_pct": self.position_error_pct,
+                "rotation_error_deg": self.rotation_error_deg, "records": self.records,
+                "seconds": self.seconds}
+
+
+def _errors(pos, quat, batch: Batch):
+    """Per-record mean position error (%) and rotation error (deg): (R,), (R,) or None."""
+    d = jnp.linalg.norm(pos - batch.pos, axis=-1) / jnp.asarray(batch.size)[None, None, :]
+    pm = jnp.asarray(batch.pos_mask)
+    pe = 100.0 * jnp.sum(d * pm, axis=(1, 2)) / jnp.maximum(jnp.sum(pm, axis=(1, 2)), 1.0)
+    if quat is None or not batch.has_rotation:
+        return pe, None
+    qm = jnp.asarray(batch.quat_mask)
+    ang = jnp.degrees(rotation_angle(quat, jnp.asarray(batch.quat)))
+    re = jnp.sum(ang * qm, axis=(1, 2)) / jnp.maximum(jnp.sum(qm, axis=(1, 2)), 1.0)
+    return pe, re
+
+
+def evaluator(sim: dp.Simulator, batch: Batch):
+    """A jitted ``f(params) -> (pos, quat, pos_err (R,), rot_err (R,) or None)`` for the
+    batch (compiled on the first call; new parameter values never recompile)."""
+    @jax.jit
+    def f(params):
+        pos, quat = simulate(sim, params, batch)
+        pe, re = _errors(pos, quat, batch)
+        return pos, quat, pe, re
+    return f
+
+
+def _summary(v) -> dict:
+    return {"mean": float(np.mean(v)), "median": float(np.median(v))}
+
+
+def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evaluation:
+    """Evaluate ``params`` on every record of ``batch`` (see the module docstring).
+    ``fn``: an :func:`evaluator` to reuse (else one is built and compiled)."""
+    fn = fn or evaluator(sim, batch)
+    jax.block_until_ready(fn(params))                   # compile (no-op when cached)
+    t0 = time.perf_counter()
+    pos, quat, pe, re = jax.block_until_ready(fn(params))
+    seconds = time.perf_counter() - t0
+    pe = np.asarray(pe)
+    re = None if re is None else np.asarray(re)
+    recs = []
+    for r, path in enumerate(batch.paths):
+        n = int(batch.length[r])
+        recs.append({"path": path, "frames": n,
+                     "duration_s": float(batch.time[r, n - 1]),
+                     "position_error_pct": float(pe[r]),
+                     "rotation_error_deg": None if re is None else float(re[r])})
+    return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
+                      np.asarray(pos), None if quat is None else np.asarray(quat), seconds)
+
+
+def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
+                 title: str | None = None) -> str:
+    """Draw measured (dots) against simulated (lines) trajectories of a few records: per
+    record the observed body's x, y, z (m) and, with orientations, the rotation error
+    (deg) against time. Needs matplotlib (imported here). Returns ``path``."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise ImportError("plots need matplotlib: pip install 'diffpen[plot]'") from None
+    which = list(range(min(4, len(batch.paths)))) if which is None else list(which)
+    cols = 2 if batch.has_rotation else 1
+    fig, axes = plt.subplots(len(which), cols, figsize=(5.5 * cols, 2.4 * len(which)),
+                             squeeze=False)
+    colors = ("tab:blue", "tab:orange", "tab:green")
+    for row, r in enumerate(which):
+        n = int(batch.length[r])
+        t = batch.time[r, :n]
+        ax = axes[row, 0]
+        for b in range(min(len(batch.names), 1 if batch.has_rotation else 3)):
+            for a, c in enumerate(colors):
+                ok = batch.pos_mask[r, :n, b] > 0
+                ax.plot(t[ok], batch.pos[r, :n, b, a][ok], ".", ms=2.5, color=c,
+                        label=f"measured {'xyz'[a]}" if b == 0 else None)
+                ax.plot(t, ev.pos[r, :n, b, a], "-", lw=1.2, color=c,
+                        label=f"simulated {'xyz'[a]}" if b == 0 else None)
+        name = batch.paths[r].rsplit("/", 1)[-1]
+        rec = ev.records[r]
+        ax.set_title(f"{name}: position error {rec['position_error_pct']:.1f}%", fontsize=9)
+        ax.set_ylabel("m")
+        if row == 0:
+            ax.legend(fontsize=7, ncol=2)
+        if batch.has_rotation:
+            ax = axes[row, 1]
+            ang = np.degrees(np.asarray(rotation_angle(jnp.asarray(ev.quat[r, :n, 0]),
+                                                       jnp.asarray(batch.quat[r, :n, 0]))))
+            ax.plot(t, ang, "-", color="tab:red")
+            ax.set_title(f"rotation error (mean {rec['rotation_error_deg']:.1f} deg)",
+                         fontsize=9)
+            ax.set_ylabel("deg")
+        for ax in axes[row]:
+            ax.set_xlabel("t (s)") if row == len(which) - 1 else None
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str | None = None,
+                   n_plot: int = 4) -> dict:
+    """``diffpen evaluate SCENE.toml --data FILES...``: open-loop accuracy of the scene file
+    (its parameter values as written) on the records. Returns the JSON-ready summary
+    (``position_error_pct``, ``rotation_error_deg``, ``records``, ``seconds`` of the
+    rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder) also draws
+    the first ``n_plot`` records to ``plot/NAME.png``."""
+    import os
+
+    from .scenefile import load_scene_file
+    from .trajfit import check_stable, load_records, prepare
+    sf = load_scene_file(scene_path)
+    records, bodies = load_records(sf, list(data) if data else list(
+        (sf.spec.data if sf.spec is not None else None) or []))
+    if plot is not None:
+        os.makedirs(plot, exist_ok=True)
+    sim = sf.compile()
+    params = sf.params(sim)
+    check_stable(sim, params)
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate)
+    fn = evaluator(sim, batch)
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(params))
+    compile_s = time.perf_counter() - t0
+    ev = evaluate_batch(sim, params, batch, fn=fn)
+    out = ev.as_dict()
+    out.update({"scene": scene_path, "estimate": estimate, "compile_seconds": compile_s,
+                "bodies": bodies})
+    if plot is not None:
+        paths = []
+        for r in range(min(n_plot, len(records))):
+            name = os.path.splitext(os.path.basename(records[r].path))[0]
+            paths.append(plot_records(os.path.join(plot, f"{name}.png"), batch, ev, [r]))
+        out["plots"] = paths
+    return out

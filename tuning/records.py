@@ -1,0 +1,439 @@
+"""Measured motion records: CSV files of body poses (and optionally velocities) over time.
+
+Format: a header row, then one row per sample (``#`` lines and blank lines are skipped; a UTF-8
+byte-order mark is accepted; cells are separated by commas)::
+
+    t,x,y,z,qw,qx,qy,qz,vx,vy,vz,wx,wy,wz          (one observed body)
+    t,box.x,box.y,box.z,lid.x,lid.y,lid.z,...       (several: "name." before each column)
+
+========================  =========================================================  ======
+columns                   meaning                                                    unit
+========================  =========================================================  ======
+``t``                     sample time, strictly increasing, never missing            s
+``x, y, z``               body centre (required for every observed body)             m
+``qw, qx, qy, qz``        unit quaternion body -> world (optional)                   -
+``vx, vy, vz``            centre velocity, world frame (optional)                    m/s
+``wx, wy, wz``            angular velocity, BODY frame (optional)                    rad/s
+========================  =========================================================  ======
+
+A missing sample is an empty cell (or ``nan``); a group (position, quaternion, velocity, angular
+velocity) is either complete or empty in each row. Every problem raises :class:`RecordError`
+naming the file, the line and the column, and saying what to change. Nothing is compiled.
+
+:func:`read_record` reads such a record; :func:`read_height_record` reads the bouncing ball's
+``t,z`` record (``diffpen fit --data``) with the same checks.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from .fit import FitError
+
+__all__ = ["Record", "BodyRecord", "RecordError", "read_record", "read_height_record",
+           "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
+
+#: column groups of one body: name -> component suffixes (in array order)
+GROUPS = {
+    "position": ("x", "y", "z"),
+    "quaternion": ("qw", "qx", "qy", "qz"),
+    "velocity": ("vx", "vy", "vz"),
+    "angular_velocity": ("wx", "wy", "wz"),
+}
+_SUFFIX = {s: (g, i) for g, comps in GROUPS.items() for i, s in enumerate(comps)}
+
+#: size guard: records above these are refused before they are parsed (raise them by argument)
+DEFAULT_MAX_ROWS = 500_000
+DEFAULT_MAX_BYTES = 256 * 2**20
+#: |q| may differ from 1 by this much (trackers write 6 decimals)
+QUAT_TOL = 1e-3
+#: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
+MS_SPAN = 60.0
+#: a height |z| beyond this (m) looks like millimetres
+MM_LIMIT = 20.0
+
+
+class RecordError(FitError):
+    """A record file that cannot be read: the message names the file, line and column, and the
+    fix. (A :class:`ValueError`, like every bad-input error of tuning.)"""
+
+
+@dataclasses.dataclass
+class BodyRecord:
+    """Samples of one body; rows align with :attr:`Record.t`, NaN where a sample is missing.
+
+    position: (T, 3) m.  quaternion: (T, 4) (w, x, y, z), body -> world, or None.
+    velocity: (T, 3) m/s, world frame, or None.  angular_velocity: (T, 3) rad/s, BODY frame,
+    or None.
+    """
+    position: np.ndarray
+    quaternion: np.ndarray | None = None
+    velocity: np.ndarray | None = None
+    angular_velocity: np.ndarray | None = None
+
+
+@dataclasses.dataclass
+class Record:
+    """A parsed record: ``path``, sample times ``t`` (T,) s, and ``bodies`` name ->
+    :class:`BodyRecord`."""
+    path: str
+    t: np.ndarray
+    bodies: dict
+
+    @property
+    def duration(self) -> float:
+        """Time from the first to the last sample, s."""
+        return float(self.t[-1] - self.t[0])
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def __repr__(self) -> str:
+        parts = []
+        for name, b in self.bodies.items():
+            have = [g for g in GROUPS if getattr(b, g) is not None]
+            parts.append(f"{name}: {'+'.join(have)}")
+        return (f"Record({self.path!r}, {len(self)} samples over {self.duration:g} s, "
+                f"{'; '.join(parts)})")
+
+
+def _q(text: str) -> str:
+    """A header cell for a message, cut short (a record's content is never quoted at length)."""
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
+# --------------------------------------------------------------------------- raw reading
+def _estimate(path: str, size: int, sample: bytes) -> tuple[int, int]:
+    """(estimated rows, estimated columns) of a text file from its first bytes."""
+    lines = sample.splitlines()
+    if len(sample) < size and lines:
+        lines = lines[:-1]          # the last one may be cut
+    lines = [ln for ln in lines if ln.strip()]
+    if not lines:
+        return (1, 1)
+    per_line = sum(len(ln) + 1 for ln in lines) / len(lines)
+    cols = max(ln.count(b",") + 1 for ln in lines[:50])
+    return max(1, int(size / per_line)), cols
+
+
+def _read_text(path: str, max_rows: int, max_bytes: int) -> str:
+    """The decoded text of a record after the size and binary checks."""
+    try:
+        size = os.path.getsize(path)
+        if os.path.isdir(path):
+            raise RecordError(f"{path} is a directory; give a CSV record file.")
+        with open(path, "rb") as fh:
+            sample = fh.read(65536)
+            if size > max_bytes:
+                rows, cols = _estimate(path, size, sample)
+                raise RecordError(
+                    f"{path} is {size / 2**20:.1f} MiB (about {rows:,} rows of {cols} columns); "
+                    f"records above {max_bytes / 2**20:.0f} MiB are refused before reading. "
+                    "Downsample it, or pass max_bytes= (and max_rows=) to read it anyway.")
+            rows, cols = _estimate(path, size, sample)
+            if rows > 1.2 * max_rows + 10:
+                mem = rows * cols * 8 / 2**20
+                raise RecordError(
+                    f"{path} holds about {rows:,} rows of {cols} columns ({mem:.0f} MiB as "
+                    f"float64, several times that while parsing); the limit is {max_rows:,} rows. "
+                    "Downsample it (a contact fit rarely needs more than a few kHz), or pass "
+                    "max_rows= to read it anyway.")
+            raw = sample + fh.read()
+    except RecordError:
+        raise
+    except OSError as exc:
+        raise RecordError(f"cannot read {path}: {exc.strerror or exc}.") from None
+    nul = raw.find(b"\x00", 0, 1 << 16)
+    if nul >= 0:
+        raise RecordError(f"{path} is a binary file (a zero byte at offset {nul}), not a CSV "
+                          "record; export the data as text with a header row such as "
+                          "t,x,y,z.")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise RecordError(f"{path}, line {line}: byte 0x{raw[exc.start]:02x} at offset "
+                          f"{exc.start} is not UTF-8 text; save the record as UTF-8 (or ASCII) "
+                          "CSV.") from None
+
+
+def _rows(path: str, text: str) -> tuple[list[str], int, list[tuple[int, list[str]]]]:
+    """(header cells, header line number, [(line number, cells)] of the data rows)."""
+    lines = text.splitlines()
+    quoted = '"' in text               # plain files are split without the csv module (fast)
+    header, hline, data = None, 0, []
+    for no, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s or s[0] == "#":
+            continue
+        if quoted:
+            try:
+                cells = next(csv.reader([line]))
+            except csv.Error as exc:
+                raise RecordError(f"{path}, line {no}: cannot split the line into cells "
+                                  f"({exc}); write plain comma-separated numbers.") from None
+        else:
+            cells = line.split(",")
+        if header is None:
+            header, hline = [c.strip() for c in cells], no
+        else:
+            data.append((no, cells))
+    if header is None:
+        raise RecordError(f"{path} is empty: expected a header row (such as t,x,y,z) and rows "
+                          "of numbers.")
+    return header, hline, data
+
+
+def _column(path: str, data, j: int, name: str, *, allow_missing: bool) -> np.ndarray:
+    """Column ``j`` of the data rows as float64; empty (or nan) cells -> NaN when allowed.
+    Converted in one vectorised pass; any problem is located cell by cell."""
+    raw = np.array([cells[j] for _, cells in data], dtype=str)
+    try:
+        if raw.size and (np.char.find(raw, "_") >= 0).any():
+            raise ValueError
+        vals = np.where(np.char.strip(raw) == "", "nan", raw).astype(np.float64)
+    except ValueError:
+        return _column_slow(path, data, j, name, allow_missing=allow_missing)
+    if np.isinf(vals).any() or (not allow_missing and np.isnan(vals).any()):
+        return _column_slow(path, data, j, name, allow_missing=allow_missing)
+    return vals
+
+
+def _column_slow(path: str, data, j: int, name: str, *, allow_missing: bool) -> np.ndarray:
+    """:func:`_column` cell by cell, raising at the first bad cell with its line."""
+    out = np.empty(len(data))
+    for r, (no, cells) in enumerate(data):
+        cell = cells[j].strip()
+        if cell == "" or cell.lower() in ("nan", "+nan", "-nan"):
+            if not allow_missing:
+                raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): a value is "
+                                  f"required here and must be finite, got {cell!r}.")
+            out[r] = math.nan
+            continue
+        try:
+            if "_" in cell:
+                raise ValueError
+            v = float(cell)
+        except ValueError:
+            raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): {cell[:40]!r} is "
+                              "not a number; write a decimal number (or leave the cell empty "
+                              "for a missing sample).") from None
+        if not math.isfinite(v):
+            raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): {cell!r} is not "
+                              "finite; leave the cell empty for a missing sample.")
+        out[r] = v
+    return out
+
+
+def _check_lengths(path: str, header, data) -> None:
+    for no, cells in data:
+        if len(cells) != len(header):
+            raise RecordError(f"{path}, line {no}: {len(cells)} cells but the header has "
+                              f"{len(header)}; every row needs one "
+                              "cell per column (empty for a missing sample).")
+
+
+def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) -> None:
+    bad = np.nonzero(np.diff(t) <= 0.0)[0]
+    if bad.size:
+        i = int(bad[0])
+        raise RecordError(f"{path}, line {data[i + 1][0]}, column {col + 1} (t): times must "
+                          f"strictly increase ({t[i]:g} then {t[i + 1]:g}); sort the rows or "
+                          "remove duplicates.")
+    if check_units and t.size > 2:
+        span, step = float(t[-1] - t[0]), float(np.median(np.diff(t)))
+        if span > MS_SPAN and step >= 1.0:
+            raise RecordError(f"{path}, column {col + 1} (t): times span {span:g} with steps of "
+                              f"{step:g}: they look like milliseconds, but t is in seconds. "
+                              "Divide t by 1000 (or pass check_units=False if the steps really "
+                              "are seconds).")
+
+
+# --------------------------------------------------------------------------- records
+def _parse_header(path: str, header: list[str], hline: int, body_names):
+    """t column index and {body: {group: [column index per component]}} from the header.
+    Column letters are read in any case (``T,X,Y,Z``); body names keep theirs."""
+    header = [f"{h.rpartition('.')[0]}.{h.rpartition('.')[2].lower()}" if "." in h
+              else h.lower() for h in header]
+    if len(set(header)) != len(header):
+        dup = next(h for h in header if header.count(h) > 1)
+        raise RecordError(f"{path}, line {hline}: column {_q(dup)} appears twice in the header; "
+                          "name each column once.")
+    if "t" not in header:
+        raise RecordError(f"{path}, line {hline}: the header ({len(header)} column(s)) has no "
+                          "time column 't' (s); expected t,x,y,z[,qw,qx,qy,qz][,vx,vy,vz]"
+                          "[,wx,wy,wz] or t,NAME.x,NAME.y,NAME.z,... (the file's content is "
+                          "not shown: is it the record you meant?)")
+    names = None if body_names is None else [str(n) for n in body_names]
+    prefixed = [h for h in header if "." in h]
+    plain = [h for h in header if "." not in h and h != "t"]
+    if prefixed and plain:
+        raise RecordError(f"{path}, line {hline}, column {header.index(plain[0]) + 1}: "
+                          f"{_q(plain[0])} has no body name while other columns do "
+                          f"({_q(prefixed[0])}); write NAME.x etc. for every body column.")
+    if plain:
+        if names is not None and len(names) > 1:
+            raise RecordError(f"{path}, line {hline}: the columns carry no body name but the "
+                              f"scene observes {len(names)} bodies "
+                              f"({', '.join(names[:10])}); write NAME.x, NAME.y, ... for each.")
+        default = names[0] if names else "body"
+    cols: dict = {}
+    for j, h in enumerate(header):
+        if h == "t":
+            continue
+        body, _, comp = h.rpartition(".") if "." in h else (default, "", h)
+        if comp not in _SUFFIX:
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: unknown column {_q(h)}; "
+                              "body columns end in one of "
+                              f"{', '.join(_SUFFIX)} (t is the time).")
+        if not body:
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} has an empty body "
+                              "name; write NAME.x etc.")
+        if names is not None and body not in names:
+            raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
+                              f"{_q(body)}, which the scene does not have; named bodies: "
+                              f"{', '.join(names[:10]) or 'none'}"
+                              f"{', ...' if len(names) > 10 else ''}.")
+        group, i = _SUFFIX[comp]
+        cols.setdefault(body, {}).setdefault(group, [None] * len(GROUPS[group]))[i] = j
+    if not cols:
+        raise RecordError(f"{path}, line {hline}: the header has only 't'; add the body's "
+                          "position columns x,y,z.")
+    for body, groups in cols.items():
+        label = "" if plain else f"{body}."
+        for group, idx in groups.items():
+            if None in idx:
+                have = [label + c for c, j in zip(GROUPS[group], idx) if j is not None]
+                miss = [label + c for c, j in zip(GROUPS[group], idx) if j is None]
+                raise RecordError(f"{path}, line {hline}: columns {', '.join(have)} are there "
+                                  f"but {', '.join(miss)} is missing; a {group.replace('_', ' ')}"
+                                  f" needs all of {', '.join(label + c for c in GROUPS[group])}.")
+        if "position" not in groups:
+            raise RecordError(f"{path}, line {hline}: body {body!r} has no position columns; "
+                              f"add {label}x, {label}y, {label}z.")
+    return header.index("t"), cols
+
+
+def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
+                max_bytes: int = DEFAULT_MAX_BYTES, check_units: bool = True) -> Record:
+    """Read a motion record (format in the module docstring).
+
+    body_names: the scene's observed body names (a header without names then belongs to the
+    only one; names in the header must be among them), or None (a plain header is body
+    ``"body"``; any names are accepted). max_rows, max_bytes: size guard, checked from the file
+    size before anything is parsed. check_units: refuse times that look like milliseconds and
+    positions that look like millimetres.
+    Raises :class:`RecordError` (file, line, column and the fix). Nothing is compiled.
+    """
+    path = os.fspath(path)
+    text = _read_text(path, max_rows, max_bytes)
+    header, hline, data = _rows(path, text)
+    it, cols = _parse_header(path, header, hline, body_names)
+    _check_lengths(path, header, data)
+    if len(data) > max_rows:
+        raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
+                          "it, or pass max_rows= to read it anyway.")
+    if len(data) < 2:
+        raise RecordError(f"{path} has {len(data)} data row(s); a record needs at least 2.")
+    t = _column(path, data, it, "t", allow_missing=False)
+    _check_times(path, t, data, it, check_units)
+    bodies = {}
+    for body, groups in cols.items():
+        arrays = {}
+        for group, idx in groups.items():
+            a = np.stack([_column(path, data, j, header[j], allow_missing=True) for j in idx],
+                         axis=1)
+            miss = np.isnan(a)
+            part = np.nonzero(miss.any(axis=1) & ~miss.all(axis=1))[0]
+            if part.size:
+                r = int(part[0])
+                j = idx[int(np.nonzero(miss[r])[0][0])]
+                raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                                  f"the {group.replace('_', ' ')} of this row is incomplete; "
+                                  "fill every component or leave them all empty (a missing "
+                                  "sample).")
+            arrays[group] = a
+        q = arrays.get("quaternion")
+        if q is not None:
+            n = np.linalg.norm(q, axis=1)
+            bad = np.nonzero(np.abs(n - 1.0) > QUAT_TOL)[0]
+            if bad.size:
+                r = int(bad[0])
+                j = groups["quaternion"][0]
+                raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                                  f"the quaternion has norm {n[r]:.6g}, not 1; normalise it "
+                                  "(qw, qx, qy, qz).")
+        p = arrays["position"]
+        if np.isnan(p).all():
+            raise RecordError(f"{path}: body {_q(body)} has no position sample; a record needs "
+                              "at least one.")
+        if check_units and np.nanmax(np.abs(p[:, 2])) > MM_LIMIT:
+            r = int(np.nanargmax(np.abs(p[:, 2])))
+            j = groups["position"][2]
+            raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                              f"{p[r, 2]:g} m is beyond {MM_LIMIT:g} m: positions look like "
+                              "millimetres, but they are in metres. Divide by 1000 (or pass "
+                              "check_units=False if they really are metres).")
+        bodies[body] = BodyRecord(**arrays)
+    return Record(path=path, t=t, bodies=bodies)
+
+
+def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_ROWS,
+                       max_bytes: int = DEFAULT_MAX_BYTES,
+                       check_units: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Read the bouncing ball's record: columns ``t`` (s) and ``z`` (m, centre height); other
+    columns are ignored, no sample may be missing. Same checks as :func:`read_record`.
+    Returns ``(t (N,), z (N,))`` float64 arrays. Raises :class:`RecordError`."""
+    path = os.fspath(path)
+    text = _read_text(path, max_rows, max_bytes)
+    header, hline, data = _rows(path, text)
+    low = [h.lower() for h in header]
+    if "t" not in low or "z" not in low:
+        raise RecordError(f"{path}, line {hline}: the first row must be a header with columns "
+                          f"'t' and 'z' (time in s, ball centre height in m); it has "
+                          f"{len(header)} column(s) and lacks {'t' if 't' not in low else 'z'} "
+                          "(the file's content is not shown: is it the record you meant?).")
+    _check_lengths(path, header, data)
+    if len(data) > max_rows:
+        raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
+                          "it, or pass max_rows= to read it anyway.")
+    it, iz = low.index("t"), low.index("z")
+    t = _column(path, data, it, "t", allow_missing=False)
+    z = _column(path, data, iz, "z", allow_missing=False)
+    if len(t) < min_rows:
+        raise RecordError(f"{path} has {len(t)} data rows; a trajectory fit needs at least "
+                          f"{min_rows} (several samples per flight).")
+    _check_times(path, t, data, it, check_units)
+    if check_units and np.abs(z).max() > MM_LIMIT:
+        r = int(np.argmax(np.abs(z)))
+        raise RecordError(f"{path}, line {data[r][0]}, column {iz + 1} (z): {z[r]:g} m is "
+                          f"beyond {MM_LIMIT:g} m: heights look like millimetres, but z is in "
+                          "metres. Divide by 1000 (or pass check_units=False).")
+    return t, z
+
+
+def write_record(path, record: Record) -> None:
+    """Write ``record`` in the format :func:`read_record` reads (names prefixed when there is
+    more than one body; missing samples as empty cells), atomically."""
+    names = list(record.bodies)
+    header, blocks = ["t"], [np.asarray(record.t, dtype=float)[:, None]]
+    for name in names:
+        b = record.bodies[name]
+        for group, comps in GROUPS.items():
+            a = getattr(b, group)
+            if a is None:
+                continue
+            header += [c if len(names) == 1 else f"{name}.{c}" for c in comps]
+            blocks.append(np.asarray(a, dtype=float))
+    table = np.concatenate(blocks, axis=1)
+    tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh, lineterminator="\n")     # quotes names such as "cloth[1,2].x"
+        w.writerow(header)
+        for row in table:
+            w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
+    os.replace(tmp, path)
