@@ -212,7 +212,8 @@ class Simulator:
             material_index={m: i for i, m in enumerate(self.materials)},
             group_index={g: i for i, g in enumerate(self.spring_groups)},
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
-            broadphase=broadphase, step=dt)
+            broadphase=broadphase, step=dt,
+            velocity_lag=0.5 if integrator == "semi_implicit_euler" else 0.0)
         if broadphase is not None:
             _broadphase.check(broadphase, ctx)
         self.context = ctx

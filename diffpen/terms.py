@@ -124,6 +124,11 @@ class CompileContext:
     #: The simulator's step dt, s (the longest inner step): a step-averaged contact acts from
     #: a gap of ``|vn| h`` on, so searches for pairs reach that far.
     step: float | None = None
+    #: How far the state's velocity lags the force evaluation's position, as a fraction of
+    #: the inner step: 1/2 for semi-implicit Euler (its velocity is the mean over the step
+    #: that ended), 0 for the others. Contacts that know their effective mass then apply
+    #: their damping at the window centre's speed (``ContactLaw.centred_force``).
+    velocity_lag: float = 0.0
 
     @property
     def n(self) -> int:
@@ -133,11 +138,28 @@ class CompileContext:
         """A static numpy array as a constant of the simulator's float dtype."""
         return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
 
-    def contact_force(self, d, vn, k, c, h=None):
+    def contact_force(self, d, vn, k, c, h=None, inv_mass=None, accel=0.0):
         """Normal force (N) of contacts at depth ``d`` (m), separating speed ``vn`` (m/s):
         the law's step average over an inner step ``h`` (s), or its pointwise force for
-        ``h=None`` (``diffpen.laws.ContactLaw.step_force``)."""
-        return self.law.step_force(d, vn, k, c, self.width, h)
+        ``h=None`` (``diffpen.laws.ContactLaw.step_force``). With ``inv_mass`` (the
+        contacts' effective inverse mass along the normal, 1/kg) and ``accel`` (their other
+        separating acceleration, m/s^2: gravity) the step average takes its damping at the
+        window centre's speed where the integrator's velocity lags (``velocity_lag``)."""
+        if (h is None or inv_mass is None or self.velocity_lag == 0.0 or self.width != 0.0
+                or getattr(self.law, "centred", None) is None):
+            return self.law.step_force(d, vn, k, c, self.width, h)
+        return self.law.centred_force(d, vn, k, c, h, self.velocity_lag * h, inv_mass, accel)
+
+    def normal_gravity(self, normal: np.ndarray, bodies: np.ndarray):
+        """Gravity's separating acceleration ``n . g`` (m/s^2) of contacts of free bodies
+        ``bodies`` (m,) against fixed colliders with normals ``normal`` (m, 3) (0 for pinned
+        bodies): a numpy constant."""
+        g = np.asarray(self.scene.gravity, dtype=float)
+        return np.where(self.pinned[bodies], 0.0, np.asarray(normal, float) @ g)
+
+    def inv_mass(self, bodies: np.ndarray):
+        """``1 / m`` (1/kg) of ``bodies`` (m,), 0 for pinned ones: a numpy array."""
+        return np.where(self.pinned[bodies], 0.0, 1.0 / self.mass[bodies])
 
     def contact_kc(self, params: Params, mat: np.ndarray):
         """Per-pair (k, c) for material indices ``mat`` (m,), scalars when all pairs share one."""
@@ -161,6 +183,13 @@ def _select(values: list, idx: np.ndarray):
 
 
 # --------------------------------------------------------------------------- core terms
+def _uniform(ctx: CompileContext, a: np.ndarray):
+    """A per-contact numpy constant as a scalar of the simulator's dtype when all rows share
+    one value (fewer operands in the step), else an (m,) array."""
+    a = np.asarray(a, dtype=float)
+    return ctx.const(a[0] if np.all(a == a[0]) else a)
+
+
 def _pair_material(scene: Scene, *names: str) -> str:
     return names[0] if len(set(names)) == 1 else DEFAULT
 
@@ -218,6 +247,9 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     normal = None if static_normal is None else np.array(
         [static_normal(colliders[j]) for j in ci], dtype=float)
     offset_fn = offsets(ctx, ci) if offsets is not None else None
+    inv_m = _uniform(ctx, ctx.inv_mass(bi))
+    g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
+    g_vec = ctx.const(ctx.scene.gravity)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
@@ -225,10 +257,11 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
         if normal is not None:          # the normal is a constant: leave out its zeros
             off = args[0] if offset_fn is None else offset_fn(params)
             d = radii - (static_dot(normal, x) - off)
-            f = ctx.contact_force(d, static_dot(normal, v), k, c, h)
+            f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
             return scatter(static_scale(f, normal), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
-        f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h)
+        f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
+                              geometry.dot(nrm, g_vec))
         return scatter(f[:, None] * nrm, bi, n), None
     return Term(name, force, step_aware=True)
 
@@ -262,13 +295,19 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
     ia, ib, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
     ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
     n = ctx.n
+    inv_m = _uniform(ctx, ctx.inv_mass(ia) + ctx.inv_mass(ib))
+    # gravity moves both ends alike unless one is pinned: n . g (a - b) along the pair
+    pin_a, pin_b = ctx.pinned[ia], ctx.pinned[ib]
+    g_side = ctx.const(np.where(pin_b & ~pin_a, 1.0, np.where(pin_a & ~pin_b, -1.0, 0.0)))
+    g_vec = ctx.const(ctx.scene.gravity)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         xa, xb = state.position[ia], state.position[ib]
         d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
         vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
-        f = ctx.contact_force(d, vn, k, c, h)[:, None] * nrm
+        f = ctx.contact_force(d, vn, k, c, h, inv_m,
+                              g_side * geometry.dot(nrm, g_vec))[:, None] * nrm
         return scatter(f, ia, n) - scatter(f, ib, n), None
     return Term("contact_sphere_sphere", force, step_aware=True)
 

@@ -41,6 +41,53 @@ def test_event_gradients_match_the_continuous_derivative_at_the_default_dt(at_de
     assert np.all(np.sign(dk[apex]) == np.sign(ref["dk"][apex]))
 
 
+@pytest.mark.parametrize("case", [QUICK, HEAVY], ids=["linear", "no_tension"])
+def test_centred_damping_values_within_half_a_percent(case):
+    """Laws with the damping at the step window's centre speed (``linear(centred=True)``,
+    ``no_tension(centred=True)``), dt = 1e-3: apex heights 1-3 within 0.5% of the continuous
+    ones (measured +0.03/+0.08/+0.13% and +0.05/+0.10/+0.16%; the default records
+    -0.29/-0.59/-0.91% and -0.35/-0.70/-1.05%), d duration1 / dc within 2% (measured 0.4%
+    and 1.3%; default 37% and 76%), d penetration / dc within 0.5% (0.1%, 0.3%; default 3.8%
+    and 6.0%), d apex1 / dk, dc within 1%."""
+    f, _ = event_metrics_fn(case, 1e-3, centred=True)
+    val = np.asarray(f(case.k, case.c))
+    dk, dc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(case.k, case.c))
+    ref = event_reference(case)
+    idx = {m: i for i, m in enumerate(EVENT_METRICS)}
+    assert np.all(_err(val[:3], ref["value"][:3]) < 0.005)
+    assert _err(dc[idx["duration1"]], ref["dc"][idx["duration1"]]) < 0.02
+    assert _err(dc[idx["penetration"]], ref["dc"][idx["penetration"]]) < 0.005
+    assert _err(dk[0], ref["dk"][0]) < 0.01 and _err(dc[0], ref["dc"][0]) < 0.01
+
+
+@pytest.mark.slow
+def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
+    """tuning.gradient_check.two_point_window_law (prototype: the step window along the true
+    path through the last two positions) on the 0.3 kg ball (k 3e4, c 15, w h 0.32) at
+    dt = 1e-3: first apex, its d/dk and d/dc within 0.01% of the continuous system (measured < 0.001% on apexes 1-3 and durations at three impact
+    phases; the straight window 2.4% / 1.3% on apex 1 and 73% / 79% on apex 3)."""
+    import jax.numpy as jnp
+
+    import diffpen as dp
+    from tuning.extreme import ball_scene
+    from tuning.gradient_check import two_point_window_law
+    case = EVENT_CASES[1]._replace(T=0.9)
+    sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
+                     law=two_point_window_law(case.mass), dtype=jnp.float64)
+
+    def apex1(k, c):
+        # 0.5 s: the first contact is over; in free flight semi-implicit Euler's positions lie
+        # on the exact parabola and the velocity at t_n is v_n - g h / 2
+        s = sim.rollout(sim.params(k=k, c=c), 500, save_every=500)
+        z, v = s.position[-1, 0, 2], s.velocity[-1, 0, 2] - 0.5 * 9.81 * 1e-3
+        return z + v * v / (2 * 9.81) - case.radius
+    val = float(jax.jit(apex1)(case.k, case.c))
+    dk, dc = (float(a) for a in jax.jit(jax.jacfwd(apex1, (0, 1)))(case.k, case.c))
+    ref = event_reference(case)
+    assert _err(val, ref["value"][0]) < 1e-4
+    assert _err(dk, ref["dk"][0]) < 1e-4 and _err(dc, ref["dc"][0]) < 1e-4
+
+
 def test_the_landscape_has_no_jumps(at_default_dt):
     """The library's own central differences of the apexes agree with its jax derivative
     within 0.1% at relative steps 1e-4 ... 1e-6, and within 5% at 1e-2 (measured: <= 4.5%;

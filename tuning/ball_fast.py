@@ -46,6 +46,8 @@ def supports(sim: dp.Simulator) -> str | None:
         return "the fast path needs the plane's normal (0, 0, 1)"
     if scene.gravity[0] != 0.0 or scene.gravity[1] != 0.0:
         return "the fast path needs gravity along z"
+    if getattr(sim.contact_law, "centred", None) is not None:
+        return "the fast path applies the plain step average, not a centred law's"
     with jax.ensure_compile_time_eval():     # concrete even inside a traced function
         s0 = sim.init_state()
     extra_aux = set(s0.aux) - {dp.stability.FLAG}          # the stability flag is not state

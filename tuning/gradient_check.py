@@ -9,6 +9,7 @@ Units: SI throughout (m, kg, s, N/m, N s/m).
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable, NamedTuple
 
 import jax
@@ -22,7 +23,8 @@ from .extreme import ball_scene
 from .reference import G, ball_reference
 
 __all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
-           "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table"]
+           "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table",
+           "event_phase_errors", "cube_toss_gradients", "two_point_window_law"]
 
 
 def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=(0.0, 1e-4,
@@ -139,16 +141,24 @@ EVENT_METRICS = ("apex1", "apex2", "apex3", "duration1", "duration2", "duration3
 
 
 def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_implicit_euler",
-                     smoothing="auto", dtype=None):
+                     smoothing="auto", dtype=None, centred: bool = False):
     """``f(k, c) -> (7,)`` the metrics :data:`EVENT_METRICS` of ``case`` simulated at ``dt``
     (s): apex heights of the lowest point (m), contact durations (s) and the largest
-    penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable."""
+    penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable.
+    ``centred``: the law's record with its damping at the step window's centre speed
+    (``diffpen.laws``, e.g. ``linear(centred=True)``)."""
     import jax
     import jax.numpy as jnp
 
+    from diffpen import laws
+
     from .metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
-    sim = dp.compile(scene, dt, law=case.law, exponent=case.exponent, smoothing=smoothing,
+    law = case.law
+    if centred:
+        law = (laws.hunt_crossley(case.exponent, centred=True) if case.law == "hunt_crossley"
+               else {"linear": laws.linear, "no_tension": laws.no_tension}[case.law](True))
+    sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
                      integrator=integrator, dtype=dtype or jnp.float64)
     steps = int(round(case.T / dt))
 
@@ -222,6 +232,191 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
                         rows.append(row)
                         say(row)
     return rows
+
+
+def event_phase_errors(case: GradientCase, dt: float = 1e-3, phases: int = 6, *,
+                       centred: bool = False) -> dict:
+    """Errors of the event metrics against the continuous system over where the impacts fall
+    in the step: ``case`` dropped from ``drop + j v dt / phases`` (j = 0 .. phases - 1; v the
+    first impact speed, so the impacts move through one step), the reference recomputed for
+    each drop. Returns ``{"value", "dk", "dc"}``, each a (phases, 7) array in
+    :data:`EVENT_METRICS` order: signed ``value / reference - 1`` and
+    ``|jax / continuous - 1|`` of the derivatives. (The gradient table evaluates one phase;
+    at dt 1e-3 the apex 2-3 derivatives ripple with it.)"""
+    import jax
+    v = np.sqrt(2.0 * G * (case.drop - case.radius))
+    out = {"value": [], "dk": [], "dc": []}
+    for j in range(phases):
+        cj = case._replace(drop=case.drop + j * v * dt / phases)
+        ref = event_reference(cj)
+        f, _ = event_metrics_fn(cj, dt, centred=centred)
+        val = np.asarray(f(cj.k, cj.c))
+        jk, jc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(cj.k, cj.c))
+        out["value"].append(val / ref["value"] - 1.0)
+        out["dk"].append(np.abs(jk / ref["dk"] - 1.0))
+        out["dc"].append(np.abs(jc / ref["dc"] - 1.0))
+    return {key: np.array(a) for key, a in out.items()}
+
+
+def cube_toss_gradients(path, *, frames: int | None = None, k: float = 2e4, c: float = 20.0,
+                        mu: float = 0.18, dt: float = 1e-3, dtype=None,
+                        rel_steps=(1e-6, 1e-4, 0.03, 0.1)) -> dict:
+    """Pose-loss gradient of a recorded cube toss (``/work/shared/data/cube-toss`` format:
+    columns t, x, y, z, qw..qz, vx..vz, wx..wz with the angular velocity in the body frame):
+    a 0.37 kg cube of half-width 0.0524 m (inertia 8.1e-4 kg m^2) started from row 0 on a
+    rough plane (material ``board``: ``k`` N/m, ``c`` N s/m, friction ``mu``), loss = mean
+    over the first ``frames`` frames of |p_sim - p_data| / 0.1048 (edge lengths).
+
+    Returns ``{"loss", "ad": (3,), "fd": {step: (3,)}}``: jax.grad w.r.t. (log k, log c,
+    log mu) and central differences of the same loss at each relative step of ``rel_steps``
+    (in log space, so absolute steps of the log)."""
+    import jax
+    import jax.numpy as jnp
+    data = np.genfromtxt(path, delimiter=",", names=True)
+    n = len(data["t"]) if frames is None else int(frames)
+    t = data["t"][:n]
+    pos = np.stack([data["x"], data["y"], data["z"]], 1)[:n]
+    q0 = [float(data[a][0]) for a in ("qw", "qx", "qy", "qz")]
+    w, x, y, z = q0
+    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    w_world = rot @ np.array([data[a][0] for a in ("wx", "wy", "wz")])
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    scene.add_material("board", k=k, c=c, friction=mu, slip_speed=0.01)
+    scene.add_plane(material="board")
+    scene.add_box((0.0524,) * 3, 0.37, tuple(pos[0]),
+                  tuple(float(data[a][0]) for a in ("vx", "vy", "vz")), orientation=tuple(q0),
+                  angular_velocity=tuple(w_world), inertia=(8.1e-4,) * 3)
+    dtype = dtype or jnp.float64
+    sim = dp.compile(scene, dt, dtype=dtype)
+    steps = int(round(t[-1] / dt))
+    idx = np.clip(np.round(t / dt).astype(int) - 1, 0, steps - 1)
+    target = jnp.asarray(pos, dtype)
+
+    def loss(lk, lc, lmu):
+        base = sim.params()
+        con = dict(base.contact)
+        con["board"] = con["board"]._replace(k=jnp.exp(lk), c=jnp.exp(lc))
+        extra = dict(base.extra)
+        extra["friction"] = {"board": jnp.exp(lmu)}
+        traj = sim.rollout(base._replace(contact=con, extra=extra), steps,
+                           check_stability=False)
+        return jnp.mean(jnp.linalg.norm(traj.position[idx, 0] - target, axis=-1)) / 0.1048
+    x0 = [jnp.asarray(np.log(v), dtype) for v in (k, c, mu)]
+    f = jax.jit(loss)
+    ad = np.array([float(a) for a in jax.jit(jax.grad(loss, (0, 1, 2)))(*x0)])
+    fd = {}
+    for s in rel_steps:
+        row = []
+        for i in range(3):
+            up, dn = list(x0), list(x0)
+            up[i], dn[i] = up[i] + s, dn[i] - s
+            row.append((float(f(*up)) - float(f(*dn))) / (2 * s))
+        fd[s] = np.array(row)
+    return {"loss": float(f(*x0)), "ad": ad, "fd": fd}
+
+
+def two_point_window_law(mass: float, gravity: float = G):
+    """PROTOTYPE (measurement only; not used by any simulator unless passed as ``law=``): the
+    linear law whose step window follows the continuous path instead of a straight line.
+
+    The window's past half is the true motion through ``d_{n-1} = d_n + h vn`` and ``d_n``
+    (semi-implicit Euler's last two positions): damped harmonic about ``m g / k`` when both
+    are in contact, a gravity parabola when both are apart, parabola then contact (or contact
+    then parabola) when the last step crossed, the crossing speed found by Newton's method;
+    its future half continues from ``d_n`` with that path's slope. The force ``k d + c d'``
+    along the path is integrated with the hat weight by 16-point Gauss-Legendre on the pieces
+    between crossings. With it the positions are exact samples of the continuous motion, so
+    contact events carry their exact derivative terms (docs/gradients.txt).
+
+    Only for ONE free body of ``mass`` kg on a horizontal plane with gravity ``gravity``
+    m/s^2 along -normal (the ball cases). Costs ~100 force evaluations and 20 Newton steps per
+    contact and step. Returns a ``diffpen.laws.ContactLaw``."""
+    from diffpen import laws
+    m = float(mass)
+    G0 = float(gravity)
+    GX, GW = (jnp.asarray(a) for a in np.polynomial.legendre.leggauss(16))
+
+    def avg(dn, vn, k, c, h):
+        w0sq = k / m; sg = c / (2 * m); w = jnp.sqrt(w0sq - sg * sg); de = m * G0 / k
+        def contact(t, d0, D0):
+            x0 = d0 - de
+            return de + jnp.exp(-sg * t) * (x0 * jnp.cos(w * t)
+                                            + ((D0 + sg * x0) / w) * jnp.sin(w * t))
+        def free(t, d0, D0):
+            return d0 + D0 * t + 0.5 * G0 * t * t
+        dp_ = dn + h * vn
+        # 0: both in contact, 1: both apart, 2: entered during the last step, 3: left it
+        case = jnp.where((dp_ > 0) & (dn > 0), 0,
+                         jnp.where((dp_ <= 0) & (dn <= 0), 1, jnp.where(dn > 0, 2, 3)))
+        # case 2: entering
+        dn2, dp2 = jnp.where(case == 2, dn, 1e-4), jnp.where(case == 2, dp_, -1e-4)
+        def tau0_of(U):
+            return -2 * dp2 / (U + jnp.sqrt(U * U - 2 * G0 * dp2))
+        def r2(U):
+            t0 = tau0_of(U)
+            return contact(h - t0, 0.0, U + G0 * t0) - dn2
+        U = (dn2 - dp2) / h
+        for _ in range(8):
+            U = U - r2(U) / jax.grad(r2)(U)
+        tau0 = tau0_of(U); Uc = U + G0 * tau0
+        # case 3: exiting
+        dn3, dp3 = jnp.where(case == 3, dn, -1e-4), jnp.where(case == 3, dp_, 1e-4)
+        def rfree(Ue):
+            return -2 * dn3 / (-Ue + jnp.sqrt(jnp.maximum(Ue * Ue + 2 * G0 * dn3, 1e-30)))
+        def r3(Ue):
+            return contact(-(h - rfree(Ue)), 0.0, Ue) - dp3
+        Ue = (dn3 - dp3) / h
+        for _ in range(8):
+            Ue = Ue - r3(Ue) / jax.grad(r3)(Ue)
+        tau1 = h - rfree(Ue)
+        # case 0
+        A = dn - de
+        B = (A * jnp.cos(w * h) - (dp_ - de) * jnp.exp(-sg * h)) / jnp.sin(w * h)
+        D_free = (dn - dp_) / h + 0.5 * G0 * h
+        tc0 = h - tau0
+        D_in = jax.grad(lambda t: contact(t, 0.0, Uc))(tc0)
+        D0 = jnp.select([case == 0, case == 1, case == 2], [-sg * A + w * B, D_free, D_in],
+                        Ue + G0 * rfree(Ue))
+        def back(s):
+            t = s + h
+            p0 = de + jnp.exp(-sg * s) * (A * jnp.cos(w * s) + B * jnp.sin(w * s))
+            p1 = free(s, dn, D_free)
+            p2 = jnp.where(t < tau0, free(t, dp_, U), contact(t - tau0, 0.0, Uc))
+            p3 = jnp.where(t < tau1, contact(t - tau1, 0.0, Ue), free(t - tau1, 0.0, Ue))
+            return jnp.select([case == 0, case == 1, case == 2], [p0, p1, p2], p3)
+        # forward crossings
+        S = jnp.sqrt(jnp.maximum(D0 * D0 - 2 * G0 * jnp.minimum(dn, 0.0), 0.0))
+        s0 = jnp.where(D0 > 0, -2 * jnp.minimum(dn, 0.0) / jnp.where(D0 + S > 0, D0 + S, 1.0),
+                       (-D0 + S) / G0)
+        s0 = jnp.where(dn > 0, h, s0)
+        Dc = D0 + G0 * s0
+        inside = dn > 0
+        exits = inside & (contact(h, jnp.where(inside, dn, 1e-4), D0) < 0)
+        s1 = jnp.clip(jnp.where(exits, dn / jnp.maximum(-D0, 1e-9), 0.5 * h), 0.0, h)
+        dni = jnp.where(exits, dn, 1e-4); D0i = jnp.where(exits, D0, -1.0)
+        for _ in range(6):
+            f_ = contact(s1, dni, D0i); fp = jax.grad(lambda q: contact(q, dni, D0i))(s1)
+            s1 = jnp.clip(s1 - f_ / fp, 0.0, h)
+        def fwd(s):
+            pin = contact(s, dn, D0)
+            pout = jnp.where(s < s0, free(s, dn, D0), contact(s - s0, 0.0, Dc))
+            return jnp.where(inside, pin, pout)
+        sb = jnp.where(case == 2, tau0 - h, jnp.where(case == 3, tau1 - h, -0.5 * h))
+        sb = jnp.clip(sb, -h, 0.0)
+        sf = jnp.where(inside, jnp.where(exits, s1, 0.5 * h), jnp.clip(s0, 0.0, h))
+        tot = 0.0
+        for a, b, fn in ((-h, sb, back), (sb, 0.0, back), (0.0, sf, fwd), (sf, h, fwd)):
+            s = 0.5 * (a + b) + 0.5 * (b - a) * GX
+            dd = jax.vmap(fn)(s); dv = jax.vmap(jax.grad(fn))(s)
+            fs = jnp.where(dd > 0, k * dd + c * dv, 0.0) * (1 - jnp.abs(s) / h)
+            tot = tot + 0.5 * (b - a) * jnp.sum(GW * fs)
+        return tot / h
+    def vec(d, vn, k, c, h):
+        return jax.vmap(lambda a, b: avg(a, b, k, c, h))(
+            jnp.atleast_1d(d), jnp.atleast_1d(vn)).reshape(jnp.shape(d))
+    return dataclasses.replace(laws.linear(), averaged=vec)
 
 
 def event_gradient_table(rows: list[dict], before: list[dict] | None = None) -> str:
