@@ -535,13 +535,17 @@ CONTACT_LAWS = {
 }
 
 
-def get(law, exponent: float = 1.0) -> ContactLaw:
+def get(law, exponent: float = 1.0, centred: bool = False) -> ContactLaw:
     """The :class:`ContactLaw` for ``law``: a record (returned as is) or a name in
-    :data:`CONTACT_LAWS` (``exponent`` goes to ``hunt_crossley``). Raises ValueError naming
+    :data:`CONTACT_LAWS` (``exponent`` goes to ``hunt_crossley``; ``centred`` builds the
+    name's record with its damping at the step window's centre). Raises ValueError naming
     the choices otherwise."""
     if isinstance(law, ContactLaw):
         return law
     if isinstance(law, str) and law in CONTACT_LAWS:
-        return hunt_crossley(exponent) if law == "hunt_crossley" else CONTACT_LAWS[law]
+        if law == "hunt_crossley":
+            return hunt_crossley(exponent, centred)
+        return {"linear": linear, "no_tension": no_tension}[law](centred) if centred \
+            else CONTACT_LAWS[law]
     raise ValueError(f"unknown contact law {law!r}; choose one of {sorted(CONTACT_LAWS)} or "
                      "pass a diffpen.laws.ContactLaw record.")

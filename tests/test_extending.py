@@ -118,3 +118,33 @@ def test_toy_contact_law_rolls_out_and_sets_the_stability_gate(ball_scene):
     flags = jax.jit(jax.vmap(lambda kk: sim.rollout(sim.params(k=kk, c=0.0), 5,
                                                     check_finite=False).aux["unstable"][-1]))
     np.testing.assert_array_equal(flags(jnp.asarray([4e5, 6e5])), [False, True])
+
+
+def test_toy_contact_law_through_the_closed_form_starts():
+    """The first guesses of tuning (bounce targets, trajectory fit) and the closed forms of
+    diffpen.physical take a record made here: one that names the no_tension closed forms gets
+    (k, c) meeting both restitution and contact time under them; one without closed forms
+    starts from the linear law's and is refused by diffpen.physical, naming the law."""
+    import dataclasses
+    import types
+
+    from tuning.bounce import first_guess_bounce
+    from tuning.sysid import first_guess
+
+    m, drop, apex, tc = 0.5, 1.0, 0.49, 0.01
+    e = math.sqrt(apex / drop)
+    info = {"mass": m, "drop": drop}
+    targets = {"apex_heights": [apex], "contact_durations": [tc]}
+    events = types.SimpleNamespace(restitution=np.array([e]), contact=np.array([tc]))
+
+    toy_nt = dataclasses.replace(TOY_LAW, closed_form="no_tension")
+    k, c, _ = first_guess_bounce(info, targets, law=toy_nt)
+    assert float(dp.physical.restitution(k, c, m, toy_nt)) == pytest.approx(e, rel=1e-9)
+    assert float(dp.physical.contact_time(k, c, m, toy_nt)) == pytest.approx(tc, rel=1e-9)
+    assert first_guess(events, m, law=toy_nt) == pytest.approx((k, c), rel=1e-9)
+
+    lin = first_guess_bounce(info, targets, law="linear")
+    assert first_guess_bounce(info, targets, law=TOY_LAW) == pytest.approx(lin, rel=1e-12)
+    assert first_guess(events, m, law=TOY_LAW) == pytest.approx(lin[:2], rel=1e-9)
+    with pytest.raises(ValueError, match="half_no_tension"):
+        dp.physical.restitution(k, c, m, TOY_LAW)

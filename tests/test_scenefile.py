@@ -576,3 +576,24 @@ def test_fit_table_errors_come_before_any_simulator_is_built(tmp_path, monkeypat
     p.write_text(BALL + FIT + extra)
     with pytest.raises(SceneFileError, match=words):
         load_scene_file(str(p))
+
+
+def test_ball_record_fit_gets_the_files_law_with_its_exponent(tmp_path, monkeypatch):
+    """A ball-record fit of a file with ``law = "hunt_crossley"`` and ``exponent = 1.5``
+    simulates Hertz contact (the law record), not the name's default exponent 1."""
+    import tuning.scenefile as scenefile
+    import tuning.sysid as sysid
+    (tmp_path / "rec.csv").write_text("t,z\n0.0,1.0\n0.01,0.99\n")
+    path = tmp_path / "hertz.toml"
+    path.write_text('law = "hunt_crossley"\nexponent = 1.5\n' + BALL + '[fit]\ndata = "rec.csv"\n')
+    seen = {}
+
+    def fake_fit(t, z, **kw):
+        seen.update(kw)
+        raise RuntimeError("stop before fitting")
+    monkeypatch.setattr(sysid, "fit_trajectory", fake_fit)
+    monkeypatch.setattr(sysid, "load_csv", lambda p: (np.zeros(2), np.ones(2)))
+    with pytest.raises(RuntimeError, match="stop before fitting"):
+        scenefile.fit_file(str(path))
+    law = dp.laws.get(seen["law"])
+    assert (law.name, law.exponent) == ("hunt_crossley", 1.5)

@@ -141,8 +141,7 @@ def first_guess_bounce(info: dict, targets: dict, *, law="linear", k0: float = 1
         zeta = float(dp.physical.zeta_from_restitution(e, family))
     if zeta is not None and "contact_durations" in targets:
         tc = float(np.atleast_1d(targets["contact_durations"])[0])
-        k, c = dp.physical.kc_from_restitution(math.exp(-math.pi * zeta / math.sqrt(
-            1 - zeta * zeta)), tc, m)
+        k, c = dp.physical.kc_from_restitution(e, tc, m, family)
         return float(k), float(c), zeta
     z = 0.1 if zeta is None else zeta
     return k0, 2.0 * z * math.sqrt(k0 * m), zeta

@@ -69,18 +69,9 @@ def chain_scene(*, n: int = 4, mass: float = 1.0, radius: float = 0.05, spacing:
 
 
 # --------------------------------------------------------------------------- energy
-def _ramp_potential(d, width: float):
-    """Integral of diffpen.laws.ramp from -inf to d (m^2): contact energy / k."""
-    d = np.asarray(d, float)
-    if width == 0.0:
-        return 0.5 * np.maximum(d, 0.0) ** 2
-    h = 0.5 * width
-    band = (np.clip(d, -h, h) + h) ** 3 / (6.0 * width)
-    return np.where(d >= h, 0.5 * d * d + h * h / 6.0, np.where(d <= -h, 0.0, band))
-
-
 def _energy(sim, k, sk, position, velocity):
-    """Mechanical energy (J) per saved state: kinetic + gravity + springs + contact.
+    """Mechanical energy (J) per saved state: kinetic + gravity + springs + contact (the
+    contact law's elastic energy, :attr:`diffpen.laws.ContactLaw.energy`).
 
     position, velocity: (S, n, 3). k: contact stiffness, sk: spring stiffness (N/m).
     Returns (E (S,), max penetration (S,) m).
@@ -92,7 +83,7 @@ def _energy(sim, k, sk, position, velocity):
     g = np.asarray(sim.scene.gravity)
     e -= np.sum(m * (x @ g), axis=-1)
     d = r - x[..., 2]                                        # plane z = 0, normal +z
-    e += k * np.sum(_ramp_potential(d, sim.smoothing), axis=-1)
+    e += np.sum(np.asarray(sim.contact_law.energy(d, k, sim.smoothing)), axis=-1)
     for s in sim.scene.springs:
         xb = x[:, s.b] if s.b is not None else np.asarray(s.anchor)[None]
         ext = np.linalg.norm(x[:, s.a] - xb, axis=-1) - s.rest_length

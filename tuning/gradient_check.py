@@ -154,10 +154,7 @@ def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_i
 
     from .metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
-    law = case.law
-    if centred:
-        law = (laws.hunt_crossley(case.exponent, centred=True) if case.law == "hunt_crossley"
-               else {"linear": laws.linear, "no_tension": laws.no_tension}[case.law](True))
+    law = laws.get(case.law, case.exponent, centred=centred)
     sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
                      integrator=integrator, dtype=dtype or jnp.float64)
     steps = int(round(case.T / dt))

@@ -1065,7 +1065,8 @@ def fit_file(path: str, *, progress=None, method: str | None = None, lr: float |
             raise (w / "data").error("names several records: a ball fit reads one t,z record.")
         from .sysid import fit_trajectory, load_csv
         t, z = load_csv(spec.data[0])
-        res = fit_trajectory(t, z, radius=b.radius, mass=b.mass, law=sf.setup.law,
+        law = dp.laws.get(sf.setup.law, sf.setup.compile_options.get("exponent", 1.0))
+        res = fit_trajectory(t, z, radius=b.radius, mass=b.mass, law=law,
                              g=-scene.gravity[2], progress=progress,
                              maxiter=maxiter or spec.maxiter or 15)
         name = os.path.basename(spec.data[0])

@@ -163,7 +163,8 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
     if not ok.any():
         raise FitError("no usable bounce in the record (need 0 < restitution < 1 and a "
                        "positive contact duration).")
-    law_cf = "no_tension" if law == "no_tension" else "linear"
+    # the law's closed forms, or the linear law's as a start for laws without any
+    law_cf = dp.laws.get(law).closed_form or "linear"
     k, c = dp.physical.kc_from_restitution(float(np.median(e[ok])), float(np.median(tc[ok])),
                                            mass, law_cf)
     return float(k), float(c)
@@ -297,7 +298,8 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
 
     Args:
       t: (N,) sample times, s, strictly increasing.  z: (N,) centre heights, m.
-      radius: m.  mass: kg.  g: gravity, m/s^2.  law: contact law.
+      radius: m.  mass: kg.  g: gravity, m/s^2.  law: contact law (a name or a
+        :class:`diffpen.laws.ContactLaw`).
       dt: time step, s (default chosen from the data by :func:`choose_dt`).
       k0, c0: start values (default: :func:`first_guess` from the record's events).
       maxiter: LM iterations per horizon (the last, full horizon gets twice as many).

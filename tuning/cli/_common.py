@@ -82,6 +82,18 @@ def positive(name: str):
     return conv
 
 
+def law_name(text: str) -> str:
+    """argparse type: a contact-law name of :data:`diffpen.laws.CONTACT_LAWS` (diffpen is
+    imported only when the option is given, so that ``--help`` stays fast)."""
+    from diffpen.laws import CONTACT_LAWS
+    if text not in CONTACT_LAWS:
+        raise CLIError(f"--law must be one of {sorted(CONTACT_LAWS)}, got {text!r}")
+    return text
+
+
+law_name.__name__ = "--law"
+
+
 def finite(name: str):
     """argparse type: a finite number (``nan`` and ``inf`` are refused)."""
     def conv(text: str) -> float:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 
-from ._common import CLIError, count, dump_json, fail, fmt, positive, setup_jax
+from ._common import CLIError, count, dump_json, fail, fmt, law_name, positive, setup_jax
 
 UNITS = {"apex_heights": "m", "settling_time": "s", "contact_durations": "s",
          "max_penetration": "m", "restitution": "", "rms_residual": "m"}
@@ -56,8 +56,8 @@ def add_arguments(p) -> None:
                         "first, then longer (growing horizon), the whole records last")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
-    p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"], default="linear",
-                   help="contact law (default linear)")
+    p.add_argument("--law", type=law_name, default="linear",
+                   help="contact law, a name in diffpen.laws.CONTACT_LAWS (default linear)")
     p.add_argument("--method", choices=["lm", "adam", "sgd"], default="lm",
                    help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
     p.add_argument("--lr", type=positive("--lr"), default=0.05,

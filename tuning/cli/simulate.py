@@ -2,7 +2,8 @@
 scene file, print its metrics, and optionally write the trajectory (.npz)."""
 from __future__ import annotations
 
-from ._common import CLIError, count, dump_json, fail, finite, fmt, positive, setup_jax
+from ._common import (CLIError, count, dump_json, fail, finite, fmt, law_name, positive,
+                      setup_jax)
 
 
 def add_arguments(p) -> None:
@@ -14,8 +15,9 @@ def add_arguments(p) -> None:
     p.add_argument("--steps", type=count("--steps", None), help="number of steps (default: the "
                    "scene's)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default: the scene's)")
-    p.add_argument("--law", choices=["linear", "no_tension", "hunt_crossley"],
-                   help="contact law (default: the scene's)")
+    p.add_argument("--law", type=law_name,
+                   help="contact law, a name in diffpen.laws.CONTACT_LAWS (default: the "
+                        "scene's)")
     p.add_argument("--out", metavar="FILE.npz", help="write time, position and velocity")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
