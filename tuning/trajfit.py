@@ -49,6 +49,7 @@ import diffpen as dp
 
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
+from .params import leaf_paths
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
@@ -60,20 +61,8 @@ ROT_WEIGHT = (180.0 / math.pi) / 100.0
 
 
 # --------------------------------------------------------------------------- params leaves
-def _key_name(k) -> str:
-    for attr in ("name", "key", "idx"):
-        if hasattr(k, attr):
-            return str(getattr(k, attr))
-    return str(k)
-
-
-def leaf_names(params) -> dict:
-    """``{"contact.board.k": key path, ...}``: every leaf of a params pytree by dotted name
-    (attribute names and dict keys joined by dots, as in ``jax.tree_util`` key paths)."""
-    out = {}
-    for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]:
-        out[".".join(_key_name(k) for k in path)] = path
-    return out
+#: ``{"contact.board.k": key path, ...}`` of a params pytree (see :mod:`tuning.params`)
+leaf_names = leaf_paths
 
 
 def _normalise(name: str) -> str:
