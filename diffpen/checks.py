@@ -14,7 +14,7 @@ import numpy as np
 from .errors import SceneError
 from .state import Params, State
 
-__all__ = ["check_rollout", "check_pairs", "memory_bytes", "STEP_RATE", "MAX_STEPS",
+__all__ = ["check_rollout", "check_pairs", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
            "MAX_PAIRS"]
 
 #: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
@@ -36,14 +36,16 @@ def memory_bytes() -> float:
         return 8.0 * 2 ** 30
 
 
-def _human_bytes(b: float) -> str:
+def human_bytes(b: float) -> str:
+    """``b`` bytes as text in TiB, GiB, MiB or B (for size estimates in messages)."""
     for unit, f in (("TiB", 2 ** 40), ("GiB", 2 ** 30), ("MiB", 2 ** 20)):
         if b >= f:
             return f"{b / f:.3g} {unit}"
     return f"{b:.0f} B"
 
 
-def _human_time(s: float) -> str:
+def human_time(s: float) -> str:
+    """``s`` seconds as text in s, min, h, days or years (for time estimates in messages)."""
     if s < 120:
         return f"{s:.3g} s"
     if s < 7200:
@@ -87,8 +89,8 @@ def check_pairs(scene, broadphase) -> None:
         per_step = pairs * 1e-8 * 20          # ~20 flops per pair at ~1e8 pair-terms/s
         raise SceneError(
             f"{s} colliding spheres make {pairs:.3g} sphere-sphere pairs without a broad "
-            f"phase (more than {MAX_PAIRS:.0e}): about {_human_bytes(pairs * 16.0)} of pair "
-            f"indices and ~{_human_time(per_step)} per step. Compile with "
+            f"phase (more than {MAX_PAIRS:.0e}): about {human_bytes(pairs * 16.0)} of pair "
+            f"indices and ~{human_time(per_step)} per step. Compile with "
             "broadphase=diffpen.broadphase.Grid() (near-linear cost) or "
             "diffpen.broadphase.AABB(max_pairs).")
 
@@ -105,18 +107,18 @@ def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
     if steps > MAX_STEPS:
         raise SceneError(
             f"steps={steps} is more than a rollout can count ({MAX_STEPS}, int32)"
-            + (f"; saving every {save_every} step(s) would store {_human_bytes(stored)}"
+            + (f"; saving every {save_every} step(s) would store {human_bytes(stored)}"
                if stored else "")
-            + f" and it would take about {_human_time(seconds)} at ~{STEP_RATE:.0e} "
+            + f" and it would take about {human_time(seconds)} at ~{STEP_RATE:.0e} "
             "body-steps/s. Roll out in pieces (pass the last state as state=) or use a "
             "larger dt.")
     mem = memory_bytes()
     if stored > 0.5 * mem:
         raise SceneError(
             f"steps={steps} with save_every={save_every} would store "
-            f"{steps // save_every} states of {sim.n_bodies} bodies: {_human_bytes(stored)}, "
-            f"more than half of this machine's {_human_bytes(mem)} (about "
-            f"{_human_time(seconds)} of compute). Save less often (save_every=), keep only what "
+            f"{steps // save_every} states of {sim.n_bodies} bodies: {human_bytes(stored)}, "
+            f"more than half of this machine's {human_bytes(mem)} (about "
+            f"{human_time(seconds)} of compute). Save less often (save_every=), keep only what "
             "you need (observe=), or roll out in pieces.")
     if state is not None:
         _check_state(sim, state)

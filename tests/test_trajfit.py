@@ -317,3 +317,28 @@ def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
     assert out["horizons"] == [0.2, None] and out["records"] == 1
     for name, v in truth.items():
         assert out["fitted"][name] == pytest.approx(v, rel=0.02)
+
+
+def test_past_the_safe_step_is_marked_not_reported(cube):
+    """Regression: the batched rollouts of fit_records and evaluate_batch ignored
+    State.aux['unstable'], so a fit/evaluation past the safe step (here k = 2e5 N/m, w h =
+    0.74 > 0.5 at dt = 1 ms: finite but untrustworthy poses) was reported as a result."""
+    from tuning import evaluate as ev
+    from tuning.stable import safe_contact_bounds
+    params = cube.params()
+    rec = tf.synthetic_record(cube, params, 0.12, 5e-3, {"cube": 0}, noise=1e-3, seed=3)
+    batch = tf.prepare(cube, [rec, rec], estimate="record")
+    k_bad = 2e5
+    assert k_bad > safe_contact_bounds(cube)[0]
+    bad = tf.with_leaves(params, {"contact.board.k": k_bad})
+    fn = ev.evaluator(cube, batch)                      # one compile for both evaluations
+    good = ev.evaluate_batch(cube, params, batch, fn=fn)
+    assert good.unstable == 0 and np.isfinite(good.position_error_pct["mean"])
+    out = ev.evaluate_batch(cube, bad, batch, fn=fn)
+    assert np.all(np.isfinite(out.pos))     # finite poses: only the flag tells
+    assert out.unstable == 2 and "safe step" in out.message
+    assert all(r["unstable"] and np.isnan(r["position_error_pct"]) for r in out.records)
+    assert np.isnan(out.position_error_pct["mean"]) and out.as_dict()["unstable"] == 2
+    res = tf.fit_records(cube, bad, batch, [tf.Free("contact.board.c", 1.0, 1e3)], maxiter=1)
+    assert res.unstable == 2 and np.isnan(res.cost) and "safe step" in res.message
+    assert res.as_dict()["unstable"] == 2

@@ -136,3 +136,42 @@ def test_bad_fit_arguments():
         F.fit(mfn, p0, {"apex_heights": [0.2]}, method="newton")
     with pytest.raises(F.FitError, match="positive start"):
         F.fit(mfn, sim.params(k=1e4, c=0.0), {"apex_heights": [0.2]})
+
+
+def test_fit_with_sim_stays_inside_the_safe_step():
+    """Regression: fit() had no stability bounds, so a target that pulls k past the safe step
+    was met and returned as reached. Given the simulator, k is capped at the safe step and the
+    result is not reached (values never past the cap); batch fits share the bounds."""
+    from tuning import batch_fit as BF
+    from tuning.stable import contact_unstable, safe_contact_bounds
+    sim = dp.compile(ball_scene(), 1e-3)
+    k_max, c_max = safe_contact_bounds(sim)
+    p0 = sim.params(k=1e4, c=10.0)
+    mfn = lambda p: {"stiffness": p.contact["default"].k}    # no rollout: fast
+    targets = {"stiffness": 10.0 * k_max}
+    free = ["contact.default.k"]
+    opts = dict(free=free, method="optax", optimizer=optax.adam(0.5), maxiter=60, rtol=1e-2)
+    # without the simulator the optimiser walks past the safe step (the old behaviour)
+    loose = F.fit(mfn, p0, targets, **opts)
+    assert loose.values["contact.default.k"] > k_max
+    res = F.fit(mfn, p0, targets, sim=sim, **opts)
+    assert not res.reached
+    assert res.values["contact.default.k"] <= k_max * (1 + 1e-9)
+    assert not bool(contact_unstable(sim, res.params))
+    lm = F.fit(mfn, p0, targets, sim=sim, free=free, method="lm", maxiter=30, rtol=1e-2)
+    assert not lm.reached and lm.values["contact.default.k"] <= k_max * (1 + 1e-9)
+    lo, hi = F.safe_bounds(["contact.default.k", "contact.default.c"], [1e4, 10.0],
+                           {"contact.default.c": (1e-3, 1e9)}, sim)
+    assert hi[0] == k_max and hi[1] == c_max
+    with pytest.raises(F.FitError, match="safe step"):
+        F.safe_bounds(free, [1e4], {"contact.default.k": (2 * k_max, 3 * k_max)}, sim)
+    # a point past the safe step is never reached, even when the user's bounds allow it
+    # (metrics_fn without its own flag: the fit adds it from the simulator)
+    far = F.fit(mfn, sim.params(k=2 * k_max, c=10.0), {"stiffness": 2 * k_max},
+                free=["contact.default.c"], method="optax", maxiter=3, sim=sim)
+    assert not far.reached and "safe step" in far.message
+    bf = BF.BatchFitter(mfn, p0, free=free, sim=sim, maxiter=60, learning_rate=0.5,
+                        rtol=1e-2)
+    assert bf.hi[0] == k_max
+    out = bf([targets])
+    assert not out.reached[0]

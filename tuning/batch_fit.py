@@ -32,9 +32,10 @@ import optax
 import diffpen as dp
 
 from . import params as P
-from .fit import (FitError, _achieved, _normalise_targets, _residuals, _spec, default_bounds,
-                  default_optimizer)
+from .fit import (FitError, _achieved, _normalise_targets, _residuals, _spec,
+                  default_optimizer, safe_bounds)
 from .shard import batch_mesh, sharded_map
+from .stable import FLAG, contact_unstable
 
 __all__ = ["fit_batch", "BatchFitter", "BatchFitResult"]
 
@@ -97,6 +98,15 @@ class BatchFitResult:
         return int(np.argmin(np.where(np.isfinite(self.loss), self.loss, np.inf)))
 
 
+def _with_flag(metrics_fn: Callable, sim) -> Callable:
+    """``metrics_fn`` with ``"unstable"`` added (:func:`tuning.stable.contact_unstable`) when
+    it has none."""
+    def fn(params):
+        m = metrics_fn(params)
+        return m if FLAG in m else {**m, FLAG: contact_unstable(sim, params)}
+    return fn
+
+
 def _rows(targets, starts) -> tuple[list, list | None]:
     """Targets and starts as equal-length lists of rows (a single dict is shared)."""
     n_t = None if isinstance(targets, dict) else len(targets)
@@ -134,12 +144,14 @@ class BatchFitter:
       maxiter: iteration limit per row; >= 1.
       mesh: 1-D device mesh with axis ``"batch"`` (default :func:`tuning.shard.batch_mesh`:
         all devices).
+      sim: the simulator behind ``metrics_fn`` (optional): contact k and c bounded inside its
+        safe step and the stability flag added, as in :func:`tuning.fit.fit`.
     """
 
     def __init__(self, metrics_fn: Callable, params0: dp.Params, *, free=None,
                  bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
                  optimizer: optax.GradientTransformation | None = None,
-                 learning_rate: float = 0.05, maxiter: int = 200, mesh=None):
+                 learning_rate: float = 0.05, maxiter: int = 200, mesh=None, sim=None):
         lr = float(learning_rate)
         if not (math.isfinite(lr) and lr > 0.0):
             raise FitError(f"learning_rate must be a positive number (a relative step, e.g. "
@@ -156,11 +168,12 @@ class BatchFitter:
         if unknown:
             raise FitError(f"unknown parameter(s) {unknown}; this scene has {list(flat0)}.")
         x0 = np.array([float(flat0[p]) for p in free])
-        box = np.array([(bounds or {}).get(p, default_bounds(p, v)) for p, v in zip(free, x0)],
-                       dtype=float).reshape(len(free), 2)
+        box = np.stack(safe_bounds(free, x0, bounds, sim), axis=1).reshape(len(free), 2)
         if np.any(~(box[:, 0] > 0.0)) or np.any(box[:, 1] <= box[:, 0]):
             raise FitError(f"bounds must satisfy 0 < lo < hi (fitting is in log space); got "
                            f"{dict(zip(free, box.tolist()))}.")
+        if sim is not None:   # a point past the safe step is never reached (tuning.stable)
+            metrics_fn = _with_flag(metrics_fn, sim)
         self.metrics_fn, self.params0, self.free = metrics_fn, params0, free
         self.x0, self.lo, self.hi = x0, box[:, 0], box[:, 1]
         self.weights, self.rtol = weights, rtol
@@ -325,7 +338,7 @@ def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
     ``fit_batch(metrics_fn, params0, targets, starts, **options)`` is
     ``BatchFitter(metrics_fn, params0, **options)(targets, starts)``; see :class:`BatchFitter`
     for the options (``free``, ``bounds``, ``weights``, ``rtol``, ``optimizer``,
-    ``learning_rate``, ``maxiter``, ``mesh``). Build a :class:`BatchFitter` once to run
+    ``learning_rate``, ``maxiter``, ``mesh``, ``sim``). Build a :class:`BatchFitter` once to run
     several batches of the same layout without recompiling.
 
     Args:

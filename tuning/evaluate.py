@@ -17,6 +17,7 @@ dispatch.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import jax
@@ -40,6 +41,9 @@ class Evaluation:
       "rotation_error_deg"}``.
     pos, quat: the simulated poses (R, T, B, 3) / (R, T, B, 4) at the frame times.
     seconds: wall time of the rollouts (after compilation).
+    unstable: records whose rollout went past its safe step (``State.aux["unstable"]``):
+      their errors are NaN (``records[i]["unstable"]`` True) and left out of the summary.
+    message: says so when ``unstable`` > 0, else "".
     """
     position_error_pct: dict
     rotation_error_deg: dict | None
@@ -47,11 +51,13 @@ class Evaluation:
     pos: np.ndarray
     quat: np.ndarray | None
     seconds: float
+    unstable: int = 0
+    message: str = ""
 
     def as_dict(self) -> dict:
         return {"position_error_pct": self.position_error_pct,
                 "rotation_error_deg": self.rotation_error_deg, "records": self.records,
-                "seconds": self.seconds}
+                "seconds": self.seconds, "unstable": self.unstable, "message": self.message}
 
 
 def _errors(pos, quat, batch: Batch):
@@ -72,14 +78,22 @@ def evaluator(sim: dp.Simulator, batch: Batch):
     batch (compiled on the first call; new parameter values never recompile)."""
     @jax.jit
     def f(params):
-        pos, quat = simulate(sim, params, batch)
+        pos, quat, bad = simulate(sim, params, batch, with_flag=True)
         pe, re = _errors(pos, quat, batch)
+        nan = jnp.asarray(jnp.nan, pe.dtype)
+        pe = jnp.where(bad, nan, pe)            # past the safe step: never a result
+        re = None if re is None else jnp.where(bad, nan, re)
         return pos, quat, pe, re
     return f
 
 
 def _summary(v) -> dict:
-    return {"mean": float(np.mean(v)), "median": float(np.median(v))}
+    """Mean and median over the records with a result (NaN ones, past the safe step, left
+    out; NaN when none has one)."""
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return ({"mean": float(np.mean(v)), "median": float(np.median(v))} if v.size
+            else {"mean": math.nan, "median": math.nan})
 
 
 def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evaluation:
@@ -98,9 +112,15 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
         recs.append({"path": path, "frames": n,
                      "duration_s": float(batch.time[r, n - 1]),
                      "position_error_pct": float(pe[r]),
-                     "rotation_error_deg": None if re is None else float(re[r])})
+                     "rotation_error_deg": None if re is None else float(re[r]),
+                     "unstable": bool(np.isnan(pe[r]))})
+    bad = [rec["path"] for rec in recs if rec["unstable"]]
+    message = (f"{len(bad)} of {len(recs)} records ran past the safe step "
+               f"(State.aux['unstable']): their errors are NaN and left out of the summary; "
+               f"lower dt or use softer k / smaller c ({bad[:5]})" if bad else "")
     return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
-                      np.asarray(pos), None if quat is None else np.asarray(quat), seconds)
+                      np.asarray(pos), None if quat is None else np.asarray(quat), seconds,
+                      len(bad), message)
 
 
 def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,

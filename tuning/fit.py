@@ -35,6 +35,7 @@ import optax
 import diffpen as dp
 
 from . import params as P
+from .stable import FLAG, contact_unstable, safe_contact_bounds
 
 __all__ = ["FitResult", "FitError", "fit", "default_optimizer", "Progress",
            "default_bounds"]
@@ -111,6 +112,28 @@ def default_bounds(path: str, value: float, dt: float | None = None,
 
 
 from .progress import Progress  # noqa: E402  (re-exported: tuning.fit.Progress)
+
+
+def safe_bounds(free, x0, bounds: dict | None, sim=None) -> tuple[np.ndarray, np.ndarray]:
+    """Box bounds (lo, hi) (n,) in SI units for the ``free`` leaves with start values ``x0``:
+    ``bounds[path]`` or :func:`default_bounds`, and, when the simulator ``sim`` is given, every
+    contact k and c capped at :func:`tuning.stable.safe_contact_bounds` of ``sim`` (the safe
+    explicit step of its lightest movable body), so an optimiser cannot walk past the safe step.
+    Raises :class:`FitError` when a given lower bound is already past it."""
+    bounds = bounds or {}
+    lo = np.array([bounds.get(p, default_bounds(p, v))[0] for p, v in zip(free, x0)], float)
+    hi = np.array([bounds.get(p, default_bounds(p, v))[1] for p, v in zip(free, x0)], float)
+    if sim is not None:
+        k_max, c_max = safe_contact_bounds(sim)
+        for i, p in enumerate(free):
+            cap = (k_max if p.endswith(".k") else c_max) if p.startswith("contact.") else None
+            if cap is not None and hi[i] > cap:
+                if lo[i] >= cap:
+                    raise FitError(f"the lower bound {lo[i]:g} of {p!r} is past the safe step "
+                                   f"of this simulator ({cap:g} at dt={float(sim.dt):g} s); "
+                                   "lower it, or use a smaller dt or more substeps.")
+                hi[i] = cap
+    return lo, hi
 
 
 # --------------------------------------------------------------------------- targets
@@ -196,7 +219,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         method: str = "optax", optimizer: optax.GradientTransformation | None = None,
         maxiter: int = 300, progress: bool | None = None, label: str = "fit",
         starts: list | None = None, n_starts: int = 3,
-        search: Callable | None = None) -> FitResult:
+        search: Callable | None = None, sim=None) -> FitResult:
     """Fit the ``free`` leaves of ``params0`` so that ``metrics_fn(params)`` meets ``targets``.
 
     Args:
@@ -219,6 +242,10 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         problem-specific search for start points in log space; ``evaluate(theta) -> (r, J,
         metrics)`` is the fit's compiled residual/Jacobian function and ``slices`` maps each
         target to its rows of ``r``.
+      sim: the simulator behind ``metrics_fn`` (optional, recommended): contact k and c are
+        then bounded inside its safe step (:func:`safe_bounds`), and when ``metrics_fn`` has
+        no ``"unstable"`` entry the fit adds :func:`tuning.stable.contact_unstable`; a point
+        past the safe step is never returned as reached.
     Returns:
       :class:`FitResult`.
     """
@@ -242,8 +269,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         bad = [p for p, v in zip(free, x0) if v <= 0.0]
         raise FitError(f"fitted parameters need a positive start value (fitting is in log "
                        f"space); got {dict(zip(bad, x0[x0 <= 0.0]))}.")
-    lo = np.array([bounds.get(p, default_bounds(p, v))[0] for p, v in zip(free, x0)], float)
-    hi = np.array([bounds.get(p, default_bounds(p, v))[1] for p, v in zip(free, x0)], float)
+    lo, hi = safe_bounds(free, x0, bounds, sim)
     if np.any(~(lo > 0.0)) or np.any(hi <= lo):
         raise FitError(f"bounds must satisfy 0 < lo < hi; got lo={lo}, hi={hi}.")
     x0 = np.clip(x0, lo, hi)
@@ -261,7 +287,10 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
 
     def residual_fn(theta):
         traces[0] += 1
-        m = metrics_fn(params_of(theta))
+        params = params_of(theta)
+        m = metrics_fn(params)
+        if sim is not None and FLAG not in m:
+            m = {**m, FLAG: contact_unstable(sim, params)}
         return _residuals(m, tgt, spec), m
 
     bar = Progress(maxiter, label, progress)
@@ -347,7 +376,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         theta_d.update({p: jnp.asarray(v) for p, v in zip(free, theta0)})
         state = tx.init(theta_d)
         tols = np.concatenate([np.full(c, tol * math.sqrt(w)) for _, c, w, tol in spec])
-        history, best = [], (np.inf, theta_d, None)
+        history, best = [], (np.inf, theta_d, None, True)
         converged, message, iterations = False, "iteration limit reached", maxiter
         for it in range(maxiter):
             new, state, loss, r, m = step(theta_d, state)
@@ -359,10 +388,12 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
             history.append(loss)
             evals[0] += 1
             eval_costs.append(loss)
-            if loss < best[0]:
-                best = (loss, theta_d, m)
+            bad = bool(np.any(np.asarray(m[FLAG]))) if FLAG in m else False
+            if best[2] is None or (loss < best[0] and not bad) or (
+                    best[3] and (not bad or loss < best[0])):
+                best = (loss, theta_d, m, bad)   # stable points first, then the lowest loss
             bar.update(it, loss)
-            if np.all(np.abs(np.asarray(r)) <= tols):
+            if np.all(np.abs(np.asarray(r)) <= tols) and not bad:
                 converged, message, iterations = True, "targets reached", it
                 break
             theta_d = new

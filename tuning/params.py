@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import diffpen as dp
 
-__all__ = ["flatten", "unflatten", "paths", "default_free"]
+__all__ = ["flatten", "unflatten", "paths", "default_free", "key_name", "leaf_paths"]
 
 
 def flatten(params: dp.Params) -> dict:
@@ -52,3 +52,20 @@ def paths(params: dp.Params) -> list[str]:
 def default_free(params: dp.Params) -> list[str]:
     """The default fitted subset: every contact stiffness and damping."""
     return [p for p in flatten(params) if p.startswith("contact.")]
+
+
+def key_name(key) -> str:
+    """The name of one ``jax.tree_util`` path entry: an attribute name, a dict key or an
+    index, as text."""
+    for attr in ("name", "key", "idx"):
+        if hasattr(key, attr):
+            return str(getattr(key, attr))
+    return str(key)
+
+
+def leaf_paths(params) -> dict:
+    """``{"contact.board.k": key path, ...}``: every leaf of a params pytree by dotted name,
+    from ``jax.tree_util`` key paths (attribute names and dict keys joined by dots)."""
+    import jax
+    return {".".join(key_name(k) for k in path): path
+            for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]}

@@ -94,8 +94,10 @@ import numpy as np
 
 import diffpen as dp
 from diffpen import builders
+from diffpen.checks import human_bytes, human_time
 
 from . import validate as V
+from .params import key_name
 from .scenes import SceneSetup
 from .validate import SceneFileError, Where
 
@@ -203,25 +205,18 @@ class SceneFile:
 
 
 # --------------------------------------------------------------------------- params
-def _key_name(key) -> str:
-    for attr in ("name", "key", "idx"):
-        if hasattr(key, attr):
-            return str(getattr(key, attr))
-    return str(key)
-
-
 def param_leaves(params) -> dict:
     """``{dotted path: leaf}`` of a params pytree, from ``jax.tree_util`` key paths
     (``contact.rubber.k``, ``extra.friction.rubber``, ...)."""
     import jax
     leaves = jax.tree_util.tree_flatten_with_path(params)[0]
-    return {".".join(_key_name(k) for k in path): leaf for path, leaf in leaves}
+    return {".".join(key_name(k) for k in path): leaf for path, leaf in leaves}
 
 
 def _keystr_paths(params) -> dict:
     import jax
     leaves = jax.tree_util.tree_flatten_with_path(params)[0]
-    return {jax.tree_util.keystr(path): ".".join(_key_name(k) for k in path)
+    return {jax.tree_util.keystr(path): ".".join(key_name(k) for k in path)
             for path, _ in leaves}
 
 
@@ -548,9 +543,9 @@ class _Loader:
         if steps > lim["max_steps"] or traj > lim["max_trajectory_bytes"]:
             raise self.w("duration").error(
                 f"= {duration:g} s at dt = {dt:g} s is {steps:.3g} steps: a rollout saving "
-                f"every step would hold about {_bytes(traj)} and run for roughly "
-                f"{_seconds(seconds)}. The limits are {lim['max_steps']:,} steps and "
-                f"{_bytes(lim['max_trajectory_bytes'])}; shorten duration, raise dt, or pass "
+                f"every step would hold about {human_bytes(traj)} and run for roughly "
+                f"{human_time(seconds)}. The limits are {lim['max_steps']:,} steps and "
+                f"{human_bytes(lim['max_trajectory_bytes'])}; shorten duration, raise dt, or pass "
                 "max_steps= / max_trajectory_bytes= to load_scene_file.")
 
     # ---------------------------------------------------------------- materials
@@ -1004,20 +999,6 @@ def _takes(fn, name: str) -> bool:
         return name in inspect.signature(fn).parameters
     except (TypeError, ValueError):
         return False
-
-
-def _bytes(n: float) -> str:
-    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20)):
-        if n >= size:
-            return f"{n / size:.3g} {unit}"
-    return f"{n / 1024:.3g} KiB"
-
-
-def _seconds(s: float) -> str:
-    for unit, size in (("years", 3.15e7), ("days", 86400), ("hours", 3600), ("min", 60)):
-        if s >= size:
-            return f"{s / size:.3g} {unit}"
-    return f"{s:.3g} s"
 
 
 def _metrics(body, plane, tol):

@@ -49,6 +49,7 @@ import diffpen as dp
 
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
+from .params import leaf_paths
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
@@ -60,20 +61,8 @@ ROT_WEIGHT = (180.0 / math.pi) / 100.0
 
 
 # --------------------------------------------------------------------------- params leaves
-def _key_name(k) -> str:
-    for attr in ("name", "key", "idx"):
-        if hasattr(k, attr):
-            return str(getattr(k, attr))
-    return str(k)
-
-
-def leaf_names(params) -> dict:
-    """``{"contact.board.k": key path, ...}``: every leaf of a params pytree by dotted name
-    (attribute names and dict keys joined by dots, as in ``jax.tree_util`` key paths)."""
-    out = {}
-    for path, _ in jax.tree_util.tree_flatten_with_path(params)[0]:
-        out[".".join(_key_name(k) for k in path)] = path
-    return out
+#: ``{"contact.board.k": key path, ...}`` of a params pytree (see :mod:`tuning.params`)
+leaf_names = leaf_paths
 
 
 def _normalise(name: str) -> str:
@@ -443,10 +432,13 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
 
 
 # --------------------------------------------------------------------------- rollouts
-def simulate(sim: dp.Simulator, params, batch: Batch):
+def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False):
     """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
     batch's bodies at the frame times, each record rolled out from its own start state.
-    Pure: jit, grad and jacfwd it."""
+    With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
+    (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
+    a result. Pure: jit, grad and jacfwd it."""
+    from .stable import rollout_unstable
     idx = batch.bodies
     rot = sim.scene.has_rotation and batch.has_rotation
 
@@ -460,13 +452,14 @@ def simulate(sim: dp.Simulator, params, batch: Batch):
         pa, pb = p[index], p[jnp.minimum(index + 1, p.shape[0] - 1)]
         f = frac[:, None, None].astype(p.dtype)
         pos = pa + f * (pb - pa)
+        bad = (rollout_unstable(sim, traj, params),) if with_flag else ()
         if not rot:
-            return pos, None
+            return (pos, None) + bad
         q = jnp.concatenate([state.orientation[idx][None], traj.observed[1]])
         qa, qb = q[index], q[jnp.minimum(index + 1, q.shape[0] - 1)]
         qb = jnp.where(jnp.sum(qa * qb, -1, keepdims=True) < 0, -qb, qb)
         qi = qa + f * (qb - qa)
-        return pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)
+        return (pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)) + bad
     return jax.vmap(one)(batch.start, jnp.asarray(batch.index), jnp.asarray(batch.frac))
 
 
@@ -536,6 +529,8 @@ class TrajFitResult:
     cost_start, cost: pose loss (mean over records) before and after.
     horizons: the horizons (s) fitted in turn.  iterations: LM iterations in all.
     history: cost after each iteration.  seconds: wall time.  message: LM's last word.
+    unstable: records whose rollout at the fitted values ran past the safe step; when > 0
+      ``cost`` is NaN and the message says so: the fit is not a result.
     """
     params: dp.Params
     names: list
@@ -550,6 +545,7 @@ class TrajFitResult:
     history: list
     seconds: float
     message: str
+    unstable: int = 0
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -558,7 +554,7 @@ class TrajFitResult:
                                 for i, a in enumerate(self.names)},
                 "undetermined": self.undetermined, "cost_start": self.cost_start,
                 "cost": self.cost, "horizons": self.horizons, "iterations": self.iterations,
-                "seconds": self.seconds, "message": self.message}
+                "seconds": self.seconds, "message": self.message, "unstable": self.unstable}
 
 
 def prepare_buckets(sim: dp.Simulator, records, *, buckets: int = 3, **kw) -> list:
@@ -615,17 +611,22 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
 
     batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
 
-    def resid(x, horizon):
+    def resid_flag(x, horizon):
         p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
                                  for i, f in enumerate(free)})
-        return jnp.concatenate([
-            pose_residuals(*simulate(sim, p, b), b, rot_weight=rot_weight, horizon=horizon,
-                           loss=loss) for b in batches])
+        out = [simulate(sim, p, b, with_flag=True) for b in batches]
+        r = jnp.concatenate([pose_residuals(o[0], o[1], b, rot_weight=rot_weight,
+                                            horizon=horizon, loss=loss)
+                             for o, b in zip(out, batches)])
+        return r, sum(jnp.count_nonzero(o[2]) for o in out)   # records past the safe step
 
     @jax.jit
+    def res_jac_flag(x, horizon):
+        r, bad = resid_flag(x, horizon)
+        return r, jax.jacfwd(lambda xx: resid_flag(xx, horizon)[0])(x), bad
+
     def res_jac(x, horizon):
-        r = resid(x, horizon)
-        return r, jax.jacfwd(resid)(x, horizon)
+        return res_jac_flag(x, horizon)[:2]
 
     t0 = time.perf_counter()
     x = np.asarray(x0, dtype=float)
@@ -643,8 +644,13 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         hist += [float(c) for c in res.cost_history]
         message = res.message
     bar.close()
-    r, J = (np.asarray(a) for a in res_jac(jnp.asarray(x), jnp.asarray(np.inf)))
-    cost = float(r @ r)
+    r, J, n_bad = (np.asarray(a) for a in res_jac_flag(jnp.asarray(x), jnp.asarray(np.inf)))
+    cost, n_bad = float(r @ r), int(n_bad)
+    if n_bad:   # past the safe step: never a result (tuning.stable)
+        cost = math.nan
+        message = (f"NOT a result: {n_bad} of {sum(len(b.paths) for b in batches)} records "
+                   "ran past the safe step at the fitted values (State.aux['unstable']); "
+                   f"lower dt or tighten the [fit.bounds] of k / c ({message})")
     values = {f.name: float(f.from_x(x[i])) for i, f in enumerate(free)}
     m = int(np.count_nonzero(np.any(J != 0, axis=1)))
     p = len(free)
@@ -667,7 +673,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     fitted = with_leaves(params, {n: jnp.asarray(v, sim.dtype) for n, v in values.items()})
     return TrajFitResult(fitted, names, values, stderr, corr, undetermined, cost_start, cost,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
-                         time.perf_counter() - t0, message)
+                         time.perf_counter() - t0, message, unstable=n_bad)
 
 
 # --------------------------------------------------------------------------- scene files
@@ -770,7 +776,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         "after": {"position_error_pct": after.position_error_pct,
                   "rotation_error_deg": after.rotation_error_deg},
         "out": out, "seconds": time.perf_counter() - t0, "fit_seconds": res.seconds,
-        "reached": True})
+        "reached": not (res.unstable or after.unstable)})
     return summary
 
 

@@ -3,6 +3,8 @@ measured records (position error in % of the body's size, rotation error in degr
 record, mean and median)."""
 from __future__ import annotations
 
+import sys
+
 from ._common import CLIError, dump_json, fail, setup_jax
 
 
@@ -30,9 +32,12 @@ def run(args) -> int:
                              plot=args.plot)
     except (CLIError, ValueError, ImportError) as exc:
         return fail("evaluate", str(exc))
+    code = 1 if out.get("unstable") else 0      # records past the safe step: not results
+    if code:
+        print(f"diffpen evaluate: {out['message']}", file=sys.stderr)
     if args.json:
         dump_json(out)
-        return 0
+        return code
     pe, re = out["position_error_pct"], out["rotation_error_deg"]
     print(f"diffpen evaluate: {args.scene} on {len(out['records'])} record(s)")
     for r in out["records"]:
@@ -48,4 +53,4 @@ def run(args) -> int:
           "compilation")
     for p in out.get("plots", []):
         print(f"plot: {p}")
-    return 0
+    return code

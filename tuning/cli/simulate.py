@@ -41,7 +41,7 @@ def _load(args):
 def _check_size(scene, steps: int, write: bool) -> None:
     """Refuse a rollout whose saved trajectory cannot fit in memory (every step of every body
     is kept, float64), with the estimate, before anything is compiled."""
-    from diffpen.checks import STEP_RATE, _human_bytes, _human_time, memory_bytes
+    from diffpen.checks import STEP_RATE, human_bytes, human_time, memory_bytes
     n = max(scene.n_bodies, 1)
     per_body = 6 + (7 if scene.has_rotation else 0)
     stored = float(steps) * n * per_body * 8 * (2 if write else 1)
@@ -49,8 +49,8 @@ def _check_size(scene, steps: int, write: bool) -> None:
     mem = memory_bytes()
     if stored > 0.5 * mem:
         raise CLIError(f"--steps {steps} keeps {steps} states of {n} bodies: about "
-                       f"{_human_bytes(stored)}, more than half of this machine's "
-                       f"{_human_bytes(mem)} (and about {_human_time(seconds)} of compute "
+                       f"{human_bytes(stored)}, more than half of this machine's "
+                       f"{human_bytes(mem)} (and about {human_time(seconds)} of compute "
                        f"at ~{STEP_RATE:.0e} body-steps/s): lower --steps or raise --dt")
 
 

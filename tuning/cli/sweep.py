@@ -4,7 +4,6 @@ draws a heatmap with the target contour."""
 from __future__ import annotations
 
 import math
-import os
 
 from ._common import (CLIError, add_cluster_arguments, check_cluster_arguments, count,
                       dump_json, fail, finite, join_cluster, positive, setup_jax)
@@ -62,25 +61,14 @@ CHUNK_BYTES = 64
 COLUMNS = 18
 
 
-def _memory_bytes() -> float:
-    try:
-        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return 8.0 * 2 ** 30
-
-
 def _gib(b: float) -> str:
     return f"{b / 2 ** 30:.3g} GiB"
 
 
-def _duration(s: float) -> str:
-    return (f"{s:.3g} s" if s < 120 else f"{s / 60:.3g} min" if s < 7200
-            else f"{s / 3600:.3g} h" if s < 172800 else f"{s / 86400:.3g} days")
-
-
 def check_size(points: int, steps: int, chunk: int, memory: float | None = None) -> dict:
     """Estimates of a sweep's memory and time; raises CLIError when it cannot fit."""
-    memory = _memory_bytes() if memory is None else memory
+    from diffpen.checks import human_time, memory_bytes
+    memory = memory_bytes() if memory is None else memory
     results = points * COLUMNS * 8 * 3            # in memory, the .npz and the .csv table
     live = min(chunk, points) * steps * CHUNK_BYTES
     seconds = points * steps / RATE
@@ -88,7 +76,7 @@ def check_size(points: int, steps: int, chunk: int, memory: float | None = None)
            "seconds": seconds}
     if results > 0.5 * memory:
         raise CLIError(f"{points} points need about {_gib(results)} for the results alone "
-                       f"(this machine has {_gib(memory)}) and about {_duration(seconds)} of "
+                       f"(this machine has {_gib(memory)}) and about {human_time(seconds)} of "
                        f"compute ({points} points x {steps} steps at ~{RATE:.0e} ball-steps/s):"
                        " lower --n")
     if live > 0.5 * memory:
@@ -96,7 +84,7 @@ def check_size(points: int, steps: int, chunk: int, memory: float | None = None)
                        f"{_gib(live)} (this machine has {_gib(memory)}): lower --chunk or "
                        "--duration")
     if seconds > 7 * 86400:
-        raise CLIError(f"{points} points x {steps} steps would take about {_duration(seconds)}"
+        raise CLIError(f"{points} points x {steps} steps would take about {human_time(seconds)}"
                        f" at ~{RATE:.0e} ball-steps/s: lower --n or --duration")
     return est
 
@@ -176,8 +164,10 @@ def _run(args) -> int:
                steps=steps, settle_tol=args.settle_tol, n_apex=3)
     if est["seconds"] > 60 and not args.json:
         import sys
+
+        from diffpen.checks import human_time
         sys.stderr.write(f"diffpen sweep: {nk * nc} points x {steps} steps: about "
-                         f"{_duration(est['seconds'])} at ~{RATE:.0e} ball-steps/s\n")
+                         f"{human_time(est['seconds'])} at ~{RATE:.0e} ball-steps/s\n")
     res = sweep(mfn, sim.params(k=1e4, c=10.0), points, names, chunk=args.chunk, out=args.out,
                 resume=not args.fresh, key=key, keys=list(METRICS) + ["settled"], shape=shape,
                 axes=axes, progress=False if args.json or quiet else None, finalize=finalize)
