@@ -342,3 +342,27 @@ def test_past_the_safe_step_is_marked_not_reported(cube):
     res = tf.fit_records(cube, bad, batch, [tf.Free("contact.board.c", 1.0, 1e3)], maxiter=1)
     assert res.unstable == 2 and np.isnan(res.cost) and "safe step" in res.message
     assert res.as_dict()["unstable"] == 2
+
+
+
+def test_record_fit_bounds_stay_inside_the_safe_step(cube, monkeypatch):
+    """Regression: fit_records let Levenberg-Marquardt walk contact k and c past the safe
+    step (only the final result was judged); their upper bounds are now capped at it."""
+    from tuning.stable import safe_contact_bounds
+    seen = {}
+
+    def fake_lm(fun, x, lo, hi, **kw):
+        seen["hi"] = np.asarray(hi, dtype=float)
+        raise RuntimeError("stop")
+    monkeypatch.setattr(tf, "levenberg_marquardt", fake_lm)
+    params = cube.params()
+    rec = tf.synthetic_record(cube, params, 0.05, 5e-3, {"cube": 0})
+    batch = tf.prepare(cube, [rec], estimate="record")
+    k_max, c_max = safe_contact_bounds(cube)
+    free = [tf.Free("contact.board.k", 1.0, 1e12), tf.Free("contact.board.c", 0.1, 1e9)]
+    with pytest.raises(RuntimeError, match="stop"):
+        tf.fit_records(cube, params, batch, free, maxiter=1)
+    assert np.allclose(np.exp(seen["hi"]), [k_max, c_max], rtol=1e-12)
+    too_stiff = tf.with_leaves(params, {"contact.board.k": 2.0 * k_max})
+    with pytest.raises(tf.FitError, match="largest safe value"):
+        tf.fit_records(cube, too_stiff, batch, free, maxiter=1)

@@ -606,8 +606,22 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         if f.log and v <= 0:
             raise FitError(f"{f.name} = {v}: a log-space parameter must start > 0.")
         x0.append(f.to_x(v))
-    lo = np.array([f.x_bounds()[0] for f in free])
-    hi = np.array([f.x_bounds()[1] for f in free])
+    lo = np.array([f.x_bounds()[0] for f in free], dtype=float)
+    hi = np.array([f.x_bounds()[1] for f in free], dtype=float)
+    # the optimiser stays inside the stable region: contact k and c capped at the safe step
+    # of one contact on the lightest body (tuning.stable); the flag still judges the result
+    from .stable import safe_contact_bounds
+    k_max, c_max = safe_contact_bounds(sim)
+    for i, f in enumerate(free):
+        parts = f.name.split(".")
+        cap = (k_max if parts[-1] == "k" else c_max) if (
+            parts[0] == "contact" and parts[-1] in ("k", "c")) else math.inf
+        if cap < math.inf:
+            if x0[i] > f.to_x(cap):
+                raise FitError(f"{f.name} starts at {f.from_x(x0[i]):.6g}, past the largest "
+                               f"safe value {cap:.6g} for dt = {sim.dt:g} s: start lower, or "
+                               "use a smaller dt or more substeps.")
+            hi[i] = min(hi[i], float(f.to_x(cap)))
 
     batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
 
