@@ -41,13 +41,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import geometry
-from .scene import DEFAULT
-from .terms import CompileContext, Term, _pair_material, with_bound
 from .errors import SceneError
+from .terms.base import CompileContext
 
 __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_overlap",
-           "compact", "grid_candidates", "brute_force_pairs", "find_pairs", "TERMS"]
+           "compact", "grid_candidates", "brute_force_pairs", "find_pairs"]
 
 OVERFLOW = "broadphase_overflow"
 #: ``jax.named_scope`` of one pair search (:func:`find_pairs`) in traced programs.
@@ -348,97 +346,14 @@ def brute_force_pairs(ctx: CompileContext, state, margin: float = 0.0) -> set:
     return {(int(i), int(j)) for i, j in zip(ia[keep], ib[keep])}
 
 
-# --------------------------------------------------------------------------- the term
-def _pair_material_table(ctx: CompileContext) -> tuple[np.ndarray, np.ndarray]:
-    """Per-body scene-material index (n,) and table (s, s) -> params material index."""
-    names = list(ctx.scene.materials)
-    body_mat = np.array([names.index(b.material) for b in ctx.scene.bodies], dtype=np.int32)
-    table = np.zeros((len(names), len(names)), dtype=np.int32)
-    for a, na in enumerate(names):
-        for b, nb in enumerate(names):
-            table[a, b] = ctx.material_index.get(_pair_material(ctx.scene, na, nb), 0)
-    return body_mat, table
 
 
-def _kc(ctx: CompileContext, params, mi):
-    """(k, c) per pair for traced material indices ``mi`` (scalars with one material)."""
-    names = list(ctx.material_index)
-    if len(names) == 1:
-        p = params.contact[names[0]]
-        return p.k, p.c
-    ks = jnp.stack([jnp.asarray(params.contact[nm].k) for nm in names])
-    cs = jnp.stack([jnp.asarray(params.contact[nm].c) for nm in names])
-    return ks[mi], cs[mi]
 
 
-def _pair_kinds(ctx: CompileContext) -> tuple[bool, bool]:
-    """Whether any sphere-sphere / sphere-or-particle-box pair can act, in O(n) (no list of
-    all pairs): a pair acts unless both ends are pinned."""
-    cls, pinned = _classes(ctx), ctx.pinned
-    sph, box = cls == _SPHERE, cls == _BOX
-    pt = sph | (cls == _PARTICLE)
-    has_ss = bool(sph.sum() >= 2 and (sph & ~pinned).any())
-    has_sb = bool(box.any() and pt.any() and ((box & ~pinned).any() or (pt & ~pinned).any()))
-    return has_ss, has_sb
 
 
-def _broadphase_contact(ctx: CompileContext) -> Term | None:
-    bp = ctx.broadphase
-    if bp is None:
-        return None
-    has_ss, has_sb = _pair_kinds(ctx)
-    if not (has_ss or has_sb):
-        return None
-    cls = _classes(ctx)
-    body_mat, table = _pair_material_table(ctx)
-    body_mat, table = jnp.asarray(body_mat), jnp.asarray(table)
-    is_box = jnp.asarray(cls == _BOX)
-    radius = ctx.const(ctx.radius)
-    half_all = ctx.const([b.half_extents or (0.0, 0.0, 0.0) for b in ctx.scene.bodies])
-    n = ctx.n
-
-    init = jax.jit(lambda s: find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
-    ctx.aux_init[OVERFLOW] = float(bool(init))
-
-    def search(params, state):
-        return find_pairs(bp, ctx, state)
-
-    def record(aux, pairs):
-        old = aux[OVERFLOW]
-        return {OVERFLOW: jnp.maximum(old, pairs.overflow.astype(old.dtype))}
-
-    def force(params, state, pairs=None, *, h=None):
-        if pairs is None:
-            pairs = find_pairs(bp, ctx, state)
-        i, j, valid = pairs.i, pairs.j, pairs.valid
-        k, c = _kc(ctx, params, table[body_mat[i], body_mat[j]])
-        f = jnp.zeros_like(state.position)
-        tau = None
-        if has_ss:
-            ss = valid & ~is_box[i] & ~is_box[j]
-            d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
-                                                      state.position[j], radius[j])
-            vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
-            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h), 0.0)[:, None] * nrm
-            f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
-        if has_sb:
-            from .rigid import sphere_box_force
-            box_j = is_box[j]
-            sb = valid & (is_box[i] != box_j)
-            s_idx, b_idx = jnp.where(box_j, i, j), jnp.where(box_j, j, i)
-            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb,
-                                       h=h)
-            f = f + fs
-        return f, tau
-    return Term("contact_broadphase", force, search=search, record=record, step_aware=True)
 
 
-def _initial_state(ctx: CompileContext):
-    from .state import State
-    bodies = ctx.scene.bodies
-    q = ctx.const([b.orientation for b in bodies]) if ctx.scene.has_rotation else None
-    return State(time=ctx.const(0.0), position=ctx.const([b.position for b in bodies]),
-                 velocity=ctx.const([b.velocity for b in bodies]), orientation=q)
 
 
 def warn_overflow(traj) -> None:
@@ -451,33 +366,5 @@ def warn_overflow(traj) -> None:
                       stacklevel=3)
 
 
-def _broadphase_bound(ctx: CompileContext):
-    """Stability rows of the broad-phase pair term: each sphere's contact with another
-    sphere, one at a time per material (``2 / m``), and the stiffest candidate sphere-box
-    contact per body (rotation included)."""
-    from .rigid import _mobility, _rows_bound, sphere_box_rows
-    scene = ctx.scene
-    bodies = scene.bodies
-    zero = np.zeros(3)
-    spheres = [i for i, b in enumerate(bodies)
-               if b.collide and b.kind == "sphere" and b.radius > 0.0]
-    # O(n): a free sphere's partners use its own material (another sphere of it exists) or
-    # "default" (a sphere of another material exists); pairs with a free end all act
-    count: dict = {}
-    for i in spheres:
-        count[bodies[i].material] = count.get(bodies[i].material, 0) + 1
-    rows = []
-    for i in spheres:
-        if bodies[i].pinned:
-            continue
-        m = bodies[i].material
-        mats = dict.fromkeys(([m] if count[m] > 1 else [])
-                             + ([DEFAULT] if len(spheres) > count[m] else []))
-        rows += [(i, mat, 2.0 * _mobility(scene, i, zero)) for mat in mats]
-    rows += sphere_box_rows(scene)
-    out = _rows_bound(rows, "contact")
-    return () if out is None else (out,)
 
 
-#: The broad-phase pair term builder with its stability bound.
-TERMS: tuple = (with_bound(_broadphase_contact, _broadphase_bound),)

@@ -26,7 +26,8 @@ import numpy as np
 
 from . import broadphase as _broadphase
 from . import checks as _checks
-from . import laws, plastic, rigid
+from . import laws, rigid
+from .terms.rigid import contact_materials
 from . import rollout as _rollout
 from . import stability as _stability
 from . import terms as _terms
@@ -41,7 +42,7 @@ __all__ = ["compile", "Simulator", "Term", "CompileContext", "BUILTIN_TERMS"]
 #: Every built-in term builder, in force summation order (fixed; nothing is appended on
 #: import). Each returns a Term (carrying its stability bound) or None when the scene does
 #: not need it.
-BUILTIN_TERMS: tuple = (*_terms.CORE, *plastic.TERMS, *rigid.TERMS, *_broadphase.TERMS)
+BUILTIN_TERMS: tuple = _terms.BUILTIN
 
 
 # --------------------------------------------------------------------------- simulator
@@ -199,8 +200,7 @@ class Simulator:
         if len(by_mat) >= 2 and any_free:
             use(DEFAULT)
         if scene.has_rotation:
-            from . import rigid
-            for name in rigid.contact_materials(scene):
+            for name in contact_materials(scene):
                 use(name)
         self.materials = tuple(used)
         self.spring_groups = tuple(dict.fromkeys(

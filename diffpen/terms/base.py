@@ -1,0 +1,235 @@
+"""The term record and what every term shares: :class:`Term`, :class:`CompileContext`,
+:func:`with_bound`, and the lifting helpers (gather / scatter over static index arrays)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..scene import DEFAULT, Scene
+from ..state import Params, State
+
+__all__ = ["Term", "CompileContext", "with_bound", "gather", "scatter", "static_dot",
+           "static_scale", "plane_offsets"]
+
+
+# --------------------------------------------------------------------------- lifting helpers
+def gather(x, idx: np.ndarray, n: int):
+    """``x[idx]`` along axis 0, skipped when ``idx`` is ``arange(n)`` (decided at build time)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return x
+    if np.all(idx == idx[0]):
+        return jnp.broadcast_to(x[int(idx[0])], (idx.shape[0],) + x.shape[1:])
+    return x[idx]
+
+
+def scatter(values, idx: np.ndarray, n: int):
+    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,)."""
+    if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
+        return values
+    return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+
+
+def static_dot(n: np.ndarray, v):
+    """``dot(n, v)`` for a normal ``n`` (m, 3) known when the scene is compiled: components
+    that are 0 for every row are left out, and +-1 columns need no product, so the ground
+    plane's ``n . x`` is one slice of ``x``. ``v``: (m, 3) (or broadcastable)."""
+    out = None
+    for a in range(3):
+        col = n[:, a]
+        if not col.any():
+            continue
+        va = v[..., a]
+        term = (va if (col == 1.0).all() else -va if (col == -1.0).all()
+                else va * jnp.asarray(col, jnp.result_type(v)))
+        out = term if out is None else out + term
+    return jnp.zeros(jnp.shape(v)[:-1], jnp.result_type(v)) if out is None else out
+
+
+def static_scale(f, n: np.ndarray):
+    """``f[:, None] * n`` for a normal ``n`` (m, 3) known when the scene is compiled, built
+    column by column so that XLA computes ``f`` once, not once per component, and writes
+    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3)."""
+    cols = []
+    for a in range(3):
+        col = n[:, a]
+        cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
+                    else -f if (col == -1.0).all()
+                    else f * jnp.asarray(col, jnp.result_type(f)))
+    return jnp.stack(cols, axis=-1)
+
+
+class Term(NamedTuple):
+    """One force term of a compiled scene.
+
+    name: used as ``jax.named_scope`` (visible in the jaxpr).
+    force: ``force(params, state) -> (F, tau)``: F (n, 3) newtons on body centres, tau (n, 3)
+      torques in N m about the centres, or None when the term produces no torque.
+    search: optional ``search(params, state) -> found``, a search the force needs (the broad
+      phase's candidate pairs). A step runs it once, at the state it starts from, and passes
+      the result to the force evaluations at that state as ``force(params, state, found)``;
+      called as ``force(params, state)`` the force searches itself.
+    record: optional ``record(aux, found) -> {name: array}``: the ``State.aux`` entries a step
+      updates from its search (``aux``: the step's current entries).
+    step_aware: True when ``force`` takes the integrator's inner step as a keyword,
+      ``force(..., h=h)`` (s): contact terms then apply their step-averaged force
+      (``ContactLaw.step_force``); without it (or ``h=None``) the instantaneous force.
+    bound: the term's rows of the stability bounds, a tuple of
+      :class:`diffpen.stability.Bound` (empty: the term adds nothing to the step limit).
+    """
+    name: str
+    force: Callable[..., tuple[Any, Any]]
+    search: Callable[[Params, State], Any] | None = None
+    record: Callable[[dict, Any], dict] | None = None
+    step_aware: bool = False
+    bound: tuple = ()
+
+
+@dataclasses.dataclass
+class CompileContext:
+    """What a term builder sees: the scene and the static per-body arrays."""
+    scene: Scene
+    dtype: Any
+    #: the contact law (``diffpen.laws.ContactLaw``; callable as its pointwise force)
+    law: Callable
+    width: float
+    material_index: dict
+    group_index: dict
+    mass: np.ndarray        # (n,) kg
+    radius: np.ndarray      # (n,) m
+    pinned: np.ndarray      # (n,) bool
+    collide: np.ndarray     # (n,) bool
+    #: Filled by term builders of extensions: defaults of their ``Params.extra`` entries
+    #: (``{name: pytree}``), initial ``State.aux`` entries (``{name: array}``), and
+    #: ``aux_update(params, state) -> {name: array}`` functions applied after every step.
+    extra_defaults: dict = dataclasses.field(default_factory=dict)
+    aux_init: dict = dataclasses.field(default_factory=dict)
+    aux_updates: list = dataclasses.field(default_factory=list)
+    #: ``{extra name: check(label, value)}`` validating concrete values given to
+    #: ``sim.params`` (default: finite and >= 0); raises SceneError.
+    extra_checks: dict = dataclasses.field(default_factory=dict)
+    #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
+    broadphase: Any = None
+    #: The simulator's step dt, s (the longest inner step): a step-averaged contact acts from
+    #: a gap of ``|vn| h`` on, so searches for pairs reach that far.
+    step: float | None = None
+    #: How far the state's velocity lags the force evaluation's position, as a fraction of
+    #: the inner step: 1/2 for semi-implicit Euler (its velocity is the mean over the step
+    #: that ended), 0 for the others. Contacts that know their effective mass then apply
+    #: their damping at the window centre's speed (``ContactLaw.centred_force``).
+    velocity_lag: float = 0.0
+
+    @property
+    def n(self) -> int:
+        return len(self.mass)
+
+    def const(self, a):
+        """A static numpy array as a constant of the simulator's float dtype."""
+        return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
+
+    def contact_force(self, d, vn, k, c, h=None, inv_mass=None, accel=0.0):
+        """Normal force (N) of contacts at depth ``d`` (m), separating speed ``vn`` (m/s):
+        the law's step average over an inner step ``h`` (s), or its pointwise force for
+        ``h=None`` (``diffpen.laws.ContactLaw.step_force``). With ``inv_mass`` (the
+        contacts' effective inverse mass along the normal, 1/kg) and ``accel`` (their other
+        separating acceleration, m/s^2: gravity) the step average takes its damping at the
+        window centre's speed where the integrator's velocity lags (``velocity_lag``)."""
+        if (h is None or inv_mass is None or self.velocity_lag == 0.0 or self.width != 0.0
+                or getattr(self.law, "centred", None) is None):
+            return self.law.step_force(d, vn, k, c, self.width, h)
+        return self.law.centred_force(d, vn, k, c, h, self.velocity_lag * h, inv_mass, accel)
+
+    def normal_gravity(self, normal: np.ndarray, bodies: np.ndarray):
+        """Gravity's separating acceleration ``n . g`` (m/s^2) of contacts of free bodies
+        ``bodies`` (m,) against fixed colliders with normals ``normal`` (m, 3) (0 for pinned
+        bodies): a numpy constant."""
+        g = np.asarray(self.scene.gravity, dtype=float)
+        return np.where(self.pinned[bodies], 0.0, np.asarray(normal, float) @ g)
+
+    def inv_mass(self, bodies: np.ndarray):
+        """``1 / m`` (1/kg) of ``bodies`` (m,), 0 for pinned ones: a numpy array."""
+        return np.where(self.pinned[bodies], 0.0, 1.0 / self.mass[bodies])
+
+    def contact_kc(self, params: Params, mat: np.ndarray):
+        """Per-pair (k, c) for material indices ``mat`` (m,), scalars when all pairs share one."""
+        names = list(self.material_index)
+        ks = [params.contact[name].k for name in names]
+        cs = [params.contact[name].c for name in names]
+        return _select(ks, mat), _select(cs, mat)
+
+    def spring_kc(self, params: Params, grp: np.ndarray):
+        names = list(self.group_index)
+        ks = [params.springs[name].k for name in names]
+        cs = [params.springs[name].c for name in names]
+        return _select(ks, grp), _select(cs, grp)
+
+
+def _select(values: list, idx: np.ndarray):
+    first = int(idx[0])
+    if np.all(idx == first):
+        return values[first]
+    return jnp.stack([jnp.asarray(v) for v in values])[jnp.asarray(idx)]
+
+
+# --------------------------------------------------------------------------- core terms
+def _uniform(ctx: CompileContext, a: np.ndarray):
+    """A per-contact numpy constant as a scalar of the simulator's dtype when all rows share
+    one value (fewer operands in the step), else an (m,) array."""
+    a = np.asarray(a, dtype=float)
+    return ctx.const(a[0] if np.all(a == a[0]) else a)
+
+
+def _pair_material(scene: Scene, *names: str) -> str:
+    return names[0] if len(set(names)) == 1 else DEFAULT
+
+
+def plane_offsets(ctx: CompileContext, plane_ids):
+    """``offsets(params) -> (m,)`` offsets (m) of the planes ``plane_ids`` (m,): constants,
+    except for planes named in ``Scene.add_plane(name=...)``, whose offset is the leaf
+    ``params.extra["plane_offset"][name]`` (registered here with the scene's value as
+    default; any finite sign)."""
+    planes = ctx.scene.planes
+    const = ctx.const([planes[j].offset for j in plane_ids])
+    names = list(dict.fromkeys(planes[j].name for j in plane_ids if planes[j].name))
+    if not names:
+        return lambda params: const
+    ctx.extra_defaults.setdefault("plane_offset", {}).update(
+        {pl.name: pl.offset for pl in planes if pl.name in names})
+    ctx.extra_checks["plane_offset"] = _check_finite
+    sel = np.array([names.index(planes[j].name) if planes[j].name else -1 for j in plane_ids])
+
+    def offsets(params):
+        vals = jnp.stack([jnp.asarray(params.extra["plane_offset"][g], ctx.dtype)
+                          for g in names])
+        return jnp.where(sel >= 0, vals[np.maximum(sel, 0)], const)
+    return offsets
+
+
+def _check_finite(label: str, v) -> None:
+    if isinstance(v, jax.core.Tracer):
+        return
+    if not np.all(np.isfinite(np.asarray(v, dtype=float))):
+        from ..errors import SceneError
+        raise SceneError(f"{label} must be a finite number of metres, got {v!r}.")
+
+
+def _one(bound):
+    return () if bound is None else (bound,)
+
+
+def with_bound(build: Callable[[CompileContext], Term | None],
+               bound: Callable[[CompileContext], tuple] | None):
+    """A term builder whose Term carries ``bound(ctx)`` (a tuple of
+    :class:`diffpen.stability.Bound`): how a term and its stability bound are registered
+    together (one line per term)."""
+    if bound is None:
+        return build
+
+    def built(ctx: CompileContext) -> Term | None:
+        term = build(ctx)
+        return None if term is None else term._replace(bound=tuple(bound(ctx)))
+    built.__name__ = getattr(build, "__name__", "term")
+    return built

@@ -1,0 +1,291 @@
+"""Contact terms of spheres and particles: against planes, against fixed spheres, sphere
+against sphere (all pairs), and the pairs a broad phase (:mod:`diffpen.broadphase`: AABB,
+Grid) finds. The pair sources only find candidate pairs; the force code is here."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import broadphase as _bp
+from .. import geometry
+from ..scene import DEFAULT
+from ..stability import Bound
+from .base import (CompileContext, Term, _one, _pair_material, _uniform, gather, plane_offsets,
+                   scatter, static_dot, static_scale, with_bound)
+
+__all__ = ["PLANE", "FIXED_SPHERE", "SPHERE_SPHERE", "BROADPHASE"]
+
+
+def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_args, *,
+                      shape_fn=None, static_normal=None, offsets=None) -> Term | None:
+    """Contacts of every moving, colliding non-box body with every fixed collider of one kind
+    (boxes collide by their corners, diffpen.rigid). Give one of:
+
+    * ``shape_fn``: ``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair;
+    * ``static_normal(collider)`` (planes, ``shape_args = (offset,)``): the normal is a
+      constant of the step (``static_dot`` / ``static_scale``) and
+      ``d = r - (n . x - offset)``, geometry.sphere_plane with its zeros left out."""
+    scene = ctx.scene
+    rows = [(i, j, ctx.material_index[col.material])
+            for j, col in enumerate(colliders)
+            for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]
+            and scene.bodies[i].kind != "box"]
+    if not rows:
+        return None
+    bi, ci, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    args = [ctx.const(list(a)) for a in zip(*(shape_args(colliders[j]) for j in ci))]
+    radii = ctx.const(ctx.radius[bi])
+    n = ctx.n
+    normal = None if static_normal is None else np.array(
+        [static_normal(colliders[j]) for j in ci], dtype=float)
+    offset_fn = offsets(ctx, ci) if offsets is not None else None
+    inv_m = _uniform(ctx, ctx.inv_mass(bi))
+    g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
+    g_vec = ctx.const(ctx.scene.gravity)
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        if normal is not None:          # the normal is a constant: leave out its zeros
+            off = args[0] if offset_fn is None else offset_fn(params)
+            d = radii - (static_dot(normal, x) - off)
+            f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
+            return scatter(static_scale(f, normal), bi, n), None
+        d, nrm = jax.vmap(shape_fn)(x, radii, *args)
+        f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
+                              geometry.dot(nrm, g_vec))
+        return scatter(f[:, None] * nrm, bi, n), None
+    return Term(name, force, step_aware=True)
+
+
+def _plane_contact(ctx: CompileContext) -> Term | None:
+    return _collider_contact(ctx, "contact_plane", ctx.scene.planes,
+                             lambda pl: (pl.offset,), static_normal=lambda pl: pl.normal,
+                             offsets=plane_offsets)
+
+
+def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
+    return _collider_contact(ctx, "contact_fixed_sphere", ctx.scene.fixed_spheres,
+                             lambda fs: (fs.center, fs.radius), shape_fn=geometry.sphere_sphere)
+
+
+def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
+    if ctx.broadphase is not None:
+        return None                     # diffpen.broadphase builds the pair term instead
+    scene = ctx.scene
+    spheres = [i for i in range(ctx.n)
+               if ctx.collide[i] and ctx.radius[i] > 0.0 and scene.bodies[i].kind == "sphere"]
+    rows = []
+    for a_pos, i in enumerate(spheres):
+        for j in spheres[a_pos + 1:]:
+            if ctx.pinned[i] and ctx.pinned[j]:
+                continue  # two fixed things never need evaluating
+            mat = _pair_material(scene, scene.bodies[i].material, scene.bodies[j].material)
+            rows.append((i, j, ctx.material_index[mat]))
+    if not rows:
+        return None
+    ia, ib, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
+    n = ctx.n
+    inv_m = _uniform(ctx, ctx.inv_mass(ia) + ctx.inv_mass(ib))
+    # gravity moves both ends alike unless one is pinned: n . g (a - b) along the pair
+    pin_a, pin_b = ctx.pinned[ia], ctx.pinned[ib]
+    g_side = ctx.const(np.where(pin_b & ~pin_a, 1.0, np.where(pin_a & ~pin_b, -1.0, 0.0)))
+    g_vec = ctx.const(ctx.scene.gravity)
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        xa, xb = state.position[ia], state.position[ib]
+        d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
+        vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
+        f = ctx.contact_force(d, vn, k, c, h, inv_m,
+                              g_side * geometry.dot(nrm, g_vec))[:, None] * nrm
+        return scatter(f, ia, n) - scatter(f, ib, n), None
+    return Term("contact_sphere_sphere", force, step_aware=True)
+
+
+# --------------------------------------------------------------------------- stability bounds
+_KISSING = 12  # most equal spheres that can touch one sphere at once
+
+
+def _movers(ctx: CompileContext):
+    return [i for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
+
+
+def _plane_bound(ctx: CompileContext):
+    """One contact spring per (free, colliding body, plane), k / m (one contact at a time)."""
+    rows = [(i, pl.material, 1.0, 1.0, f"contact with plane {p} (material {pl.material!r})")
+            for i in _movers(ctx) for p, pl in enumerate(ctx.scene.planes)]
+    return _one(Bound.of(rows, "contact", combine="contact"))
+
+
+def _fixed_sphere_bound(ctx: CompileContext):
+    rows = [(i, fs.material, 1.0, 1.0,
+             f"contact with fixed sphere {s} (material {fs.material!r})")
+            for i in _movers(ctx) for s, fs in enumerate(ctx.scene.fixed_spheres)]
+    return _one(Bound.of(rows, "contact", combine="contact"))
+
+
+def _sphere_sphere_bound(ctx: CompileContext):
+    """In O(n): a sphere's candidate partners are the other colliding spheres; a pair uses
+    their shared material, else "default"; 2 k / m when both are free (a two-sphere
+    collision), counted once per material (one contact at a time), with the number of
+    candidate neighbours (at most 12) for the packed bound."""
+    scene, pinned = ctx.scene, ctx.pinned
+    spheres = [i for i in range(ctx.n) if ctx.collide[i] and ctx.radius[i] > 0.0
+               and scene.bodies[i].kind == "sphere"]
+    count, free_count = {}, {}
+    for i in spheres:
+        m = scene.bodies[i].material
+        count[m] = count.get(m, 0) + 1
+        free_count[m] = free_count.get(m, 0) + (0 if pinned[i] else 1)
+    total, total_free = len(spheres), sum(free_count.values())
+    rows, mult = [], []
+    for i in spheres:
+        if pinned[i]:
+            continue
+        m = scene.bodies[i].material
+        same, same_free = count[m] - 1, free_count[m] - 1
+        other, other_free = total - count[m], total_free - free_count[m]
+        n_same = min(same, _KISSING)
+        if same > 0:
+            f = 2.0 if same_free > 0 else 1.0
+            rows.append((i, m, f, f,
+                         f"contact between sphere {i} and another sphere (material {m!r})"))
+            mult.append(n_same)
+        if other > 0:
+            f = 2.0 if other_free > 0 else 1.0
+            rows.append((i, DEFAULT, f, f,
+                         f"contact between sphere {i} and a sphere of another material"))
+            mult.append(min(other, _KISSING - n_same))
+    return _one(Bound.of(rows, "contact", combine="contact", packed=mult))
+
+
+# --------------------------------------------------------------------------- broad-phase pairs
+# --------------------------------------------------------------------------- the term
+def _pair_material_table(ctx: CompileContext) -> tuple[np.ndarray, np.ndarray]:
+    """Per-body scene-material index (n,) and table (s, s) -> params material index."""
+    names = list(ctx.scene.materials)
+    body_mat = np.array([names.index(b.material) for b in ctx.scene.bodies], dtype=np.int32)
+    table = np.zeros((len(names), len(names)), dtype=np.int32)
+    for a, na in enumerate(names):
+        for b, nb in enumerate(names):
+            table[a, b] = ctx.material_index.get(_pair_material(ctx.scene, na, nb), 0)
+    return body_mat, table
+
+
+def _kc(ctx: CompileContext, params, mi):
+    """(k, c) per pair for traced material indices ``mi`` (scalars with one material)."""
+    names = list(ctx.material_index)
+    if len(names) == 1:
+        p = params.contact[names[0]]
+        return p.k, p.c
+    ks = jnp.stack([jnp.asarray(params.contact[nm].k) for nm in names])
+    cs = jnp.stack([jnp.asarray(params.contact[nm].c) for nm in names])
+    return ks[mi], cs[mi]
+
+
+def _pair_kinds(ctx: CompileContext) -> tuple[bool, bool]:
+    """Whether any sphere-sphere / sphere-or-particle-box pair can act, in O(n) (no list of
+    all pairs): a pair acts unless both ends are pinned."""
+    cls, pinned = _bp._classes(ctx), ctx.pinned
+    sph, box = cls == _bp._SPHERE, cls == _bp._BOX
+    pt = sph | (cls == _bp._PARTICLE)
+    has_ss = bool(sph.sum() >= 2 and (sph & ~pinned).any())
+    has_sb = bool(box.any() and pt.any() and ((box & ~pinned).any() or (pt & ~pinned).any()))
+    return has_ss, has_sb
+
+
+def _broadphase_contact(ctx: CompileContext) -> Term | None:
+    bp = ctx.broadphase
+    if bp is None:
+        return None
+    has_ss, has_sb = _pair_kinds(ctx)
+    if not (has_ss or has_sb):
+        return None
+    cls = _bp._classes(ctx)
+    body_mat, table = _pair_material_table(ctx)
+    body_mat, table = jnp.asarray(body_mat), jnp.asarray(table)
+    is_box = jnp.asarray(cls == _bp._BOX)
+    radius = ctx.const(ctx.radius)
+    half_all = ctx.const([b.half_extents or (0.0, 0.0, 0.0) for b in ctx.scene.bodies])
+    n = ctx.n
+
+    init = jax.jit(lambda s: _bp.find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
+    ctx.aux_init[_bp.OVERFLOW] = float(bool(init))
+
+    def search(params, state):
+        return _bp.find_pairs(bp, ctx, state)
+
+    def record(aux, pairs):
+        old = aux[_bp.OVERFLOW]
+        return {_bp.OVERFLOW: jnp.maximum(old, pairs.overflow.astype(old.dtype))}
+
+    def force(params, state, pairs=None, *, h=None):
+        if pairs is None:
+            pairs = _bp.find_pairs(bp, ctx, state)
+        i, j, valid = pairs.i, pairs.j, pairs.valid
+        k, c = _kc(ctx, params, table[body_mat[i], body_mat[j]])
+        f = jnp.zeros_like(state.position)
+        tau = None
+        if has_ss:
+            ss = valid & ~is_box[i] & ~is_box[j]
+            d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
+                                                      state.position[j], radius[j])
+            vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
+            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h), 0.0)[:, None] * nrm
+            f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
+        if has_sb:
+            from .rigid import sphere_box_force
+            box_j = is_box[j]
+            sb = valid & (is_box[i] != box_j)
+            s_idx, b_idx = jnp.where(box_j, i, j), jnp.where(box_j, j, i)
+            fs, tau = sphere_box_force(ctx, k, c, state, s_idx, b_idx, half_all[b_idx], sb,
+                                       h=h)
+            f = f + fs
+        return f, tau
+    return Term("contact_broadphase", force, search=search, record=record, step_aware=True)
+
+
+def _initial_state(ctx: CompileContext):
+    from ..state import State
+    bodies = ctx.scene.bodies
+    q = ctx.const([b.orientation for b in bodies]) if ctx.scene.has_rotation else None
+    return State(time=ctx.const(0.0), position=ctx.const([b.position for b in bodies]),
+                 velocity=ctx.const([b.velocity for b in bodies]), orientation=q)
+
+
+def _broadphase_bound(ctx: CompileContext):
+    """Stability rows of the broad-phase pair term: each sphere's contact with another
+    sphere, one at a time per material (``2 / m``), and the stiffest candidate sphere-box
+    contact per body (rotation included)."""
+    from .rigid import _mobility, _rows_bound, sphere_box_rows
+    scene = ctx.scene
+    bodies = scene.bodies
+    zero = np.zeros(3)
+    spheres = [i for i, b in enumerate(bodies)
+               if b.collide and b.kind == "sphere" and b.radius > 0.0]
+    # O(n): a free sphere's partners use its own material (another sphere of it exists) or
+    # "default" (a sphere of another material exists); pairs with a free end all act
+    count: dict = {}
+    for i in spheres:
+        count[bodies[i].material] = count.get(bodies[i].material, 0) + 1
+    rows = []
+    for i in spheres:
+        if bodies[i].pinned:
+            continue
+        m = bodies[i].material
+        mats = dict.fromkeys(([m] if count[m] > 1 else [])
+                             + ([DEFAULT] if len(spheres) > count[m] else []))
+        rows += [(i, mat, 2.0 * _mobility(scene, i, zero)) for mat in mats]
+    rows += sphere_box_rows(scene)
+    out = _rows_bound(rows, "contact")
+    return () if out is None else (out,)
+
+
+#: The contact term builders with their stability bounds (see :data:`diffpen.terms.BUILTIN`).
+PLANE = with_bound(_plane_contact, _plane_bound)
+FIXED_SPHERE = with_bound(_fixed_sphere_contact, _fixed_sphere_bound)
+SPHERE_SPHERE = with_bound(_sphere_sphere_contact, _sphere_sphere_bound)
+BROADPHASE = with_bound(_broadphase_contact, _broadphase_bound)

@@ -1,0 +1,114 @@
+"""Plastic (crumple) springs: rest lengths that shorten irreversibly under compression.
+
+A plastic spring (``scene.add_plastic_spring``) is a damped spring ``F = -k (l - L) - c dl/dt``
+whose rest length ``L`` (m) lives in ``State.aux["plastic_rest"]`` (shape ``(m,)``, one per
+plastic spring) and is updated after every step from the new length ``l`` by a smooth return
+mapping, written for ONE spring in :func:`rest_update`::
+
+    e     = (L - l) / L0 - eps_y          # compression beyond the yield, in strain
+    L_new = L - L0 * ramp(e - w / 2, w)    # laws.ramp: C1, exactly 0 for e <= 0
+
+``L0`` is the initial rest length (static), ``eps_y`` the yield strain (dimensionless, in
+(0, 1); ``params.extra["plastic"][group]``, differentiable) and ``w`` the static smoothing width
+in strain (``scene.plastic_smoothing``, default 1e-3; 0 gives the hard mapping
+``L_new = min(L, l + eps_y L0)``). So:
+
+* below the yield (``L - l <= eps_y L0``) nothing changes: the spring is elastic;
+* beyond it the rest length follows the compressed length, keeping an elastic compression of
+  about ``eps_y L0`` (exactly, once the flow has converged), so after unloading the spring
+  springs back by ``eps_y L0`` only and stays shorter (permanent set);
+* ``L`` never grows: the deformation is irreversible; stretching is elastic;
+* the update is C1 in ``l``, ``L`` and ``eps_y``, so gradients exist through yielding.
+
+``k`` and ``c`` are the spring group's (``params.springs[group]``). A scene without plastic
+springs traces none of this and carries no ``aux`` entry.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import geometry, laws
+from ..errors import SceneError
+from .base import CompileContext, Term, _select, scatter
+
+__all__ = ["rest_update", "AUX_KEY", "TERMS"]
+
+#: ``State.aux`` key of the plastic rest lengths, (m,) metres.
+AUX_KEY = "plastic_rest"
+
+
+def rest_update(length, rest, rest0, yield_strain, width: float):
+    """New rest length of ONE plastic spring after a step.
+
+    Args:
+      length: current length l, m.  rest: current rest length L, m.
+      rest0: initial rest length L0, m.  yield_strain: eps_y, dimensionless in (0, 1).
+      width: static smoothing width in strain (>= 0).
+    Returns: the new rest length, m (never larger than ``rest``).
+    """
+    excess = (rest - length) / rest0 - yield_strain
+    return rest - rest0 * laws.ramp(excess - 0.5 * width, width)
+
+
+def _check_yield(label: str, value) -> None:
+    """Concrete yield strains must lie in (0, 1); tracers (grad, vmap) are not checked."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    arr = np.asarray(value, dtype=float)
+    if not np.all((arr > 0.0) & (arr < 1.0)):
+        raise SceneError(f"{label} is a yield strain and must be in (0, 1) (compression at "
+                         f"which a member starts to crumple, as a fraction of its length), got "
+                         f"{value!r}.")
+
+
+def _length_rate(xa, xb, va, vb):
+    """Length (m), its rate (m/s) and the unit axis a <- b of ONE spring."""
+    delta = xa - xb
+    length = geometry.safe_norm(delta)
+    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
+    u = delta * inv
+    return length, jnp.dot(u, va - vb), u
+
+
+def _plastic_springs(ctx: CompileContext) -> Term | None:
+    springs = ctx.scene.plastic_springs
+    if not springs:
+        return None
+    groups = list(dict.fromkeys(s.group for s in springs))
+    ia = np.array([s.a for s in springs], dtype=np.int32)
+    ib = np.array([s.b for s in springs], dtype=np.int32)
+    gi = np.array([ctx.group_index[s.group] for s in springs], dtype=np.int32)
+    yi = np.array([groups.index(s.group) for s in springs], dtype=np.int32)
+    rest0 = ctx.const([s.rest_length for s in springs])
+    width = float(ctx.scene.plastic_smoothing)
+    if not (np.isfinite(width) and width >= 0.0):
+        raise SceneError(f"scene.plastic_smoothing must be a strain width >= 0 (0 = hard "
+                         f"yield), got {ctx.scene.plastic_smoothing!r}.")
+    n = ctx.n
+    ctx.extra_defaults["plastic"] = {g: ctx.scene.plastic_groups[g] for g in groups}
+    ctx.extra_checks["plastic"] = _check_yield
+    ctx.aux_init[AUX_KEY] = np.array([s.rest_length for s in springs])
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        rest = state.aux[AUX_KEY]
+        length, rate, u = jax.vmap(_length_rate)(state.position[ia], state.position[ib],
+                                                 state.velocity[ia], state.velocity[ib])
+        f = laws.spring_force(length - rest, rate, k, c)[:, None] * u
+        return scatter(f, ia, n) - scatter(f, ib, n), None
+
+    def aux_update(params, state):
+        with jax.named_scope("plastic_yield"):
+            eps = _select([params.extra["plastic"][g] for g in groups], yi)
+            length = geometry.safe_norm(state.position[ia] - state.position[ib])
+            new = rest_update(length, state.aux[AUX_KEY], rest0, eps, width)
+        return {AUX_KEY: new}
+
+    ctx.aux_updates.append(aux_update)
+    return Term("plastic_springs", force)
+
+
+#: The plastic-spring term builder (no stability bound: its rows are not in the step limit).
+TERMS: tuple = (_plastic_springs,)

@@ -1,0 +1,465 @@
+"""Rigid-body terms, the ones that produce torque (the dynamics, quaternions and inertia are
+:mod:`diffpen.rigid`).
+
+A scene with a box (``Scene.add_box``), a rigid sphere (``Scene.add_rigid_sphere``) or an
+anchored spring between rigid bodies compiles with orientation state (unit quaternions
+``(w, x, y, z)``, body to world) and world-frame angular velocities. Nothing of this module is
+traced for scenes without rigid bodies: their ``State.orientation`` stays ``None`` and every
+term returns ``None`` torques.
+
+Dynamics (per body, world frame): ``I_w = R I R^T`` with ``I`` the body-frame principal
+moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equations give the
+angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
+``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
+
+Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
+
+* ``contact_box_plane``: each box corner below a plane is a penalty contact at that corner
+  (the contact law of the simulator), with force ``f n`` at the corner and torque
+  ``r x f n`` (``r`` corner lever arm).
+* ``contact_sphere_box``: spheres and particles against boxes (closest point on the box).
+* ``contact_box_fixed_sphere``: boxes against fixed spheres.
+* ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
+
+Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
+friction their force passes through the centres and produces no torque.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import geometry
+from .. import rigid as _rigid
+from ..geometry import rotate
+from ..laws import spring_force
+from ..stability import Bound
+from .base import CompileContext, Term, _pair_material, gather, plane_offsets, scatter, with_bound
+from .springs import _spring_axis
+
+__all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
+           "contact_materials", "sphere_box_pairs", "sphere_box_rows", "TERMS", "BOUND_LABEL"]
+
+
+def sphere_box_pairs(scene) -> list[tuple[int, int, str]]:
+    """Every (sphere or particle, box, material) pair of ``scene`` that can move."""
+    bodies = scene.bodies
+    boxes = [j for j, b in enumerate(bodies) if b.kind == "box" and b.collide]
+    others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
+    return [(i, j, _pair_material(scene, bodies[i].material, bodies[j].material))
+            for j in boxes for i in others if not (bodies[i].pinned and bodies[j].pinned)]
+
+
+def contact_materials(scene) -> list[str]:
+    """Contact materials used by the box and sphere-box pairs of ``scene`` (for the params)."""
+    used = [m for _, _, m in sphere_box_pairs(scene)]
+    for b in scene.bodies:
+        if b.kind == "box" and b.collide and not b.pinned:
+            used += [p.material for p in scene.planes] + [f.material for f in
+                                                          scene.fixed_spheres]
+    return list(dict.fromkeys(used))
+
+
+# --------------------------------------------------------------------------- one pair
+def corner_plane_pair(x, v, w, rot, corner, normal, offset):
+    """Geometry of ONE box corner against ONE plane.
+
+    Args:
+      x, v, w: (3,) box centre (m), velocity (m/s), angular velocity (rad/s, world).
+      rot: (3, 3) box rotation.  corner: (3,) corner in the body frame, m.
+      normal: (3,) unit plane normal.  offset: m.
+    Returns:
+      ``(d, vn, r)``: penetration of the corner (m), normal velocity of the corner point
+      ``n . (v + w x r)`` (m/s), and its lever arm r = R corner (3,) m.
+    """
+    r = rotate(rot, corner)
+    d, _ = geometry.sphere_plane(x + r, 0.0, normal, offset)
+    vn = jnp.sum(normal * (v + jnp.cross(w, r)), axis=-1)
+    return d, vn, r
+
+
+def smooth_coulomb(v, normal, fn, mu, slip_speed):
+    """Smooth Coulomb friction of ONE contact: ``-mu max(fn, 0) v_t / sqrt(|v_t|^2 + s^2)``.
+
+    Args:
+      v: (3,) velocity of the contact point relative to the other surface, m/s.
+      normal: (3,) unit contact normal.  fn: normal force, N (only pushing counts).
+      mu: friction coefficient.  slip_speed: s, m/s > 0: below it friction grows linearly
+        with the sliding speed (a viscous law of coefficient ``mu fn / s``), so the force is
+        smooth in v (differentiable, including at rest) and tends to ``mu fn`` when sliding.
+    Returns:
+      (3,) tangential force, N.
+    """
+    v_t = v - jnp.sum(v * normal, axis=-1) * normal
+    speed = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + slip_speed * slip_speed)
+    return -mu * jnp.maximum(fn, 0.0) * v_t / speed
+
+
+def sphere_box_pair(xs, vs, ws, rs, xb, vb, wb, rot, half):
+    """Geometry of ONE sphere ``s`` against ONE box ``b`` (see ``geometry.sphere_box``).
+
+    Returns ``(d, vn, n, r_s, r_b)``: penetration (m), normal velocity of the contact point of
+    s relative to b's (m/s, positive separating), the unit normal (3,) from b to s, and the
+    lever arms (3,) m of the contact point from each centre.
+    """
+    d, n, p = geometry.sphere_box(xs, rs, xb, rot, half)
+    r_s, r_b = p - xs, p - xb
+    v_rel = vs + jnp.cross(ws, r_s) - vb - jnp.cross(wb, r_b)
+    return d, jnp.sum(n * v_rel, axis=-1), n, r_s, r_b
+
+
+def anchored_spring_pair(xa, va, wa, rot_a, anchor_a, xb, vb, wb, rot_b, anchor_b, rest):
+    """Geometry of ONE anchored spring (the paper's ``Spring_c``).
+
+    World anchors ``p = x + R anchor``; anchor velocities ``v + w x r``. Returns
+    ``(stretch, stretch_rate, u, r_a, r_b)``: anchor distance - rest (m), its rate (m/s), the
+    unit axis (3,) from b's anchor to a's, and the lever arms (3,) m.
+
+    The force ``F = -k stretch - c stretch_rate`` along ``u`` acts on a at its anchor and
+    ``-F`` on b at its own anchor. (The paper's listing applies both halves at ``p0`` and
+    halves them, which neither conserves angular momentum nor gives b its torque; this is
+    the physics it describes.)
+    """
+    r_a, r_b = rotate(rot_a, anchor_a), rotate(rot_b, anchor_b)
+    delta = xa + r_a - xb - r_b
+    dv = va + jnp.cross(wa, r_a) - vb - jnp.cross(wb, r_b)
+    stretch, rate, u = _spring_axis(delta, dv, rest)
+    return stretch, rate, u, r_a, r_b
+
+
+# --------------------------------------------------------------------------- terms
+def _box_rows(ctx: CompileContext):
+    return [i for i, b in enumerate(ctx.scene.bodies)
+            if b.kind == "box" and b.collide and not b.pinned]
+
+
+def _box_plane_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, p, corner, ctx.material_index[pl.material])
+            for i in _box_rows(ctx) for p, pl in enumerate(scene.planes)
+            for corner in geometry.box_corners(scene.bodies[i].half_extents)]
+    if not rows:
+        return None
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    mi = np.array([r[3] for r in rows], dtype=np.int32)
+    corners = ctx.const([r[2] for r in rows])
+    normals = ctx.const([scene.planes[r[1]].normal for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
+    n = ctx.n
+    # smooth Coulomb friction only when some material has it (static choice)
+    rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        w = gather(state.angular_velocity, bi, n)
+        rot = _rigid.quat_to_matrix(gather(state.orientation, bi, n))
+        d, vn, r = jax.vmap(corner_plane_pair)(x, v, w, rot, corners, normals,
+                                               offsets(params))
+        fn = ctx.contact_force(d, vn, k, c, h)
+        f = fn[:, None] * normals
+        if rough is not None:
+            with jax.named_scope("friction"):
+                names, fi, slip = rough
+                f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
+                                                 _row_mu(params, names, fi, fn[0]), slip)
+        return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
+    return Term("contact_box_plane", force, step_aware=True)
+
+
+def _rough(ctx: CompileContext, materials: list[str]):
+    """Friction materials among ``materials`` (registered in ``params.extra["friction"]``),
+    each row's index into them (``len`` for frictionless rows) and slip speeds (m/s)."""
+    scene = ctx.scene
+    rough = list(dict.fromkeys(m for m in materials if scene.materials[m].friction > 0.0))
+    if not rough:
+        return None
+    ctx.extra_defaults.setdefault("friction", {}).update(
+        {m: scene.materials[m].friction for m in rough})
+    fi = np.array([rough.index(m) if m in rough else len(rough) for m in materials])
+    return rough, fi, ctx.const([scene.materials[m].slip_speed for m in materials])
+
+
+def _row_mu(params, rough, fi, like):
+    return jnp.stack([jnp.asarray(params.extra["friction"][m]) for m in rough]
+                     + [jnp.zeros_like(like)])[fi]
+
+
+def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
+    """Smooth Coulomb friction of rigid spheres on rough planes (the normal force is the
+    core's ``contact_plane`` law, recomputed here for these rows only)."""
+    scene = ctx.scene
+    rows = [(i, p) for i, b in enumerate(scene.bodies)
+            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+            for p, pl in enumerate(scene.planes) if scene.materials[pl.material].friction > 0]
+    if not rows:
+        return None
+    bi = np.array([r[0] for r in rows], dtype=np.int32)
+    mats = [scene.planes[r[1]].material for r in rows]
+    mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
+    rough, fi, slip = _rough(ctx, mats)
+    normals = ctx.const([scene.planes[r[1]].normal for r in rows])
+    offsets = plane_offsets(ctx, [r[1] for r in rows])
+    radii = ctx.const(ctx.radius[bi])
+    n = ctx.n
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        w = gather(state.angular_velocity, bi, n)
+        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
+        fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h)
+        r = -radii[:, None] * normals                    # centre to contact point
+        f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
+                                     _row_mu(params, rough, fi, fn[0]), slip)
+        return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
+    return Term("friction_sphere_plane", force, step_aware=True)
+
+
+def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
+    scene = ctx.scene
+    rows = [(i, s, ctx.material_index[fs.material])
+            for i in _box_rows(ctx) for s, fs in enumerate(scene.fixed_spheres)]
+    if not rows:
+        return None
+    bi, si, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    centers = ctx.const([scene.fixed_spheres[s].center for s in si])
+    radii = ctx.const([scene.fixed_spheres[s].radius for s in si])
+    half = ctx.const([scene.bodies[i].half_extents for i in bi])
+    n = ctx.n
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        xb, vb = gather(state.position, bi, n), gather(state.velocity, bi, n)
+        wb = gather(state.angular_velocity, bi, n)
+        rot = _rigid.quat_to_matrix(gather(state.orientation, bi, n))
+        zero = jnp.zeros_like(xb)
+        d, vn, nrm, _, r_b = jax.vmap(sphere_box_pair)(centers, zero, zero, radii, xb, vb,
+                                                        wb, rot, half)
+        f = ctx.contact_force(d, vn, k, c, h)[:, None] * nrm    # on the fixed sphere
+        return -scatter(f, bi, n), -scatter(jnp.cross(r_b, f), bi, n)
+    return Term("contact_box_fixed_sphere", force, step_aware=True)
+
+
+def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None, h=None):
+    """Forces and torques (n, 3) of sphere-box pairs ``(si, bi)`` (index arrays (m,), static
+    or traced) with box half extents ``half`` (m, 3) m, contact stiffness ``k`` and damping
+    ``c`` (scalars or (m,)); ``valid`` (m,) bool masks padded pairs of a broad phase; ``h``
+    the inner step (s) for the step-averaged force, None for the pointwise one."""
+    n = ctx.n
+    radius = ctx.const(ctx.radius)
+    xs, vs, ws = state.position[si], state.velocity[si], state.angular_velocity[si]
+    xb, vb, wb = state.position[bi], state.velocity[bi], state.angular_velocity[bi]
+    rot = _rigid.quat_to_matrix(state.orientation[bi])
+    d, vn, nrm, r_s, r_b = jax.vmap(sphere_box_pair)(xs, vs, ws, radius[si], xb, vb, wb, rot,
+                                                      half)
+    fm = ctx.contact_force(d, vn, k, c, h)
+    if valid is not None:
+        fm = jnp.where(valid, fm, 0.0)
+    f = fm[:, None] * nrm                                  # on the sphere
+    force = jax.ops.segment_sum(f, si, n) - jax.ops.segment_sum(f, bi, n)
+    tau = (jax.ops.segment_sum(jnp.cross(r_s, f), si, n)
+           - jax.ops.segment_sum(jnp.cross(r_b, f), bi, n))
+    return force, tau
+
+
+def _sphere_box_contact(ctx: CompileContext) -> Term | None:
+    if getattr(ctx, "broadphase", None) is not None:
+        return None                     # the broad-phase pair term handles these pairs
+    rows = [(i, j, ctx.material_index[m]) for i, j, m in sphere_box_pairs(ctx.scene)]
+    if not rows:
+        return None
+    si, bi, mi = (np.array(col, dtype=np.int32) for col in zip(*rows))
+    half = ctx.const([ctx.scene.bodies[j].half_extents for j in bi])
+
+    def force(params, state, *, h=None):
+        k, c = ctx.contact_kc(params, mi)
+        return sphere_box_force(ctx, k, c, state, si, bi, half, h=h)
+    return Term("contact_sphere_box", force, step_aware=True)
+
+
+def _anchored_springs(ctx: CompileContext) -> Term | None:
+    springs = [s for s in ctx.scene.anchored_springs
+               if not (ctx.pinned[s.a] and (s.b is None or ctx.pinned[s.b]))]
+    if not springs:
+        return None
+    n = ctx.n
+    ia = np.array([s.a for s in springs], dtype=np.int32)
+    gi = np.array([ctx.group_index[s.group] for s in springs], dtype=np.int32)
+    rest = ctx.const([s.rest_length for s in springs])
+    anchor_a = ctx.const([s.anchor_a for s in springs])
+    anchor_b = ctx.const([s.anchor_b if s.b is not None else (0.0, 0.0, 0.0)
+                          for s in springs])
+    world = np.array([s.b is None for s in springs])
+    # a world end is a fixed point: its "body" is a zero-velocity frame at the anchor
+    ib = np.array([0 if s.b is None else s.b for s in springs], dtype=np.int32)
+    world_x = ctx.const([s.anchor_b if s.b is None else (0.0, 0.0, 0.0) for s in springs])
+    has_world, all_world = bool(world.any()), bool(world.all())
+    is_world = jnp.asarray(world)[:, None]
+
+    def end_b(state, field):
+        value = gather(field, ib, n)
+        return jnp.where(is_world, 0.0, value) if has_world else value
+
+    def force(params, state):
+        k, c = ctx.spring_kc(params, gi)
+        xa, va = gather(state.position, ia, n), gather(state.velocity, ia, n)
+        wa = gather(state.angular_velocity, ia, n)
+        rot_a = _rigid.quat_to_matrix(gather(state.orientation, ia, n))
+        if all_world:
+            xb = world_x
+            vb = wb = jnp.zeros_like(xa)
+            rot_b = jnp.broadcast_to(jnp.eye(3, dtype=xa.dtype), rot_a.shape)
+        else:
+            xb = end_b(state, state.position) + (world_x if has_world else 0.0)
+            vb, wb = end_b(state, state.velocity), end_b(state, state.angular_velocity)
+            rot_b = _rigid.quat_to_matrix(gather(state.orientation, ib, n))
+        x, xd, u, r_a, r_b = jax.vmap(anchored_spring_pair)(xa, va, wa, rot_a, anchor_a, xb,
+                                                             vb, wb, rot_b, anchor_b, rest)
+        f = spring_force(x, xd, k, c)[:, None] * u          # on a, at its anchor
+        force, tau = scatter(f, ia, n), scatter(jnp.cross(r_a, f), ia, n)
+        if not all_world:
+            fb = jnp.where(is_world, 0.0, f) if has_world else f
+            force = force - scatter(fb, ib, n)
+            tau = tau - scatter(jnp.cross(r_b, fb), ib, n)
+        return force, tau
+    return Term("anchored_springs", force)
+
+
+# --------------------------------------------------------------------------- stability
+#: Names the rigid terms' bounds in stability reports (their rows summed per body).
+BOUND_LABEL = ("box contacts, sphere-box contacts, broad-phase pairs or anchored springs "
+               "(rotation included)")
+
+
+def _mobility(scene, i: int, levers) -> float:
+    """Bound on ``J M^-1 J^T`` (1/kg) of a unit force of any direction n at body-frame
+    point(s) ``levers`` (k, 3) m of body i: ``1/m + max (r x n)^T I^-1 (r x n)``, the largest
+    eigenvalue of ``[r]x^T diag(1/I) [r]x`` over the given points (0 for pinned bodies; no
+    rotation term for bodies that do not rotate or forces through the centre)."""
+    body = scene.bodies[i]
+    if body.pinned:
+        return 0.0
+    rot = 0.0
+    if body.rigid:
+        inv = 1.0 / _rigid.inertia_diagonal(body)
+        for r in np.atleast_2d(np.asarray(levers, dtype=float)):
+            skew = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+            rot = max(rot, float(np.linalg.eigvalsh(skew.T @ (inv[:, None] * skew))[-1]))
+    return 1.0 / body.mass + rot
+
+
+def _face_mobility(body) -> float:
+    """Largest eigenvalue (1/kg) of ``M^-1 sum_c J_c^T J_c`` for a box resting on one face
+    (its 4 corners in contact, normal = the face normal), the stiffest plane contact a box
+    makes: ``J_c = [n, r_c x n]``, ``M = diag(m, m, m, I)``; the max over the 6 faces."""
+    h = np.asarray(body.half_extents)
+    inv_sqrt = 1.0 / np.sqrt(np.r_[np.full(3, body.mass), _rigid.inertia_diagonal(body)])
+    best = 0.0
+    for axis in range(3):
+        n = np.eye(3)[axis]
+        face = [c for c in geometry.box_corners(h) if c[axis] < 0.0]
+        jac = np.array([np.r_[n, np.cross(r, n)] for r in face]) * inv_sqrt
+        best = max(best, float(np.linalg.eigvalsh(jac.T @ jac)[-1]))
+    return best
+
+
+def _rows_bound(rows, param: str):
+    """A mobility-weighted :class:`diffpen.stability.Bound` (the same weight on k and c) from
+    rows ``(body, name, weight 1/kg)``."""
+    return Bound.of([(b, key, w, w, BOUND_LABEL) for b, key, w in rows], param,
+                    per_mass=False, label=BOUND_LABEL)
+
+
+def _pair_rows(scene, i, j, key, lever_i, lever_j, count=1):
+    """Rows of ONE contact or spring between bodies i and j (None: the world): its eigenvalue
+    bound ``k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T)`` counted on both free ends."""
+    w = count * (_mobility(scene, i, lever_i)
+                 + (_mobility(scene, j, lever_j) if j is not None else 0.0))
+    return [(b, key, w * (2.0 if j is not None else 1.0)) for b in (i, j)
+            if b is not None and not scene.bodies[b].pinned]
+
+
+def _friction_row(scene, i: int, material: str, levers):
+    """Friction below the slip speed is viscous: ``mu m |g| / s`` (at least 1 g) per body,
+    as a damping rate weight (1/s per unit mu)."""
+    b, mat = scene.bodies[i], scene.materials[material]
+    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+    return (i, material, load / mat.slip_speed * _mobility(scene, i, levers))
+
+
+def _box_plane_bound(ctx: CompileContext):
+    """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
+    scene, contact, friction = ctx.scene, [], []
+    for i in _box_rows(ctx):
+        b = scene.bodies[i]
+        for pl in scene.planes:
+            contact.append((i, pl.material, _face_mobility(b)))
+            if scene.materials[pl.material].friction > 0.0:
+                friction.append(_friction_row(scene, i, pl.material,
+                                              geometry.box_corners(b.half_extents)))
+    return tuple(x for x in (_rows_bound(contact, "contact"),
+                             _rows_bound(friction, "friction")) if x is not None)
+
+
+def _sphere_plane_friction_bound(ctx: CompileContext):
+    scene = ctx.scene
+    rows = [_friction_row(scene, i, pl.material, (0.0, 0.0, b.radius))
+            for i, b in enumerate(scene.bodies)
+            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+            for pl in scene.planes if scene.materials[pl.material].friction > 0.0]
+    out = _rows_bound(rows, "friction")
+    return () if out is None else (out,)
+
+
+def _box_fixed_sphere_bound(ctx: CompileContext):
+    scene, rows = ctx.scene, []
+    for i in _box_rows(ctx):
+        corners = geometry.box_corners(scene.bodies[i].half_extents)
+        for fs in scene.fixed_spheres:
+            rows += _pair_rows(scene, i, None, fs.material, corners, np.zeros(3))
+    out = _rows_bound(rows, "contact")
+    return () if out is None else (out,)
+
+
+def sphere_box_rows(scene):
+    """Candidate sphere-box contacts, one at a time: the stiffest per (body, material)
+    (``_pair_rows`` of every pair, with each body's mobility computed once)."""
+    best, mob = {}, {}
+    zero = np.zeros(3)
+
+    def mobility(i, box):
+        if (i, box) not in mob:
+            levers = geometry.box_corners(scene.bodies[i].half_extents) if box else zero
+            mob[i, box] = _mobility(scene, i, levers)
+        return mob[i, box]
+    for i, j, mat in sphere_box_pairs(scene):
+        w = 2.0 * (mobility(i, False) + mobility(j, True))
+        for b in (i, j):
+            if not scene.bodies[b].pinned:
+                best[b, mat] = max(best.get((b, mat), 0.0), w)
+    return [(b, key, w) for (b, key), w in best.items()]
+
+
+def _sphere_box_bound(ctx: CompileContext):
+    out = _rows_bound(sphere_box_rows(ctx.scene), "contact")
+    return () if out is None else (out,)
+
+
+def _anchored_bound(ctx: CompileContext):
+    scene, rows = ctx.scene, []
+    for sp in scene.anchored_springs:
+        rows += _pair_rows(scene, sp.a, sp.b, sp.group, sp.anchor_a, sp.anchor_b)
+    out = _rows_bound(rows, "springs")
+    return () if out is None else (out,)
+
+
+#: The rigid-body term builders with their stability bounds, in force summation order.
+TERMS: tuple = (
+    with_bound(_box_plane_contact, _box_plane_bound),
+    with_bound(_sphere_plane_friction, _sphere_plane_friction_bound),
+    with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound),
+    with_bound(_sphere_box_contact, _sphere_box_bound),
+    with_bound(_anchored_springs, _anchored_bound),
+)
