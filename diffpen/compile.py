@@ -8,9 +8,9 @@ width, integrator) is static: changing it means compiling a new simulator. Param
 are call-time arguments: changing them, or vmapping and differentiating over them, never
 recompiles.
 
-The force terms come from ``BUILTIN_TERMS``, one fixed tuple of term builders (core terms of
-:mod:`diffpen.terms`, then :mod:`diffpen.plastic`, :mod:`diffpen.rigid` and
-:mod:`diffpen.broadphase`): its order is the force summation order. A term the scene does
+The force terms come from ``BUILTIN_TERMS`` (= :data:`diffpen.terms.BUILTIN`), one fixed
+tuple of term builders, one module per kind in :mod:`diffpen.terms`: its order is the force
+summation order. A term the scene does
 not need is never built, so it is never traced (each term runs under its own
 ``jax.named_scope``, which tests use to prove it). Each term carries its stability bound,
 which :mod:`diffpen.stability` sums; the pure rollout is :func:`diffpen.rollout.rollout`.

@@ -1,4 +1,4 @@
-"""Rigid bodies: quaternions, inertia, Euler's equations, and the terms that produce torque.
+"""Rigid bodies: quaternions, inertia, Euler's equations.
 
 A scene with a box (``Scene.add_box``), a rigid sphere (``Scene.add_rigid_sphere``) or an
 anchored spring between rigid bodies compiles with orientation state (unit quaternions
@@ -11,17 +11,8 @@ moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equat
 angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
 ``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
 
-Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
-
-* ``contact_box_plane``: each box corner below a plane is a penalty contact at that corner
-  (the contact law of the simulator), with force ``f n`` at the corner and torque
-  ``r x f n`` (``r`` corner lever arm).
-* ``contact_sphere_box``: spheres and particles against boxes (closest point on the box).
-* ``contact_box_fixed_sphere``: boxes against fixed spheres.
-* ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
-
-Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
-friction their force passes through the centres and produces no torque.
+The terms that produce torque (box corners, friction, sphere-box, anchored springs) are
+:mod:`diffpen.terms.rigid`; their public names are still importable from here.
 """
 from __future__ import annotations
 
