@@ -38,7 +38,7 @@ import diffpen as dp
 
 from . import distributed
 from . import params as P
-from .io import (OutputError, OutputLock, atomic_write, check_output, clean_orphans,
+from .io import (OutputLock, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
 from .progress import Progress
 
