@@ -1,16 +1,7 @@
-"""Rigid-body terms, the ones that produce torque (the dynamics, quaternions and inertia are
-:mod:`diffpen.rigid`).
-
-A scene with a box (``Scene.add_box``), a rigid sphere (``Scene.add_rigid_sphere``) or an
-anchored spring between rigid bodies compiles with orientation state (unit quaternions
-``(w, x, y, z)``, body to world) and world-frame angular velocities. Nothing of this module is
-traced for scenes without rigid bodies: their ``State.orientation`` stays ``None`` and every
-term returns ``None`` torques.
-
-Dynamics (per body, world frame): ``I_w = R I R^T`` with ``I`` the body-frame principal
-moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equations give the
-angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
-``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
+"""Rigid-body terms, the ones that produce torque: box corners on planes, their friction,
+boxes against fixed spheres, sphere-box contact and anchored springs (the dynamics,
+quaternions, inertia and Euler's equations are :mod:`diffpen.rigid`; nothing of this module is
+traced for scenes without rigid bodies).
 
 Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
 
