@@ -14,6 +14,9 @@ summation order. A term the scene does
 not need is never built, so it is never traced (each term runs under its own
 ``jax.named_scope``, which tests use to prove it). Each term carries its stability bound,
 which :mod:`diffpen.stability` sums; the pure rollout is :func:`diffpen.rollout.rollout`.
+Parameter building and validation live in :mod:`diffpen.params`, start states in
+:mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state`` and ``state_from``
+delegate to them.
 """
 from __future__ import annotations
 
@@ -27,14 +30,16 @@ import numpy as np
 from . import broadphase as _broadphase
 from . import checks as _checks
 from . import laws, rigid
-from .terms.rigid import contact_materials
+from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
+from . import start_state as _start_state
 from . import terms as _terms
 from .errors import NonFiniteError, SceneError
 from .integrators import build_step, resolve, substepped
-from .scene import DEFAULT, Scene
-from .state import ContactParams, Params, SpringParams, State, Trajectory
+from .scene import Scene
+from .params import _is_concrete
+from .state import Params, State, Trajectory
 from .terms import CompileContext, Term
 
 __all__ = ["compile", "Simulator", "Term", "CompileContext", "BUILTIN_TERMS"]
@@ -49,40 +54,6 @@ BUILTIN_TERMS: tuple = _terms.BUILTIN
 @jax.jit
 def _last_state_finite(position, velocity):
     return jnp.isfinite(position[-1]).all() & jnp.isfinite(velocity[-1]).all()
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _check_value(name: str, v) -> None:
-    """Validate a parameter value: a real scalar (no strings or bools, no arrays: vmap over
-    values instead); finite and >= 0 when concrete."""
-    if v is None or isinstance(v, (str, bytes, bool, np.bool_)):
-        raise SceneError(f"{name} must be a number, got {v!r}"
-                         + (": write it without quotes." if isinstance(v, str) else "."))
-    if not _is_concrete(v):
-        shape = v.shape
-    else:
-        try:
-            raw = np.asarray(v)
-        except Exception:  # noqa: BLE001 - ragged lists, odd objects
-            raw = np.asarray(None)
-        if raw.dtype.kind not in "iuf":
-            raise SceneError(f"{name} must be a real number, got {v!r}.")
-        shape = raw.shape
-    if shape != ():
-        raise SceneError(f"{name} must be a scalar, got an array of shape {shape}: "
-                         "for several values, jax.vmap a function that calls "
-                         "sim.params(k=...) per value (or use tuning.sweep).")
-    if not _is_concrete(v):
-        return
-    arr = np.asarray(v, dtype=float)
-    if not np.all(np.isfinite(arr)):
-        raise SceneError(f"{name} must be finite, got {v!r}.")
-    if np.any(arr < 0.0):
-        raise SceneError(f"{name} must be >= 0, got {v!r}: stiffness and damping cannot be "
-                         "negative.")
 
 
 def _default_width(scene: Scene) -> float:
@@ -175,34 +146,7 @@ class Simulator:
         self.pinned = np.array([b.pinned for b in bodies])
         collide = np.array([b.collide for b in bodies])
 
-        # Materials actually used by some contact pair, in a fixed order.
-        used: list[str] = []
-
-        def use(name):
-            if name not in used:
-                used.append(name)
-        movable = [i for i in range(self.n_bodies) if collide[i] and not self.pinned[i]]
-        if movable:
-            for pl in scene.planes:
-                use(pl.material)
-            for fs in scene.fixed_spheres:
-                use(fs.material)
-        # Materials of sphere-sphere pairs, in O(n): a pair (i, j) with one end free uses
-        # their shared material, or "default" when they differ.
-        spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
-        by_mat: dict[str, list[int]] = {}
-        for i in spheres:
-            by_mat.setdefault(bodies[i].material, []).append(i)
-        any_free = any(not self.pinned[i] for i in spheres)
-        for mat, members in by_mat.items():
-            if len(members) >= 2 and any(not self.pinned[i] for i in members):
-                use(mat)
-        if len(by_mat) >= 2 and any_free:
-            use(DEFAULT)
-        if scene.has_rotation:
-            for name in contact_materials(scene):
-                use(name)
-        self.materials = tuple(used)
+        self.materials = _params.used_materials(scene, self.pinned, collide)
         self.spring_groups = tuple(dict.fromkeys(
             s.group for s in (*scene.springs, *scene.plastic_springs,
                               *scene.anchored_springs)))
@@ -278,59 +222,11 @@ class Simulator:
         floats, arrays or tracers; they are cast to the simulator's dtype.
         Returns: :class:`diffpen.Params`.
         """
-        contact = dict(contact or {})
-        springs = dict(springs or {})
-        for name in contact:
-            if name not in self.materials:
-                raise SceneError(f"contact material {name!r} is not used by any contact pair of "
-                                 f"this scene; used: {list(self.materials)}.")
-        for name in springs:
-            if name not in self.spring_groups:
-                raise SceneError(f"spring group {name!r} is not in this scene; groups: "
-                                 f"{list(self.spring_groups)}.")
-        out_c = {}
-        for name in self.materials:
-            mat = self.scene.materials[name]
-            kk, cc = contact.get(name, (k, c))
-            kk = mat.k if kk is None else kk
-            cc = mat.c if cc is None else cc
-            if kk is None or cc is None:
-                raise SceneError(f"contact material {name!r} has no {'k' if kk is None else 'c'}: "
-                                 "pass sim.params(k=..., c=...) or declare it with "
-                                 f"scene.add_material({name!r}, k=..., c=...).")
-            _check_value(f"contact k of material {name!r} (N/m)", kk)
-            _check_value(f"contact c of material {name!r} (N s/m)", cc)
-            out_c[name] = ContactParams(self._cast(kk), self._cast(cc))
-        out_s = {}
-        for name in self.spring_groups:
-            grp = self.scene.spring_groups[name]
-            kk, cc = springs.get(name, (spring_k, spring_c))
-            kk = grp.k if kk is None else kk
-            cc = grp.c if cc is None else cc
-            _check_value(f"spring k of group {name!r} (N/m)", kk)
-            _check_value(f"spring c of group {name!r} (N s/m)", cc)
-            out_s[name] = SpringParams(self._cast(kk), self._cast(cc))
-        out_x = dict(extra or {})
-        for name, default in self._extra_defaults.items():
-            given = out_x.get(name, {})
-            if isinstance(default, dict):
-                unknown = set(given) - set(default)
-                if unknown:
-                    raise SceneError(f"params extra[{name!r}] names {sorted(unknown)}, not in "
-                                     f"this scene; known: {sorted(default)}.")
-                merged = {g: given.get(g, v) for g, v in default.items()}
-                check = self._extra_checks.get(name, _check_value)
-                for g, v in merged.items():
-                    check(f"{name} parameter of group {g!r}", v)
-                out_x[name] = {g: self._cast(v) for g, v in merged.items()}
-            elif name not in out_x:
-                out_x[name] = default
-        return Params(out_c, out_s, out_x)
+        return _params.build(self, k, c, contact=contact, spring_k=spring_k,
+                             spring_c=spring_c, springs=springs, extra=extra)
 
     def _cast(self, v):
-        if isinstance(v, (int, float, np.number, np.ndarray)):
-            return np.asarray(v, dtype=self.dtype)      # host value: no device round trip
-        return jnp.asarray(v, dtype=self.dtype)
+        return _params.cast(self.dtype, v)
 
     # ------------------------------------------------------------------ state
     def init_state(self) -> State:
@@ -339,15 +235,7 @@ class Simulator:
         ``aux`` holds the terms' entries (plastic rest lengths, the broad-phase overflow
         flag) and ``aux["unstable"]`` (False), the traced stability flag a rollout sets
         (:mod:`diffpen.stability`)."""
-        b = self.scene.bodies
-        ctx = self.context
-        q, w = self._rigid.init(b) if self._rigid is not None else (None, None)
-        aux = {k: ctx.const(v) for k, v in ctx.aux_init.items()}
-        aux[_stability.FLAG] = jnp.zeros((), bool)
-        return State(time=jnp.zeros((), self.dtype),
-                     position=ctx.const([x.position for x in b]),
-                     velocity=ctx.const([x.velocity for x in b]),
-                     orientation=q, angular_velocity=w, aux=aux)
+        return _start_state.init_state(self)
 
     def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
                    orientation=None, angular_velocity=None, frame: str = "body") -> State:
@@ -367,38 +255,9 @@ class Simulator:
             (``frame="world"``); rigid bodies only.
         Returns: :class:`State` (None arguments leave that part unchanged).
         """
-        if frame not in ("body", "world"):
-            raise SceneError(f"frame must be 'body' or 'world', got {frame!r}.")
-        idx = np.atleast_1d(np.asarray(body))
-        if idx.dtype.kind not in "iu" or idx.ndim != 1 or np.any(idx < 0) or np.any(
-                idx >= self.n_bodies):
-            raise SceneError(f"body must be a body index or a list of them in 0.."
-                             f"{self.n_bodies - 1}, got {body!r}.")
-        if (orientation is not None or angular_velocity is not None) and (
-                self._rigid is None or not all(self.scene.bodies[i].rigid for i in idx)):
-            raise SceneError("orientation and angular_velocity can be set for rigid bodies "
-                             "only (scene.add_box / scene.add_rigid_sphere).")
-        s = self.init_state() if state is None else state
-
-        def rows(v, width):
-            return jnp.broadcast_to(jnp.asarray(v, self.dtype), (len(idx), width))
-        upd = {}
-        if position is not None:
-            upd["position"] = s.position.at[idx].set(rows(position, 3))
-        if velocity is not None:
-            upd["velocity"] = s.velocity.at[idx].set(rows(velocity, 3))
-        q = s.orientation
-        if orientation is not None:
-            qn = rows(orientation, 4)
-            q = q.at[idx].set(qn / jnp.linalg.norm(qn, axis=-1, keepdims=True))
-            upd["orientation"] = q
-        if angular_velocity is not None:
-            w = rows(angular_velocity, 3)
-            if frame == "body":
-                from .rigid import quat_to_matrix
-                w = jnp.einsum("bij,bj->bi", quat_to_matrix(q[idx]), w)
-            upd["angular_velocity"] = s.angular_velocity.at[idx].set(w)
-        return s._replace(**upd)
+        return _start_state.state_from(self, state, body=body, position=position,
+                                       velocity=velocity, orientation=orientation,
+                                       angular_velocity=angular_velocity, frame=frame)
 
     # ------------------------------------------------------------------ dynamics
     def forces(self, params: Params, state: State, *, h: float | None = None):

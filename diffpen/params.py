@@ -1,0 +1,145 @@
+"""Parameter values -> the :class:`diffpen.Params` pytree of a compiled simulator.
+
+:func:`used_materials` finds the contact materials some pair uses (the ``Params.contact``
+keys). :func:`build` is ``Simulator.params``: it fills the values not given from the scene's
+material / spring group / extension defaults, validates each one (:func:`_check_value`: a
+real, finite scalar >= 0) and casts it to the simulator's dtype (:func:`cast`).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import SceneError
+from .scene import DEFAULT
+from .state import ContactParams, Params, SpringParams
+from .terms.rigid import contact_materials
+
+
+def used_materials(scene, pinned, collide) -> tuple:
+    """Names of the contact materials some contact pair of ``scene`` uses, in a fixed order:
+    the ``Params.contact`` keys. ``pinned``, ``collide``: (n_bodies,) bool."""
+    bodies = scene.bodies
+    used: list[str] = []
+
+    def use(name):
+        if name not in used:
+            used.append(name)
+    movable = [i for i in range(len(bodies)) if collide[i] and not pinned[i]]
+    if movable:
+        for pl in scene.planes:
+            use(pl.material)
+        for fs in scene.fixed_spheres:
+            use(fs.material)
+    # Materials of sphere-sphere pairs, in O(n): a pair (i, j) with one end free uses
+    # their shared material, or "default" when they differ.
+    spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
+    by_mat: dict[str, list[int]] = {}
+    for i in spheres:
+        by_mat.setdefault(bodies[i].material, []).append(i)
+    any_free = any(not pinned[i] for i in spheres)
+    for mat, members in by_mat.items():
+        if len(members) >= 2 and any(not pinned[i] for i in members):
+            use(mat)
+    if len(by_mat) >= 2 and any_free:
+        use(DEFAULT)
+    if scene.has_rotation:
+        for name in contact_materials(scene):
+            use(name)
+    return tuple(used)
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _check_value(name: str, v) -> None:
+    """Validate a parameter value: a real scalar (no strings or bools, no arrays: vmap over
+    values instead); finite and >= 0 when concrete."""
+    if v is None or isinstance(v, (str, bytes, bool, np.bool_)):
+        raise SceneError(f"{name} must be a number, got {v!r}"
+                         + (": write it without quotes." if isinstance(v, str) else "."))
+    if not _is_concrete(v):
+        shape = v.shape
+    else:
+        try:
+            raw = np.asarray(v)
+        except Exception:  # noqa: BLE001 - ragged lists, odd objects
+            raw = np.asarray(None)
+        if raw.dtype.kind not in "iuf":
+            raise SceneError(f"{name} must be a real number, got {v!r}.")
+        shape = raw.shape
+    if shape != ():
+        raise SceneError(f"{name} must be a scalar, got an array of shape {shape}: "
+                         "for several values, jax.vmap a function that calls "
+                         "sim.params(k=...) per value (or use tuning.sweep).")
+    if not _is_concrete(v):
+        return
+    arr = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        raise SceneError(f"{name} must be finite, got {v!r}.")
+    if np.any(arr < 0.0):
+        raise SceneError(f"{name} must be >= 0, got {v!r}: stiffness and damping cannot be "
+                         "negative.")
+
+
+def cast(dtype, v):
+    """``v`` as an array of ``dtype``: a host (numpy) array for host values, so building
+    params makes no device round trip; a JAX array for JAX arrays and tracers."""
+    if isinstance(v, (int, float, np.number, np.ndarray)):
+        return np.asarray(v, dtype=dtype)      # host value: no device round trip
+    return jnp.asarray(v, dtype=dtype)
+
+
+def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
+          spring_c=None, springs: dict | None = None, extra: dict | None = None) -> Params:
+    """``sim.params(...)``: see :meth:`diffpen.Simulator.params` (arguments, units)."""
+    contact = dict(contact or {})
+    springs = dict(springs or {})
+    for name in contact:
+        if name not in sim.materials:
+            raise SceneError(f"contact material {name!r} is not used by any contact pair of "
+                             f"this scene; used: {list(sim.materials)}.")
+    for name in springs:
+        if name not in sim.spring_groups:
+            raise SceneError(f"spring group {name!r} is not in this scene; groups: "
+                             f"{list(sim.spring_groups)}.")
+    out_c = {}
+    for name in sim.materials:
+        mat = sim.scene.materials[name]
+        kk, cc = contact.get(name, (k, c))
+        kk = mat.k if kk is None else kk
+        cc = mat.c if cc is None else cc
+        if kk is None or cc is None:
+            raise SceneError(f"contact material {name!r} has no {'k' if kk is None else 'c'}: "
+                             "pass sim.params(k=..., c=...) or declare it with "
+                             f"scene.add_material({name!r}, k=..., c=...).")
+        _check_value(f"contact k of material {name!r} (N/m)", kk)
+        _check_value(f"contact c of material {name!r} (N s/m)", cc)
+        out_c[name] = ContactParams(cast(sim.dtype, kk), cast(sim.dtype, cc))
+    out_s = {}
+    for name in sim.spring_groups:
+        grp = sim.scene.spring_groups[name]
+        kk, cc = springs.get(name, (spring_k, spring_c))
+        kk = grp.k if kk is None else kk
+        cc = grp.c if cc is None else cc
+        _check_value(f"spring k of group {name!r} (N/m)", kk)
+        _check_value(f"spring c of group {name!r} (N s/m)", cc)
+        out_s[name] = SpringParams(cast(sim.dtype, kk), cast(sim.dtype, cc))
+    out_x = dict(extra or {})
+    for name, default in sim._extra_defaults.items():
+        given = out_x.get(name, {})
+        if isinstance(default, dict):
+            unknown = set(given) - set(default)
+            if unknown:
+                raise SceneError(f"params extra[{name!r}] names {sorted(unknown)}, not in "
+                                 f"this scene; known: {sorted(default)}.")
+            merged = {g: given.get(g, v) for g, v in default.items()}
+            check = sim._extra_checks.get(name, _check_value)
+            for g, v in merged.items():
+                check(f"{name} parameter of group {g!r}", v)
+            out_x[name] = {g: cast(sim.dtype, v) for g, v in merged.items()}
+        elif name not in out_x:
+            out_x[name] = default
+    return Params(out_c, out_s, out_x)
