@@ -4,33 +4,28 @@ A *record* (:func:`tuning.records.read_record`) holds the times ``t`` (T,) s and
 body, positions (T, 3) m with NaN for missing samples and optionally orientations (T, 4)
 (w, x, y, z), world velocities (T, 3) m/s and BODY-frame angular velocities (T, 3) rad/s.
 
-Pipeline (each step a public function):
+Pipeline (each step a public function, all importable from here):
 
-1. :func:`prepare` turns records into one padded :class:`Batch`: each record's start state
-   (:func:`first_state`: pose from row 0, velocities from the record's columns or estimated
-   from the first frames), the frame times as indices into one rollout, and masks for
-   missing samples and for records shorter than the longest.
-2. :func:`simulate` rolls every record out from its own start state under ``jax.vmap``
-   (one compiled function for all) and samples positions and orientations at the frame
-   times (linear interpolation when the frames do not fall on steps).
-3. :func:`pose_residuals` compares them with the measurements (the pose loss below).
-4. :func:`fit_records` runs Levenberg-Marquardt on the chosen leaves of the params (signed
-   leaves such as plane offsets in linear space, positive ones in log space) with a
+1. :func:`prepare` (:mod:`tuning.record_batch`) turns records into one padded
+   :class:`Batch`: each record's start state (:func:`first_state`,
+   :mod:`tuning.first_state`: pose from row 0, velocities from the record's columns or
+   estimated from the first frames), the frame times as indices into one rollout, and masks
+   for missing samples and for records shorter than the longest.
+2. :func:`simulate` (:mod:`tuning.record_batch`) rolls every record out from its own start
+   state under ``jax.vmap`` (one compiled function for all) and samples positions and
+   orientations at the frame times (linear interpolation when the frames do not fall on
+   steps).
+3. :func:`pose_residuals` (:mod:`tuning.pose`) compares them with the measurements: the
+   pose loss, position errors in units of each body's size plus weighted rotation angles.
+4. :func:`fit_records` (here) runs Levenberg-Marquardt on the chosen leaves of the params
+   (signed leaves such as plane offsets in linear space, positive ones in log space) with a
    forward-mode Jacobian through the rollouts, optionally over a growing horizon, and
    reports standard errors, correlations and the parameter directions the records do not
    determine.
 
-Pose loss. Per record ``r``, observed body ``b`` and valid frame ``f``::
-
-    e_pos = (p_sim - p_data) / L_b                    (3,)  L_b: the body's size, m
-    e_rot = w_rot * rotvec(q_sim^-1 q_data)            (3,)  rad, small-angle 2 vec(q) sign(w)
-
-and the cost is ``sum_r mean_{f, b} (|e_pos|^2 + |e_rot|^2) / R``: every record counts
-equally whatever its length, missing samples count for nothing. ``L_b`` is the largest
-dimension of a rigid body (a box's longest edge, a sphere's diameter) and, for particles,
-the largest extent of the observed particles at the start (the rope's length, the cloth's
-width). The default ``w_rot = (180 / pi) / 100 = 0.573`` per radian makes one degree count
-as much as 1% of ``L_b``: the units :mod:`tuning.evaluate` reports.
+This module also holds the params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`),
+:class:`Free`, and the scene-file entry points (:func:`fit_files`, :func:`load_records`,
+:func:`synthetic_record`).
 """
 from __future__ import annotations
 
@@ -50,14 +45,16 @@ import diffpen as dp
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
+from .first_state import first_state
+from .pose import ROT_WEIGHT, _qmul, _rotmat, body_size, pose_residuals, rotation_angle
+from .record_batch import Batch, prepare, prepare_buckets, simulate
+from . import pose as _pose
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
-           "fit_records", "ROT_WEIGHT"]
+           "fit_records", "ROT_WEIGHT", "rotation_angle"]
 
-#: default weight of the rotation residual, per radian, against the position in units of
-#: the body size: one degree counts as much as 1% of the size.
-ROT_WEIGHT = (180.0 / math.pi) / 100.0
+_exp_quat = _pose._exp_quat      # tuning.trajfit._exp_quat, as before the split
 
 
 # --------------------------------------------------------------------------- params leaves
@@ -136,382 +133,6 @@ class Free:
         return self.lo, self.hi
 
 
-# --------------------------------------------------------------------------- bodies
-def body_size(scene: dp.Scene, index: int, observed: Sequence[int] = ()) -> float:
-    """The length (m) errors of body ``index`` are measured against: a box's longest edge,
-    a sphere's diameter; for a particle, the largest extent of the ``observed`` bodies'
-    start positions (the rope, the cloth), or 1 m when that is zero."""
-    b = scene.bodies[index]
-    if b.half_extents is not None:
-        return 2.0 * max(b.half_extents)
-    if b.kind == "sphere" and b.radius > 0:
-        return 2.0 * b.radius
-    observed = list(observed) or [index]
-    pts = np.array([scene.bodies[i].position for i in observed])
-    ext = float(np.max(pts.max(axis=0) - pts.min(axis=0))) if len(pts) > 1 else 0.0
-    return ext if ext > 0 else 1.0
-
-
-def _qmul(a, b):
-    w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
-    w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
-
-
-def _qconj(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _rotmat(q):
-    return np.asarray(dp.rigid.quat_to_matrix(jnp.asarray(q, dtype=jnp.float64)))
-
-
-def _rotvec(q):
-    """Rotation vectors (..., 3) rad of unit quaternions (..., 4)."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
-    ang = 2.0 * np.arctan2(s, q[..., :1])
-    return np.where(s > 1e-12, q[..., 1:] * ang / np.where(s > 1e-12, s, 1.0),
-                    2.0 * q[..., 1:])
-
-
-def _exp_quat(v):
-    a = np.linalg.norm(v)
-    if a < 1e-12:
-        return np.array([1.0, *(0.5 * v)])
-    return np.array([math.cos(a / 2), *(v / a * math.sin(a / 2))])
-
-
-def _flight_frames(scene, index, pos, quat, margin: float) -> int:
-    """How many leading frames body ``index`` is clear of every plane by ``margin`` m."""
-    b = scene.bodies[index]
-    if not scene.planes:
-        return len(pos)
-    n = 0
-    for f in range(len(pos)):
-        if not np.all(np.isfinite(pos[f])):
-            break
-        if b.half_extents is not None and quat is not None and np.all(np.isfinite(quat[f])):
-            h = np.array(b.half_extents)
-            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
-                                for sz in (-1, 1)]) * h
-            pts = pos[f] + corners @ _rotmat(quat[f]).T
-            reach = 0.0
-        else:
-            pts, reach = pos[f][None], b.radius
-        gap = min(float(np.min(pts @ np.array(pl.normal))) - pl.offset - reach
-                  for pl in scene.planes)
-        if gap < margin:
-            break
-        n += 1
-    return n
-
-
-def _free_flight(scene, index) -> bool:
-    """True when nothing but gravity and contact acts on body ``index`` (no spring, drag)."""
-    for s in (*scene.springs, *scene.anchored_springs, *scene.plastic_springs):
-        if index in (s.a, s.b):
-            return False
-    return not any(d.body == index for d in scene.drags)
-
-
-def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
-                estimate: str = "fit", max_frames: int = 10, margin: float = 0.005):
-    """Start pose and velocities of one body from the first frames of its record.
-
-    Args:
-      scene: the :class:`diffpen.Scene`.  index: the body.
-      t: (T,) s.  pos: (T, 3) m (NaN where missing).  quat: (T, 4) or None.
-      vel: (T, 3) m/s world or None.  omega_body: (T, 3) rad/s body frame or None.
-      estimate: ``"record"``: pose of row 0 and the record's velocity columns of row 0 (a
-        fit of the first frames where a column is missing); ``"fit"``: pose and velocities
-        fitted by least squares to the first frames -- for a body in free flight (no
-        spring or drag on it) a gravity parabola ``p0 + v t + g t^2 / 2`` over the frames
-        before it comes within ``margin`` m of a plane (at most ``max_frames``, at least 3),
-        with a constant angular velocity; otherwise a quadratic over ``min(5, T)`` frames.
-        Finite-difference velocity columns are biased (the cube records' row-0 vertical
-        velocity by about +0.023 m/s): ``"fit"`` avoids that bias.
-    Returns:
-      ``(position (3,), velocity (3,), orientation (4,) or None, omega_world (3,) or None)``.
-    """
-    if estimate not in ("record", "fit"):
-        raise FitError(f"first-state estimate must be 'record' or 'fit', got {estimate!r}.")
-    ok = np.all(np.isfinite(pos), axis=1)
-    if not ok[0]:
-        raise FitError("a record's first row has no position for an observed body: trim the "
-                       "record so that it starts with a complete pose.")
-    tt = t - t[0]
-    g = np.array(scene.gravity)
-    free = _free_flight(scene, index)
-    if free:
-        n = _flight_frames(scene, index, pos[:max_frames], None if quat is None
-                           else quat[:max_frames], margin)
-        n = max(3, min(n, max_frames))
-    else:
-        n = min(5, len(t))
-    use = np.nonzero(ok[:n])[0]
-    if len(use) < 2:
-        use = np.arange(1)
-    A = np.stack([np.ones(len(use)), tt[use]], axis=1)
-    if free and len(use) >= 2:
-        coef = np.linalg.lstsq(A, pos[use] - 0.5 * g * tt[use, None] ** 2, rcond=None)[0]
-    elif len(use) >= 3:
-        A3 = np.concatenate([A, 0.5 * tt[use, None] ** 2], axis=1)
-        coef = np.linalg.lstsq(A3, pos[use], rcond=None)[0][:2]
-    elif len(use) == 2:
-        coef = np.linalg.lstsq(A, pos[use], rcond=None)[0]
-    else:
-        coef = np.stack([pos[0], np.zeros(3)])
-    p0, v0 = (pos[0], None) if estimate == "record" else (coef[0], coef[1])
-    if estimate == "record" and vel is not None and np.all(np.isfinite(vel[0])):
-        v0 = vel[0]
-    if v0 is None:
-        v0 = coef[1]
-    if quat is None:
-        return p0, v0, None, None
-    q = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
-    okq = np.all(np.isfinite(q), axis=1)
-    if not okq[0]:
-        raise FitError("a record's first row has no orientation for an observed body.")
-    useq = np.nonzero(okq[:n])[0]
-    rv = _rotvec(_qmul(q[useq], _qconj(q[0])[None]))          # world rotation since row 0
-    # continuous rotation vectors (a unit quaternion and its negative are one rotation)
-    if len(useq) >= 2:
-        B = np.stack([np.ones(len(useq)), tt[useq]], axis=1)
-        sol = np.linalg.lstsq(B, rv, rcond=None)[0]
-        w_fit, a0 = sol[1], sol[0]
-    else:
-        w_fit, a0 = np.zeros(3), np.zeros(3)
-    if estimate == "record":
-        q0 = q[0]
-        if omega_body is not None and np.all(np.isfinite(omega_body[0])):
-            w0 = _rotmat(q0) @ omega_body[0]
-        else:
-            w0 = w_fit
-    else:
-        q0 = _qmul(_exp_quat(a0), q[0])
-        w0 = w_fit
-    return p0, v0, q0, w0
-
-
-# --------------------------------------------------------------------------- batch
-@dataclasses.dataclass
-class Batch:
-    """Records padded into arrays for one vmapped rollout (R records, T frames, B bodies).
-
-    start: a :class:`diffpen.State` whose leaves have a leading axis R.
-    steps: rollout length in steps (static).  save_every: steps between saved states.
-    index: (R, T) int, saved-state index at or before each frame (0 = the start state).
-    frac: (R, T) interpolation weight towards the next saved state.
-    pos: (R, T, B, 3) m.  pos_mask: (R, T, B) 1 where measured.
-    quat: (R, T, B, 4).  quat_mask: (R, T, B) 1 where measured (all 0 without quaternions).
-    weight: (R,) per-record weight ``1 / (number of valid samples)``.
-    n_records: how many records the loss averages over (R, or all the buckets' records
-    when this batch is one of :func:`prepare_buckets`).
-    bodies: (B,) body indices.  names: B body names.  size: (B,) m.  time: (R, T) s from
-    each record's first frame.  length: (R,) frames per record.  paths: R record paths.
-    """
-    start: dp.State
-    steps: int
-    save_every: int
-    index: np.ndarray
-    frac: np.ndarray
-    pos: np.ndarray
-    pos_mask: np.ndarray
-    quat: np.ndarray
-    quat_mask: np.ndarray
-    weight: np.ndarray
-    bodies: np.ndarray
-    names: list
-    size: np.ndarray
-    time: np.ndarray
-    length: np.ndarray
-    paths: list
-    n_records: int = 0
-
-    @property
-    def has_rotation(self) -> bool:
-        return bool(self.quat_mask.any())
-
-
-def _body_map(scene, records, bodies):
-    names = list(dict.fromkeys(n for r in records for n in r.bodies))
-    if bodies is None:
-        free = [i for i, b in enumerate(scene.bodies) if not b.pinned]
-        if len(names) == 1 and len(free) == 1:
-            return {names[0]: free[0]}
-        bodies = {}
-        for n in names:
-            try:
-                bodies[n] = int(n)
-            except (TypeError, ValueError):
-                raise FitError(f"record body {n!r}: give bodies={{name: body index}} (or name "
-                               "the scene's bodies) to say which body it is.") from None
-    for n in names:
-        if n not in bodies:
-            raise FitError(f"record body {n!r} is not in bodies {sorted(bodies)}.")
-        i = bodies[n]
-        if not 0 <= i < scene.n_bodies:
-            raise FitError(f"record body {n!r} maps to body {i}, not in the scene "
-                           f"({scene.n_bodies} bodies).")
-    return {n: bodies[n] for n in names}
-
-
-def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
-            estimate: str = "record", max_frames: int = 10) -> Batch:
-    """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
-    ``estimate``). ``bodies``: ``{record body name: scene body index}``; default: the only
-    free body for one-body records, else names that are indices."""
-    if not records:
-        raise FitError("no records: give at least one record file.")
-    scene = sim.scene
-    bmap = _body_map(scene, records, bodies)
-    names = list(bmap)
-    idx = np.array([bmap[n] for n in names], dtype=np.int32)
-    size = np.array([body_size(scene, i, idx) for i in idx])
-    R, B = len(records), len(names)
-    T = max(len(r.t) for r in records)
-    durations = [float(r.t[-1] - r.t[0]) for r in records]
-    frame_dt = float(np.median(np.concatenate([np.diff(r.t) for r in records
-                                                if len(r.t) > 1] or [np.array([sim.dt])])))
-    save_every = max(1, int(round(frame_dt / sim.dt)))
-    ratio = [(r.t - r.t[0]) / (save_every * sim.dt) for r in records]
-    if not all(np.allclose(u, np.round(u), atol=1e-6) for u in ratio):
-        save_every = 1
-    n_saves = int(math.ceil(max(durations) / (save_every * sim.dt) - 1e-9)) + 1
-    steps = max(1, n_saves) * save_every
-    index = np.zeros((R, T), np.int32)
-    frac = np.zeros((R, T))
-    pos = np.zeros((R, T, B, 3))
-    pmask = np.zeros((R, T, B))
-    quat = np.tile(np.array([1.0, 0, 0, 0]), (R, T, B, 1))
-    qmask = np.zeros((R, T, B))
-    times = np.zeros((R, T))
-    starts = []
-    s_init = sim.init_state()
-    for r, rec in enumerate(records):
-        n = len(rec.t)
-        u = (rec.t - rec.t[0]) / (save_every * sim.dt)
-        i0 = np.clip(np.floor(u + 1e-9).astype(int), 0, steps // save_every - 1)
-        index[r, :n] = i0
-        frac[r, :n] = np.clip(u - i0, 0.0, 1.0)
-        frac[r, :n] = np.where(np.abs(frac[r, :n]) < 1e-9, 0.0, frac[r, :n])
-        times[r, :n] = rec.t - rec.t[0]
-        state = s_init
-        for b, name in enumerate(names):
-            br = rec.bodies.get(name)
-            if br is None:
-                continue
-            p = np.asarray(br.position, float)
-            pos[r, :n, b] = np.nan_to_num(p)
-            pmask[r, :n, b] = np.all(np.isfinite(p), axis=1)
-            q = None if br.quaternion is None else np.asarray(br.quaternion, float)
-            if q is not None and scene.bodies[idx[b]].rigid:
-                okq = np.all(np.isfinite(q), axis=1)
-                quat[r, :n, b] = np.where(okq[:, None], np.nan_to_num(q), quat[r, :n, b])
-                qmask[r, :n, b] = okq
-            else:
-                q = None
-            p0, v0, q0, w0 = first_state(scene, int(idx[b]), rec.t, p, q, br.velocity,
-                                         br.angular_velocity, estimate=estimate,
-                                         max_frames=max_frames)
-            state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
-                                   orientation=q0, angular_velocity=w0, frame="world")
-        starts.append(state)
-    start = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *starts)
-    valid = pmask.sum(axis=(1, 2)) + qmask.sum(axis=(1, 2))
-    if np.any(valid == 0):
-        bad = [records[r].path for r in np.nonzero(valid == 0)[0]]
-        raise FitError(f"records {bad} have no measured sample of the scene's bodies.")
-    return Batch(start, int(steps), int(save_every), index, frac, pos, pmask, quat, qmask,
-                 1.0 / np.maximum(pmask.sum(axis=(1, 2)), 1.0), idx, names, size, times,
-                 np.array([len(r.t) for r in records]), [r.path for r in records])
-
-
-# --------------------------------------------------------------------------- rollouts
-def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False):
-    """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
-    batch's bodies at the frame times, each record rolled out from its own start state.
-    With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
-    (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
-    a result. Pure: jit, grad and jacfwd it."""
-    from .stable import rollout_unstable
-    idx = batch.bodies
-    rot = sim.scene.has_rotation and batch.has_rotation
-
-    def observe(s):
-        return (s.position[idx], s.orientation[idx] if rot else None)
-
-    def one(state, index, frac):
-        traj = sim.rollout(params, batch.steps, state, save_every=batch.save_every,
-                           observe=observe, check_finite=False, check_stability=False)
-        p = jnp.concatenate([state.position[idx][None], traj.observed[0]])
-        pa, pb = p[index], p[jnp.minimum(index + 1, p.shape[0] - 1)]
-        f = frac[:, None, None].astype(p.dtype)
-        pos = pa + f * (pb - pa)
-        bad = (rollout_unstable(sim, traj, params),) if with_flag else ()
-        if not rot:
-            return (pos, None) + bad
-        q = jnp.concatenate([state.orientation[idx][None], traj.observed[1]])
-        qa, qb = q[index], q[jnp.minimum(index + 1, q.shape[0] - 1)]
-        qb = jnp.where(jnp.sum(qa * qb, -1, keepdims=True) < 0, -qb, qb)
-        qi = qa + f * (qb - qa)
-        return (pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)) + bad
-    return jax.vmap(one)(batch.start, jnp.asarray(batch.index), jnp.asarray(batch.frac))
-
-
-def _qmul_j(a, b):
-    w1, x1, y1, z1 = (a[..., i] for i in range(4))
-    w2, x2, y2, z2 = (b[..., i] for i in range(4))
-    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                      w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                      w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
-
-
-def rotation_angle(q_sim, q_data):
-    """Angle (rad) of ``q_sim^-1 q_data`` for unit quaternions (..., 4)."""
-    d = jnp.abs(jnp.sum(q_sim * q_data, axis=-1))
-    return 2.0 * jnp.arccos(jnp.clip(d, 0.0, 1.0))
-
-
-def _norm_residual(e, eps: float = 1e-3):
-    """Per-sample scalar residual whose square is ``sqrt(|e|^2 + eps^2)`` (~ ``|e|``)."""
-    return (jnp.sum(e * e, axis=-1) + eps * eps) ** 0.25
-
-
-def pose_residuals(pos, quat, batch: Batch, *, rot_weight: float = ROT_WEIGHT,
-                   horizon=None, loss: str = "l2"):
-    """The pose-loss residuals (flat vector) of simulated ``pos`` / ``quat`` against the
-    batch (see the module docstring); ``horizon`` (s, traced ok): frames after it weigh 0.
-    ``loss="l1"``: one residual per sample whose square is the error's norm (smoothed by
-    1e-3 at zero), so the cost is the mean error itself, the quantity
-    :mod:`tuning.evaluate` reports, and a record that drifts apart weighs less than in
-    the squared loss."""
-    w = jnp.sqrt(jnp.asarray(batch.weight / (batch.n_records or len(batch.weight))))[
-        :, None, None]
-    live = 1.0 if horizon is None else (jnp.asarray(batch.time) <= horizon)[:, :, None]
-    pm = jnp.asarray(batch.pos_mask) * live
-    e_pos = (pos - batch.pos) / jnp.asarray(batch.size)[None, None, :, None]
-    if loss == "l1":
-        out = [(_norm_residual(e_pos) * w * pm).reshape(-1)]
-    else:
-        out = [(e_pos * (w * pm)[..., None]).reshape(-1)]
-    if quat is not None and batch.has_rotation:
-        qm = jnp.asarray(batch.quat_mask) * live
-        dq = _qmul_j(quat * jnp.array([1.0, -1.0, -1.0, -1.0]), jnp.asarray(batch.quat))
-        sgn = jnp.where(dq[..., :1] < 0, -1.0, 1.0)
-        e_rot = 2.0 * sgn * dq[..., 1:] * rot_weight
-        if loss == "l1":
-            out.append((_norm_residual(e_rot) * w * qm).reshape(-1))
-        else:
-            out.append((e_rot * (w * qm)[..., None]).reshape(-1))
-    return jnp.concatenate(out)
-
-
 # --------------------------------------------------------------------------- fit
 @dataclasses.dataclass
 class TrajFitResult:
@@ -555,25 +176,6 @@ class TrajFitResult:
                 "undetermined": self.undetermined, "cost_start": self.cost_start,
                 "cost": self.cost, "horizons": self.horizons, "iterations": self.iterations,
                 "seconds": self.seconds, "message": self.message, "unstable": self.unstable}
-
-
-def prepare_buckets(sim: dp.Simulator, records, *, buckets: int = 3, **kw) -> list:
-    """:func:`prepare` the records in ``buckets`` batches of similar duration (sorted by
-    duration, equal counts), each rolled out only as long as its longest record: records of
-    0.5-3 s then cost about their own length, not the longest one's. The pose loss over the
-    list is the loss over all records (each batch averages over all of them). ``kw``: as
-    :func:`prepare`."""
-    if not records:
-        raise FitError("no records: give at least one record file.")
-    order = sorted(range(len(records)), key=lambda i: float(records[i].t[-1] - records[i].t[0]))
-    groups = [g for g in np.array_split(np.array(order), max(1, min(buckets, len(records))))
-              if len(g)]
-    out = []
-    for g in groups:
-        b = prepare(sim, [records[i] for i in g], **kw)
-        b.n_records = len(records)
-        out.append(b)
-    return out
 
 
 def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,

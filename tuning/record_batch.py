@@ -1,0 +1,210 @@
+"""Records padded into one batch and rolled out together (used by :mod:`tuning.trajfit`).
+
+:func:`prepare` turns records into one padded :class:`Batch`: each record's start state
+(:func:`tuning.first_state.first_state`), the frame times as indices into one rollout, and
+masks for missing samples and for records shorter than the longest;
+:func:`prepare_buckets` makes several batches of similar duration. :func:`simulate` rolls
+every record out from its own start state under ``jax.vmap`` (one compiled function for
+all) and samples positions and orientations at the frame times (linear interpolation when
+the frames do not fall on steps).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+
+from .first_state import first_state
+from .fit import FitError
+from .pose import body_size
+
+__all__ = ["Batch", "prepare", "prepare_buckets", "simulate"]
+
+
+@dataclasses.dataclass
+class Batch:
+    """Records padded into arrays for one vmapped rollout (R records, T frames, B bodies).
+
+    start: a :class:`diffpen.State` whose leaves have a leading axis R.
+    steps: rollout length in steps (static).  save_every: steps between saved states.
+    index: (R, T) int, saved-state index at or before each frame (0 = the start state).
+    frac: (R, T) interpolation weight towards the next saved state.
+    pos: (R, T, B, 3) m.  pos_mask: (R, T, B) 1 where measured.
+    quat: (R, T, B, 4).  quat_mask: (R, T, B) 1 where measured (all 0 without quaternions).
+    weight: (R,) per-record weight ``1 / (number of valid samples)``.
+    n_records: how many records the loss averages over (R, or all the buckets' records
+    when this batch is one of :func:`prepare_buckets`).
+    bodies: (B,) body indices.  names: B body names.  size: (B,) m.  time: (R, T) s from
+    each record's first frame.  length: (R,) frames per record.  paths: R record paths.
+    """
+    start: dp.State
+    steps: int
+    save_every: int
+    index: np.ndarray
+    frac: np.ndarray
+    pos: np.ndarray
+    pos_mask: np.ndarray
+    quat: np.ndarray
+    quat_mask: np.ndarray
+    weight: np.ndarray
+    bodies: np.ndarray
+    names: list
+    size: np.ndarray
+    time: np.ndarray
+    length: np.ndarray
+    paths: list
+    n_records: int = 0
+
+    @property
+    def has_rotation(self) -> bool:
+        return bool(self.quat_mask.any())
+
+
+def _body_map(scene, records, bodies):
+    names = list(dict.fromkeys(n for r in records for n in r.bodies))
+    if bodies is None:
+        free = [i for i, b in enumerate(scene.bodies) if not b.pinned]
+        if len(names) == 1 and len(free) == 1:
+            return {names[0]: free[0]}
+        bodies = {}
+        for n in names:
+            try:
+                bodies[n] = int(n)
+            except (TypeError, ValueError):
+                raise FitError(f"record body {n!r}: give bodies={{name: body index}} (or name "
+                               "the scene's bodies) to say which body it is.") from None
+    for n in names:
+        if n not in bodies:
+            raise FitError(f"record body {n!r} is not in bodies {sorted(bodies)}.")
+        i = bodies[n]
+        if not 0 <= i < scene.n_bodies:
+            raise FitError(f"record body {n!r} maps to body {i}, not in the scene "
+                           f"({scene.n_bodies} bodies).")
+    return {n: bodies[n] for n in names}
+
+
+def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
+            estimate: str = "record", max_frames: int = 10) -> Batch:
+    """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
+    ``estimate``). ``bodies``: ``{record body name: scene body index}``; default: the only
+    free body for one-body records, else names that are indices."""
+    if not records:
+        raise FitError("no records: give at least one record file.")
+    scene = sim.scene
+    bmap = _body_map(scene, records, bodies)
+    names = list(bmap)
+    idx = np.array([bmap[n] for n in names], dtype=np.int32)
+    size = np.array([body_size(scene, i, idx) for i in idx])
+    R, B = len(records), len(names)
+    T = max(len(r.t) for r in records)
+    durations = [float(r.t[-1] - r.t[0]) for r in records]
+    frame_dt = float(np.median(np.concatenate([np.diff(r.t) for r in records
+                                                if len(r.t) > 1] or [np.array([sim.dt])])))
+    save_every = max(1, int(round(frame_dt / sim.dt)))
+    ratio = [(r.t - r.t[0]) / (save_every * sim.dt) for r in records]
+    if not all(np.allclose(u, np.round(u), atol=1e-6) for u in ratio):
+        save_every = 1
+    n_saves = int(math.ceil(max(durations) / (save_every * sim.dt) - 1e-9)) + 1
+    steps = max(1, n_saves) * save_every
+    index = np.zeros((R, T), np.int32)
+    frac = np.zeros((R, T))
+    pos = np.zeros((R, T, B, 3))
+    pmask = np.zeros((R, T, B))
+    quat = np.tile(np.array([1.0, 0, 0, 0]), (R, T, B, 1))
+    qmask = np.zeros((R, T, B))
+    times = np.zeros((R, T))
+    starts = []
+    s_init = sim.init_state()
+    for r, rec in enumerate(records):
+        n = len(rec.t)
+        u = (rec.t - rec.t[0]) / (save_every * sim.dt)
+        i0 = np.clip(np.floor(u + 1e-9).astype(int), 0, steps // save_every - 1)
+        index[r, :n] = i0
+        frac[r, :n] = np.clip(u - i0, 0.0, 1.0)
+        frac[r, :n] = np.where(np.abs(frac[r, :n]) < 1e-9, 0.0, frac[r, :n])
+        times[r, :n] = rec.t - rec.t[0]
+        state = s_init
+        for b, name in enumerate(names):
+            br = rec.bodies.get(name)
+            if br is None:
+                continue
+            p = np.asarray(br.position, float)
+            pos[r, :n, b] = np.nan_to_num(p)
+            pmask[r, :n, b] = np.all(np.isfinite(p), axis=1)
+            q = None if br.quaternion is None else np.asarray(br.quaternion, float)
+            if q is not None and scene.bodies[idx[b]].rigid:
+                okq = np.all(np.isfinite(q), axis=1)
+                quat[r, :n, b] = np.where(okq[:, None], np.nan_to_num(q), quat[r, :n, b])
+                qmask[r, :n, b] = okq
+            else:
+                q = None
+            p0, v0, q0, w0 = first_state(scene, int(idx[b]), rec.t, p, q, br.velocity,
+                                         br.angular_velocity, estimate=estimate,
+                                         max_frames=max_frames)
+            state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
+                                   orientation=q0, angular_velocity=w0, frame="world")
+        starts.append(state)
+    start = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *starts)
+    valid = pmask.sum(axis=(1, 2)) + qmask.sum(axis=(1, 2))
+    if np.any(valid == 0):
+        bad = [records[r].path for r in np.nonzero(valid == 0)[0]]
+        raise FitError(f"records {bad} have no measured sample of the scene's bodies.")
+    return Batch(start, int(steps), int(save_every), index, frac, pos, pmask, quat, qmask,
+                 1.0 / np.maximum(pmask.sum(axis=(1, 2)), 1.0), idx, names, size, times,
+                 np.array([len(r.t) for r in records]), [r.path for r in records])
+
+
+def prepare_buckets(sim: dp.Simulator, records, *, buckets: int = 3, **kw) -> list:
+    """:func:`prepare` the records in ``buckets`` batches of similar duration (sorted by
+    duration, equal counts), each rolled out only as long as its longest record: records of
+    0.5-3 s then cost about their own length, not the longest one's. The pose loss over the
+    list is the loss over all records (each batch averages over all of them). ``kw``: as
+    :func:`prepare`."""
+    if not records:
+        raise FitError("no records: give at least one record file.")
+    order = sorted(range(len(records)), key=lambda i: float(records[i].t[-1] - records[i].t[0]))
+    groups = [g for g in np.array_split(np.array(order), max(1, min(buckets, len(records))))
+              if len(g)]
+    out = []
+    for g in groups:
+        b = prepare(sim, [records[i] for i in g], **kw)
+        b.n_records = len(records)
+        out.append(b)
+    return out
+
+
+# --------------------------------------------------------------------------- rollouts
+def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False):
+    """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
+    batch's bodies at the frame times, each record rolled out from its own start state.
+    With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
+    (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
+    a result. Pure: jit, grad and jacfwd it."""
+    from .stable import rollout_unstable
+    idx = batch.bodies
+    rot = sim.scene.has_rotation and batch.has_rotation
+
+    def observe(s):
+        return (s.position[idx], s.orientation[idx] if rot else None)
+
+    def one(state, index, frac):
+        traj = sim.rollout(params, batch.steps, state, save_every=batch.save_every,
+                           observe=observe, check_finite=False, check_stability=False)
+        p = jnp.concatenate([state.position[idx][None], traj.observed[0]])
+        pa, pb = p[index], p[jnp.minimum(index + 1, p.shape[0] - 1)]
+        f = frac[:, None, None].astype(p.dtype)
+        pos = pa + f * (pb - pa)
+        bad = (rollout_unstable(sim, traj, params),) if with_flag else ()
+        if not rot:
+            return (pos, None) + bad
+        q = jnp.concatenate([state.orientation[idx][None], traj.observed[1]])
+        qa, qb = q[index], q[jnp.minimum(index + 1, q.shape[0] - 1)]
+        qb = jnp.where(jnp.sum(qa * qb, -1, keepdims=True) < 0, -qb, qb)
+        qi = qa + f * (qb - qa)
+        return (pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)) + bad
+    return jax.vmap(one)(batch.start, jnp.asarray(batch.index), jnp.asarray(batch.frac))

@@ -1,0 +1,204 @@
+"""Reading a TOML scene file: :func:`load_scene_file` and the loader's top level (run
+settings, broad phase), which calls the element, size and ``[fit]`` readers."""
+from __future__ import annotations
+
+import os
+import tomllib
+
+import diffpen as dp
+
+from .. import validate as V
+from ..scenes import SceneSetup
+from ..validate import SceneFileError, Where
+from .elements import _ElementTables
+from .fitspec import _FitTable
+from .record import SceneFile
+from .schema import (MAX_BODIES, MAX_COORD, MAX_DENSE_PAIRS, MAX_STEPS, MAX_TRAJECTORY_BYTES,
+                     TOP, _NAME, _takes)
+from .sizes import _SizeGuards
+
+
+# --------------------------------------------------------------------------- loading
+def load_scene_file(path, *, max_steps: int = MAX_STEPS, max_bodies: int = MAX_BODIES,
+                    max_dense_pairs: int = MAX_DENSE_PAIRS,
+                    max_trajectory_bytes: int = MAX_TRAJECTORY_BYTES) -> SceneFile:
+    """Read and validate a TOML scene file (schema in the module docstring). Nothing is
+    compiled; the size guards (steps, bodies, contact pairs without a broad phase, trajectory
+    memory) are checked from estimates before the scene is built.
+    Raises :class:`SceneFileError` with the file, the key and the fix."""
+    path = os.fspath(path)
+    text = V.read_text_file(path, "TOML scene")
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneFileError(f"{path} is not valid TOML: {exc}.", path=path) from None
+    return _Loader(path, doc, max_steps=max_steps, max_bodies=max_bodies,
+                   max_dense_pairs=max_dense_pairs,
+                   max_trajectory_bytes=max_trajectory_bytes).load()
+
+
+class _Loader(_ElementTables, _SizeGuards, _FitTable):
+    def __init__(self, path, doc, **limits):
+        self.path, self.doc, self.limits = path, doc, limits
+        self.root = Where(path)
+        self.names: dict = {}
+        self.nodes: dict = {}
+        self.plane_names: dict = {}
+
+    # ---------------------------------------------------------------- helpers
+    def w(self, *parts) -> Where:
+        w = self.root
+        for p in parts:
+            w = w / p
+        return w
+
+    def entries(self, key: str) -> list:
+        if key not in self.doc:
+            return []
+        return V.tables(self.w(key), self.doc[key], header=key)
+
+    def call(self, w: Where, fn, *args, **kw):
+        try:
+            return fn(*args, **kw)
+        except dp.SceneError as exc:
+            if isinstance(exc, SceneFileError):
+                raise
+            raise w.error(str(exc)) from None
+
+    def name(self, w: Where, v, taken: dict) -> str:
+        V.string(w, v)
+        if not _NAME.match(v):
+            raise w.error(f"{v!r} is not a valid name: use letters, digits, '_' or '-', "
+                          "starting with a letter or '_'.")
+        if v in taken or v in self.nodes:
+            raise w.error(f"{v!r} is used twice: names must differ.")
+        return v
+
+    @staticmethod
+    def point(w: Where, v, unit: str = "m") -> tuple:
+        """A position (m) within MAX_COORD of the origin."""
+        return V.vector(w, v, unit=unit, limit=MAX_COORD)
+
+    def require(self, w: Where, e: dict, key: str):
+        if key not in e:
+            raise w.error(f"is missing required key {key!r}.")
+        return e[key]
+
+    # ---------------------------------------------------------------- top level
+    def load(self) -> SceneFile:
+        doc, root = self.doc, self.root
+        V.check_keys(root, doc, TOP)
+        dt = V.number(self.w("dt"), doc.get("dt", 1e-3), low=0.0, low_open=True, unit="s")
+        duration = V.number(self.w("duration"), doc.get("duration", 3.0), low=0.0,
+                            low_open=True, unit="s")
+        gravity = V.vector(self.w("gravity"), doc.get("gravity", [0.0, 0.0, -9.81]),
+                           unit="m/s^2")
+        law = V.choice(self.w("law"), doc.get("law", "linear"), sorted(dp.laws.CONTACT_LAWS))
+        opts = {"law": law}
+        if "exponent" in doc:
+            opts["exponent"] = V.number(self.w("exponent"), doc["exponent"], low=1.0)
+        if "integrator" in doc:
+            opts["integrator"] = V.choice(self.w("integrator"), doc["integrator"],
+                                          sorted(dp.integrators.INTEGRATORS))
+        if "smoothing" in doc:
+            s = doc["smoothing"]
+            opts["smoothing"] = ("auto" if s == "auto" else
+                                 V.number(self.w("smoothing"), s, low=0.0,
+                                          unit='m (or "auto")'))
+        if "substeps" in doc:
+            s = doc["substeps"]
+            opts["substeps"] = "auto" if s == "auto" else V.integer(self.w("substeps"), s,
+                                                                     low=1)
+        bp = self.broadphase()
+        if bp is not None:
+            opts["broadphase"] = bp
+        k = V.number(self.w("k"), doc["k"], low=0.0, unit="N/m") if "k" in doc else None
+        c = V.number(self.w("c"), doc["c"], low=0.0, unit="N s/m") if "c" in doc else None
+        self.check_sizes(dt, duration, bp is not None)
+        self.dt = dt
+
+        overlap = V.boolean(self.w("allow_overlap"), doc.get("allow_overlap", False))
+        scene = (dp.Scene(gravity=gravity, allow_overlap=True)
+                 if overlap and _takes(dp.Scene, "allow_overlap") else dp.Scene(gravity=gravity))
+        self.scene = scene
+        if "plastic_smoothing" in doc:
+            scene.plastic_smoothing = V.number(self.w("plastic_smoothing"),
+                                               doc["plastic_smoothing"], low=0.0)
+        self.materials()
+        self.spring_groups()
+        self.bodies()
+        self.builders()
+        if not scene.bodies:
+            raise root.error("has no bodies; add a [[spheres]], [[particles]], [[boxes]], "
+                             "[[rigid_spheres]] entry or a builder ([[ropes]], [[cloths]], "
+                             "[[jellies]], [[crumple_bars]]).")
+        self.colliders()
+        self.springs()
+        self.drag()
+        mats = [m for m in scene.materials.values() if m.k is not None]
+        k = k if k is not None else (mats[0].k if mats else 1e4)
+        cs = [m.c for m in scene.materials.values() if m.c is not None]
+        c = c if c is not None else (cs[0] if cs else 10.0)
+        desc = doc.get("description", os.path.basename(self.path))
+        V.string(self.w("description"), desc)
+        fit_raw = doc.get("fit")
+        sf = SceneFile(path=self.path, setup=None, fit=fit_raw, names=self.names,
+                       planes=self.plane_names, nodes=self.nodes, compile_options=opts)
+        spec = None
+        if fit_raw is not None:
+            spec = self.fit(sf, k, c)
+        body = spec.body if spec else 0
+        plane = spec.plane if spec else 0
+        ball_like = (scene.planes and scene.bodies[body].radius > 0
+                     and scene.bodies[body].kind == "sphere" and not scene.bodies[body].rigid)
+        sf.setup = SceneSetup(
+            scene=scene, dt=dt, steps=max(1, round(duration / dt)), k=k, c=c, law=law,
+            body=body if scene.planes else None,
+            metrics=_metrics(body, plane, spec.settle_tol if spec else 1e-3)
+            if ball_like else None, description=desc,
+            compile_options={key: v for key, v in opts.items() if key != "law"})
+        sf.spec = spec
+        return sf
+
+    def broadphase(self):
+        if "broadphase" not in self.doc:
+            return None
+        w = self.w("broadphase")
+        t = self.doc["broadphase"]
+        if isinstance(t, str):
+            t = {"kind": t}
+        V.table(w, t, example='broadphase = { kind = "grid" }')
+        kind = V.choice(w / "kind", self.require(w, t, "kind"), ["aabb", "grid"])
+        keys = ({"kind", "max_pairs", "margin"} if kind == "aabb" else
+                {"kind", "max_pairs", "margin", "cell_size", "max_per_cell", "bounds"})
+        V.check_keys(w, t, keys)
+        kw = {}
+        if "max_pairs" in t:
+            kw["max_pairs"] = V.integer(w / "max_pairs", t["max_pairs"], low=1)
+        if "margin" in t:
+            kw["margin"] = V.number(w / "margin", t["margin"], low=0.0, unit="m")
+        if kind == "aabb":
+            return dp.broadphase.AABB(**kw)
+        if "cell_size" in t:
+            kw["cell_size"] = V.number(w / "cell_size", t["cell_size"], low=0.0,
+                                       low_open=True, unit="m")
+        if "max_per_cell" in t:
+            kw["max_per_cell"] = V.integer(w / "max_per_cell", t["max_per_cell"], low=1)
+        if "bounds" in t:
+            b = t["bounds"]
+            if not isinstance(b, list) or len(b) != 2:
+                raise (w / "bounds").error("must be [[x0, y0, z0], [x1, y1, z1]] (m).")
+            kw["bounds"] = tuple(V.vector(w / "bounds" / i, x, unit="m")
+                                 for i, x in enumerate(b))
+        return dp.broadphase.Grid(**kw)
+
+
+def _metrics(body, plane, tol):
+    def metrics(sim, traj, params):
+        import jax
+
+        from ..metrics import ball_metrics
+        f = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, body=body, plane=plane, n_apex=3,
+                                               settle_tol=tol))
+        return f(traj, params).as_dict()
+    return metrics
