@@ -1,0 +1,297 @@
+"""Scene bounds: each force term's Gershgorin rows (:class:`Bound`) summed per body into the
+rates of ``M^-1 K`` and ``M^-1 C`` (:func:`rates`), evaluated with numpy (up-front check,
+reports) or with ``jax.numpy`` inside the traced rollout (:func:`unsafe`, the ``FLAG``).
+See :mod:`diffpen.stability` for the overview.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, NamedTuple
+
+import numpy as np
+
+from ..integrators import Integrator
+from .modes import SAFE_CH, SAFE_WH, _spectral_radius_2x2
+
+__all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG"]
+
+#: ``State.aux`` key of the traced stability flag: a bool scalar, True once a rollout ran a
+#: step past the safe step for its parameter values (sticky).
+FLAG = "unstable"
+
+
+def _value(x):
+    """Concrete float array of a parameter value, or None when it is an abstract tracer."""
+    import jax
+    if isinstance(x, jax.core.Tracer):
+        try:
+            x = x.to_concrete_value()
+        except Exception:  # noqa: BLE001 - any failure means "not concrete"
+            return None
+        if x is None:
+            return None
+    return np.asarray(x, dtype=float)
+
+
+class Bound(NamedTuple):
+    """Static rows of one force term's Gershgorin bounds on ``M^-1 K`` and ``M^-1 C``
+    (physics-notes.md section 4), carried by the term (:class:`diffpen.terms.Term`).
+
+    Row r adds ``k_weight[r] * k`` and ``c_weight[r] * c`` of its parameter to the stiffness
+    (1/s^2) and damping (1/s) rows of body ``body[r]``.
+
+    body: (m,) int body indices.
+    param: ``"contact"`` (params.contact), ``"springs"`` (params.springs), or the name of a
+      ``Params.extra`` entry whose values act as damping (``"friction"``: mu, with
+      ``c_weight`` in 1/s per unit mu and no stiffness).
+    names: the material / group names that ``key`` indexes.  key: (m,) int.
+    k_weight, c_weight: (m,): dimensionless factors when ``per_mass`` (the row is divided by
+      its body's mass), else mobilities in 1/kg that include rotation (``r^2 / I``).
+    per_mass: see above.
+    combine: ``"sum"`` (rows add), or ``"contact"``: one contact at a time: a body's contact
+      rows of every term give their largest (the stiffest contact it can make), scaled by the
+      contact law's stiffness at a reference depth, and counted in the contact rates that set
+      the safe step (``SAFE_WH``).
+    packed: (m,) multiplicities for the packed bound (every candidate neighbour touching at
+      once; 0 for rows that stay one at a time), or None.
+    labels: (m,) what each row is, in words (names the limit in reports).
+    label: one text for all the rows of the block (their per-body sum names the limit), or
+      None (then ``labels``).
+    """
+    body: np.ndarray
+    param: str
+    names: tuple
+    key: np.ndarray
+    k_weight: np.ndarray
+    c_weight: np.ndarray
+    per_mass: bool = True
+    combine: str = "sum"
+    packed: np.ndarray | None = None
+    labels: tuple = ()
+    label: str | None = None
+
+    @staticmethod
+    def of(rows, param: str, **kw) -> "Bound | None":
+        """A Bound from rows ``(body, name, k_weight, c_weight, label)``, or None if empty."""
+        if not rows:
+            return None
+        names = tuple(dict.fromkeys(r[1] for r in rows))
+        packed = kw.pop("packed", None)
+        return Bound(np.array([r[0] for r in rows], dtype=int), param, names,
+                     np.array([names.index(r[1]) for r in rows], dtype=int),
+                     np.array([r[2] for r in rows], dtype=float),
+                     np.array([r[3] for r in rows], dtype=float),
+                     packed=None if packed is None else np.asarray(packed, dtype=float),
+                     labels=tuple(r[4] for r in rows), **kw)
+
+
+class Analysis(NamedTuple):
+    """Static data of one simulator's stability analysis (built by ``diffpen.compile``).
+
+    integrator: :class:`diffpen.integrators.Integrator`.  dt: saved step, s.
+    substeps: the simulator's inner steps per step (int), or "auto".
+    mass: (n,) kg.  pinned: (n,) bool.  d_ref: (n,) m, reference penetration of each body
+      (its radius, at least 1 mm) for contact laws whose stiffness grows with depth.
+    bounds: every term's :class:`Bound` blocks, in term order.
+    contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
+      and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
+    dtype: the simulator's float dtype.
+    """
+    integrator: Integrator
+    dt: float
+    substeps: Any
+    mass: np.ndarray
+    pinned: np.ndarray
+    d_ref: np.ndarray
+    bounds: tuple
+    contact_scale: Callable | None
+    dtype: Any
+
+    @property
+    def inner_dt(self) -> float:
+        """dt / substeps (s), with one substep for "auto"."""
+        return self.dt / (self.substeps if isinstance(self.substeps, int) else 1)
+
+
+class Rates(NamedTuple):
+    """Gershgorin rows per body: K_row (n,) 1/s^2 of ``M^-1 K``, C_row (n,) 1/s of
+    ``M^-1 C``; Kc, Cc (n,) the contact parts alone; ``source(i)`` names what sets body i's
+    stiffest entry (numpy evaluation only, else None)."""
+    K_row: Any
+    C_row: Any
+    Kc: Any
+    Cc: Any
+    source: Callable | None
+
+
+def _block_values(block: Bound, params, xp):
+    """(k (p,) or None, c (p,)) of the block's parameters, each the max over any batch axis,
+    or None when some value is abstract (numpy evaluation)."""
+    if block.param == "contact":
+        pairs = [params.contact[n] for n in block.names]
+    elif block.param == "springs":
+        pairs = [params.springs[n] for n in block.names]
+    else:
+        pairs = [(None, params.extra[block.param][n]) for n in block.names]
+    ks, cs = [], []
+    for k, c in pairs:
+        if xp is np:
+            c = _value(c)
+            k = None if k is None else _value(k)
+            if c is None or (k is None and block.param in ("contact", "springs")):
+                return None
+            cs.append(float(np.max(c)))
+            if k is not None:
+                ks.append(float(np.max(k)))
+        else:
+            cs.append(xp.max(xp.asarray(c)))
+            if k is not None:
+                ks.append(xp.max(xp.asarray(k)))
+    return (xp.stack(ks) if xp is not np else np.array(ks)) if ks else None, \
+        (xp.stack(cs) if xp is not np else np.array(cs))
+
+
+def _at(xp, arr, idx, vals, op):
+    if xp is np:
+        (np.add if op == "add" else np.maximum).at(arr, idx, vals)
+        return arr
+    ref = arr.at[idx]
+    return ref.add(vals) if op == "add" else ref.max(vals)
+
+
+def rates(an: Analysis, params, *, xp=np, packed: bool = False) -> Rates | None:
+    """Sum the terms' bounds for ``params``: :class:`Rates`, or None when some parameter is
+    an abstract tracer (numpy evaluation).
+
+    ``xp=jax.numpy`` evaluates the same rows on traced values (inside jit, vmap, grad);
+    ``packed=True`` counts every candidate sphere neighbour (at most 12) instead of one.
+    Pinned bodies have rows 0.
+    """
+    n = len(an.mass)
+    zeros = (lambda: np.zeros(n)) if xp is np else (lambda: xp.zeros(n, an.dtype))
+    cast = (lambda a: a) if xp is np else (lambda a: xp.asarray(a, an.dtype))
+    kr, cr, ck, ccr, ek, ec = (zeros() for _ in range(6))
+    spring_rows, contact_rows, grouped = [], [], {}
+    contacts = []
+    for block in an.bounds:
+        vals = _block_values(block, params, xp)
+        if vals is None:
+            return None
+        kv, cv = vals
+        if xp is not np:
+            kv = None if kv is None else cast(kv)
+            cv = cast(cv)
+        kk = None if kv is None else cast(block.k_weight) * kv[block.key]
+        cc = cast(block.c_weight) * cv[block.key]
+        if block.combine == "contact":
+            if an.contact_scale is not None:
+                kk, cc = an.contact_scale(kk, cc, cast(an.d_ref[block.body]))
+            contacts.append((block, kk, cc))
+            continue
+        if block.per_mass:
+            if kk is not None:
+                kr = _at(xp, kr, block.body, kk, "add")
+            cr = _at(xp, cr, block.body, cc, "add")
+        else:
+            if kk is not None:
+                ek = _at(xp, ek, block.body, kk, "add")
+            ec = _at(xp, ec, block.body, cc, "add")
+        if xp is np and kk is not None:
+            if block.label is not None:
+                tot = grouped.setdefault(block.label, np.zeros(n))
+                np.add.at(tot, block.body, kk)
+            elif block.per_mass:
+                spring_rows += [(int(b), float(v), lab)
+                                for b, v, lab in zip(block.body, kk, block.labels)]
+    # one contact at a time: the stiffest contact of each body; packed: every candidate
+    # neighbour at once (rows with a multiplicity) on top of the stiffest other contact
+    for block, kk, cc in contacts:
+        keep = None if not packed or block.packed is None else block.packed == 0.0
+        if keep is None:
+            ck = _at(xp, ck, block.body, kk, "max")
+            ccr = _at(xp, ccr, block.body, cc, "max")
+        elif keep.any():
+            ck = _at(xp, ck, block.body[keep], kk[keep], "max")
+            ccr = _at(xp, ccr, block.body[keep], cc[keep], "max")
+        if xp is np:
+            contact_rows += [(int(b), float(v), lab)
+                             for b, v, lab in zip(block.body, kk, block.labels)]
+    if packed:
+        for block, kk, cc in contacts:
+            if block.packed is not None and (block.packed != 0.0).any():
+                sel = block.packed != 0.0
+                ck = _at(xp, ck, block.body[sel], (kk * cast(block.packed))[sel], "add")
+                ccr = _at(xp, ccr, block.body[sel], (cc * cast(block.packed))[sel], "add")
+    kr = kr + ck
+    cr = cr + ccr
+    mass = an.mass
+    free = ~np.asarray(an.pinned)
+    K_row = xp.where(free, kr / cast(mass), 0.0)
+    C_row = xp.where(free, cr / cast(mass), 0.0)
+    K_row = K_row + xp.where(free, ek, 0.0)
+    C_row = C_row + ec
+    free_mass = cast(np.where(free, mass, np.inf))
+    if xp is not np:
+        return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, None)
+    best_contact = ck
+    best_spring = np.zeros(n)
+    for b, v, _ in spring_rows:
+        best_spring[b] = max(best_spring[b], v)
+
+    def source(i: int) -> str:
+        """What gives body i its stiffest row entry, in words."""
+        for label, tot in grouped.items():
+            if tot[i] * mass[i] > max(best_contact[i], best_spring[i]) and label:
+                return label
+        if contact_rows and best_contact[i] > best_spring[i]:
+            rows = [r for r in contact_rows if r[0] == i]
+            return max(rows, key=lambda r: r[1])[2]
+        if spring_rows and best_spring[i] > 0.0:
+            rows = [r for r in spring_rows if r[0] == i]
+            return max(rows, key=lambda r: r[1])[2]
+        return ""
+    return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, source)
+
+
+def scene_rates(sim, params, *, packed: bool = False):
+    """Gershgorin rows of ``M^-1 K`` (1/s^2) and ``M^-1 C`` (1/s) per body of a compiled
+    simulator, or None when some parameter is an abstract tracer.
+
+    Returns ``(K_row (n,), C_row (n,), source, Kc (n,), Cc (n,))`` (see :func:`rates`).
+    """
+    r = rates(sim.analysis, params, packed=packed)
+    return None if r is None else (r.K_row, r.C_row, r.source, r.Kc, r.Cc)
+
+
+def unsafe(an: Analysis, params, h=None):
+    """Traced stability flag: a bool scalar, True when an inner step of ``h`` s (default the
+    simulator's) is past the safe step for ``params`` (tracers welcome: jit, vmap, grad).
+
+    The same rows as the up-front check (:func:`rates` with ``jax.numpy``) and the same
+    limits: ``h >= min(stable_dt, SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
+    from the integrator's closed form when it has one (then it agrees with the up-front check
+    to rounding), else from the spectral radius of its amplification matrix at ``h`` for the
+    modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
+    """
+    import jax
+    import jax.numpy as jnp
+    rec = an.integrator
+    if not rec.explicit:
+        return jnp.zeros((), bool)
+    h = an.inner_dt if h is None else h
+    params = jax.lax.stop_gradient(params)
+    r = rates(an, params, xp=jnp)
+    K, C = jnp.max(r.K_row, initial=0.0), jnp.max(r.C_row, initial=0.0)
+    Kc, Cc = jnp.max(r.Kc, initial=0.0), jnp.max(r.Cc, initial=0.0)
+    if rec.stable_dt is not None:
+        sdt = rec.stable_dt(K, C, xp=jnp)
+        sdt = jnp.where((K <= 0.0) & (C <= 0.0), jnp.inf, sdt)
+        bad = sdt <= h
+    else:
+        Ks = jnp.stack([K, K, jnp.zeros_like(K)])
+        Cs = jnp.stack([C, jnp.zeros_like(C), C])
+        rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, h, xp=jnp), jnp)
+        bad = jnp.any(rho > 1.0 + 1e-9)
+    wc = jnp.sqrt(Kc)
+    bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) <= h))
+    bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) <= h))
+    return bad

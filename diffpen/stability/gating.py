@@ -1,0 +1,249 @@
+"""The rollout gate: the up-front check (:func:`gate`, :class:`GateCache`), the
+:class:`StabilityReport` of a compiled scene and the errors that name the safe step and the
+substeps that reach it. See :mod:`diffpen.stability` for the overview.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ..errors import SceneError, StabilityError
+from .bounds import Analysis, rates
+from .modes import SAFE_CH, SAFE_WH, safe_dt, stable_dt
+
+__all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
+
+#: ``substeps="auto"`` refuses to pick more inner steps than this (the run would be too slow).
+MAX_AUTO_SUBSTEPS = 100_000
+
+
+class StabilityReport(NamedTuple):
+    """Stability of a compiled scene for given parameters.
+
+    integrator: name.  dt: saved step, s.  substeps: inner steps per saved step (int).
+    inner_dt: dt / substeps, s.
+    stable_dt: largest linearly stable inner step, s (inf: no limit).
+    margin: stable_dt / inner_dt (> 1 stable; < 1 unstable).
+    stable: margin > 1.
+    safe_dt: largest inner step the rollout accepts, s: ``min(stable_dt, SAFE_WH / w_max,
+      SAFE_CH / C)`` for explicit integrators (inf for implicit ones); see ``SAFE_WH``.
+    safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is <= 1.
+    safe: safe_margin > 1.
+    substeps_needed: smallest substep count whose inner step is within safe_dt.
+    omega_max: bound on the highest angular frequency sqrt(K), rad/s.
+    damping_rate: bound on the largest C, 1/s.
+    limiting_body: body index of the largest K row (None when no springs or contacts).
+    limiting: what sets the limit, in words.
+    packed_dt: stable step if a sphere touches all its candidate sphere neighbours at once.
+    """
+    integrator: str
+    dt: float
+    substeps: int
+    inner_dt: float
+    stable_dt: float
+    margin: float
+    stable: bool
+    safe_dt: float
+    safe_margin: float
+    safe: bool
+    substeps_needed: int
+    omega_max: float
+    damping_rate: float
+    limiting_body: int | None
+    limiting: str
+    packed_dt: float
+
+    def __str__(self) -> str:
+        def fmt(x):
+            return "no limit" if math.isinf(x) else f"{x:.4g} s"
+        verdict = ("ok" if self.safe else "UNSTABLE" if not self.stable
+                   else "stable but past the safe step")
+        return (f"{self.integrator}: inner step {self.inner_dt:.4g} s; stable step "
+                f"{fmt(self.stable_dt)} (margin {self.margin:.3g}); safe step "
+                f"{fmt(self.safe_dt)} (margin {self.safe_margin:.3g}): {verdict}, needs "
+                f"{self.substeps_needed} substep(s); w_max <= {self.omega_max:.4g} rad/s"
+                + (f", set by {self.limiting}" if self.limiting else ""))
+
+
+def _needed(dt: float, sdt: float) -> int:
+    if math.isinf(sdt):
+        return 1
+    if sdt <= 0.0:
+        return MAX_AUTO_SUBSTEPS + 1
+    n = max(1, math.ceil(dt / sdt))
+    while dt / n >= sdt:  # strict: a step equal to the limit is marginal, not stable
+        n += 1
+    return n
+
+
+def _analysis(sim) -> Analysis:
+    return sim if isinstance(sim, Analysis) else sim.analysis
+
+
+def report(sim, params, *, substeps: int | None = None,
+           packed: bool = True) -> StabilityReport | None:
+    """Stability report of ``sim`` (a Simulator or its :class:`Analysis`) for ``params``
+    (None when params are abstract tracers).
+
+    ``substeps`` defaults to the simulator's (1 for ``"auto"``). ``packed=False`` skips the
+    packed-spheres bound (``packed_dt`` is then ``stable_dt``).
+    """
+    an = _analysis(sim)
+    r = rates(an, params)
+    if r is None:
+        return None
+    K_row, C_row, source, Kc, Cc = r.K_row, r.C_row, r.source, r.Kc, r.Cc
+    rec = an.integrator
+    K, C = float(np.max(K_row, initial=0.0)), float(np.max(C_row, initial=0.0))
+    sdt = stable_dt(rec, K, C)
+    pdt = sdt
+    if packed and any(b.packed is not None for b in an.bounds):
+        pk = rates(an, params, packed=True)
+        pdt = stable_dt(rec, float(np.max(pk.K_row, initial=0.0)),
+                        float(np.max(pk.C_row, initial=0.0)))
+    if substeps is None:
+        substeps = an.substeps if isinstance(an.substeps, int) else 1
+    h = an.dt / substeps
+    margin = math.inf if math.isinf(sdt) else sdt / h
+    safe = safe_dt(rec, float(np.max(Kc, initial=0.0)), float(np.max(Cc, initial=0.0)), sdt)
+    safe_margin = math.inf if math.isinf(safe) else safe / h
+    body = int(np.argmax(K_row)) if K > 0.0 else None
+    return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
+                           safe, safe_margin, safe_margin > 1.0,
+                           _needed(an.dt, safe), math.sqrt(K), C, body,
+                           (f"{source(body)} on body {body}" if body is not None else ""),
+                           pdt)
+
+
+class GateCache:
+    """Verdicts of the up-front check (:func:`gate`) per set of scalar parameter values, so
+    a repeated rollout pays a dictionary look-up, not the analysis. An explicit object held
+    by the simulator (``sim.gate_cache``); a traced rollout never reads it (abstract values
+    have no key), so a traced program never depends on earlier calls.
+    """
+
+    def __init__(self, size: int = 1024):
+        self.size = size
+        self._verdicts: dict = {}
+
+    def get(self, key):
+        return None if key is None else self._verdicts.get(key)
+
+    def put(self, key, n: int) -> None:
+        if key is None:
+            return
+        if len(self._verdicts) >= self.size:
+            self._verdicts.clear()
+        self._verdicts[key] = n
+
+    def __len__(self) -> int:
+        return len(self._verdicts)
+
+
+def gate(sim, params, *, check: bool = True, substeps: int | None = None,
+         cache: GateCache | None = None) -> int:
+    """The up-front check ``Simulator.rollout`` runs before tracing. Returns the substep
+    count to use: ``substeps`` when given, the pick of ``substeps="auto"``, else the
+    simulator's own count.
+
+    Raises StabilityError when an explicit integrator would run past its safe step (fixed
+    substeps), or when ``"auto"`` would need more than MAX_AUTO_SUBSTEPS. With abstract
+    (jit-traced) parameters nothing is checked here (the traced flag :func:`unsafe` records
+    it in the rollout instead) and ``"auto"`` raises a SceneError: under tracing the count
+    must be given (``rollout(..., substeps=N)``). ``cache`` memoises verdicts per set of
+    concrete scalar values.
+    """
+    an = _analysis(sim)
+    auto = an.substeps == "auto" and substeps is None
+    fixed = substeps if substeps is not None else (an.substeps if not auto else None)
+    if not an.integrator.explicit:
+        if check and np.dtype(an.dtype).itemsize < 8:
+            _implicit_precision(an, params, fixed or 1)
+        return fixed or 1
+    if not (check or auto):
+        return fixed
+    key = _scalar_key(params)
+    key = None if key is None else (fixed, key)
+    if cache is not None:
+        hit = cache.get(key)
+        if hit is not None:
+            return hit
+    n = _gate(an, params, auto, fixed)
+    if cache is not None:
+        cache.put(key, n)
+    return n
+
+
+#: implicit_euler in a float dtype of machine epsilon eps needs (w h)^2 eps <= this: past it the
+#: identity in (I - h A_v - h^2 A_x) is lost to rounding and a free body's matrix is singular.
+IMPLICIT_PRECISION = 0.1
+
+
+def _implicit_precision(an: Analysis, params, substeps: int) -> None:
+    """Raise StabilityError when implicit_euler's linear system cannot be resolved in the
+    simulator's dtype (float32 with a very stiff, light body and a large step)."""
+    r = rates(an, params)
+    if r is None:
+        return
+    K = float(np.max(r.K_row, initial=0.0))
+    eps = float(np.finfo(np.dtype(an.dtype)).eps)
+    h = an.dt / substeps
+    if K * h * h * eps <= IMPLICIT_PRECISION:
+        return
+    h_ok = math.sqrt(IMPLICIT_PRECISION / (eps * K))
+    n = _needed(an.dt, h_ok)
+    raise StabilityError(
+        f"{an.integrator.name} cannot resolve this system in {np.dtype(an.dtype).name}: "
+        f"(w h)^2 = {K * h * h:.3g} swamps the identity at machine epsilon {eps:.2g} (the "
+        f"matrix is singular in rounding). Use dtype=float64, or a step <= {h_ok:.3g} s "
+        f"(substeps={n}).", stable_dt=h_ok, substeps=n)
+
+
+def _scalar_key(params):
+    """Tuple of the float values of every parameter (contact, springs, extra), or None
+    (arrays, abstract tracers)."""
+    import jax
+    try:
+        return tuple(float(v) for v in jax.tree_util.tree_leaves(params))
+    except Exception:  # noqa: BLE001 - non-scalar or abstract: take the slow path
+        return None
+
+
+def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
+    rep = report(an, params, packed=False, substeps=fixed)
+    if rep is None:
+        if not auto:
+            return fixed
+        raise SceneError(
+            "substeps='auto' picks the substep count from concrete k and c, but rollout "
+            "was traced with abstract parameters (inside jax.jit, vmap or grad). Give the "
+            "count: sim.rollout(params, steps, substeps=N) with N = "
+            "sim.stability(concrete_params).substeps_needed, or compile with substeps=N; "
+            "the rollout's State.aux['unstable'] flag then says whether N was enough.")
+    if auto:
+        n = rep.substeps_needed
+        if n > MAX_AUTO_SUBSTEPS:
+            raise StabilityError(
+                f"substeps='auto' would need {n} substeps per step of dt={an.dt:g} s "
+                f"(safe step {rep.safe_dt:.3g} s, {rep.limiting}): too slow. Lower the "
+                "stiffness, raise the mass, or use integrator='implicit_euler'.",
+                stable_dt=rep.safe_dt, substeps=n)
+        return n
+    if not rep.safe:
+        h = rep.inner_dt
+        why = ("unstable" if not rep.stable else
+               f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
+               f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
+               f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
+               " contact energy errors of several % or more)")
+        raise StabilityError(
+            f"integrator {an.integrator.name!r} is {why} at step {h:.6g} s: the step must be "
+            f"below {rep.safe_dt:.6g} s (linear stability limit {rep.stable_dt:.4g} s; w_max "
+            f"<= {rep.omega_max:.4g} rad/s, C/m <= {rep.damping_rate:.4g} 1/s, set by "
+            f"{rep.limiting or 'the springs and contacts'}). Use dt < {rep.safe_dt:.4g} s, "
+            f"compile with substeps={rep.substeps_needed} (or substeps='auto'), or "
+            "integrator='implicit_euler'.",
+            stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
+    return fixed
