@@ -105,6 +105,8 @@ def test_problem_clips_the_start_and_keeps_the_target_form():
     assert len(pb.start_points([{"contact.rubber.k": 5e4}])) == 2
     with pytest.raises(FitError, match="not fitted"):
         pb.start_points([{"contact.rubber.c": 5.0}])
+    with pytest.raises(FitError, match="finite and > 0"):      # was clipped to lo silently
+        pb.start_points([{"contact.rubber.k": -5.0}])
     zero = dp.Params({"rubber": ContactParams(np.float64(1e4), np.float64(0.0))}, {}, {})
     with pytest.raises(FitError, match="positive start"):
         PB.Problem.build(mfn, zero, {"k": 1.0})

@@ -41,6 +41,10 @@ def test_traced_stability_flag_under_jit_vmap_and_grad():
         assert bool(params_unstable(sim, sim.params(k=float(k), c=1.0))) == bool(flag(k))
     traced = jax.jit(lambda k: params_unstable(sim, sim.params(k=k, c=1.0)))
     assert bool(traced(jnp.nan)) and not bool(traced(0.5 * kmax))     # non-finite: unstable
+    # (N,) contact values (a sweep's points): one flag per point
+    p = sim.params(k=1.0, c=1.0)
+    p = p._replace(contact={"default": p.contact["default"]._replace(k=ks)})
+    np.testing.assert_array_equal(params_unstable(sim, p), [False, False, True, True, True])
 
 
 def test_params_flag_counts_springs_like_the_rollout():

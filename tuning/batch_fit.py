@@ -153,8 +153,8 @@ class BatchFitter:
                            f"{maxiter!r}.")
         leaves = FreeLeaves.build(params0, free, bounds, sim)
         # a point past the safe step is never reached (tuning.stable)
-        self.metrics_fn, self.params0, self.free = with_flag(metrics_fn, sim), params0, \
-            list(leaves.free)
+        self.metrics_fn = with_flag(metrics_fn, sim)
+        self.params0, self.free = params0, list(leaves.free)
         self.x0, self.lo, self.hi = leaves.x0, leaves.lo, leaves.hi
         self.weights, self.rtol = weights, rtol
         self.optimizer = default_optimizer(lr) if optimizer is None else optimizer

@@ -348,16 +348,13 @@ class Problem:
 
     def start_points(self, starts: list | None) -> list:
         """``[theta0, theta_1, ...]``: the log start and one (P,) log point per extra start
-        ``{path: value}`` (paths left out start at ``x0``), clipped to the box."""
-        out = [self.theta0]
-        for st in (starts or []):
-            unknown = set(st) - set(self.free)
-            if unknown:
-                raise FitError(f"start values given for parameters that are not fitted: "
-                               f"{sorted(unknown)}.")
-            x = np.array([float(st.get(p, v)) for p, v in zip(self.free, self.x0)])
-            out.append(np.log(np.clip(x, self.leaves.lo, self.leaves.hi)))
-        return out
+        ``{path: value}`` (paths left out start at ``x0``), clipped to the box
+        (:meth:`FreeLeaves.start_values`)."""
+        if not starts:
+            return [self.theta0]
+        x = self.leaves.start_values([{**dict(zip(self.free, self.x0)), **st}
+                                      for st in starts])
+        return [self.theta0] + list(np.log(x))
 
     def achieved(self, metrics: dict) -> tuple[dict, dict, bool]:
         """:func:`achieved` of concrete ``metrics`` against this problem's targets."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,11 +35,20 @@ def _light_mass(sim) -> float:
 
 
 def params_unstable(sim, params):
-    """Traceable bool scalar: an inner step of ``sim`` is past its safe step for ``params``
+    """Traceable bool: an inner step of ``sim`` is past its safe step for ``params``
     (:func:`diffpen.stability.unsafe` on the simulator's own stability analysis: every term's
     bound, the integrator's limit, the contact limits ``SAFE_WH`` / ``SAFE_CH``), or some
     contact k or c is not finite. Always False for integrators without a step limit (besides
-    the non-finite test). Parameters may be tracers (jit, vmap, grad)."""
+    the non-finite test). Parameters may be tracers (jit, vmap, grad).
+
+    A scalar for scalar contact values; contact k or c given as (N,) arrays (N points, e.g. a
+    sweep's) give (N,) flags, one per point."""
+    if any(jnp.ndim(x) for cp in params.contact.values() for x in cp):
+        axes = params._replace(
+            contact={n: type(cp)(*(0 if jnp.ndim(x) else None for x in cp))
+                     for n, cp in params.contact.items()},
+            springs=None, extra=None)
+        return jax.vmap(lambda p: params_unstable(sim, p), in_axes=(axes,))(params)
     bad = _dp_stability.unsafe(sim.analysis, params)
     for cp in params.contact.values():
         bad = bad | ~jnp.all(jnp.isfinite(jnp.asarray(cp.k))) | ~jnp.all(
