@@ -107,7 +107,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
     evaluated point.
 
     Args:
-      maxiter: iteration limit, shared by all the starts run.
+      maxiter: iteration limit of each LM run (``Solution.iterations`` adds up all runs).
       starts: extra start points ``[{path: value}, ...]``; with the problem's own start they
         are ranked by cost and LM runs from the best ``n_starts`` until one reaches the
         targets; the best result is kept.
