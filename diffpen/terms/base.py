@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..layout import Columns
 from ..scene import DEFAULT, Scene
 from ..state import Params, State
 
@@ -27,9 +28,12 @@ def gather(x, idx: np.ndarray, n: int):
 
 
 def scatter(values, idx: np.ndarray, n: int):
-    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,)."""
+    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,);
+    per column for :class:`diffpen.layout.Columns`."""
     if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
         return values
+    if isinstance(values, Columns):
+        return Columns(*(scatter(v, idx, n) for v in values))
     return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
 
 
@@ -49,17 +53,18 @@ def static_dot(n: np.ndarray, v):
     return jnp.zeros(jnp.shape(v)[:-1], jnp.result_type(v)) if out is None else out
 
 
-def static_scale(f, n: np.ndarray):
+def static_scale(f, n: np.ndarray, *, as_columns: bool = False):
     """``f[:, None] * n`` for a normal ``n`` (m, 3) known when the scene is compiled, built
     column by column so that XLA computes ``f`` once, not once per component, and writes
-    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3)."""
+    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3), or with
+    ``as_columns`` the three (m,) columns as :class:`diffpen.layout.Columns`."""
     cols = []
     for a in range(3):
         col = n[:, a]
         cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
                     else -f if (col == -1.0).all()
                     else f * jnp.asarray(col, jnp.result_type(f)))
-    return jnp.stack(cols, axis=-1)
+    return Columns(*cols) if as_columns else jnp.stack(cols, axis=-1)
 
 
 class Term(NamedTuple):
@@ -79,6 +84,9 @@ class Term(NamedTuple):
       (``ContactLaw.step_force``); without it (or ``h=None``) the instantaneous force.
     bound: the term's rows of the stability bounds, a tuple of
       :class:`diffpen.stability.Bound` (empty: the term adds nothing to the step limit).
+    columns: True when ``force`` returns F as :class:`diffpen.layout.Columns` (three (n,)
+      arrays) instead of (n, 3) rows. When every term of a scene does, the simulator steps
+      in columns (:mod:`diffpen.layout`), which XLA vectorises along a batch.
     """
     name: str
     force: Callable[..., tuple[Any, Any]]
@@ -86,6 +94,7 @@ class Term(NamedTuple):
     record: Callable[[dict, Any], dict] | None = None
     step_aware: bool = False
     bound: tuple = ()
+    columns: bool = False
 
 
 @dataclasses.dataclass

@@ -51,12 +51,12 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
             off = args[0] if offset_fn is None else offset_fn(params)
             d = radii - (static_dot(normal, x) - off)
             f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
-            return scatter(static_scale(f, normal), bi, n), None
+            return scatter(static_scale(f, normal, as_columns=True), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
         f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
                               geometry.dot(nrm, g_vec))
         return scatter(f[:, None] * nrm, bi, n), None
-    return Term(name, force, step_aware=True)
+    return Term(name, force, step_aware=True, columns=normal is not None)
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
