@@ -12,42 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import SceneError
-from .scene import DEFAULT
 from .state import ContactParams, Params, SpringParams
-from .terms.rigid import contact_materials
-
-
-def used_materials(scene, pinned, collide) -> tuple:
-    """Names of the contact materials some contact pair of ``scene`` uses, in a fixed order:
-    the ``Params.contact`` keys. ``pinned``, ``collide``: (n_bodies,) bool."""
-    bodies = scene.bodies
-    used: list[str] = []
-
-    def use(name):
-        if name not in used:
-            used.append(name)
-    movable = [i for i in range(len(bodies)) if collide[i] and not pinned[i]]
-    if movable:
-        for pl in scene.planes:
-            use(pl.material)
-        for fs in scene.fixed_spheres:
-            use(fs.material)
-    # Materials of sphere-sphere pairs, in O(n): a pair (i, j) with one end free uses
-    # their shared material, or "default" when they differ.
-    spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
-    by_mat: dict[str, list[int]] = {}
-    for i in spheres:
-        by_mat.setdefault(bodies[i].material, []).append(i)
-    any_free = any(not pinned[i] for i in spheres)
-    for mat, members in by_mat.items():
-        if len(members) >= 2 and any(not pinned[i] for i in members):
-            use(mat)
-    if len(by_mat) >= 2 and any_free:
-        use(DEFAULT)
-    if scene.has_rotation:
-        for name in contact_materials(scene):
-            use(name)
-    return tuple(used)
 
 
 def _is_concrete(x) -> bool:
