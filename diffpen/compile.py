@@ -217,6 +217,7 @@ class Simulator:
         self._terms: tuple[Term, ...] = _build_terms(builders, ctx)
         self.terms = tuple(t.name for t in self._terms)
         self._searching = tuple(t for t in self._terms if t.search is not None)
+        self._reporting = tuple(t for t in self._terms if t.report is not None)
         self._extra_defaults = dict(ctx.extra_defaults)
         self._extra_checks = dict(ctx.extra_checks)
         self._aux_updates = tuple(ctx.aux_updates)
@@ -532,13 +533,15 @@ class Simulator:
                         "stability limit for these k and c. Use a smaller dt, more substeps, or "
                         "a stiffer-stable integrator (roll out without observe= to locate the "
                         "step and body).")
-            if self.broadphase is not None and _is_concrete(traj.time):
-                _broadphase.warn_overflow(traj)
+            for term in self._reporting:            # host-side, concrete results only
+                if _is_concrete(traj.time):
+                    term.report(traj)
             return traj
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
-        if self.broadphase is not None and _is_concrete(traj.position):
-            _broadphase.warn_overflow(traj)
+        for term in self._reporting:                # e.g. the broad phase's overflow warning
+            if _is_concrete(traj.position):
+                term.report(traj)
         return traj
 
     def _check_finite(self, traj: Trajectory, save_every: int) -> None:

@@ -1,9 +1,10 @@
 """Parameter values -> the :class:`diffpen.Params` pytree of a compiled simulator.
 
-:func:`used_materials` finds the contact materials some pair uses (the ``Params.contact``
-keys). :func:`build` is ``Simulator.params``: it fills the values not given from the scene's
+:func:`build` is ``Simulator.params``: it fills the values not given from the scene's
 material / spring group / extension defaults, validates each one (:func:`_check_value`: a
-real, finite scalar >= 0) and casts it to the simulator's dtype (:func:`cast`).
+real, finite scalar >= 0) and casts it to the simulator's dtype (:func:`cast`). Its keys
+(``sim.materials``, ``sim.spring_groups``, the ``extra`` entries) are what the simulator's
+terms declare (:mod:`diffpen.terms`).
 """
 from __future__ import annotations
 

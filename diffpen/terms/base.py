@@ -92,6 +92,9 @@ class Term(NamedTuple):
     aux: initial ``State.aux`` entries, ``{name: array}`` (e.g. plastic rest lengths, m).
     update: optional ``update(params, state) -> {name: array}``: the ``State.aux`` entries
       recomputed after every step from the new state (e.g. plastic yield).
+    report: optional ``report(traj)``: a host-side check of a concrete
+      :class:`diffpen.Trajectory` after ``sim.rollout`` (e.g. the broad phase warns when its
+      overflow flag is set).
 
     The contact materials and spring groups a term reads (the ``Params.contact`` /
     ``Params.springs`` keys) are declared by its :class:`TermBuilder`, before any term is
@@ -107,6 +110,7 @@ class Term(NamedTuple):
     checks: Mapping[str, Callable[[str, Any], None]] = _EMPTY
     aux: Mapping[str, Any] = _EMPTY
     update: Callable[[Params, State], dict] | None = None
+    report: Callable[[Any], None] | None = None
 
 
 @dataclasses.dataclass

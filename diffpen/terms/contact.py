@@ -291,7 +291,7 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
             f = f + fs
         return f, tau
     return Term("contact_broadphase", force, search=search, record=record, step_aware=True,
-                aux={_bp.OVERFLOW: float(bool(init))})
+                aux={_bp.OVERFLOW: float(bool(init))}, report=_bp.warn_overflow)
 
 
 def _initial_state(ctx: CompileContext):
