@@ -308,8 +308,14 @@ def declared(builders: Iterable, ctx: CompileContext, facet: str) -> tuple[str, 
     names: dict = {}
     for build in builders:
         fn = getattr(build, facet, None)
-        if fn is not None:
-            names.update(dict.fromkeys(fn(ctx)))
+        if fn is None:
+            continue
+        got = fn(ctx)
+        if isinstance(got, (str, bytes)):
+            from ..errors import SceneError
+            raise SceneError(f"a term builder's {facet}(ctx) must return a sequence of names, "
+                             f"got the string {got!r}: write ({got!r},).")
+        names.update(dict.fromkeys(got))
     return tuple(names)
 
 
