@@ -9,11 +9,15 @@ are call-time arguments: changing them, or vmapping and differentiating over the
 recompiles.
 
 The force terms come from ``BUILTIN_TERMS`` (= :data:`diffpen.terms.BUILTIN`), one fixed
-tuple of term builders, one module per kind in :mod:`diffpen.terms`: its order is the force
-summation order. A term the scene does
-not need is never built, so it is never traced (each term runs under its own
-``jax.named_scope``, which tests use to prove it). Each term carries its stability bound,
-which :mod:`diffpen.stability` sums; the pure rollout is :func:`diffpen.rollout.rollout`.
+tuple of term builders, one module per kind in :mod:`diffpen.terms` (or from the builders
+given as ``compile(..., terms=...)``): its order is the force summation order. A term the
+scene does not need is never built, so it is never traced (each term runs under its own
+``jax.named_scope``, which tests use to prove it). Compile assembles what the terms declare:
+the ``Params.contact`` / ``Params.springs`` keys are the union of the contact materials and
+spring groups the builders say they read (asked before any term is built), the
+``Params.extra`` defaults and the ``State.aux`` entries and updates come from the built
+Terms. Each term carries its stability bound, which :mod:`diffpen.stability` sums; the pure
+rollout is :func:`diffpen.rollout.rollout`.
 Parameter building and validation live in :mod:`diffpen.params`, start states in
 :mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state`` and ``state_from``
 delegate to them.
