@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import diffpen as dp
-from tuning.accuracy import accuracy, plot_accuracy, recommend
-from tuning.gradient_check import gradient_report
-from tuning.reference import (apex_heights, ball_reference, chain_reference, settling_time,
+from tuning.reports.accuracy import accuracy, plot_accuracy, recommend
+from tuning.reports.gradient_check import gradient_report
+from tuning.reports.reference import (apex_heights, ball_reference, chain_reference, settling_time,
                               spring_closed_form)
 from tuning.cli import main
 

@@ -5,8 +5,8 @@ growing, penetration bounded, restitution <= 1, finite gradients) or be refused 
 error whose advice then works.
 
 Everything here computes and returns plain data (dicts, lists); ``tuning.cli.report`` prints.
-:func:`ball_scene` is also the problem of :mod:`tuning.accuracy` and
-:mod:`tuning.gradient_check`.
+:func:`ball_scene` is also the problem of :mod:`tuning.reports.accuracy` and
+:mod:`tuning.reports.gradient_check`.
 
 Units: SI throughout (m, kg, s, N/m, N s/m).
 """

@@ -1,7 +1,7 @@
 """Accuracy against run time (work-precision) of every integrator: error against an independent
-reference (:mod:`tuning.reference`) on a ladder of dt, for a ball drop, a damped spring and a
-hanging chain, with the median wall time of each run; the cheapest integrator and dt that meet
-a tolerance; the log-log diagram.
+reference (:mod:`tuning.reports.reference`) on a ladder of dt, for a ball drop, a damped spring
+and a hanging chain, with the median wall time of each run; the cheapest integrator and dt that
+meet a tolerance; the log-log diagram.
 
 Everything here computes and returns plain data (dicts, lists), except
 :func:`plot_accuracy`, which writes a figure; ``tuning.cli.report`` prints. Times are medians
