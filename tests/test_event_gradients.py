@@ -69,7 +69,7 @@ def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
     import jax.numpy as jnp
 
     import diffpen as dp
-    from tuning.reports.extreme import ball_scene
+    from tuning.scenes import ball_scene
     from tuning.reports.gradient_check import two_point_window_law
     case = EVENT_CASES[1]._replace(T=0.9)
     sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,

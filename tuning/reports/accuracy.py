@@ -23,7 +23,8 @@ import numpy as np
 
 import diffpen as dp
 
-from .extreme import INTEGRATORS, ball_scene
+from ..scenes import ball_scene
+from .extreme import INTEGRATORS
 from .reference import (G, BallReference, apex_heights, ball_reference, chain_reference,
                         settling_time, spring_closed_form)
 

@@ -18,8 +18,8 @@ import numpy as np
 
 import diffpen as dp
 
+from ..scenes import ball_scene
 from .accuracy import BallSpec
-from .extreme import ball_scene
 from .reference import G, ball_reference
 
 __all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
