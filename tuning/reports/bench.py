@@ -572,7 +572,3 @@ def gradient_memory(n: int = 32, steps: int = 100_000, save_every: int = 1000,
 def _scaling_exponent(sizes, times) -> float:
     """Least-squares slope of log(time) against log(size)."""
     return float(np.polyfit(np.log(sizes), np.log(times), 1)[0])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(run(["ball_b1"], quick=True))
