@@ -33,14 +33,13 @@ import numpy as np
 
 import diffpen as dp
 from tuning.reports import bench
+from tuning.scenes import ball_scene
 
 
 def measure(batch: int, steps: int, repeats: int) -> dict:
     from tuning import ball_fast
     dt, dtype = 1e-3, jnp.float32
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
+    scene = ball_scene(radius=0.1, mass=1.0, height=1.0, gravity=9.81)
     sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if batch == 1 else 4)
     ks = jnp.asarray(np.geomspace(5e3, 2e4, batch), dtype)
     cs = jnp.full((batch,), 20.0, dtype)
