@@ -532,7 +532,9 @@ def box_corner_metrics_fn(case: BoxCornerCase, dt: float, *, dtype=None,
     ``dt`` (s) with the default contact settings (linear law, step-averaged contact; ``law``
     a name or a :class:`diffpen.laws.ContactLaw` record) and ``integrator`` (default: the
     default one). The end of the first corner's contact is its height's first upward crossing of
-    0, located on the free flight after it (:func:`tuning.metrics.crossings`). Jitted;
+    0 on the parabola through the three samples after it (:func:`tuning.metrics.crossings`
+    with ``flight=True``; the cube is not in free flight then, a second corner is down or
+    about to land, so this is a local extrapolation, exact as dt -> 0). Jitted;
     differentiable (``jax.jacfwd(f, (0, 1, 2))``)."""
     from diffpen.rigid import quat_to_matrix
 
@@ -642,22 +644,31 @@ def box_corner_rows(cases=BOX_CASES, dts=(1e-3, 1e-4), dtypes=("float64", "float
 
 
 def box_corner_table(rows: list[dict]) -> str:
-    """The rows of :func:`box_corner_rows` as a text table: the value's error (simulated
-    minus continuous, in the metric's unit) and per parameter the jax derivative, the
-    continuous one, the relative error and the reference's spread."""
-    head = (f"{'case':6s} {'dt':>5s} {'dtype':7s} {'metric':11s} {'value':>10s} {'err':>8s} |"
-            + " |".join(f" {'d/d' + p:>10s} {'continuous':>10s} {'err':>7s} {'spread':>6s}"
+    """The rows of :func:`box_corner_rows` as a text table, one line per (case, dt, metric)
+    from the float64 rows: the value's error (simulated minus continuous, in the metric's
+    unit) and per parameter the jax derivative, the continuous one, the relative error
+    ``|jax / continuous - 1|`` and, where float32 rows exist, float32's relative gap to
+    float64 (``!`` when the signs differ)."""
+    f32 = {(r["case"], r["dt"], r["metric"]): r for r in rows if r["dtype"] == "float32"}
+    head = (f"{'case':6s} {'dt':>5s} {'metric':11s} {'value':>10s} {'err':>8s} |"
+            + " |".join(f" {'d/d' + p:>10s} {'continuous':>10s} {'err':>7s} {'f32':>6s}"
                         for p in ("k", "c", "mu")))
     lines = [head]
     for r in rows:
+        if r["dtype"] != "float64":
+            continue
+        other = f32.get((r["case"], r["dt"], r["metric"]))
         cells = []
         for p in ("dk", "dc", "dmu"):
             ref = r[p + "_ref"]
             err = abs(r[p] - ref) / abs(ref) if ref != 0.0 else float("nan")
-            cells.append(f" {r[p]:+10.3e} {ref:+10.3e} {100 * err:6.1f}% "
-                         f"{100 * r[p + '_spread']:5.2f}%")
-        lines.append(f"{r['case']:6s} {r['dt']:5.0e} {r['dtype']:7s} {r['metric']:11s} "
-                     f"{r['value']:+10.3e} {r['value'] - r['ref']:+8.1e} |" + " |".join(cells))
+            gap = "      "
+            if other is not None:
+                flip = "!" if np.sign(other[p]) != np.sign(r[p]) else " "
+                gap = f"{100 * abs(other[p] / r[p] - 1.0):4.1f}%{flip}"
+            cells.append(f" {r[p]:+10.3e} {ref:+10.3e} {100 * err:6.1f}% {gap}")
+        lines.append(f"{r['case']:6s} {r['dt']:5.0e} {r['metric']:11s} {r['value']:+10.3e} "
+                     f"{r['value'] - r['ref']:+8.1e} |" + " |".join(cells))
     return "\n".join(lines)
 
 
