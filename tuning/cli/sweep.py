@@ -130,11 +130,10 @@ def _run(args) -> int:
 
     from ..io import describe_simulator
     from ..metrics import ball_metrics
+    from ..scenes import ball_scene
     from ..stable import contact_unstable, rollout_unstable
     from ..sweep import grid_points, sweep
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
-    scene.add_plane()
+    scene = ball_scene(radius=args.radius, mass=args.mass, height=args.drop)
     sim = dp.compile(scene, args.dt)
 
     def mfn(params):

@@ -38,6 +38,8 @@ import numpy as np
 import diffpen as dp
 from diffpen import builders
 
+from ..scenes import ball_scene
+
 __all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
            "memory_bytes", "plain_ball_floor"]
 
@@ -157,10 +159,8 @@ def _ball(batch: int, quick: bool, layout: str = "rows"):
         steps = 2000 if not quick_ else 500
         b = batch if not quick_ else min(batch, 256)
         dt, k0, c0 = 1e-3, 1e4, 20.0
-        scene = dp.Scene(gravity=(0.0, 0.0, -G))
-        scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-        scene.add_plane()
-        sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if b == 1 else 4, layout=layout)
+        sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0, gravity=G), dt=dt,
+                         dtype=dtype, unroll=1 if b == 1 else 4, layout=layout)
 
         def height(state):
             return state.position[0, 2]
@@ -572,7 +572,3 @@ def gradient_memory(n: int = 32, steps: int = 100_000, save_every: int = 1000,
 def _scaling_exponent(sizes, times) -> float:
     """Least-squares slope of log(time) against log(size)."""
     return float(np.polyfit(np.log(sizes), np.log(times), 1)[0])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(run(["ball_b1"], quick=True))

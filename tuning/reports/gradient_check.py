@@ -1,6 +1,6 @@
 """The gradient report: the error of jax.grad of the ball's apex height and of its height at a
 fixed time w.r.t. k and c, against dt and smoothing width, measured against the derivative of
-the continuous hard-contact model (:mod:`tuning.reference`), and the largest
+the continuous hard-contact model (:mod:`tuning.reports.reference`), and the largest
 finite-difference step at which central differences of the simulator agree with jax.grad.
 
 Returns plain data (a list of dicts); ``tuning.cli.report`` prints.
@@ -18,8 +18,8 @@ import numpy as np
 
 import diffpen as dp
 
+from ..scenes import ball_scene
 from .accuracy import BallSpec
-from .extreme import ball_scene
 from .reference import G, ball_reference
 
 __all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
@@ -155,7 +155,7 @@ def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_i
 
     from diffpen import laws
 
-    from .metrics import ball_metrics
+    from ..metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
     law = laws.get(case.law, case.exponent, centred=centred)
     sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
@@ -172,7 +172,7 @@ def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_i
 
 def event_reference(case: GradientCase, rel_step: float = 1e-5) -> dict:
     """The continuous system's metrics and derivatives for ``case``
-    (:func:`tuning.reference.ball_reference_derivatives`): ``{"value", "dk", "dc"}`` each a
+    (:func:`tuning.reports.reference.ball_reference_derivatives`): ``{"value", "dk", "dc"}`` each a
     (7,) array in :data:`EVENT_METRICS` order."""
     from .reference import ball_reference_derivatives
     ref = ball_reference_derivatives(k=case.k, c=case.c, m=case.mass, r=case.radius,
