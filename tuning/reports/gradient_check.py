@@ -538,7 +538,7 @@ def box_corner_metrics_fn(case: BoxCornerCase, dt: float, *, dtype=None,
     differentiable (``jax.jacfwd(f, (0, 1, 2))``)."""
     from diffpen.rigid import quat_to_matrix
 
-    from .metrics import crossings
+    from ..metrics import crossings
     dtype = dtype or jnp.float64
     sim = dp.compile(box_corner_scene(case), dt, dtype=dtype, integrator=integrator, law=law)
     steps = int(round(case.times[1] / dt))
@@ -573,7 +573,7 @@ def box_corner_metrics_fn(case: BoxCornerCase, dt: float, *, dtype=None,
 def box_corner_reference_metrics(case: BoxCornerCase, k=None, c=None, mu=None, *,
                                  rtol: float = 1e-12):
     """The metrics :data:`BOX_METRICS` (10,) of the continuous system
-    (:class:`tuning.reference.BoxCornerReference`) at ``k``, ``c``, ``mu`` (default the
+    (:class:`tuning.reports.reference.BoxCornerReference`) at ``k``, ``c``, ``mu`` (default the
     case's)."""
     from .reference import BoxCornerReference, rotation_angle
     k, c, mu = (case.k if k is None else k, case.c if c is None else c,
