@@ -483,8 +483,8 @@ class BoxCornerCase(NamedTuple):
 
     def corner_heights(self) -> np.ndarray:
         """Heights (8,) m of the corners above the centre at t = 0 (diffpen's order)."""
-        from .reference import _quat_matrix
-        return (dp.geometry.box_corners((self.half,) * 3) @ _quat_matrix(
+        from .reference import quat_matrix
+        return (dp.geometry.box_corners((self.half,) * 3) @ quat_matrix(
             self.orientation()).T)[:, 2]
 
     def first_corner(self) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 __all__ = [
     "G", "spring_closed_form", "BallReference", "ball_reference",
     "ball_reference_derivatives", "chain_reference",
-    "apex_heights", "settling_time", "BoxCornerReference", "rotation_angle",
+    "apex_heights", "settling_time", "BoxCornerReference", "rotation_angle", "quat_matrix",
 ]
 
 G = 9.81
@@ -331,7 +331,7 @@ def settling_time(t, energy, frac: float = 0.01) -> float:
 
 
 # --------------------------------------------------------------------------- box corners
-def _quat_matrix(q):
+def quat_matrix(q):
     """Rotation matrix (3, 3) of the quaternion q (4,) = (w, x, y, z), normalised here."""
     w, x, y, z = np.asarray(q, float) / math.sqrt(float(np.dot(q, q)))
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -416,7 +416,7 @@ class BoxCornerReference:
                           for sz in (-1.0, 1.0)])
         self.corners = corners = signs * half                     # same order as diffpen
         q0 = np.asarray(q0, float) / np.linalg.norm(q0)
-        w_body = _quat_matrix(q0).T @ np.asarray(w0, float)
+        w_body = quat_matrix(q0).T @ np.asarray(w0, float)
         y0 = np.concatenate([np.asarray(x0, float), np.asarray(v0, float), q0, w_body])
 
         memo = {}
@@ -425,7 +425,7 @@ class BoxCornerReference:
             # the event functions ask for the same state one after the other: computed once
             key = y.tobytes()
             if key not in memo:
-                rot = _quat_matrix(y[6:10])
+                rot = quat_matrix(y[6:10])
                 r = corners @ rot.T                               # (8, 3) lever arms, world
                 w = rot @ y[10:13]
                 u = y[3:6] + _cross(w, r)                       # corner velocities
@@ -552,12 +552,12 @@ class BoxCornerReference:
         ``t`` (s, 0 <= t <= T)."""
         y = self._y(t)
         q = y[6:10] / np.linalg.norm(y[6:10])
-        return y[:3].copy(), y[3:6].copy(), q, _quat_matrix(q) @ y[10:13]
+        return y[:3].copy(), y[3:6].copy(), q, quat_matrix(q) @ y[10:13]
 
     def energy(self, t) -> float:
         """Kinetic + gravitational (from z = 0) + the corners' elastic energy, J."""
         y = self._y(t)
-        rot = _quat_matrix(y[6:10])
+        rot = quat_matrix(y[6:10])
         d = np.maximum(-(y[2] + (self.corners @ rot.T)[:, 2]), 0.0)
         W = y[10:13]
         return float(0.5 * self.m * y[3:6] @ y[3:6] + 0.5 * W @ (self.inertia * W)
@@ -566,4 +566,4 @@ class BoxCornerReference:
     def angular_momentum(self, t):
         """Angular momentum about the centre of mass, world frame (3,) kg m^2/s."""
         y = self._y(t)
-        return _quat_matrix(y[6:10]) @ (self.inertia * y[10:13])
+        return quat_matrix(y[6:10]) @ (self.inertia * y[10:13])
