@@ -59,6 +59,15 @@ def main(argv=None) -> int:
                     help="growing-horizon stages, s, before the whole tosses (default 0.5 "
                          "1.0; none: --horizon)")
     ap.add_argument("--maxiter", type=int, default=8, help="LM iterations per stage")
+    ap.add_argument("--starts", type=int, default=0,
+                    help="multi-start: this many more start points drawn around the scene "
+                         "file's values, screened by one rollout each (default 0)")
+    ap.add_argument("--keep", type=int, default=1,
+                    help="with --starts: LM from this many of the best screened starts, the "
+                         "fit of lowest cost on the fitted tosses kept (default 1)")
+    ap.add_argument("--decay", type=float, default=None,
+                    help="weigh each frame's loss by exp(-t / DECAY), t in s from the toss's "
+                         "first frame (default: all frames alike)")
     ap.add_argument("--out", default=None, help="write the fitted scene here")
     ap.add_argument("--plot", default=os.path.join(HERE, "images", "cube_toss.png"))
     ap.add_argument("--json", action="store_true")
@@ -83,6 +92,7 @@ def main(argv=None) -> int:
     buckets = tf.prepare_buckets(sim, recs_fit, bodies=bodies, estimate=est)
     res = tf.fit_records(sim, start, buckets, tf.free_from_spec(sf.spec),
                          horizons=tuple(args.horizon) + (None,), maxiter=args.maxiter,
+                         starts=args.starts, keep=args.keep, decay=args.decay,
                          progress=not args.json)
     fit_s = time.perf_counter() - t0
     if args.out:
@@ -109,7 +119,8 @@ def main(argv=None) -> int:
         ev.plot_records(args.plot, b_held, held, which=range(4),
                         title="held-out tosses: measured (dots) and simulated (lines) from "
                               "the first frame")
-    out = {"first_state": est, "law": sim.law, "horizons": res.horizons, "fitted": res.values,
+    out = {"first_state": est, "law": sim.law, "horizons": res.horizons, "starts": args.starts,
+           "keep": args.keep, "decay": args.decay, "fitted": res.values,
            "stderr": res.stderr, "undetermined": res.undetermined,
            "fit_seconds": fit_s, "iterations": res.iterations,
            "records_fitted": len(recs_fit), "records_held_out": len(recs_held),

@@ -366,3 +366,59 @@ def test_record_fit_bounds_stay_inside_the_safe_step(cube, monkeypatch):
     too_stiff = tf.with_leaves(params, {"contact.board.k": 2.0 * k_max})
     with pytest.raises(tf.FitError, match="largest safe value"):
         tf.fit_records(cube, too_stiff, batch, free, maxiter=1)
+
+
+def test_multi_start_keeps_the_fit_of_lowest_cost(cube):
+    """fit_records(starts=...): every start is screened by its cost, LM runs from the `keep`
+    cheapest and the fit of lowest final cost is returned. From a far start (c = 8) with
+    one LM iteration, the start list holding the truth (c = 30) wins and is kept; drawn
+    starts stay inside the bounds, within the spread around the start value."""
+    truth = cube.params()                                    # c = 30 N s/m
+    s = cube.state_from(body=0, position=(0, 0, 0.07), velocity=(0.3, 0, -0.5),
+                        orientation=(0.95, 0.2, 0.2, 0.1), angular_velocity=(2, -1, 0))
+    rec = tf.synthetic_record(cube, truth, 0.15, 5e-3, {"cube": 0}, state=s, noise=1e-4)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    far = tf.with_leaves(truth, {"contact.board.c": 8.0})
+    free = [tf.Free("contact.board.c", 1.0, 60.0)]
+    res = tf.fit_records(cube, far, batch, free, maxiter=1, progress=False,
+                         starts=[{"contact.board.c": 30.0}, {"contact.board.c": 15.0}],
+                         keep=2)
+    assert [round(u["values"]["contact.board.c"], 6) for u in res.starts] == [8, 30, 15]
+    screen = [u["screen_cost"] for u in res.starts]
+    assert screen[1] < screen[2] < screen[0]
+    ran = [u for u in res.starts if u["cost"] is not None]
+    assert len(ran) == 2 and res.starts[0]["cost"] is None      # the far start is dropped
+    chosen = [u for u in res.starts if u["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["cost"] == min(u["cost"] for u in ran)
+    assert chosen[0]["cost"] == pytest.approx(res.cost, rel=1e-12)
+    assert res.values["contact.board.c"] == pytest.approx(30.0, rel=0.02)
+    # drawn starts: inside the bounds and within a factor `spread` of the start value
+    pts = tf._start_points([tf.Free("contact.board.c", 1.0, 400.0).resolved(),
+                            tf.Free("extra.plane_offset.ground", -0.02, 0.02).resolved()],
+                           np.array([math.log(300.0), -0.002]), np.array([0.0, -0.02]),
+                           np.array([math.log(400.0), 0.02]), 20, 0, 3.0)
+    c = np.exp([p[0] for p in pts])
+    off = np.array([p[1] for p in pts])
+    assert len(pts) == 20 and np.all((c >= 100.0 - 1e-9) & (c <= 400.0 + 1e-9))
+    assert np.all(np.abs(off + 0.002) <= 0.004 + 1e-12)
+    with pytest.raises(tf.FitError, match="not a fitted parameter"):
+        tf.fit_records(cube, far, batch, free, starts=[{"contact.board.k": 1.0}])
+
+
+def test_decay_weighs_early_frames(cube):
+    """pose_residuals(decay=tau) scales each frame's residuals by exp(-t / (2 tau)), so its
+    cost by exp(-t / tau); decay=None leaves them as they are."""
+    params = cube.params()
+    rec = tf.synthetic_record(cube, params, 0.1, 5e-3, {"cube": 0}, noise=1e-3, seed=2)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    pos, quat = tf.simulate(cube, tf.with_leaves(params, {"contact.board.c": 20.0}), batch)
+    plain = np.asarray(tf.pose_residuals(pos, quat, batch))
+    tau = 0.05
+    weighted = np.asarray(tf.pose_residuals(pos, quat, batch, decay=tau))
+    T = batch.pos.shape[1]
+    w = np.exp(-batch.time[0] / (2 * tau))                    # (T,) per frame
+    n_pos = T * 3
+    np.testing.assert_allclose(weighted[:n_pos].reshape(T, 3),
+                               plain[:n_pos].reshape(T, 3) * w[:, None], rtol=1e-12)
+    np.testing.assert_allclose(weighted[n_pos:].reshape(T, 3),
+                               plain[n_pos:].reshape(T, 3) * w[:, None], rtol=1e-12)

@@ -54,6 +54,13 @@ def add_arguments(p) -> None:
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
                    help="with SCENE.toml --data: fit the first S seconds of every record "
                         "first, then longer (growing horizon), the whole records last")
+    p.add_argument("--starts", type=count("--starts", minimum=0), default=0, metavar="N",
+                   help="with SCENE.toml --data: N more start points drawn around the scene "
+                        "file's values (a factor 3 for log-space leaves, 1/10 of the bounds "
+                        "for linear ones), screened by one rollout each (default 0)")
+    p.add_argument("--keep", type=count("--keep"), default=1, metavar="M",
+                   help="with --starts: run LM from the M best screened starts and keep the "
+                        "fit of lowest cost (default 1)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
     p.add_argument("--law", type=law_name, default="linear",
@@ -109,8 +116,9 @@ def _run(args) -> int:
     _check_plot(args)
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
-    if args.out or args.horizon:
-        raise CLIError("--out and --horizon need a scene file and --data records")
+    if args.out or args.horizon or args.starts or args.keep != 1:
+        raise CLIError("--out, --horizon, --starts and --keep need a scene file and --data "
+                       "records")
     if args.data and len(args.data) > 1:
         raise CLIError("without a scene file --data reads one t,z record of the ball; give "
                        "SCENE.toml to fit several records")
@@ -322,6 +330,7 @@ def _run_records(args) -> int:
     horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else (None,)
     out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
                     loss=args.loss, horizons=horizons, maxiter=args.maxiter,
+                    starts=args.starts, keep=args.keep,
                     progress=False if args.json else None)
     if args.json:
         dump_json(out)
