@@ -13,6 +13,7 @@ import pytest
 import diffpen as dp
 from tuning import trajfit as tf
 from tuning.cli import main
+from tuning.first_state import _flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
@@ -306,15 +307,20 @@ def test_directions_a_record_cannot_determine_are_reported(cube):
 
 def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
     """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
-    a growing horizon."""
+    a growing horizon; the file's [fit] first_state and flight_frames are used, its horizon
+    gives way to --horizon."""
     truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
     scene, rec = _record_file(tmp_path, ROPE.format(k=250.0, c=0.4), truth,
                               ["rope[1]", "rope[2]", "rope[3]"], "rope", integrator="rk4",
                               dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4, seed=1)
     with open(scene, "a") as fh:
-        fh.write('data = ["rope.csv"]\n')
+        fh.write('data = ["rope.csv"]\nfirst_state = "record"\nflight_frames = 4\n'
+                 'horizon = [0.3]\n')
+    spec = load_scene_file(scene).spec
+    assert (spec.first_state, spec.flight_frames, spec.horizon) == ("record", 4, [0.3])
     out = _fit_cli(capsys, ["fit", scene, "--horizon", "0.2"])
     assert out["horizons"] == [0.2, None] and out["records"] == 1
+    assert out["estimate"] == "record" and out["flight_frames"] == 4
     for name, v in truth.items():
         assert out["fitted"][name] == pytest.approx(v, rel=0.02)
 
@@ -422,3 +428,35 @@ def test_decay_weighs_early_frames(cube):
                                plain[:n_pos].reshape(T, 3) * w[:, None], rtol=1e-12)
     np.testing.assert_allclose(weighted[n_pos:].reshape(T, 3),
                                plain[n_pos:].reshape(T, 3) * w[:, None], rtol=1e-12)
+
+
+def test_first_state_uses_the_flight_frames_only(cube):
+    """first_state(estimate="fit", max_frames=N) fits at most N frames and stops before the
+    body comes within the margin of a plane: a parabola that bounces at frame 12 is
+    recovered exactly with a cap of 30 frames (the frames after the bounce are left out),
+    and with noise more flight frames give a closer start velocity (mean error over 20
+    seeded records)."""
+    g = np.array(cube.scene.gravity)
+    t = np.arange(30) / 148.0
+    v0 = np.array([0.4, 0.1, -0.2])
+    flight = np.array([0.0, 0.0, 0.0994]) + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
+    pos = flight.copy()
+    pos[12:, 2] = 2 * pos[12, 2] - pos[12:, 2]                # a bounce at frame 12
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (30, 1))
+    # the lowest face (0.05 below the centre) comes within 5 mm of the plane (offset
+    # -0.002) at frame 12: frames 0-11 are the flight
+    assert _flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
+    p, v, _, _ = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=30)
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    high = flight + np.array([0.0, 0.0, 0.5])                 # no plane in reach: 30 frames
+    assert _flight_frames(cube.scene, 0, high, quat, 0.005) == 30
+    rng = np.random.default_rng(0)
+    err = {10: [], 20: []}
+    for _ in range(20):
+        noisy = high + 5e-4 * rng.standard_normal(high.shape)
+        for m in err:
+            _, v, _, _ = tf.first_state(cube.scene, 0, t, noisy, quat, estimate="fit",
+                                        max_frames=m)
+            err[m].append(np.linalg.norm(v - v0))
+    assert np.mean(err[20]) < 0.6 * np.mean(err[10])

@@ -421,12 +421,15 @@ def free_from_spec(spec) -> list:
 
 
 def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
-              estimate: str = "record", loss: str = "l2", horizons=(None,),
+              estimate: str | None = None, loss: str = "l2", horizons=None,
               maxiter: int | None = None, starts: int = 0, keep: int = 1,
-              progress: bool | None = None) -> dict:
+              max_frames: int | None = None, progress: bool | None = None) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
-    the fitted scene to ``out``.
+    the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
+    (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
+    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records) and
+    ``flight_frames``, else ``"record"``, ``(None,)`` and 10.
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
@@ -440,6 +443,10 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                        "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
                        "fit, with optional [fit.bounds]).")
     free = free_from_spec(sf.spec)
+    estimate = estimate or sf.spec.first_state or "record"
+    if horizons is None:
+        horizons = tuple(sf.spec.horizon or ()) + (None,)
+    max_frames = max_frames or sf.spec.flight_frames or 10
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
     if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
@@ -448,10 +455,11 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate)
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
-    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate)
+    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
+                              max_frames=max_frames)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress)
@@ -462,6 +470,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     summary = res.as_dict()
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
+        "flight_frames": max_frames,
         "loss": loss, "before": {"position_error_pct": before.position_error_pct,
                                  "rotation_error_deg": before.rotation_error_deg},
         "after": {"position_error_pct": after.position_error_pct,
