@@ -3,7 +3,7 @@
     python benchmarks/scale_table.py [--batches 1 1024 65536] [--steps 2000] [--json OUT]
 
 For each batch size, in one process, after compilation, medians of interleaved turns
-(``tuning.bench.interleaved_times``, ``jax.block_until_ready``), float32, the ball of the
+(``tuning.reports.bench.interleaved_times``, ``jax.block_until_ready``), float32, the ball of the
 bench (radius 0.1 m, 1 kg, dropped from 1 m, dt = 1 ms, k in 5e3..2e4 N/m, c = 20 N s/m):
 
 * stepping: the final state only (``save_every=steps``), against the floor's final ``z``;
@@ -16,7 +16,7 @@ bench (radius 0.1 m, 1 kg, dropped from 1 m, dt = 1 ms, k in 5e3..2e4 N/m, c = 2
 * fast: :func:`tuning.ball_fast.ball_heights` (the batched ball path sweeps use), recording,
   against the floor recording.
 
-The floor is :func:`tuning.bench.plain_ball_floor`: scalar ``z`` and ``v`` per ball, hard
+The floor is :func:`tuning.reports.bench.plain_ball_floor`: scalar ``z`` and ``v`` per ball, hard
 ``max(d, 0)``. Batch 1 uses ``jax.jit`` without ``vmap``.
 """
 from __future__ import annotations
@@ -32,15 +32,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
-from tuning import bench
+from tuning.reports import bench
+from tuning.scenes import ball_scene
 
 
 def measure(batch: int, steps: int, repeats: int) -> dict:
     from tuning import ball_fast
     dt, dtype = 1e-3, jnp.float32
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
+    scene = ball_scene(radius=0.1, mass=1.0, height=1.0, gravity=9.81)
     sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if batch == 1 else 4)
     ks = jnp.asarray(np.geomspace(5e3, 2e4, batch), dtype)
     cs = jnp.full((batch,), 20.0, dtype)
@@ -57,7 +56,7 @@ def measure(batch: int, steps: int, repeats: int) -> dict:
     def natural(k, c):
         return sim.rollout(sim.params(k=k, c=c), steps).position[-1, 0, 2]
 
-    unroll = 8 if batch == 1 else 1     # the floor's fastest forms (see tuning.bench._ball)
+    unroll = 8 if batch == 1 else 1     # the floor's fastest forms (see tuning.reports.bench._ball)
 
     def floor_final(k, c):
         return bench.plain_ball_floor(k, c, steps=steps, dt=dt, record=False, unroll=unroll)

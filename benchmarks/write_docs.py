@@ -24,7 +24,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 
-from tuning import bench  # noqa: E402
+from tuning.reports import bench  # noqa: E402
 from tuning.sweep import atomic_write  # noqa: E402
 
 

@@ -9,11 +9,15 @@ are call-time arguments: changing them, or vmapping and differentiating over the
 recompiles.
 
 The force terms come from ``BUILTIN_TERMS`` (= :data:`diffpen.terms.BUILTIN`), one fixed
-tuple of term builders, one module per kind in :mod:`diffpen.terms`: its order is the force
-summation order. A term the scene does
-not need is never built, so it is never traced (each term runs under its own
-``jax.named_scope``, which tests use to prove it). Each term carries its stability bound,
-which :mod:`diffpen.stability` sums; the pure rollout is :func:`diffpen.rollout.rollout`.
+tuple of term builders, one module per kind in :mod:`diffpen.terms` (or from the builders
+given as ``compile(..., terms=...)``): its order is the force summation order. A term the
+scene does not need is never built, so it is never traced (each term runs under its own
+``jax.named_scope``, which tests use to prove it). Compile assembles what the terms declare:
+the ``Params.contact`` / ``Params.springs`` keys are the union of the contact materials and
+spring groups the builders say they read (asked before any term is built), the
+``Params.extra`` defaults and the ``State.aux`` entries and updates come from the built
+Terms. Each term carries its stability bound, which :mod:`diffpen.stability` sums; the pure
+rollout is :func:`diffpen.rollout.rollout`.
 Parameter building and validation live in :mod:`diffpen.params`, start states in
 :mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state`` and ``state_from``
 delegate to them.
@@ -30,6 +34,7 @@ import numpy as np
 from . import broadphase as _broadphase
 from . import checks as _checks
 from . import laws, rigid
+from . import layout as _layout
 from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
@@ -56,6 +61,55 @@ def _last_state_finite(position, velocity):
     return jnp.isfinite(position[-1]).all() & jnp.isfinite(velocity[-1]).all()
 
 
+def _builders(terms) -> tuple:
+    """The term builders of ``compile(..., terms=...)``: BUILTIN_TERMS for None."""
+    if terms is None:
+        return BUILTIN_TERMS
+    if isinstance(terms, (str, bytes)) or not hasattr(terms, "__iter__"):
+        raise SceneError(f"terms must be a sequence of term builders (e.g. "
+                         f"(*diffpen.terms.BUILTIN, my_builder)), got {terms!r}.")
+    terms = tuple(terms)
+    for b in terms:
+        if not callable(b):
+            raise SceneError(f"terms must hold term builders, build(ctx) -> Term | None "
+                             f"(diffpen.terms.TermBuilder or a function); got {b!r}.")
+    return terms
+
+
+def _declared(builders, ctx: CompileContext, facet: str, known: dict, what: str,
+              fix: str) -> tuple:
+    """The union of the builders' ``facet`` declarations (:func:`diffpen.terms.declared`),
+    each one checked against the scene's ``known`` names."""
+    names = _terms.declared(builders, ctx, facet)
+    for name in names:
+        if not isinstance(name, str) or name not in known:
+            raise SceneError(f"a term declares the {what} {name!r}, which the scene does not "
+                             f"have: declare it with {fix.format(name)}; the scene has "
+                             f"{sorted(known)}.")
+    return names
+
+
+def _build_terms(builders, ctx: CompileContext) -> tuple:
+    """Build every term the scene needs, in order, and assemble onto ``ctx`` what they
+    declare: ``Params.extra`` defaults and checks, initial ``State.aux`` entries and the
+    aux updates run after each step."""
+    built = []
+    for build in builders:
+        term = build(ctx)
+        if term is None:
+            continue
+        if not isinstance(term, Term):
+            raise SceneError(f"term builder {build!r} returned {type(term).__name__}, not a "
+                             "diffpen.terms.Term (or None).")
+        _terms.merge_extra(ctx.extra_defaults, term.extra)
+        ctx.extra_checks.update(term.checks)
+        ctx.aux_init.update(term.aux)
+        if term.update is not None:
+            ctx.aux_updates.append(term.update)
+        built.append(term)
+    return tuple(built)
+
+
 def _default_width(scene: Scene) -> float:
     """``smoothing="auto"``: 0, the exact ramp. The integrators apply each contact's force
     averaged over the step (``diffpen.laws``, "step-averaged force"), which is continuous
@@ -72,8 +126,9 @@ class Simulator:
       scene: the Scene it was built from.  dt: time step, s.  n_bodies: int.
       law: contact law name.  smoothing: smoothing width used, m.
       integrator: the integrator's name.  substeps: int or "auto".
-      materials: contact material names present in some contact pair (params keys).
-      spring_groups: spring group names (params keys).
+      materials: contact material names some term reads (``Params.contact`` keys): the
+        union of the term builders' declarations, in builder order.
+      spring_groups: spring group names (``Params.springs`` keys), declared the same way.
       terms: names of the force terms this simulator evaluates, in summation order
         (:meth:`term` gives the :class:`diffpen.terms.Term` records).
       mass: (n_bodies,) kg.  radius: (n_bodies,) m.  pinned: (n_bodies,) bool.
@@ -81,12 +136,16 @@ class Simulator:
       analysis: the :class:`diffpen.stability.Analysis` (the integrator record, the terms'
         stability bounds).
       gate_cache: the :class:`diffpen.stability.GateCache` of up-front stability verdicts.
+      layout: ``"rows"`` or ``"columns"``, how rollouts hold positions and velocities while
+        they step (:mod:`diffpen.layout`; results are the same either way).
+      columns: ``layout == "columns"``.
     """
 
     def __init__(self, scene: Scene, dt: float, *, integrator="semi_implicit_euler",
                  law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
                  exponent: float = 1.0, dtype=None, unroll: int = 1,
-                 substeps: int | str = 1, broadphase=None):
+                 substeps: int | str = 1, broadphase=None, terms=None,
+                 layout: str = "rows"):
         if not isinstance(scene, Scene):
             raise SceneError(f"compile expects a diffpen.Scene, got {type(scene).__name__}.")
         if not scene.bodies:
@@ -146,27 +205,28 @@ class Simulator:
         self.pinned = np.array([b.pinned for b in bodies])
         collide = np.array([b.collide for b in bodies])
 
-        self.materials = _params.used_materials(scene, self.pinned, collide)
-        self.spring_groups = tuple(dict.fromkeys(
-            s.group for s in (*scene.springs, *scene.plastic_springs,
-                              *scene.anchored_springs)))
-
+        builders = _builders(terms)
         ctx = CompileContext(
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
-            material_index={m: i for i, m in enumerate(self.materials)},
-            group_index={g: i for i, g in enumerate(self.spring_groups)},
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
             broadphase=broadphase, step=dt,
             velocity_lag=0.5 if integrator == "semi_implicit_euler" else 0.0)
+        # the params keys: what the term builders declare they read, before any is built
+        self.materials = _declared(builders, ctx, "materials", scene.materials,
+                                   "contact material", "scene.add_material({!r}, k=..., c=...)")
+        self.spring_groups = _declared(builders, ctx, "groups", scene.spring_groups,
+                                       "spring group", "scene.add_spring_group({!r}, k=...)")
+        ctx.material_index.update({m: i for i, m in enumerate(self.materials)})
+        ctx.group_index.update({g: i for i, g in enumerate(self.spring_groups)})
         if broadphase is not None:
             _broadphase.check(broadphase, ctx)
         self.context = ctx
         self.broadphase = broadphase
         self._rigid = rigid.RigidDynamics(ctx) if scene.has_rotation else None
-        built = (build(ctx) for build in BUILTIN_TERMS)
-        self._terms: tuple[Term, ...] = tuple(t for t in built if t is not None)
+        self._terms: tuple[Term, ...] = _build_terms(builders, ctx)
         self.terms = tuple(t.name for t in self._terms)
         self._searching = tuple(t for t in self._terms if t.search is not None)
+        self._reporting = tuple(t for t in self._terms if t.report is not None)
         self._extra_defaults = dict(ctx.extra_defaults)
         self._extra_checks = dict(ctx.extra_checks)
         self._aux_updates = tuple(ctx.aux_updates)
@@ -177,6 +237,10 @@ class Simulator:
             free = (~self.pinned).astype(float)[:, None]
             self._gravity = ctx.const(free * g[None, :] if self.pinned.any() else g[None, :])
 
+        self.layout = _layout.check(layout, self._terms, method, rigid=self._rigid is not None,
+                                    searching=bool(self._searching),
+                                    aux_updates=bool(self._aux_updates))
+        self.columns = self.layout == "columns"
         self.substeps = substeps if substeps == "auto" else int(substeps)
         self.analysis = _stability.Analysis(
             integrator=method, dt=dt, substeps=self.substeps, mass=self.mass.astype(float),
@@ -271,10 +335,10 @@ class Simulator:
         return self._forces_jit(params, state, h=h)
 
     def _forces(self, params: Params, state: State, found: dict | None = None, *,
-                h: float | None = None):
+                h: float | None = None, columns: bool = False):
         """``forces`` unjitted. ``found``: ``{term name: search result}`` already found for
         this very state (a step passes its own searches); the terms with a search not in it
-        search themselves."""
+        search themselves. ``columns``: return F as :class:`diffpen.layout.Columns`."""
         f = None
         tau = None
         for term in self._terms:
@@ -284,16 +348,29 @@ class Simulator:
                     ft, tt = term.force(params, state, found[term.name], **kw)
                 else:
                     ft, tt = term.force(params, state, **kw)
-            f = ft if f is None else f + ft
+            f = ft if f is None else _layout.add(f, ft)
             if tt is not None:
                 tau = tt if tau is None else tau + tt
-        return (jnp.zeros_like(state.position) if f is None else f), tau
+        if f is None:
+            f = jnp.zeros_like(state.position)
+        return (_layout.columns(f) if columns else _layout.rows(f)), tau
 
     def acceleration(self, params: Params, state: State, found: dict | None = None, *,
                      h: float | None = None):
         """``(a, alpha)``: linear accelerations (n_bodies, 3) m/s^2 with gravity, and angular
         accelerations (n_bodies, 3) rad/s^2 (None without rotating bodies). Pure, not jitted:
-        what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`)."""
+        what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`). For a
+        state in the columns layout (:mod:`diffpen.layout`; only when :attr:`columns`),
+        ``a`` is :class:`diffpen.layout.Columns` and ``alpha`` None."""
+        if _layout.is_columns(state.position):
+            # the columns layout (diffpen.layout): terms read rows, forces come back as
+            # columns, each component gets the rows' operations in the same order
+            f, _ = self._forces(params, _layout.rows_state(state), found, h=h, columns=True)
+            a = _layout.Columns(*(fj * self._inv_mass[:, 0] for fj in f))
+            if self._gravity is not None:
+                with jax.named_scope("gravity"):
+                    a = _layout.Columns(*(aj + self._gravity[:, j] for j, aj in enumerate(a)))
+            return a, None
         f, tau = self._forces(params, state, found, h=h)
         a = f * self._inv_mass
         if self._gravity is not None:
@@ -400,9 +477,13 @@ class Simulator:
         old = state.aux.get(_stability.FLAG)
         flag = flag if old is None else (jnp.asarray(old, bool) | flag)
         state = state._replace(aux={**state.aux, _stability.FLAG: flag})
+        view = None
+        if self.columns:                    # step in columns, save rows (diffpen.layout)
+            state, view = _layout.columns_state(state), _layout.rows_state
         return _rollout.rollout(self.step_function(substeps), params, state, steps=steps,
                                 save_every=save_every, dt=self.dt, checkpoint=checkpoint,
-                                unroll=self.unroll, observe=observe, dtype=self.dtype)
+                                unroll=self.unroll, observe=observe, dtype=self.dtype,
+                                view=view)
 
     def rollout_cache_size(self) -> int:
         """How many rollout programs this simulator has compiled (one per static
@@ -482,13 +563,15 @@ class Simulator:
                         "stability limit for these k and c. Use a smaller dt, more substeps, or "
                         "a stiffer-stable integrator (roll out without observe= to locate the "
                         "step and body).")
-            if self.broadphase is not None and _is_concrete(traj.time):
-                _broadphase.warn_overflow(traj)
+            for term in self._reporting:            # host-side, concrete results only
+                if _is_concrete(traj.time):
+                    term.report(traj)
             return traj
         if check_finite and _is_concrete(traj.position):
             self._check_finite(traj, save_every)
-        if self.broadphase is not None and _is_concrete(traj.position):
-            _broadphase.warn_overflow(traj)
+        for term in self._reporting:                # e.g. the broad phase's overflow warning
+            if _is_concrete(traj.position):
+                term.report(traj)
         return traj
 
     def _check_finite(self, traj: Trajectory, save_every: int) -> None:
@@ -517,7 +600,7 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
             law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
             exponent: float = 1.0,
             dtype=None, unroll: int = 1, substeps: int | str = 1,
-            broadphase=None) -> Simulator:
+            broadphase=None, terms=None, layout: str = "rows") -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
 
     Args:
@@ -546,9 +629,20 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         prunes them by bounding boxes, ``diffpen.broadphase.Grid(...)`` by a neighbour grid
         (near-linear cost). Capacities are static; overflow is reported in
         ``State.aux["broadphase_overflow"]``. Changing it recompiles.
+      terms: the term builders, in force summation order (default ``BUILTIN_TERMS``); e.g.
+        ``(*diffpen.terms.BUILTIN, my_builder)`` adds a term made outside the package
+        (:class:`diffpen.terms.TermBuilder`: its Term's force, stability bound, extra params
+        and aux state, and the contact materials and spring groups it reads).
+      layout: how rollouts hold positions and velocities while they step
+        (:mod:`diffpen.layout`; users always see (n, 3) rows): ``"rows"`` (default), or
+        ``"columns"``: three (n,) arrays, which XLA CPU vectorises along a ``jax.vmap``
+        batch: faster for large batched sweeps (tens of thousands of rollouts), slower for
+        small ones; same values bit for bit. Needs a scene whose every force term returns
+        columns (sphere and particle contacts with planes) and an explicit integrator;
+        otherwise :class:`SceneError` says what stands in the way.
     Returns:
       :class:`Simulator`.
     """
     return Simulator(scene, dt, integrator=integrator, law=law, smoothing=smoothing,
                      exponent=exponent, dtype=dtype, unroll=unroll, substeps=substeps,
-                     broadphase=broadphase)
+                     broadphase=broadphase, terms=terms, layout=layout)

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import layout
 from .state import State
 
 __all__ = ["Integrator", "kick", "drift", "semi_implicit_euler", "verlet", "rk4",
@@ -38,7 +39,7 @@ def kick(state: State, acc, h) -> State:
     w = state.angular_velocity
     if w is not None and alpha is not None:
         w = w + h * alpha
-    return state._replace(velocity=state.velocity + h * a, angular_velocity=w)
+    return state._replace(velocity=layout.axpy(h, a, state.velocity), angular_velocity=w)
 
 
 def quat_integrate(q, w, h):
@@ -57,8 +58,8 @@ def drift(state: State, h) -> State:
     q = state.orientation
     if q is not None:
         q = quat_integrate(q, state.angular_velocity, h)
-    return state._replace(time=state.time + h, position=state.position + h * state.velocity,
-                          orientation=q)
+    return state._replace(time=state.time + h,
+                          position=layout.axpy(h, state.velocity, state.position), orientation=q)
 
 
 def semi_implicit_euler(accel_fn: Callable, dt: float):
@@ -81,7 +82,7 @@ def _axpy(h, acc, base):
     """``base + h * acc`` for (linear, angular) pairs, angular may be None."""
     a, alpha = acc
     v, w = base
-    return (v + h * a, None if (w is None or alpha is None) else w + h * alpha)
+    return (layout.axpy(h, a, v), None if (w is None or alpha is None) else w + h * alpha)
 
 
 # --------------------------------------------------------------------------- explicit
@@ -99,7 +100,8 @@ def verlet(accel_fn: Callable, dt: float):
     def step(params, state: State) -> State:
         s = drift(kick(state, accel_fn(params, state), half), dt)
         w = s.angular_velocity
-        pred = s._replace(velocity=2.0 * s.velocity - state.velocity,
+        pred = s._replace(velocity=jax.tree_util.tree_map(lambda a, b: 2.0 * a - b,
+                                                          s.velocity, state.velocity),
                           angular_velocity=None if w is None
                           else 2.0 * w - state.angular_velocity)
         return kick(s, accel_fn(params, pred), half)
@@ -133,17 +135,17 @@ def rk4(accel_fn: Callable, dt: float):
         s4 = _with_velocity(stage(state, v3, dt), *v4)
         a4 = accel_fn(params, s4)
 
-        def comb(i):
-            parts = [p[i] for p in (v1, v2, v3, v4)]
+        def weighted(parts):
             if parts[0] is None:
                 return None
-            return (parts[0] + 2.0 * parts[1] + 2.0 * parts[2] + parts[3]) / 6.0
+            return jax.tree_util.tree_map(lambda p0, p1, p2, p3: (p0 + 2.0 * p1 + 2.0 * p2 + p3)
+                                          / 6.0, *parts)
+
+        def comb(i):
+            return weighted([p[i] for p in (v1, v2, v3, v4)])
 
         def comb_a(i):
-            parts = [p[i] for p in (a1, a2, a3, a4)]
-            if parts[0] is None:
-                return None
-            return (parts[0] + 2.0 * parts[1] + 2.0 * parts[2] + parts[3]) / 6.0
+            return weighted([p[i] for p in (a1, a2, a3, a4)])
         s = drift(_with_velocity(state, comb(0), comb(1)), dt)
         return kick(_with_velocity(s, *v0), (comb_a(0), comb_a(1)), dt)
     return step
@@ -414,6 +416,9 @@ class Integrator(NamedTuple):
     stable_dt: optional closed form ``stable_dt(K, C, xp=numpy) -> h``, the largest stable
       step on one mode (else found by bisection on ``amplification``).
     takes_inv_mass: ``make`` accepts ``inv_mass=`` ((n,) 1/kg, 0 for pinned bodies).
+    columns: the step moves positions and velocities with :func:`kick` and :func:`drift` (or
+      ``jax.tree_util.tree_map``) only, so it also steps states whose vectors are
+      :class:`diffpen.layout.Columns` (the batch-friendly layout; :mod:`diffpen.layout`).
     """
     name: str
     make: Callable
@@ -421,6 +426,7 @@ class Integrator(NamedTuple):
     evaluations: int | None = 1
     stable_dt: Callable | None = None
     takes_inv_mass: bool = False
+    columns: bool = False
 
     @property
     def explicit(self) -> bool:
@@ -431,9 +437,9 @@ class Integrator(NamedTuple):
 #: The built-in integrators, built once.
 BUILTIN: tuple[Integrator, ...] = (
     Integrator("semi_implicit_euler", semi_implicit_euler, semi_implicit_euler_amplification,
-               1, stable_dt=semi_implicit_euler_stable_dt),
-    Integrator("verlet", verlet, verlet_amplification, 2),
-    Integrator("rk4", rk4, rk4_amplification, 4),
+               1, stable_dt=semi_implicit_euler_stable_dt, columns=True),
+    Integrator("verlet", verlet, verlet_amplification, 2, columns=True),
+    Integrator("rk4", rk4, rk4_amplification, 4, columns=True),
     Integrator("implicit_euler", implicit_euler, None, None, takes_inv_mass=True),
 )
 

@@ -1,9 +1,10 @@
 """Parameter values -> the :class:`diffpen.Params` pytree of a compiled simulator.
 
-:func:`used_materials` finds the contact materials some pair uses (the ``Params.contact``
-keys). :func:`build` is ``Simulator.params``: it fills the values not given from the scene's
+:func:`build` is ``Simulator.params``: it fills the values not given from the scene's
 material / spring group / extension defaults, validates each one (:func:`_check_value`: a
-real, finite scalar >= 0) and casts it to the simulator's dtype (:func:`cast`).
+real, finite scalar >= 0) and casts it to the simulator's dtype (:func:`cast`). Its keys
+(``sim.materials``, ``sim.spring_groups``, the ``extra`` entries) are what the simulator's
+terms declare (:mod:`diffpen.terms`).
 """
 from __future__ import annotations
 
@@ -12,42 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import SceneError
-from .scene import DEFAULT
 from .state import ContactParams, Params, SpringParams
-from .terms.rigid import contact_materials
-
-
-def used_materials(scene, pinned, collide) -> tuple:
-    """Names of the contact materials some contact pair of ``scene`` uses, in a fixed order:
-    the ``Params.contact`` keys. ``pinned``, ``collide``: (n_bodies,) bool."""
-    bodies = scene.bodies
-    used: list[str] = []
-
-    def use(name):
-        if name not in used:
-            used.append(name)
-    movable = [i for i in range(len(bodies)) if collide[i] and not pinned[i]]
-    if movable:
-        for pl in scene.planes:
-            use(pl.material)
-        for fs in scene.fixed_spheres:
-            use(fs.material)
-    # Materials of sphere-sphere pairs, in O(n): a pair (i, j) with one end free uses
-    # their shared material, or "default" when they differ.
-    spheres = [i for i, b in enumerate(bodies) if b.collide and b.kind == "sphere"]
-    by_mat: dict[str, list[int]] = {}
-    for i in spheres:
-        by_mat.setdefault(bodies[i].material, []).append(i)
-    any_free = any(not pinned[i] for i in spheres)
-    for mat, members in by_mat.items():
-        if len(members) >= 2 and any(not pinned[i] for i in members):
-            use(mat)
-    if len(by_mat) >= 2 and any_free:
-        use(DEFAULT)
-    if scene.has_rotation:
-        for name in contact_materials(scene):
-            use(name)
-    return tuple(used)
 
 
 def _is_concrete(x) -> bool:

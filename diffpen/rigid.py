@@ -100,7 +100,7 @@ class RigidDynamics:
 
 
 #: Names that moved to :mod:`diffpen.terms.rigid`, still importable from here.
-_MOVED = ("sphere_box_pairs", "contact_materials", "corner_plane_pair", "smooth_coulomb",
+_MOVED = ("sphere_box_pairs", "corner_plane_pair", "smooth_coulomb",
           "sphere_box_pair", "anchored_spring_pair", "sphere_box_force", "BOUND_LABEL",
           "sphere_box_rows", "TERMS")
 

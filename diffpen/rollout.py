@@ -18,7 +18,8 @@ __all__ = ["rollout"]
 
 def rollout(step: Callable, params, state: State, *, steps: int, save_every: int, dt: float,
             checkpoint: int | None = None, unroll: int = 1,
-            observe: Callable | None = None, dtype=None) -> Trajectory:
+            observe: Callable | None = None, dtype=None,
+            view: Callable | None = None) -> Trajectory:
     """Run ``steps`` steps of ``step`` from ``state``, saving every ``save_every``-th state.
 
     Args:
@@ -30,6 +31,9 @@ def rollout(step: Callable, params, state: State, *, steps: int, save_every: int
       unroll: ``lax.scan`` unroll factor (speed only).
       observe: ``observe(state) -> pytree`` saved instead of whole states.
       dtype: float dtype of ``Trajectory.time`` (default: that of ``state.time``).
+      view: ``view(state) -> state`` applied to each state before it is saved or observed
+        (the simulator's conversion from its stepping layout to the users' one,
+        :mod:`diffpen.layout`); None: states are saved as stepped.
     Returns:
       :class:`Trajectory` with ``steps // save_every`` saved states.
     """
@@ -40,6 +44,8 @@ def rollout(step: Callable, params, state: State, *, steps: int, save_every: int
     n_saves = steps // save_every
 
     def record(s):
+        if view is not None:
+            s = view(s)
         return s if observe is None else (observe(s), s.aux)
 
     def inner(s, _):

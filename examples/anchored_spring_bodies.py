@@ -25,7 +25,7 @@ import numpy as np
 import diffpen as dp
 from diffpen.geometry import box_corners
 from diffpen.rigid import inertia_diagonal, quat_to_matrix
-from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
+from _common import example_parser, example_pyplot, save_gif, save_strip
 
 G = 9.81
 TOP = (0.0, 0.0, 2.0)                     # world anchor, m

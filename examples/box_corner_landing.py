@@ -21,7 +21,7 @@ import numpy as np
 import diffpen as dp
 from diffpen.geometry import box_corners
 from diffpen.rigid import quat_to_matrix
-from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
+from _common import example_parser, example_pyplot, save_gif, save_strip
 
 HALF = (0.1, 0.15, 0.2)           # m
 MASS = 2.0                        # kg

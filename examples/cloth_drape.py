@@ -15,7 +15,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_cloth
-from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
+from _common import example_parser, example_pyplot, save_gif, save_strip
 
 SIZE, R, HEIGHT = 0.8, 0.2, 0.5      # cloth side (m), sphere radius (m), cloth start height (m)
 

@@ -15,7 +15,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_crumple_bar
-from tuning.plots import example_parser, example_pyplot, save_figure, save_gif
+from _common import example_parser, example_pyplot, save_figure, save_gif
 
 WALL = 0.8            # wall plane x = WALL (m)
 SPEED = 2.0           # impact speed, m/s

@@ -17,7 +17,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import PAPER_CHAIN, paper_chain, paper_chain_equilibrium
-from tuning.plots import example_parser, example_pyplot, save_figure, save_gif
+from _common import example_parser, example_pyplot, save_figure, save_gif
 
 
 def main(argv=None) -> int:

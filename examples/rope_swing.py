@@ -14,7 +14,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import add_rope
-from tuning.plots import example_parser, example_pyplot, save_gif, save_strip
+from _common import example_parser, example_pyplot, save_gif, save_strip
 
 
 def build(n: int):

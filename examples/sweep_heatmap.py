@@ -22,16 +22,14 @@ import numpy as np  # noqa: E402
 import diffpen as dp  # noqa: E402
 from tuning.bounce import bounce_metrics_fn  # noqa: E402
 from tuning.io import describe_simulator  # noqa: E402
+from tuning.scenes import ball_scene  # noqa: E402
 from tuning.sweep import grid_points, sweep  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False):
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-    scene.add_plane()
-    sim = dp.compile(scene, dt)
+    sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0), dt)
     mfn = bounce_metrics_fn(sim, int(round(duration / dt)), n_apex=2)
     ks, cs = np.geomspace(1e3, 1e5, n), np.geomspace(1.0, 100.0, n)
     axes = {"contact.default.k": ks, "contact.default.c": cs}

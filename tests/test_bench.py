@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tuning import bench
+from tuning.reports import bench
 
 
 def test_checkpointed_gradient_memory_is_bounded_and_exact():

@@ -1,11 +1,11 @@
 """Gradients through contact events against the continuous system: an event-located DOP853
-reference (tuning.reference), derivatives by central differences of it."""
+reference (tuning.reports.reference), derivatives by central differences of it."""
 import jax
 import numpy as np
 import pytest
 
-from tuning.gradient_check import (EVENT_CASES, EVENT_METRICS, event_metrics_fn,
-                                   event_reference)
+from tuning.reports.gradient_check import (EVENT_CASES, EVENT_METRICS, event_metrics_fn,
+                                           event_reference)
 
 pytest.importorskip("scipy")
 
@@ -62,15 +62,15 @@ def test_centred_damping_values_within_half_a_percent(case):
 
 @pytest.mark.slow
 def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
-    """tuning.gradient_check.two_point_window_law (prototype: the step window along the true
+    """tuning.reports.gradient_check.two_point_window_law (prototype: the step window along the true
     path through the last two positions) on the 0.3 kg ball (k 3e4, c 15, w h 0.32) at
     dt = 1e-3: first apex, its d/dk and d/dc within 0.01% of the continuous system (measured < 0.001% on apexes 1-3 and durations at three impact
     phases; the straight window 2.4% / 1.3% on apex 1 and 73% / 79% on apex 3)."""
     import jax.numpy as jnp
 
     import diffpen as dp
-    from tuning.extreme import ball_scene
-    from tuning.gradient_check import two_point_window_law
+    from tuning.scenes import ball_scene
+    from tuning.reports.gradient_check import two_point_window_law
     case = EVENT_CASES[1]._replace(T=0.9)
     sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
                      law=two_point_window_law(case.mass), dtype=jnp.float64)
@@ -116,7 +116,7 @@ def test_gradient_converges_to_the_continuous_one():
 def _band_settling(c, k=1e4, tol=1e-3, T=3.5):
     """Continuous settling time (last exit from |z - rest| <= tol) of the quick-start ball."""
     from scipy.optimize import brentq
-    from tuning.reference import ball_reference
+    from tuning.reports.reference import ball_reference
     ref = ball_reference(k=k, c=c, m=1.0, r=0.1, z0=1.0, T=T)
     rest = 0.1 - 9.81 / k
     t = np.linspace(0.0, T, 70001)
@@ -149,7 +149,7 @@ def test_lm_fit_from_the_generic_start_without_the_scan():
     bisection start) reaches the continuous first apex and contact time of the ball at
     k = 2.2e3, c = 11 (measured: 4 iterations; before 25)."""
     from tuning.bounce import fit_bounce
-    from tuning.reference import ball_reference
+    from tuning.reports.reference import ball_reference
     from tuning.scenes import ball
     ref = ball_reference(k=2.2e3, c=11.0, m=1.0, r=0.1, z0=1.0, T=1.5)
     targets = {"apex_heights": [ref.apexes[0] - 0.1],

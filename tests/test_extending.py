@@ -148,3 +148,89 @@ def test_toy_contact_law_through_the_closed_form_starts():
     assert first_guess(events, m, law=TOY_LAW) == pytest.approx(lin[:2], rel=1e-9)
     with pytest.raises(ValueError, match="half_no_tension"):
         dp.physical.restitution(k, c, m, TOY_LAW)
+
+
+# --------------------------------------------------------------------------- a toy force term
+def _toy_wall(ctx):
+    """Toy term: a wall ``x = params.extra["toy_wall"]["x"]`` (m) pushing free bodies back
+    along -x with the simulator's contact law and material "wall"'s (k, c); it counts in
+    ``State.aux["toy_hits"]`` the steps that end with a body past the wall."""
+    bodies = np.array([i for i in range(ctx.n) if not ctx.pinned[i]], dtype=np.int32)
+    if not len(bodies):
+        return None
+    mat = np.full(len(bodies), ctx.material_index["wall"])
+
+    def past(params, state):
+        return state.position[bodies, 0] - params.extra["toy_wall"]["x"]
+
+    def force(params, state):
+        k, c = ctx.contact_kc(params, mat)
+        f = ctx.law(past(params, state), -state.velocity[bodies, 0], k, c, ctx.width)
+        fx = jnp.zeros(ctx.n, state.position.dtype).at[bodies].add(-f)
+        return jnp.stack([fx, jnp.zeros_like(fx), jnp.zeros_like(fx)], axis=-1), None
+
+    def update(params, state):
+        hits = jnp.sum(past(params, state) > 0.0).astype(state.aux["toy_hits"].dtype)
+        return {"toy_hits": state.aux["toy_hits"] + hits}
+
+    return dp.terms.Term("toy_wall", force, extra={"toy_wall": {"x": 0.2}},
+                         aux={"toy_hits": 0.0}, update=update)
+
+
+def _toy_wall_bound(ctx):
+    rows = [(i, "wall", 1.0, 1.0, "toy wall") for i in range(ctx.n) if not ctx.pinned[i]]
+    return (dp.stability.Bound.of(rows, "contact", combine="contact"),)
+
+
+TOY_WALL = dp.terms.TermBuilder(_toy_wall, bound=_toy_wall_bound,
+                                materials=lambda ctx: ("wall",))
+
+
+@pytest.fixture(scope="module")
+def wall_sim():
+    """A 1 kg particle at 1 m/s towards the toy wall at x = 0.2 m (no gravity), above a
+    ground plane of material "ground"."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_material("ground", k=1e3, c=1.0)
+    scene.add_material("wall", k=1e4, c=0.0)
+    scene.add_plane(offset=-1.0, material="ground")
+    scene.add_particle(1.0, (0.0, 0.0, 0.0), (1.0, 0.0, 0.0))
+    return dp.compile(scene, 1e-3, terms=(*dp.terms.BUILTIN, TOY_WALL))
+
+
+def test_toy_term_declares_its_material_extra_param_aux_and_bound(wall_sim):
+    """A Term made here brings its contact material, its extra param and its aux state into
+    the simulator's pytrees; its force bounces the particle at the wall the param places,
+    its aux update runs after every step, and its bound sets the stability gate."""
+    sim = wall_sim
+    assert sim.terms == ("contact_plane", "toy_wall")
+    assert sim.materials == ("ground", "wall")          # the builders' union, in order
+    p = sim.params()
+    assert (float(p.contact["wall"].k), float(p.contact["wall"].c)) == (1e4, 0.0)
+    assert set(p.extra) == {"toy_wall"} and float(p.extra["toy_wall"]["x"]) == 0.2
+    assert float(sim.init_state().aux["toy_hits"]) == 0.0
+
+    traj = sim.rollout(p, 400)                          # reaches the wall at 0.2 s
+    x = np.asarray(traj.position[:, 0, 0])
+    # a linear spring wall: turns at x = wall + v / w (w = 100 rad/s), leaves at -v
+    assert x.max() == pytest.approx(0.2 + 1.0 / 100.0, rel=2e-3)
+    assert float(traj.velocity[-1, 0, 0]) == pytest.approx(-1.0, abs=5e-3)
+    # the aux update ran after every step: it counted the steps that ended past the wall
+    assert int(traj.aux["toy_hits"][-1]) == int(np.sum(x > 0.2)) > 0
+
+    # the extra param is a differentiable leaf like the built-in ones
+    moved = sim.rollout(sim.params(extra={"toy_wall": {"x": 0.25}}), 400)
+    assert float(moved.position[:, 0, 0].max()) == pytest.approx(0.26, rel=2e-3)
+    with pytest.raises(dp.SceneError, match="toy_wall"):
+        sim.params(extra={"toy_wall": {"y": 0.1}})
+
+    # its stability rows: w = sqrt(k / m), refused past the safe step
+    assert sim.stability(p).omega_max == pytest.approx(100.0, rel=1e-12)
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(sim.params(contact={"wall": (1e8, 0.0)}), 10)
+
+
+def test_toy_term_material_must_be_in_the_scene(spring_and_ball):
+    """A builder declaring a material the scene lacks is refused at compile, naming it."""
+    with pytest.raises(dp.SceneError, match="'wall'.*add_material"):
+        dp.compile(spring_and_ball, 1e-2, terms=(*dp.terms.BUILTIN, TOY_WALL))

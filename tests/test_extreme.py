@@ -6,7 +6,7 @@ import math
 import pytest
 
 import diffpen as dp
-from tuning import extreme
+from tuning.reports import extreme
 
 C = extreme.Case
 CASES = [

@@ -7,7 +7,6 @@ import sys
 import tempfile
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -125,48 +124,6 @@ def test_points_past_the_safe_step_are_nan_and_counted_in_memory_and_files(evalu
     assert back.unstable == 1 and np.isnan(back.metrics["twice"][bad]).all()
     table = np.genfromtxt(str(tmp_path / "s.csv"), delimiter=",", names=True)
     assert np.isnan(table["twice"][bad]).all()
-
-
-def test_traced_stability_flag_under_jit_vmap_and_grad():
-    """tuning.stable reads the rollout's flag (or its parameter form) inside traced code."""
-    from tuning.stable import contact_unstable, rollout_unstable, safe_contact_bounds
-    scene = dp.Scene()
-    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
-    scene.add_plane()
-    sim = dp.compile(scene, 1e-3)
-    kmax, cmax = safe_contact_bounds(sim)
-    assert np.sqrt(kmax / 1.0) * 1e-3 < dp.stability.SAFE_WH and cmax * 1e-3 < 1.0
-
-    def flag(k):
-        p = sim.params(k=k, c=1.0)
-        traj = sim.rollout(p, 20, check_finite=False, check_stability=False)
-        return rollout_unstable(sim, traj, p)
-    ks = jnp.array([0.5 * kmax, 1.5 * kmax, 4.0 * kmax])
-    np.testing.assert_array_equal(jax.jit(jax.vmap(flag))(ks), [False, True, True])
-    assert not bool(jax.jit(flag)(0.5 * kmax))
-    g = jax.grad(lambda k: jnp.where(contact_unstable(sim, sim.params(k=k, c=1.0)), 0.0, k))
-    assert float(g(0.5 * kmax)) == 1.0 and float(g(2.0 * kmax)) == 0.0
-
-
-def test_fit_is_not_reached_when_the_rollout_was_unstable():
-    from tuning.fit import _achieved
-    spec = (("apex_heights", 1, 1.0, 1e-3),)
-    tg = {"apex_heights": np.array([0.4])}
-    assert _achieved({"apex_heights": np.array([0.4])}, tg, spec)[2]
-    assert not _achieved({"apex_heights": np.array([0.4]), "unstable": np.array(True)}, tg,
-                         spec)[2]
-
-
-def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
-    from tuning.fit import fit
-
-    def mfn(p):
-        k = p.contact["default"].k
-        return {"apex_heights": jnp.atleast_1d(k / 10.0), "unstable": k > 3.0}
-    res = fit(mfn, PARAMS0, {"apex_heights": [0.5]}, free=["contact.default.k"], method="lm",
-              maxiter=20, progress=False)
-    assert res.achieved["apex_heights"][0] == pytest.approx(0.5, rel=1e-3)
-    assert not res.reached and "past its safe step" in res.message
 
 
 def test_finalize_marks_points_of_an_evaluator_without_the_flag(tmp_path):

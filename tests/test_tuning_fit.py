@@ -1,15 +1,18 @@
-"""Fitting: the default `diffpen fit` problem reaches its targets, the loop compiles once,
-frozen parameters stay put, infeasible targets are refused before compiling."""
+"""tuning.fit.fit: both methods reach an apex target, the loop compiles once, frozen
+parameters stay put, bad arguments are refused, the safe step bounds the fit and a point past
+it is never reached. (The bounce problem itself: test_tuning_bounce.py.)"""
 import logging
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import optax
 import pytest
 
 import diffpen as dp
+from diffpen.state import ContactParams
 from tuning import bounce as B
 from tuning import fit as F
-from tuning.cli.fit import DEFAULT_APEX, DEFAULT_SETTLE
 
 
 def ball_scene(drop=1.0):
@@ -17,22 +20,6 @@ def ball_scene(drop=1.0):
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, drop))
     scene.add_plane()
     return scene
-
-
-def test_default_fit_reaches_targets():
-    targets = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
-    res = B.fit_bounce(ball_scene(), targets, dt=1e-3)
-    assert res.reached, res.message
-    assert abs(res.achieved["apex_heights"][0] / DEFAULT_APEX - 1) < 5e-3
-    assert abs(res.achieved["settling_time"] / DEFAULT_SETTLE - 1) < 1e-2
-    # the achieved values are the exact metrics of an independent rollout at the fitted params
-    from tuning.metrics import ball_metrics
-    sim = dp.compile(ball_scene(), 1e-3)
-    s0 = sim.init_state()
-    tr = sim.rollout(res.params, 4000, s0)
-    m = ball_metrics(sim, tr, res.params, n_apex=1, state0=s0)
-    assert float(m.apex_heights[0]) == pytest.approx(res.achieved["apex_heights"][0], rel=1e-9)
-    assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
 
 
 @pytest.fixture(scope="module")
@@ -89,41 +76,6 @@ def test_optax_reaches_apex(short_problem):
     assert res.iterations > 8            # first order: more iterations than LM's <= 8 above
 
 
-@pytest.mark.parametrize("targets, words", [
-    ({"apex_heights": [0.95]}, "not below the drop height"),
-    ({"apex_heights": [0.3, 0.4]}, "must decrease"),
-    ({"settling_time": 0.2}, "shorter than the fall"),
-    ({"apex_heights": [0.4], "settling_time": 0.8}, "shorter than the fall plus"),
-    ({"restitution": [1.2]}, "below 1"),
-    ({"bounce": [1.0]}, "unknown target"),
-    ({"apex_heights": [-0.1]}, "positive"),
-])
-def test_infeasible_targets_are_refused_before_compiling(targets, words, monkeypatch):
-    def boom(*a, **k):
-        raise AssertionError("compiled before checking the targets")
-    monkeypatch.setattr(dp, "compile", boom)
-    with pytest.raises(F.FitError, match=words):
-        B.fit_bounce(ball_scene(), targets)
-
-
-def test_heights_only_fixes_damping_ratio_and_says_so():
-    res = B.fit_bounce(ball_scene(drop=0.6), {"apex_heights": [0.2]}, k0=2e4)
-    assert list(res.values) == ["contact.default.c"]
-    assert float(res.params.contact["default"].k) == 2e4
-    assert any("fix only the damping ratio" in n for n in res.notes)
-    assert res.reached
-
-
-def test_unreachable_targets_are_marked_with_closest_values():
-    # apex 0.5 m fixes the restitution; the bounces alone then take ~2.9 s to die out, so
-    # a 2.0 s settling time is feasible by the simple bound but not reachable.
-    res = B.fit_bounce(ball_scene(), {"apex_heights": [0.5], "settling_time": 2.0},
-                       maxiter=10)
-    assert not res.reached
-    assert "NOT reached" in res.message
-    assert res.achieved["settling_time"] > 2.02
-
-
 def test_bad_fit_arguments():
     sim = dp.compile(ball_scene(), 1e-3)
     mfn = B.bounce_metrics_fn(sim, 10)
@@ -175,3 +127,15 @@ def test_fit_with_sim_stays_inside_the_safe_step():
     assert bf.hi[0] == k_max
     out = bf([targets])
     assert not out.reached[0]
+
+
+def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
+    params0 = dp.Params({"default": ContactParams(np.float64(1.0), np.float64(2.0))}, {}, {})
+
+    def mfn(p):
+        k = p.contact["default"].k
+        return {"apex_heights": jnp.atleast_1d(k / 10.0), "unstable": k > 3.0}
+    res = F.fit(mfn, params0, {"apex_heights": [0.5]}, free=["contact.default.k"],
+                method="lm", maxiter=20, progress=False)
+    assert res.achieved["apex_heights"][0] == pytest.approx(0.5, rel=1e-3)
+    assert not res.reached and "past its safe step" in res.message

@@ -3,15 +3,17 @@ and sharded over every device.
 
 A row is one fit: its own targets (N target sets, e.g. a table of apex heights) or its own
 start point (N starts for the same targets: a multi-start fit), or both. Every row runs the
-algorithm of :func:`tuning.fit.fit` with ``method="optax"``: the free leaves of the
-:class:`diffpen.Params` are optimised in log space by an optax transformation, projected onto
-box bounds after every step, the loss is ``sum_j w_j ((m_j - t_j) / |t_j|)^2``, a row stops
-when all its targets are within tolerance (or its loss is not finite), and the row reports
-its lowest-loss point. So row ``i`` of :func:`fit_batch` is :func:`tuning.fit.fit` run alone
-on row ``i``'s targets and start, with the same optimiser and ``maxiter``.
+optax loop of :func:`tuning.fit.fit` with ``method="optax"`` (:class:`tuning.optimise.OptaxLoop`,
+the same iteration and stopping rule): the free leaves of the :class:`diffpen.Params` are
+optimised in log space by an optax transformation, projected onto box bounds after every
+step, the loss is ``sum_j w_j ((m_j - t_j) / |t_j|)^2``, a row stops when all its targets
+are within tolerance at a point inside the safe step (or its loss is not finite), and the
+row reports its best point (the lowest loss among stable points). So row ``i`` of
+:func:`fit_batch` is :func:`tuning.fit.fit` run alone on row ``i``'s targets and start, with
+the same optimiser and ``maxiter``.
 
-The whole loop (a ``lax.while_loop`` over iterations; rows that have stopped keep their
-state) is one per-row function lifted to the batch by :func:`tuning.shard.sharded_map`: the
+The whole loop (:meth:`tuning.optimise.OptaxLoop.run`, a ``lax.while_loop`` over iterations;
+rows that have stopped keep their state) is one per-row function lifted to the batch by :func:`tuning.shard.sharded_map`: the
 batch axis is split over a 1-D device ``Mesh`` with ``NamedSharding(mesh, P("batch"))``, and
 the results equal the single-device run. A batch that is not a multiple of the device count is
 padded by repeating its last row; the padding never reaches the result. Over several processes
@@ -32,17 +34,15 @@ import optax
 import diffpen as dp
 
 from . import params as P
-from .fit import (FitError, _achieved, _normalise_targets, _residuals, _spec,
-                  default_optimizer, safe_bounds)
+from .errors import FitError
+from .optimise import (LIMIT, MESSAGES, NON_FINITE, REACHED, RUNNING, OptaxLoop,
+                       default_optimizer)
+from .problem import (FreeLeaves, achieved, normalise_targets, residuals, target_spec,
+                      tolerances, with_flag)
 from .shard import batch_mesh, sharded_map
-from .stable import FLAG, contact_unstable
 
-__all__ = ["fit_batch", "BatchFitter", "BatchFitResult"]
-
-# Row status codes of the loop (``BatchFitResult.status``).
-RUNNING, REACHED, NON_FINITE, LIMIT = 0, 1, 2, 3
-MESSAGES = {REACHED: "targets reached", LIMIT: "iteration limit reached",
-            NON_FINITE: "loss became non-finite; stopped (try a smaller learning rate or dt)"}
+__all__ = ["fit_batch", "BatchFitter", "BatchFitResult", "RUNNING", "REACHED", "NON_FINITE",
+           "LIMIT", "MESSAGES"]
 
 
 @dataclasses.dataclass
@@ -98,15 +98,6 @@ class BatchFitResult:
         return int(np.argmin(np.where(np.isfinite(self.loss), self.loss, np.inf)))
 
 
-def _with_flag(metrics_fn: Callable, sim) -> Callable:
-    """``metrics_fn`` with ``"unstable"`` added (:func:`tuning.stable.contact_unstable`) when
-    it has none."""
-    def fn(params):
-        m = metrics_fn(params)
-        return m if FLAG in m else {**m, FLAG: contact_unstable(sim, params)}
-    return fn
-
-
 def _rows(targets, starts) -> tuple[list, list | None]:
     """Targets and starts as equal-length lists of rows (a single dict is shared)."""
     n_t = None if isinstance(targets, dict) else len(targets)
@@ -160,54 +151,29 @@ class BatchFitter:
                 or maxiter < 1:
             raise FitError(f"maxiter must be a positive integer (iterations per row), got "
                            f"{maxiter!r}.")
-        flat0 = P.flatten(params0)
-        free = list(P.default_free(params0) if free is None else free)
-        if not free:
-            raise FitError("nothing to fit: 'free' is empty.")
-        unknown = [p for p in list(free) + list(bounds or {}) if p not in flat0]
-        if unknown:
-            raise FitError(f"unknown parameter(s) {unknown}; this scene has {list(flat0)}.")
-        x0 = np.array([float(flat0[p]) for p in free])
-        box = np.stack(safe_bounds(free, x0, bounds, sim), axis=1).reshape(len(free), 2)
-        if np.any(~(box[:, 0] > 0.0)) or np.any(box[:, 1] <= box[:, 0]):
-            raise FitError(f"bounds must satisfy 0 < lo < hi (fitting is in log space); got "
-                           f"{dict(zip(free, box.tolist()))}.")
-        if sim is not None:   # a point past the safe step is never reached (tuning.stable)
-            metrics_fn = _with_flag(metrics_fn, sim)
-        self.metrics_fn, self.params0, self.free = metrics_fn, params0, free
-        self.x0, self.lo, self.hi = x0, box[:, 0], box[:, 1]
+        leaves = FreeLeaves.build(params0, free, bounds, sim)
+        # a point past the safe step is never reached (tuning.stable)
+        self.metrics_fn = with_flag(metrics_fn, sim)
+        self.params0, self.free = params0, list(leaves.free)
+        self.x0, self.lo, self.hi = leaves.x0, leaves.lo, leaves.hi
         self.weights, self.rtol = weights, rtol
         self.optimizer = default_optimizer(lr) if optimizer is None else optimizer
         self.maxiter = int(maxiter)
         self.mesh = batch_mesh() if mesh is None else mesh
-        self._flat0 = flat0
+        self._leaves = leaves
         self._programs: dict = {}
 
     # ------------------------------------------------------------------ inputs
     def _starts(self, starts: list | None, n: int) -> np.ndarray:
         """(n, P) start values, clipped to the bounds."""
-        if starts is None:
-            x = np.repeat(self.x0[None], n, axis=0)
-        else:
-            x = np.empty((n, len(self.free)))
-            for i, st in enumerate(starts):
-                extra = set(st) - set(self.free)
-                if extra:
-                    raise FitError(f"start row {i} sets parameters that are not fitted: "
-                                   f"{sorted(extra)}; fitted: {self.free}.")
-                x[i] = [float(st.get(p, v)) for p, v in zip(self.free, self.x0)]
-        if not np.all(np.isfinite(x)) or np.any(x <= 0.0):
-            bad = sorted({int(i) for i in np.nonzero(~(x > 0.0) | ~np.isfinite(x))[0]})
-            raise FitError(f"start values must be finite and > 0 (fitting is in log space); "
-                           f"rows {bad} are not.")
-        return np.clip(x, self.lo, self.hi)
+        return self._leaves.start_values([{}] * n if starts is None else starts)
 
     def _targets(self, rows: list) -> tuple[dict, tuple]:
         """``({metric: (N, n)}, spec)``; every row must have the same metrics and lengths."""
         norm = []
         for i, row in enumerate(rows):
             try:
-                norm.append(_normalise_targets(dict(row)))
+                norm.append(normalise_targets(dict(row)))
             except FitError as err:
                 raise FitError(f"targets row {i}: {err}") from None
         layout = {k: v.size for k, v in norm[0].items()}
@@ -218,66 +184,29 @@ class BatchFitter:
                                "every row needs the same metrics with the same number of "
                                "entries (one compiled program serves the batch).")
         stacked = {k: np.stack([row[k] for row in norm]) for k in layout}
-        return stacked, _spec(norm[0], self.weights, self.rtol)
+        return stacked, target_spec(norm[0], self.weights, self.rtol)
 
     # ------------------------------------------------------------------ program
-    def _params_of(self, theta):
-        flat = dict(self._flat0)
-        flat.update({p: jnp.exp(theta[i]) for i, p in enumerate(self.free)})
-        return P.unflatten(self.params0, flat)
-
     def _program(self, spec: tuple) -> Callable:
         """The sharded batch program for one target layout (built once per layout)."""
         if spec in self._programs:
             return self._programs[spec]
-        tx, maxiter = self.optimizer, self.maxiter
-        log_lo, log_hi = np.log(self.lo), np.log(self.hi)
-        tols = np.concatenate([np.full(c, tol * math.sqrt(w)) for _, c, w, tol in spec])
+        log_lo, log_hi = self._leaves.log_lo, self._leaves.log_hi
 
         def loss_fn(theta, tgt):
-            m = self.metrics_fn(self._params_of(theta))
-            r = _residuals(m, tgt, spec)
-            return jnp.sum(r * r), (r, {k: jnp.asarray(v) for k, v in m.items()})
+            m = self.metrics_fn(self._leaves.params_of(theta))
+            r = residuals(m, tgt, spec)
+            return jnp.sum(r * r), (r, m)
 
-        # the same gradient as tuning.fit: forward mode for a handful of parameters
-        value_and_grad = dp.value_and_grad(loss_fn, has_aux=True)
+        loop = OptaxLoop(loss_fn, self.optimizer, lambda th: jnp.clip(th, log_lo, log_hi),
+                         tolerances(spec), self.maxiter)
 
         def one(theta0, tgt):
             """One row: theta0 (P,) log start, tgt {metric: (n,)} -> fitted row."""
-            shapes = jax.eval_shape(loss_fn, theta0, tgt)[1][1]
-            carry = {"it": jnp.asarray(0), "theta": theta0, "state": tx.init(theta0),
-                     "best_loss": jnp.asarray(jnp.inf, theta0.dtype), "best_theta": theta0,
-                     "best_m": jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
-                                                      shapes),
-                     "history": jnp.full((maxiter,), jnp.nan, theta0.dtype),
-                     "status": jnp.asarray(RUNNING)}
-
-            def body(c):
-                (loss, (r, m)), g = value_and_grad(c["theta"], tgt)
-                upd, state = tx.update(g, c["state"], c["theta"])
-                new = jnp.clip(optax.apply_updates(c["theta"], upd), log_lo, log_hi)
-                finite = jnp.isfinite(loss)
-                reached = finite & jnp.all(jnp.abs(r) <= tols)
-                status = jnp.where(~finite, NON_FINITE, jnp.where(
-                    reached, REACHED, jnp.where(c["it"] + 1 >= maxiter, LIMIT, RUNNING)))
-                better, go = finite & (loss < c["best_loss"]), status == RUNNING
-
-                def pick(flag, a, b):
-                    return jax.tree_util.tree_map(lambda x, y: jnp.where(flag, x, y), a, b)
-                return {"it": jnp.where(go, c["it"] + 1, c["it"]),
-                        "theta": pick(go, new, c["theta"]),
-                        "state": pick(go, state, c["state"]),
-                        "best_loss": jnp.where(better, loss, c["best_loss"]),
-                        "best_theta": pick(better, c["theta"], c["best_theta"]),
-                        "best_m": pick(better, m, c["best_m"]),
-                        "history": c["history"].at[c["it"]].set(
-                            jnp.where(finite, loss, jnp.nan)),
-                        "status": status}
-
-            c = jax.lax.while_loop(lambda c: c["status"] == RUNNING, body, carry)
+            c = loop.run(theta0, tgt)
             return {"theta": c["best_theta"], "loss": c["best_loss"], "metrics": c["best_m"],
                     "history": c["history"], "status": c["status"],
-                    "iterations": jnp.where(c["status"] == LIMIT, maxiter, c["it"])}
+                    "iterations": loop.iterations(c)}
 
         run = sharded_map(one, self.mesh)
         self._programs[spec] = run
@@ -318,7 +247,7 @@ class BatchFitter:
         rel = {k: np.empty(n) for k in tg}
         reached = np.zeros(n, bool)
         for i in range(n):
-            _, rel_i, reached[i] = _achieved({k: v[i] for k, v in ach.items()},
+            _, rel_i, reached[i] = achieved({k: v[i] for k, v in ach.items()},
                                              {k: v[i] for k, v in tg.items()}, spec)
             for k in tg:
                 rel[k][i] = rel_i[k]

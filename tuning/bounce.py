@@ -16,7 +16,9 @@ import numpy as np
 
 import diffpen as dp
 
-from .fit import FitError, FitResult, _normalise_targets, fit
+from .errors import FitError
+from .fit import FitResult, fit
+from .problem import normalise_targets
 from .stable import rollout_unstable, safe_contact_bounds
 
 __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first_guess_bounce",
@@ -63,7 +65,7 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
                        "plane): start it above the surface.")
     drop = h0 + max(v0, 0.0) ** 2 / (2.0 * g)
     t_fall = _fall_time(h0, v0, g)
-    tg = _normalise_targets(targets)
+    tg = normalise_targets(targets)
     for name, arr in tg.items():
         if np.any(arr <= 0.0):
             raise FitError(f"target {name!r} must be positive, got {arr.tolist()}.")

@@ -3,20 +3,25 @@
 :func:`levenberg_marquardt` minimises ``|r(x)|^2`` given a function that returns the
 residuals and their Jacobian (jitted by the caller, so every trial point reuses one compiled
 function), with Marquardt's diagonal scaling and a projection onto box bounds after every
-step. :func:`tuning.fit.fit` (``method="lm"``) and :func:`tuning.sysid.fit_trajectory` run it
-on log-parameters.
+step. :func:`fit_lm` runs it on a :class:`tuning.problem.Problem` (behind
+:func:`tuning.fit.fit` with ``method="lm"``: a forward-mode Jacobian, several starts and an
+optional problem-specific start search sharing one compiled function);
+:func:`tuning.sysid.fit_trajectory` runs it on log-parameters too.
 """
 from __future__ import annotations
 
 import dataclasses
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .fit import FitError, Progress
+from .errors import FitError
+from .problem import Problem, Solution, target_slices, tolerances
+from .progress import Progress
 
-__all__ = ["LMResult", "levenberg_marquardt"]
+__all__ = ["LMResult", "levenberg_marquardt", "fit_lm"]
 
 
 @dataclasses.dataclass
@@ -92,3 +97,68 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
             message, converged = "step below tolerance", True
             break
     return LMResult(x, r, J, hist, it, converged, message)
+
+
+def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
+           n_starts: int = 3, search: Callable | None = None,
+           progress: Progress | None = None) -> Solution:
+    """Levenberg-Marquardt on ``problem`` in log space, with a forward-mode Jacobian
+    (``jax.jacfwd``: few parameters) and ONE compiled residual/Jacobian function for every
+    evaluated point.
+
+    Args:
+      maxiter: iteration limit of each LM run (``Solution.iterations`` adds up all runs).
+      starts: extra start points ``[{path: value}, ...]``; with the problem's own start they
+        are ranked by cost and LM runs from the best ``n_starts`` until one reaches the
+        targets; the best result is kept.
+      search: ``search(evaluate, slices, log_lo, log_hi) -> [theta, ...]``: a problem-specific
+        search for start points in log space, tried before the others; ``evaluate(theta) ->
+        (r, J, metrics)`` is the compiled function and ``slices`` maps each target to its
+        rows of ``r`` (:func:`tuning.problem.target_slices`).
+      progress: a :class:`tuning.progress.Progress` or None.
+    Returns: :class:`tuning.problem.Solution` (the loss is ``|r|^2``).
+    """
+    traces, costs = [0], []
+    log_lo, log_hi = problem.leaves.log_lo, problem.leaves.log_hi
+
+    def residual(theta):
+        traces[0] += 1
+        return problem.evaluate(theta)
+
+    def rj(theta):
+        r, m = residual(theta)
+        J = jax.jacfwd(lambda th: residual(th)[0])(theta)
+        return r, J, m
+    rj_compiled = jax.jit(rj)
+
+    def evaluate(theta):
+        out = rj_compiled(theta)
+        r0 = np.asarray(out[0])
+        costs.append(float(r0 @ r0))
+        return out
+    tols = tolerances(problem.spec)
+    points = problem.start_points(starts)
+    if search is not None:   # problem-specific start search, same compiled function
+        found = search(lambda th: evaluate(jnp.asarray(th)), target_slices(problem.spec),
+                       log_lo, log_hi)
+        points = [np.clip(np.asarray(th, float), log_lo, log_hi) for th in found] + points
+    if len(points) > 1:   # rank the starts by their cost (same compiled function)
+        ranked = []
+        for th in points:
+            r0 = np.asarray(evaluate(jnp.asarray(th))[0])
+            ranked.append(float(r0 @ r0) if np.all(np.isfinite(r0)) else np.inf)
+        points = [points[i] for i in np.argsort(ranked)[:n_starts]]
+    best = None
+    used = 0
+    for th in points:
+        out = levenberg_marquardt(evaluate, th, log_lo, log_hi, maxiter=maxiter,
+                                  stop=lambda r: bool(np.all(np.abs(r) <= tols)),
+                                  progress=progress, offset=used)
+        used += out.iterations
+        if best is None or out.cost_history[-1] < best.cost_history[-1]:
+            best = out
+        if out.message == "targets reached":
+            break
+    metrics = evaluate(jnp.asarray(best.x))[2]
+    return Solution(best.x, metrics, np.asarray(best.cost_history), used, best.converged,
+                    best.message, traces[0], len(costs), np.asarray(costs))

@@ -7,7 +7,7 @@ import pathlib
 import numpy as np
 
 __all__ = ["require_matplotlib", "fit_figure", "trajectory_fit_figure", "heatmap",
-           "example_parser", "example_pyplot", "save_figure", "save_strip", "save_gif"]
+           "save_figure", "save_strip", "save_gif"]
 
 
 def require_matplotlib():
@@ -111,52 +111,28 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
     plt.close(fig)
 
 
-# --- helpers shared by the scripts in examples/ ------------------------------------------------
+# --- figure files (the examples' strips and animations) ---------------------------------------
 
-def example_parser(description: str, default_out: str, *,
-                   quick_help: str = "shorter run (seconds)",
-                   gif_help: str = "also write an animated GIF"):
-    """An ``argparse.ArgumentParser`` with the flags every example takes: ``--quick``,
-    ``--out`` (the PNG, default ``default_out``; the GIF goes next to it) and ``--gif``.
-    Add the example's own flags to the returned parser."""
-    import argparse
-    ap = argparse.ArgumentParser(description=description)
-    ap.add_argument("--quick", action="store_true", help=quick_help)
-    ap.add_argument("--out", default=default_out)
-    ap.add_argument("--gif", action="store_true", help=gif_help)
-    return ap
-
-
-def example_pyplot(out):
-    """``matplotlib.pyplot`` (Agg backend) with the parent folder of ``out`` created, or None
-    after printing that matplotlib is missing (the examples then write no picture)."""
-    try:
-        plt = require_matplotlib()
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
-        return None
-    pathlib.Path(out).parent.mkdir(parents=True, exist_ok=True)
-    return plt
-
-
-def save_figure(fig, out, *, dpi: int = 110) -> None:
-    """Lay out ``fig``, save it to ``out``, close it and print ``wrote <out>``."""
+def save_figure(fig, out, *, dpi: int = 110) -> pathlib.Path:
+    """Lay out ``fig``, save it to ``out`` (its folder must exist), close it; returns the path
+    written."""
     plt = require_matplotlib()
     fig.tight_layout()
     fig.savefig(out, dpi=dpi)
     plt.close(fig)
-    print(f"wrote {out}")
+    return pathlib.Path(out)
 
 
 def save_strip(draw_frame, frames, out, *, title: str, figsize_per_frame=(2.2, 2.6),
                figsize=None, sharey: bool = True, dpi: int = 110, projection: str | None = None,
-               extra=None, extra_width: float = 1.6) -> None:
-    """A row of snapshots saved as a PNG: one panel per entry of ``frames``.
+               extra=None, extra_width: float = 1.6) -> pathlib.Path:
+    """A row of snapshots saved as a PNG: one panel per entry of ``frames``. Returns the path
+    written.
 
     Args:
       draw_frame: ``draw_frame(ax, i)`` draws saved frame ``i`` into ``ax``.
       frames: the frame indices, left to right.
-      out: PNG path (its folder must exist: see :func:`example_pyplot`).
+      out: PNG path (its folder must exist).
       title: the figure's title.  figsize_per_frame: (width, height) in inches per panel;
         ``figsize`` overrides the whole figure's size.  sharey: share the panels' y axis.
       projection: e.g. ``"3d"`` for 3D panels.
@@ -182,12 +158,13 @@ def save_strip(draw_frame, frames, out, *, title: str, figsize_per_frame=(2.2, 2
     if extra is not None:
         extra(axes[-1])
     fig.suptitle(title)
-    save_figure(fig, out, dpi=dpi)
+    return save_figure(fig, out, dpi=dpi)
 
 
 def save_gif(draw_frame, frames, out, *, figsize=(3.5, 3.5), fps: int = 20,
-             projection: str | None = None, nrows: int = 1) -> None:
+             projection: str | None = None, nrows: int = 1) -> pathlib.Path:
     """An animation saved next to ``out`` with the suffix ``.gif`` (matplotlib's PillowWriter).
+    Returns the path written.
 
     Args:
       draw_frame: ``draw_frame(ax, i)`` draws saved frame ``i``; the axes are cleared before
@@ -209,4 +186,4 @@ def save_gif(draw_frame, frames, out, *, figsize=(3.5, 3.5), fps: int = 20,
     path = pathlib.Path(out).with_suffix(".gif")
     anim.save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
-    print(f"wrote {path}")
+    return path

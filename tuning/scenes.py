@@ -13,7 +13,7 @@ from typing import Callable
 
 import diffpen as dp
 
-__all__ = ["SceneSetup", "SCENES", "ball", "chain", "cloth", "get_scene"]
+__all__ = ["SceneSetup", "SCENES", "ball_scene", "ball", "chain", "cloth", "get_scene"]
 
 
 @dataclasses.dataclass
@@ -53,6 +53,24 @@ def _ball_metrics(settle_tol: float, n_apex: int):
     return metrics
 
 
+def ball_scene(*, radius: float = 0.1, mass: float = 1.0, height: float = 1.0,
+               velocity: float = 0.0, gravity: float = 9.81) -> dp.Scene:
+    """The bouncing ball: one sphere above the ground plane z = 0 (normal +z, offset 0, default
+    material). The one builder of this scene: the built-in ``ball``, ``diffpen fit`` and
+    ``diffpen sweep``, system identification and the trust reports all use it.
+
+    Args:
+      radius: m.  mass: kg.  height: initial centre height, m.
+      velocity: initial vertical velocity, m/s (positive up).
+      gravity: m/s^2, pointing down (-z); 0 leaves gravity out.
+    """
+    scene = dp.Scene(gravity=(0.0, 0.0, -float(gravity) if gravity else 0.0))
+    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, height),
+                     velocity=(0.0, 0.0, velocity))
+    scene.add_plane()
+    return scene
+
+
 def ball(*, radius: float = 0.1, mass: float = 1.0, drop: float = 1.0, k: float = 1e4,
          c: float = 20.0, dt: float = 1e-3, duration: float = 3.0, gravity: float = 9.81,
          settle_tol: float = 1e-3, n_apex: int = 3, law: str = "linear") -> SceneSetup:
@@ -67,9 +85,7 @@ def ball(*, radius: float = 0.1, mass: float = 1.0, drop: float = 1.0, k: float 
     if not drop > radius:
         raise dp.SceneError(f"the ball's centre must start above its radius: drop={drop} m "
                             f"<= radius={radius} m would start in contact. Raise --drop.")
-    scene = dp.Scene(gravity=(0.0, 0.0, -float(gravity)))
-    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, drop))
-    scene.add_plane()
+    scene = ball_scene(radius=radius, mass=mass, height=drop, gravity=gravity)
     steps = max(1, int(round(duration / dt)))
     return SceneSetup(scene=scene, dt=dt, steps=steps, k=k, c=c, law=law, body=0,
                       metrics=_ball_metrics(settle_tol, n_apex),

@@ -1,74 +1,91 @@
-"""The stability flag of a rollout, as tuning reads it, and bounds that keep optimisers inside
-the stable region.
+"""The stability limit of a rollout as tuning reads it, and the contact bounds that keep
+optimisers inside it. Every number here comes from :mod:`diffpen.stability`; nothing re-derives
+the step limit.
 
-diffpen carries ``State.aux["unstable"]`` (a sticky bool scalar set inside the traced program
-when a step was past the safe step for the traced parameter values), so
+diffpen carries ``State.aux["unstable"]`` (``FLAG``: a sticky bool scalar set inside the traced
+program when a step was past the safe step for the traced parameter values), so
 ``traj.aux["unstable"][-1]`` says whether a rollout can be trusted; it works under ``jit``,
-``vmap`` and ``grad``. :func:`rollout_unstable` returns it. For a trajectory without the flag
-(e.g. a simulator from outside diffpen) it falls back to the same condition computed from the
-parameters (contact safe step
-of the lightest movable body: ``w h <= SAFE_WH``, ``c h / m <= SAFE_CH``, and the linear limit
-``k h^2 + 2 c h < 4 m``), which is exact for one body on colliders.
+``vmap`` and ``grad``. :func:`rollout_unstable` returns it; for a trajectory without the flag
+it falls back to :func:`params_unstable`, the same test (:func:`diffpen.stability.unsafe`)
+evaluated on the parameters alone. :func:`safe_contact_bounds` inverts the contact part of the
+safe step (``w h <= SAFE_WH``, ``c h / m <= SAFE_CH``) into bounds on one contact's k and c.
 """
 from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from diffpen import stability as _dp_stability
 
-__all__ = ["FLAG", "rollout_unstable", "contact_unstable", "safe_contact_bounds"]
+__all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
+           "safe_contact_limits", "safe_contact_bounds"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
-FLAG = getattr(_dp_stability, "FLAG", "unstable")
-
-
-def _inner_dt(sim) -> float:
-    sub = getattr(sim, "substeps", 1)
-    return float(sim.dt) / (sub if isinstance(sub, int) and sub > 0 else 1)
+FLAG = _dp_stability.FLAG
 
 
 def _light_mass(sim) -> float:
-    m = np.asarray(sim.mass, float)[~np.asarray(sim.pinned, bool)]
-    return float(m.min()) if m.size else float(np.asarray(sim.mass).min())
+    """Mass (kg) of the lightest movable body of ``sim`` (of any body if all are pinned)."""
+    an = sim.analysis
+    m = np.asarray(an.mass, float)[~np.asarray(an.pinned, bool)]
+    return float(m.min()) if m.size else float(np.asarray(an.mass).min())
 
 
-def contact_unstable(sim, params):
-    """Traceable bool: some contact material's (k, c) is past the explicit safe step for
-    the lightest movable body (False for implicit integrators)."""
-    from diffpen import stability as S
-    if getattr(sim, "integrator", "") == "implicit_euler":
-        return jnp.asarray(False)
-    h, m = _inner_dt(sim), _light_mass(sim)
-    bad = jnp.asarray(False)
+def params_unstable(sim, params):
+    """Traceable bool: an inner step of ``sim`` is past its safe step for ``params``
+    (:func:`diffpen.stability.unsafe` on the simulator's own stability analysis: every term's
+    bound, the integrator's limit, the contact limits ``SAFE_WH`` / ``SAFE_CH``), or some
+    contact k or c is not finite. Always False for integrators without a step limit (besides
+    the non-finite test). Parameters may be tracers (jit, vmap, grad).
+
+    A scalar for scalar contact values; contact k or c given as (N,) arrays (N points, e.g. a
+    sweep's) give (N,) flags, one per point."""
+    if any(jnp.ndim(x) for cp in params.contact.values() for x in cp):
+        axes = params._replace(
+            contact={n: type(cp)(*(0 if jnp.ndim(x) else None for x in cp))
+                     for n, cp in params.contact.items()},
+            springs=None, extra=None)
+        return jax.vmap(lambda p: params_unstable(sim, p), in_axes=(axes,))(params)
+    bad = _dp_stability.unsafe(sim.analysis, params)
     for cp in params.contact.values():
-        k, c = jnp.asarray(cp.k), jnp.asarray(cp.c)
-        w = jnp.sqrt(jnp.maximum(k, 0.0) / m)
-        bad = bad | (w * h >= S.SAFE_WH) | (c * h / m >= S.SAFE_CH) | (
-            k * h * h + 2.0 * c * h >= 4.0 * m) | ~jnp.isfinite(k) | ~jnp.isfinite(c)
+        bad = bad | ~jnp.all(jnp.isfinite(jnp.asarray(cp.k))) | ~jnp.all(
+            jnp.isfinite(jnp.asarray(cp.c)))
     return bad
+
+
+#: the former name of :func:`params_unstable` (kept: scripts and the sweep CLI use it)
+contact_unstable = params_unstable
 
 
 def rollout_unstable(sim, traj, params):
     """Traceable bool scalar: the rollout went past its safe step.
 
-    ``traj.aux["unstable"][-1]`` when the simulator carries the flag, else
-    :func:`contact_unstable` of ``params``."""
+    ``traj.aux["unstable"][-1]`` when the trajectory carries the flag, else
+    :func:`params_unstable` of ``params``."""
     aux = getattr(traj, "aux", None) or {}
     if FLAG in aux:
         return jnp.asarray(aux[FLAG])[-1].astype(bool)
-    return contact_unstable(sim, params)
+    return params_unstable(sim, params)
+
+
+def safe_contact_limits(h: float, mass: float) -> tuple[float, float]:
+    """Upper bounds (k_max N/m, c_max N s/m) of one contact on a body of ``mass`` kg that keep
+    an explicit inner step of ``h`` s inside the safe step of :mod:`diffpen.stability`, with a
+    1% margin: ``sqrt(k / m) h <= SAFE_WH`` and ``c h / m <= SAFE_CH`` (these also keep the
+    step linearly stable: ``k h^2 + 2 c h < 4 m``)."""
+    h, m = float(h), float(mass)
+    return (0.99 * (_dp_stability.SAFE_WH / h) ** 2 * m,
+            0.99 * _dp_stability.SAFE_CH * m / h)
 
 
 def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
-    """Upper bounds (k_max N/m, c_max N s/m) of one contact that keep an explicit step inside
-    the safe region for a body of ``mass`` kg (default: the lightest movable body), with a
-    1% margin: ``w h <= SAFE_WH``, ``c h / m <= SAFE_CH``."""
-    from diffpen import stability as S
-    h = _inner_dt(sim)
-    m = _light_mass(sim) if mass is None else float(mass)
-    if getattr(sim, "integrator", "") == "implicit_euler":
+    """:func:`safe_contact_limits` at the inner step of ``sim`` for a body of ``mass`` kg
+    (default: the lightest movable body); ``(inf, inf)`` for integrators without a step
+    limit (implicit)."""
+    an = sim.analysis
+    if not an.integrator.explicit:
         return math.inf, math.inf
-    return 0.99 * (S.SAFE_WH / h) ** 2 * m, 0.99 * S.SAFE_CH * m / h
+    return safe_contact_limits(an.inner_dt, _light_mass(sim) if mass is None else mass)

@@ -172,10 +172,8 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
 
 # --------------------------------------------------------------------------- model
 def _ball_sim(radius, mass, z0, v0, g, dt, law, t0=0.0):
-    scene = dp.Scene(gravity=(0.0, 0.0, -g))
-    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, z0),
-                     velocity=(0.0, 0.0, v0))
-    scene.add_plane()
+    from .scenes import ball_scene
+    scene = ball_scene(radius=radius, mass=mass, height=z0, velocity=v0, gravity=g)
     return dp.compile(scene, dt, law=law)
 
 

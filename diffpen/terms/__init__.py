@@ -7,7 +7,9 @@ drag), :mod:`~diffpen.terms.plastic`, :mod:`~diffpen.terms.rigid` (box corners, 
 sphere-box, anchored springs); the record and shared helpers are :mod:`~diffpen.terms.base`.
 A term builder ``build(ctx) -> Term | None`` returns None when the scene does not need the
 term, so it is never traced; its Term carries its force, stability bound, aux state
-init/update and extra params. :data:`BUILTIN` is the one fixed tuple of every built-in
+init/update and extra params, and its :class:`~diffpen.terms.base.TermBuilder` declares
+the contact materials and spring groups it reads (compile makes ``Params.contact`` /
+``Params.springs`` their union). :data:`BUILTIN` is the one fixed tuple of every built-in
 builder, in force summation order. Nothing registers itself on import. The pair sources
 (all pairs, :class:`diffpen.broadphase.AABB`, :class:`diffpen.broadphase.Grid`) only find
 pairs for the contact terms.
@@ -15,12 +17,14 @@ pairs for the contact terms.
 from __future__ import annotations
 
 from . import contact, plastic, rigid, springs
-from .base import (CompileContext, Term, gather, plane_offsets, scatter, static_dot,
-                   static_scale, with_bound)
+from .base import (CompileContext, Term, TermBuilder, declared, gather, merge_extra,
+                   plane_offset_extra, plane_offsets, scatter, static_dot, static_scale,
+                   with_bound)
 from .springs import spring_bands
 
-__all__ = ["Term", "CompileContext", "CORE", "BUILTIN", "with_bound", "gather", "scatter",
-           "static_dot", "static_scale", "spring_bands", "plane_offsets"]
+__all__ = ["Term", "TermBuilder", "CompileContext", "CORE", "BUILTIN", "with_bound",
+           "declared", "merge_extra", "gather", "scatter", "static_dot", "static_scale",
+           "spring_bands", "plane_offsets", "plane_offset_extra"]
 
 #: The core term builders with their stability bounds, in force summation order.
 CORE: tuple = (contact.PLANE, contact.FIXED_SPHERE, contact.SPHERE_SPHERE,

@@ -1,19 +1,25 @@
-"""The term record and what every term shares: :class:`Term`, :class:`CompileContext`,
-:func:`with_bound`, and the lifting helpers (gather / scatter over static index arrays)."""
+"""The term record and what every term shares: :class:`Term`, :class:`TermBuilder`,
+:class:`CompileContext`, :func:`with_bound`, and the lifting helpers (gather / scatter over
+static index arrays)."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+import types
+from typing import Any, Callable, Iterable, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..layout import Columns
 from ..scene import DEFAULT, Scene
 from ..state import Params, State
 
-__all__ = ["Term", "CompileContext", "with_bound", "gather", "scatter", "static_dot",
-           "static_scale", "plane_offsets"]
+__all__ = ["Term", "TermBuilder", "CompileContext", "with_bound", "declared", "merge_extra",
+           "gather", "scatter", "static_dot", "static_scale", "plane_offsets",
+           "plane_offset_extra"]
+
+_EMPTY: Mapping = types.MappingProxyType({})
 
 
 # --------------------------------------------------------------------------- lifting helpers
@@ -27,9 +33,12 @@ def gather(x, idx: np.ndarray, n: int):
 
 
 def scatter(values, idx: np.ndarray, n: int):
-    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,)."""
+    """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,);
+    per column for :class:`diffpen.layout.Columns`."""
     if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
         return values
+    if isinstance(values, Columns):
+        return Columns(*(scatter(v, idx, n) for v in values))
     return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
 
 
@@ -49,17 +58,18 @@ def static_dot(n: np.ndarray, v):
     return jnp.zeros(jnp.shape(v)[:-1], jnp.result_type(v)) if out is None else out
 
 
-def static_scale(f, n: np.ndarray):
+def static_scale(f, n: np.ndarray, *, as_columns: bool = False):
     """``f[:, None] * n`` for a normal ``n`` (m, 3) known when the scene is compiled, built
     column by column so that XLA computes ``f`` once, not once per component, and writes
-    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3)."""
+    zeros for components that are 0 in every row. ``f``: (m,). Returns (m, 3), or with
+    ``as_columns`` the three (m,) columns as :class:`diffpen.layout.Columns`."""
     cols = []
     for a in range(3):
         col = n[:, a]
         cols.append(jnp.zeros_like(f) if not col.any() else f if (col == 1.0).all()
                     else -f if (col == -1.0).all()
                     else f * jnp.asarray(col, jnp.result_type(f)))
-    return jnp.stack(cols, axis=-1)
+    return Columns(*cols) if as_columns else jnp.stack(cols, axis=-1)
 
 
 class Term(NamedTuple):
@@ -79,6 +89,24 @@ class Term(NamedTuple):
       (``ContactLaw.step_force``); without it (or ``h=None``) the instantaneous force.
     bound: the term's rows of the stability bounds, a tuple of
       :class:`diffpen.stability.Bound` (empty: the term adds nothing to the step limit).
+    extra: defaults of the ``Params.extra`` entries the force reads, ``{name: value}`` (a
+      value may be a ``{group: scalar}`` dict: such entries of several terms are merged, and
+      ``sim.params(extra=...)`` checks each group's value; other values are kept as given).
+    checks: ``{extra name: check(label, value)}`` validating concrete values given to
+      ``sim.params`` (raises SceneError); default: a real, finite scalar >= 0.
+    aux: initial ``State.aux`` entries, ``{name: array}`` (e.g. plastic rest lengths, m).
+    update: optional ``update(params, state) -> {name: array}``: the ``State.aux`` entries
+      recomputed after every step from the new state (e.g. plastic yield).
+    report: optional ``report(traj)``: a host-side check of a concrete
+      :class:`diffpen.Trajectory` after ``sim.rollout`` (e.g. the broad phase warns when its
+      overflow flag is set).
+    columns: True when ``force`` returns F as :class:`diffpen.layout.Columns` (three (n,)
+      arrays) instead of (n, 3) rows. When every term of a scene does, the simulator steps
+      in columns (:mod:`diffpen.layout`), which XLA vectorises along a batch.
+
+    The contact materials and spring groups a term reads (the ``Params.contact`` /
+    ``Params.springs`` keys) are declared by its :class:`TermBuilder`, before any term is
+    built, so that ``CompileContext.material_index`` is complete when builders run.
     """
     name: str
     force: Callable[..., tuple[Any, Any]]
@@ -86,6 +114,12 @@ class Term(NamedTuple):
     record: Callable[[dict, Any], dict] | None = None
     step_aware: bool = False
     bound: tuple = ()
+    extra: Mapping[str, Any] = _EMPTY
+    checks: Mapping[str, Callable[[str, Any], None]] = _EMPTY
+    aux: Mapping[str, Any] = _EMPTY
+    update: Callable[[Params, State], dict] | None = None
+    report: Callable[[Any], None] | None = None
+    columns: bool = False
 
 
 @dataclasses.dataclass
@@ -96,20 +130,23 @@ class CompileContext:
     #: the contact law (``diffpen.laws.ContactLaw``; callable as its pointwise force)
     law: Callable
     width: float
-    material_index: dict
-    group_index: dict
     mass: np.ndarray        # (n,) kg
     radius: np.ndarray      # (n,) m
     pinned: np.ndarray      # (n,) bool
     collide: np.ndarray     # (n,) bool
-    #: Filled by term builders of extensions: defaults of their ``Params.extra`` entries
-    #: (``{name: pytree}``), initial ``State.aux`` entries (``{name: array}``), and
-    #: ``aux_update(params, state) -> {name: array}`` functions applied after every step.
+    #: ``{material: index}`` / ``{group: index}`` of ``Params.contact`` / ``Params.springs``:
+    #: the union of the builders' declarations (:func:`declared`), filled by compile before
+    #: any term is built (empty while the declarations are asked for).
+    material_index: dict = dataclasses.field(default_factory=dict)
+    group_index: dict = dataclasses.field(default_factory=dict)
+    #: Assembled by compile from the built Terms, in summation order (builders declare these
+    #: on their Term: ``extra``, ``checks``, ``aux``, ``update``): the defaults of the
+    #: ``Params.extra`` entries (``{name: pytree}``), their checks, the initial ``State.aux``
+    #: entries (``{name: array}``) and the ``update(params, state) -> {name: array}``
+    #: functions applied after every step.
     extra_defaults: dict = dataclasses.field(default_factory=dict)
     aux_init: dict = dataclasses.field(default_factory=dict)
     aux_updates: list = dataclasses.field(default_factory=list)
-    #: ``{extra name: check(label, value)}`` validating concrete values given to
-    #: ``sim.params`` (default: finite and >= 0); raises SceneError.
     extra_checks: dict = dataclasses.field(default_factory=dict)
     #: Broad phase of dynamic pairs (``diffpen.broadphase``), or None: all pairs statically.
     broadphase: Any = None
@@ -186,19 +223,33 @@ def _pair_material(scene: Scene, *names: str) -> str:
     return names[0] if len(set(names)) == 1 else DEFAULT
 
 
+def _named_planes(ctx: CompileContext, plane_ids) -> list:
+    planes = ctx.scene.planes
+    return list(dict.fromkeys(planes[j].name for j in plane_ids if planes[j].name))
+
+
+def plane_offset_extra(ctx: CompileContext, plane_ids) -> tuple[dict, dict]:
+    """The ``(extra, checks)`` of a Term whose force reads :func:`plane_offsets` of the planes
+    ``plane_ids``: ``{"plane_offset": {name: scene offset (m)}}`` for the named planes among
+    them (any finite sign), or empty dicts when none is named."""
+    names = _named_planes(ctx, plane_ids)
+    if not names:
+        return {}, {}
+    return ({"plane_offset": {pl.name: pl.offset for pl in ctx.scene.planes
+                              if pl.name in names}},
+            {"plane_offset": _check_finite})
+
+
 def plane_offsets(ctx: CompileContext, plane_ids):
     """``offsets(params) -> (m,)`` offsets (m) of the planes ``plane_ids`` (m,): constants,
     except for planes named in ``Scene.add_plane(name=...)``, whose offset is the leaf
-    ``params.extra["plane_offset"][name]`` (registered here with the scene's value as
-    default; any finite sign)."""
+    ``params.extra["plane_offset"][name]`` (the Term declares it with
+    :func:`plane_offset_extra`)."""
     planes = ctx.scene.planes
     const = ctx.const([planes[j].offset for j in plane_ids])
-    names = list(dict.fromkeys(planes[j].name for j in plane_ids if planes[j].name))
+    names = _named_planes(ctx, plane_ids)
     if not names:
         return lambda params: const
-    ctx.extra_defaults.setdefault("plane_offset", {}).update(
-        {pl.name: pl.offset for pl in planes if pl.name in names})
-    ctx.extra_checks["plane_offset"] = _check_finite
     sel = np.array([names.index(planes[j].name) if planes[j].name else -1 for j in plane_ids])
 
     def offsets(params):
@@ -220,16 +271,70 @@ def _one(bound):
     return () if bound is None else (bound,)
 
 
-def with_bound(build: Callable[[CompileContext], Term | None],
-               bound: Callable[[CompileContext], tuple] | None):
-    """A term builder whose Term carries ``bound(ctx)`` (a tuple of
-    :class:`diffpen.stability.Bound`): how a term and its stability bound are registered
-    together (one line per term)."""
-    if bound is None:
-        return build
+class TermBuilder(NamedTuple):
+    """A term builder with its compile-time facets; calling it builds the Term.
 
-    def built(ctx: CompileContext) -> Term | None:
-        term = build(ctx)
-        return None if term is None else term._replace(bound=tuple(bound(ctx)))
-    built.__name__ = getattr(build, "__name__", "term")
-    return built
+    build: ``build(ctx) -> Term | None`` (None: the scene does not need the term; it is then
+      never traced).
+    bound: optional ``bound(ctx) -> tuple`` of :class:`diffpen.stability.Bound`, put on the
+      built Term (its rows of the stability bound).
+    materials: optional ``materials(ctx) -> names``: the contact materials the term reads
+      for this scene (``Params.contact`` keys, in a fixed order).
+    groups: optional ``groups(ctx) -> names``: the spring groups it reads
+      (``Params.springs`` keys).
+
+    ``materials`` and ``groups`` are asked before any term is built (``ctx.material_index``
+    and ``ctx.group_index`` are then empty); compile makes the params keys their union over
+    the builders, in builder order (:func:`declared`). A plain function ``build(ctx)`` is a
+    builder without facets.
+    """
+    build: Callable[[CompileContext], Term | None]
+    bound: Callable[[CompileContext], tuple] | None = None
+    materials: Callable[[CompileContext], Iterable[str]] | None = None
+    groups: Callable[[CompileContext], Iterable[str]] | None = None
+
+    def __call__(self, ctx: CompileContext) -> Term | None:
+        term = self.build(ctx)
+        if term is None or self.bound is None:
+            return term
+        return term._replace(bound=tuple(self.bound(ctx)))
+
+
+def with_bound(build: Callable[[CompileContext], Term | None],
+               bound: Callable[[CompileContext], tuple] | None, *,
+               materials: Callable[[CompileContext], Iterable[str]] | None = None,
+               groups: Callable[[CompileContext], Iterable[str]] | None = None) -> TermBuilder:
+    """A :class:`TermBuilder`: ``build`` whose Term carries ``bound(ctx)`` (a tuple of
+    :class:`diffpen.stability.Bound`), declaring ``materials(ctx)`` / ``groups(ctx)``: how a
+    term, its stability bound and the params keys it reads are registered together (one
+    line per term)."""
+    return TermBuilder(build, bound, materials, groups)
+
+
+def declared(builders: Iterable, ctx: CompileContext, facet: str) -> tuple[str, ...]:
+    """The union of the builders' ``facet`` (``"materials"`` or ``"groups"``) declarations
+    for ``ctx``, in builder order, each name once (builders without it declare nothing)."""
+    names: dict = {}
+    for build in builders:
+        fn = getattr(build, facet, None)
+        if fn is None:
+            continue
+        got = fn(ctx)
+        if isinstance(got, (str, bytes)):
+            from ..errors import SceneError
+            raise SceneError(f"a term builder's {facet}(ctx) must return a sequence of names, "
+                             f"got the string {got!r}: write ({got!r},).")
+        names.update(dict.fromkeys(got))
+    return tuple(names)
+
+
+def merge_extra(into: dict, extra: Mapping) -> dict:
+    """Merge ``Params.extra`` defaults ``extra`` into ``into`` (in place; returned): dict
+    values (``{group: value}``) of a name already there are merged group by group, other
+    values replace."""
+    for name, value in extra.items():
+        if isinstance(value, Mapping) and isinstance(into.get(name), dict):
+            into[name].update(value)
+        else:
+            into[name] = dict(value) if isinstance(value, Mapping) else value
+    return into

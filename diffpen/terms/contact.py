@@ -11,21 +11,24 @@ from .. import broadphase as _bp
 from .. import geometry
 from ..scene import DEFAULT
 from ..stability import Bound
-from .base import (CompileContext, Term, _one, _pair_material, _uniform, gather, plane_offsets,
-                   scatter, static_dot, static_scale, with_bound)
+from .base import (CompileContext, Term, _one, _pair_material, _uniform, gather,
+                   plane_offset_extra, plane_offsets, scatter, static_dot, static_scale,
+                   with_bound)
 
-__all__ = ["PLANE", "FIXED_SPHERE", "SPHERE_SPHERE", "BROADPHASE"]
+__all__ = ["PLANE", "FIXED_SPHERE", "SPHERE_SPHERE", "BROADPHASE",
+           "sphere_pair_materials"]
 
 
 def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_args, *,
-                      shape_fn=None, static_normal=None, offsets=None) -> Term | None:
+                      shape_fn=None, static_normal=None, named=False) -> Term | None:
     """Contacts of every moving, colliding non-box body with every fixed collider of one kind
     (boxes collide by their corners, diffpen.rigid). Give one of:
 
     * ``shape_fn``: ``shape_fn(x, r, *shape_args(collider))`` gives ``(d, n)`` for one pair;
     * ``static_normal(collider)`` (planes, ``shape_args = (offset,)``): the normal is a
       constant of the step (``static_dot`` / ``static_scale``) and
-      ``d = r - (n . x - offset)``, geometry.sphere_plane with its zeros left out."""
+      ``d = r - (n . x - offset)``, geometry.sphere_plane with its zeros left out; with
+      ``named`` the offsets of named planes are params (:func:`plane_offsets`)."""
     scene = ctx.scene
     rows = [(i, j, ctx.material_index[col.material])
             for j, col in enumerate(colliders)
@@ -39,7 +42,8 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     n = ctx.n
     normal = None if static_normal is None else np.array(
         [static_normal(colliders[j]) for j in ci], dtype=float)
-    offset_fn = offsets(ctx, ci) if offsets is not None else None
+    offset_fn = plane_offsets(ctx, ci) if named else None
+    extra, checks = plane_offset_extra(ctx, ci) if named else ({}, {})
     inv_m = _uniform(ctx, ctx.inv_mass(bi))
     g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
     g_vec = ctx.const(ctx.scene.gravity)
@@ -51,18 +55,19 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
             off = args[0] if offset_fn is None else offset_fn(params)
             d = radii - (static_dot(normal, x) - off)
             f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
-            return scatter(static_scale(f, normal), bi, n), None
+            return scatter(static_scale(f, normal, as_columns=True), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
         f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
                               geometry.dot(nrm, g_vec))
         return scatter(f[:, None] * nrm, bi, n), None
-    return Term(name, force, step_aware=True)
+    return Term(name, force, step_aware=True, extra=extra, checks=checks,
+                columns=normal is not None)
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
     return _collider_contact(ctx, "contact_plane", ctx.scene.planes,
                              lambda pl: (pl.offset,), static_normal=lambda pl: pl.normal,
-                             offsets=plane_offsets)
+                             named=True)
 
 
 def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -103,6 +108,48 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
                               g_side * geometry.dot(nrm, g_vec))[:, None] * nrm
         return scatter(f, ia, n) - scatter(f, ib, n), None
     return Term("contact_sphere_sphere", force, step_aware=True)
+
+
+# --------------------------------------------------------------------------- materials
+def _collider_materials(ctx: CompileContext, colliders: list) -> tuple:
+    """The colliders' materials (in collider order) when some moving, colliding non-box body
+    can touch them (boxes: :mod:`diffpen.terms.rigid`)."""
+    if not any(ctx.collide[i] and not ctx.pinned[i] and ctx.scene.bodies[i].kind != "box"
+               for i in range(ctx.n)):
+        return ()
+    return tuple(dict.fromkeys(col.material for col in colliders))
+
+
+def sphere_pair_materials(ctx: CompileContext) -> tuple:
+    """Materials of the sphere-sphere pairs that can act, in O(n): a pair (i, j) with a free
+    end uses their shared material, or "default" when they differ. Order: each material some
+    same-material pair uses, in order of its first sphere, then "default" for mixed pairs."""
+    bodies, pinned = ctx.scene.bodies, ctx.pinned
+    spheres = [i for i in range(ctx.n)
+               if ctx.collide[i] and ctx.radius[i] > 0.0 and bodies[i].kind == "sphere"]
+    by_mat: dict[str, list[int]] = {}
+    for i in spheres:
+        by_mat.setdefault(bodies[i].material, []).append(i)
+    used = [m for m, members in by_mat.items()
+            if len(members) >= 2 and any(not pinned[i] for i in members)]
+    if len(by_mat) >= 2 and any(not pinned[i] for i in spheres):
+        used.append(DEFAULT)
+    return tuple(dict.fromkeys(used))
+
+
+def _sphere_sphere_materials(ctx: CompileContext) -> tuple:
+    return sphere_pair_materials(ctx) if ctx.broadphase is None else ()
+
+
+def _broadphase_materials(ctx: CompileContext) -> tuple:
+    """The sphere-sphere pair materials, then the sphere-box ones, of the pairs it finds."""
+    if ctx.broadphase is None:
+        return ()
+    from .rigid import sphere_box_pairs
+    has_ss, has_sb = _pair_kinds(ctx)
+    return tuple(dict.fromkeys(
+        (sphere_pair_materials(ctx) if has_ss else ())
+        + (tuple(m for _, _, m in sphere_box_pairs(ctx.scene)) if has_sb else ())))
 
 
 # --------------------------------------------------------------------------- stability bounds
@@ -213,7 +260,6 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     n = ctx.n
 
     init = jax.jit(lambda s: _bp.find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
-    ctx.aux_init[_bp.OVERFLOW] = float(bool(init))
 
     def search(params, state):
         return _bp.find_pairs(bp, ctx, state)
@@ -245,7 +291,8 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
                                        h=h)
             f = f + fs
         return f, tau
-    return Term("contact_broadphase", force, search=search, record=record, step_aware=True)
+    return Term("contact_broadphase", force, search=search, record=record, step_aware=True,
+                aux={_bp.OVERFLOW: float(bool(init))}, report=_bp.warn_overflow)
 
 
 def _initial_state(ctx: CompileContext):
@@ -284,8 +331,14 @@ def _broadphase_bound(ctx: CompileContext):
     return () if out is None else (out,)
 
 
-#: The contact term builders with their stability bounds (see :data:`diffpen.terms.BUILTIN`).
-PLANE = with_bound(_plane_contact, _plane_bound)
-FIXED_SPHERE = with_bound(_fixed_sphere_contact, _fixed_sphere_bound)
-SPHERE_SPHERE = with_bound(_sphere_sphere_contact, _sphere_sphere_bound)
-BROADPHASE = with_bound(_broadphase_contact, _broadphase_bound)
+#: The contact term builders with their stability bounds and materials (see
+#: :data:`diffpen.terms.BUILTIN`).
+PLANE = with_bound(_plane_contact, _plane_bound,
+                   materials=lambda ctx: _collider_materials(ctx, ctx.scene.planes))
+FIXED_SPHERE = with_bound(_fixed_sphere_contact, _fixed_sphere_bound,
+                          materials=lambda ctx: _collider_materials(ctx,
+                                                                    ctx.scene.fixed_spheres))
+SPHERE_SPHERE = with_bound(_sphere_sphere_contact, _sphere_sphere_bound,
+                           materials=_sphere_sphere_materials)
+BROADPHASE = with_bound(_broadphase_contact, _broadphase_bound,
+                        materials=_broadphase_materials)

@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import geometry, laws
 from ..errors import SceneError
-from .base import CompileContext, Term, _select, scatter
+from .base import CompileContext, Term, TermBuilder, _select, scatter
 
 __all__ = ["rest_update", "AUX_KEY", "TERMS"]
 
@@ -87,9 +87,6 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
         raise SceneError(f"scene.plastic_smoothing must be a strain width >= 0 (0 = hard "
                          f"yield), got {ctx.scene.plastic_smoothing!r}.")
     n = ctx.n
-    ctx.extra_defaults["plastic"] = {g: ctx.scene.plastic_groups[g] for g in groups}
-    ctx.extra_checks["plastic"] = _check_yield
-    ctx.aux_init[AUX_KEY] = np.array([s.rest_length for s in springs])
 
     def force(params, state):
         k, c = ctx.spring_kc(params, gi)
@@ -106,9 +103,16 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
             new = rest_update(length, state.aux[AUX_KEY], rest0, eps, width)
         return {AUX_KEY: new}
 
-    ctx.aux_updates.append(aux_update)
-    return Term("plastic_springs", force)
+    return Term("plastic_springs", force,
+                extra={"plastic": {g: ctx.scene.plastic_groups[g] for g in groups}},
+                checks={"plastic": _check_yield},
+                aux={AUX_KEY: np.array([s.rest_length for s in springs])}, update=aux_update)
+
+
+def _plastic_groups(ctx: CompileContext) -> tuple:
+    """The spring groups of the plastic springs (their k, c), in scene order."""
+    return tuple(dict.fromkeys(s.group for s in ctx.scene.plastic_springs))
 
 
 #: The plastic-spring term builder (no stability bound: its rows are not in the step limit).
-TERMS: tuple = (_plastic_springs,)
+TERMS: tuple = (TermBuilder(_plastic_springs, groups=_plastic_groups),)

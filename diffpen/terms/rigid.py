@@ -26,11 +26,12 @@ from .. import rigid as _rigid
 from ..geometry import rotate
 from ..laws import spring_force
 from ..stability import Bound
-from .base import CompileContext, Term, _pair_material, gather, plane_offsets, scatter, with_bound
+from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
+                   plane_offsets, scatter, with_bound)
 from .springs import _spring_axis
 
 __all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
-           "contact_materials", "sphere_box_pairs", "sphere_box_rows", "TERMS", "BOUND_LABEL"]
+           "sphere_box_pairs", "sphere_box_rows", "TERMS", "BOUND_LABEL"]
 
 
 def sphere_box_pairs(scene) -> list[tuple[int, int, str]]:
@@ -40,16 +41,6 @@ def sphere_box_pairs(scene) -> list[tuple[int, int, str]]:
     others = [i for i, b in enumerate(bodies) if b.kind != "box" and b.collide]
     return [(i, j, _pair_material(scene, bodies[i].material, bodies[j].material))
             for j in boxes for i in others if not (bodies[i].pinned and bodies[j].pinned)]
-
-
-def contact_materials(scene) -> list[str]:
-    """Contact materials used by the box and sphere-box pairs of ``scene`` (for the params)."""
-    used = [m for _, _, m in sphere_box_pairs(scene)]
-    for b in scene.bodies:
-        if b.kind == "box" and b.collide and not b.pinned:
-            used += [p.material for p in scene.planes] + [f.material for f in
-                                                          scene.fixed_spheres]
-    return list(dict.fromkeys(used))
 
 
 # --------------------------------------------------------------------------- one pair
@@ -137,9 +128,11 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     corners = ctx.const([r[2] for r in rows])
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = plane_offsets(ctx, [r[1] for r in rows])
+    extra, checks = plane_offset_extra(ctx, [r[1] for r in rows])
     n = ctx.n
     # smooth Coulomb friction only when some material has it (static choice)
     rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
+    merge_extra(extra, _friction_extra(ctx, rough))
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
@@ -156,20 +149,27 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
                 f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
                                                  _row_mu(params, names, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
-    return Term("contact_box_plane", force, step_aware=True)
+    return Term("contact_box_plane", force, step_aware=True, extra=extra, checks=checks)
 
 
 def _rough(ctx: CompileContext, materials: list[str]):
-    """Friction materials among ``materials`` (registered in ``params.extra["friction"]``),
-    each row's index into them (``len`` for frictionless rows) and slip speeds (m/s)."""
+    """Friction materials among ``materials`` (their mu is ``params.extra["friction"]``:
+    :func:`_friction_extra`), each row's index into them (``len`` for frictionless rows) and
+    slip speeds (m/s); None when no row has friction."""
     scene = ctx.scene
     rough = list(dict.fromkeys(m for m in materials if scene.materials[m].friction > 0.0))
     if not rough:
         return None
-    ctx.extra_defaults.setdefault("friction", {}).update(
-        {m: scene.materials[m].friction for m in rough})
     fi = np.array([rough.index(m) if m in rough else len(rough) for m in materials])
     return rough, fi, ctx.const([scene.materials[m].slip_speed for m in materials])
+
+
+def _friction_extra(ctx: CompileContext, rough) -> dict:
+    """``{"friction": {material: mu}}``, the defaults of the friction coefficients read by
+    rows ``rough`` (from :func:`_rough`; empty for None)."""
+    if rough is None:
+        return {}
+    return {"friction": {m: ctx.scene.materials[m].friction for m in rough[0]}}
 
 
 def _row_mu(params, rough, fi, like):
@@ -189,9 +189,12 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     bi = np.array([r[0] for r in rows], dtype=np.int32)
     mats = [scene.planes[r[1]].material for r in rows]
     mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
-    rough, fi, slip = _rough(ctx, mats)
+    found = _rough(ctx, mats)
+    rough, fi, slip = found
     normals = ctx.const([scene.planes[r[1]].normal for r in rows])
     offsets = plane_offsets(ctx, [r[1] for r in rows])
+    extra, checks = plane_offset_extra(ctx, [r[1] for r in rows])
+    extra = merge_extra(_friction_extra(ctx, found), extra)
     radii = ctx.const(ctx.radius[bi])
     n = ctx.n
 
@@ -205,7 +208,7 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
         f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
                                      _row_mu(params, rough, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
-    return Term("friction_sphere_plane", force, step_aware=True)
+    return Term("friction_sphere_plane", force, step_aware=True, extra=extra, checks=checks)
 
 
 def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -446,11 +449,45 @@ def _anchored_bound(ctx: CompileContext):
     return () if out is None else (out,)
 
 
-#: The rigid-body term builders with their stability bounds, in force summation order.
+# --------------------------------------------------------------------------- params keys
+def _box_collider_materials(ctx: CompileContext, colliders: list) -> tuple:
+    """The colliders' materials, in collider order, when some free colliding box exists."""
+    if not _box_rows(ctx):
+        return ()
+    return tuple(dict.fromkeys(col.material for col in colliders))
+
+
+def _friction_materials(ctx: CompileContext) -> tuple:
+    """The rough planes' materials (their k, c give the normal force) when some free
+    colliding rigid sphere exists."""
+    scene = ctx.scene
+    if not any(b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+               for b in scene.bodies):
+        return ()
+    return tuple(dict.fromkeys(pl.material for pl in scene.planes
+                               if scene.materials[pl.material].friction > 0.0))
+
+
+def _sphere_box_materials(ctx: CompileContext) -> tuple:
+    if getattr(ctx, "broadphase", None) is not None:
+        return ()                       # declared by the broad-phase pair term
+    return tuple(dict.fromkeys(m for _, _, m in sphere_box_pairs(ctx.scene)))
+
+
+def _anchored_groups(ctx: CompileContext) -> tuple:
+    """The groups of every anchored spring (also of those between pinned ends)."""
+    return tuple(dict.fromkeys(s.group for s in ctx.scene.anchored_springs))
+
+
+#: The rigid-body term builders with their stability bounds and params keys, in force
+#: summation order.
 TERMS: tuple = (
-    with_bound(_box_plane_contact, _box_plane_bound),
-    with_bound(_sphere_plane_friction, _sphere_plane_friction_bound),
-    with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound),
-    with_bound(_sphere_box_contact, _sphere_box_bound),
-    with_bound(_anchored_springs, _anchored_bound),
+    with_bound(_box_plane_contact, _box_plane_bound,
+               materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.planes)),
+    with_bound(_sphere_plane_friction, _sphere_plane_friction_bound,
+               materials=_friction_materials),
+    with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound,
+               materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.fixed_spheres)),
+    with_bound(_sphere_box_contact, _sphere_box_bound, materials=_sphere_box_materials),
+    with_bound(_anchored_springs, _anchored_bound, groups=_anchored_groups),
 )

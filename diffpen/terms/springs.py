@@ -143,7 +143,6 @@ def _drag(ctx: CompileContext) -> Term | None:
     if not rows:
         return None
     groups = list(dict.fromkeys(g for _, g in rows))
-    ctx.extra_defaults["drag"] = {g: ctx.scene.drag_groups[g] for g in groups}
     bi = np.array([r[0] for r in rows], dtype=np.int32)
     gi = np.array([groups.index(r[1]) for r in rows], dtype=np.int32)
     n = ctx.n
@@ -153,7 +152,7 @@ def _drag(ctx: CompileContext) -> Term | None:
         v = gather(state.velocity, bi, n)
         f = jax.vmap(laws.drag_force, in_axes=(0, None if jnp.ndim(c) == 0 else 0))(v, c)
         return scatter(f, bi, n), None
-    return Term("drag", force)
+    return Term("drag", force, extra={"drag": {g: ctx.scene.drag_groups[g] for g in groups}})
 
 
 def _spring_rows(ctx: CompileContext, springs):
@@ -176,7 +175,16 @@ def _world_springs_bound(ctx: CompileContext):
     return _spring_rows(ctx, [s for s in ctx.scene.springs if s.b is None])
 
 
-#: The spring term builders with their stability bounds (see :data:`diffpen.terms.BUILTIN`).
-BODY_SPRINGS = with_bound(_body_springs, _body_springs_bound)
-WORLD_SPRINGS = with_bound(_world_springs, _world_springs_bound)
+def _spring_groups(ctx: CompileContext) -> tuple:
+    """The groups of ``scene.springs``, in scene order, including springs that cannot act (a
+    world spring on a pinned body): both spring terms read this one scene list (body springs
+    and world springs) and declare its groups together, so the ``Params.springs`` keys keep
+    the order in which the scene's springs name them."""
+    return tuple(dict.fromkeys(s.group for s in ctx.scene.springs))
+
+
+#: The spring term builders with their stability bounds and groups (see
+#: :data:`diffpen.terms.BUILTIN`).
+BODY_SPRINGS = with_bound(_body_springs, _body_springs_bound, groups=_spring_groups)
+WORLD_SPRINGS = with_bound(_world_springs, _world_springs_bound, groups=_spring_groups)
 DRAG = _drag

@@ -45,7 +45,7 @@ def run(args) -> int:
         jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from tuning import bench
+    from tuning.reports import bench
     if args.repeats < 1:
         print("diffpen bench: --repeats must be >= 1", file=sys.stderr)
         return 2

@@ -146,10 +146,9 @@ def _run(args) -> int:
     import diffpen as dp
 
     from ..bounce import fit_bounce
+    from ..scenes import ball_scene
     targets = _targets(args)
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
-    scene.add_plane()
+    scene = ball_scene(radius=args.radius, mass=args.mass, height=args.drop)
     dt = args.dt or 1e-3
     method, opt = "lm", None
     if args.method != "lm":

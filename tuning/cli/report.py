@@ -74,7 +74,7 @@ def run(args) -> int:
 
 # --------------------------------------------------------------------------- stability
 def _stability(args, integs) -> int:
-    from tuning.extreme import extreme_cases, stability_matrix, summarize_matrix
+    from tuning.reports.extreme import extreme_cases, stability_matrix, summarize_matrix
     cases = extreme_cases(scenes=tuple(args.scenes), dtypes=tuple(args.dtypes),
                           integrators=integs, quick=args.quick)
 
@@ -118,7 +118,7 @@ def _stability(args, integs) -> int:
 
 # --------------------------------------------------------------------------- accuracy
 def _accuracy(args, integs) -> int:
-    from tuning.accuracy import BallSpec, accuracy, plot_accuracy, recommend
+    from tuning.reports.accuracy import BallSpec, accuracy, plot_accuracy, recommend
     if args.repeats < 1:
         return fail("report", "--repeats must be >= 1")
     spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
@@ -182,13 +182,13 @@ def _accuracy(args, integs) -> int:
 
 # --------------------------------------------------------------------------- gradients
 def _gradients(args) -> int:
-    from tuning.accuracy import BallSpec
-    from tuning.gradient_check import gradient_report
+    from tuning.reports.accuracy import BallSpec
+    from tuning.reports.gradient_check import gradient_report
     spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
                     height=args.height, T=2.0)
     kw = dict(dts=(1e-3,), widths=(0.0, 1e-3)) if args.quick else {}
     rows = gradient_report(spec=spec, **kw)
-    from tuning.gradient_check import EVENT_CASES, event_gradient_rows, event_gradient_table
+    from tuning.reports.gradient_check import EVENT_CASES, event_gradient_rows, event_gradient_table
     ev_dts = (1e-3,) if args.quick else (1e-3, 1e-4)
     events = event_gradient_rows(EVENT_CASES, ev_dts)
     if args.json:

@@ -105,8 +105,9 @@ def _run(args) -> int:
                        f"{math.sqrt(2 * (args.drop - args.radius) / 9.81):.3g} s to reach "
                        "the ground)")
     w_max = math.sqrt(args.k[1] / args.mass) * args.dt
-    stable = args.k[1] * args.dt ** 2 + 2 * args.c[1] * args.dt < 4 * args.mass
-    if not stable:
+    from diffpen.stability import stable_dt       # the one home of the step limit
+    if not stable_dt("semi_implicit_euler", args.k[1] / args.mass,
+                     args.c[1] / args.mass) > args.dt:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
     est = check_size(nk * nc, steps, args.chunk)
@@ -130,11 +131,10 @@ def _run(args) -> int:
 
     from ..io import describe_simulator
     from ..metrics import ball_metrics
+    from ..scenes import ball_scene
     from ..stable import contact_unstable, rollout_unstable
     from ..sweep import grid_points, sweep
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_sphere(radius=args.radius, mass=args.mass, position=(0.0, 0.0, args.drop))
-    scene.add_plane()
+    scene = ball_scene(radius=args.radius, mass=args.mass, height=args.drop)
     sim = dp.compile(scene, args.dt)
 
     def mfn(params):

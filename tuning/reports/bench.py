@@ -38,6 +38,8 @@ import numpy as np
 import diffpen as dp
 from diffpen import builders
 
+from ..scenes import ball_scene
+
 __all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
            "memory_bytes", "plain_ball_floor"]
 
@@ -152,15 +154,13 @@ def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
     return zs if record else z
 
 
-def _ball(batch: int, quick: bool):
+def _ball(batch: int, quick: bool, layout: str = "rows"):
     def build(dtype, quick_=quick):
         steps = 2000 if not quick_ else 500
         b = batch if not quick_ else min(batch, 256)
         dt, k0, c0 = 1e-3, 1e4, 20.0
-        scene = dp.Scene(gravity=(0.0, 0.0, -G))
-        scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
-        scene.add_plane()
-        sim = dp.compile(scene, dt=dt, dtype=dtype, unroll=1 if b == 1 else 4)
+        sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0, gravity=G), dt=dt,
+                         dtype=dtype, unroll=1 if b == 1 else 4, layout=layout)
 
         def height(state):
             return state.position[0, 2]
@@ -438,6 +438,9 @@ CASES: dict[str, Case] = {
     "ball_b1": Case("ball_b1", _ball(1, False)),
     "ball_b1024": Case("ball_b1024", _ball(1024, False)),
     "ball_b65536": Case("ball_b65536", _ball(65536, False)),
+    # the same balls stepped in the columns layout (diffpen.layout)
+    "ball_b1024_columns": Case("ball_b1024_columns", _ball(1024, False, "columns")),
+    "ball_b65536_columns": Case("ball_b65536_columns", _ball(65536, False, "columns")),
     "chain": Case("chain", _network_case(_chain_scene, 2000, 500, 0.1)),
     "cloth32": Case("cloth32", _network_case(lambda: _cloth_scene(32), 1000, 200, 1e-3)),
     "cloth64": Case("cloth64", _network_case(lambda: _cloth_scene(64), 1000, 100, 1e-3)),
@@ -569,7 +572,3 @@ def gradient_memory(n: int = 32, steps: int = 100_000, save_every: int = 1000,
 def _scaling_exponent(sizes, times) -> float:
     """Least-squares slope of log(time) against log(size)."""
     return float(np.polyfit(np.log(sizes), np.log(times), 1)[0])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    print(run(["ball_b1"], quick=True))

@@ -5,8 +5,8 @@ growing, penetration bounded, restitution <= 1, finite gradients) or be refused 
 error whose advice then works.
 
 Everything here computes and returns plain data (dicts, lists); ``tuning.cli.report`` prints.
-:func:`ball_scene` is also the problem of :mod:`tuning.accuracy` and
-:mod:`tuning.gradient_check`.
+The ball is :func:`tuning.scenes.ball_scene`, also the problem of
+:mod:`tuning.reports.accuracy` and :mod:`tuning.reports.gradient_check`.
 
 Units: SI throughout (m, kg, s, N/m, N s/m).
 """
@@ -23,10 +23,11 @@ import numpy as np
 import diffpen as dp
 from diffpen import stability as _stab
 
+from ..scenes import ball_scene
 from .reference import G
 
 __all__ = [
-    "INTEGRATORS", "ball_scene", "chain_scene", "Case", "extreme_cases", "case_smoothing",
+    "INTEGRATORS", "chain_scene", "Case", "extreme_cases", "case_smoothing",
     "ENERGY_TOL", "run_case", "stability_matrix", "summarize_matrix",
 ]
 
@@ -34,21 +35,6 @@ INTEGRATORS = ("semi_implicit_euler", "verlet", "rk4", "implicit_euler")
 
 
 # --------------------------------------------------------------------------- scenes
-def ball_scene(*, mass: float = 1.0, radius: float = 0.1, height: float = 1.0,
-               speed: float = 0.0, overlap: bool = False, gravity: bool = True) -> dp.Scene:
-    """One sphere above the ground plane z = 0.
-
-    height: initial centre height, m (ignored with ``overlap``: the centre then starts ON the
-    plane, i.e. overlapped by its full radius).  speed: initial downward speed, m/s.
-    """
-    scene = dp.Scene(gravity=(0.0, 0.0, -G if gravity else 0.0), allow_overlap=overlap)
-    z0 = 0.0 if overlap else height
-    scene.add_sphere(radius=radius, mass=mass, position=(0.0, 0.0, z0),
-                     velocity=(0.0, 0.0, -speed))
-    scene.add_plane()
-    return scene
-
-
 def chain_scene(*, n: int = 4, mass: float = 1.0, radius: float = 0.05, spacing: float = 0.2,
                 height: float = 0.5, speed: float = 0.0, overlap: bool = False,
                 gravity: bool = True, k: float = 1e4, c: float = 0.0) -> dp.Scene:
@@ -166,7 +152,7 @@ def _case_sim(case: Case, substeps, integrator=None):
            case_smoothing(case, 0.1 if case.scene == "ball" else 0.05))
     if key not in _SIM_CACHE:
         if case.scene == "ball":
-            scene = ball_scene(mass=case.mass, height=0.5, gravity=case.gravity)
+            scene = ball_scene(mass=case.mass, height=0.5, gravity=G if case.gravity else 0.0)
         else:
             scene = chain_scene(mass=case.mass, gravity=case.gravity)
         width = case_smoothing(case, scene.bodies[0].radius)

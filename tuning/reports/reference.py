@@ -18,7 +18,7 @@ import numpy as np
 __all__ = [
     "G", "spring_closed_form", "BallReference", "ball_reference",
     "ball_reference_derivatives", "chain_reference",
-    "apex_heights", "settling_time",
+    "apex_heights", "settling_time", "BoxCornerReference", "rotation_angle",
 ]
 
 G = 9.81
@@ -328,3 +328,242 @@ def settling_time(t, energy, frac: float = 0.01) -> float:
     a, b = energy[i - 1], energy[i]
     return float(t[i - 1] + (a - frac * e0) / (a - b) * (t[i] - t[i - 1]))
 
+
+
+# --------------------------------------------------------------------------- box corners
+def _quat_matrix(q):
+    """Rotation matrix (3, 3) of the quaternion q (4,) = (w, x, y, z), normalised here."""
+    w, x, y, z = np.asarray(q, float) / math.sqrt(float(np.dot(q, q)))
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _cross(a, b):
+    """``np.cross`` of (..., 3) arrays, written out (numpy's is slow on small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def rotation_angle(q, q0) -> float:
+    """Angle (rad, in [0, pi]) of the rotation taking orientation ``q0`` to ``q`` (unit
+    quaternions (4,), (w, x, y, z)): ``2 atan2(|vec(p)|, |w(p)|)`` of ``p = q conj(q0)``."""
+    q = np.asarray(q, float) / np.linalg.norm(q)
+    q0 = np.asarray(q0, float) / np.linalg.norm(q0)
+    w0, v0 = q0[0], -q0[1:]
+    pw = q[0] * w0 - np.dot(q[1:], v0)
+    pv = q[0] * v0 + w0 * q[1:] + np.cross(q[1:], v0)
+    return 2.0 * math.atan2(float(np.linalg.norm(pv)), abs(float(pw)))
+
+
+class BoxCornerReference:
+    """A rigid box on the plane z = 0 with penalty contact at each of its 8 corners and
+    smooth Coulomb friction, solved phase by phase with DOP853; each corner's contact start
+    and end and each sign change of its normal force are located as terminal events, so
+    every phase has a smooth right-hand side. Written here in numpy, independently of
+    :mod:`diffpen` (the same model as diffpen's ``contact_box_plane`` term, in continuous
+    time).
+
+    Model (SI units; world z up, gravity ``-g`` along z). State: centre ``x`` (3,) m,
+    velocity ``v`` (3,) m/s, orientation quaternion ``q`` (4,) (w, x, y, z; body to world,
+    ``R`` its rotation matrix), body-frame angular velocity ``W`` (3,) rad/s. Corner ``i``
+    (body frame ``c_i = (+-hx, +-hy, +-hz)``) is at ``p_i = x + R c_i``, its depth is
+    ``d_i = -p_i,z`` and its velocity ``u_i = v + R (W x c_i)``, separating speed
+    ``vn_i = u_i,z``. While ``d_i > 0``:
+
+    * normal force ``F_i = k d_i - c vn_i`` (``law="linear"``: it may pull at the end of a
+      contact) or ``max(k d_i - c vn_i, 0)`` (``"no_tension"``), along +z;
+    * friction ``-mu max(F_i, 0) u_t / sqrt(|u_t|^2 + s^2)``, ``u_t`` the horizontal part of
+      ``u_i``, ``s`` the slip speed (m/s);
+
+    both act at ``p_i``; the torque about the centre is ``(R c_i) x f_i``. Newton's and
+    Euler's equations: ``m dv/dt = sum f_i - m g e_z``; ``I dW/dt = tau_b - W x I W`` with
+    ``I`` the body-frame principal moments (solid box ``m/3 (hy^2 + hz^2)``, ...) and
+    ``tau_b = R^T tau``; ``dq/dt = q (0, W) / 2``.
+
+    Args:
+      k: N/m, c: N s/m, mu: friction coefficient, slip_speed: m/s.
+      mass: kg; half: (3,) half extents, m; inertia: (3,) kg m^2 (default: solid box).
+      x0, v0: (3,) m, m/s; q0: (4,) unit quaternion; w0: (3,) world angular velocity, rad/s
+        (as ``diffpen.Scene.add_box`` takes them).
+      T: end time, s; rtol, atol: DOP853 tolerances (atol on every state component).
+
+    Attributes: ``events`` list of ``(t, corner, kind)`` with kind ``"start"``, ``"end"``
+    (``d_i`` through 0), ``"push"``, ``"pull"`` (``F_i`` through 0 inside a contact);
+    ``contacts``: per corner, the list of ``(t_start, t_end)`` (``t_end = T`` if still in
+    contact). :meth:`state` gives ``(x, v, q, w_world)`` at any time."""
+
+    def __init__(self, *, k: float, c: float, mu: float, slip_speed: float, mass: float,
+                 half, x0, v0=(0.0, 0.0, 0.0), q0=(1.0, 0.0, 0.0, 0.0),
+                 w0=(0.0, 0.0, 0.0), T: float, g: float = G, law: str = "linear",
+                 inertia=None, rtol: float = 1e-10, atol: float = 1e-13,
+                 max_events: int = 5000,
+                 guard: float = 1e-10):
+        integrate = _scipy_integrate()
+        if law not in ("linear", "no_tension"):
+            raise ValueError(f"the box reference knows the laws linear and no_tension, not "
+                             f"{law!r}.")
+        half = np.asarray(half, float)
+        self.k, self.c, self.mu, self.s, self.m, self.g = k, c, mu, slip_speed, mass, g
+        self.half, self.law, self.T = half, law, T
+        hx, hy, hz = half
+        inertia = (mass / 3.0 * np.array([hy * hy + hz * hz, hx * hx + hz * hz,
+                                          hx * hx + hy * hy]) if inertia is None
+                   else np.asarray(inertia, float))
+        self.inertia = inertia
+        signs = np.array([[sx, sy, sz] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0)
+                          for sz in (-1.0, 1.0)])
+        self.corners = corners = signs * half                     # same order as diffpen
+        q0 = np.asarray(q0, float) / np.linalg.norm(q0)
+        w_body = _quat_matrix(q0).T @ np.asarray(w0, float)
+        y0 = np.concatenate([np.asarray(x0, float), np.asarray(v0, float), q0, w_body])
+
+        memo = {}
+
+        def kinematics(y):
+            # the event functions ask for the same state one after the other: computed once
+            key = y.tobytes()
+            if key not in memo:
+                rot = _quat_matrix(y[6:10])
+                r = corners @ rot.T                               # (8, 3) lever arms, world
+                w = rot @ y[10:13]
+                u = y[3:6] + _cross(w, r)                       # corner velocities
+                memo.clear()
+                memo[key] = rot, r, u, -(y[2] + r[:, 2])
+            return memo[key]
+
+        def normal(d, vn):
+            return k * d - c * vn
+
+        def rhs_for(touch, push):
+            touch, push = np.array(touch), np.array(push)
+
+            def rhs(_, y):
+                q = y[6:10]
+                W = y[10:13]
+                dq = 0.5 * np.array([-q[1] * W[0] - q[2] * W[1] - q[3] * W[2],
+                                     q[0] * W[0] + q[2] * W[2] - q[3] * W[1],
+                                     q[0] * W[1] + q[3] * W[0] - q[1] * W[2],
+                                     q[0] * W[2] + q[1] * W[1] - q[2] * W[0]])
+                acc = np.array([0.0, 0.0, -g])
+                dW = -_cross(W, inertia * W) / inertia
+                if touch.any():
+                    rot, r, u, d = kinematics(y)
+                    sel = np.flatnonzero(touch)
+                    fn = normal(d[sel], u[sel, 2])
+                    on = push[sel]
+                    fz = np.where(on, fn, 0.0 if law == "no_tension" else fn)
+                    ut = u[sel, :2]
+                    sp = np.sqrt(np.sum(ut * ut, axis=1) + slip_speed * slip_speed)
+                    ft = -mu * np.where(on, fn, 0.0)[:, None] * ut / sp[:, None]
+                    f = np.column_stack([ft, fz])
+                    acc = acc + f.sum(axis=0) / mass
+                    tau_b = rot.T @ _cross(r[sel], f).sum(axis=0)
+                    dW = dW + tau_b / inertia
+                return np.concatenate([y[3:6], acc, dq, dW])
+            return rhs
+
+        def guarded(fun, direction, until):
+            # an event function that just switched is ~0 at the restart, with either sign:
+            # for ``guard`` seconds it reports the side it leaves from, so that the root
+            # just located is not found again (a corner that truly grazes the plane within
+            # that time is recorded ``guard`` late)
+            def ev(t, y):
+                return -direction if t < until else fun(y)
+            ev.terminal, ev.direction = True, direction
+            return ev
+
+        def depth(i):
+            return lambda y: kinematics(y)[3][i]
+
+        def force(i):
+            def fun(y):
+                _, _, u, d = kinematics(y)
+                return normal(d[i], u[i, 2])
+            return fun
+
+        _, _, u, d = kinematics(y0)
+        touch = [bool(x > 0.0) for x in d]
+        push = [bool(t and normal(di, ui) > 0.0) for t, di, ui in zip(touch, d, u[:, 2])]
+        start = [0.0 if t else None for t in touch]
+        contacts = [[] for _ in range(8)]
+        segs, events = [], []
+        t, y = 0.0, y0
+        until = {}                                   # (corner, kind) -> end of its guard
+        while t < T:
+            evs, what = [], []
+            for i in range(8):
+                evs.append(guarded(depth(i), -1.0 if touch[i] else 1.0,
+                                   until.get((i, "d"), -1.0)))
+                what.append((i, "d"))
+                if touch[i]:
+                    evs.append(guarded(force(i), -1.0 if push[i] else 1.0,
+                                       until.get((i, "f"), -1.0)))
+                    what.append((i, "f"))
+            sol = integrate.solve_ivp(rhs_for(touch, push), (t, T), y, method="DOP853",
+                                      rtol=rtol, atol=atol, events=evs, dense_output=True)
+            if sol.status == -1:
+                raise RuntimeError(f"BoxCornerReference: DOP853 failed at t = {t}: "
+                                   f"{sol.message}")
+            segs.append((t, float(sol.t[-1]), sol.sol))
+            if sol.status != 1:
+                break
+            hits = [(float(te[0]), j) for j, te in enumerate(sol.t_events) if len(te)]
+            t, j = min(hits)
+            y = np.array(sol.y_events[j][0], float)
+            i, kind = what[j]
+            until = {(i, kind): t + guard}
+            if kind == "d":
+                if touch[i]:
+                    contacts[i].append((start[i], t))
+                    touch[i], push[i] = False, False
+                    events.append((t, i, "end"))
+                else:
+                    touch[i], start[i] = True, t
+                    _, _, u, _ = kinematics(y)
+                    push[i] = bool(u[i, 2] < 0.0)      # F = -c vn at d = 0
+                    if push[i]:
+                        until[(i, "f")] = t + guard
+                    events.append((t, i, "start"))
+            else:
+                push[i] = not push[i]
+                events.append((t, i, "push" if push[i] else "pull"))
+            if len(events) > max_events:
+                raise RuntimeError(f"BoxCornerReference: more than {max_events} events "
+                                   f"before t = {t} s (chattering contact?).")
+        for i in range(8):
+            if touch[i]:
+                contacts[i].append((start[i], T))
+        self._segs = segs
+        self.events = events
+        self.contacts = contacts
+
+    def _y(self, t: float):
+        t = float(t)
+        for t0, t1, sol in self._segs:
+            if t <= t1:
+                return sol(min(max(t, t0), t1))
+        t0, t1, sol = self._segs[-1]
+        return sol(t1)
+
+    def state(self, t):
+        """``(x (3,) m, v (3,) m/s, q (4,) unit quaternion, w (3,) world rad/s)`` at time
+        ``t`` (s, 0 <= t <= T)."""
+        y = self._y(t)
+        q = y[6:10] / np.linalg.norm(y[6:10])
+        return y[:3].copy(), y[3:6].copy(), q, _quat_matrix(q) @ y[10:13]
+
+    def energy(self, t) -> float:
+        """Kinetic + gravitational (from z = 0) + the corners' elastic energy, J."""
+        y = self._y(t)
+        rot = _quat_matrix(y[6:10])
+        d = np.maximum(-(y[2] + (self.corners @ rot.T)[:, 2]), 0.0)
+        W = y[10:13]
+        return float(0.5 * self.m * y[3:6] @ y[3:6] + 0.5 * W @ (self.inertia * W)
+                     + self.m * self.g * y[2] + 0.5 * self.k * np.sum(d * d))
+
+    def angular_momentum(self, t):
+        """Angular momentum about the centre of mass, world frame (3,) kg m^2/s."""
+        y = self._y(t)
+        return _quat_matrix(y[6:10]) @ (self.inertia * y[10:13])

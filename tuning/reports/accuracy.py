@@ -1,7 +1,7 @@
 """Accuracy against run time (work-precision) of every integrator: error against an independent
-reference (:mod:`tuning.reference`) on a ladder of dt, for a ball drop, a damped spring and a
-hanging chain, with the median wall time of each run; the cheapest integrator and dt that meet
-a tolerance; the log-log diagram.
+reference (:mod:`tuning.reports.reference`) on a ladder of dt, for a ball drop, a damped spring
+and a hanging chain, with the median wall time of each run; the cheapest integrator and dt that
+meet a tolerance; the log-log diagram.
 
 Everything here computes and returns plain data (dicts, lists), except
 :func:`plot_accuracy`, which writes a figure; ``tuning.cli.report`` prints. Times are medians
@@ -23,7 +23,8 @@ import numpy as np
 
 import diffpen as dp
 
-from .extreme import INTEGRATORS, ball_scene
+from ..scenes import ball_scene
+from .extreme import INTEGRATORS
 from .reference import (G, BallReference, apex_heights, ball_reference, chain_reference,
                         settling_time, spring_closed_form)
 

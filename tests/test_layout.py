@@ -1,0 +1,82 @@
+"""The columns layout (diffpen.layout): rollouts that step positions and velocities as three
+(n,) arrays give the rows layout's values bit for bit, under jit, vmap and jacfwd, and scenes
+or integrators that cannot step in columns are refused with a clear error."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+
+
+def _scene():
+    # a ball thrown at a wall and bouncing on the ground: two plane contacts, one of them
+    # with a normal along x, so every component carries a force at some point
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.2, 0.0, 0.6), velocity=(0.8, 0.1, 0.0))
+    scene.add_plane()
+    scene.add_plane(normal=(-1.0, 0.0, 0.0), offset=-0.5)
+    return scene
+
+
+@pytest.fixture(scope="module")
+def sims():
+    return {(integ, lay): dp.compile(_scene(), dt=1e-3, integrator=integ, layout=lay)
+            for integ in ("semi_implicit_euler", "verlet", "rk4")
+            for lay in ("rows", "columns")}
+
+
+@pytest.mark.parametrize("integ", ["semi_implicit_euler", "verlet", "rk4"])
+def test_columns_rollout_equals_rows_bit_for_bit(sims, integ):
+    rows, cols = sims[integ, "rows"], sims[integ, "columns"]
+    assert cols.columns and not rows.columns
+    p = rows.params(k=2e4, c=15.0)
+    a, b = rows.rollout(p, steps=400, save_every=4), cols.rollout(p, steps=400, save_every=4)
+    assert b.position.shape == a.position.shape == (100, 1, 3)
+    if integ == "rk4":
+        # same operations; XLA at -O0 (the tests' setting, tests/conftest.py) rounds one of
+        # rk4's stage sums differently in the two programs: within 2 ulp (bit for bit at -O3)
+        np.testing.assert_array_max_ulp(np.asarray(b.position), np.asarray(a.position), 2)
+        np.testing.assert_array_max_ulp(np.asarray(b.velocity), np.asarray(a.velocity), 2)
+    else:
+        np.testing.assert_array_equal(np.asarray(b.position), np.asarray(a.position))
+        np.testing.assert_array_equal(np.asarray(b.velocity), np.asarray(a.velocity))
+    # the rollout did touch both planes (otherwise the test would not test the force columns)
+    assert float(a.position[:, 0, 2].min()) < 0.1 and float(a.position[:, 0, 0].max()) > 0.4
+
+
+def test_columns_vmap_and_forward_gradient_equal_rows(sims):
+    rows, cols = sims["semi_implicit_euler", "rows"], sims["semi_implicit_euler", "columns"]
+
+    def final(sim):
+        def f(k, c):
+            traj = sim.rollout(sim.params(k=k, c=c), steps=300, save_every=300)
+            return traj.position[-1, 0]
+        return jax.jit(jax.vmap(jax.jacfwd(f, argnums=(0, 1))))
+    ks, cs = jnp.array([1e4, 3e4]), jnp.array([10.0, 30.0])
+    ga, gb = final(rows)(ks, cs), final(cols)(ks, cs)
+    for x, y in zip(ga, gb):
+        assert np.all(np.isfinite(np.asarray(x)))
+        np.testing.assert_array_equal(np.asarray(y), np.asarray(x))
+    obs = jax.vmap(lambda k: cols.rollout(cols.params(k=k, c=20.0), steps=300,
+                                          observe=lambda s: s.position[0, 2]).observed)(ks)
+    ref = jax.vmap(lambda k: rows.rollout(rows.params(k=k, c=20.0), steps=300).position[:, 0, 2])(ks)
+    np.testing.assert_array_equal(np.asarray(obs), np.asarray(ref))
+
+
+def test_columns_refused_with_what_stands_in_the_way():
+    two = dp.Scene()
+    two.add_sphere(0.1, 1.0, (0.0, 0.0, 0.5))
+    two.add_sphere(0.1, 1.0, (0.0, 0.0, 0.8))
+    two.add_plane()
+    with pytest.raises(dp.SceneError, match="contact_sphere_sphere"):
+        dp.compile(two, 1e-3, layout="columns")
+    with pytest.raises(dp.SceneError, match="implicit_euler"):
+        dp.compile(_scene(), 1e-3, integrator="implicit_euler", layout="columns")
+    box = dp.Scene()
+    box.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.5))
+    box.add_plane()
+    with pytest.raises(dp.SceneError, match="rotating bodies"):
+        dp.compile(box, 1e-3, layout="columns")
+    with pytest.raises(dp.SceneError, match="layout must be one of"):
+        dp.compile(_scene(), 1e-3, layout="soa")

@@ -1,0 +1,77 @@
+"""tuning.reports.reference: the independent references are right (closed forms, an
+independent ODE solver, the simulator at a small step) and the sampled metrics measure what
+they claim."""
+import math
+
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning.reports.reference import (apex_heights, ball_reference, chain_reference,
+                                      settling_time, spring_closed_form)
+
+
+@pytest.mark.parametrize("zeta", [0.1, 0.3])
+def test_ball_reference_matches_closed_form_restitution_and_contact_time(zeta):
+    """No gravity: one contact of the linear law, e = exp(-pi z / sqrt(1 - z^2)) and
+    t_c = pi / w_d (physics-notes.md section 2)."""
+    k, m = 1e4, 1.0
+    c = 2 * zeta * math.sqrt(k * m)
+    ref = ball_reference(k=k, c=c, m=m, r=0.1, z0=0.2, v0=-3.0, T=0.2, g=0.0)
+    (t0, t1), = ref.contacts
+    w_d = math.sqrt(k / m) * math.sqrt(1 - zeta ** 2)
+    assert t0 == pytest.approx(0.1 / 3.0, rel=1e-10)
+    assert t1 - t0 == pytest.approx(math.pi / w_d, rel=1e-9)
+    _, v = ref.state([t1 + 1e-3])
+    assert v[0] / 3.0 == pytest.approx(math.exp(-math.pi * zeta / math.sqrt(1 - zeta ** 2)),
+                                       rel=1e-9)
+
+
+def test_ball_reference_with_gravity_and_metrics():
+    ref = ball_reference(k=1e4, c=20.0, m=1.0, r=0.1, z0=1.0, T=3.0)
+    e0 = 0.729247614287671       # zeta = 0.1 without gravity; gravity lowers it slightly
+    first = math.sqrt((ref.apexes[0] - 0.1) / 0.9)
+    assert e0 - 0.02 < first < e0
+    assert ref.apexes[0] > ref.apexes[1] > ref.apexes[2]
+    ts = ref.settling_time(0.01)
+    z, v = ref.state([ts])
+    assert ref.energy(z, v)[0] == pytest.approx(0.01 * 9.81 * 0.9, rel=1e-8)
+    # the sampled metrics recover the reference from its own dense samples
+    t = np.linspace(1e-4, 3.0, 30000)
+    z, v = ref.state(t)
+    np.testing.assert_allclose(apex_heights(t, z, 0.1, 3), ref.apexes[:3], rtol=1e-7)
+    e = ref.energy(z, v)
+    assert settling_time(np.r_[0.0, t], np.r_[9.81 * 0.9, e]) == pytest.approx(ts, abs=2e-4)
+
+
+def test_apex_heights_exact_on_parabolas():
+    t = np.arange(0.0, 1.0, 1e-2) + 3e-3
+    z = np.where(t < 0.2, 0.05, 0.1 + 2.0 * (t - 0.2) - 4.905 * (t - 0.2) ** 2)
+    ap = apex_heights(t, z, 0.1, 2)
+    assert ap[0] == pytest.approx(0.1 + 2.0 ** 2 / (2 * 9.81), rel=1e-12)
+    assert math.isnan(ap[1])
+
+
+def test_chain_reference_agrees_with_simulator_at_small_dt():
+    n, k, c, m, L = 3, 200.0, 0.5, 0.1, 0.2
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    prev = scene.add_particle(mass=m, position=(0.0, 0.0, 0.0), pinned=True)
+    for i in range(1, n + 1):
+        b = scene.add_particle(mass=m, position=(L * i, 0.0, 0.0))
+        scene.add_spring(prev, b, k=k, c=c, rest_length=L)
+        prev = b
+    sim = dp.compile(scene, 1e-4, integrator="rk4")
+    traj = sim.rollout(sim.params(), 2000, save_every=100)
+    ref = chain_reference(np.asarray(traj.time), x0=[[L * i, 0, 0] for i in range(n + 1)],
+                          m=m, k=k, c=c, rest=L)
+    np.testing.assert_allclose(traj.position, ref, atol=1e-9)
+
+
+def test_spring_closed_form_solves_the_ode():
+    from scipy.integrate import solve_ivp
+    for c in (2.0, 20.0, 50.0):           # under-, critically and over-damped (k=100, m=1)
+        t = np.linspace(0, 2, 50)
+        sol = solve_ivp(lambda _, y: [y[1], -100 * y[0] - c * y[1]], (0, 2), [0.1, 0.0],
+                        t_eval=t, method="DOP853", rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(spring_closed_form(t, k=100.0, c=c, m=1.0, x0=0.1),
+                                   sol.y[0], atol=1e-11)

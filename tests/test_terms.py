@@ -1,0 +1,64 @@
+"""The facets the term builders declare (diffpen.terms): the params keys are the union of
+what the builders say they read, in builder order, and each Term carries its extra params
+and aux state. Compile only: no rollout."""
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.broadphase import AABB
+
+
+def _mixed_scene():
+    s = dp.Scene()
+    for m in ("ground", "A", "B", "steel", "post"):
+        s.add_material(m, k=1e4, c=10.0)
+    s.add_plane(material="ground")
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.2), material="A")
+    s.add_sphere(0.1, 1.0, (1.0, 0.0, 0.2), material="B")
+    s.add_sphere(0.1, 1.0, (2.0, 0.0, 0.2), material="A")
+    s.add_box((0.1, 0.1, 0.1), 1.0, (3.0, 0.0, 0.2), material="steel")
+    s.add_particle(0.5, (3.0, 0.5, 0.2), material="steel")   # a steel-steel pair with the box
+    s.add_fixed_sphere((5.0, 0.0, 0.0), 0.5, material="post")
+    return s
+
+
+@pytest.mark.parametrize("pairs", [None, AABB()], ids=["all_pairs", "aabb"])
+def test_materials_are_the_union_of_the_builders_declarations(pairs):
+    """Colliders first (plane, fixed sphere), then same-material sphere pairs, "default" for
+    mixed pairs, then sphere-box pairs, whichever term (all pairs or the broad phase) finds
+    the sphere pairs; the index the terms use follows that order."""
+    sim = dp.compile(_mixed_scene(), 1e-3, broadphase=pairs)
+    expected = ("ground", "post", "A", "default", "steel")
+    assert sim.materials == expected
+    assert tuple(sim.params(k=1e4, c=10.0).contact) == expected
+    assert sim.context.material_index == {m: i for i, m in enumerate(expected)}
+    assert dp.terms.declared(dp.terms.BUILTIN, sim.context, "materials") == expected
+
+
+def test_spring_groups_keep_the_scene_order_and_inert_springs():
+    """Groups follow the order the scene's springs name them (a world spring before a body
+    spring stays first), then plastic, then anchored springs; a world spring on a pinned
+    body (which no term evaluates) keeps its group a parameter."""
+    s = dp.Scene()
+    a = s.add_particle(1.0, (0.0, 0.0, 1.0))
+    b = s.add_particle(1.0, (1.0, 0.0, 1.0))
+    pin = s.add_particle(1.0, (2.0, 0.0, 1.0), pinned=True)
+    s.add_spring(a, (0.0, 0.0, 2.0), k=10.0, group="hanger")
+    s.add_spring(a, b, k=10.0, group="rod")
+    s.add_spring(pin, (2.0, 0.0, 2.0), k=10.0, group="idle")
+    s.add_plastic_spring(a, b, k=10.0, yield_strain=0.1, group="crumple")
+    box = s.add_box((0.1, 0.1, 0.1), 1.0, (4.0, 0.0, 1.0), collide=False)
+    s.add_anchored_spring(box, None, (0.1, 0.0, 0.0), (4.1, 0.0, 1.5), k=10.0, group="tie")
+    sim = dp.compile(s, 1e-3)
+    assert sim.spring_groups == ("hanger", "rod", "idle", "crumple", "tie")
+    assert tuple(sim.params().springs) == sim.spring_groups
+    assert sim.terms == ("springs", "world_springs", "plastic_springs", "anchored_springs")
+
+    # the plastic term carries its extra param, its check, its aux state and update
+    term = sim.term("plastic_springs")
+    assert dict(term.extra) == {"plastic": {"crumple": 0.1}}
+    np.testing.assert_array_equal(term.aux["plastic_rest"], [1.0])
+    assert term.update is not None and "plastic" in term.checks
+    assert set(sim.init_state().aux) == {"plastic_rest", "unstable"}
+    with pytest.raises(dp.SceneError, match="yield strain"):
+        sim.params(extra={"plastic": {"crumple": 1.5}})

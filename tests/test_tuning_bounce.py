@@ -1,0 +1,67 @@
+"""The bounce problem behind `diffpen fit`: the default targets are reached with the exact
+metrics, infeasible targets are refused before compiling, heights alone fit only the damping,
+unreachable targets are marked with the closest values."""
+import pytest
+
+import diffpen as dp
+from tuning import bounce as B
+from tuning.cli.fit import DEFAULT_APEX, DEFAULT_SETTLE
+from tuning.errors import FitError
+
+
+def ball_scene(drop=1.0):
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, drop))
+    scene.add_plane()
+    return scene
+
+
+def test_default_fit_reaches_targets():
+    targets = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
+    res = B.fit_bounce(ball_scene(), targets, dt=1e-3)
+    assert res.reached, res.message
+    assert abs(res.achieved["apex_heights"][0] / DEFAULT_APEX - 1) < 5e-3
+    assert abs(res.achieved["settling_time"] / DEFAULT_SETTLE - 1) < 1e-2
+    # the achieved values are the exact metrics of an independent rollout at the fitted params
+    from tuning.metrics import ball_metrics
+    sim = dp.compile(ball_scene(), 1e-3)
+    s0 = sim.init_state()
+    tr = sim.rollout(res.params, 4000, s0)
+    m = ball_metrics(sim, tr, res.params, n_apex=1, state0=s0)
+    assert float(m.apex_heights[0]) == pytest.approx(res.achieved["apex_heights"][0], rel=1e-9)
+    assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
+
+
+@pytest.mark.parametrize("targets, words", [
+    ({"apex_heights": [0.95]}, "not below the drop height"),
+    ({"apex_heights": [0.3, 0.4]}, "must decrease"),
+    ({"settling_time": 0.2}, "shorter than the fall"),
+    ({"apex_heights": [0.4], "settling_time": 0.8}, "shorter than the fall plus"),
+    ({"restitution": [1.2]}, "below 1"),
+    ({"bounce": [1.0]}, "unknown target"),
+    ({"apex_heights": [-0.1]}, "positive"),
+])
+def test_infeasible_targets_are_refused_before_compiling(targets, words, monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("compiled before checking the targets")
+    monkeypatch.setattr(dp, "compile", boom)
+    with pytest.raises(FitError, match=words):
+        B.fit_bounce(ball_scene(), targets)
+
+
+def test_heights_only_fixes_damping_ratio_and_says_so():
+    res = B.fit_bounce(ball_scene(drop=0.6), {"apex_heights": [0.2]}, k0=2e4)
+    assert list(res.values) == ["contact.default.c"]
+    assert float(res.params.contact["default"].k) == 2e4
+    assert any("fix only the damping ratio" in n for n in res.notes)
+    assert res.reached
+
+
+def test_unreachable_targets_are_marked_with_closest_values():
+    # apex 0.5 m fixes the restitution; the bounces alone then take ~2.9 s to die out, so
+    # a 2.0 s settling time is feasible by the simple bound but not reachable.
+    res = B.fit_bounce(ball_scene(), {"apex_heights": [0.5], "settling_time": 2.0},
+                       maxiter=10)
+    assert not res.reached
+    assert "NOT reached" in res.message
+    assert res.achieved["settling_time"] > 2.02

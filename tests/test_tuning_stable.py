@@ -1,0 +1,77 @@
+"""tuning.stable: the traced flag under jit, vmap and grad; the parameter form of the flag is
+diffpen's own (springs count too); the safe contact bounds sit exactly at diffpen's limit."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning.stable import (contact_unstable, params_unstable, rollout_unstable,
+                           safe_contact_bounds, safe_contact_limits)
+
+
+def ball_sim(dt=1e-3, **kw):
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    scene.add_plane()
+    return dp.compile(scene, dt, **kw)
+
+
+def test_traced_stability_flag_under_jit_vmap_and_grad():
+    """tuning.stable reads the rollout's flag (or its parameter form) inside traced code; the
+    safe bounds are diffpen's limit less the 1% margin: just past them the flag is set."""
+    sim = ball_sim()
+    kmax, cmax = safe_contact_bounds(sim)
+    assert np.sqrt(kmax / 1.0) * 1e-3 < dp.stability.SAFE_WH and cmax * 1e-3 < 1.0
+
+    def flag(k):
+        p = sim.params(k=k, c=1.0)
+        traj = sim.rollout(p, 20, check_finite=False, check_stability=False)
+        return rollout_unstable(sim, traj, p)
+    ks = jnp.array([0.5, 1.0, 1.001 / 0.99, 1.5, 4.0]) * kmax
+    np.testing.assert_array_equal(jax.jit(jax.vmap(flag))(ks), [False, False, True, True, True])
+    assert not bool(jax.jit(flag)(0.5 * kmax))
+    g = jax.grad(lambda k: jnp.where(params_unstable(sim, sim.params(k=k, c=1.0)), 0.0, k))
+    assert float(g(0.5 * kmax)) == 1.0 and float(g(2.0 * kmax)) == 0.0
+    assert contact_unstable is params_unstable
+    # the flag from the parameters alone agrees with the rollout's
+    for k in np.asarray(ks):
+        assert bool(params_unstable(sim, sim.params(k=float(k), c=1.0))) == bool(flag(k))
+    traced = jax.jit(lambda k: params_unstable(sim, sim.params(k=k, c=1.0)))
+    assert bool(traced(jnp.nan)) and not bool(traced(0.5 * kmax))     # non-finite: unstable
+    # (N,) contact values (a sweep's points): one flag per point
+    p = sim.params(k=1.0, c=1.0)
+    p = p._replace(contact={"default": p.contact["default"]._replace(k=ks)})
+    np.testing.assert_array_equal(params_unstable(sim, p), [False, False, True, True, True])
+
+
+def test_params_flag_counts_springs_like_the_rollout():
+    """Regression: the parameter form of the flag looked at contact k and c only, so a spring
+    past the safe step was called stable while the rollout flagged it."""
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.5))
+    scene.add_plane()
+    scene.add_spring(0, (0.0, 0.0, 1.0), k=1.0, c=0.0)
+    sim = dp.compile(scene, 1e-3)
+    p = sim.params(k=1e3, c=1.0, spring_k=5e6)          # w h = 2.2 for the spring alone
+    traj = sim.rollout(p, 2, check_finite=False, check_stability=False)
+    assert bool(traj.aux["unstable"][-1])
+    assert bool(params_unstable(sim, p))
+    assert not bool(params_unstable(sim, sim.params(k=1e3, c=1.0, spring_k=1e3)))
+
+
+def test_safe_contact_bounds_use_the_inner_step_and_the_lightest_movable_body():
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 2.0, (0.0, 0.0, 0.3))
+    scene.add_sphere(0.1, 0.5, (0.5, 0.0, 0.3))
+    scene.add_sphere(0.1, 0.1, (1.0, 0.0, 0.3), pinned=True)
+    scene.add_plane()
+    sim = dp.compile(scene, 2e-3, substeps=4)
+    assert safe_contact_bounds(sim) == safe_contact_limits(5e-4, 0.5)
+    assert safe_contact_bounds(sim, mass=2.0) == safe_contact_limits(5e-4, 2.0)
+    k, c = safe_contact_limits(5e-4, 0.5)
+    assert k == pytest.approx(0.99 * (dp.stability.SAFE_WH / 5e-4) ** 2 * 0.5, rel=1e-15)
+    assert c == pytest.approx(0.99 * dp.stability.SAFE_CH * 0.5 / 5e-4, rel=1e-15)
+    assert safe_contact_bounds(ball_sim(integrator="implicit_euler")) == (math.inf, math.inf)

@@ -1,0 +1,386 @@
+"""A fitting problem: which leaves of a :class:`diffpen.Params` are fitted, within which
+bounds, to which targets, and how far a point is from them.
+
+Targets are ``{metric: value or list}``; :func:`normalise_targets` turns them into
+``{metric: (n,) float array}`` (finite, non-zero: they are compared relatively) and
+:func:`target_spec` into the static layout of the residual vector (one :class:`TargetSpec`
+per metric: entry count, weight, relative tolerance). :func:`residuals` gives the weighted
+relative residuals ``sqrt(w_j) (m_j - t_j) / |t_j|`` (traceable), :func:`achieved` the values
+met and the reached test, :func:`tolerances` the per-residual stopping thresholds.
+
+The fitted leaves live in log space (``theta = log value``, so k and c stay positive and steps
+are relative) inside box bounds: :func:`default_bounds` per leaf, capped by
+:func:`safe_bounds` at the safe explicit step of the simulator
+(:func:`tuning.stable.safe_contact_bounds`, from :mod:`diffpen.stability`). :class:`FreeLeaves`
+holds that parameter side; :class:`Problem` adds the metrics function and the targets, and is
+what the optimisers (:mod:`tuning.lm`, :mod:`tuning.optimise`) work on; they return a
+:class:`Solution`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable, NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import params as P
+from .errors import FitError
+from .stable import FLAG, params_unstable, safe_contact_bounds, safe_contact_limits
+
+__all__ = ["FitError", "TargetSpec", "normalise_targets", "target_spec", "tolerances",
+           "target_slices", "residuals", "achieved", "RESIDUAL_FACTOR", "residual_reached",
+           "default_bounds", "safe_bounds", "with_flag", "FreeLeaves", "Problem", "Solution"]
+
+
+# --------------------------------------------------------------------------- targets
+class TargetSpec(NamedTuple):
+    """Static layout of one target in the residual vector: metric ``name``, ``count``
+    entries (the metric's first ``count``), ``weight`` (> 0) and relative tolerance
+    ``rtol``. A tuple of them is hashable (it keys compiled programs)."""
+    name: str
+    count: int
+    weight: float
+    rtol: float
+
+
+def normalise_targets(targets: dict) -> dict:
+    """``{metric: (n,) float array}`` from ``{metric: value or list}`` (units of the metric).
+
+    Raises :class:`FitError` for no targets, an empty, non-finite or zero entry (targets are
+    compared relatively, ``|achieved - target| / |target|``)."""
+    if not targets:
+        raise FitError("no targets: give at least one, e.g. {'apex_heights': [0.4]}.")
+    out = {}
+    for name, val in targets.items():
+        arr = np.atleast_1d(np.asarray(val, dtype=float))
+        if arr.size == 0:
+            raise FitError(f"target {name!r} is empty.")
+        if not np.all(np.isfinite(arr)):
+            raise FitError(f"target {name!r} must be finite, got {val!r}.")
+        if np.any(arr == 0.0):
+            raise FitError(f"target {name!r} has a zero entry; targets are compared relatively "
+                           "(|achieved - target| / |target|): give a non-zero value.")
+        out[name] = arr
+    return out
+
+
+def target_spec(targets: dict, weights: dict | None, rtol) -> tuple:
+    """``(TargetSpec, ...)``, one per entry of the normalised ``targets``, in their order.
+
+    weights: ``{metric: weight}`` (default 1; must be > 0).  rtol: relative tolerance, a float
+    for every metric or ``{metric: tol}`` (default 1e-3 for metrics left out)."""
+    weights = weights or {}
+    spec = []
+    for name, arr in targets.items():
+        w = float(weights.get(name, 1.0))
+        if not w > 0.0:
+            raise FitError(f"weight of target {name!r} must be > 0, got {w!r}.")
+        tol = float(rtol.get(name, 1e-3) if isinstance(rtol, dict) else rtol)
+        spec.append(TargetSpec(name, arr.size, w, tol))
+    return tuple(spec)
+
+
+def tolerances(spec: tuple) -> np.ndarray:
+    """(m,) stopping threshold of each residual: ``rtol * sqrt(weight)`` of its target (a
+    residual within it means its target is within ``rtol``)."""
+    return np.concatenate([np.full(s.count, s.rtol * math.sqrt(s.weight)) for s in spec])
+
+
+def target_slices(spec: tuple) -> dict:
+    """``{metric: slice}``: the rows of the residual vector that belong to each target."""
+    slices, pos = {}, 0
+    for s in spec:
+        slices[s.name] = slice(pos, pos + s.count)
+        pos += s.count
+    return slices
+
+
+def residuals(metrics: dict, targets: dict, spec: tuple):
+    """Weighted relative residuals (m,) = ``sqrt(w) (m - t) / |t|`` per target entry
+    (traceable; dimensionless). Absent events (nan) count as a value of 0.
+
+    metrics: ``{metric: scalar or (n,) array}``.  targets: ``{metric: (n,) array}``."""
+    parts = []
+    for name, count, w, _ in spec:
+        if name not in metrics:
+            raise FitError(f"target {name!r} is not a metric of this problem; metrics: "
+                           f"{sorted(metrics)}.")
+        m = jnp.atleast_1d(metrics[name])[:count]
+        if m.shape[0] < count:
+            raise FitError(f"target {name!r} has {count} entries but the metric has only "
+                           f"{m.shape[0]}.")
+        m = jnp.where(jnp.isfinite(m), m, 0.0)
+        tgt = jnp.asarray(targets[name], dtype=m.dtype)
+        parts.append(math.sqrt(w) * (m - tgt) / jnp.abs(tgt))
+    return jnp.concatenate(parts)
+
+
+def achieved(metrics: dict, targets: dict, spec: tuple) -> tuple[dict, dict, bool]:
+    """``(achieved, rel_error, reached)`` of concrete ``metrics`` against ``targets``.
+
+    achieved: ``{metric: value or list}`` (the metric's first entries, its units).
+    rel_error: ``{metric: max |achieved - target| / |target|}`` (inf for an absent event).
+    reached: every entry within its ``rtol``, and the rollout not past its safe step (a
+    metrics ``"unstable"`` entry that is true is never a result: :mod:`tuning.stable`)."""
+    ach, rel, ok = {}, {}, True
+    for name, count, _, tol in spec:
+        m = np.atleast_1d(np.asarray(metrics[name], dtype=float))[:count]
+        t = targets[name]
+        err = np.abs(m - t) / np.abs(t)
+        err = np.where(np.isfinite(err), err, np.inf)
+        ach[name] = m.tolist() if np.ndim(metrics[name]) else float(m[0])
+        rel[name] = float(np.max(err))
+        ok = ok and bool(np.all(err <= tol))
+    if FLAG in metrics and bool(np.any(np.asarray(metrics[FLAG]))):
+        ok = False        # past the safe step: never a result (tuning.stable)
+    return ach, rel, ok
+
+
+#: a residual rms above this many times the expected noise means the model does not explain
+#: the record (a good fit leaves ~1x: the noise itself)
+RESIDUAL_FACTOR = 3.0
+
+
+def residual_reached(rms: float, noise: float, dt_error: float = 0.0,
+                     factor: float = RESIDUAL_FACTOR) -> bool:
+    """Whether a trajectory fit explains its record: the residual rms (m) is within
+    ``factor`` times what noise alone leaves, ``sqrt(noise^2 + dt_error^2)`` (the record's
+    estimated noise and the model's discretisation error, m). NaN never counts as reached."""
+    expected = math.sqrt(float(noise) ** 2 + float(dt_error) ** 2)
+    return bool(math.isfinite(rms) and rms <= factor * expected)
+
+
+# --------------------------------------------------------------------------- bounds
+def default_bounds(path: str, value: float, dt: float | None = None,
+                   mass: float | None = None) -> tuple[float, float]:
+    """Box bounds (lo, hi) for a fitted leaf ``path`` with start ``value`` (SI units).
+
+    Contact/spring stiffness 1e-2..1e9 N/m and damping 1e-6..1e6 N s/m; when ``dt`` (s) and
+    the smallest moving ``mass`` (kg) are given, the upper bounds are tightened to the safe
+    explicit step of :mod:`diffpen.stability` (:func:`tuning.stable.safe_contact_limits`).
+    Other leaves: value/1e4..1e4 x value.
+    """
+    limits = None if dt is None or mass is None else safe_contact_limits(dt, mass)
+    if path.endswith(".k"):
+        lo, hi = 1e-2, 1e9
+        if limits is not None:
+            hi = min(hi, limits[0])
+    elif path.endswith(".c"):
+        lo, hi = 1e-6, 1e6
+        if limits is not None:
+            hi = min(hi, limits[1])
+    else:
+        lo, hi = abs(value) / 1e4, abs(value) * 1e4
+    return lo, hi
+
+
+def safe_bounds(free, x0, bounds: dict | None, sim=None) -> tuple[np.ndarray, np.ndarray]:
+    """Box bounds (lo, hi) (n,) in SI units for the ``free`` leaves with start values ``x0``:
+    ``bounds[path]`` or :func:`default_bounds`, and, when the simulator ``sim`` is given, every
+    contact k and c capped at :func:`tuning.stable.safe_contact_bounds` of ``sim`` (the safe
+    explicit step of its lightest movable body), so an optimiser cannot walk past the safe step.
+    Raises :class:`FitError` when a given lower bound is already past it."""
+    bounds = bounds or {}
+    lo = np.array([bounds.get(p, default_bounds(p, v))[0] for p, v in zip(free, x0)], float)
+    hi = np.array([bounds.get(p, default_bounds(p, v))[1] for p, v in zip(free, x0)], float)
+    if sim is not None:
+        k_max, c_max = safe_contact_bounds(sim)
+        for i, p in enumerate(free):
+            cap = (k_max if p.endswith(".k") else c_max) if p.startswith("contact.") else None
+            if cap is not None and hi[i] > cap:
+                if lo[i] >= cap:
+                    raise FitError(f"the lower bound {lo[i]:g} of {p!r} is past the safe step "
+                                   f"of this simulator ({cap:g} at dt={float(sim.dt):g} s); "
+                                   "lower it, or use a smaller dt or more substeps.")
+                hi[i] = cap
+    return lo, hi
+
+
+def with_flag(metrics_fn: Callable, sim) -> Callable:
+    """``metrics_fn`` with the stability flag ``"unstable"`` added
+    (:func:`tuning.stable.params_unstable` of ``sim``) when it returns none; ``metrics_fn``
+    itself when ``sim`` is None."""
+    if sim is None:
+        return metrics_fn
+
+    def fn(params):
+        m = metrics_fn(params)
+        return m if FLAG in m else {**m, FLAG: params_unstable(sim, params)}
+    return fn
+
+
+# --------------------------------------------------------------------------- the problem
+@dataclasses.dataclass(frozen=True)
+class FreeLeaves:
+    """The fitted leaves of a problem and their box, in log space.
+
+    params0: :class:`diffpen.Params` giving the start and the frozen leaves.
+    free: (P,) fitted leaf paths (:mod:`tuning.params`).  flat0: ``{path: leaf}`` of params0.
+    x0: (P,) start values of the free leaves (SI units; as given, not clipped).
+    lo, hi: (P,) box bounds (SI units, 0 < lo < hi).
+    """
+    params0: object
+    free: tuple
+    flat0: dict
+    x0: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @classmethod
+    def build(cls, params0, free=None, bounds: dict | None = None, sim=None, *,
+              positive_start: bool = False) -> "FreeLeaves":
+        """Check ``free`` (default every contact k and c) and ``bounds`` (``{path: (lo,
+        hi)}`` SI units, default :func:`default_bounds`) against ``params0`` and bound the
+        leaves with :func:`safe_bounds` (inside the safe step of ``sim`` when given);
+        ``positive_start``: the start values of ``params0`` must be > 0 too.
+        Raises :class:`FitError` naming what to change."""
+        flat0 = P.flatten(params0)
+        free = list(P.default_free(params0) if free is None else free)
+        if not free:
+            raise FitError("nothing to fit: 'free' is empty.")
+        for p in free:
+            if p not in flat0:
+                raise FitError(f"unknown parameter {p!r}; this scene has {list(flat0)}.")
+        for p in bounds or {}:
+            if p not in flat0:
+                raise FitError(f"bounds given for unknown parameter {p!r}; known: "
+                               f"{list(flat0)}.")
+        x0 = np.array([float(flat0[p]) for p in free])
+        if positive_start and np.any(x0 <= 0.0):
+            bad = [p for p, v in zip(free, x0) if v <= 0.0]
+            raise FitError(f"fitted parameters need a positive start value (fitting is in log "
+                           f"space); got {dict(zip(bad, x0[x0 <= 0.0]))}.")
+        lo, hi = safe_bounds(free, x0, bounds, sim)
+        if np.any(~(lo > 0.0)) or np.any(hi <= lo):
+            box = {p: (float(a), float(b)) for p, a, b in zip(free, lo, hi)}
+            raise FitError(f"bounds must satisfy 0 < lo < hi (fitting is in log space); got "
+                           f"{box}.")
+        return cls(params0, tuple(free), flat0, x0, lo, hi)
+
+    @property
+    def log_lo(self) -> np.ndarray:
+        """(P,) log of the lower bounds."""
+        return np.log(self.lo)
+
+    @property
+    def log_hi(self) -> np.ndarray:
+        """(P,) log of the upper bounds."""
+        return np.log(self.hi)
+
+    def params_of(self, theta):
+        """The :class:`diffpen.Params` at log values ``theta`` (P,) of the free leaves
+        (traceable); the frozen leaves are those of ``params0``."""
+        flat = dict(self.flat0)
+        for i, p in enumerate(self.free):
+            flat[p] = jnp.exp(theta[i])
+        return P.unflatten(self.params0, flat)
+
+    def start_values(self, starts) -> np.ndarray:
+        """(n, P) start values (SI units) from ``[{path: value}, ...]`` (paths left out start
+        at ``x0``), clipped to the box. Raises :class:`FitError` for a path that is not fitted
+        or a value that is not finite and > 0."""
+        x = np.empty((len(starts), len(self.free)))
+        for i, st in enumerate(starts):
+            extra = set(st) - set(self.free)
+            if extra:
+                raise FitError(f"start row {i} sets parameters that are not fitted: "
+                               f"{sorted(extra)}; fitted: {list(self.free)}.")
+            x[i] = [float(st.get(p, v)) for p, v in zip(self.free, self.x0)]
+        if not np.all(np.isfinite(x)) or np.any(x <= 0.0):
+            bad = sorted({int(i) for i in np.nonzero(~(x > 0.0) | ~np.isfinite(x))[0]})
+            raise FitError(f"start values must be finite and > 0 (fitting is in log space); "
+                           f"rows {bad} are not.")
+        return np.clip(x, self.lo, self.hi)
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """One fitting problem: ``metrics_fn`` at the free leaves of ``leaves`` against
+    ``targets``.
+
+    metrics_fn: traceable ``params -> {metric: scalar or (n,) array}`` (with the stability
+      flag added from ``sim`` when it had none: :func:`with_flag`).
+    leaves: :class:`FreeLeaves`.  x0: (P,) start (SI units, clipped to the box).
+    targets: ``{metric: (n,) float array}`` (:func:`normalise_targets`).
+    spec: ``(TargetSpec, ...)``.  scalar: metrics whose target was given as a scalar.
+    """
+    metrics_fn: Callable
+    leaves: FreeLeaves
+    x0: np.ndarray
+    targets: dict
+    spec: tuple
+    scalar: frozenset
+    _tgt: dict = dataclasses.field(repr=False, compare=False)
+
+    @classmethod
+    def build(cls, metrics_fn: Callable, params0, targets: dict, *, free=None,
+              bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
+              sim=None) -> "Problem":
+        """Check everything and build the problem (arguments as in :func:`tuning.fit.fit`).
+        Raises :class:`FitError` before anything is traced."""
+        scalar = frozenset(k for k, v in targets.items() if np.ndim(v) == 0)
+        targets = normalise_targets(targets)
+        spec = target_spec(targets, weights, rtol)
+        leaves = FreeLeaves.build(params0, free, dict(bounds or {}), sim, positive_start=True)
+        return cls(with_flag(metrics_fn, sim), leaves, np.clip(leaves.x0, leaves.lo, leaves.hi),
+                   targets, spec, scalar, {k: jnp.asarray(v) for k, v in targets.items()})
+
+    @property
+    def free(self) -> tuple:
+        """(P,) fitted leaf paths."""
+        return self.leaves.free
+
+    @property
+    def theta0(self) -> np.ndarray:
+        """(P,) log start."""
+        return np.log(self.x0)
+
+    def evaluate(self, theta):
+        """``(residuals (m,), metrics)`` at log values ``theta`` (P,) (traceable)."""
+        m = self.metrics_fn(self.leaves.params_of(theta))
+        return residuals(m, self._tgt, self.spec), m
+
+    def params_of(self, theta):
+        """The :class:`diffpen.Params` at log values ``theta`` (P,)."""
+        return self.leaves.params_of(theta)
+
+    def start_points(self, starts: list | None) -> list:
+        """``[theta0, theta_1, ...]``: the log start and one (P,) log point per extra start
+        ``{path: value}`` (paths left out start at ``x0``), clipped to the box
+        (:meth:`FreeLeaves.start_values`)."""
+        if not starts:
+            return [self.theta0]
+        x = self.leaves.start_values([{**dict(zip(self.free, self.x0)), **st}
+                                      for st in starts])
+        return [self.theta0] + list(np.log(x))
+
+    def achieved(self, metrics: dict) -> tuple[dict, dict, bool]:
+        """:func:`achieved` of concrete ``metrics`` against this problem's targets."""
+        return achieved(metrics, self.targets, self.spec)
+
+    def target_values(self) -> dict:
+        """The targets as given: a float for a scalar target, else a list."""
+        return {k: (float(v[0]) if k in self.scalar else v.tolist())
+                for k, v in self.targets.items()}
+
+
+class Solution(NamedTuple):
+    """What an optimiser returns on a :class:`Problem`.
+
+    theta: (P,) log values of the reported point.  metrics: the metrics there.
+    history: (iterations + 1,) or (iterations,) loss (sum of squared residuals) per iteration.
+    iterations: iterations run.  converged: the stopping rule fired.  message: in words.
+    traces: times the residual function was traced.  evaluations: compiled-function calls.
+    eval_history: (evaluations,) loss at every evaluated point, in order.
+    """
+    theta: np.ndarray
+    metrics: dict
+    history: np.ndarray
+    iterations: int
+    converged: bool
+    message: str
+    traces: int
+    evaluations: int
+    eval_history: np.ndarray

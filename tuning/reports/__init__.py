@@ -1,0 +1,16 @@
+"""The trust reports behind ``diffpen report`` and ``diffpen bench``, one module per concept:
+
+* :mod:`tuning.reports.reference`: independent reference solutions (closed forms, DOP853 with
+  located contact events) and the measurements of sampled trajectories compared with them;
+* :mod:`tuning.reports.extreme`: the extreme-case stability matrix (``diffpen report
+  stability``);
+* :mod:`tuning.reports.accuracy`: error against run time of every integrator, the cheapest one
+  that meets a tolerance, and the work-precision plot (``diffpen report accuracy``);
+* :mod:`tuning.reports.gradient_check`: gradient error against dt and smoothing width
+  (``diffpen report gradients``);
+* :mod:`tuning.reports.bench`: speed against baselines measured in the same process
+  (``diffpen bench``).
+
+They compute and return plain data; ``tuning.cli.report`` and ``tuning.cli.bench`` print. The
+package imports its modules lazily: import the one you need.
+"""
