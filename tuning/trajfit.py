@@ -201,10 +201,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     Multi-start: ``starts`` adds start points to the one ``params`` holds -- an int N draws N
     points uniformly around it, seeded by ``seed``, inside the bounds: log-space leaves
     within a factor ``spread`` of the start value, linear ones within +-1/10 of their
-    bounds' width (+-0.01 when unbounded); a list gives them as ``{leaf name: value}`` (leaves not named keep
-    ``params``' value). All are screened by one rollout each (the cost at the first
-    horizon), LM runs from the ``keep`` cheapest, and the result is the fit of lowest final
-    cost; :attr:`TrajFitResult.starts` lists every start with its costs.
+    bounds' width (+-0.01 when unbounded); a list gives them as ``{leaf name: value}``
+    (leaves not named keep ``params``' value). All are screened by one rollout each (the
+    cost at the first horizon; past the safe step: inf), LM runs from the ``keep``
+    cheapest, and the result is the fit of lowest final cost;
+    :attr:`TrajFitResult.starts` lists every start with its costs.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
