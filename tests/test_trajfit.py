@@ -414,10 +414,19 @@ def test_multi_start_keeps_the_fit_of_lowest_cost(cube):
 def test_decay_weighs_early_frames(cube):
     """pose_residuals(decay=tau) scales each frame's residuals by exp(-t / (2 tau)), so its
     cost by exp(-t / tau); decay=None leaves them as they are."""
-    params = cube.params()
-    rec = tf.synthetic_record(cube, params, 0.1, 5e-3, {"cube": 0}, noise=1e-3, seed=2)
+    from tuning.records import BodyRecord, Record
+    t = np.arange(21) * 5e-3
+    z = 0.3 - 0.5 * 9.81 * t ** 2
+    rec = Record(path="<free fall>", t=t, bodies={"cube": BodyRecord(
+        position=np.stack([0.1 * t, 0 * t, z], axis=1),
+        quaternion=np.tile([1.0, 0.0, 0.0, 0.0], (len(t), 1)))})
     batch = tf.prepare(cube, [rec], estimate="record")
-    pos, quat = tf.simulate(cube, tf.with_leaves(params, {"contact.board.c": 20.0}), batch)
+    rng = np.random.default_rng(0)                     # poses off the record's (no rollout)
+    pos = jnp.asarray(batch.pos + 1e-3 * rng.standard_normal(batch.pos.shape))
+    dq = np.concatenate([np.ones(batch.quat.shape[:-1] + (1,)),
+                         0.01 * rng.standard_normal(batch.quat.shape[:-1] + (3,))], axis=-1)
+    quat = tf._qmul(batch.quat, dq)
+    quat = jnp.asarray(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
     plain = np.asarray(tf.pose_residuals(pos, quat, batch))
     tau = 0.05
     weighted = np.asarray(tf.pose_residuals(pos, quat, batch, decay=tau))
