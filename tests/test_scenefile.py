@@ -377,6 +377,11 @@ BAD = [
     (BALL + FIT.replace("[fit]", '[fit]\nmaxiter = "many"'),
      r"fit\.maxiter must be an integer, got a string 'many'"),
     (BALL + FIT.replace("[fit]", "[fit]\nmaxiter = 2.0"), r"fit\.maxiter must be an integer"),
+    (BALL + FIT.replace("[fit]", '[fit]\nfirst_state = "guess"'),
+     r"fit\.first_state must be one of 'record', 'fit'"),
+    (BALL + FIT.replace("[fit]", "[fit]\nflight_frames = 2"),
+     r"fit\.flight_frames must be an integer >= 3"),
+    (BALL + FIT.replace("[fit]", "[fit]\nhorizon = [0.5, -1]"), r"fit\.horizon\[1\] must be > 0"),
     ("duration = 1e9\n" + BALL,
      r"duration = 1e\+09 s at dt = 0\.001 s is 1e\+12 steps: a rollout saving every step "
      r"would hold about .* TiB and run for roughly .* days.*max_steps="),

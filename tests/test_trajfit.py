@@ -13,6 +13,7 @@ import pytest
 import diffpen as dp
 from tuning import trajfit as tf
 from tuning.cli import main
+from tuning.first_state import _flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
@@ -306,15 +307,20 @@ def test_directions_a_record_cannot_determine_are_reported(cube):
 
 def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
     """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
-    a growing horizon."""
+    a growing horizon; the file's [fit] first_state and flight_frames are used, its horizon
+    gives way to --horizon."""
     truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
     scene, rec = _record_file(tmp_path, ROPE.format(k=250.0, c=0.4), truth,
                               ["rope[1]", "rope[2]", "rope[3]"], "rope", integrator="rk4",
                               dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4, seed=1)
     with open(scene, "a") as fh:
-        fh.write('data = ["rope.csv"]\n')
+        fh.write('data = ["rope.csv"]\nfirst_state = "record"\nflight_frames = 4\n'
+                 'horizon = [0.3]\n')
+    spec = load_scene_file(scene).spec
+    assert (spec.first_state, spec.flight_frames, spec.horizon) == ("record", 4, [0.3])
     out = _fit_cli(capsys, ["fit", scene, "--horizon", "0.2"])
     assert out["horizons"] == [0.2, None] and out["records"] == 1
+    assert out["estimate"] == "record" and out["flight_frames"] == 4
     for name, v in truth.items():
         assert out["fitted"][name] == pytest.approx(v, rel=0.02)
 
@@ -366,3 +372,100 @@ def test_record_fit_bounds_stay_inside_the_safe_step(cube, monkeypatch):
     too_stiff = tf.with_leaves(params, {"contact.board.k": 2.0 * k_max})
     with pytest.raises(tf.FitError, match="largest safe value"):
         tf.fit_records(cube, too_stiff, batch, free, maxiter=1)
+
+
+def test_multi_start_keeps_the_fit_of_lowest_cost(cube):
+    """fit_records(starts=...): every start is screened by its cost, LM runs from the `keep`
+    cheapest and the fit of lowest final cost is returned. From a far start (c = 8) with
+    one LM iteration, the start list holding the truth (c = 30) wins and is kept; drawn
+    starts stay inside the bounds, within the spread around the start value."""
+    truth = cube.params()                                    # c = 30 N s/m
+    s = cube.state_from(body=0, position=(0, 0, 0.07), velocity=(0.3, 0, -0.5),
+                        orientation=(0.95, 0.2, 0.2, 0.1), angular_velocity=(2, -1, 0))
+    rec = tf.synthetic_record(cube, truth, 0.15, 5e-3, {"cube": 0}, state=s, noise=1e-4)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    far = tf.with_leaves(truth, {"contact.board.c": 8.0})
+    free = [tf.Free("contact.board.c", 1.0, 60.0)]
+    res = tf.fit_records(cube, far, batch, free, maxiter=1, progress=False,
+                         starts=[{"contact.board.c": 30.0}, {"contact.board.c": 15.0}],
+                         keep=2)
+    assert [round(u["values"]["contact.board.c"], 6) for u in res.starts] == [8, 30, 15]
+    screen = [u["screen_cost"] for u in res.starts]
+    assert screen[1] < screen[2] < screen[0]
+    ran = [u for u in res.starts if u["cost"] is not None]
+    assert len(ran) == 2 and res.starts[0]["cost"] is None      # the far start is dropped
+    chosen = [u for u in res.starts if u["chosen"]]
+    assert len(chosen) == 1 and chosen[0]["cost"] == min(u["cost"] for u in ran)
+    assert chosen[0]["cost"] == pytest.approx(res.cost, rel=1e-12)
+    assert res.values["contact.board.c"] == pytest.approx(30.0, rel=0.02)
+    # drawn starts: inside the bounds and within a factor `spread` of the start value
+    pts = tf._start_points([tf.Free("contact.board.c", 1.0, 400.0).resolved(),
+                            tf.Free("extra.plane_offset.ground", -0.02, 0.02).resolved()],
+                           np.array([math.log(300.0), -0.002]), np.array([0.0, -0.02]),
+                           np.array([math.log(400.0), 0.02]), 20, 0, 3.0)
+    c = np.exp([p[0] for p in pts])
+    off = np.array([p[1] for p in pts])
+    assert len(pts) == 20 and np.all((c >= 100.0 - 1e-9) & (c <= 400.0 + 1e-9))
+    assert np.all(np.abs(off + 0.002) <= 0.004 + 1e-12)
+    with pytest.raises(tf.FitError, match="not a fitted parameter"):
+        tf.fit_records(cube, far, batch, free, starts=[{"contact.board.k": 1.0}])
+
+
+def test_decay_weighs_early_frames(cube):
+    """pose_residuals(decay=tau) scales each frame's residuals by exp(-t / (2 tau)), so its
+    cost by exp(-t / tau); decay=None leaves them as they are."""
+    from tuning.records import BodyRecord, Record
+    t = np.arange(21) * 5e-3
+    z = 0.3 - 0.5 * 9.81 * t ** 2
+    rec = Record(path="<free fall>", t=t, bodies={"cube": BodyRecord(
+        position=np.stack([0.1 * t, 0 * t, z], axis=1),
+        quaternion=np.tile([1.0, 0.0, 0.0, 0.0], (len(t), 1)))})
+    batch = tf.prepare(cube, [rec], estimate="record")
+    rng = np.random.default_rng(0)                     # poses off the record's (no rollout)
+    pos = jnp.asarray(batch.pos + 1e-3 * rng.standard_normal(batch.pos.shape))
+    dq = np.concatenate([np.ones(batch.quat.shape[:-1] + (1,)),
+                         0.01 * rng.standard_normal(batch.quat.shape[:-1] + (3,))], axis=-1)
+    quat = tf._qmul(batch.quat, dq)
+    quat = jnp.asarray(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
+    plain = np.asarray(tf.pose_residuals(pos, quat, batch))
+    tau = 0.05
+    weighted = np.asarray(tf.pose_residuals(pos, quat, batch, decay=tau))
+    T = batch.pos.shape[1]
+    w = np.exp(-batch.time[0] / (2 * tau))                    # (T,) per frame
+    n_pos = T * 3
+    np.testing.assert_allclose(weighted[:n_pos].reshape(T, 3),
+                               plain[:n_pos].reshape(T, 3) * w[:, None], rtol=1e-12)
+    np.testing.assert_allclose(weighted[n_pos:].reshape(T, 3),
+                               plain[n_pos:].reshape(T, 3) * w[:, None], rtol=1e-12)
+
+
+def test_first_state_uses_the_flight_frames_only(cube):
+    """first_state(estimate="fit", max_frames=N) fits at most N frames and stops before the
+    body comes within the margin of a plane: a parabola that bounces at frame 12 is
+    recovered exactly with a cap of 30 frames (the frames after the bounce are left out),
+    and with noise more flight frames give a closer start velocity (mean error over 20
+    seeded records)."""
+    g = np.array(cube.scene.gravity)
+    t = np.arange(30) / 148.0
+    v0 = np.array([0.4, 0.1, -0.2])
+    flight = np.array([0.0, 0.0, 0.0994]) + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
+    pos = flight.copy()
+    pos[12:, 2] = 2 * pos[12, 2] - pos[12:, 2]                # a bounce at frame 12
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (30, 1))
+    # the lowest face (0.05 below the centre) comes within 5 mm of the plane (offset
+    # -0.002) at frame 12: frames 0-11 are the flight
+    assert _flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
+    p, v, _, _ = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=30)
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    high = flight + np.array([0.0, 0.0, 0.5])                 # no plane in reach: 30 frames
+    assert _flight_frames(cube.scene, 0, high, quat, 0.005) == 30
+    rng = np.random.default_rng(0)
+    err = {10: [], 20: []}
+    for _ in range(20):
+        noisy = high + 5e-4 * rng.standard_normal(high.shape)
+        for m in err:
+            _, v, _, _ = tf.first_state(cube.scene, 0, t, noisy, quat, estimate="fit",
+                                        max_frames=m)
+            err[m].append(np.linalg.norm(v - v0))
+    assert np.mean(err[20]) < 0.6 * np.mean(err[10])

@@ -174,13 +174,16 @@ def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
     return path
 
 
-def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str | None = None,
-                   n_plot: int = 4) -> dict:
+def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
+                   plot: str | None = None, n_plot: int = 4,
+                   max_frames: int | None = None) -> dict:
     """``diffpen evaluate SCENE.toml --data FILES...``: open-loop accuracy of the scene file
     (its parameter values as written) on the records. Returns the JSON-ready summary
     (``position_error_pct``, ``rotation_error_deg``, ``records``, ``seconds`` of the
     rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder) also draws
-    the first ``n_plot`` records to ``plot/NAME.png``."""
+    the first ``n_plot`` records to ``plot/NAME.png``. ``estimate`` / ``max_frames``: the
+    first-state estimate and its frame cap (:func:`tuning.first_state.first_state`); None:
+    the scene file's ``[fit] first_state`` / ``flight_frames``, else ``"record"`` / 10."""
     import os
 
     from .scenefile import load_scene_file
@@ -190,10 +193,13 @@ def evaluate_files(scene_path: str, data, *, estimate: str = "record", plot: str
         (sf.spec.data if sf.spec is not None else None) or []))
     if plot is not None:
         os.makedirs(plot, exist_ok=True)
+    spec = sf.spec
+    estimate = estimate or (spec.first_state if spec is not None else None) or "record"
+    max_frames = max_frames or (spec.flight_frames if spec is not None else None) or 10
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate)
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
     fn = evaluator(sim, batch)
     t0 = time.perf_counter()
     jax.block_until_ready(fn(params))

@@ -106,9 +106,12 @@ def _norm_residual(e, eps: float = 1e-3):
 
 
 def pose_residuals(pos, quat, batch: Batch, *, rot_weight: float = ROT_WEIGHT,
-                   horizon=None, loss: str = "l2"):
+                   horizon=None, loss: str = "l2", decay: float | None = None):
     """The pose-loss residuals (flat vector) of simulated ``pos`` / ``quat`` against the
-    batch (see the module docstring); ``horizon`` (s, traced ok): frames after it weigh 0.
+    batch (see the module docstring); ``horizon`` (s, traced ok): frames after it weigh 0;
+    ``decay`` (s, static, None = off): each frame's cost weighs ``exp(-t / decay)`` (``t``
+    from the record's first frame; residuals scaled by its square root), so the early, less
+    chaotic part of a long record counts most.
     ``loss="l1"``: one residual per sample whose square is the error's norm (smoothed by
     1e-3 at zero), so the cost is the mean error itself, the quantity
     :mod:`tuning.evaluate` reports, and a record that drifts apart weighs less than in
@@ -116,6 +119,9 @@ def pose_residuals(pos, quat, batch: Batch, *, rot_weight: float = ROT_WEIGHT,
     w = jnp.sqrt(jnp.asarray(batch.weight / (batch.n_records or len(batch.weight))))[
         :, None, None]
     live = 1.0 if horizon is None else (jnp.asarray(batch.time) <= horizon)[:, :, None]
+    if decay is not None:
+        # residuals scaled by exp(-t / 2 decay): the cost of a frame by exp(-t / decay)
+        live = live * jnp.exp(-0.5 * jnp.asarray(batch.time) / float(decay))[:, :, None]
     pm = jnp.asarray(batch.pos_mask) * live
     e_pos = (pos - batch.pos) / jnp.asarray(batch.size)[None, None, :, None]
     if loss == "l1":

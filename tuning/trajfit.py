@@ -152,6 +152,8 @@ class TrajFitResult:
     history: cost after each iteration.  seconds: wall time.  message: LM's last word.
     unstable: records whose rollout at the fitted values ran past the safe step; when > 0
       ``cost`` is NaN and the message says so: the fit is not a result.
+    starts: with multi-start, per start point ``{"values", "screen_cost", "cost" (None
+      when LM did not run from it), "chosen"}``; else one entry for the given start.
     """
     params: dp.Params
     names: list
@@ -167,6 +169,7 @@ class TrajFitResult:
     seconds: float
     message: str
     unstable: int = 0
+    starts: list = dataclasses.field(default_factory=list)
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -175,12 +178,15 @@ class TrajFitResult:
                                 for i, a in enumerate(self.names)},
                 "undetermined": self.undetermined, "cost_start": self.cost_start,
                 "cost": self.cost, "horizons": self.horizons, "iterations": self.iterations,
-                "seconds": self.seconds, "message": self.message, "unstable": self.unstable}
+                "seconds": self.seconds, "message": self.message, "unstable": self.unstable,
+                "starts": self.starts}
 
 
 def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 rot_weight: float = ROT_WEIGHT, horizons: Sequence[float | None] = (None,),
-                loss: str = "l2", maxiter: int = 30,
+                loss: str = "l2", maxiter: int = 30, starts: int | Sequence[dict] = 0,
+                keep: int = 1, seed: int = 0, spread: float = 3.0,
+                decay: float | None = None,
                 progress: bool | None = None) -> TrajFitResult:
     """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
     or the list :func:`prepare_buckets` makes) jointly.
@@ -189,7 +195,17 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     (``jax.jacfwd``, one tangent per parameter) through the vmapped rollouts. ``horizons``
     (s; None = the whole records): fit the frames up to each horizon in turn, each start
     from the previous fit (a growing horizon for long, chaotic records); changing the
-    horizon never recompiles. ``maxiter`` applies per horizon.
+    horizon never recompiles. ``maxiter`` applies per horizon. ``decay`` (s): frames weigh
+    ``exp(-t / decay)`` in the loss (:func:`pose_residuals`; None: all alike).
+
+    Multi-start: ``starts`` adds start points to the one ``params`` holds -- an int N draws N
+    points uniformly around it, seeded by ``seed``, inside the bounds: log-space leaves
+    within a factor ``spread`` of the start value, linear ones within +-1/10 of their
+    bounds' width (+-0.01 when unbounded); a list gives them as ``{leaf name: value}``
+    (leaves not named keep ``params``' value). All are screened by one rollout each (the
+    cost at the first horizon; past the safe step: inf), LM runs from the ``keep``
+    cheapest, and the result is the fit of lowest final cost;
+    :attr:`TrajFitResult.starts` lists every start with its costs.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
@@ -232,7 +248,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                                  for i, f in enumerate(free)})
         out = [simulate(sim, p, b, with_flag=True) for b in batches]
         r = jnp.concatenate([pose_residuals(o[0], o[1], b, rot_weight=rot_weight,
-                                            horizon=horizon, loss=loss)
+                                            horizon=horizon, loss=loss, decay=decay)
                              for o, b in zip(out, batches)])
         return r, sum(jnp.count_nonzero(o[2]) for o in out)   # records past the safe step
 
@@ -245,23 +261,50 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         return res_jac_flag(x, horizon)[:2]
 
     t0 = time.perf_counter()
-    x = np.asarray(x0, dtype=float)
-    hist, it_all, message = [], 0, ""
-    cost_start = None
-    bar = Progress(maxiter * len(horizons), label="fit", enabled=progress)
-    for hz in horizons:
-        h = jnp.asarray(np.inf if hz is None else float(hz))
-        res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
-                                  progress=bar, offset=it_all)
-        if cost_start is None:
-            cost_start = float(res.cost_history[0])
-        x = res.x
-        it_all += res.iterations
-        hist += [float(c) for c in res.cost_history]
-        message = res.message
+    cands = [np.asarray(x0, dtype=float)] + _start_points(free, x0, lo, hi, starts, seed,
+                                                          spread)
+    keep = max(1, min(int(keep), len(cands)))
+    screened = []
+    if len(cands) > 1:
+        @jax.jit
+        def cost_flag(x, horizon):
+            r, bad = resid_flag(x, horizon)
+            return jnp.sum(r * r), bad
+        h0 = jnp.asarray(np.inf if horizons[0] is None else float(horizons[0]))
+        for xc in cands:
+            c, bad = cost_flag(jnp.asarray(xc), h0)
+            screened.append(math.inf if int(bad) or not np.isfinite(float(c)) else float(c))
+        order = [int(i) for i in np.argsort(screened, kind="stable")[:keep]]
+    else:
+        order = [0]
+    bar = Progress(maxiter * len(horizons) * len(order), label="fit", enabled=progress)
+    runs, it_all = [], 0
+    for ci in order:
+        x = cands[ci]
+        hist, message, cost_start = [], "", None
+        for hz in horizons:
+            h = jnp.asarray(np.inf if hz is None else float(hz))
+            res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
+                                      progress=bar, offset=it_all)
+            if cost_start is None:
+                cost_start = float(res.cost_history[0])
+            x = res.x
+            it_all += res.iterations
+            hist += [float(c) for c in res.cost_history]
+            message = res.message
+        r, J, n_bad = (np.asarray(a) for a in res_jac_flag(jnp.asarray(x),
+                                                           jnp.asarray(np.inf)))
+        runs.append((ci, x, r, J, int(n_bad), hist, message, cost_start))
     bar.close()
-    r, J, n_bad = (np.asarray(a) for a in res_jac_flag(jnp.asarray(x), jnp.asarray(np.inf)))
-    cost, n_bad = float(r @ r), int(n_bad)
+    # lowest final cost among the stable fits (an unstable one only when all are)
+    best = min(runs, key=lambda u: (u[4] > 0, float(u[2] @ u[2])))
+    _, x, r, J, n_bad, hist, message, cost_start = best
+    cost = float(r @ r)
+    start_info = [{"values": {f.name: float(f.from_x(xc[i])) for i, f in enumerate(free)},
+                   "screen_cost": screened[j] if screened else None,
+                   "cost": next((float(u[2] @ u[2]) for u in runs if u[0] == j), None),
+                   "chosen": j == best[0]}
+                  for j, xc in enumerate(cands)]
     if n_bad:   # past the safe step: never a result (tuning.stable)
         cost = math.nan
         message = (f"NOT a result: {n_bad} of {sum(len(b.paths) for b in batches)} records "
@@ -289,7 +332,37 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     fitted = with_leaves(params, {n: jnp.asarray(v, sim.dtype) for n, v in values.items()})
     return TrajFitResult(fitted, names, values, stderr, corr, undetermined, cost_start, cost,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
-                         time.perf_counter() - t0, message, unstable=n_bad)
+                         time.perf_counter() - t0, message, unstable=n_bad,
+                         starts=start_info)
+
+
+def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
+    """Extra start points of :func:`fit_records` in fitting space (see its ``starts``)."""
+    if isinstance(starts, (int, np.integer)):
+        if starts < 0:
+            raise FitError(f"starts = {starts}: give a count >= 0 or a list of start values.")
+        rng = np.random.default_rng(seed)
+        half = np.array([math.log(spread) if f.log else (
+            0.1 * (hi[i] - lo[i]) if np.isfinite(hi[i] - lo[i]) else 0.01)
+            for i, f in enumerate(free)])
+        x0 = np.asarray(x0, dtype=float)
+        a, b = np.maximum(x0 - half, lo), np.minimum(x0 + half, hi)
+        return [rng.uniform(a, b) for _ in range(int(starts))]
+    out = []
+    names = {f.name: i for i, f in enumerate(free)}
+    for k, values in enumerate(starts):
+        x = np.asarray(x0, dtype=float).copy()
+        for name, v in dict(values).items():
+            key = _normalise(name)
+            if key not in names:
+                raise FitError(f"start {k}: {name!r} is not a fitted parameter "
+                               f"({sorted(names)}).")
+            f = free[names[key]]
+            if f.log and v <= 0:
+                raise FitError(f"start {k}: {name} = {v} must be > 0 (fitted in log space).")
+            x[names[key]] = float(f.to_x(v))
+        out.append(np.clip(x, lo, hi))
+    return out
 
 
 # --------------------------------------------------------------------------- scene files
@@ -349,10 +422,15 @@ def free_from_spec(spec) -> list:
 
 
 def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
-              estimate: str = "record", loss: str = "l2", horizons=(None,),
-              maxiter: int | None = None, progress: bool | None = None) -> dict:
+              estimate: str | None = None, loss: str = "l2", horizons=None,
+              maxiter: int | None = None, starts: int = 0, keep: int = 1,
+              max_frames: int | None = None, progress: bool | None = None) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
-    all records jointly (:func:`fit_records`), write the fitted scene to ``out``.
+    all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
+    the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
+    (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
+    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records) and
+    ``flight_frames``, else ``"record"``, ``(None,)`` and 10.
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
@@ -366,6 +444,10 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                        "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
                        "fit, with optional [fit.bounds]).")
     free = free_from_spec(sf.spec)
+    estimate = estimate or sf.spec.first_state or "record"
+    if horizons is None:
+        horizons = tuple(sf.spec.horizon or ()) + (None,)
+    max_frames = max_frames or sf.spec.flight_frames or 10
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
     if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
@@ -374,12 +456,14 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate)
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
-    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate)
+    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
+                              max_frames=max_frames)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
-                      maxiter=maxiter or sf.spec.maxiter or 30, progress=progress)
+                      maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
+                      progress=progress)
     after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
     if out is not None:
         from .fitted_scene import write_fitted
@@ -387,6 +471,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     summary = res.as_dict()
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
+        "flight_frames": max_frames,
         "loss": loss, "before": {"position_error_pct": before.position_error_pct,
                                  "rotation_error_deg": before.rotation_error_deg},
         "after": {"position_error_pct": after.position_error_pct,

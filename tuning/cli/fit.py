@@ -45,15 +45,26 @@ def add_arguments(p) -> None:
                         "jointly")
     p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
                    "scene with the fitted values")
-    p.add_argument("--first-state", choices=["record", "fit"], default="record",
+    p.add_argument("--first-state", choices=["record", "fit"], default=None,
                    help="with SCENE.toml --data: each record's start state from row 0 and its "
-                        "velocity columns (default), or fitted to its first frames (a gravity "
-                        "parabola in free flight)")
+                        "velocity columns (default, or the scene file's [fit] first_state), "
+                        "or fitted to its first frames (a gravity parabola in free flight)")
+    p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
+                   metavar="N", help="with --first-state fit: at most N first frames of free "
+                   "flight in the fitted parabola (it stops earlier where a body comes within "
+                   "5 mm of a plane; default 10, or the scene file's [fit] flight_frames)")
     p.add_argument("--loss", choices=["l2", "l1"], default="l2",
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
                    help="with SCENE.toml --data: fit the first S seconds of every record "
                         "first, then longer (growing horizon), the whole records last")
+    p.add_argument("--starts", type=count("--starts", minimum=0), default=0, metavar="N",
+                   help="with SCENE.toml --data: N more start points drawn around the scene "
+                        "file's values (a factor 3 for log-space leaves, 1/10 of the bounds "
+                        "for linear ones), screened by one rollout each (default 0)")
+    p.add_argument("--keep", type=count("--keep"), default=1, metavar="M",
+                   help="with --starts: run LM from the M best screened starts and keep the "
+                        "fit of lowest cost (default 1)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
     p.add_argument("--law", type=law_name, default="linear",
@@ -109,8 +120,10 @@ def _run(args) -> int:
     _check_plot(args)
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
-    if args.out or args.horizon:
-        raise CLIError("--out and --horizon need a scene file and --data records")
+    if (args.out or args.horizon or args.starts or args.keep != 1
+            or args.flight_frames is not None or args.first_state is not None):
+        raise CLIError("--out, --horizon, --starts, --keep, --flight-frames and "
+                       "--first-state need a scene file and --data records")
     if args.data and len(args.data) > 1:
         raise CLIError("without a scene file --data reads one t,z record of the ball; give "
                        "SCENE.toml to fit several records")
@@ -318,15 +331,16 @@ def _run_records(args) -> int:
                        "own (edit the file)")
     setup_jax()
     from ..trajfit import fit_files
-    horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else (None,)
+    horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else None
     out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
                     loss=args.loss, horizons=horizons, maxiter=args.maxiter,
+                    starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
                     progress=False if args.json else None)
     if args.json:
         dump_json(out)
         return 0
     print(f"diffpen fit: {args.scene} on {out['records']} record(s) "
-          f"({args.first_state} first state, {args.loss} pose loss)")
+          f"({out['estimate']} first state, {args.loss} pose loss)")
     for name, v in out["fitted"].items():
         print(f"fitted:    {name} = {v:.6g} +- {out['stderr'][name]:.2g}")
     names = list(out["fitted"])

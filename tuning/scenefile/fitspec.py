@@ -73,10 +73,17 @@ class _FitTable:
                 if bad:
                     raise (ww / bad[0]).error(f"weights a target that is not given; targets: "
                                               f"{', '.join(targets)}.")
+        first = (V.choice(w / "first_state", fit["first_state"], ["record", "fit"])
+                 if "first_state" in fit else None)
+        frames = (V.integer(w / "flight_frames", fit["flight_frames"], low=3)
+                  if "flight_frames" in fit else None)
+        horizon = (sorted(V.number_list(w / "horizon", fit["horizon"], low=0.0, low_open=True,
+                                        unit="s")) if "horizon" in fit else None)
         free, bounds, space = self.fit_params(w, fit, sf, k, c)
         return FitSpec(free=free, bounds=bounds, space=space, targets=targets, data=data,
                        body=body, plane=plane, observe=observe, method=method,
-                       maxiter=maxiter, lr=lr, weights=weights, settle_tol=settle)
+                       maxiter=maxiter, lr=lr, weights=weights, settle_tol=settle,
+                       first_state=first, flight_frames=frames, horizon=horizon)
 
     def targets(self, w, t):
         V.table(w, t, example="[fit.targets] apex_heights = [0.4]")

@@ -22,6 +22,9 @@ class FitSpec:
       fitting code's default.  bounds: ``{path: (lo, hi)}``.  space: ``{path: "log" |
       "linear"}`` for every free path.  targets: bounce targets or None.  data: absolute
       record paths or None.  body, plane: indices.  observe: body names the records observe.
+    first_state, flight_frames, horizon: record fits' start-state estimate (``"record"`` /
+      ``"fit"``), its cap on flight frames, and the growing-horizon stages (s) before the
+      whole records; None: the command line's or the built-in default.
     """
     free: list
     bounds: dict
@@ -36,6 +39,9 @@ class FitSpec:
     lr: float = 0.05
     weights: dict | None = None
     settle_tol: float = 1e-3
+    first_state: str | None = None
+    flight_frames: int | None = None
+    horizon: list | None = None
 
 
 @dataclasses.dataclass

@@ -23,7 +23,7 @@ TOP = {"description", "gravity", "dt", "duration", "law", "exponent", "integrato
        "anchored_springs", "plastic_springs", "drag", *BUILDER_TABLES, "fit"}
 #: [fit] keys; extended by fits that need more
 FIT = {"body", "plane", "params", "bounds", "space", "settle_tol", "targets", "data", "method",
-       "maxiter", "lr", "weights", "observe"}
+       "maxiter", "lr", "weights", "observe", "first_state", "flight_frames", "horizon"}
 TARGETS = {"apex_heights", "settling_time", "contact_durations", "restitution",
            "max_penetration"}
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
