@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 import diffpen as dp
+from tuning import pose
 from tuning import trajfit as tf
 from tuning.cli import main
-from tuning.first_state import _flight_frames
+from tuning.first_state import flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
@@ -132,7 +133,7 @@ def test_first_state_removes_the_finite_difference_bias(cube):
     w = np.array([1.0, -2.0, 3.0])
     pos = np.array([0.0, 0.0, 0.3]) + v0 * t[:, None] + 0.5 * np.array(cube.scene.gravity) * \
         t[:, None] ** 2
-    quat = np.array([tf._qmul(tf._exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
+    quat = np.array([pose.qmul(pose.exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
     vel = np.tile(v0 + np.array([0, 0, 0.023]), (12, 1))
     p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="fit")
     np.testing.assert_allclose(v, v0, atol=1e-9)
@@ -425,7 +426,7 @@ def test_decay_weighs_early_frames(cube):
     pos = jnp.asarray(batch.pos + 1e-3 * rng.standard_normal(batch.pos.shape))
     dq = np.concatenate([np.ones(batch.quat.shape[:-1] + (1,)),
                          0.01 * rng.standard_normal(batch.quat.shape[:-1] + (3,))], axis=-1)
-    quat = tf._qmul(batch.quat, dq)
+    quat = tf.qmul(batch.quat, dq)
     quat = jnp.asarray(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
     plain = np.asarray(tf.pose_residuals(pos, quat, batch))
     tau = 0.05
@@ -454,12 +455,12 @@ def test_first_state_uses_the_flight_frames_only(cube):
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (30, 1))
     # the lowest face (0.05 below the centre) comes within 5 mm of the plane (offset
     # -0.002) at frame 12: frames 0-11 are the flight
-    assert _flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
+    assert flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
     p, v, _, _ = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=30)
     np.testing.assert_allclose(v, v0, atol=1e-9)
     np.testing.assert_allclose(p, pos[0], atol=1e-12)
     high = flight + np.array([0.0, 0.0, 0.5])                 # no plane in reach: 30 frames
-    assert _flight_frames(cube.scene, 0, high, quat, 0.005) == 30
+    assert flight_frames(cube.scene, 0, high, quat, 0.005) == 30
     rng = np.random.default_rng(0)
     err = {10: [], 20: []}
     for _ in range(20):

@@ -153,7 +153,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                body: int = 0, plane: int = 0, settle_tol: float = 1e-3, k0: float | None = None,
                c0: float | None = None, free=None, method: str = "lm", optimizer=None,
                maxiter: int | None = None, rtol=None, weights: dict | None = None,
-               duration: float | None = None, progress: bool | None = None,
+               duration: float | None = None, progress: bool | None = False,
                first_guess: bool = True, **compile_kw) -> FitResult:
     """Fit contact k and c of a sphere bouncing on a plane to apex/settling/contact targets.
 
@@ -179,6 +179,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
       maxiter: default 40 (lm) or 400 (optax).
       rtol: per-metric relative tolerances (default :data:`BOUNCE_METRICS`).
       duration: rollout length, s (default: covers the targets with margin).
+      progress: False (default): print nothing; None or True: progress on stderr (a bar on a
+        terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
     """
     info = check_bounce_targets(scene, targets, body=body, plane=plane, settle_tol=settle_tol)

@@ -8,14 +8,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fit import FitError
-from .pose import _exp_quat, _qconj, _qmul, _rotmat, _rotvec
+from .errors import FitError
+from .pose import exp_quat, qconj, qmul, rotmat, rotvec
 
-__all__ = ["first_state"]
+__all__ = ["first_state", "flight_frames"]
 
 
-def _flight_frames(scene, index, pos, quat, margin: float) -> int:
-    """How many leading frames body ``index`` is clear of every plane by ``margin`` m."""
+def flight_frames(scene, index, pos, quat, margin: float) -> int:
+    """How many leading frames body ``index`` is clear of every plane by ``margin`` m.
+
+    ``pos``: (T, 3) observed centre, m; ``quat``: (T, 4) orientations or None (then the
+    body's bounding radius is used)."""
     b = scene.bodies[index]
     if not scene.planes:
         return len(pos)
@@ -27,7 +30,7 @@ def _flight_frames(scene, index, pos, quat, margin: float) -> int:
             h = np.array(b.half_extents)
             corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
                                 for sz in (-1, 1)]) * h
-            pts = pos[f] + corners @ _rotmat(quat[f]).T
+            pts = pos[f] + corners @ rotmat(quat[f]).T
             reach = 0.0
         else:
             pts, reach = pos[f][None], b.radius
@@ -76,7 +79,7 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     g = np.array(scene.gravity)
     free = _free_flight(scene, index)
     if free:
-        n = _flight_frames(scene, index, pos[:max_frames], None if quat is None
+        n = flight_frames(scene, index, pos[:max_frames], None if quat is None
                            else quat[:max_frames], margin)
         n = max(3, min(n, max_frames))
     else:
@@ -106,7 +109,7 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     if not okq[0]:
         raise FitError("a record's first row has no orientation for an observed body.")
     useq = np.nonzero(okq[:n])[0]
-    rv = _rotvec(_qmul(q[useq], _qconj(q[0])[None]))          # world rotation since row 0
+    rv = rotvec(qmul(q[useq], qconj(q[0])[None]))          # world rotation since row 0
     # continuous rotation vectors (a unit quaternion and its negative are one rotation)
     if len(useq) >= 2:
         B = np.stack([np.ones(len(useq)), tt[useq]], axis=1)
@@ -117,11 +120,11 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     if estimate == "record":
         q0 = q[0]
         if omega_body is not None and np.all(np.isfinite(omega_body[0])):
-            w0 = _rotmat(q0) @ omega_body[0]
+            w0 = rotmat(q0) @ omega_body[0]
         else:
             w0 = w_fit
     else:
-        q0 = _qmul(_exp_quat(a0), q[0])
+        q0 = qmul(exp_quat(a0), q[0])
         w0 = w_fit
     return p0, v0, q0, w0
 

@@ -87,7 +87,7 @@ class FitResult:
 def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
         method: str = "optax", optimizer: optax.GradientTransformation | None = None,
-        maxiter: int = 300, progress: bool | None = None, label: str = "fit",
+        maxiter: int = 300, progress: bool | None = False, label: str = "fit",
         starts: list | None = None, n_starts: int = 3,
         search: Callable | None = None, sim=None) -> FitResult:
     """Fit the ``free`` leaves of ``params0`` so that ``metrics_fn(params)`` meets ``targets``.
@@ -104,7 +104,9 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
       method: ``"optax"`` (first order, any optax transformation) or ``"lm"``.
       optimizer: optax transformation for ``method="optax"`` (default
         :func:`default_optimizer`); it acts on log-parameters.
-      maxiter: iteration limit.  progress: draw a progress bar (default: stderr is a tty).
+      maxiter: iteration limit.  progress: False (default): print nothing; None or True: a
+        progress bar on stderr when it is a terminal, else a line every 5 s (what the
+        `diffpen` command passes).
       starts: extra start points ``[{path: value}, ...]``; with ``method="lm"`` they are
         ranked by cost and LM runs from the best ``n_starts`` (all with the same compiled
         function) until one reaches the targets; the best result is kept.

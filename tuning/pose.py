@@ -13,7 +13,7 @@ width). The default ``w_rot = (180 / pi) / 100 = 0.573`` per radian makes one de
 as much as 1% of ``L_b``: the units :mod:`tuning.evaluate` reports.
 
 Also the quaternion helpers (w, x, y, z) the records' poses need: products, conjugates,
-rotation matrices and rotation vectors, in numpy (``_qmul``...) and jax (``_qmul_j``).
+rotation matrices and rotation vectors, in numpy (``qmul``...) and jax (``_qmul_j``).
 """
 from __future__ import annotations
 
@@ -28,7 +28,8 @@ import diffpen as dp
 if TYPE_CHECKING:
     from .record_batch import Batch
 
-__all__ = ["ROT_WEIGHT", "body_size", "rotation_angle", "pose_residuals"]
+__all__ = ["ROT_WEIGHT", "body_size", "rotation_angle", "pose_residuals", "qmul", "qconj",
+           "rotmat", "rotvec", "exp_quat"]
 
 #: default weight of the rotation residual, per radian, against the position in units of
 #: the body size: one degree counts as much as 1% of the size.
@@ -52,7 +53,8 @@ def body_size(scene: dp.Scene, index: int, observed: Sequence[int] = ()) -> floa
 
 
 # --------------------------------------------------------------------------- quaternions
-def _qmul(a, b):
+def qmul(a, b):
+    """Hamilton product of quaternions (..., 4) = (w, x, y, z), NumPy."""
     w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
     return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -61,15 +63,17 @@ def _qmul(a, b):
                      w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=-1)
 
 
-def _qconj(q):
+def qconj(q):
+    """Conjugate (the inverse of a unit quaternion) of quaternions (..., 4)."""
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
-def _rotmat(q):
+def rotmat(q):
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4), float64 NumPy."""
     return np.asarray(dp.rigid.quat_to_matrix(jnp.asarray(q, dtype=jnp.float64)))
 
 
-def _rotvec(q):
+def rotvec(q):
     """Rotation vectors (..., 3) rad of unit quaternions (..., 4)."""
     q = np.where(q[..., :1] < 0, -q, q)
     s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
@@ -78,7 +82,8 @@ def _rotvec(q):
                     2.0 * q[..., 1:])
 
 
-def _exp_quat(v):
+def exp_quat(v):
+    """The unit quaternion (4,) of the rotation vector v (3,) rad."""
     a = np.linalg.norm(v)
     if a < 1e-12:
         return np.array([1.0, *(0.5 * v)])

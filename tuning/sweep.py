@@ -214,7 +214,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
           chunk: int = 256, out: str | None = None, resume: bool = True,
           key: dict | None = None, keys: list | None = None, shape: tuple | None = None,
           axes: dict | None = None, batch_map: Callable | None = None,
-          progress: bool | None = None, on_chunk: Callable | None = None,
+          progress: bool | None = False, on_chunk: Callable | None = None,
           evaluate: Callable | None = None, finalize: Callable | None = None) -> SweepResult:
     """Evaluate ``metrics_fn`` at every point, ``chunk`` points per vmapped call.
 
@@ -245,6 +245,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       finalize: ``finalize(metrics, points) -> metrics`` on each chunk's host arrays
         (``{name: (B, ...)}``, points ``(B, P)``) before they are stored: e.g. NaN for
         undefined values, or an ``"unstable"`` flag computed from the points.
+      progress: False (default): print nothing; None or True: progress on stderr (a bar on a
+        terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`SweepResult`.
     """
     t0 = time.perf_counter()

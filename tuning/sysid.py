@@ -291,7 +291,7 @@ class TrajectoryFit:
 def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
                    law: str = "linear", dt: float | None = None, k0: float | None = None,
                    c0: float | None = None, maxiter: int = 15, grow: bool = True,
-                   progress: bool | None = None) -> TrajectoryFit:
+                   progress: bool | None = False) -> TrajectoryFit:
     """Fit (k, c) of a ball bouncing on the plane z = 0 to a record of its centre height.
 
     Args:
@@ -302,6 +302,8 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
       k0, c0: start values (default: :func:`first_guess` from the record's events).
       maxiter: LM iterations per horizon (the last, full horizon gets twice as many).
       grow: grow the horizon bounce by bounce (otherwise fit the whole record at once).
+      progress: False (default): print nothing; None or True: progress on stderr (a bar on a
+        terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns:
       :class:`TrajectoryFit` with standard errors from the Gauss-Newton covariance.
     """

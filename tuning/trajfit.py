@@ -46,16 +46,12 @@ from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
 from .first_state import first_state
-from .pose import ROT_WEIGHT, _qmul, _rotmat, body_size, pose_residuals, rotation_angle
+from .pose import ROT_WEIGHT, qmul, rotmat, body_size, pose_residuals, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
-from . import pose as _pose
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
            "fit_records", "ROT_WEIGHT", "rotation_angle"]
-
-_exp_quat = _pose._exp_quat      # tuning.trajfit._exp_quat, as before the split
-
 
 # --------------------------------------------------------------------------- params leaves
 #: ``{"contact.board.k": key path, ...}`` of a params pytree (see :mod:`tuning.params`)
@@ -187,7 +183,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 loss: str = "l2", maxiter: int = 30, starts: int | Sequence[dict] = 0,
                 keep: int = 1, seed: int = 0, spread: float = 3.0,
                 decay: float | None = None,
-                progress: bool | None = None) -> TrajFitResult:
+                progress: bool | None = False) -> TrajFitResult:
     """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
     or the list :func:`prepare_buckets` makes) jointly.
 
@@ -424,7 +420,7 @@ def free_from_spec(spec) -> list:
 def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
               estimate: str | None = None, loss: str = "l2", horizons=None,
               maxiter: int | None = None, starts: int = 0, keep: int = 1,
-              max_frames: int | None = None, progress: bool | None = None) -> dict:
+              max_frames: int | None = None, progress: bool | None = False) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
     the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
@@ -516,7 +512,7 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
                 axis /= np.linalg.norm(axis, axis=1, keepdims=True)
                 ang = noise / size * rng.standard_normal((len(q), 1))
                 dq = np.concatenate([np.cos(ang / 2), axis * np.sin(ang / 2)], axis=1)
-                q = _qmul(dq, q)
+                q = qmul(dq, q)
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
         v = w = None
         if velocities:
@@ -528,7 +524,7 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
                                      np.asarray(traj.angular_velocity)[:, i]])
                 rot = np.concatenate([np.asarray(s0.orientation)[None, i],
                                       np.asarray(traj.orientation)[:, i]])
-                w = np.einsum("tji,tj->ti", _rotmat(rot), ww)        # R^T w: body frame
+                w = np.einsum("tji,tj->ti", rotmat(rot), ww)        # R^T w: body frame
                 w = w + 10 * noise / body_size(sim.scene, i) * rng.standard_normal(w.shape)
         out[name] = BodyRecord(position=p, quaternion=q, velocity=v, angular_velocity=w)
     return Record(path=path, t=t, bodies=out)

@@ -10,7 +10,7 @@ from .loader import load_scene_file
 
 
 # --------------------------------------------------------------------------- fitting
-def fit_file(path: str, *, progress=None, method: str | None = None, lr: float | None = None,
+def fit_file(path: str, *, progress=False, method: str | None = None, lr: float | None = None,
              maxiter: int | None = None):
     """Run the bounce or ball-record fit a scene file describes. Returns ``(summary dict,
     plot_fn or None)``. Everything in the file is validated before anything is compiled; JAX
