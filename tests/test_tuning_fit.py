@@ -54,7 +54,9 @@ def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog):
     # the iteration function compiles once per fit, however many iterations run; 4x the
     # iterations adds no compile at all (the second fit reuses the small helper programs)
     assert counts[0][1] == counts[1][1] == 1
-    assert counts[1][0] <= counts[0][0]
+    # ... and nothing else: a new maxiter compiles no helper program (the loss history of
+    # the carry is built on the host, not by a broadcast compiled per length)
+    assert counts[1][0] == 1
     assert res.loss_history[-1] < res.loss_history[0]
 
 

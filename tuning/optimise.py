@@ -60,11 +60,15 @@ class OptaxLoop:
       project: ``theta -> theta`` onto the box (log bounds), applied after every update.
       tols: (m,) residual thresholds (:func:`tuning.problem.tolerances`).
       maxiter: iteration limit (>= 1).
+      history: keep the loss of every iteration in the carry (``c["history"]``, (maxiter,)),
+        for :meth:`run`; a host driver that records the losses itself passes False, so that
+        a new ``maxiter`` changes no array shape (and compiles nothing new).
     """
 
     def __init__(self, loss_fn: Callable, tx: optax.GradientTransformation,
-                 project: Callable, tols, maxiter: int):
+                 project: Callable, tols, maxiter: int, *, history: bool = True):
         self.tx, self.tols, self.maxiter = tx, np.asarray(tols), int(maxiter)
+        self.history = bool(history)
         value_and_grad = dp.value_and_grad(loss_fn, has_aux=True)
 
         def update(theta, state, *args):
@@ -80,13 +84,15 @@ class OptaxLoop:
         state = self.tx.init(theta0)
         shapes = jax.eval_shape(self.update, theta0, state, *args)
         loss_s, m_s = shapes[2], shapes[4]
-        return {"it": jnp.asarray(0), "theta": theta0, "state": state,
+        c = {"it": jnp.asarray(0), "theta": theta0, "state": state,
                 "loss": jnp.asarray(jnp.nan, loss_s.dtype),
                 "best_loss": jnp.asarray(jnp.inf, loss_s.dtype), "best_theta": theta0,
                 "best_m": jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), m_s),
                 "best_bad": jnp.asarray(True), "has_best": jnp.asarray(False),
-                "history": jnp.full((self.maxiter,), jnp.nan, loss_s.dtype),
                 "status": jnp.asarray(RUNNING)}
+        if self.history:
+            c["history"] = jnp.full((self.maxiter,), jnp.nan, loss_s.dtype)
+        return c
 
     def step(self, c: dict, *args) -> dict:
         """One iteration: evaluate at ``c["theta"]``, keep it if it is the best point, stop or
@@ -104,7 +110,7 @@ class OptaxLoop:
 
         def pick(flag, a, b):
             return jax.tree_util.tree_map(lambda x, y: jnp.where(flag, x, y), a, b)
-        return {"it": jnp.where(go, c["it"] + 1, c["it"]),
+        out = {"it": jnp.where(go, c["it"] + 1, c["it"]),
                 "theta": pick(go, new, c["theta"]),
                 "state": pick(go, state, c["state"]),
                 "loss": loss,
@@ -113,8 +119,10 @@ class OptaxLoop:
                 "best_m": pick(better, m, c["best_m"]),
                 "best_bad": jnp.where(better, bad, c["best_bad"]),
                 "has_best": c["has_best"] | better,
-                "history": c["history"].at[c["it"]].set(jnp.where(finite, loss, jnp.nan)),
                 "status": status}
+        if "history" in c:
+            out["history"] = c["history"].at[c["it"]].set(jnp.where(finite, loss, jnp.nan))
+        return out
 
     def run(self, theta0, *args) -> dict:
         """The whole loop as one ``lax.while_loop`` (traceable: jit, vmap over rows). Returns
@@ -155,7 +163,7 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         return {p: (jnp.clip(v, log_lo[idx[p]], log_hi[idx[p]]) if p in idx else v)
                 for p, v in theta_d.items()}
 
-    loop = OptaxLoop(loss_fn, tx, project, tolerances(problem.spec), maxiter)
+    loop = OptaxLoop(loss_fn, tx, project, tolerances(problem.spec), maxiter, history=False)
     theta_d = {p: jnp.log(jnp.maximum(jnp.asarray(v, float), 1e-300))
                for p, v in leaves.flat0.items()}
     theta_d.update({p: jnp.asarray(v) for p, v in zip(free, problem.theta0)})
