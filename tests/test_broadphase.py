@@ -41,38 +41,50 @@ def find(sim, state):
 
 
 def pair_set(pairs):
-    return {(int(i), int(j)) for i, j, v in zip(pairs.i, pairs.j, pairs.valid) if v}
+    # to numpy first: iterating a jax array compiles an unstack per shape
+    i, j, valid = (np.asarray(a) for a in (pairs.i, pairs.j, pairs.valid))
+    return {(int(a), int(b)) for a, b, v in zip(i, j, valid) if v}
 
 
 STRATEGIES = [bp.AABB(max_pairs=300), bp.Grid(max_per_cell=12, max_pairs=300)]
 
 
 @pytest.fixture(scope="module")
-def random_refs():
-    """``{seed: (scene, all-pairs simulator)}``: the reference forces compile once per seed
-    for both strategies (``sim.forces`` is jitted per simulator)."""
-    out = {}
-    for seed in (0, 1):
-        scene = random_scene(seed, pinned_every=5)
-        out[seed] = scene, dp.compile(scene, dt=1e-3)
-    return out
+def random_sims():
+    """The bodies of ``random_scene(0)`` compiled once with all pairs and with each strategy,
+    and two states of them: seed 0's own and one with the positions, velocities and poses
+    that seed 1 draws (same body kinds and counts: only the values differ, so both seeds
+    run the same compiled search and forces)."""
+    scene = random_scene(0, pinned_every=5)
+    ref = dp.compile(scene, dt=1e-3)
+    sims = {name: dp.compile(scene, dt=1e-3, broadphase=s)
+            for name, s in zip(("aabb", "grid"), STRATEGIES)}
+    other = dp.compile(random_scene(1, pinned_every=5), dt=1e-3).init_state()
+
+    def moved(state):
+        return state._replace(position=other.position, velocity=other.velocity,
+                              orientation=other.orientation,
+                              angular_velocity=other.angular_velocity)
+    return ref, sims, moved
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
-def test_broadphase_finds_the_brute_force_pairs_and_forces(random_refs, seed, strategy):
-    scene, ref = random_refs[seed]
-    sim = dp.compile(scene, dt=1e-3, broadphase=strategy)
+@pytest.mark.parametrize("strategy", ["aabb", "grid"])
+def test_broadphase_finds_the_brute_force_pairs_and_forces(random_sims, seed, strategy):
+    ref, sims, moved = random_sims
+    sim = sims[strategy]
     assert "contact_broadphase" in sim.terms
     assert "contact_sphere_sphere" not in sim.terms and "contact_sphere_box" not in sim.terms
-    state = sim.init_state()
+    state, ref_state = sim.init_state(), ref.init_state()
+    if seed == 1:
+        state, ref_state = moved(state), moved(ref_state)
     pairs = find(sim, state)
     want = bp.brute_force_pairs(sim.context, state)
     assert pair_set(pairs) == want and int(pairs.count) == len(want)
     assert not bool(pairs.overflow)
     # exact narrow phase on the found pairs: contacts (d > 0) exist and forces agree
     params = dict(contact={"default": (1e4, 10.0), "soft": (5e3, 5.0)})
-    f0, t0 = ref.forces(ref.params(**params), ref.init_state())
+    f0, t0 = ref.forces(ref.params(**params), ref_state)
     f1, t1 = sim.forces(sim.params(**params), state)
     assert np.abs(np.asarray(f0)).max() > 1.0
     np.testing.assert_allclose(np.asarray(f1), np.asarray(f0), rtol=1e-10, atol=1e-9)
@@ -269,6 +281,19 @@ def test_default_step_searches_pairs_once(pile, strategy):
     assert _searches_per_step(sub) == 1.0       # once per inner step (the scan's body)
 
 
+_COLUMN_GRIDS = {}
+COLUMN_RUN = dict(steps=60, save_every=20)      # one rollout program per simulator
+
+
+def column_grid(column, integrator):
+    """The column under ``integrator`` with a grid that never overflows on it (compiled once
+    per integrator; the tests below share its rollout program)."""
+    if integrator not in _COLUMN_GRIDS:
+        _COLUMN_GRIDS[integrator] = dp.compile(column, dt=1e-3, integrator=integrator,
+                                               broadphase=bp.Grid(max_pairs=40, margin=1e-3))
+    return _COLUMN_GRIDS[integrator]
+
+
 @pytest.mark.parametrize("integrator, evaluations",
                          [("verlet", 2), ("rk4", 4), ("implicit_euler", None)])
 def test_multi_evaluation_integrators_search_per_evaluation_and_match_all_pairs(
@@ -276,13 +301,12 @@ def test_multi_evaluation_integrators_search_per_evaluation_and_match_all_pairs(
     """Integrators with several force evaluations per step search once per evaluation (none
     extra for the flag) and give the all-pairs result. (The margin covers the smoothing
     ramp, which acts up to ``smoothing / 2`` before the spheres touch.)"""
-    strategy = bp.Grid(max_pairs=40, margin=1e-3)
-    sim = dp.compile(column, dt=1e-3, integrator=integrator, broadphase=strategy)
+    sim = column_grid(column, integrator)
     ref = dp.compile(column, dt=1e-3, integrator=integrator)
     if evaluations is not None:
         assert _searches_per_step(sim) == evaluations
-    t = sim.rollout(sim.params(k=1e4, c=20.0), steps=60, save_every=20)
-    t_ref = ref.rollout(ref.params(k=1e4, c=20.0), steps=60, save_every=20)
+    t = sim.rollout(sim.params(k=1e4, c=20.0), **COLUMN_RUN)
+    t_ref = ref.rollout(ref.params(k=1e4, c=20.0), **COLUMN_RUN)
     np.testing.assert_allclose(np.asarray(t.position), np.asarray(t_ref.position), atol=1e-12)
     np.testing.assert_array_equal(np.asarray(t.aux[bp.OVERFLOW]), 0.0)
 
@@ -305,13 +329,15 @@ def test_overflow_flag_comes_from_the_step_search_and_vmaps(column, crowded):
         return sim.step(sim.params(k=k, c=20.0), s)
     both = jax.vmap(final, in_axes=(0, None))(jnp.asarray([1e4, 2e4]), cleared)
     np.testing.assert_array_equal(np.asarray(both.aux[bp.OVERFLOW]), 1.0)
-    ref = dp.compile(column, dt=1e-3, broadphase=bp.Grid(max_pairs=40, margin=1e-3))
+    # vmap over k of a grid rollout against one rollout per k (the loop reuses the rollout
+    # program of the verlet column above)
+    ref = column_grid(column, "verlet")
     ks = jnp.asarray([5e3, 1e4, 2e4])
-    xs = jax.vmap(lambda k: ref.rollout(ref.params(k=k, c=20.0), steps=40, save_every=40,
+    xs = jax.vmap(lambda k: ref.rollout(ref.params(k=k, c=20.0), **COLUMN_RUN,
                                         check_finite=False).position[-1])(ks)
-    for k, x in zip(ks, xs):
-        x1 = ref.rollout(ref.params(k=float(k), c=20.0), steps=40, save_every=40).position[-1]
-        np.testing.assert_allclose(np.asarray(x), np.asarray(x1), atol=1e-12)
+    for k, x in zip(np.asarray(ks), np.asarray(xs)):
+        x1 = ref.rollout(ref.params(k=float(k), c=20.0), **COLUMN_RUN).position[-1]
+        np.testing.assert_allclose(x, np.asarray(x1), atol=1e-12)
 
 
 @pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
