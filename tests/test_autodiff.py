@@ -17,13 +17,15 @@ def ball():
     scene.add_plane()
     sim = dp.compile(scene, dt=1e-3, smoothing=1e-3)
 
+    def height(s):          # one observe object: a new function would compile a new rollout
+        return s.position[0, 2]
+
     def loss(k, c):
-        h = sim.rollout(sim.params(k=k, c=c), steps=STEPS,
-                        observe=lambda s: s.position[0, 2]).observed
+        h = sim.rollout(sim.params(k=k, c=c), steps=STEPS, observe=height).observed
         return jnp.sum(h ** 2) / STEPS
 
     def loss_params(p):
-        h = sim.rollout(p, steps=STEPS, observe=lambda s: s.position[0, 2]).observed
+        h = sim.rollout(p, steps=STEPS, observe=height).observed
         return jnp.mean(h)
     return sim, loss, loss_params
 
