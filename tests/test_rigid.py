@@ -314,8 +314,11 @@ def test_box_drop_gradients_wrt_k_and_c_match_finite_differences(integrator, dt,
         return traj.position[-1, box, 2] + 0.1 * traj.orientation[-1, box, 1]
 
     lk, lc = np.log(5e3), np.log(20.0)
-    g = jax.jit(jax.grad(loss, argnums=(0, 1)))(lk, lc)
-    f = jax.jit(loss)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
+    g = value_and_grad(lk, lc)[1]
+
+    def f(log_k, log_c):            # the loss's value: no second compile for the differences
+        return value_and_grad(log_k, log_c)[0]
     eps = 1e-5
     fd = [(f(lk + eps, lc) - f(lk - eps, lc)) / (2 * eps),
           (f(lk, lc + eps) - f(lk, lc - eps)) / (2 * eps)]
