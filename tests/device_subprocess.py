@@ -10,8 +10,13 @@ import time
 
 
 def _env(devices: int, **extra) -> dict:
-    return dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
-                JAX_PLATFORMS="cpu", **extra)
+    """The test process's environment with ``devices`` forced CPU devices; the XLA backend
+    optimisation level the test process compiles at (tests/conftest.py: -O0 unless
+    DIFFPEN_TEST_XLA_OPT=1) is passed on, since the subprocesses' time is their compiles."""
+    flags = [f"--xla_force_host_platform_device_count={devices}"]
+    flags += [f for f in os.environ.get("XLA_FLAGS", "").split()
+              if f.startswith("--xla_backend_optimization_level=")]
+    return dict(os.environ, XLA_FLAGS=" ".join(flags), JAX_PLATFORMS="cpu", **extra)
 
 
 def run_on_devices(script: str, devices: int = 4, timeout: float = 300) -> dict:

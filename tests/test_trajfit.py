@@ -3,6 +3,7 @@ recovery of known parameters from records made by another integrator and time st
 noise, the first-state estimate, masks for records of unequal length, and the library pieces
 it needs (named planes with a fitted offset, Simulator.state_from)."""
 import json
+import logging
 import math
 
 import jax
@@ -144,7 +145,7 @@ def test_first_state_removes_the_finite_difference_bias(cube):
     assert v[2] - v0[2] == pytest.approx(0.023)
 
 
-def test_unequal_lengths_are_masked(cube):
+def test_unequal_lengths_are_masked(cube, caplog):
     """Records of different lengths in one batch give each record the residuals it gives
     alone (padding weighs nothing)."""
     params = cube.params()
@@ -155,17 +156,26 @@ def test_unequal_lengths_are_masked(cube):
     both = tf.prepare(cube, [long, short], estimate="record")
     alone = [tf.prepare(cube, [r], estimate="record") for r in (long, short)]
     p2 = tf.with_leaves(params, {"contact.board.c": 20.0})
-    r_both = tf.pose_residuals(*tf.simulate(cube, p2, both), both)
-    cost_alone = [float(jnp.sum(tf.pose_residuals(*tf.simulate(cube, p2, b), b) ** 2))
-                  for b in alone]
+
+    def residuals(b):        # jitted: one compile per batch instead of one per eager op
+        return jax.jit(lambda p: tf.pose_residuals(*tf.simulate(cube, p, b), b))(p2)
+    r_both = residuals(both)
+    # called eagerly, the same batch again reuses its compiled rollout (simulate's observe
+    # function is one object per set of bodies, and the rollout program is keyed by it)
+    first = tf.simulate(cube, p2, both)[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), jax.log_compiles():
+        again = tf.simulate(cube, p2, both)[0]
+    assert not [r for r in caplog.records if r.getMessage().startswith("Compiling")]
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(first))
+    cost_alone = [float(jnp.sum(residuals(b) ** 2)) for b in alone]
     # each record weighs 1/R in the batch: the batch cost is the mean of the costs alone
     assert float(jnp.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
     assert both.pos_mask[1, len(short.t):].sum() == 0
     # buckets of similar length give the same loss as one padded batch
     buckets = tf.prepare_buckets(cube, [long, short], buckets=2, estimate="record")
     assert [len(b.paths) for b in buckets] == [1, 1] and buckets[0].steps < both.steps
-    r_buckets = jnp.concatenate([tf.pose_residuals(*tf.simulate(cube, p2, b), b)
-                                 for b in buckets])
+    r_buckets = jnp.concatenate([residuals(b) for b in buckets])
     assert float(jnp.sum(r_buckets ** 2)) == pytest.approx(float(jnp.sum(r_both ** 2)),
                                                            rel=1e-10)
 

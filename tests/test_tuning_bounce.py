@@ -1,6 +1,7 @@
 """The bounce problem behind `diffpen fit`: the default targets are reached with the exact
 metrics, infeasible targets are refused before compiling, heights alone fit only the damping,
 unreachable targets are marked with the closest values."""
+import jax
 import pytest
 
 import diffpen as dp
@@ -27,7 +28,8 @@ def test_default_fit_reaches_targets():
     sim = dp.compile(ball_scene(), 1e-3)
     s0 = sim.init_state()
     tr = sim.rollout(res.params, 4000, s0)
-    m = ball_metrics(sim, tr, res.params, n_apex=1, state0=s0)
+    # jitted: one compile instead of one per eager operation (2.9 s -> 0.4 s)
+    m = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, n_apex=1, state0=s0))(tr, res.params)
     assert float(m.apex_heights[0]) == pytest.approx(res.achieved["apex_heights"][0], rel=1e-9)
     assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
 

@@ -37,11 +37,13 @@ def test_rank_select_and_max_penetration_match_numpy():
     """The first n selected samples in order (nan and invalid past the last), and the
     deepest sample, against plain numpy on random masks, empty and full masks included."""
     rng = np.random.default_rng(0)
+    rank_select = jax.jit(M._rank_select, static_argnums=2)     # one compile for all cases
+    max_penetration = jax.jit(M.max_penetration)
     for density in (0.0, 0.002, 0.05, 1.0):
         for _ in range(5):
             values = rng.normal(size=300)
             mask = rng.random(300) < density
-            got, valid = M._rank_select(jnp.asarray(values), jnp.asarray(mask), 3)
+            got, valid = rank_select(jnp.asarray(values), jnp.asarray(mask), 3)
             want = values[np.flatnonzero(mask)[:3]]
             assert np.asarray(valid).sum() == len(want) and np.asarray(valid)[:len(want)].all()
             np.testing.assert_array_equal(np.asarray(got)[:len(want)], want)
@@ -52,7 +54,7 @@ def test_rank_select_and_max_penetration_match_numpy():
             dm, d0, dp_ = -h[i - 1], -h[i], -h[i + 1]
             q = dm - 2 * d0 + dp_
             ref = d0 - (dp_ - dm) ** 2 / (8 * q) if q < 0 and d0 >= dm and d0 >= dp_ else d0
-            np.testing.assert_allclose(float(M.max_penetration(jnp.asarray(h))),
+            np.testing.assert_allclose(float(max_penetration(jnp.asarray(h))),
                                        max(ref, -h.min(), 0.0), rtol=1e-12)
 
 
@@ -60,11 +62,12 @@ def test_settling_time_is_last_exceedance_interpolated():
     t = jnp.linspace(0.0, 1.0, 101)
     z = jnp.where(t < 0.5, 0.01 * (0.5 - t) / 0.5, 0.0) + 0.2     # straight line into rest
     z = z.at[30].set(0.2 + 0.05)                                     # an early spike
-    ts, ok = M.settling_time(t, z, 0.2, tol=0.002)
+    settling_time = jax.jit(M.settling_time)          # one compile for both signals
+    ts, ok = settling_time(t, z, 0.2, tol=0.002)
     assert bool(ok)
     # |z - rest| = 0.01 (0.5 - t) / 0.5 = 0.002  ->  t = 0.4 exactly (linear between samples)
     assert float(ts) == pytest.approx(0.4, rel=1e-12)
-    _, ok = M.settling_time(t, z + 0.01 * t, 0.2, tol=0.002)   # drifts away: never settles
+    _, ok = settling_time(t, z + 0.01 * t, 0.2, tol=0.002)   # drifts away: never settles
     assert not bool(ok)
 
 
@@ -94,7 +97,8 @@ def _event_reference(sim, params, steps, tol=1e-3):
     e = np.abs(z - rest)
     i = np.nonzero(e > tol)[0][-1]
     settle = t[i] + (e[i] - tol) / (e[i] - e[i + 1]) * (t[i + 1] - t[i])
-    fine, _ = M.apex_heights(jnp.asarray(h), 3, flight_gap=gap)   # the metric, every step
+    fine, _ = jax.jit(lambda h: M.apex_heights(h, 3, flight_gap=gap))(jnp.asarray(h))
+    # (the metric, every step)
     return {"apex": apex, "contact": np.array(up) - np.array(down[:len(up)]),
             "settle": settle, "pen": -h.min(), "metric_every_step": np.asarray(fine)}
 
@@ -108,7 +112,10 @@ def ball_run():
     params = sim.params(k=K, c=C)
     s0 = sim.init_state()
     traj = sim.rollout(params, 25000, s0, save_every=10)       # saved every 1 ms
-    return sim, params, M.ball_metrics(sim, traj, params, n_apex=3, state0=s0)
+    # jitted: one compile instead of one per eager operation
+    metrics = jax.jit(lambda traj, params: M.ball_metrics(sim, traj, params, n_apex=3,
+                                                          state0=s0))
+    return sim, params, metrics(traj, params)
 
 
 def test_metrics_match_event_located_values(ball_run):

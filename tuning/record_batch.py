@@ -11,6 +11,7 @@ the frames do not fall on steps).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -179,6 +180,17 @@ def prepare_buckets(sim: dp.Simulator, records, *, buckets: int = 3, **kw) -> li
 
 
 # --------------------------------------------------------------------------- rollouts
+@functools.lru_cache(maxsize=None)
+def _observer(bodies: tuple, rot: bool):
+    """``observe(state)`` of the bodies' poses, one function object per (bodies, rot): the
+    rollout's compiled program is keyed by it, so repeated calls reuse it."""
+    idx = np.asarray(bodies, dtype=np.int32)
+
+    def observe(s):
+        return (s.position[idx], s.orientation[idx] if rot else None)
+    return observe
+
+
 def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False):
     """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
     batch's bodies at the frame times, each record rolled out from its own start state.
@@ -188,9 +200,7 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
     from .stable import rollout_unstable
     idx = batch.bodies
     rot = sim.scene.has_rotation and batch.has_rotation
-
-    def observe(s):
-        return (s.position[idx], s.orientation[idx] if rot else None)
+    observe = _observer(tuple(int(i) for i in np.asarray(idx).reshape(-1)), bool(rot))
 
     def one(state, index, frac):
         traj = sim.rollout(params, batch.steps, state, save_every=batch.save_every,
