@@ -433,6 +433,13 @@ class ContactLaw:
       ``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n,
       centred=True)``.
 
+    pulls: True when the force may be negative (pull) while in contact (``linear``); False
+      when it is clamped at 0 (``no_tension``, ``hunt_crossley``).
+    damping_exponent: m in the law's form ``F = k d^n - c vn d^m`` inside contact, before any
+      clamp: 0 for the linear laws (``k d - c vn``), n for Hunt-Crossley (``(k - c vn) d^n``).
+      With ``exponent`` and ``pulls`` it states the law's physics for code that writes it out
+      independently (the event-located references of :mod:`tuning.reports.reference`).
+
     A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
     """
     name: str
@@ -444,6 +451,8 @@ class ContactLaw:
     exponent: float = 1.0
     closed_form: str | None = None
     centred: Callable | None = None
+    pulls: bool = False
+    damping_exponent: float = 0.0
 
     def __call__(self, d, vn, k, c, width: float = 0.0):
         return self.force(d, vn, k, c, width)
@@ -490,7 +499,8 @@ def linear(centred: bool = False) -> ContactLaw:
     ``t_c = pi / w_d``, ``e = exp(-pi zeta / sqrt(1 - zeta^2))``. ``centred``: damping at
     the step window's centre speed (module docstring)."""
     return ContactLaw("linear", linear_contact, _linear_averaged, _linear_energy, _linear_rest,
-                      _linear_stiffness, 1.0, "linear", _linear_centred if centred else None)
+                      _linear_stiffness, 1.0, "linear", _linear_centred if centred else None,
+                      pulls=True)
 
 
 def no_tension(centred: bool = False) -> ContactLaw:
@@ -522,7 +532,8 @@ def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:
         # dF/dd = n k d^(n-1), dF/dvn = c d^n: largest at the deepest depth considered
         return n * k * d_ref ** (n - 1.0), c * d_ref ** n
     return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
-                      stiffness, n, None, _hunt_crossley_centred(n) if centred else None)
+                      stiffness, n, None, _hunt_crossley_centred(n) if centred else None,
+                      damping_exponent=n)
 
 
 #: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: the records (Hunt-Crossley

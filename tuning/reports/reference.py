@@ -51,6 +51,14 @@ def spring_closed_form(t, *, k: float, c: float, m: float, x0: float):
     return x0 * (r2 * np.exp(r1 * t) - r1 * np.exp(r2 * t)) / (r2 - r1)
 
 
+def _law_facts(law, exponent: float = 1.0):
+    """The :class:`diffpen.laws.ContactLaw` record of ``law`` (a name or a record), whose
+    facts (``pulls``, ``exponent``, ``damping_exponent``) say which force the references
+    write out; the force itself is written here in numpy."""
+    from diffpen.laws import get
+    return get(law, exponent)
+
+
 class BallReference:
     """Hard-contact ball on the plane z = 0, solved phase by phase with DOP853 at rtol 1e-12;
     every contact start and end (centre height = radius) is an event, and so is every switch
@@ -58,7 +66,9 @@ class BallReference:
     through 0), so each phase has a smooth right-hand side.
 
     Laws (``d = r - z`` penetration, ``v = dz/dt`` the separating speed), written here in
-    numpy, independently of :mod:`diffpen.laws`:
+    numpy from the facts of the law's record (``pulls``, ``exponent``, ``damping_exponent``
+    of :class:`diffpen.laws.ContactLaw`; ``law`` is a name or a record), not from its
+    force functions:
 
     * ``linear``: ``F = k d - c v`` while ``d > 0``;
     * ``no_tension``: ``F = max(k d - c v, 0)`` while ``d > 0``;
@@ -72,22 +82,19 @@ class BallReference:
     def __init__(self, *, k: float, c: float, m: float, r: float, z0: float, v0: float = 0.0,
                  T: float, g: float = G, law: str = "linear", exponent: float = 1.0):
         integrate = _scipy_integrate()
-        if law not in ("linear", "no_tension", "hunt_crossley"):
-            raise ValueError(f"the reference knows the laws linear, no_tension and "
-                             f"hunt_crossley, not {law!r}.")
+        rec = _law_facts(law, exponent)
         self.k, self.c, self.m, self.r, self.g = k, c, m, r, g
-        self.law, self.exponent = law, float(exponent)
+        self.law, self.exponent = rec.name, float(rec.exponent)
         self.T = T
-        n = self.exponent
+        n, mexp, pulls = self.exponent, float(rec.damping_exponent), rec.pulls
 
         def switch(y):
-            """The clamped quantity of the law (its sign says whether the contact pushes)."""
+            """The clamped quantity of the law, ``F / d^m`` (its sign says whether the contact
+            pushes; 1 for a law that may pull)."""
             d, v = r - y[0], y[1]
-            if law == "no_tension":
-                return k * d - c * v
-            if law == "hunt_crossley":
-                return k - c * v
-            return 1.0
+            if pulls:
+                return 1.0
+            return k * (d if n - mexp == 1.0 else max(d, 0.0) ** (n - mexp)) - c * v
 
         def rhs_for(mode):
             contact, pushing = mode
@@ -96,10 +103,10 @@ class BallReference:
                 if not (contact and pushing):
                     return [y[1], -g]
                 d, v = r - y[0], y[1]
-                if law == "hunt_crossley":
-                    f = (k - c * v) * max(d, 0.0) ** n
-                else:
-                    f = k * d - c * v
+                # F = (k d^(n-m) - c v) d^m: k d - c v for the linear laws, (k - c v) d^n
+                # for Hunt-Crossley
+                stiff = d if n - mexp == 1.0 else max(d, 0.0) ** (n - mexp)
+                f = (k * stiff - c * v) * (1.0 if mexp == 0.0 else max(d, 0.0) ** mexp)
                 return [y[1], f / m - g]
             return rhs
 
@@ -151,7 +158,7 @@ class BallReference:
                 else:
                     start, depth = t_e, 0.0
                 contact = not contact
-                pushing = contact and (switch(y) > 0.0 or (law == "no_tension" and y[1] < 0))
+                pushing = contact and (switch(y) > 0.0 or (not pulls and y[1] < 0))
             else:                                    # the clamp switches inside contact
                 pushing = not pushing
             if len(contacts) > 200:
@@ -176,7 +183,7 @@ class BallReference:
     def energy(self, z, v):
         """Energy above rest on the plane, J: kinetic + m g (z - r) + contact spring."""
         d = np.maximum(self.r - z, 0.0)
-        n = self.exponent if self.law == "hunt_crossley" else 1.0
+        n = self.exponent
         return (0.5 * self.m * v * v + self.m * self.g * (z - self.r)
                 + self.k * d ** (n + 1.0) / (n + 1.0))
 
@@ -203,7 +210,7 @@ class BallReference:
         each phase (the phases are smooth)."""
         from scipy.integrate import quad
         T = self.T if T is None else T
-        n = self.exponent if self.law == "hunt_crossley" else 1.0
+        n = self.exponent
         d_rest = (self.m * self.g / self.k) ** (1.0 / n)
         z_rest = self.r - d_rest
         e_rest = float(self.energy(np.array([z_rest]), np.array([0.0]))[0])
@@ -401,9 +408,12 @@ class BoxCornerReference:
                  max_events: int = 5000,
                  guard: float = 1e-10):
         integrate = _scipy_integrate()
-        if law not in ("linear", "no_tension"):
-            raise ValueError(f"the box reference knows the laws linear and no_tension, not "
-                             f"{law!r}.")
+        rec = _law_facts(law)
+        if rec.exponent != 1.0 or rec.damping_exponent != 0.0:
+            raise ValueError(f"the box reference writes F = k d - c vn (the linear and "
+                             f"no_tension laws), not {rec.name!r}.")
+        pulls = rec.pulls
+        law = rec.name
         half = np.asarray(half, float)
         self.k, self.c, self.mu, self.s, self.m, self.g = k, c, mu, slip_speed, mass, g
         self.half, self.law, self.T = half, law, T
@@ -453,7 +463,7 @@ class BoxCornerReference:
                     sel = np.flatnonzero(touch)
                     fn = normal(d[sel], u[sel, 2])
                     on = push[sel]
-                    fz = np.where(on, fn, 0.0 if law == "no_tension" else fn)
+                    fz = np.where(on, fn, fn if pulls else 0.0)
                     ut = u[sel, :2]
                     sp = np.sqrt(np.sum(ut * ut, axis=1) + slip_speed * slip_speed)
                     ft = -mu * np.where(on, fn, 0.0)[:, None] * ut / sp[:, None]
