@@ -355,7 +355,7 @@ def test_box_corner_reference_is_diffpen_model_in_the_limit():
     is down, both have left by 0.095 s): diffpen's pose at 0.1 s converges to the reference at
     first order: the same model in continuous time. Measured: centre 9.0e-6 / 9.0e-7 m and
     rotation 1.19e-3 / 1.18e-4 rad off at dt 1e-4 / 1e-5."""
-    from tuning.reports.gradient_check import BOX_CASES, box_corner_scene
+    from tuning.reports.box_gradients import BOX_CASES, box_corner_scene
     from tuning.reports.reference import BoxCornerReference, rotation_angle
     case = BOX_CASES[1]
     ref = BoxCornerReference(k=case.k, c=case.c, mu=case.mu, slip_speed=case.slip_speed,
@@ -385,7 +385,7 @@ def box_corner_gradients():
     steps of the default dt 1e-3, default settings) by jax.jacfwd in float64 and float32,
     and the continuous system's w.r.t. k and mu (BoxCornerReference, central differences;
     DOP853 at rtol 1e-10: within 1e-7 of rtol 1e-12)."""
-    from tuning.reports.gradient_check import (BOX_CASES, box_corner_metrics_fn,
+    from tuning.reports.box_gradients import (BOX_CASES, box_corner_metrics_fn,
                                                box_corner_reference)
     case = BOX_CASES[1]
     out = {"ref": box_corner_reference(case, rtol=1e-10, params=("k", "mu"))}
@@ -408,13 +408,12 @@ def test_box_corner_gradients_float32_agrees_with_float64(box_corner_gradients):
 
 def test_box_corner_gradients_against_the_continuous_system(box_corner_gradients):
     """Where diffpen's derivative at the default dt is within 2% of the continuous one for
-    every phase of the landing within the step (tuning.reports.gradient_check
-    .box_corner_phase_errors,
-    6 phases): the end of the first corner's contact w.r.t. k (0.1-1.4%) and mu (0.1-1.1%),
+    every phase of the landing within the step
+    (tuning.reports.box_gradients.box_corner_phase_errors, 6 phases): the end of the first corner's contact w.r.t. k (0.1-1.4%) and mu (0.1-1.1%),
     and the sliding x position during the bounces w.r.t. mu (0.2-1.2%). The other 27 are
     NOT within 2% at dt 1e-3 (median 19%, up to 370%; docs/gradients.txt has the table: the
     errors fall ~10x per 10x in dt, 20 of 30 within 2% at dt 1e-4, 28 at dt 1e-5)."""
-    from tuning.reports.gradient_check import BOX_METRICS
+    from tuning.reports.box_gradients import BOX_METRICS
     ref, g = box_corner_gradients["ref"], box_corner_gradients[jnp.float64]
     for metric, p in (("t_end1", "dk"), ("t_end1", "dmu"), ("x@T1", "dmu")):
         m, i = BOX_METRICS.index(metric), ("dk", "dc", "dmu").index(p)

@@ -63,7 +63,7 @@ def test_centred_damping_values_within_half_a_percent(case):
 
 @pytest.mark.slow
 def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
-    """tuning.reports.gradient_check.two_point_window_law (prototype: the step window along the true
+    """tuning.reports.two_point.two_point_window_law (prototype: the step window along the true
     path through the last two positions) on the 0.3 kg ball (k 3e4, c 15, w h 0.32) at
     dt = 1e-3: first apex, its d/dk and d/dc within 0.01% of the continuous system (measured < 0.001% on apexes 1-3 and durations at three impact
     phases; the straight window 2.4% / 1.3% on apex 1 and 73% / 79% on apex 3)."""
@@ -71,7 +71,7 @@ def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
 
     import diffpen as dp
     from tuning.scenes import ball_scene
-    from tuning.reports.gradient_check import two_point_window_law
+    from tuning.reports.two_point import two_point_window_law
     case = EVENT_CASES[1]._replace(T=0.9)
     sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
                      law=two_point_window_law(case.mass), dtype=jnp.float64)

@@ -7,7 +7,11 @@
 * :mod:`tuning.reports.accuracy`: error against run time of every integrator, the cheapest one
   that meets a tolerance, and the work-precision plot (``diffpen report accuracy``);
 * :mod:`tuning.reports.gradient_check`: gradient error against dt and smoothing width
-  (``diffpen report gradients``);
+  (``diffpen report gradients``), and through contact events against the event-located ball;
+* :mod:`tuning.reports.box_gradients`: a box landing on a corner, derivatives w.r.t. k, c
+  and mu against :class:`~tuning.reports.reference.BoxCornerReference`;
+* :mod:`tuning.reports.two_point`: the prototype contact law whose step window follows the
+  true two-point path (exact event terms, ~54x the default law's cost);
 * :mod:`tuning.reports.bench`: speed against baselines measured in the same process
   (``diffpen bench``).
 
