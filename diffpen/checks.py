@@ -1,20 +1,33 @@
-"""Argument checks of :meth:`diffpen.Simulator.rollout`, run before anything is traced or
-compiled: the params pytree, ``steps`` and ``save_every`` (with a size and time estimate for
-runs too large to hold), and a given start state (type, shapes, dtypes, finite values).
-Each failure raises :class:`diffpen.SceneError` saying what to change.
+"""Checks of what users give the simulator, run before anything is traced or compiled, and
+of what a rollout returns:
+
+* :func:`compile_arguments`: ``diffpen.compile``'s dt, integrator, law, smoothing, unroll and
+  substeps; :func:`check_pairs`: the pair count without a broad phase;
+* :func:`check_rollout` / :func:`check_rollout_options`: the params pytree, ``steps`` and
+  ``save_every`` (with a size and time estimate for runs too large to hold), a given start
+  state (type, shapes, dtypes, finite values), substeps and checkpoint;
+* :func:`check_finite_trajectory`: a concrete trajectory that became NaN/inf, with the first
+  step and body.
+
+Each failure raises :class:`diffpen.SceneError` (or :class:`diffpen.NonFiniteError`) saying
+what to change.
 """
 from __future__ import annotations
 
 import os
 import weakref
 
+import math
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from .errors import SceneError
+from .errors import NonFiniteError, SceneError
 from .state import Params, State
 
-__all__ = ["check_rollout", "check_pairs", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
+__all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
+           "check_finite_trajectory", "check_pairs", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
            "MAX_PAIRS"]
 
 #: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
@@ -76,6 +89,103 @@ def _estimate(sim, steps: int, save_every: int, observe) -> tuple[float, float]:
     saved = steps // save_every
     stored = 0.0 if observe is not None else float(saved) * n * per_body * itemsize
     return stored, float(steps) * max(n, 1) / STEP_RATE
+
+
+def compile_arguments(scene, dt, integrator, law, exponent, smoothing, unroll, substeps):
+    """``diffpen.compile``'s arguments checked and normalised: ``(dt s, the Integrator record,
+    the ContactLaw record, smoothing width m)``. ``smoothing="auto"`` is 0, the exact ramp:
+    the integrators apply each contact's force averaged over the step (``diffpen.laws``),
+    continuous through contact start and end, so no band is needed. Raises SceneError."""
+    from . import laws
+    from .integrators import resolve
+    try:
+        if isinstance(dt, (str, bytes, bool, np.bool_)):
+            raise TypeError
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise SceneError(f"dt must be a number of seconds, got {dt!r}.") from None
+    if not math.isfinite(dt) or dt <= 0.0:
+        raise SceneError(f"dt must be a positive, finite number of seconds, got {dt!r}; "
+                         "try dt=1e-3.")
+    method = resolve(integrator)
+    try:
+        contact_law = laws.get(law, exponent)
+    except ValueError as e:
+        raise SceneError(str(e)) from None
+    if smoothing == "auto":
+        width = 0.0
+    else:
+        try:
+            width = float(smoothing)
+        except (TypeError, ValueError):
+            raise SceneError(f"smoothing must be 'auto' or a width in metres >= 0, got "
+                             f"{smoothing!r}.") from None
+        if not math.isfinite(width) or width < 0.0:
+            raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
+                             f"got {smoothing!r}.")
+    if int(unroll) < 1:
+        raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
+    if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
+                               or isinstance(substeps, bool) or substeps < 1):
+        raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
+    return dt, method, contact_law, width
+
+
+def check_rollout_options(steps, save_every, substeps, checkpoint) -> None:
+    """``steps``, ``save_every``, ``substeps`` and ``checkpoint`` of ``Simulator.rollout``
+    (see its docstring). Raises SceneError."""
+    if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps <= 0:
+        raise SceneError(f"steps must be a positive int, got {steps!r}.")
+    if (not isinstance(save_every, (int, np.integer)) or save_every <= 0
+            or steps % save_every):
+        raise SceneError(f"save_every must be a positive int dividing steps={steps}, got "
+                         f"{save_every!r}.")
+    if substeps is not None and (not isinstance(substeps, (int, np.integer))
+                                 or isinstance(substeps, bool) or substeps < 1):
+        raise SceneError(f"substeps must be a positive int or None, got {substeps!r}.")
+    if checkpoint is not None and (
+            not isinstance(checkpoint, (int, np.integer)) or checkpoint <= 0
+            or steps % checkpoint or (checkpoint % save_every and save_every % checkpoint)):
+        raise SceneError(f"checkpoint must be a positive int that divides steps={steps} and "
+                         f"is a multiple or a divisor of save_every={save_every}, got "
+                         f"{checkpoint!r}.")
+
+
+@jax.jit
+def _last_state_finite(position, velocity):
+    return jnp.isfinite(position[-1]).all() & jnp.isfinite(velocity[-1]).all()
+
+
+def check_finite_trajectory(traj, save_every: int, dt: float) -> None:
+    """Raise NonFiniteError when a concrete trajectory became NaN/inf (traced ones pass):
+    with whole states, naming the first step and body; with ``observe`` output only, saying
+    so. NaN/inf positions persist (``x += h v``), so a finite last state means a finite run;
+    the full scan for the first bad step runs only on failure."""
+    from .params import _is_concrete
+    if traj.position is None:
+        leaves = jax.tree_util.tree_leaves(traj.observed)
+        if leaves and all(map(_is_concrete, leaves)) and not all(
+                bool(jnp.isfinite(a[-1]).all()) for a in leaves
+                if jnp.issubdtype(a.dtype, jnp.inexact)):
+            raise NonFiniteError(
+                "the observed state became NaN/inf: the time step is probably past the "
+                "stability limit for these k and c. Use a smaller dt, more substeps, or "
+                "a stiffer-stable integrator (roll out without observe= to locate the "
+                "step and body).")
+        return
+    if not _is_concrete(traj.position) or bool(_last_state_finite(traj.position,
+                                                                  traj.velocity)):
+        return
+    bad = ~np.isfinite(np.asarray(traj.position)).all(axis=-1)
+    bad |= ~np.isfinite(np.asarray(traj.velocity)).all(axis=-1)
+    if bad.any():
+        s, b = (int(v) for v in np.argwhere(bad)[0])
+        step = (s + 1) * save_every
+        raise NonFiniteError(
+            f"the state became NaN/inf by step {step} (t = {step * dt:.6g} s) at body "
+            f"{b}: the time step is probably past the stability limit for these k and c. "
+            "Use a smaller dt, more substeps, or a stiffer-stable integrator.",
+            step=step, body=b)
 
 
 def check_pairs(scene, broadphase) -> None:

@@ -24,7 +24,6 @@ delegate to them.
 """
 from __future__ import annotations
 
-import math
 from typing import Callable
 
 import jax
@@ -40,8 +39,8 @@ from . import rollout as _rollout
 from . import stability as _stability
 from . import start_state as _start_state
 from . import terms as _terms
-from .errors import NonFiniteError, SceneError
-from .integrators import build_step, resolve, substepped
+from .errors import SceneError
+from .integrators import build_step, substepped
 from .scene import Scene
 from .params import _is_concrete
 from .state import Params, State, Trajectory
@@ -56,11 +55,6 @@ BUILTIN_TERMS: tuple = _terms.BUILTIN
 
 
 # --------------------------------------------------------------------------- simulator
-@jax.jit
-def _last_state_finite(position, velocity):
-    return jnp.isfinite(position[-1]).all() & jnp.isfinite(velocity[-1]).all()
-
-
 def _builders(terms) -> tuple:
     """The term builders of ``compile(..., terms=...)``: BUILTIN_TERMS for None."""
     if terms is None:
@@ -110,14 +104,6 @@ def _build_terms(builders, ctx: CompileContext) -> tuple:
     return tuple(built)
 
 
-def _default_width(scene: Scene) -> float:
-    """``smoothing="auto"``: 0, the exact ramp. The integrators apply each contact's force
-    averaged over the step (``diffpen.laws``, "step-averaged force"), which is continuous
-    through contact start and end without moving the physics; a smoothing band is no longer
-    needed for gradients."""
-    return 0.0
-
-
 class Simulator:
     """A compiled scene: a frozen holder of pure, jitted functions. Build it with
     :func:`compile`; its attributes cannot be reassigned.
@@ -152,37 +138,9 @@ class Simulator:
             raise SceneError("the scene has no bodies: add one with scene.add_sphere(...) or "
                              "scene.add_particle(...).")
         _checks.check_pairs(scene, broadphase)
-        try:
-            if isinstance(dt, (str, bytes, bool, np.bool_)):
-                raise TypeError
-            dt = float(dt)
-        except (TypeError, ValueError):
-            raise SceneError(f"dt must be a number of seconds, got {dt!r}.") from None
-        if not math.isfinite(dt) or dt <= 0.0:
-            raise SceneError(f"dt must be a positive, finite number of seconds, got {dt!r}; "
-                             "try dt=1e-3.")
-        method = resolve(integrator)
-        try:
-            contact_law = laws.get(law, exponent)
-        except ValueError as e:
-            raise SceneError(str(e)) from None
-        if smoothing == "auto":
-            width = _default_width(scene)
-        else:
-            try:
-                width = float(smoothing)
-            except (TypeError, ValueError):
-                raise SceneError(f"smoothing must be 'auto' or a width in metres >= 0, got "
-                                 f"{smoothing!r}.") from None
-            if not math.isfinite(width) or width < 0.0:
-                raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
-                                 f"got {smoothing!r}.")
+        dt, method, contact_law, width = _checks.compile_arguments(
+            scene, dt, integrator, law, exponent, smoothing, unroll, substeps)
         exponent = float(contact_law.exponent)
-        if int(unroll) < 1:
-            raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
-        if substeps != "auto" and (not isinstance(substeps, (int, np.integer))
-                                   or isinstance(substeps, bool) or substeps < 1):
-            raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
 
 
         self.scene = scene
@@ -530,65 +488,21 @@ class Simulator:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
         _checks.check_rollout(self, params, steps, state, save_every, observe)
-        if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps <= 0:
-            raise SceneError(f"steps must be a positive int, got {steps!r}.")
-        if (not isinstance(save_every, (int, np.integer)) or save_every <= 0
-                or steps % save_every):
-            raise SceneError(f"save_every must be a positive int dividing steps={steps}, got "
-                             f"{save_every!r}.")
-        if substeps is not None and (not isinstance(substeps, (int, np.integer))
-                                     or isinstance(substeps, bool) or substeps < 1):
-            raise SceneError(f"substeps must be a positive int or None, got {substeps!r}.")
+        _checks.check_rollout_options(steps, save_every, substeps, checkpoint)
         if state is None:
             state = self._init
-        if checkpoint is not None and (
-                not isinstance(checkpoint, (int, np.integer)) or checkpoint <= 0
-                or steps % checkpoint or (checkpoint % save_every and save_every % checkpoint)):
-            raise SceneError(f"checkpoint must be a positive int that divides steps={steps} and "
-                             f"is a multiple or a divisor of save_every={save_every}, got "
-                             f"{checkpoint!r}.")
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
                             cache=self.gate_cache)                # host-side only
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
                                  substeps=int(n), observe=observe)
-        if observe is not None:
-            leaves = jax.tree_util.tree_leaves(traj.observed)
-            if check_finite and leaves and all(map(_is_concrete, leaves)):
-                if not all(bool(jnp.isfinite(a[-1]).all()) for a in leaves
-                           if jnp.issubdtype(a.dtype, jnp.inexact)):
-                    raise NonFiniteError(
-                        "the observed state became NaN/inf: the time step is probably past the "
-                        "stability limit for these k and c. Use a smaller dt, more substeps, or "
-                        "a stiffer-stable integrator (roll out without observe= to locate the "
-                        "step and body).")
-            for term in self._reporting:            # host-side, concrete results only
-                if _is_concrete(traj.time):
-                    term.report(traj)
-            return traj
-        if check_finite and _is_concrete(traj.position):
-            self._check_finite(traj, save_every)
-        for term in self._reporting:                # e.g. the broad phase's overflow warning
-            if _is_concrete(traj.position):
+        if check_finite:
+            _checks.check_finite_trajectory(traj, save_every, self.dt)
+        if _is_concrete(traj.time if observe is not None else traj.position):
+            for term in self._reporting:        # host-side, e.g. the broad phase's overflow
                 term.report(traj)
         return traj
-
-    def _check_finite(self, traj: Trajectory, save_every: int) -> None:
-        # NaN/inf positions persist (x += h v), so a finite last state means a finite run;
-        # the full scan for the first bad step runs only on failure.
-        if bool(_last_state_finite(traj.position, traj.velocity)):
-            return
-        bad = ~np.isfinite(np.asarray(traj.position)).all(axis=-1)
-        bad |= ~np.isfinite(np.asarray(traj.velocity)).all(axis=-1)
-        if bad.any():
-            s, b = (int(v) for v in np.argwhere(bad)[0])
-            step = (s + 1) * save_every
-            raise NonFiniteError(
-                f"the state became NaN/inf by step {step} (t = {step * self.dt:.6g} s) at body "
-                f"{b}: the time step is probably past the stability limit for these k and c. "
-                "Use a smaller dt, more substeps, or a stiffer-stable integrator.",
-                step=step, body=b)
 
     def __repr__(self) -> str:
         return (f"Simulator(n_bodies={self.n_bodies}, dt={self.dt}, integrator="
