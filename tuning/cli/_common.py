@@ -129,6 +129,20 @@ def count(name: str, minimum: int | None = 1):
     return conv
 
 
+def add_start_state_arguments(p, scope: str = "") -> None:
+    """``--first-state`` and ``--flight-frames``: how each record's start state is taken
+    (``diffpen fit SCENE.toml --data`` and ``diffpen evaluate``). ``scope``: a prefix for the
+    help texts, e.g. ``"with SCENE.toml --data: "``."""
+    p.add_argument("--first-state", choices=["record", "fit"], default=None,
+                   help=f"{scope}each record's start state from row 0 and its velocity "
+                        "columns (estimated where missing; default, or the scene file's [fit] "
+                        "first_state), or fitted to its first frames (a gravity parabola in "
+                        "free flight)")
+    p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
+                   metavar="N", help="with --first-state fit: at most N first frames of free "
+                   "flight in the fitted parabola (it stops earlier where a body comes within "
+                   "5 mm of a plane; default 10, or the scene file's [fit] flight_frames)")
+
 def check_positive(name: str, value) -> None:
     if value is None:
         return

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 
-from ._common import CLIError, count, dump_json, fail, setup_jax
+from ._common import CLIError, add_start_state_arguments, dump_json, fail, setup_jax
 
 
 def add_arguments(p) -> None:
@@ -13,15 +13,7 @@ def add_arguments(p) -> None:
                    "as written, e.g. the output of diffpen fit --out)")
     p.add_argument("--data", nargs="+", metavar="FILE.csv",
                    help="records to evaluate on (default: the scene file's [fit] data)")
-    p.add_argument("--first-state", choices=["record", "fit"], default=None,
-                   help="start state of each rollout: row 0 with the record's velocity "
-                        "columns (estimated where missing; default, or the scene file's [fit] "
-                        "first_state), or pose and velocities "
-                        "fitted to the first frames (a gravity parabola in free flight)")
-    p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
-                   metavar="N", help="with --first-state fit: at most N first frames of free "
-                   "flight in the fitted parabola (it stops earlier where a body comes within "
-                   "5 mm of a plane; default 10, or the scene file's [fit] flight_frames)")
+    add_start_state_arguments(p)
     p.add_argument("--plot", metavar="DIR", help="draw simulated against measured "
                    "trajectories of the first records into DIR (needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")

@@ -10,7 +10,8 @@ from __future__ import annotations
 import math
 import time
 
-from ._common import CLIError, count, dump_json, fail, fmt, law_name, positive, setup_jax
+from ._common import (CLIError, add_start_state_arguments, count, dump_json, fail, fmt,
+                      law_name, positive, setup_jax)
 
 UNITS = {"apex_heights": "m", "settling_time": "s", "contact_durations": "s",
          "max_penetration": "m", "restitution": "", "rms_residual": "m"}
@@ -45,14 +46,7 @@ def add_arguments(p) -> None:
                         "jointly")
     p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
                    "scene with the fitted values")
-    p.add_argument("--first-state", choices=["record", "fit"], default=None,
-                   help="with SCENE.toml --data: each record's start state from row 0 and its "
-                        "velocity columns (default, or the scene file's [fit] first_state), "
-                        "or fitted to its first frames (a gravity parabola in free flight)")
-    p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
-                   metavar="N", help="with --first-state fit: at most N first frames of free "
-                   "flight in the fitted parabola (it stops earlier where a body comes within "
-                   "5 mm of a plane; default 10, or the scene file's [fit] flight_frames)")
+    add_start_state_arguments(p, "with SCENE.toml --data: ")
     p.add_argument("--loss", choices=["l2", "l1"], default="l2",
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
