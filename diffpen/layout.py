@@ -27,7 +27,7 @@ import jax.numpy as jnp
 
 from .state import State
 
-__all__ = ["LAYOUTS", "check", "Columns", "columns", "rows", "as_columns", "as_rows", "add", "columns_state",
+__all__ = ["LAYOUTS", "check", "Columns", "columns", "rows", "add", "columns_state",
            "rows_state", "is_columns", "axpy"]
 
 
@@ -90,16 +90,6 @@ def rows(a):
     if isinstance(a, Columns):
         return jnp.stack(tuple(a), axis=-1)
     return a
-
-
-def as_columns(a) -> Columns:
-    """Like :func:`columns`; None stays None."""
-    return None if a is None else columns(a)
-
-
-def as_rows(a):
-    """Like :func:`rows`; None stays None."""
-    return None if a is None else rows(a)
 
 
 def add(a, b):

@@ -141,3 +141,23 @@ def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
                 method="lm", maxiter=20, progress=False)
     assert res.achieved["apex_heights"][0] == pytest.approx(0.5, rel=1e-3)
     assert not res.reached and "past its safe step" in res.message
+
+
+def test_library_fit_prints_nothing_unless_asked(short_problem, monkeypatch):
+    """Printing belongs to the CLI: on a terminal, fit draws its progress bar only when asked
+    (progress=None or True, what the diffpen command passes); by default it writes nothing."""
+    import io
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    sim, mfn = short_problem
+    p0 = sim.params(k=1e4, c=10.0)
+    for progress, drawn in ((False, False), (None, True)):
+        err = Terminal()
+        monkeypatch.setattr(sys, "stderr", err)
+        kw = {} if progress is False else {"progress": progress}
+        F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"], method="optax",
+              optimizer=optax.adam(0.05), maxiter=3, rtol=1e-9, **kw)
+        assert bool(err.getvalue()) == drawn
