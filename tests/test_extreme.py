@@ -67,7 +67,7 @@ def test_judge_catches_blow_ups_and_silent_nans(monkeypatch):
     nan_case = C(scene="chain", dtype="float32", k=1e9, dt=1e-2, duration=2.0)
     row = extreme.run_case(nan_case, remedy=False)  # the rollout names step and body: clear
     assert row["outcome"] == "error" and "NonFiniteError" in row["detail"]
-    monkeypatch.setattr(dp.Simulator, "_check_finite", lambda *a, **k: None)
+    monkeypatch.setattr(dp.checks, "check_finite_trajectory", lambda *a, **k: None)
     row = extreme.run_case(nan_case, remedy=False)  # ... without that check: a silent NaN
     assert row["outcome"] == "FAIL" and "non-finite" in row["detail"]
 
