@@ -15,6 +15,7 @@ what to change.
 from __future__ import annotations
 
 import os
+import warnings
 import weakref
 
 import math
@@ -23,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import NonFiniteError, SceneError
+from .errors import NonFiniteError, PerformanceWarning, SceneError
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
@@ -232,6 +233,42 @@ def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
             "you need (observe=), or roll out in pieces.")
     if state is not None:
         _check_state(sim, state)
+
+
+#: From how many steps a batched rollout that records every state is worth a warning.
+RECORDING_WARN_STEPS = 64
+
+
+def _batched(tree) -> bool:
+    """True when a leaf of ``tree`` is being batched by ``jax.vmap`` (a batching tracer; JAX
+    has no public test for it, so the tracer's class name is read: ``tests/test_performance_warning.py``
+    fails if a JAX release renames it)."""
+    return any(type(leaf).__name__ == "BatchTracer" for leaf in jax.tree_util.tree_leaves(tree))
+
+
+def warn_batched_recording(params, state, steps: int, save_every, observe) -> None:
+    """Warn (:class:`PerformanceWarning`) when a rollout under ``jax.vmap`` records every
+    state of every rollout because neither ``save_every`` nor ``observe`` was given.
+
+    That form, ``jax.vmap(lambda k: sim.rollout(sim.params(k=k), steps).position[-1])``, is
+    what one writes first, and it writes ``steps x batch x bodies`` positions, velocities and
+    orientations through memory at every step to keep a few numbers: 15-34x the stepping
+    floor at batch 1024-65536 against 1.3-5x for ``save_every=steps`` or ``observe=``
+    (README, "Performance and scale"). An explicit ``save_every`` (1 included) says the
+    whole trajectory is wanted and silences it, as does ``warnings.simplefilter("ignore",
+    diffpen.PerformanceWarning)``. Only a rollout called inside ``vmap`` is seen; under
+    ``vmap(jit(f))`` ``f`` is traced unbatched and nothing is said."""
+    if save_every is not None or observe is not None or steps < RECORDING_WARN_STEPS:
+        return
+    if not (_batched(params) or _batched(state)):
+        return
+    warnings.warn(
+        f"rollout(steps={steps}) under jax.vmap records every state of every rollout "
+        "(no save_every= or observe= given); keeping only the final state or a few numbers "
+        "this way is several times slower than stepping. Pass save_every=steps for the "
+        "final state, observe=lambda s: ... for what you need at each step, or "
+        "save_every=1 to say you want the whole trajectory (and silence this).",
+        PerformanceWarning, stacklevel=3)
 
 
 _SPECS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()

@@ -450,7 +450,7 @@ class Simulator:
         return self._rollout_jit._cache_size()
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
-                save_every: int = 1, check_finite: bool = True,
+                save_every: int | None = None, check_finite: bool = True,
                 checkpoint: int | None = None, check_stability: bool = True,
                 observe: Callable | None = None, substeps: int | None = None) -> Trajectory:
         """Run ``steps`` steps with ``lax.scan``, saving every ``save_every``-th state.
@@ -462,7 +462,12 @@ class Simulator:
           params: from :meth:`params`.
           steps: number of steps (static int > 0), a multiple of ``save_every``.
           state: start state (default :meth:`init_state`).
-          save_every: keep one state every this many steps.
+          save_every: keep one state every this many steps (default 1: every state).
+            Under ``jax.vmap`` with neither this nor ``observe`` given, a rollout of 64
+            steps or more warns (:class:`diffpen.PerformanceWarning`): recording every
+            state of every rollout to keep a few numbers is several times slower than
+            ``save_every=steps`` or ``observe=``; pass ``save_every=1`` to keep the whole
+            trajectory without the warning.
           checkpoint: block size in steps for gradient checkpointing (``jax.checkpoint`` of
             each block): reverse mode then stores one state per block and recomputes inside
             it, so memory goes from O(steps) to O(steps / checkpoint + checkpoint); choose
@@ -487,6 +492,8 @@ class Simulator:
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
+        _checks.warn_batched_recording(params, state, steps, save_every, observe)
+        save_every = 1 if save_every is None else save_every
         _checks.check_rollout(self, params, steps, state, save_every, observe)
         _checks.check_rollout_options(steps, save_every, substeps, checkpoint)
         if state is None:

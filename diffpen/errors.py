@@ -1,7 +1,7 @@
 """Exceptions raised by diffpen. Each message says what to change."""
 from __future__ import annotations
 
-__all__ = ["SceneError", "StabilityError", "NonFiniteError"]
+__all__ = ["SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning"]
 
 
 class SceneError(ValueError):
@@ -25,3 +25,9 @@ class NonFiniteError(FloatingPointError):
         super().__init__(message)
         self.step = step
         self.body = body
+
+
+class PerformanceWarning(UserWarning):
+    """A call that works but runs several times slower than an equivalent form; the message
+    names the fast form (filter it with ``warnings.simplefilter("ignore",
+    diffpen.PerformanceWarning)``)."""

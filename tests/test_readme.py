@@ -11,12 +11,22 @@ def test_quick_start_runs_as_written():
     text = README.read_text()
     block = re.search(r"## Quick start\s+```python\n(.*?)```", text, re.S).group(1)
     env: dict = {}
-    exec(compile(block, "README quick start", "exec"), env)
+    import warnings
+
+    import diffpen as dp
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", dp.PerformanceWarning)     # it shows the fast form
+        exec(compile(block, "README quick start", "exec"), env)
     assert env["traj"].position.shape == (2000, 1, 3)
     assert env["traj"].time.shape == (2000,)
     z = np.asarray(env["z"])
     assert z.shape == (2000,) and z.max() <= 1.0 and z.min() > 0.0   # bounces off the ground
     assert np.isfinite(float(env["dz_dk"]))
+    z_end = np.asarray(env["z_end"])
+    assert z_end.shape == (1024,)
+    sim = env["sim"]
+    one = sim.rollout(sim.params(k=float(env["ks"][0]), c=20.0), steps=2000)
+    np.testing.assert_allclose(z_end[0], one.position[-1, 0, 2], rtol=1e-5)
 
 
 def test_sharding_snippet_runs_as_written():

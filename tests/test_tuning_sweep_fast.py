@@ -25,7 +25,8 @@ def test_heights_equal_the_vmapped_rollout(law):
     ks = jnp.asarray(np.geomspace(1e3, 1e5, 5))
     cs = jnp.asarray(np.geomspace(1.0, 100.0, 5))
     z, v = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS, velocities=True))(ks, cs)
-    traj = jax.jit(jax.vmap(lambda k, c: sim.rollout(sim.params(k=k, c=c), STEPS)))(ks, cs)
+    traj = jax.jit(jax.vmap(lambda k, c: sim.rollout(sim.params(k=k, c=c), STEPS,
+                                                     save_every=1)))(ks, cs)
     assert z.shape == (STEPS, 5)
     np.testing.assert_array_equal(z, traj.position[:, :, 0, 2].T)
     np.testing.assert_array_equal(v, traj.velocity[:, :, 0, 2].T)
