@@ -279,3 +279,44 @@ def test_implicit_flag_stays_clear(ball_scene):
     assert not bool(stability.unsafe(sim.analysis, sim.params(k=1e9, c=0.0)))
     explicit = dp.compile(ball_scene, 1e-2)
     assert bool(stability.unsafe(explicit.analysis, explicit.params(k=1e9, c=0.0)))
+
+
+
+def _box_on_board(law, k, c, friction=0.18):
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("board", k=k, c=c, friction=friction, slip_speed=0.01)
+    scene.add_box((0.0524,) * 3, mass=0.37, inertia=(8.1e-4,) * 3, position=(0.0, 0.0, 0.15),
+                  orientation=(0.9, 0.3, 0.2, 0.1), material="board")
+    scene.add_plane(material="board")
+    return dp.compile(scene, dt=1.0 / 148 / 8, law=law)
+
+
+def test_rigid_contact_bounds_take_the_laws_stiffness_at_the_reference_depth():
+    """Box corners were bounded as if every law were linear: a Hunt-Crossley k (N/m^n) and c
+    (N s/m^(n+1)) counted as N/m and N s/m (Hertz's damping rows of the cube 37x too large;
+    with the board's friction its safe c was 434 instead of 674 N s/m^2.5 at the cube toss's
+    step). The corners now take the law's stiffness at the reference depth d (the body's
+    radius), as sphere contacts always did, and a box at the new limit stays bounded."""
+    k, c = 1e5, 1e3
+    lin = _box_on_board("linear", k, c, friction=0.0)
+    d = float(lin.analysis.d_ref[0])
+    r_lin = lin.stability(lin.params())
+    for n in (1.0, 1.5):
+        hc = _box_on_board(dp.laws.hunt_crossley(n), k, c, friction=0.0)
+        r = hc.stability(hc.params())
+        # the same rows with (n k d^(n-1), c d^n) in place of (k, c)
+        assert r.damping_rate == pytest.approx(r_lin.damping_rate * d ** n, rel=1e-9)
+        assert r.omega_max ** 2 == pytest.approx(r_lin.omega_max ** 2 * n * d ** (n - 1.0),
+                                                 rel=1e-9)
+    # Hertz, with friction, at 0.9 of its new safe c (before: refused from 1/36 of it)
+    hc = _box_on_board(dp.laws.hunt_crossley(1.5), k, c)
+    c_safe = c / hc.stability(hc.params()).safe_margin
+    sim = _box_on_board(dp.laws.hunt_crossley(1.5), k, 0.9 * c_safe)
+    assert sim.stability(sim.params()).safe
+    traj = sim.rollout(sim.params(), 1500)               # 1.27 s: lands, bounces, rocks
+    z = np.asarray(traj.position[:, 0, 2])
+    speed = np.abs(np.asarray(traj.velocity[:, 0]))
+    # bounded: on the board (Hertz's damping vanishes with depth, so the resting cube keeps
+    # a small rocking; an unstable step would grow it instead)
+    assert np.all(np.isfinite(z)) and z.max() < 0.16 and z[-300:].min() > 0.045
+    assert speed[-300:].max() < speed[600:900].max() < 1.0

@@ -182,9 +182,11 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False) -> Rates | None:
             cv = cast(cv)
         kk = None if kv is None else cast(block.k_weight) * kv[block.key]
         cc = cast(block.c_weight) * cv[block.key]
+        if block.param == "contact" and an.contact_scale is not None:
+            # the law's stiffness and damping at the reference depth, for every contact
+            # block (rigid corners too: a Hunt-Crossley k is N/m^n, its c N s/m^(n+1))
+            kk, cc = an.contact_scale(kk, cc, cast(an.d_ref[block.body]))
         if block.combine == "contact":
-            if an.contact_scale is not None:
-                kk, cc = an.contact_scale(kk, cc, cast(an.d_ref[block.body]))
             contacts.append((block, kk, cc))
             continue
         if block.per_mass:
