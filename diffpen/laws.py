@@ -301,18 +301,16 @@ def window_mean(d, vn, h, exponent: float = 1.0):
     a, b = d - delta, d + delta
     n = float(exponent)
     if n == 1.0:
-        # with e = max(delta - |d|, 0) (how far the window reaches past the contact boundary;
-        # 0 for a window inside or apart) and u = e / delta <= 1:
-        # d >= 0: 1 - u^2 / 2 and d + e u^2 / 6;  d < 0: u^2 / 2 and e u^2 / 6.
-        # |d| is written as a select so that its slope at d = 0 is the contact side's (C1
-        # there anyway). Where e = 0 the quotient is 0 / x: no select, finite derivatives in
-        # float32 too; delta is floored at 1e-15 m, so the derivative of u stays finite where
-        # e > 0 (only sub-femtometre windows change). Fewer operations than a select per
-        # branch: the batched step's kernel stays small (see diffpen.layout).
+        # d >= 0: 1 - u^2 / 2 and d + e u^2 / 6 with e = max(-a, 0) (0 for a window inside);
+        # d < 0: u^2 / 2 and e u^2 / 6 with e = max(b, 0) (0 apart); u = e / delta <= 1.
+        # Where e = 0 nothing is divided (double where: a still contact, delta = 0, has
+        # finite derivatives in float32 too); delta is floored at 1e-15 m where e > 0, so
+        # the derivative of u stays finite in float32 (only sub-femtometre windows change).
         on = d >= 0.0
-        e = jnp.maximum(delta - jnp.where(on, d, -d), 0.0)
-        u = e / jnp.maximum(delta, 1e-15)
-        u2 = (u * u) * 0.5     # the quotient has one consumer: XLA fuses it with the rest
+        e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
+        pos = e > 0.0
+        u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
+        u2 = 0.5 * u * u
         frac = jnp.where(on, 1.0 - u2, u2)
         mean = jnp.where(on, d, 0.0) + e * u2 * (1.0 / 3.0)
         return frac, mean
