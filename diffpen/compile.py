@@ -492,10 +492,10 @@ class Simulator:
         Returns:
           :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
         """
-        _checks.warn_batched_recording(params, state, steps, save_every, observe)
-        save_every = 1 if save_every is None else save_every
+        given, save_every = save_every, (1 if save_every is None else save_every)
         _checks.check_rollout(self, params, steps, state, save_every, observe)
         _checks.check_rollout_options(steps, save_every, substeps, checkpoint)
+        _checks.warn_batched_recording(params, state, steps, given, observe)
         if state is None:
             state = self._init
         n = _stability.gate(self.analysis, params, check=check_stability,

@@ -86,7 +86,7 @@ def api_cases(rng, n):
          [None, {}, 1.0, "p", (1.0, 2.0), good.contact]),
         ("rollout.steps", lambda v: sim.rollout(good, v), BAD_STEPS),
         ("rollout.save_every", lambda v: sim.rollout(good, 10, save_every=v),
-         [0, 3, -1, 2.0, "2", None]),
+         [0, 3, -1, 2.0, "2"]),          # None: the default (every state)
         ("rollout.state", lambda v: sim.rollout(good, 10, v), bad_states),
     ]
     for _ in range(n):
