@@ -75,3 +75,23 @@ def test_safe_contact_bounds_use_the_inner_step_and_the_lightest_movable_body():
     assert k == pytest.approx(0.99 * (dp.stability.SAFE_WH / 5e-4) ** 2 * 0.5, rel=1e-15)
     assert c == pytest.approx(0.99 * dp.stability.SAFE_CH * 0.5 / 5e-4, rel=1e-15)
     assert safe_contact_bounds(ball_sim(integrator="implicit_euler")) == (math.inf, math.inf)
+
+
+def test_safe_contact_bounds_are_in_the_contact_laws_units():
+    """The caps of fits were written for N/m and N s/m whatever the law: a Hunt-Crossley ball
+    (k N/m^1.5, c N s/m^2.5) was capped at the linear numbers, which for a 0.1 m ball are
+    2.1x too strict on k and 32x on c. They are now divided by the law's stiffness and
+    damping at the reference depth (the ball's radius), the depth diffpen's own bound uses,
+    and the flag agrees: just inside them the parameters are safe, just past them not."""
+    lin = safe_contact_bounds(ball_sim())
+    sim = ball_sim(law=dp.laws.hunt_crossley(1.5))
+    k_max, c_max = safe_contact_bounds(sim)
+    d = 0.1
+    assert k_max == pytest.approx(lin[0] / (1.5 * d ** 0.5), rel=1e-12)
+    assert c_max == pytest.approx(lin[1] / d ** 1.5, rel=1e-12)
+    assert not bool(params_unstable(sim, sim.params(k=0.98 * k_max, c=1.0)))
+    assert bool(params_unstable(sim, sim.params(k=1.05 * k_max, c=1.0)))
+    assert not bool(params_unstable(sim, sim.params(k=1.0, c=0.98 * c_max)))
+    assert bool(params_unstable(sim, sim.params(k=1.0, c=1.05 * c_max)))
+    # linear laws keep their numbers
+    assert safe_contact_bounds(ball_sim(law="no_tension")) == lin

@@ -83,9 +83,18 @@ def safe_contact_limits(h: float, mass: float) -> tuple[float, float]:
 
 def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
     """:func:`safe_contact_limits` at the inner step of ``sim`` for a body of ``mass`` kg
-    (default: the lightest movable body); ``(inf, inf)`` for integrators without a step
-    limit (implicit)."""
+    (default: the lightest movable body), in the units of the simulator's contact law: a law
+    whose stiffness grows with depth (Hunt-Crossley, ``k`` N/m^n, ``c`` N s/m^(n+1)) has the
+    limits divided by its stiffness and damping at the deepest reference depth of the
+    analysis (``ContactLaw.stiffness``, as :mod:`diffpen.stability` counts it);
+    ``(inf, inf)`` for integrators without a step limit (implicit)."""
     an = sim.analysis
     if not an.integrator.explicit:
         return math.inf, math.inf
-    return safe_contact_limits(an.inner_dt, _light_mass(sim) if mass is None else mass)
+    k_max, c_max = safe_contact_limits(an.inner_dt, _light_mass(sim) if mass is None else mass)
+    if an.contact_scale is not None:
+        free = ~np.asarray(an.pinned)
+        d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0
+        fk, fc = (float(x) for x in an.contact_scale(1.0, 1.0, d))
+        k_max, c_max = k_max / fk, c_max / fc
+    return k_max, c_max
