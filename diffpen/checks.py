@@ -241,8 +241,8 @@ RECORDING_WARN_STEPS = 64
 
 def _batched(tree) -> bool:
     """True when a leaf of ``tree`` is being batched by ``jax.vmap`` (a batching tracer; JAX
-    has no public test for it, so the tracer's class name is read: ``tests/test_performance_warning.py``
-    fails if a JAX release renames it)."""
+    has no public test for it, so the tracer's class name is read:
+    ``tests/test_performance_warning.py`` fails if a JAX release renames it)."""
     return any(type(leaf).__name__ == "BatchTracer" for leaf in jax.tree_util.tree_leaves(tree))
 
 

@@ -139,7 +139,8 @@ def _run(args) -> int:
 
     def mfn(params):
         s0 = sim.init_state()
-        traj = sim.rollout(params, steps, s0, save_every=1, check_finite=False)  # metrics read it all
+        # the metrics read every state: the whole trajectory, said explicitly
+        traj = sim.rollout(params, steps, s0, save_every=1, check_finite=False)
         m = ball_metrics(sim, traj, params, n_apex=3, settle_tol=args.settle_tol,
                          state0=s0)._asdict()
         m["unstable"] = rollout_unstable(sim, traj, params)      # the traced flag
