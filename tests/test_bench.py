@@ -71,12 +71,12 @@ def test_ratios_are_those_of_the_workloads_they_name(known_case):
 
 def test_interleaved_times_are_medians_of_turns():
     """Calls are taken in turns, so a slow spell hits every function alike: a function whose
-    every 4th call is slow still gets its typical time."""
+    every 5th call is slow still gets its typical time."""
     calls = {"a": 0}
 
     def a():
         calls["a"] += 1
-        time.sleep((3 if calls["a"] % 4 == 0 else 1) * U)
+        time.sleep((3 if calls["a"] % 5 == 0 else 1) * U)
         return jnp.zeros(())
 
     def b():
@@ -85,7 +85,24 @@ def test_interleaved_times_are_medians_of_turns():
     t = bench.interleaved_times({"a": a, "b": b, "none": None}, (), repeats=7)
     assert set(t) == {"a", "b"}
     assert t["a"] == pytest.approx(U, rel=0.25) and t["b"] == pytest.approx(2 * U, rel=0.25)
-    assert calls["a"] >= 1 + 7                 # a warm-up call, then one per round
+    assert calls["a"] >= 2 * 7                 # an untimed call before each timed one
+
+
+def test_interleaved_times_time_each_call_after_itself():
+    """Each timed call follows a call of the same function: a function that is slow only
+    right after another one ran (as a real program is, after a different program evicted
+    its caches) is timed at its settled speed. Before, the second function of a turn was
+    always timed right after the first: here 3x its time."""
+    last = {"who": None}
+
+    def make(name):
+        def f():
+            time.sleep((3 if last["who"] not in (None, name) else 1) * U)
+            last["who"] = name
+            return jnp.zeros(())
+        return f
+    t = bench.interleaved_times({"a": make("a"), "b": make("b")}, (), repeats=7)
+    assert t["a"] == pytest.approx(U, rel=0.25) and t["b"] == pytest.approx(U, rel=0.25)
 
 
 def test_floor_and_numpy_baselines_compute_the_same_physics():

@@ -64,26 +64,32 @@ def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
     warm-up call each, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so
     that every function sees the same machine load: ``repeats`` rounds, more (up to 200) when
     a round takes under ~0.5 s / repeats, fewer (3 at least) when the rounds would take over
-    ``budget_s`` seconds in all. The first round follows the warm-up calls directly."""
+    ``budget_s`` seconds in all.
+
+    Every timed call directly follows an untimed call of the same function: a call timed
+    right after a different program reads slower (caches, the thread pool; measured: the
+    same batch-1 rollout 1.2x slower after a batch-1 gradient and 2.3x after a batch-1024
+    rollout), which would bias each ratio by which function happens to come first."""
     live = {k: f for k, f in fns.items() if f is not None}
     times = {k: [] for k in live}
-    first = 0.0
-    for k, f in live.items():
-        jax.block_until_ready(f(*args))
+
+    def timed(f):
+        jax.block_until_ready(f(*args))             # settle: the same program just ran
         t0 = time.perf_counter()
         jax.block_until_ready(f(*args))
-        times[k].append(time.perf_counter() - t0)
+        return time.perf_counter() - t0
+    first = 0.0
+    for k, f in live.items():
+        times[k].append(timed(f))
         first += times[k][-1]
     # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; long
-    # ones fewer, so that a case takes about budget_s at most
+    # ones fewer, so that a case takes about budget_s at most (two calls per timed one)
     rounds = max(repeats, min(200, int(0.5 / max(first, 1e-9))))
-    if first * rounds > budget_s:
-        rounds = max(3, int(budget_s / first))
+    if 2.0 * first * rounds > budget_s:
+        rounds = max(3, int(budget_s / (2.0 * first)))
     for _ in range(rounds - 1):
         for k, f in live.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(*args))
-            times[k].append(time.perf_counter() - t0)
+            times[k].append(timed(f))
     return {k: float(np.median(v)) for k, v in times.items()}
 
 
