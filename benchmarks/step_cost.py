@@ -7,8 +7,8 @@ Both packages are loaded side by side (diffpen imports itself relatively, so a c
 ``diffpen/`` loads under another module name), each compiles the same quick-start ball
 (radius 0.1 m, 1 kg, dropped from 1 m onto a plane, k = 1e4 N/m, c = 20 N s/m, default
 contact settings, float32, dt = 1 ms, 3000 steps), and five workloads run in interleaved
-turns after compilation (``jax.block_until_ready``; medians; each workload's turn starts
-with an untimed call and alternates which checkout goes first):
+turns after compilation (``jax.block_until_ready``; medians; each timed call follows an
+untimed call of the same function, and the checkouts alternate which goes first):
 
 * forward, batch 1: the height trajectory (``observe=``);
 * forward-mode and reverse-mode gradient of ``sum(z^2)`` w.r.t. (k, c);
@@ -87,14 +87,13 @@ def main(argv=None) -> int:
     times = {name: {label: [] for label, _ in runs} for name in runs[0][1]}
     for rep in range(args.reps):
         for name in times:
-            # one untimed call first (the previous workload leaves caches and the thread
-            # pool in another state), and the checkouts in alternating order: timing A right
-            # after a batch-1024 workload measured A up to 1.9x slower than B for the SAME code
+            # each timed call right after an untimed call of the same function, checkouts in
+            # alternating order: a call timed right after another program reads slower (the
+            # SAME code measured 1.9x slower right after a batch-1024 workload)
             order = runs if rep % 2 == 0 else runs[::-1]
-            f, a = order[0][1][name]
-            jax.block_until_ready(f(*a))
             for label, w in order:
                 f, a = w[name]
+                jax.block_until_ready(f(*a))
                 t0 = time.perf_counter()
                 jax.block_until_ready(f(*a))
                 times[name][label].append(time.perf_counter() - t0)
