@@ -26,19 +26,10 @@ Build one with :func:`linear`, :func:`no_tension` or :func:`hunt_crossley`, or w
 record; ``diffpen.compile(..., law=)`` takes a record or one of the names in
 :data:`CONTACT_LAWS`.
 
-**Step-averaged force** (what the integrators use; ``ContactLaw.averaged``). A contact that
-starts or ends inside a step makes a pointwise force jump between steps, so the step is a
-discontinuous function of the state and its derivative misses the contact events. Instead, each
-contact applies the mean of its force over the window ``s in [-h, h]`` around the evaluation,
-weighted by the hat ``1 - |s| / h`` of the step grid, along the straight path of the
-penetration ``d(s) = d - vn s`` (``h`` the integrator's inner step). In the leapfrog view of
-semi-implicit Euler (and verlet) the kicks ``h F_n`` then carry the force history's impulse
-and its first moment, so the velocity and the position after a contact event do not depend on
-where in the step the event fell (:func:`window_mean`). The mean is a continuous function of
-``d``, ``vn``, ``k`` and ``c`` through contact start and end, and its derivative carries the
-event terms (the saltation of a contact starting or ending inside the window). Deep in contact
-(the window entirely inside) it equals the pointwise law: ``k d - c vn`` is linear in ``s``.
-Closed forms are written piecewise, without dividing by ``vn`` and without cancellation.
+**Step-averaged force** (what the integrators use; ``ContactLaw.averaged``): the mean of
+the force over the integrator's step window, continuous through contact start and end;
+the window's closed forms and their derivatives are :mod:`diffpen.window`
+(:func:`window_mean`, re-exported here). Deep in contact it equals the pointwise law.
 
 **Damping at the window's centre** (``ContactLaw.centred``; opt in with
 ``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)``).
@@ -61,8 +52,9 @@ import dataclasses
 import math
 from typing import Callable
 
-import jax
 import jax.numpy as jnp
+
+from .window import window_mean
 
 __all__ = [
     "ramp",
@@ -245,140 +237,6 @@ def _ramp_traced(x, width):
 
 
 # --------------------------------------------------------------------------- step averages
-def _power_mean_inside(d, delta, n: float):
-    """Hat-weighted mean of ``x^n`` over ``[d - delta, d + delta]``, ``0 <= delta <= d``
-    (``d > 0``), without the cancellation of the second difference for a narrow window:
-    with ``u = delta / d``, ``d^n sum_j C(n, 2j) u^(2j) 2 / ((2j + 1)(2j + 2))`` (six terms,
-    relative error < 1e-13) for ``u < 0.2``, the second difference of
-    ``x^(n+2) / ((n+1)(n+2))`` divided by ``delta^2`` otherwise."""
-    u = delta / d
-    small = u < 0.2
-    us = jnp.where(small, u, 0.0)
-    u2 = us * us
-    series, coef, term = jnp.ones_like(us), 1.0, jnp.ones_like(us)
-    for j in range(1, 6):
-        coef *= (n - 2 * j + 2) * (n - 2 * j + 1) / ((2 * j) * (2 * j - 1))
-        term = term * u2
-        series = series + coef * 2.0 / ((2 * j + 1) * (2 * j + 2)) * term
-    dl = jnp.where(small, 1.0, delta)
-    p = n + 2.0
-    direct = ((d + dl) ** p - 2.0 * d ** p + (d - dl) ** p) / ((n + 1.0) * p * dl * dl)
-    return jnp.where(small, d ** n * series, direct)
-
-
-def _window_linear(d, vn, h):
-    """:func:`window_mean` for exponent 1: ``(frac, mean)``.
-
-    d >= 0: ``1 - u^2 / 2`` and ``d + e u^2 / 6`` with ``e = max(-a, 0)`` (0 for a window
-    inside); d < 0: ``u^2 / 2`` and ``e u^2 / 6`` with ``e = max(b, 0)`` (0 apart);
-    ``u = e / delta <= 1``. Where e = 0 nothing is divided (double where: a still contact,
-    delta = 0, has finite derivatives in float32 too); delta is floored at 1e-15 m where
-    e > 0, so the derivative of u stays finite in float32 (only sub-femtometre windows
-    change). The guard also keeps the division off a batch-1 step's critical path (the
-    compiled select branches around it: 0.055 against 0.078 ms for 3000 steps unguarded)."""
-    delta = jnp.abs(vn) * h
-    a, b = d - delta, d + delta
-    on = d >= 0.0
-    e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
-    pos = e > 0.0
-    u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
-    u2 = 0.5 * u * u
-    frac = jnp.where(on, 1.0 - u2, u2)
-    mean = jnp.where(on, d, 0.0) + e * u2 * (1.0 / 3.0)
-    return frac, mean
-
-
-_window_linear_static = jax.custom_jvp(_window_linear, nondiff_argnums=(2,))
-
-
-@_window_linear_static.defjvp
-def _window_linear_jvp(h, primals, tangents):
-    """Closed-form derivatives of the linear window (``h`` static), the same values as
-    differentiating :func:`_window_linear` (tested) with a fraction of its operations (no
-    derivative of ``max``/``where`` ties, one quotient): with ``s = +-1`` on either side of
-    the boundary (``e = delta - s d`` where the window crosses) and ``r = u^2 / 2``,
-    ``d frac / d d = u / delta``, ``d frac / d delta = -s u (1 - u) / delta``,
-    ``d mean / d d = frac`` (the mean of the ramp's slope) and
-    ``d mean / d delta = r - u^3 / 3``, ``d delta / d vn = h sign(vn)``. Reverse-mode
-    gradients of the quick-start rollout cost 1.05x the pointwise law of before with it,
-    1.30-1.36x without (benchmarks/step_cost.py)."""
-    d, vn = primals
-    dd, dvn = tangents
-    frac, mean = _window_linear(d, vn, h)
-    delta = jnp.abs(vn) * h
-    on = d >= 0.0
-    e = jnp.maximum(delta - jnp.where(on, d, -d), 0.0)
-    pos = e > 0.0
-    inv = jnp.where(pos, 1.0 / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
-    u = e * inv
-    ddelta = (h * jnp.sign(vn)) * dvn
-    du = u * inv
-    dfrac = du * dd - jnp.where(on, du, -du) * (1.0 - u) * ddelta
-    dmean = frac * dd + (u * u) * (0.5 - u * (1.0 / 3.0)) * ddelta
-    return (frac, mean), (dfrac, dmean)
-
-
-def window_mean(d, vn, h, exponent: float = 1.0):
-    """Hat-weighted means over the window ``s in [-h, h]`` of the path ``d(s) = d - vn s``.
-
-    The weight is the hat ``(1 - |s| / h) / h`` (the linear B-spline of the step grid): a
-    force history represented by kicks ``h F_n`` at the step times with these weights keeps
-    both its impulse and its first moment (where in time it acts), so where the contact
-    starts or ends inside a step changes neither the velocity nor the position that follows.
-    (A box window keeps only the impulse: the positions then depend on the phase of the
-    contact event within the step to O(h^3), which shows as an O(h) error of derivatives.)
-
-    Returns ``(frac, mean)``: the weighted fraction of the window in contact (``d(s) > 0``)
-    and the weighted mean of ``max(d(s), 0)^exponent``. With ``delta = |vn| h`` and
-    ``a, b = d -+ delta``, piecewise and without dividing by ``vn``:
-
-    * inside (``a >= 0``): ``1`` and ``d`` (exponent 1; :func:`_power_mean_inside` else);
-    * apart (``b <= 0``): exactly ``0`` and ``0`` (zero derivatives too);
-    * ``a < 0 <= d``: ``1 - a^2 / (2 delta^2)`` and ``d + |a|^3 / (6 delta^2)``
-      (``(b^(n+2) - 2 d^(n+2)) / ((n+1)(n+2) delta^2)``);
-    * ``d < 0 < b``: ``b^2 / (2 delta^2)`` and ``b^3 / (6 delta^2)``
-      (``b^(n+2) / ((n+1)(n+2) delta^2)``);
-
-    the second differences of ``max(x, 0)^2 / 2`` and ``max(x, 0)^(n+2) / ((n+1)(n+2))``,
-    written so that nothing cancels (``|a|, |b| <= delta`` where they are divided by
-    ``delta^2``). Both are continuous in ``d``, ``vn`` and ``h`` (C1 in ``d`` for the mean);
-    unselected branches are masked before any division or power (double ``where``), so
-    gradients are finite everywhere. Deep in contact the mean of a force linear in ``s``
-    (``k d - c vn``) is the pointwise force.
-
-    Args:
-      d: penetration at the window's centre, m.  vn: separating normal speed, m/s.
-      h: the integrator's inner step, s (> 0).  exponent: n >= 1 (static).
-    """
-    n = float(exponent)
-    if n == 1.0:
-        if isinstance(h, (int, float)):             # a static step: closed-form derivatives
-            return _window_linear_static(d, vn, float(h))
-        return _window_linear(d, vn, h)
-    delta = jnp.abs(vn) * h
-    a, b = d - delta, d + delta
-    inside = a >= 0.0
-    upper = (d >= 0.0) & ~inside
-    lower = (d < 0.0) & (b > 0.0)
-    dl = jnp.where(upper | lower, delta, 1.0)
-    inv2 = 1.0 / (dl * dl)
-    au = jnp.where(upper, a, 0.0)
-    bl = jnp.where(lower, b, 0.0)
-    one = jnp.ones_like(d)
-    frac = jnp.where(inside, one, jnp.where(upper, 1.0 - 0.5 * au * au * inv2,
-                                            0.5 * bl * bl * inv2))
-    q = 1.0 / ((n + 1.0) * (n + 2.0))
-    pos = inside & (d > 0.0)
-    mean_in = jnp.where(pos, _power_mean_inside(jnp.where(pos, d, 1.0),
-                                                jnp.where(pos, delta, 0.0), n), 0.0)
-    bu = jnp.where(upper, b, 1.0)
-    du = jnp.where(upper, d, 0.0)
-    mean_up = (bu ** (n + 2.0) - 2.0 * du ** (n + 2.0)) * q * inv2
-    mean_lo = jnp.where(lower, jnp.where(lower, b, 1.0) ** (n + 2.0), 0.0) * q * inv2
-    mean = jnp.where(inside, mean_in, jnp.where(upper, mean_up, mean_lo))
-    return frac, mean
-
-
 def _linear_averaged(d, vn, k, c, h):
     """Step average of ``k max(d, 0) - c vn [d > 0]`` (see the module docstring)."""
     frac, mean = window_mean(d, vn, h)
