@@ -58,6 +58,21 @@ def cast(dtype, v):
     return jnp.asarray(v, dtype=dtype)
 
 
+def _given_or_declared(given: dict, name: str, fallback, declared):
+    """``(k, c)`` of ``name``: ``given[name]`` (else ``fallback``), each None replaced by the
+    scene's declared ``declared.k`` / ``declared.c``."""
+    kk, cc = given.get(name, fallback)
+    return (declared.k if kk is None else kk), (declared.c if cc is None else cc)
+
+
+def _checked_pair(sim, make, kind: str, owner: str, kk, cc):
+    """``make(k, c)`` in the simulator's dtype after checking both (errors name them as
+    ``"{kind} k of {owner} (N/m)"``)."""
+    _check_value(f"{kind} k of {owner} (N/m)", kk)
+    _check_value(f"{kind} c of {owner} (N s/m)", cc)
+    return make(cast(sim.dtype, kk), cast(sim.dtype, cc))
+
+
 def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
           spring_c=None, springs: dict | None = None, extra: dict | None = None) -> Params:
     """``sim.params(...)``: see :meth:`diffpen.Simulator.params` (arguments, units)."""
@@ -73,26 +88,18 @@ def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
                              f"{list(sim.spring_groups)}.")
     out_c = {}
     for name in sim.materials:
-        mat = sim.scene.materials[name]
-        kk, cc = contact.get(name, (k, c))
-        kk = mat.k if kk is None else kk
-        cc = mat.c if cc is None else cc
+        kk, cc = _given_or_declared(contact, name, (k, c), sim.scene.materials[name])
         if kk is None or cc is None:
             raise SceneError(f"contact material {name!r} has no {'k' if kk is None else 'c'}: "
                              "pass sim.params(k=..., c=...) or declare it with "
                              f"scene.add_material({name!r}, k=..., c=...).")
-        _check_value(f"contact k of material {name!r} (N/m)", kk)
-        _check_value(f"contact c of material {name!r} (N s/m)", cc)
-        out_c[name] = ContactParams(cast(sim.dtype, kk), cast(sim.dtype, cc))
+        out_c[name] = _checked_pair(sim, ContactParams, "contact", f"material {name!r}",
+                                    kk, cc)
     out_s = {}
     for name in sim.spring_groups:
-        grp = sim.scene.spring_groups[name]
-        kk, cc = springs.get(name, (spring_k, spring_c))
-        kk = grp.k if kk is None else kk
-        cc = grp.c if cc is None else cc
-        _check_value(f"spring k of group {name!r} (N/m)", kk)
-        _check_value(f"spring c of group {name!r} (N s/m)", cc)
-        out_s[name] = SpringParams(cast(sim.dtype, kk), cast(sim.dtype, cc))
+        kk, cc = _given_or_declared(springs, name, (spring_k, spring_c),
+                                    sim.scene.spring_groups[name])
+        out_s[name] = _checked_pair(sim, SpringParams, "spring", f"group {name!r}", kk, cc)
     out_x = dict(extra or {})
     for name, default in sim._extra_defaults.items():
         given = out_x.get(name, {})
