@@ -245,6 +245,23 @@ def test_bad_records_fail_before_compiling(tmp_path, capsys):
     assert main(["fit", "--out", str(tmp_path / "x.toml")]) == 2
 
 
+def test_a_record_without_a_first_pose_names_its_file_and_body(tmp_path, cube):
+    """The rollout starts from row 0: a record whose first row lacks the position or the
+    orientation is refused with the file, the body and what to do (it said neither)."""
+    from tuning.records import read_record
+    for cells, what in (("0,,,,1,0,0,0", "position (x, y, z)"),
+                        ("0,0,0,0.3,,,,", "orientation (qw, qx, qy, qz)")):
+        path = tmp_path / "late_start.csv"
+        path.write_text("t,x,y,z,qw,qx,qy,qz\n" + cells + "\n0.01,0,0,0.3,1,0,0,0\n"
+                        "0.02,0,0,0.299,1,0,0,0\n")
+        rec = read_record(str(path), ["cube"])
+        with pytest.raises(tf.FitError) as err:
+            tf.prepare(cube, [rec], bodies={"cube": 0}, estimate="record")
+        msg = str(err.value)
+        assert "late_start.csv" in msg and "'cube'" in msg and what in msg, msg
+        assert "Trim the record" in msg
+
+
 def test_readme_snippet_runs_as_written():
     """The README's vmapped start states with a fitted plane offset run as written."""
     import pathlib

@@ -73,8 +73,9 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         raise FitError(f"first-state estimate must be 'record' or 'fit', got {estimate!r}.")
     ok = np.all(np.isfinite(pos), axis=1)
     if not ok[0]:
-        raise FitError("a record's first row has no position for an observed body: trim the "
-                       "record so that it starts with a complete pose.")
+        raise FitError("the first data row has no position (x, y, z): the rollout starts "
+                       "from it. Trim the record so that it starts with a complete pose, or "
+                       "fill those cells.")
     tt = t - t[0]
     g = np.array(scene.gravity)
     free = _free_flight(scene, index)
@@ -107,7 +108,9 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     q = quat / np.linalg.norm(quat, axis=-1, keepdims=True)
     okq = np.all(np.isfinite(q), axis=1)
     if not okq[0]:
-        raise FitError("a record's first row has no orientation for an observed body.")
+        raise FitError("the first data row has no orientation (qw, qx, qy, qz): the rollout "
+                       "starts from it. Trim the record so that it starts with a complete "
+                       "pose, or fill those cells.")
     useq = np.nonzero(okq[:n])[0]
     rv = rotvec(qmul(q[useq], qconj(q[0])[None]))          # world rotation since row 0
     # continuous rotation vectors (a unit quaternion and its negative are one rotation)

@@ -144,9 +144,12 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                 qmask[r, :n, b] = okq
             else:
                 q = None
-            p0, v0, q0, w0 = first_state(scene, int(idx[b]), rec.t, p, q, br.velocity,
-                                         br.angular_velocity, estimate=estimate,
-                                         max_frames=max_frames)
+            try:
+                p0, v0, q0, w0 = first_state(scene, int(idx[b]), rec.t, p, q, br.velocity,
+                                             br.angular_velocity, estimate=estimate,
+                                             max_frames=max_frames)
+            except FitError as exc:             # say which file and body
+                raise FitError(f"{rec.path}, body {name!r}: {exc}") from None
             state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
                                    orientation=q0, angular_velocity=w0, frame="world")
         starts.append(state)
