@@ -373,9 +373,34 @@ def test_past_the_safe_step_is_marked_not_reported(cube):
     assert out.unstable == 2 and "safe step" in out.message
     assert all(r["unstable"] and np.isnan(r["position_error_pct"]) for r in out.records)
     assert np.isnan(out.position_error_pct["mean"]) and out.as_dict()["unstable"] == 2
-    res = tf.fit_records(cube, bad, batch, [tf.Free("contact.board.c", 1.0, 1e3)], maxiter=1)
-    assert res.unstable == 2 and np.isnan(res.cost) and "safe step" in res.message
-    assert res.as_dict()["unstable"] == 2
+    # a fit never starts past the safe step: a clear error instead of a number
+    with pytest.raises(tf.FitError, match="past the safe step"):
+        tf.fit_records(cube, bad, batch, [tf.Free("contact.board.c", 1.0, 1e3)], maxiter=1)
+
+
+def test_record_fit_never_steps_past_the_safe_step(cube):
+    """Regression: Levenberg-Marquardt accepted trial points past the safe step when the
+    bounds' caps (one contact on the lightest body, tuning.stable) were looser than the
+    scene's own limit (a box: four corners and rotation). Here the record's damping (150
+    N s/m, made at a quarter of the step) is past the cube's safe step at dt = 1 ms (about
+    93 N s/m) though under the cap (366): the fit ran to c ~ 150 and ended 'NOT a result';
+    now every accepted point is stable and the fit ends at the limit."""
+    from tuning.stable import safe_contact_bounds
+    fine = dp.compile(cube.scene, 2.5e-4)
+    truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
+    s = fine.state_from(body=0, position=(0, 0, 0.12), velocity=(0.3, 0, -0.5),
+                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
+    rec = tf.synthetic_record(fine, truth, 0.15, 5e-3, {"cube": 0}, state=s)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    assert not cube.stability(cube.params()).margin < 1.0
+    assert cube.stability(tf.with_leaves(cube.params(), {"contact.board.c": 150.0})).margin < 1
+    assert 150.0 < safe_contact_bounds(cube)[1]
+    res = tf.fit_records(cube, cube.params(), batch, [tf.Free("contact.board.c", 1.0, 1e3)],
+                         maxiter=6)
+    assert res.unstable == 0 and np.isfinite(res.cost), res.message
+    c = res.values["contact.board.c"]
+    assert 30.0 < c and cube.stability(tf.with_leaves(cube.params(),
+                                                      {"contact.board.c": c})).margin >= 1.0
 
 
 

@@ -254,7 +254,10 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         return r, jax.jacfwd(lambda xx: resid_flag(xx, horizon)[0])(x), bad
 
     def res_jac(x, horizon):
-        return res_jac_flag(x, horizon)[:2]
+        # a point past the safe step is no fit: its residuals are nan, so LM rejects the
+        # trial step (tuning.lm) instead of walking out of the stable region
+        r, J, bad = res_jac_flag(x, horizon)
+        return jnp.where(bad > 0, jnp.nan, r), J
 
     t0 = time.perf_counter()
     cands = [np.asarray(x0, dtype=float)] + _start_points(free, x0, lo, hi, starts, seed,
@@ -277,6 +280,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     runs, it_all = [], 0
     for ci in order:
         x = cands[ci]
+        if int(res_jac_flag(jnp.asarray(x), jnp.asarray(np.inf))[2]):
+            continue                    # past the safe step: no LM from here
         hist, message, cost_start = [], "", None
         for hz in horizons:
             h = jnp.asarray(np.inf if hz is None else float(hz))
@@ -292,6 +297,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                                                            jnp.asarray(np.inf)))
         runs.append((ci, x, r, J, int(n_bad), hist, message, cost_start))
     bar.close()
+    if not runs:
+        start = {f.name: float(f.from_x(cands[order[0]][i])) for i, f in enumerate(free)}
+        raise FitError(f"the start values {start} are past the safe step for dt = {sim.dt:g} s "
+                       "(sim.stability(params) says what limits it): start from softer k / "
+                       "smaller c, or use a smaller dt or more substeps.")
     # lowest final cost among the stable fits (an unstable one only when all are)
     best = min(runs, key=lambda u: (u[4] > 0, float(u[2] @ u[2])))
     _, x, r, J, n_bad, hist, message, cost_start = best
