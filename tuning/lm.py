@@ -20,6 +20,7 @@ import numpy as np
 from .errors import FitError
 from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
+from .stable import FLAG
 
 __all__ = ["LMResult", "levenberg_marquardt", "fit_lm"]
 
@@ -128,13 +129,19 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
     def rj(theta):
         r, m = residual(theta)
         J = jax.jacfwd(lambda th: residual(th)[0])(theta)
+        if FLAG in m:   # past the safe step: nan residuals, so LM rejects the point
+            r = jnp.where(jnp.any(m[FLAG]), jnp.nan, r)
         return r, J, m
     rj_compiled = jax.jit(rj)
+
+    blocked = [0]
 
     def evaluate(theta):
         out = rj_compiled(theta)
         r0 = np.asarray(out[0])
         costs.append(float(r0 @ r0))
+        if FLAG in out[2] and bool(np.any(np.asarray(out[2][FLAG]))):
+            blocked[0] += 1
         return out
     tols = tolerances(problem.spec)
     points = problem.start_points(starts)
@@ -147,18 +154,37 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         for th in points:
             r0 = np.asarray(evaluate(jnp.asarray(th))[0])
             ranked.append(float(r0 @ r0) if np.all(np.isfinite(r0)) else np.inf)
-        points = [points[i] for i in np.argsort(ranked)[:n_starts]]
+        # starts past the safe step (nan residuals: rj) or blown up are never run
+        points = [points[i] for i in np.argsort(ranked)[:n_starts] if np.isfinite(ranked[i])]
+        if not points:
+            raise FitError("every start point is past the simulator's safe step or blows up "
+                           "(sim.stability(params) says what limits the step): start from "
+                           "softer k / smaller c, or use a smaller dt or more substeps.")
     best = None
     used = 0
     for th in points:
-        out = levenberg_marquardt(evaluate, th, log_lo, log_hi, maxiter=maxiter,
-                                  stop=lambda r: bool(np.all(np.abs(r) <= tols)),
-                                  progress=progress, offset=used)
+        try:
+            out = levenberg_marquardt(evaluate, th, log_lo, log_hi, maxiter=maxiter,
+                                      stop=lambda r: bool(np.all(np.abs(r) <= tols)),
+                                      progress=progress, offset=used)
+        except FitError:
+            m0 = evaluate(jnp.asarray(th))[2]
+            if FLAG in m0 and bool(np.any(np.asarray(m0[FLAG]))):
+                start = {n: float(v) for n, v in zip(problem.free, np.exp(th))}
+                raise FitError(f"the start point {start} is past the simulator's safe step "
+                               "(sim.stability(params) says what limits it): start from "
+                               "softer k / smaller c, or use a smaller dt or more "
+                               "substeps.") from None
+            raise
         used += out.iterations
         if best is None or out.cost_history[-1] < best.cost_history[-1]:
             best = out
         if out.message == "targets reached":
             break
+    message = best.message
+    if blocked[0] and best.message != "targets reached":
+        message += (f"; {blocked[0]} trial point(s) past the simulator's safe step were "
+                    "rejected (a smaller dt or more substeps lets the fit go further)")
     metrics = evaluate(jnp.asarray(best.x))[2]
     return Solution(best.x, metrics, np.asarray(best.cost_history), used, best.converged,
-                    best.message, traces[0], len(costs), np.asarray(costs))
+                    message, traces[0], len(costs), np.asarray(costs))
