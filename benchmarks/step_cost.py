@@ -24,11 +24,12 @@ import argparse
 import importlib.util
 import os
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from tuning.reports.bench import settled_time
 
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STEPS = 3000
@@ -93,10 +94,7 @@ def main(argv=None) -> int:
             order = runs if rep % 2 == 0 else runs[::-1]
             for label, w in order:
                 f, a = w[name]
-                jax.block_until_ready(f(*a))
-                t0 = time.perf_counter()
-                jax.block_until_ready(f(*a))
-                times[name][label].append(time.perf_counter() - t0)
+                times[name][label].append(settled_time(f, a))
     print(f"{STEPS} steps of the quick-start ball, float32, medians of {args.reps} "
           f"interleaved turns; load average {os.getloadavg()[0]:.1f}")
     for name, per in times.items():

@@ -105,6 +105,24 @@ def test_interleaved_times_time_each_call_after_itself():
     assert t["a"] == pytest.approx(U, rel=0.25) and t["b"] == pytest.approx(U, rel=0.25)
 
 
+def test_settled_time_times_a_call_after_itself():
+    """bench.settled_time (the unit of interleaved_times and benchmarks/step_cost.py, whose
+    own copy of this logic had no test) times a call right after an untimed call of the same
+    function, whatever ran before it."""
+    last = {"who": None}
+
+    def make(name):
+        def f(x):
+            time.sleep((3 if last["who"] not in (None, name) else 1) * U)
+            last["who"] = name
+            return x
+        return f
+    a, b = make("a"), make("b")
+    for _ in range(3):
+        b(0.0)                                   # another program ran just before
+        assert bench.settled_time(a, (0.0,)) == pytest.approx(U, rel=0.25)
+
+
 def test_floor_and_numpy_baselines_compute_the_same_physics():
     spec = bench.CASES["ball_b1"].build(jnp.float64, True)
     z = np.asarray(spec["forward"](*spec["args"]))

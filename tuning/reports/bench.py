@@ -41,8 +41,8 @@ from diffpen import builders
 
 from ..scenes import ball_scene
 
-__all__ = ["Case", "CASES", "run_case", "run", "median_time", "interleaved_times",
-           "memory_bytes", "plain_ball_floor"]
+__all__ = ["Case", "CASES", "run_case", "run", "median_time", "settled_time",
+           "interleaved_times", "memory_bytes", "plain_ball_floor"]
 
 G = 9.81
 
@@ -56,6 +56,17 @@ def median_time(fn: Callable, *args, repeats: int = 5) -> float:
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
+
+
+def settled_time(fn: Callable, args: tuple) -> float:
+    """Wall time (s) of one ``fn(*args)`` (``jax.block_until_ready``) taken right after an
+    untimed call of the same function: the measurement unit of :func:`interleaved_times` and
+    ``benchmarks/step_cost.py``. A call timed right after a different program reads slower
+    (caches, the thread pool), whatever ran before it."""
+    jax.block_until_ready(fn(*args))                # settle: the same program just ran
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    return time.perf_counter() - t0
 
 
 def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
@@ -74,10 +85,7 @@ def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
     times = {k: [] for k in live}
 
     def timed(f):
-        jax.block_until_ready(f(*args))             # settle: the same program just ran
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(*args))
-        return time.perf_counter() - t0
+        return settled_time(f, args)
     first = 0.0
     for k, f in live.items():
         times[k].append(timed(f))
