@@ -48,6 +48,7 @@ from .params import leaf_paths
 from .first_state import first_state
 from .pose import ROT_WEIGHT, qmul, rotmat, body_size, pose_residuals, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
+from .stable import params_unstable
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
@@ -280,7 +281,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     runs, it_all = [], 0
     for ci in order:
         x = cands[ci]
-        if int(res_jac_flag(jnp.asarray(x), jnp.asarray(np.inf))[2]):
+        if bool(params_unstable(sim, with_leaves(params, {
+                f.name: f.from_x(x[i]) for i, f in enumerate(free)}))):
             continue                    # past the safe step: no LM from here
         hist, message, cost_start = [], "", None
         for hz in horizons:
