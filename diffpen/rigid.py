@@ -26,15 +26,16 @@ __all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidD
 
 
 # --------------------------------------------------------------------------- kinematics
-def quat_to_matrix(q):
-    """Rotation matrices (..., 3, 3) from unit quaternions q (..., 4) = (w, x, y, z)."""
+def quat_to_matrix(q, xp=jnp):
+    """Rotation matrices (..., 3, 3) from unit quaternions q (..., 4) = (w, x, y, z).
+    ``xp=numpy`` evaluates on the host in the input's precision (no JAX dispatch)."""
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+    return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def inertia_diagonal(body) -> np.ndarray:

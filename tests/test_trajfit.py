@@ -145,6 +145,23 @@ def test_first_state_removes_the_finite_difference_bias(cube):
     assert v[2] - v0[2] == pytest.approx(0.023)
 
 
+def test_host_rotation_matrices_are_float64_without_x64():
+    """Regression: tuning.pose.rotmat (first states, body-frame velocities) went through JAX
+    asking for float64; with x64 off JAX warned and truncated it to float32. It now
+    computes on the host, in float64 either way, and equals diffpen's own matrices."""
+    import warnings
+    q = np.array([[0.9, 0.3, 0.1, 0.0], [0.1, -0.7, 0.2, 0.6]])
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    with jax.enable_x64(False), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        R = pose.rotmat(q)
+    assert R.dtype == np.float64
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape),
+                               atol=1e-15)
+    np.testing.assert_allclose(R, np.asarray(dp.rigid.quat_to_matrix(jnp.asarray(q))),
+                               atol=1e-15)
+
+
 def test_unequal_lengths_are_masked(cube, caplog):
     """Records of different lengths in one batch give each record the residuals it gives
     alone (padding weighs nothing)."""

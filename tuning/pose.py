@@ -69,8 +69,9 @@ def qconj(q):
 
 
 def rotmat(q):
-    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4), float64 NumPy."""
-    return np.asarray(dp.rigid.quat_to_matrix(jnp.asarray(q, dtype=jnp.float64)))
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4), float64 NumPy (computed
+    on the host: float64 whether or not JAX runs with x64)."""
+    return dp.rigid.quat_to_matrix(np.asarray(q, dtype=np.float64), xp=np)
 
 
 def rotvec(q):
