@@ -118,9 +118,12 @@ def test_settled_time_times_a_call_after_itself():
             return x
         return f
     a, b = make("a"), make("b")
-    for _ in range(3):
+    times = []
+    for _ in range(5):
         b(0.0)                                   # another program ran just before
-        assert bench.settled_time(a, (0.0,)) == pytest.approx(U, rel=0.25)
+        times.append(bench.settled_time(a, (0.0,)))
+    # settled: ~U (a sleep only overshoots under load); unsettled it would be >= 3 U
+    assert min(times) >= 0.9 * U and np.median(times) < 2 * U, times
 
 
 def test_floor_and_numpy_baselines_compute_the_same_physics():
