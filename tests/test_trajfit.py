@@ -400,8 +400,8 @@ def test_record_fit_never_steps_past_the_safe_step(cube):
     bounds' caps (one contact on the lightest body, tuning.stable) were looser than the
     scene's own limit (a box: four corners and rotation). Here the record's damping (150
     N s/m, made at a quarter of the step) is past the cube's safe step at dt = 1 ms (about
-    93 N s/m) though under the cap (366): the fit ran to c ~ 150 and ended 'NOT a result';
-    now every accepted point is stable and the fit ends at the limit."""
+    88 N s/m) though under the cap (366): the fit ran to c = 104 and ended 'NOT a result';
+    now every accepted point is stable and the fit ends at the limit (88.3)."""
     from tuning.stable import safe_contact_bounds
     fine = dp.compile(cube.scene, 2.5e-4)
     truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
