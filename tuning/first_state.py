@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from diffpen.geometry import box_corners
+
 from .errors import FitError
 from .pose import exp_quat, qconj, qmul, rotmat, rotvec
 
@@ -22,14 +24,12 @@ def flight_frames(scene, index, pos, quat, margin: float) -> int:
     b = scene.bodies[index]
     if not scene.planes:
         return len(pos)
+    corners = None if b.half_extents is None else box_corners(b.half_extents)
     n = 0
     for f in range(len(pos)):
         if not np.all(np.isfinite(pos[f])):
             break
-        if b.half_extents is not None and quat is not None and np.all(np.isfinite(quat[f])):
-            h = np.array(b.half_extents)
-            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
-                                for sz in (-1, 1)]) * h
+        if corners is not None and quat is not None and np.all(np.isfinite(quat[f])):
             pts = pos[f] + corners @ rotmat(quat[f]).T
             reach = 0.0
         else:

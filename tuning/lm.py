@@ -20,7 +20,7 @@ import numpy as np
 from .errors import FitError
 from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
-from .stable import FLAG
+from .stable import FLAG, unsafe_start
 
 __all__ = ["LMResult", "levenberg_marquardt", "fit_lm"]
 
@@ -157,9 +157,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         # starts past the safe step (nan residuals: rj) or blown up are never run
         points = [points[i] for i in np.argsort(ranked)[:n_starts] if np.isfinite(ranked[i])]
         if not points:
-            raise FitError("every start point is past the simulator's safe step or blows up "
-                           "(sim.stability(params) says what limits the step): start from "
-                           "softer k / smaller c, or use a smaller dt or more substeps.")
+            raise unsafe_start(None)
     best = None
     used = 0
     for th in points:
@@ -170,11 +168,8 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         except FitError:
             m0 = evaluate(jnp.asarray(th))[2]
             if FLAG in m0 and bool(np.any(np.asarray(m0[FLAG]))):
-                start = {n: float(v) for n, v in zip(problem.free, np.exp(th))}
-                raise FitError(f"the start point {start} is past the simulator's safe step "
-                               "(sim.stability(params) says what limits it): start from "
-                               "softer k / smaller c, or use a smaller dt or more "
-                               "substeps.") from None
+                raise unsafe_start({n: float(v) for n, v in
+                                    zip(problem.free, np.exp(th))}) from None
             raise
         used += out.iterations
         if best is None or out.cost_history[-1] < best.cost_history[-1]:

@@ -20,7 +20,10 @@ import numpy as np
 
 from diffpen import stability as _dp_stability
 
+from .errors import FitError
+
 __all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
+           "unsafe_start",
            "safe_contact_limits", "safe_contact_bounds"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
@@ -98,3 +101,15 @@ def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
         fk, fc = (float(x) for x in an.contact_scale(1.0, 1.0, d))
         k_max, c_max = k_max / fk, c_max / fc
     return k_max, c_max
+
+
+def unsafe_start(start, dt: float | None = None) -> FitError:
+    """The error of a fit whose start point is past the simulator's safe step: ``start`` is
+    ``{leaf name: value}`` (None: every candidate start is past it or blows up), ``dt`` the
+    step (s) if known."""
+    what = ("every start point blows up or is" if start is None
+            else f"the start point {dict(start)} is")
+    at = "" if dt is None else f" at dt = {dt:g} s"
+    return FitError(f"{what} past the safe step{at}; past the simulator's safe step no "
+                    "rollout is a result (sim.stability(params) says what limits it): start "
+                    "from softer k / smaller c, or use a smaller dt or more substeps.")

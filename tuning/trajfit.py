@@ -48,7 +48,7 @@ from .params import leaf_paths
 from .first_state import first_state
 from .pose import ROT_WEIGHT, qmul, rotmat, body_size, pose_residuals, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
-from .stable import params_unstable
+from .stable import params_unstable, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
@@ -300,10 +300,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         runs.append((ci, x, r, J, int(n_bad), hist, message, cost_start))
     bar.close()
     if not runs:
-        start = {f.name: float(f.from_x(cands[order[0]][i])) for i, f in enumerate(free)}
-        raise FitError(f"the start values {start} are past the safe step for dt = {sim.dt:g} s "
-                       "(sim.stability(params) says what limits it): start from softer k / "
-                       "smaller c, or use a smaller dt or more substeps.")
+        raise unsafe_start({f.name: float(f.from_x(cands[order[0]][i]))
+                            for i, f in enumerate(free)}, sim.dt)
     # lowest final cost among the stable fits (an unstable one only when all are)
     best = min(runs, key=lambda u: (u[4] > 0, float(u[2] @ u[2])))
     _, x, r, J, n_bad, hist, message, cost_start = best
