@@ -6,14 +6,17 @@ before it nears a plane), for :func:`tuning.record_batch.prepare`.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from diffpen.geometry import box_corners
+from diffpen.rigid import inertia_diagonal
 
 from .errors import FitError
 from .pose import exp_quat, qconj, qmul, rotmat, rotvec
 
-__all__ = ["first_state", "flight_frames"]
+__all__ = ["first_state", "flight_frames", "torque_free"]
 
 
 def flight_frames(scene, index, pos, quat, margin: float) -> int:
@@ -42,6 +45,83 @@ def flight_frames(scene, index, pos, quat, margin: float) -> int:
     return n
 
 
+def torque_free(q0, w0, inertia, times, *, max_angle: float = 0.1):
+    """Orientations of a torque-free rigid body: Euler's equations ``I dw/dt = (I w) x w`` in
+    the body frame and ``dq/dt = q (0, w) / 2``, classical Runge-Kutta, each interval between
+    two sample times cut into steps that turn the body by at most ``max_angle`` rad.
+
+    Args:
+      q0: (..., 4) start orientations (w, x, y, z), body to world.  w0: (..., 3) start
+        angular velocities, rad/s, BODY frame.  inertia: (3,) principal moments, kg m^2.
+      times: (T,) sample times, s, ascending from >= 0 (the start is t = 0).
+    Returns:
+      (..., T, 4) unit quaternions at ``times``.
+    """
+    inertia = np.asarray(inertia, dtype=float)
+    q = np.asarray(q0, dtype=float)
+    w = np.asarray(w0, dtype=float)
+
+    def rate(q, w):
+        dw = np.cross(inertia * w, w) / inertia
+        dq = 0.5 * qmul(q, np.concatenate([np.zeros_like(w[..., :1]), w], axis=-1))
+        return dq, dw
+
+    out, t = [], 0.0
+    for t_next in np.asarray(times, dtype=float):
+        span = t_next - t
+        if span > 0.0:
+            speed = float(np.max(np.linalg.norm(w, axis=-1)))
+            n = max(1, int(math.ceil(span * speed / max_angle)))
+            h = span / n
+            for _ in range(n):
+                k1q, k1w = rate(q, w)
+                k2q, k2w = rate(q + 0.5 * h * k1q, w + 0.5 * h * k1w)
+                k3q, k3w = rate(q + 0.5 * h * k2q, w + 0.5 * h * k2w)
+                k4q, k4w = rate(q + h * k3q, w + h * k3w)
+                q = q + h / 6.0 * (k1q + 2.0 * k2q + 2.0 * k3q + k4q)
+                w = w + h / 6.0 * (k1w + 2.0 * k2w + 2.0 * k3w + k4w)
+                q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+            t = t_next
+        out.append(q)
+    return np.stack(out, axis=-2)
+
+
+def _refine_rotation(q0, w_body, inertia, times, quats, iters: int = 8):
+    """Gauss-Newton fit of the start orientation and BODY-frame angular velocity of a
+    torque-free body to observed orientations ``quats`` (T, 4) at ``times`` (T,) s from the
+    start: residuals the rotation vectors of ``q_data q_model^-1`` (rad), parameters a
+    world-frame turn of ``q0`` and ``w_body``. Returns ``(q0, w_body)``."""
+    x = np.concatenate([np.zeros(3), w_body])
+
+    def model(xs):                                     # xs (B, 6) -> (B, T, 4)
+        qs = qmul(exp_quat(xs[:, :3]), q0[None])
+        return torque_free(qs, xs[:, 3:], inertia, times)
+
+    def residual(qm):                                  # (B, T, 4) -> (B, 3 T)
+        r = rotvec(qmul(quats[None], qconj(qm)))
+        return r.reshape(len(qm), -1)
+
+    eps = 1e-6
+    r = residual(model(x[None]))[0]
+    cost, lam = float(r @ r), 1e-6
+    for _ in range(iters):
+        xs = np.vstack([x, x + eps * np.eye(6)])
+        rs = residual(model(xs))
+        J = (rs[1:] - rs[:1]).T / eps                  # (3 T, 6)
+        JtJ, g = J.T @ J, J.T @ rs[0]
+        step = -np.linalg.solve(JtJ + lam * np.diag(np.diag(JtJ) + 1e-12), g)
+        r_new = residual(model((x + step)[None]))[0]
+        cost_new = float(r_new @ r_new)
+        if cost_new < cost:
+            done = cost - cost_new < 1e-6 * cost
+            x, cost, lam = x + step, cost_new, lam * 0.1
+            if done:
+                break
+        else:
+            lam *= 10.0
+    return qmul(exp_quat(x[:3]), q0), x[3:]
+
+
 def _free_flight(scene, index) -> bool:
     """True when nothing but gravity and contact acts on body ``index`` (no spring, drag)."""
     for s in (*scene.springs, *scene.anchored_springs, *scene.plastic_springs):
@@ -62,8 +142,12 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         fit of the first frames where a column is missing); ``"fit"``: pose and velocities
         fitted by least squares to the first frames -- for a body in free flight (no
         spring or drag on it) a gravity parabola ``p0 + v t + g t^2 / 2`` over the frames
-        before it comes within ``margin`` m of a plane (at most ``max_frames``, at least 3),
-        with a constant angular velocity; otherwise a quadratic over ``min(5, T)`` frames.
+        before it comes within ``margin`` m of a plane (at most ``max_frames``), with
+        torque-free rotation (:func:`torque_free`: a constant angular velocity for equal
+        principal moments, Euler's equations otherwise); for a body that is not in free
+        flight (a spring or drag on it, or fewer than 3 frames clear of every plane: it
+        starts on a plane) a quadratic over ``min(5, T)`` frames and a constant angular
+        velocity.
         Finite-difference velocity columns are biased (the cube records' row-0 vertical
         velocity by about +0.023 m/s): ``"fit"`` avoids that bias.
     Returns:
@@ -82,8 +166,10 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     if free:
         n = flight_frames(scene, index, pos[:max_frames], None if quat is None
                            else quat[:max_frames], margin)
-        n = max(3, min(n, max_frames))
-    else:
+        # a body that starts on or near a plane (fewer than 3 frames clear of it) is not in
+        # free flight: the gravity parabola would lift it (by about g t / 2 per frame)
+        free = n >= 3
+    if not free:
         n = min(5, len(t))
     use = np.nonzero(ok[:n])[0]
     if len(use) < 2:
@@ -120,6 +206,14 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         w_fit, a0 = sol[1], sol[0]
     else:
         w_fit, a0 = np.zeros(3), np.zeros(3)
+    q_fit = qmul(exp_quat(a0), q[0])
+    inertia = inertia_diagonal(scene.bodies[index])
+    if free and len(useq) >= 3 and np.ptp(inertia) > 1e-9 * np.max(inertia):
+        # a body with unequal principal moments does not turn at a constant rate in free
+        # flight: fit its torque-free motion (a constant rate is exact for equal moments)
+        q_fit, wb = _refine_rotation(q_fit, rotmat(q_fit).T @ w_fit, inertia, tt[useq],
+                                     q[useq])
+        w_fit = rotmat(q_fit) @ wb
     if estimate == "record":
         q0 = q[0]
         if omega_body is not None and np.all(np.isfinite(omega_body[0])):
@@ -127,7 +221,7 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         else:
             w0 = w_fit
     else:
-        q0 = qmul(exp_quat(a0), q[0])
+        q0 = q_fit
         w0 = w_fit
     return p0, v0, q0, w0
 

@@ -84,11 +84,12 @@ def rotvec(q):
 
 
 def exp_quat(v):
-    """The unit quaternion (4,) of the rotation vector v (3,) rad."""
-    a = np.linalg.norm(v)
-    if a < 1e-12:
-        return np.array([1.0, *(0.5 * v)])
-    return np.array([math.cos(a / 2), *(v / a * math.sin(a / 2))])
+    """Unit quaternions (..., 4) of rotation vectors v (..., 3) rad."""
+    v = np.asarray(v, dtype=float)
+    a = np.linalg.norm(v, axis=-1, keepdims=True)
+    small = a < 1e-12
+    sinc = np.where(small, 0.5, np.sin(0.5 * a) / np.where(small, 1.0, a))
+    return np.concatenate([np.where(small, 1.0, np.cos(0.5 * a)), sinc * v], axis=-1)
 
 def _qmul_j(a, b):
     w1, x1, y1, z1 = (a[..., i] for i in range(4))
