@@ -26,6 +26,7 @@ import numpy as np
 
 import diffpen as dp
 
+from .first_state import FLIGHT_FRAMES
 from .trajfit import Batch, rotation_angle, simulate
 
 __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
@@ -195,7 +196,8 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
         os.makedirs(plot, exist_ok=True)
     spec = sf.spec
     estimate = estimate or (spec.first_state if spec is not None else None) or "record"
-    max_frames = max_frames or (spec.flight_frames if spec is not None else None) or 10
+    max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
+        FLIGHT_FRAMES
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)

@@ -16,7 +16,11 @@ from diffpen.rigid import inertia_diagonal
 from .errors import FitError
 from .pose import exp_quat, qconj, qmul, rotmat, rotvec
 
-__all__ = ["first_state", "flight_frames", "torque_free"]
+__all__ = ["first_state", "flight_frames", "torque_free", "FLIGHT_FRAMES"]
+
+#: Default cap on the free-flight frames of the "fit" estimate (more frames average more
+#: noise out; the cube tosses' held-out errors: 14.8% / 18.8 deg with 10, 14.0% / 18.5 with 20).
+FLIGHT_FRAMES = 20
 
 
 def flight_frames(scene, index, pos, quat, margin: float) -> int:
@@ -131,7 +135,7 @@ def _free_flight(scene, index) -> bool:
 
 
 def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
-                estimate: str = "fit", max_frames: int = 10, margin: float = 0.005):
+                estimate: str = "fit", max_frames: int = FLIGHT_FRAMES, margin: float = 0.005):
     """Start pose and velocities of one body from the first frames of its record.
 
     Args:

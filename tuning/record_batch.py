@@ -20,7 +20,7 @@ import numpy as np
 
 import diffpen as dp
 
-from .first_state import first_state
+from .first_state import FLIGHT_FRAMES, first_state
 from .fit import FitError
 from .pose import body_size
 
@@ -90,7 +90,7 @@ def _body_map(scene, records, bodies):
 
 
 def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
-            estimate: str = "record", max_frames: int = 10) -> Batch:
+            estimate: str = "record", max_frames: int = FLIGHT_FRAMES) -> Batch:
     """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
     ``estimate``). ``bodies``: ``{record body name: scene body index}``; default: the only
     free body for one-body records, else names that are indices."""

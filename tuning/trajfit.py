@@ -45,7 +45,7 @@ import diffpen as dp
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
-from .first_state import first_state
+from .first_state import FLIGHT_FRAMES, first_state
 from .pose import ROT_WEIGHT, qmul, rotmat, body_size, pose_residuals, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
 from .stable import params_unstable, unsafe_start
@@ -453,7 +453,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     estimate = estimate or sf.spec.first_state or "record"
     if horizons is None:
         horizons = tuple(sf.spec.horizon or ()) + (None,)
-    max_frames = max_frames or sf.spec.flight_frames or 10
+    max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
     if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
