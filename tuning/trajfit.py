@@ -436,7 +436,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
     (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
     the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records) and
-    ``flight_frames``, else ``"record"``, ``(None,)`` and 10.
+    ``flight_frames``, else ``"record"``, ``(None,)`` and ``FLIGHT_FRAMES`` (20).
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
