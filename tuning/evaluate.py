@@ -184,7 +184,8 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder) also draws
     the first ``n_plot`` records to ``plot/NAME.png``. ``estimate`` / ``max_frames``: the
     first-state estimate and its frame cap (:func:`tuning.first_state.first_state`); None:
-    the scene file's ``[fit] first_state`` / ``flight_frames``, else ``"record"`` / ``FLIGHT_FRAMES`` (20)."""
+    the scene file's ``[fit] first_state`` / ``flight_frames``, else ``"record"`` /
+    ``FLIGHT_FRAMES`` (20)."""
     import os
 
     from .scenefile import load_scene_file
