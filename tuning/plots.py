@@ -84,12 +84,14 @@ def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> Non
 
 
 def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
-            point: tuple | None = None, title: str = "") -> None:
+            point: tuple | None = None, title: str = "",
+            labels: tuple = ("k (N/m)", "c (N s/m)"), log: tuple = (True, True)) -> None:
     """A metric over a (k, c) grid on log axes, with the ``target`` contour.
 
     Args:
       k: (nk,) N/m.  c: (nc,) N s/m.  values: (nk, nc) metric values (nan where undefined).
       point: optional (k, c) to mark (e.g. a fitted point).
+      labels, log: the axes' labels and whether each is logarithmic (any two parameters).
     """
     plt = require_matplotlib()
     fig, ax = plt.subplots(figsize=(6.5, 5))
@@ -101,10 +103,10 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
         ax.clabel(cs, fmt={target: f"target {target:.3g}"}, fontsize=8)
     if point is not None:
         ax.plot(*point, "r*", ms=12)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("k (N/m)")
-    ax.set_ylabel("c (N s/m)")
+    ax.set_xscale("log" if log[0] else "linear")
+    ax.set_yscale("log" if log[1] else "linear")
+    ax.set_xlabel(labels[0])
+    ax.set_ylabel(labels[1])
     ax.set_title(title or metric)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

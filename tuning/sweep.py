@@ -258,8 +258,13 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         raise ValueError(f"points must have shape (N, {len(names)}), got {points.shape}.")
     if points.shape[0] == 0:
         raise SweepError("points is empty: give at least one point.")
-    if not np.all(np.isfinite(points)) or np.any(points < 0.0):
-        raise ValueError("sweep points must be finite and >= 0 (stiffness and damping).")
+    if not np.all(np.isfinite(points)):
+        raise ValueError("sweep points must be finite.")
+    from .scenefile.leaves import leaf_space
+    for j, name in enumerate(names):      # only signed leaves (plane offsets) may be < 0
+        if np.any(points[:, j] < 0.0) and leaf_space(str(name), 1.0) == "log":
+            raise ValueError(f"sweep points of {name} must be >= 0 (a stiffness, damping, "
+                             f"friction, ...), got {float(points[:, j].min()):g}.")
     if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}.")
     n = points.shape[0]

@@ -17,7 +17,8 @@ COMMANDS = {
     "evaluate": ("tuning.cli.evaluate", "open-loop accuracy of a scene file on measured records"),
     "simulate": ("tuning.cli.simulate", "roll out a built-in scene or a scene file and report "
                                         "metrics"),
-    "sweep": ("tuning.cli.sweep", "batched sweep over (k, c) with vmap; writes .npz + .csv"),
+    "sweep": ("tuning.cli.sweep", "batched sweep over (k, c) of the ball, or over a scene "
+                                  "file's parameters, with vmap; writes .npz + .csv"),
     "report": ("tuning.cli.report", "stability, accuracy and gradient-error reports"),
     "bench": ("tuning.cli.bench", "speed benchmarks against baselines measured in the same "
                                   "process"),

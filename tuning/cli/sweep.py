@@ -1,43 +1,68 @@
-"""``diffpen sweep``: every (k, c) of a log-spaced grid for the ball scene, with jax.vmap in
-chunks; writes .npz + .csv atomically after every chunk, resumes an interrupted sweep, and
-draws a heatmap with the target contour."""
+"""``diffpen sweep``: every (k, c) of a log-spaced grid for the ball scene, or every point of
+a grid over a scene file's parameters (``diffpen sweep SCENE.toml [--param PATH LO HI]
+[--data FILES]``, :mod:`tuning.scene_sweep`), with jax.vmap in chunks; writes .npz + .csv
+atomically after every chunk, resumes an interrupted sweep, and draws a heatmap with the
+target contour."""
 from __future__ import annotations
 
 import math
+import os
 
-from ._common import (CLIError, add_cluster_arguments, check_cluster_arguments, count,
-                      dump_json, fail, finite, join_cluster, positive, setup_jax)
+from ._common import (CLIError, add_cluster_arguments, add_start_state_arguments,
+                      check_cluster_arguments, count, dump_json, fail, finite, join_cluster,
+                      positive, setup_jax)
 
 METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
            "restitution")
+#: a scene file's sweep over records also offers these
+RECORD_METRICS = ("position_error_pct", "position_error_median", "rotation_error_deg",
+                  "rotation_error_median")
+#: the ball sweep's defaults (None on the command line: given or not is told apart)
+BALL_DEFAULTS = {"k": [1e3, 1e5], "c": [1.0, 100.0], "radius": 0.1, "mass": 1.0, "drop": 1.0,
+                 "duration": 2.0, "dt": 1e-3, "settle_tol": 1e-3}
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--k", type=positive("--k"), nargs=2, default=[1e3, 1e5],
+    p.add_argument("scene", nargs="?", metavar="SCENE.toml", help="sweep a scene file's "
+                   "parameters instead of the built-in ball: its [fit] params over "
+                   "[fit.bounds], or --param; against --data records (position and rotation "
+                   "errors), else the bounce of its [fit] body")
+    p.add_argument("--param", nargs=3, action="append", metavar=("PATH", "LO", "HI"),
+                   help="with SCENE.toml: a parameter leaf (e.g. contact.board.k) and its "
+                   "range; repeat for more axes (log-spaced for positive leaves, linear for "
+                   "offsets)")
+    p.add_argument("--data", nargs="+", metavar="FILE.csv", help="with SCENE.toml: records "
+                   "to evaluate every point on (default: the scene file's [fit] data)")
+    add_start_state_arguments(p, "with SCENE.toml --data: ")
+    p.add_argument("--k", type=positive("--k"), nargs=2, default=None,
                    metavar=("KMIN", "KMAX"), help="stiffness range, N/m (default 1e3 1e5)")
-    p.add_argument("--c", type=positive("--c"), nargs=2, default=[1.0, 100.0],
+    p.add_argument("--c", type=positive("--c"), nargs=2, default=None,
                    metavar=("CMIN", "CMAX"), help="damping range, N s/m (default 1 100)")
-    p.add_argument("--n", type=count("--n"), nargs="+", default=[64], metavar="N",
-                   help="grid points per axis (one value for both, or NK NC; default 64)")
-    p.add_argument("--radius", type=positive("--radius"), default=0.1, help="m (default 0.1)")
-    p.add_argument("--mass", type=positive("--mass"), default=1.0, help="kg (default 1)")
-    p.add_argument("--drop", type=positive("--drop"), default=1.0,
+    p.add_argument("--n", type=count("--n"), nargs="+", default=None, metavar="N",
+                   help="grid points per axis (one value for all, or one per axis; default "
+                   "64, 16 with SCENE.toml)")
+    p.add_argument("--radius", type=positive("--radius"), default=None,
+                   help="m (default 0.1)")
+    p.add_argument("--mass", type=positive("--mass"), default=None, help="kg (default 1)")
+    p.add_argument("--drop", type=positive("--drop"), default=None,
                    help="initial centre height, m (default 1)")
-    p.add_argument("--duration", type=positive("--duration"), default=2.0,
+    p.add_argument("--duration", type=positive("--duration"), default=None,
                    help="rollout length, s (default 2)")
-    p.add_argument("--dt", type=positive("--dt"), default=1e-3, help="time step, s")
-    p.add_argument("--settle-tol", type=positive("--settle-tol"), default=1e-3,
-                   help="settling band, m")
-    p.add_argument("--chunk", type=count("--chunk"), default=512, help="points per vmapped call "
-                   "(bounds memory; default 512)")
+    p.add_argument("--dt", type=positive("--dt"), default=None,
+                   help="time step, s (default 1e-3)")
+    p.add_argument("--settle-tol", type=positive("--settle-tol"), default=None,
+                   help="settling band, m (default 1e-3)")
+    p.add_argument("--chunk", type=count("--chunk"), default=None, help="points per vmapped "
+                   "call (bounds memory; default 512, 32 with SCENE.toml)")
     p.add_argument("--out", default="sweep.npz", help="results .npz (a .csv is written "
                    "beside it); an interrupted sweep with the same settings resumes from it, "
                    "a file of other settings is refused")
     p.add_argument("--fresh", action="store_true", help="overwrite an existing --out file "
                    "instead of resuming it")
     p.add_argument("--plot", metavar="FILE.png", help="heatmap of --metric over (k, c)")
-    p.add_argument("--metric", default="apex_heights", choices=METRICS,
-                   help="metric of the heatmap (default apex_heights: the first apex)")
+    p.add_argument("--metric", default=None, choices=METRICS + RECORD_METRICS,
+                   help="metric of the heatmap (default apex_heights: the first apex; "
+                   "position_error_pct for a scene file's sweep over records)")
     p.add_argument("--target", type=finite("--target"),
                    help="draw this level of --metric as a contour")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
@@ -46,6 +71,20 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     try:
+        if args.scene is not None:
+            return _run_scene(args)
+        if args.param or args.data or args.first_state or args.flight_frames:
+            raise CLIError("--param, --data, --first-state and --flight-frames sweep a scene "
+                           "file: give SCENE.toml first")
+        for name, value in BALL_DEFAULTS.items():
+            if getattr(args, name) is None:
+                setattr(args, name, value)
+        args.n = args.n or [64]
+        args.chunk = args.chunk or 512
+        args.metric = args.metric or "apex_heights"
+        if args.metric not in METRICS:
+            raise CLIError(f"--metric {args.metric} needs a scene file's sweep over records; "
+                           f"the ball's metrics are {', '.join(METRICS)}")
         return _run(args)
     except (CLIError, ValueError, ImportError, OSError) as exc:
         return fail("sweep", str(exc))
@@ -219,3 +258,104 @@ def _run(args) -> int:
 def _is_writer() -> bool:
     from ..distributed import is_writer
     return is_writer()
+
+
+def _run_scene(args) -> int:
+    """``diffpen sweep SCENE.toml``: :func:`tuning.scene_sweep.sweep_scene_file`."""
+    if not args.scene.lower().endswith(".toml"):
+        raise CLIError(f"{args.scene}: give a scene file (.toml)")
+    ball_only = [f"--{n.replace('_', '-')}" for n in BALL_DEFAULTS if getattr(args, n)
+                 is not None]
+    if ball_only:
+        raise CLIError(f"{', '.join(ball_only)} set the built-in ball's sweep; a scene file "
+                       "sweeps --param PATH LO HI (its dt, duration and bodies are in the file)")
+    if not args.out.endswith(".npz"):
+        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
+    if getattr(args, "process_id", None) in (None, 0):
+        from ..io import check_output
+        check_output(args.out, what="--out")
+        check_output(args.out[:-4] + ".csv", what="--out's table")
+        if args.plot:
+            check_output(args.plot, what="--plot")
+            from ..plots import require_matplotlib
+            require_matplotlib()
+    check_cluster_arguments(args)
+    axes = [(p, _number(lo, f"--param {p} LO"), _number(hi, f"--param {p} HI"))
+            for p, lo, hi in (args.param or [])]
+    setup_jax()
+    quiet = join_cluster(args) and not _is_writer()
+    import numpy as np
+
+    from ..scene_sweep import sweep_scene_file
+    res, info = sweep_scene_file(args.scene, args.data or (), axes or None,
+                                 n=args.n or [16], out=args.out, resume=not args.fresh,
+                                 chunk=args.chunk or 32, estimate=args.first_state,
+                                 max_frames=args.flight_frames,
+                                 progress=False if args.json or quiet else None)
+    if quiet:
+        return 0
+    kept = info["metrics"]
+    metric = args.metric or kept[0]
+    if metric not in kept:
+        raise CLIError(f"--metric {metric} is not measured by this sweep; it measures "
+                       f"{', '.join(kept)}")
+    values = np.asarray(res.metrics[metric], float)
+    values = values[:, 0] if values.ndim > 1 else values
+    names = list(info["axes"])
+    finite_ = np.isfinite(values)
+    best = None
+    if finite_.any():
+        i = int(np.nanargmin(values))
+        best = {"value": float(values[i]),
+                "point": {n: float(res.points[i, j]) for j, n in enumerate(names)}}
+    if args.plot:
+        if len(names) != 2:
+            raise CLIError(f"--plot draws a sweep over two parameters; this one has "
+                           f"{len(names)}: {', '.join(names)}")
+        from ..plots import heatmap
+        ax0, ax1 = (info["axes"][n] for n in names)
+        logs = tuple(bool(a[0] > 0 and np.allclose(np.diff(np.log(a)), np.log(a[1] / a[0])))
+                     for a in (ax0, ax1))
+        heatmap(args.plot, ax0, ax1, values.reshape(res.shape), metric=metric,
+                target=args.target, labels=tuple(names), log=logs,
+                point=None if best is None else tuple(best["point"].values()),
+                title=f"{metric}: {len(ax0)} x {len(ax1)} sweep of "
+                      f"{os.path.basename(args.scene)}"
+                      + (f", {info['records']} records" if info["records"] else ""))
+    out = {"scene": args.scene, "points": int(res.points.shape[0]),
+           "grid": [len(a) for a in info["axes"].values()],
+           "axes": {n: [float(a[0]), float(a[-1])] for n, a in info["axes"].items()},
+           "records": info["records"], "metrics": kept, "metric": metric,
+           "evaluated": res.evaluated, "seconds": res.seconds, "out": args.out,
+           "csv": args.out[:-4] + ".csv", "plot": args.plot,
+           "range": [float(np.nanmin(values)), float(np.nanmax(values))]
+           if finite_.any() else None, "lowest": best, "unstable": res.unstable}
+    if args.json:
+        dump_json(out)
+        return 0
+    against = (f"{info['records']} record(s)" if info["records"] else "the bounce of its "
+               "[fit] body")
+    print(f"diffpen sweep: {args.scene}, {' x '.join(map(str, out['grid']))} grid against "
+          f"{against}")
+    for n, a in info["axes"].items():
+        print(f"  {n}: {a[0]:.4g} .. {a[-1]:.4g} ({len(a)} points)")
+    print(f"computed {res.evaluated} of {out['points']} points in {res.seconds:.2f} s"
+          + (f" (the rest resumed from {args.out})" if res.evaluated < out["points"] else ""))
+    if best is not None:
+        where = ", ".join(f"{n} = {v:.4g}" for n, v in best["point"].items())
+        print(f"{metric}: {out['range'][0]:.4g} .. {out['range'][1]:.4g}; lowest at {where}")
+    if res.unstable:
+        print(f"{res.unstable} points are past the scene's safe step: their metrics are NaN "
+              "(lower dt in the scene file to compute them)")
+    print(f"wrote {args.out} and {out['csv']}" + (f"; heatmap {args.plot}" if args.plot else ""))
+    return 0
+
+
+def _number(text: str, name: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise CLIError(f"{name} must be a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise CLIError(f"{name} must be finite, got {text!r}")
+    return v

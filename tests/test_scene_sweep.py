@@ -1,0 +1,160 @@
+"""Sweeps of a scene file's parameters (tuning.scene_sweep, diffpen sweep SCENE.toml): the
+values equal the evaluation and the metrics at each point, the record's own parameters are
+the lowest point, signed leaves get linear axes, results resume and another sweep's file is
+refused, and the command's bad input is refused before anything runs."""
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from tuning import trajfit as tf
+from tuning.cli import main
+from tuning.errors import FitError
+from tuning.evaluate import evaluate_batch
+from tuning.metrics import ball_metrics
+from tuning.records import write_record
+from tuning.scene_sweep import sweep_scene_file
+from tuning.scenefile import load_scene_file
+from tuning.sweep import SweepError
+
+BOX = """
+dt = 1e-3
+[materials.board]
+k = 3000.0
+c = 30.0
+friction = 0.2
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.15]
+orientation = [0.95, 0.2, 0.1, 0.2]
+velocity = [0.4, 0.1, 0.0]
+body_angular_velocity = [2.0, -1.0, 1.0]
+material = "board"
+[[planes]]
+name = "ground"
+offset = -0.001
+material = "board"
+[fit]
+params = ["contact.board.k", "contact.board.c", "extra.plane_offset.ground"]
+[fit.bounds]
+"contact.board.k" = [1000.0, 9000.0]
+"contact.board.c" = [10.0, 120.0]
+"extra.plane_offset.ground" = [-0.003, 0.001]
+"""
+
+
+@pytest.fixture(scope="module")
+def box_files(tmp_path_factory):
+    """The box scene and a 0.4 s record of it made at k 3000, c 30 (its own values)."""
+    d = tmp_path_factory.mktemp("scene_sweep")
+    scene = d / "box.toml"
+    scene.write_text(BOX)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    rec = tf.synthetic_record(sim, sf.params(sim), 0.4, 5e-3, {"cube": 0})
+    path = d / "box.csv"
+    write_record(str(path), rec)
+    return str(scene), str(path), d
+
+
+def test_record_sweep_equals_the_evaluation_and_resumes(box_files):
+    """Each point's errors equal tuning.evaluate at that point's parameters; the record's
+    own (k, c) has error 0 and is the lowest; a rerun reads every point back; the same
+    output with another record is refused."""
+    scene, rec, d = box_files
+    out = str(d / "kc.npz")
+    axes = [("contact.board.k", 1000.0, 9000.0), ("contact.board.c", 20.0, 45.0)]
+    res, info = sweep_scene_file(scene, [rec], axes, n=[3], out=out, chunk=4)
+    np.testing.assert_allclose(info["axes"]["contact.board.k"], [1000.0, 3000.0, 9000.0])
+    np.testing.assert_allclose(info["axes"]["contact.board.c"], [20.0, 30.0, 45.0])
+    assert res.points.shape == (9, 2) and res.evaluated == 9
+    sf = load_scene_file(scene)
+    sim = sf.compile()
+    records, bodies = tf.load_records(sf, [rec])
+    batch = tf.prepare(sim, records, bodies=bodies, estimate="record")
+    for i in (0, 4, 8):
+        p = tf.with_leaves(sf.params(sim), dict(zip(res.names, res.points[i])))
+        ev = evaluate_batch(sim, p, batch)
+        np.testing.assert_allclose(res.metrics["position_error_pct"][i],
+                                   ev.position_error_pct["mean"], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res.metrics["rotation_error_deg"][i],
+                                   ev.rotation_error_deg["mean"], rtol=1e-9, atol=1e-9)
+    pe = res.metrics["position_error_pct"]
+    assert int(np.argmin(pe)) == 4 and pe[4] < 1e-6 < pe.min(initial=1.0, where=np.arange(9) != 4)
+    again, _ = sweep_scene_file(scene, [rec], axes, n=[3], out=out, chunk=4)
+    assert again.evaluated == 0
+    np.testing.assert_array_equal(again.metrics["position_error_pct"], pe)
+    other = d / "other.csv"
+    text = open(rec).read().splitlines()
+    other.write_text("\n".join(text[:-5]) + "\n")             # a shorter record
+    with pytest.raises(SweepError, match="records"):
+        sweep_scene_file(scene, [str(other)], axes, n=[3], out=out, chunk=4)
+
+
+def test_axes_from_the_fit_table_and_signed_leaves(box_files):
+    """Without --param the [fit] params are swept over [fit.bounds]: log-spaced k and c,
+    a linear plane offset through negative values."""
+    scene, rec, _ = box_files
+    res, info = sweep_scene_file(scene, [rec], None, n=[2, 2, 3], chunk=16)
+    np.testing.assert_allclose(info["axes"]["extra.plane_offset.ground"], [-0.003, -0.001,
+                                                                          0.001])
+    np.testing.assert_allclose(info["axes"]["contact.board.k"], [1000.0, 9000.0])
+    assert res.points.shape == (12, 3)
+    # c = 120 N s/m is past this box's safe step at 1 ms (about 52): NaN and counted
+    past = res.points[:, 1] > 100.0
+    assert res.unstable == int(past.sum()) == 6
+    assert np.all(np.isnan(res.metrics["position_error_pct"][past]))
+    assert np.all(np.isfinite(res.metrics["position_error_pct"][~past]))
+    with pytest.raises(FitError, match="not a parameter"):
+        sweep_scene_file(scene, [rec], [("contact.wood.k", 1.0, 2.0)], n=[2])
+    with pytest.raises(FitError, match="LO > 0"):
+        sweep_scene_file(scene, [rec], [("contact.board.c", -1.0, 2.0)], n=[2])
+    with pytest.raises(FitError, match="one per axis"):
+        sweep_scene_file(scene, [rec], None, n=[2, 3])
+
+
+def test_bounce_sweep_equals_the_metrics(tmp_path):
+    """Without records a scene file's sweep measures its [fit] body's bounce: each point's
+    metrics equal tuning.metrics.ball_metrics of a rollout at that point."""
+    text = open(os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")).read()
+    scene = tmp_path / "ball.toml"
+    scene.write_text(text.replace("duration = 3.0", "duration = 1.0"))
+    axes = [("contact.rubber.k", 5e3, 2e4), ("contact.rubber.c", 10.0, 40.0)]
+    res, info = sweep_scene_file(str(scene), (), axes, n=[2], chunk=4)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    for i in (0, 3):
+        p = tf.with_leaves(sf.params(sim), dict(zip(res.names, res.points[i])))
+        traj = sim.rollout(p, sf.setup.steps)
+        m = jax.jit(lambda tr, q: ball_metrics(sim, tr, q, n_apex=3))(traj, p)
+        np.testing.assert_allclose(res.metrics["apex_heights"][i], m.apex_heights,
+                                   rtol=1e-9)
+        np.testing.assert_allclose(res.metrics["contact_durations"][i], m.contact_durations,
+                                   rtol=1e-9)
+
+
+def test_cli_scene_sweep(box_files, capsys):
+    """diffpen sweep SCENE.toml --param ... --data ... --json: one JSON object naming the
+    lowest point; the ball's own flags and --param without a scene are refused (exit 2)."""
+    scene, rec, d = box_files
+    out = str(d / "cli.npz")
+    capsys.readouterr()
+    assert main(["sweep", scene, "--param", "contact.board.k", "1000", "9000", "--param",
+                 "contact.board.c", "20", "45", "--n", "3", "--data", rec, "--out", out,
+                 "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["grid"] == [3, 3] and got["records"] == 1
+    assert got["lowest"]["point"] == pytest.approx({"contact.board.k": 3000.0,
+                                                   "contact.board.c": 30.0})
+    assert os.path.exists(out) and os.path.exists(out[:-4] + ".csv")
+    assert main(["sweep", scene, "--k", "1", "2", "--data", rec, "--out", out]) == 2
+    assert "--k" in capsys.readouterr().err
+    assert main(["sweep", "--param", "contact.board.k", "1", "2"]) == 2
+    assert "SCENE.toml" in capsys.readouterr().err
+    assert main(["sweep", scene, "--param", "contact.board.k", "1", "x", "--data", rec,
+                 "--out", out]) == 2
+    assert "must be a number" in capsys.readouterr().err

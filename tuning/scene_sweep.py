@@ -1,0 +1,182 @@
+"""Sweeps of a scene file's parameters: ``diffpen sweep SCENE.toml``.
+
+A grid over any leaves of the scene's parameters (``[fit] params`` over ``[fit.bounds]`` by
+default, or ``axes`` given explicitly; log-spaced for positive leaves, linear for signed ones
+such as plane offsets), evaluated with :func:`tuning.sweep.sweep` (chunks of one vmapped
+call, written atomically after every chunk, resumable, split over devices and processes):
+
+* with records (``data``, or the file's ``[fit] data``): every point rolls every record out
+  open loop from its first state (:mod:`tuning.evaluate`) and keeps the mean and the median
+  over records of the position error (% of the body's size) and of the rotation error
+  (degrees): the landscape a record fit (``diffpen fit SCENE.toml --data``) descends;
+* without records: the bounce metrics of the ``[fit] body`` (a sphere) on the ``[fit]
+  plane`` (:func:`tuning.metrics.ball_metrics`: apex heights, settling time, contact
+  durations, maximum penetration, restitution) over the file's duration.
+
+Points past the scene's safe step are NaN and counted (metric ``unstable``).
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+from typing import Sequence
+
+import numpy as np
+
+from .errors import FitError
+from .first_state import FLIGHT_FRAMES
+
+__all__ = ["sweep_scene_file", "sweep_axes", "RECORD_METRICS", "BOUNCE_METRICS"]
+
+#: what a sweep over records keeps per point
+RECORD_METRICS = ("position_error_pct", "position_error_median", "rotation_error_deg",
+                  "rotation_error_median")
+#: what a sweep without records keeps per point (the bounce of the [fit] body)
+BOUNCE_METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
+                  "restitution")
+
+
+def sweep_axes(sf, params, axes: Sequence | None, n: Sequence[int]) -> dict:
+    """``{leaf path: (n_i,) values}`` of the grid: ``axes`` = ``[(path, lo, hi), ...]`` or
+    None for the scene file's ``[fit] params`` over ``[fit.bounds]``; ``n``: points per
+    axis (one value for all). Log-spaced for leaves in log space (``[fit.space]`` or
+    :func:`tuning.scenefile.leaves.leaf_space`), linear for signed ones."""
+    from .scenefile.leaves import _keystr_paths, leaf_space, param_leaves
+    leaves, alias = param_leaves(params), _keystr_paths(params)
+    spec = sf.spec
+    if not axes:
+        if spec is None or not spec.free:
+            raise FitError(f"{sf.path}: say what to sweep: --param PATH LO HI (repeat it for "
+                           "more axes), or [fit] params with [fit.bounds] in the file.")
+        missing = [p for p in spec.free if p not in spec.bounds]
+        if missing:
+            raise FitError(f"{sf.path}: [fit] params {missing} have no [fit.bounds]: give "
+                           "their ranges there or as --param PATH LO HI.")
+        axes = [(p, *spec.bounds[p]) for p in spec.free]
+    if len(n) not in (1, len(axes)):
+        raise FitError(f"--n takes one count or one per axis ({len(axes)}), got {list(n)}.")
+    counts = list(n) * len(axes) if len(n) == 1 else list(n)
+    out = {}
+    for (path, lo, hi), m in zip(axes, counts):
+        p = alias.get(path, path.strip())
+        if p not in leaves:
+            raise FitError(f"{p!r} is not a parameter of {sf.path}; its parameters are: "
+                           f"{', '.join(leaves)}.")
+        if p in out:
+            raise FitError(f"{p!r} is swept twice.")
+        lo, hi = float(lo), float(hi)
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise FitError(f"{p}: the range must be finite with LO < HI, got {lo:g} {hi:g}.")
+        if int(m) < 2:
+            raise FitError(f"{p}: at least 2 points per axis, got {m}.")
+        space = (spec.space.get(p) if spec is not None and p in spec.space else None) or \
+            leaf_space(p, leaves[p])
+        if space == "log" and lo <= 0.0:
+            if leaf_space(p, 1.0) == "log":
+                raise FitError(f"{p}: a positive parameter needs LO > 0, got {lo:g}.")
+            space = "linear"
+        out[p] = (np.geomspace(lo, hi, int(m)) if space == "log"
+                  else np.linspace(lo, hi, int(m)))
+    return out
+
+
+def _digest(path: str) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.sha256(fh.read()).hexdigest()[:16]
+
+
+def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence | None = None,
+                     *, n: Sequence[int] = (16,), out: str | None = None, resume: bool = True,
+                     chunk: int = 64, estimate: str | None = None,
+                     max_frames: int | None = None, progress: bool | None = False):
+    """Sweep the scene file's parameters (see the module docstring).
+
+    Args:
+      scene_path: a ``.toml`` scene file.  data: record files (default the file's ``[fit]
+        data``; none: bounce metrics).  axes: ``[(leaf path, lo, hi), ...]`` or None (the
+        ``[fit] params`` over ``[fit.bounds]``).  n: grid points per axis (one for all).
+      out: ``.npz`` (and a ``.csv`` beside it), written atomically after every chunk; a rerun
+        with the same scene file, records, axes and settings resumes it, another sweep's
+        file is refused.  chunk: points per vmapped call (bounds memory).
+      estimate, max_frames: the records' first-state estimate and its cap on flight frames
+        (None: the file's ``[fit]`` values, else ``"record"`` / ``FLIGHT_FRAMES``).
+      progress: see :func:`tuning.sweep.sweep`.
+    Returns:
+      ``(SweepResult, info)``: ``info`` holds ``axes`` ({path: values}), ``metrics`` (the
+      names kept), ``records`` (count) and ``simulator`` (the compiled
+      :class:`diffpen.Simulator`).
+    """
+    import jax.numpy as jnp
+
+    from .io import describe_simulator
+    from .scenefile import load_scene_file
+    from .stable import rollout_unstable
+    from .sweep import grid_points, sweep
+    from .trajfit import check_stable, load_records, prepare
+    sf = load_scene_file(scene_path)
+    spec = sf.spec
+    data = list(data) if data else list((spec.data if spec is not None else None) or [])
+    sim = sf.compile()
+    params0 = sf.params(sim)
+    grid_axes = sweep_axes(sf, params0, axes, n)
+    names = list(grid_axes)
+    points, shape = grid_points(grid_axes)
+    check_stable(sim, params0)
+    key = dict(describe_simulator(sim), scene_file=_digest(scene_path))
+    if data:
+        from .evaluate import _errors
+        from .record_batch import simulate
+        records, bodies = load_records(sf, data)
+        estimate = estimate or (spec.first_state if spec is not None else None) or "record"
+        max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
+            FLIGHT_FRAMES
+        batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
+        key.update(records=[[os.path.basename(r.path), _digest(r.path)] for r in records],
+                   estimate=estimate, flight_frames=max_frames)
+        kept = list(RECORD_METRICS)
+
+        def metrics_fn(params):
+            pos, quat, bad = simulate(sim, params, batch, with_flag=True)
+            pe, re = _errors(pos, quat, batch)
+            m = {"position_error_pct": jnp.mean(pe),
+                 "position_error_median": jnp.median(pe)}
+            if re is not None:
+                m.update(rotation_error_deg=jnp.mean(re),
+                         rotation_error_median=jnp.median(re))
+            m["unstable"] = jnp.any(bad)
+            return m
+        if not batch.has_rotation:
+            kept = kept[:2]
+    else:
+        from .metrics import ball_metrics
+        body = spec.body if spec is not None else 0
+        plane = spec.plane if spec is not None else 0
+        tol = spec.settle_tol if spec is not None else 1e-3
+        b = sf.scene.bodies[body] if body < len(sf.scene.bodies) else None
+        if b is None or b.kind != "sphere" or not sf.scene.planes:
+            raise FitError(f"{scene_path}: without records (--data FILE.csv ...) a sweep "
+                           "measures the bounce of a sphere on a plane ([fit] body, plane); "
+                           "this scene has none: give records to sweep against.")
+        steps = sf.setup.steps
+        key.update(body=body, plane=plane, settle_tol=tol, steps=steps, n_apex=3)
+        kept = list(BOUNCE_METRICS) + ["settled"]
+
+        def metrics_fn(params):
+            s0 = sim.init_state()
+            traj = sim.rollout(params, steps, s0, save_every=1, check_finite=False,
+                               check_stability=False)
+            m = ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=3,
+                             settle_tol=tol, state0=s0)._asdict()
+            m["unstable"] = rollout_unstable(sim, traj, params)
+            return m
+
+    def finalize(m, pts):
+        if "settled" in m:      # not settled within the rollout: NaN, not its end
+            m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
+        return m
+    res = sweep(metrics_fn, params0, points, names, chunk=chunk, out=out, resume=resume,
+                key=key, keys=kept + ["unstable"], shape=shape, axes=grid_axes,
+                progress=progress, finalize=finalize)
+    info = {"axes": grid_axes, "metrics": kept, "records": len(data), "simulator": sim}
+    return res, info
