@@ -17,7 +17,7 @@ from tuning.metrics import ball_metrics
 from tuning.records import write_record
 from tuning.scene_sweep import sweep_scene_file
 from tuning.scenefile import load_scene_file
-from tuning.sweep import SweepError
+from tuning.sweep import SweepError, sweep
 
 BOX = """
 dt = 1e-3
@@ -115,6 +115,9 @@ def test_axes_from_the_fit_table_and_signed_leaves(box_files):
         sweep_scene_file(scene, [rec], [("contact.board.c", -1.0, 2.0)], n=[2])
     with pytest.raises(FitError, match="one per axis"):
         sweep_scene_file(scene, [rec], None, n=[2, 3])
+    sf = load_scene_file(scene)                 # the library sweep: only offsets may be < 0
+    with pytest.raises(ValueError, match="contact.board.k must be >= 0"):
+        sweep(lambda p: {}, sf.params(sf.compile()), [[-1.0]], ["contact.board.k"])
 
 
 def test_bounce_sweep_equals_the_metrics(tmp_path):
