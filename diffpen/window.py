@@ -50,27 +50,35 @@ def _power_mean_inside(d, delta, n: float):
     return jnp.where(small, d ** n * series, direct)
 
 
-def _window_linear_parts(d, vn, h):
+def _window_linear_parts(d, vn, h, autodiff: bool = True):
     """:func:`window_mean` for exponent 1 with its intermediates:
     ``(frac, mean, u, delta, on, pos)``.
 
     d >= 0: ``1 - u^2 / 2`` and ``d + e u^2 / 6`` with ``e = max(-a, 0)`` (0 for a window
-    inside); d < 0: ``u^2 / 2`` and ``e u^2 / 6`` with ``e = max(b, 0)`` (0 apart);
-    ``u = e / delta <= 1``, ``delta = |vn| h``. Where e = 0 nothing is divided (double
+    inside); d < 0: ``u^2 / 2`` and ``e u^2 / 6`` with ``e = max(b, 0)`` (0 apart); both
+    are ``e = max(delta - |d|, 0)``; ``u = e / delta <= 1``, ``delta = |vn| h``. With
+    ``autodiff`` the ramps are written with ``where`` so that autodiff takes a tie (d = 0)
+    on the side d >= 0, where the window is differentiable; without it (the closed-form
+    derivatives' primal) as ``|d|`` and ``max(d, 0)``: the same numbers in fewer
+    operations (batched stepping about 10% faster). Where e = 0 nothing is divided (double
     where: a still contact, delta = 0, has finite derivatives in float32 too); delta is
     floored at 1e-15 m where e > 0, so the derivative of u stays finite in float32 (only
     sub-femtometre windows change). The guard also keeps the division off a batch-1 step's
     critical path (the compiled select branches around it: 0.055 against 0.078 ms for 3000
     steps unguarded)."""
     delta = jnp.abs(vn) * h
-    a, b = d - delta, d + delta
     on = d >= 0.0
-    e = jnp.where(on, jnp.maximum(-a, 0.0), jnp.maximum(b, 0.0))
+    if autodiff:
+        e = jnp.maximum(delta - jnp.where(on, d, -d), 0.0)
+        ramp = jnp.where(on, d, 0.0)
+    else:
+        e = jnp.maximum(delta - jnp.abs(d), 0.0)
+        ramp = jnp.maximum(d, 0.0)
     pos = e > 0.0
     u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
     u2 = 0.5 * u * u
     frac = jnp.where(on, 1.0 - u2, u2)
-    mean = jnp.where(on, d, 0.0) + e * u2 * (1.0 / 3.0)
+    mean = ramp + e * u2 * (1.0 / 3.0)
     return frac, mean, u, delta, on, pos
 
 
@@ -79,7 +87,12 @@ def _window_linear(d, vn, h):
     return _window_linear_parts(d, vn, h)[:2]
 
 
-_window_linear_static = jax.custom_jvp(_window_linear, nondiff_argnums=(2,))
+def _window_linear_closed(d, vn, h):
+    """The same values, the primal of the closed-form derivatives (a static step)."""
+    return _window_linear_parts(d, vn, h, autodiff=False)[:2]
+
+
+_window_linear_static = jax.custom_jvp(_window_linear_closed, nondiff_argnums=(2,))
 
 
 @_window_linear_static.defjvp
@@ -95,7 +108,7 @@ def _window_linear_jvp(h, primals, tangents):
     it, 1.30-1.36x without (benchmarks/step_cost.py)."""
     d, vn = primals
     dd, dvn = tangents
-    frac, mean, u, delta, on, pos = _window_linear_parts(d, vn, h)
+    frac, mean, u, delta, on, pos = _window_linear_parts(d, vn, h, autodiff=False)
     du = jnp.where(pos, u / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)  # u / delta
     ddelta = (h * jnp.sign(vn)) * dvn
     dfrac = du * dd - jnp.where(on, du, -du) * (1.0 - u) * ddelta
