@@ -113,7 +113,7 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
     from .scenefile import load_scene_file
     from .stable import rollout_unstable
     from .sweep import grid_points, sweep
-    from .trajfit import check_stable, load_records, prepare
+    from .trajfit import load_records, prepare
     sf = load_scene_file(scene_path)
     spec = sf.spec
     data = list(data) if data else list((spec.data if spec is not None else None) or [])
@@ -122,7 +122,6 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
     grid_axes = sweep_axes(sf, params0, axes, n)
     names = list(grid_axes)
     points, shape = grid_points(grid_axes)
-    check_stable(sim, params0)
     key = dict(describe_simulator(sim), scene_file=_digest(scene_path))
     if data:
         from .evaluate import _errors
