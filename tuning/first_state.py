@@ -202,12 +202,18 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
                        "starts from it. Trim the record so that it starts with a complete "
                        "pose, or fill those cells.")
     useq = np.nonzero(okq[:n])[0]
-    rv = rotvec(qmul(q[useq], qconj(q[0])[None]))          # world rotation since row 0
-    # continuous rotation vectors (a unit quaternion and its negative are one rotation)
     if len(useq) >= 2:
+        # the mean rate over the frames from the turns between consecutive ones (each well
+        # below pi: a rotation since row 0 wraps past pi after 0.13 s at 25 rad/s), then a
+        # linear fit of the small rotations that rate leaves (a sign-flipped quaternion is
+        # the same rotation)
+        turns = rotvec(qmul(q[useq[1:]], qconj(q[useq[:-1]])))
+        w0 = turns.sum(axis=0) / (tt[useq[-1]] - tt[useq[0]])
+        pred = qmul(exp_quat(w0[None] * (tt[useq] - tt[0])[:, None]), q[0][None])
+        rv = rotvec(qmul(q[useq], qconj(pred)))
         B = np.stack([np.ones(len(useq)), tt[useq]], axis=1)
         sol = np.linalg.lstsq(B, rv, rcond=None)[0]
-        w_fit, a0 = sol[1], sol[0]
+        w_fit, a0 = w0 + sol[1], sol[0]
     else:
         w_fit, a0 = np.zeros(3), np.zeros(3)
     q_fit = qmul(exp_quat(a0), q[0])
