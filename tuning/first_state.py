@@ -94,9 +94,18 @@ def _refine_rotation(q0, w_body, inertia, times, quats, iters: int = 8):
     """Gauss-Newton fit of the start orientation and BODY-frame angular velocity of a
     torque-free body to observed orientations ``quats`` (T, 4) at ``times`` (T,) s from the
     start: residuals the rotation vectors of ``q_data q_model^-1`` (rad), parameters a
-    world-frame turn of ``q0`` and ``w_body``. Returns ``(q0, w_body)``."""
+    world-frame turn of ``q0`` and ``w_body`` (start: ``w_body``, the rate of the first
+    frames). A tumbling body's rate changes within a few frames, so the fit grows its
+    window (6, 12, 24, ... frames), each from the fit before. Returns ``(q0, w_body)``."""
     x = np.concatenate([np.zeros(3), w_body])
+    sizes = sorted({min(len(times), 6 * 2 ** j) for j in range(8)})
+    for size in sizes:
+        x = _gauss_newton_rotation(x, q0, inertia, times[:size], quats[:size], iters)
+    return qmul(exp_quat(x[:3]), q0), x[3:]
 
+
+def _gauss_newton_rotation(x, q0, inertia, times, quats, iters: int):
+    """:func:`_refine_rotation` on one window: ``x`` = (turn of ``q0`` (3), body rate (3))."""
     def model(xs):                                     # xs (B, 6) -> (B, T, 4)
         qs = qmul(exp_quat(xs[:, :3]), q0[None])
         return torque_free(qs, xs[:, 3:], inertia, times)
@@ -123,7 +132,7 @@ def _refine_rotation(q0, w_body, inertia, times, quats, iters: int = 8):
                 break
         else:
             lam *= 10.0
-    return qmul(exp_quat(x[:3]), q0), x[3:]
+    return x
 
 
 def _free_flight(scene, index) -> bool:
@@ -221,7 +230,8 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     if free and len(useq) >= 3 and np.ptp(inertia) > 1e-9 * np.max(inertia):
         # a body with unequal principal moments does not turn at a constant rate in free
         # flight: fit its torque-free motion (a constant rate is exact for equal moments)
-        q_fit, wb = _refine_rotation(q_fit, rotmat(q_fit).T @ w_fit, inertia, tt[useq],
+        early = turns[:5].sum(axis=0) / (tt[useq[min(5, len(useq) - 1)]] - tt[useq[0]])
+        q_fit, wb = _refine_rotation(q_fit, rotmat(q_fit).T @ early, inertia, tt[useq],
                                      q[useq])
         w_fit = rotmat(q_fit) @ wb
     if estimate == "record":
