@@ -112,6 +112,20 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     fits = {n: fitter([{"z": 0.08 + 0.004 * i} for i in range(n)],
                       starts=[{"contact.default.k": 3e3 * (i + 1)} for i in range(n)])
             for n in (4, 3)}
+    # a scene file's sweep (diffpen sweep SCENE.toml): the bounce of its sphere
+    from tuning.scene_sweep import sweep_scene_file
+    sweep_writes = list(writes)
+    sdir = tempfile.mkdtemp()                 # every process has the file, none shares it
+    spath = os.path.join(sdir, "ball.toml")
+    with open(spath, "w") as fh:
+        fh.write("dt = 2e-3\\nduration = 0.8\\n[[spheres]]\\nradius = 0.1\\nmass = 1.0\\n"
+                 "position = [0.0, 0.0, 0.3]\\n[[planes]]\\n[fit]\\n"
+                 "params = ['contact.default.k', 'contact.default.c']\\n[fit.bounds]\\n"
+                 "'contact.default.k' = [2e3, 2e4]\\n'contact.default.c' = [2.0, 20.0]\\n")
+    sres, _ = sweep_scene_file(spath, (), None, n=[3], chunk=4,
+                               out=os.path.join(os.path.dirname(out), "scene.npz"))
+    scene_apex = sres.metrics["apex_heights"][:, 0].tolist()     # every first apex is there
+
     try:                      # process 0's error reaches every process: none hangs
         distributed.from_process_zero(lambda: 1 / 0)
         raised = None
@@ -125,7 +139,9 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     print(json.dumps({
         "raised": raised, "differ": differ,
         "joined": joined, "processes": jax.process_count(), "devices": jax.device_count(),
-        "writes": writes, "evaluated": [res.evaluated, again.evaluated],
+        "writes": sweep_writes, "scene_apex": scene_apex,
+        "scene_writes": writes[len(sweep_writes):],
+        "evaluated": [res.evaluated, again.evaluated],
         "z": res.metrics["z"].tolist(), "v": res.metrics["v"].tolist(),
         "again_z": again.metrics["z"].tolist(), "done": bool(again.done.all()),
         "saved_z": None if saved is None else saved.metrics["z"].tolist(),
@@ -141,8 +157,9 @@ CLUSTER_SCRIPT = textwrap.dedent("""
 
 def test_two_processes_gather_the_single_process_results(tmp_path):
     """Two local processes of two devices each, joined through a localhost coordinator: the
-    sweep, the README's sharded_map snippet and batched fits (rows that divide the 4 devices
-    and rows that do not) return, on both processes, the single-process results bit for bit;
+    sweep, a scene file's sweep, the README's sharded_map snippet and batched fits (rows that
+    divide the 4 devices and rows that do not) return, on both processes, the single-process
+    results bit for bit;
     only process 0 writes the sweep file, and a rerun resumes from it on both."""
     from device_subprocess import run_cluster
     import os
@@ -161,14 +178,16 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
         assert r["raised"] == "ZeroDivisionError"
         assert "processes [1] were given a different sweep" in r["differ"]
-        for key in ("z", "v", "again_z", "heights"):
+        for key in ("z", "v", "again_z", "heights", "scene_apex"):
             assert r[key] == alone[key], key                     # bit for bit (exact floats)
+        assert r["scene_writes"] == ([0, 0, 0] if i == 0 else [])
         for n in ("4", "3"):
             assert r["fits"][n].pop("devices") == 4 and alone["fits"][n]["devices"] == 1
             r["fits"][n]["devices"] = 1
             assert r["fits"][n] == alone["fits"][n], n
     assert procs[0]["saved_z"] == alone["z"]
     assert all(np.isfinite(alone["z"])) and len(set(alone["heights"])) == 6
+    assert all(np.isfinite(alone["scene_apex"])) and len(set(alone["scene_apex"])) == 9
 
 
 def test_cluster_arguments_are_checked_before_anything_runs(capsys):
