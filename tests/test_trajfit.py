@@ -624,3 +624,33 @@ def test_first_state_of_a_fast_spin_does_not_wrap(cube):
     p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=20)
     np.testing.assert_allclose(om, w, atol=1e-9)
     np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
+
+
+DRAG = """
+dt = 1e-3
+[[particles]]
+name = "p"
+mass = 0.1
+position = [0.0, 0.0, 5.0]
+velocity = [1.0, 0.0, 2.0]
+[[drag]]
+bodies = "p"
+c = 0.05
+group = "air"
+[fit]
+params = ["extra.drag.air"]
+"""
+
+
+def test_a_leaf_the_records_want_at_zero_stops_at_its_span(tmp_path):
+    """Regression: a log-space leaf whose best value is 0 (a drag fitted to a record made
+    without drag) took Gauss-Newton steps that grow as 1 / value, walked off to 0 and the
+    fit crashed in the covariance ("SVD did not converge"). Now a leaf without bounds moves
+    at most a factor LOG_SPAN from its start, and the message says it ended at a bound."""
+    scene, rec = _record_file(tmp_path, DRAG, {"extra.drag.air": 0.0}, ["p"], "p",
+                              integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.5,
+                              noise=0.0, seed=1)
+    out = tf.fit_files(scene, [rec], maxiter=30)
+    assert out["fitted"]["extra.drag.air"] == pytest.approx(0.05 / tf.LOG_SPAN, rel=1e-6)
+    assert "at a bound" in out["message"] and "extra.drag.air" in out["message"]
+    assert math.isfinite(out["stderr"]["extra.drag.air"])

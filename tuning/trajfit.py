@@ -52,7 +52,11 @@ from .stable import params_unstable, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
-           "fit_records", "ROT_WEIGHT", "rotation_angle"]
+           "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN"]
+
+#: how far (a factor) a log-space leaf may move from its start value in a record fit where
+#: its bounds allow more (``[fit.bounds]`` closer in win)
+LOG_SPAN = 1e6
 
 # --------------------------------------------------------------------------- params leaves
 #: ``{"contact.board.k": key path, ...}`` of a params pytree (see :mod:`tuning.params`)
@@ -223,6 +227,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         x0.append(f.to_x(v))
     lo = np.array([f.x_bounds()[0] for f in free], dtype=float)
     hi = np.array([f.x_bounds()[1] for f in free], dtype=float)
+    # a log-space leaf stays within LOG_SPAN of its start value where no bound is nearer: one
+    # the records barely see could otherwise walk off to 0 (or overflow) in a rugged landscape
+    for i, f in enumerate(free):
+        if f.log:
+            lo[i] = max(lo[i], x0[i] - math.log(LOG_SPAN))
+            hi[i] = min(hi[i], x0[i] + math.log(LOG_SPAN))
     # the optimiser stays inside the stable region: contact k and c capped at the safe step
     # of one contact on the lightest body (tuning.stable); the flag still judges the result
     from .stable import safe_contact_bounds
@@ -317,6 +327,16 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                    "ran past the safe step at the fitted values (State.aux['unstable']); "
                    f"lower dt or tighten the [fit.bounds] of k / c ({message})")
     values = {f.name: float(f.from_x(x[i])) for i, f in enumerate(free)}
+    near = 1e-9 * (1.0 + np.abs(np.asarray(x, float)))
+    ends = [f"{f.name} = {values[f.name]:.6g} "
+            f"({'lower' if abs(x[i] - lo[i]) <= near[i] else 'upper'})"
+            for i, f in enumerate(free)
+            if min(abs(x[i] - lo[i]), abs(x[i] - hi[i])) <= near[i]]
+    if ends:
+        message += ("; at a bound (the records favour a value beyond it: widen [fit.bounds], "
+                    f"or take the bound as the answer; a log-space leaf without bounds moves at "
+                    f"most a factor {LOG_SPAN:g} from its start, the safe step caps contact k "
+                    f"and c): {', '.join(ends)}")
     m = int(np.count_nonzero(np.any(J != 0, axis=1)))
     p = len(free)
     JtJ = J.T @ J
@@ -333,8 +353,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         se_x = np.where(blind, np.inf, np.sqrt(np.maximum(np.diag(cov), 0.0)))
         corr = np.where(np.outer(blind, blind) | np.outer(blind, ~blind)
                         | np.outer(~blind, blind), np.nan, cov / np.outer(se_x, se_x))
-    stderr = {f.name: float(values[f.name] * se_x[i] if f.log else se_x[i])
-              for i, f in enumerate(free)}
+    stderr = {f.name: float(math.inf if blind[i] else values[f.name] * se_x[i] if f.log
+                            else se_x[i]) for i, f in enumerate(free)}
     fitted = with_leaves(params, {n: jnp.asarray(v, sim.dtype) for n, v in values.items()})
     return TrajFitResult(fitted, names, values, stderr, corr, undetermined, cost_start, cost,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
