@@ -52,7 +52,12 @@ from .stable import params_unstable, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
-           "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN"]
+           "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN", "AUTO_HORIZON"]
+
+#: a record fit whose scene file gives no ``[fit] horizon`` first fits these fractions of its
+#: longest record, then the whole records (oscillating and tumbling records have local
+#: minima that a fit of the whole records from a start a factor 2 off falls into)
+AUTO_HORIZON = (0.125, 0.25, 0.5)
 
 #: how far (a factor) a log-space leaf may move from its start value in a record fit where
 #: its bounds allow more (``[fit.bounds]`` closer in win)
@@ -455,8 +460,10 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
     the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
     (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
-    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records) and
-    ``flight_frames``, else ``"record"``, ``(None,)`` and ``FLIGHT_FRAMES`` (20).
+    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records; ``horizon =
+    []``: the whole records only) and ``flight_frames``, else ``"record"``,
+    :data:`AUTO_HORIZON` of the longest record (+ the whole records) and ``FLIGHT_FRAMES``
+    (20).
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
@@ -471,11 +478,15 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                        "fit, with optional [fit.bounds]).")
     free = free_from_spec(sf.spec)
     estimate = estimate or sf.spec.first_state or "record"
-    if horizons is None:
-        horizons = tuple(sf.spec.horizon or ()) + (None,)
     max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
+    if horizons is None:
+        if sf.spec.horizon is not None:
+            horizons = tuple(sf.spec.horizon) + (None,)
+        else:
+            longest = max(float(r.t[-1] - r.t[0]) for r in records)
+            horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
     if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
         raise FitError(f"--out {out}: its folder does not exist.")
     t0 = time.perf_counter()

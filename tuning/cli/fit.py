@@ -51,7 +51,9 @@ def add_arguments(p) -> None:
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
                    help="with SCENE.toml --data: fit the first S seconds of every record "
-                        "first, then longer (growing horizon), the whole records last")
+                        "first, then longer (growing horizon), the whole records last "
+                        "(default: the scene file's [fit] horizon, else 1/8, 1/4 and 1/2 of "
+                        "the longest record)")
     p.add_argument("--starts", type=count("--starts", minimum=0), default=0, metavar="N",
                    help="with SCENE.toml --data: N more start points drawn around the scene "
                         "file's values (a factor 3 for log-space leaves, 1/10 of the bounds "

@@ -63,6 +63,7 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     first_state = "fit"             # record fits: "record" (row 0) or "fit" (parabola);
     flight_frames = 20              #   its cap on flight frames (default 20);
     horizon = [0.5, 1.0]            #   growing-horizon stages, s, before the whole records
+                                    #   (default 1/8, 1/4, 1/2 of the longest; [] none)
     [fit.bounds]                    # "path" = [lo, hi]
     [fit.space]                     # "path" = "log" | "linear" (default: linear for offsets
                                     #   and other signed leaves, log for positive ones)

@@ -77,8 +77,10 @@ class _FitTable:
                  if "first_state" in fit else None)
         frames = (V.integer(w / "flight_frames", fit["flight_frames"], low=3)
                   if "flight_frames" in fit else None)
-        horizon = (sorted(V.number_list(w / "horizon", fit["horizon"], low=0.0, low_open=True,
-                                        unit="s")) if "horizon" in fit else None)
+        # [] says "the whole records only" (absent: the built-in growing horizon)
+        horizon = (None if "horizon" not in fit else [] if fit["horizon"] == [] else
+                   sorted(V.number_list(w / "horizon", fit["horizon"], low=0.0, low_open=True,
+                                        unit="s")))
         free, bounds, space = self.fit_params(w, fit, sf, k, c)
         return FitSpec(free=free, bounds=bounds, space=space, targets=targets, data=data,
                        body=body, plane=plane, observe=observe, method=method,
