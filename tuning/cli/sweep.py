@@ -150,17 +150,7 @@ def _run(args) -> int:
         raise CLIError(f"k={args.k[1]:g} N/m, c={args.c[1]:g} N s/m is past the stability limit "
                        f"of dt={args.dt:g} s (k dt^2 + 2 c dt < 4 m): lower --dt or the ranges")
     est = check_size(nk * nc, steps, args.chunk)
-    if getattr(args, "process_id", None) in (None, 0):      # process 0 alone writes
-        from ..io import check_output
-        check_output(args.out, what="--out")
-    if not args.out.endswith(".npz"):
-        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
-    if getattr(args, "process_id", None) in (None, 0):
-        check_output(args.out[:-4] + ".csv", what="--out's table")
-        if args.plot:
-            check_output(args.plot, what="--plot")
-            from ..plots import require_matplotlib
-            require_matplotlib()
+    _check_outputs(args)
     check_cluster_arguments(args)
     setup_jax()
     quiet = join_cluster(args) and not _is_writer()     # process 0 alone writes and prints
@@ -269,18 +259,9 @@ def _run_scene(args) -> int:
     if ball_only:
         raise CLIError(f"{', '.join(ball_only)} set the built-in ball's sweep; a scene file "
                        "sweeps --param PATH LO HI (its dt, duration and bodies are in the file)")
-    if not args.out.endswith(".npz"):
-        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
-    if getattr(args, "process_id", None) in (None, 0):
-        from ..io import check_output
-        check_output(args.out, what="--out")
-        check_output(args.out[:-4] + ".csv", what="--out's table")
-        if args.plot:
-            check_output(args.plot, what="--plot")
-            from ..plots import require_matplotlib
-            require_matplotlib()
+    _check_outputs(args)
     check_cluster_arguments(args)
-    axes = [(p, _number(lo, f"--param {p} LO"), _number(hi, f"--param {p} HI"))
+    axes = [(p, finite(f"--param {p} LO")(lo), finite(f"--param {p} HI")(hi))
             for p, lo, hi in (args.param or [])]
     setup_jax()
     quiet = join_cluster(args) and not _is_writer()
@@ -351,11 +332,18 @@ def _run_scene(args) -> int:
     return 0
 
 
-def _number(text: str, name: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise CLIError(f"{name} must be a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise CLIError(f"{name} must be finite, got {text!r}")
-    return v
+def _check_outputs(args) -> None:
+    """``--out`` (a ``.npz``), its ``.csv`` and ``--plot`` writable, checked by process 0
+    (the one that writes) before anything is computed."""
+    writer = getattr(args, "process_id", None) in (None, 0)
+    if writer:
+        from ..io import check_output
+        check_output(args.out, what="--out")
+    if not args.out.endswith(".npz"):
+        raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
+    if writer:
+        check_output(args.out[:-4] + ".csv", what="--out's table")
+        if args.plot:
+            check_output(args.plot, what="--plot")
+            from ..plots import require_matplotlib
+            require_matplotlib()
