@@ -302,7 +302,8 @@ def _run_scene(args) -> int:
                 point=None if best is None else tuple(best["point"].values()),
                 title=f"{metric}: {len(ax0)} x {len(ax1)} sweep of "
                       f"{os.path.basename(args.scene)}"
-                      + (f", {info['records']} records" if info["records"] else ""))
+                      + (f", {info['records']} record{'s' if info['records'] != 1 else ''}"
+                         if info["records"] else ""))
     out = {"scene": args.scene, "points": int(res.points.shape[0]),
            "grid": [len(a) for a in info["axes"].values()],
            "axes": {n: [float(a[0]), float(a[-1])] for n, a in info["axes"].items()},
