@@ -692,3 +692,32 @@ def test_default_growing_horizon_escapes_a_swing_minimum(tmp_path):
     whole.write_text(CLOTH.format(k=200.0, c=0.2) + "horizon = []\n")
     out = tf.fit_files(str(whole), [rec], maxiter=1)
     assert out["horizons"] == [None]
+
+
+def test_a_growing_horizon_never_ends_worse_than_its_start(tmp_path):
+    """Regression: the shorter horizons can move parameters the early frames do not fix; on
+    records of a swinging rope observed at three of its five free nodes (the other two
+    started as the scene file says, not as the record's swing), the first stage drove k
+    to its bound and the fit ended at 315% position error against 38% at the start (now
+    17%, the whole-record fit's own answer for these inconsistent records). Now
+    the whole-record stage starts from the start point when that is better there, so a fit
+    never ends above its start."""
+    text = ("dt = 1e-3\n[[ropes]]\nn = 6\nstart = [0.0, 0.0, 1.0]\nend = [0.5, 0.0, 1.0]\n"
+            "mass = 0.3\nk = 150.0\nc = 0.1\npinned = [0]\nvelocity = [0.0, {vy}, 0.0]\n"
+            "[fit]\nparams = [\"springs.rope.stretch.k\", \"springs.rope.stretch.c\"]\n"
+            "observe = [\"rope[2]\", \"rope[4]\", \"rope[5]\"]\n")
+    recs = []
+    for i, vy in enumerate((0.5, -1.0)):
+        scene, rec = _record_file(tmp_path, text.format(vy=vy),
+                                  {"springs.rope.stretch.k": 400.0,
+                                   "springs.rope.stretch.c": 0.6},
+                                  ["rope[2]", "rope[4]", "rope[5]"], f"swing{i}",
+                                  integrator="rk4", dt=2.5e-4, every=5e-3, duration=1.0,
+                                  noise=2e-4, seed=i)
+        recs.append(rec)
+    start = tmp_path / "rope.toml"
+    start.write_text(text.format(vy=0.0))
+    out = tf.fit_files(str(start), recs)
+    assert out["horizons"][-1] is None and len(out["horizons"]) == 4
+    assert (out["after"]["position_error_pct"]["mean"]
+            <= out["before"]["position_error_pct"]["mean"])

@@ -280,11 +280,16 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                                                           spread)
     keep = max(1, min(int(keep), len(cands)))
     screened = []
+
+    @jax.jit
+    def cost_flag(x, horizon):
+        r, bad = resid_flag(x, horizon)
+        return jnp.sum(r * r), bad
+
+    def whole_cost(x):
+        c, bad = cost_flag(jnp.asarray(x), jnp.asarray(np.inf))
+        return math.inf if int(bad) or not np.isfinite(float(c)) else float(c)
     if len(cands) > 1:
-        @jax.jit
-        def cost_flag(x, horizon):
-            r, bad = resid_flag(x, horizon)
-            return jnp.sum(r * r), bad
         h0 = jnp.asarray(np.inf if horizons[0] is None else float(horizons[0]))
         for xc in cands:
             c, bad = cost_flag(jnp.asarray(xc), h0)
@@ -300,7 +305,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 f.name: f.from_x(x[i]) for i, f in enumerate(free)}))):
             continue                    # past the safe step: no LM from here
         hist, message, cost_start = [], "", None
-        for hz in horizons:
+        for j, hz in enumerate(horizons):
+            if hz is None and j > 0 and whole_cost(cands[ci]) < whole_cost(x):
+                # the shorter horizons led somewhere the whole records like less than the
+                # start (parameters the early frames do not determine can drift): the
+                # whole-record stage starts from the start point instead
+                x = cands[ci]
             h = jnp.asarray(np.inf if hz is None else float(hz))
             res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
                                       progress=bar, offset=it_all)
