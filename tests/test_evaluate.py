@@ -115,3 +115,51 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
     # bad input: a clear error, exit status 2
     assert main(["evaluate", scene, "--data", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
+
+
+TWO = """
+dt = 1e-3
+[[boxes]]
+name = "a"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.3]
+velocity = [0.5, 0.0, 0.0]
+body_angular_velocity = [1.0, 2.0, 0.0]
+[[boxes]]
+name = "b"
+half_extents = [0.04, 0.06, 0.03]
+mass = 0.5
+position = [1.0, 0.0, 0.3]
+[[planes]]
+"""
+
+
+def test_plots_show_every_observed_body(tmp_path, monkeypatch):
+    """Regression: with several observed bodies the plot drew the first body only, under a
+    title giving the error of all of them. Now each record gets a row per body (up to 3),
+    titled with the body's name and its own errors."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+    scene = tmp_path / "two.toml"
+    scene.write_text(TWO)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    rec = tf.synthetic_record(sim, sf.params(sim), 0.3, 5e-3, {"a": 0, "b": 1})
+    batch = tf.prepare(sim, [rec], bodies={"a": 0, "b": 1}, estimate="record")
+    result = ev.evaluate_batch(sim, sf.params(sim), batch)
+    figs, subplots = [], plt.subplots
+
+    def spy(*a, **k):
+        fig, axes = subplots(*a, **k)
+        figs.append(fig)
+        return fig, axes
+    monkeypatch.setattr(plt, "subplots", spy)
+    path = ev.plot_records(str(tmp_path / "two.png"), batch, result)
+    titles = [ax.get_title() for ax in figs[0].axes]
+    assert len(figs[0].axes) == 4                              # 2 bodies x (position, rotation)
+    assert any(", a: position error" in s for s in titles)
+    assert any(", b: position error" in s for s in titles)
+    assert any("rotation error, b" in s for s in titles)
+    with open(path, "rb") as fh:
+        assert fh.read(8) == b"\x89PNG\r\n\x1a\n"

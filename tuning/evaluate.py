@@ -126,9 +126,10 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
 
 def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
                  title: str | None = None) -> str:
-    """Draw measured (dots) against simulated (lines) trajectories of a few records: per
-    record the observed body's x, y, z (m) and, with orientations, the rotation error
-    (deg) against time. Needs matplotlib (imported here). Returns ``path``."""
+    """Draw measured (dots) against simulated (lines) trajectories of a few records: a row
+    per record and observed body (the first 3 bodies): its x, y, z (m) and, with
+    orientations, its rotation error (deg) against time, each titled with that body's mean
+    error. Needs matplotlib (imported here). Returns ``path``."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -136,37 +137,44 @@ def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
     except ImportError:
         raise ImportError("plots need matplotlib: pip install 'diffpen[plot]'") from None
     which = list(range(min(4, len(batch.paths)))) if which is None else list(which)
+    bodies = list(range(min(len(batch.names), 3)))           # a row per record and body
+    rows = [(r, b) for r in which for b in bodies]
     cols = 2 if batch.has_rotation else 1
-    fig, axes = plt.subplots(len(which), cols, figsize=(5.5 * cols, 2.4 * len(which)),
+    fig, axes = plt.subplots(len(rows), cols, figsize=(5.5 * cols, 2.4 * len(rows)),
                              squeeze=False)
     colors = ("tab:blue", "tab:orange", "tab:green")
-    for row, r in enumerate(which):
+    for row, (r, b) in enumerate(rows):
         n = int(batch.length[r])
         t = batch.time[r, :n]
         ax = axes[row, 0]
-        for b in range(min(len(batch.names), 1 if batch.has_rotation else 3)):
-            for a, c in enumerate(colors):
-                ok = batch.pos_mask[r, :n, b] > 0
-                ax.plot(t[ok], batch.pos[r, :n, b, a][ok], ".", ms=2.5, color=c,
-                        label=f"measured {'xyz'[a]}" if b == 0 else None)
-                ax.plot(t, ev.pos[r, :n, b, a], "-", lw=1.2, color=c,
-                        label=f"simulated {'xyz'[a]}" if b == 0 else None)
+        ok = batch.pos_mask[r, :n, b] > 0
+        for a, c in enumerate(colors):
+            ax.plot(t[ok], batch.pos[r, :n, b, a][ok], ".", ms=2.5, color=c,
+                    label=f"measured {'xyz'[a]}")
+            ax.plot(t, ev.pos[r, :n, b, a], "-", lw=1.2, color=c,
+                    label=f"simulated {'xyz'[a]}")
         name = batch.paths[r].rsplit("/", 1)[-1]
-        rec = ev.records[r]
-        ax.set_title(f"{name}: position error {rec['position_error_pct']:.1f}%", fontsize=9)
+        who = f", {batch.names[b]}" if len(batch.names) > 1 else ""
+        d = np.linalg.norm(ev.pos[r, :n, b] - batch.pos[r, :n, b], axis=-1)[ok]
+        pe = 100.0 * float(np.mean(d)) / float(batch.size[b]) if d.size else math.nan
+        ax.set_title(f"{name}{who}: position error {pe:.1f}%", fontsize=9)
         ax.set_ylabel("m")
         if row == 0:
             ax.legend(fontsize=7, ncol=2)
         if batch.has_rotation:
             ax = axes[row, 1]
-            ang = np.degrees(np.asarray(rotation_angle(jnp.asarray(ev.quat[r, :n, 0]),
-                                                       jnp.asarray(batch.quat[r, :n, 0]))))
-            ax.plot(t, ang, "-", color="tab:red")
-            ax.set_title(f"rotation error (mean {rec['rotation_error_deg']:.1f} deg)",
-                         fontsize=9)
+            okq = batch.quat_mask[r, :n, b] > 0
+            ang = np.degrees(np.asarray(rotation_angle(jnp.asarray(ev.quat[r, :n, b]),
+                                                       jnp.asarray(batch.quat[r, :n, b]))))
+            if okq.any():
+                ax.plot(t[okq], ang[okq], "-", color="tab:red")
+                ax.set_title(f"rotation error{who} (mean {float(np.mean(ang[okq])):.1f} "
+                             "deg)", fontsize=9)
+            else:
+                ax.set_title(f"no orientations measured{who}", fontsize=9)
             ax.set_ylabel("deg")
         for ax in axes[row]:
-            ax.set_xlabel("t (s)") if row == len(which) - 1 else None
+            ax.set_xlabel("t (s)") if row == len(rows) - 1 else None
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
