@@ -721,3 +721,28 @@ def test_a_growing_horizon_never_ends_worse_than_its_start(tmp_path):
     assert out["horizons"][-1] is None and len(out["horizons"]) == 4
     assert (out["after"]["position_error_pct"]["mean"]
             <= out["before"]["position_error_pct"]["mean"])
+
+
+def test_first_states_are_computed_once_per_fit(tmp_path, monkeypatch):
+    """prepare(cache=...) keeps each record's first states, so a fit's evaluation batch and
+    its length buckets estimate them once (a tumbling box's torque-free fit costs 25-110 ms
+    a record)."""
+    from tuning import record_batch
+    scene, rec = _record_file(tmp_path, BOX.format(k=400.0, c=2.0), {}, ["box"], "box",
+                              integrator="rk4", dt=5e-4, every=5e-3, duration=0.1,
+                              noise=0.0, seed=0)
+    sf = load_scene_file(scene)
+    sim = sf.compile()
+    records, bodies = tf.load_records(sf, [rec, rec])
+    calls = []
+    real = record_batch.first_state
+    monkeypatch.setattr(record_batch, "first_state", lambda *a, **k: calls.append(1) or
+                        real(*a, **k))
+    cache = {}
+    one = tf.prepare(sim, records, bodies=bodies, cache=cache)
+    tf.prepare_buckets(sim, records, bodies=bodies, cache=cache)
+    assert len(calls) == 2                         # two records, one body each
+    again = tf.prepare(sim, records, bodies=bodies)
+    assert len(calls) == 4                         # without the cache: estimated again
+    np.testing.assert_array_equal(np.asarray(one.start.position),
+                                  np.asarray(again.start.position))

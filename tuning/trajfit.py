@@ -503,11 +503,13 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
+    first_states = {}                   # shared by the evaluation batch and the fit's buckets
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
+                    cache=first_states)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
     buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
-                              max_frames=max_frames)
+                              max_frames=max_frames, cache=first_states)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress)
