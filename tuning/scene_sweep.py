@@ -111,7 +111,6 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
 
     from .io import describe_simulator
     from .scenefile import load_scene_file
-    from .stable import rollout_unstable
     from .sweep import grid_points, sweep
     from .trajfit import load_records, prepare
     sf = load_scene_file(scene_path)
@@ -148,7 +147,7 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
         if not batch.has_rotation:
             kept = kept[:2]
     else:
-        from .metrics import ball_metrics
+        from .bounce import bounce_metrics_fn
         body = spec.body if spec is not None else 0
         plane = spec.plane if spec is not None else 0
         tol = spec.settle_tol if spec is not None else 1e-3
@@ -160,15 +159,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
         steps = sf.setup.steps
         key.update(body=body, plane=plane, settle_tol=tol, steps=steps, n_apex=3)
         kept = list(BOUNCE_METRICS) + ["settled"]
-
-        def metrics_fn(params):
-            s0 = sim.init_state()
-            traj = sim.rollout(params, steps, s0, save_every=1, check_finite=False,
-                               check_stability=False)
-            m = ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=3,
-                             settle_tol=tol, state0=s0)._asdict()
-            m["unstable"] = rollout_unstable(sim, traj, params)
-            return m
+        metrics_fn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=3,
+                                       settle_tol=tol)
 
     def finalize(m, pts):
         if "settled" in m:      # not settled within the rollout: NaN, not its end

@@ -495,7 +495,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         if sf.spec.horizon is not None:
             horizons = tuple(sf.spec.horizon) + (None,)
         else:
-            longest = max(float(r.t[-1] - r.t[0]) for r in records)
+            longest = max(r.duration for r in records)
             horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
     if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
         raise FitError(f"--out {out}: its folder does not exist.")

@@ -158,22 +158,14 @@ def _run(args) -> int:
 
     import diffpen as dp
 
+    from ..bounce import bounce_metrics_fn
     from ..io import describe_simulator
-    from ..metrics import ball_metrics
     from ..scenes import ball_scene
-    from ..stable import contact_unstable, rollout_unstable
+    from ..stable import contact_unstable
     from ..sweep import grid_points, sweep
     scene = ball_scene(radius=args.radius, mass=args.mass, height=args.drop)
     sim = dp.compile(scene, args.dt)
-
-    def mfn(params):
-        s0 = sim.init_state()
-        # the metrics read every state: the whole trajectory, said explicitly
-        traj = sim.rollout(params, steps, s0, save_every=1, check_finite=False)
-        m = ball_metrics(sim, traj, params, n_apex=3, settle_tol=args.settle_tol,
-                         state0=s0)._asdict()
-        m["unstable"] = rollout_unstable(sim, traj, params)      # the traced flag
-        return m
+    mfn = bounce_metrics_fn(sim, steps, n_apex=3, settle_tol=args.settle_tol)
 
     def finalize(m, pts):
         # settling not reached within the rollout: NaN, not the rollout's end
