@@ -139,7 +139,20 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
 
 def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: bool,
                             has_aux: bool, args: tuple, kwargs: dict):
-    loss = _scalar_loss(lambda *a: fun(*a, **kwargs), has_aux)
+    """Forward mode with the batched layout of :func:`_forward_batched` under ``jax.vmap``.
+
+    Keyword arguments travel as positional arguments of the batching rule, so a batched
+    keyword value is seen as batched. A batched value that ``fun`` closes over (not an
+    argument) is invisible to the rule (``custom_vmap`` refuses it with an
+    ``AssertionError``); such a call takes plain forward mode under the outer ``vmap``
+    instead (the same values, lanes inside the batch: slower on large batches)."""
+    keys = tuple(kwargs)
+    n_args = len(args)
+
+    def call(*a):
+        return fun(*a[:n_args], **dict(zip(keys, a[n_args:])))
+    loss = _scalar_loss(call, has_aux)
+    flat = (*args, *(kwargs[k] for k in keys))
 
     @jax.custom_batching.custom_vmap
     def vg(*a):
@@ -149,7 +162,11 @@ def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: boo
     def _rule(axis_size, in_batched, *a):
         return _forward_batched(loss, argnums, single, has_aux, axis_size, list(in_batched),
                                 a)
-    return vg(*args)
+    try:
+        return vg(*flat)
+    except AssertionError:
+        # a batched value closed over by fun: custom_vmap cannot batch it
+        return _forward(loss, argnums, single, has_aux, flat)
 
 
 def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, mode: str = "auto",

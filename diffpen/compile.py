@@ -501,6 +501,8 @@ class Simulator:
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
                             cache=self.gate_cache)                # host-side only
+        if check_stability:
+            _checks.check_spin(self, state, int(n))
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
                                  substeps=int(n), observe=observe)

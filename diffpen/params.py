@@ -61,7 +61,11 @@ def cast(dtype, v):
 def _given_or_declared(given: dict, name: str, fallback, declared):
     """``(k, c)`` of ``name``: ``given[name]`` (else ``fallback``), each None replaced by the
     scene's declared ``declared.k`` / ``declared.c``."""
-    kk, cc = given.get(name, fallback)
+    pair = given.get(name, fallback)
+    if not isinstance(pair, (tuple, list)) or len(pair) != 2:
+        raise SceneError(f"the value for {name!r} must be a (k, c) pair (None keeps the "
+                         f"scene's value), got {pair!r}.")
+    kk, cc = pair
     return (declared.k if kk is None else kk), (declared.c if cc is None else cc)
 
 
@@ -101,6 +105,10 @@ def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
                                     sim.scene.spring_groups[name])
         out_s[name] = _checked_pair(sim, SpringParams, "spring", f"group {name!r}", kk, cc)
     out_x = dict(extra or {})
+    unknown = set(out_x) - set(sim._extra_defaults)
+    if unknown:
+        raise SceneError(f"params extra names {sorted(unknown)}, not in this scene; known: "
+                         f"{sorted(sim._extra_defaults)}.")
     for name, default in sim._extra_defaults.items():
         given = out_x.get(name, {})
         if isinstance(default, dict):
@@ -116,3 +124,31 @@ def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
         elif name not in out_x:
             out_x[name] = default
     return Params(out_c, out_s, out_x)
+
+
+def validate(sim, params: Params) -> None:
+    """Check a :class:`Params` given to a rollout as :func:`build` checks its arguments: the
+    simulator's materials, spring groups and extra entries, each value a scalar; finite and
+    within its range when concrete (a params tree edited with ``_replace`` passes through
+    here too). Raises :class:`SceneError` saying what to change."""
+    def same(kind, got, want):
+        if not isinstance(got, dict) or set(got) != set(want):
+            have = sorted(got) if isinstance(got, dict) else type(got).__name__
+            raise SceneError(f"params.{kind} has {have}, this simulator has {sorted(want)}: "
+                             "build params with sim.params(...) (edits with ._replace keep "
+                             "every entry).")
+    same("contact", params.contact, sim.materials)
+    same("springs", params.springs, sim.spring_groups)
+    same("extra", params.extra, sim._extra_defaults)
+    for kind, tree, owner in (("contact", params.contact, "material"),
+                              ("spring", params.springs, "group")):
+        for name, pair in tree.items():
+            _check_value(f"{kind} k of {owner} {name!r} (N/m)", pair[0])
+            _check_value(f"{kind} c of {owner} {name!r} (N s/m)", pair[1])
+    for name, default in sim._extra_defaults.items():
+        if not isinstance(default, dict):
+            continue
+        same(f"extra[{name!r}]", params.extra[name], default)
+        check = sim._extra_checks.get(name, _check_value)
+        for g, v in params.extra[name].items():
+            check(f"{name} parameter of group {g!r}", v)

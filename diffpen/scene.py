@@ -93,7 +93,7 @@ class Scene:
           material: contact material name (see :meth:`add_material`).
           collide: whether it touches planes and fixed spheres.
           allow_overlap: start it inside a collider or another body on purpose (otherwise an
-            initial overlap deeper than 5% of the smaller size raises SceneError; see
+            initial overlap deeper than 50% of the smaller size raises SceneError; see
             :mod:`diffpen.overlap`).
         """
         return self._add_body("particle", mass, 0.0, position, velocity, pinned, material,
@@ -178,7 +178,13 @@ class Scene:
             c = positive(f"material {name!r} c (N s/m)", c, allow_zero=True)
         friction = positive(f"material {name!r} friction", friction, allow_zero=True)
         slip_speed = positive(f"material {name!r} slip_speed (m/s)", slip_speed)
-        self.materials[name] = Material(k, c, friction, slip_speed)
+        new = Material(k, c, friction, slip_speed)
+        old = self.materials.get(name)
+        if old is not None and old != Material() and old != new:
+            raise SceneError(f"material {name!r} is already declared as {old}: a second "
+                             f"declaration ({new}) would change it for everything that uses "
+                             "it. Declare each material once, or give this one another name.")
+        self.materials[name] = new
         return name
 
     def _check_material(self, material: str) -> None:
@@ -194,7 +200,13 @@ class Scene:
             raise SceneError(f"spring group name must be a non-empty string, got {name!r}.")
         k = positive(f"spring group {name!r} k (N/m)", k, allow_zero=True)
         c = positive(f"spring group {name!r} c (N s/m)", c, allow_zero=True)
-        self.spring_groups[name] = SpringGroup(k, c)
+        new, old = SpringGroup(k, c), self.spring_groups.get(name)
+        if old is not None and old != new:
+            raise SceneError(f"spring group {name!r} is already declared with k = {old.k} N/m, "
+                             f"c = {old.c} N s/m: a second declaration (k = {new.k}, c = "
+                             f"{new.c}) would change every spring in it. Declare each group "
+                             "once, or give this one another name.")
+        self.spring_groups[name] = new
         return name
 
     def add_spring(self, a: int, b, *, k: float | None = None, c: float | None = None,
@@ -351,6 +363,13 @@ class Scene:
             if inertia is not None:
                 inertia = tuple(positive("inertia (kg m^2)", v)
                                 for v in finite_vec("inertia (kg m^2)", inertia, 3))
+                big = max(inertia)
+                if big > (sum(inertia) - big) * (1.0 + 1e-9):
+                    raise SceneError(
+                        f"inertia {inertia} kg m^2 cannot be a rigid body's principal "
+                        "moments: each must be at most the sum of the other two (a thin "
+                        "plate reaches equality). Check the values and their order (body "
+                        "x, y, z axes).")
             rigid = dataclasses.replace(
                 body, rigid=True, orientation=tuple(float(v) for v in q / norm),
                 angular_velocity=w, inertia=inertia, half_extents=half_extents)

@@ -39,6 +39,11 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
             sim._rigid is None or not all(sim.scene.bodies[i].rigid for i in idx)):
         raise SceneError("orientation and angular_velocity can be set for rigid bodies "
                          "only (scene.add_box / scene.add_rigid_sphere).")
+    pinned = [int(i) for i in idx if sim.pinned[i]]
+    if pinned and (velocity is not None or angular_velocity is not None):
+        raise SceneError(f"body {pinned[0]} is pinned (fixed in space, it never moves): it "
+                         "takes no velocity. Set velocities of free bodies only, or unpin it "
+                         "in the scene.")
     s = sim.init_state() if state is None else state
 
     def rows(v, width):

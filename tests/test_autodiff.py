@@ -129,3 +129,27 @@ def test_errors():
         dp.value_and_grad(lambda x: jnp.sum(x) * 1.0, mode="forward")(jnp.arange(3))
     with pytest.raises(ValueError, match="argnums"):
         dp.value_and_grad(lambda x: jnp.sum(x), argnums=2)(jnp.ones(3))
+
+
+def test_forward_mode_under_vmap_with_a_batched_keyword_or_closure(ball):
+    """Forward mode (what "auto" picks here) failed with a bare AssertionError under
+    ``jax.vmap`` when the batched value reached the loss as a keyword argument or through
+    a closure; both now equal reverse mode row by row."""
+    sim, _, _ = ball
+
+    def height(s):
+        return s.position[0, 2]
+
+    def loss(k, c, z0=0.5):
+        st = sim.state_from(body=0, position=jnp.array([0.0, 0.0, 1.0]) * z0)
+        h = sim.rollout(sim.params(k=k, c=c), steps=STEPS, state=st, observe=height).observed
+        return jnp.mean(h)
+    z0s = jnp.array([0.4, 0.5])
+    rev = jax.vmap(lambda z: dp.value_and_grad(loss, (0, 1), mode="reverse")(3e3, 8.0, z0=z))(z0s)
+    kw = jax.vmap(lambda z: dp.value_and_grad(loss, (0, 1), mode="auto")(3e3, 8.0, z0=z))(z0s)
+    cl = jax.vmap(lambda z: dp.value_and_grad(lambda k, c: loss(k, c, z), (0, 1),
+                                              mode="forward")(3e3, 8.0))(z0s)
+    for got in (kw, cl):
+        np.testing.assert_allclose(got[0], rev[0], rtol=1e-12)
+        for g, r in zip(got[1], rev[1]):
+            np.testing.assert_allclose(g, r, rtol=1e-9)

@@ -151,3 +151,128 @@ def test_too_many_pairs_without_a_broad_phase_are_refused_before_compiling(monke
                                             r".*broadphase=diffpen.broadphase.Grid\(\)"):
         dp.compile(scene, 1e-3)
     dp.compile(scene, 1e-3, broadphase=dp.broadphase.Grid())
+
+
+# --------------------------------------------------------------------------- probes
+def test_rollout_checks_params_edited_with_replace(sim):
+    """rollout re-checks the values of a params tree edited with ``_replace`` as
+    ``sim.params`` does (a negative k sent a box 25 km below its plane; a NaN friction
+    crashed in the stability gate with an int conversion)."""
+    from diffpen.state import ContactParams
+    p = sim.params(k=1e4, c=20.0)
+    for pair, words in [((-1e4, 20.0), ["contact k", "'default'", ">= 0"]),
+                        ((1e4, float("nan")), ["contact c", "finite"]),
+                        ((np.array([1e4, 2e4]), 20.0), ["scalar", "shape (2,)"])]:
+        bad = p._replace(contact={"default": ContactParams(*map(np.asarray, pair))})
+        with pytest.raises(dp.SceneError) as e:
+            sim.rollout(bad, 10)
+        for w in words:
+            assert w in str(e.value)
+    with pytest.raises(dp.SceneError, match="params.contact has"):
+        sim.rollout(p._replace(contact={}), 10)
+
+
+def test_unknown_extra_keys_are_refused():
+    """A misspelt ``extra`` key was dropped silently: the box rested on the plane the
+    user meant to move."""
+    s = dp.Scene()
+    s.add_material("ice", k=1e4, c=20.0, friction=0.2)
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.1))
+    s.add_plane(material="ice", name="ground")
+    bsim = dp.compile(s, 5e-4)
+    with pytest.raises(dp.SceneError, match=r"plane_ofset.*known: \['friction', 'plane_offset'\]"):
+        bsim.params(extra={"plane_ofset": {"ground": 0.05}})
+    p = bsim.params()
+    with pytest.raises(dp.SceneError, match="friction parameter of group 'ice' must be >= 0"):
+        bsim.rollout(p._replace(extra={**p.extra, "friction": {"ice": -0.5}}), 10)
+    with pytest.raises(dp.SceneError, match=r"params.extra\['friction'\] has \[\]"):
+        bsim.rollout(p._replace(extra={**p.extra, "friction": {}}), 10)
+
+
+def test_a_pinned_body_takes_no_velocity():
+    """A pinned particle given a velocity through ``state_from`` drifted 1 m in 1 s."""
+    s = dp.Scene()
+    a = s.add_particle(1.0, (0.0, 0.0, 1.0), pinned=True)
+    b = s.add_particle(1.0, (0.0, 0.0, 0.5))
+    s.add_spring(a, b, k=100.0, c=1.0)
+    psim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.SceneError, match="body 0 is pinned"):
+        psim.state_from(body=a, velocity=(1.0, 0.0, 0.0))
+    st = psim.init_state()
+    moved = st._replace(velocity=st.velocity.at[a].set(jnp.array([1.0, 0.0, 0.0])))
+    with pytest.raises(dp.SceneError, match="body 0 is .*pinned"):
+        psim.rollout(psim.params(), 10, moved)
+    # placing the pin elsewhere is allowed, and it stays there
+    placed = psim.state_from(body=a, position=(0.5, 0.0, 1.0))
+    assert np.allclose(psim.rollout(psim.params(), 10, placed).position[-1, a], [0.5, 0.0, 1.0])
+
+
+def test_start_state_orientation_and_time_are_checked():
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(0.5, 4.0, 0.3))
+    bsim = dp.compile(s, 1e-3)
+    st = bsim.init_state()
+    with pytest.raises(dp.SceneError, match="norm 0: orientations are unit quaternions"):
+        bsim.rollout(bsim.params(), 10, st._replace(orientation=jnp.zeros_like(st.orientation)))
+    with pytest.raises(dp.SceneError, match="time is nan"):
+        bsim.rollout(bsim.params(), 10, st._replace(time=jnp.asarray(np.nan)))
+
+
+def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
+    """A box spinning at 300 rad/s (0.3 rad per 1 ms step) under semi-implicit Euler came
+    back with NaN orientations and no error (only positions were checked)."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+              inertia=(1.0, 2.0, 3.0))
+    bsim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.StabilityError, match=r"spins at \|w\| = 300.3 rad/s.*substeps=7"):
+        bsim.rollout(bsim.params(), 400)
+    # past the gate (check_stability=False) the NaN orientation is caught, not returned
+    with pytest.raises(dp.NonFiniteError, match="became NaN/inf by step"):
+        bsim.rollout(bsim.params(), 400, check_stability=False)
+    # the fix it names steps it: 7 substeps, or verlet at the same dt
+    assert np.isfinite(bsim.rollout(bsim.params(), 400, substeps=7).orientation).all()
+    vsim = dp.compile(s, 1e-3, integrator="verlet")
+    assert np.isfinite(vsim.rollout(vsim.params(), 400).orientation).all()
+
+
+def test_anchored_spring_between_particles_equals_a_spring():
+    """Zero anchors on two particles (accepted by the scene) crashed the rollout: the term
+    read orientations a scene without rotating bodies does not have."""
+    def scene(anchored):
+        s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        s.add_particle(1.0, (0.0, 0.0, 0.0))
+        s.add_particle(2.0, (1.0, 0.0, 0.0), velocity=(0.3, 0.1, 0.0))
+        if anchored:
+            s.add_anchored_spring(0, 1, k=10.0, c=0.5, rest_length=0.5)
+        else:
+            s.add_spring(0, 1, k=10.0, c=0.5, rest_length=0.5)
+        return dp.compile(s, 1e-3)
+    a, b = scene(True), scene(False)
+    ta, tb = a.rollout(a.params(), 300), b.rollout(b.params(), 300)
+    assert np.allclose(ta.position, tb.position, rtol=0, atol=1e-12)
+
+
+def test_redeclaring_a_material_or_group_with_other_values_is_refused():
+    s = dp.Scene()
+    s.add_material("rubber", k=3e3, c=10.0, friction=0.5)
+    s.add_material("rubber", k=3e3, c=10.0, friction=0.5)         # the same: fine
+    with pytest.raises(dp.SceneError, match="material 'rubber' is already declared"):
+        s.add_material("rubber", k=3e3)
+    s.add_material("default", k=1e4, c=20.0)                      # the blank default: fine
+    s.add_spring_group("g", k=5.0, c=0.1)
+    with pytest.raises(dp.SceneError, match="spring group 'g' is already declared"):
+        s.add_spring_group("g", k=6.0, c=0.1)
+
+
+def test_box_inertia_must_be_physical():
+    s = dp.Scene()
+    with pytest.raises(dp.SceneError, match="at most the sum of the other two"):
+        s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0), inertia=(1.0, 1.0, 3.0))
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0), inertia=(1.0, 2.0, 3.0))   # a plate
+
+
+def test_compile_unroll_must_be_an_int():
+    for bad in (1.5, "x", 0, True):
+        with pytest.raises(dp.SceneError, match="unroll must be a positive integer"):
+            dp.compile(ball_scene(), 1e-3, unroll=bad)

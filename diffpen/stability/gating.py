@@ -233,6 +233,14 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
         return n
     if not rep.safe:
         h = rep.inner_dt
+        if not rep.safe_dt > 0.0 or rep.substeps_needed > MAX_AUTO_SUBSTEPS:
+            raise StabilityError(
+                f"integrator {an.integrator.name!r} has no practical step here: the safe step "
+                f"is {rep.safe_dt:.3g} s (w_max <= {rep.omega_max:.4g} rad/s, C/m <= "
+                f"{rep.damping_rate:.4g} 1/s, set by {rep.limiting or 'the springs and contacts'}"
+                f"), {rep.substeps_needed} substeps per step of {an.dt:g} s. Lower that "
+                "stiffness, damping or friction, or raise the mass.",
+                stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
         why = ("unstable" if not rep.stable else
                f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
                f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "

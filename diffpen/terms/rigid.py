@@ -299,16 +299,22 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
     def force(params, state):
         k, c = ctx.spring_kc(params, gi)
         xa, va = gather(state.position, ia, n), gather(state.velocity, ia, n)
-        wa = gather(state.angular_velocity, ia, n)
-        rot_a = _rigid.quat_to_matrix(gather(state.orientation, ia, n))
+        # a scene without rotating bodies has no orientations: its springs have zero anchors
+        # (Scene.add_anchored_spring), on bodies that neither turn nor take torque
+        turning = state.orientation is not None
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=xa.dtype), xa.shape + (3,))
+        wa = gather(state.angular_velocity, ia, n) if turning else jnp.zeros_like(xa)
+        rot_a = _rigid.quat_to_matrix(gather(state.orientation, ia, n)) if turning else eye
         if all_world:
             xb = world_x
             vb = wb = jnp.zeros_like(xa)
-            rot_b = jnp.broadcast_to(jnp.eye(3, dtype=xa.dtype), rot_a.shape)
+            rot_b = eye
         else:
             xb = end_b(state, state.position) + (world_x if has_world else 0.0)
-            vb, wb = end_b(state, state.velocity), end_b(state, state.angular_velocity)
-            rot_b = _rigid.quat_to_matrix(gather(state.orientation, ib, n))
+            vb = end_b(state, state.velocity)
+            wb = end_b(state, state.angular_velocity) if turning else jnp.zeros_like(xa)
+            rot_b = (_rigid.quat_to_matrix(gather(state.orientation, ib, n)) if turning
+                     else eye)
         x, xd, u, r_a, r_b = jax.vmap(anchored_spring_pair)(xa, va, wa, rot_a, anchor_a, xb,
                                                              vb, wb, rot_b, anchor_b, rest)
         f = spring_force(x, xd, k, c)[:, None] * u          # on a, at its anchor
@@ -317,7 +323,7 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
             fb = jnp.where(is_world, 0.0, f) if has_world else f
             force = force - scatter(fb, ib, n)
             tau = tau - scatter(jnp.cross(r_b, fb), ib, n)
-        return force, tau
+        return force, (tau if turning else None)
     return Term("anchored_springs", force)
 
 
