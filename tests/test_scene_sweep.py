@@ -161,3 +161,17 @@ def test_cli_scene_sweep(box_files, capsys):
     assert main(["sweep", scene, "--param", "contact.board.k", "1", "x", "--data", rec,
                  "--out", out]) == 2
     assert "must be a number" in capsys.readouterr().err
+
+
+def test_cli_bounce_sweep_counts_the_unsettled_points(tmp_path, capsys):
+    """The scene file's bounce sweep reports how many points did not settle, as the
+    ball's sweep does (their settling_time is NaN)."""
+    text = open(os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")).read()
+    scene = tmp_path / "ball.toml"
+    scene.write_text(text.replace("duration = 3.0", "duration = 0.6"))
+    capsys.readouterr()
+    assert main(["sweep", str(scene), "--param", "contact.rubber.k", "5e3", "2e4", "--param",
+                 "contact.rubber.c", "10", "40", "--n", "2", "--metric", "apex_heights",
+                 "--out", str(tmp_path / "b.npz"), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["unsettled"] == 4                  # 0.6 s: no ball settles

@@ -228,3 +228,31 @@ def test_cluster_launchers_are_detected(monkeypatch):
     monkeypatch.setenv("OMPI_MCA_orte_hnp_uri", "1.0;tcp://10.0.0.1:1234")
     monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "4")
     assert distributed.detect() == "ompi"
+
+
+def test_cluster_sweep_prints_only_its_json_on_standard_output(tmp_path):
+    """``diffpen sweep --json`` on 2 processes: process 0's standard output is one JSON
+    object (the cluster transport's "[Gloo] Rank 0 is connected" line came first, so
+    ``json.load`` failed); process 1 prints nothing there."""
+    import json
+    import subprocess
+    import sys
+
+    from device_subprocess import _env, free_port
+    coordinator = f"localhost:{free_port()}"
+    args = ["sweep", "--n", "2", "--duration", "0.4", "--dt", "2e-3", "--json",
+            "--out", str(tmp_path / "s.npz"), "--coordinator", coordinator,
+            "--num-processes", "2"]
+    procs = [subprocess.Popen([sys.executable, "-m", "tuning.cli", *args, "--process-id",
+                               str(i)], env=_env(1), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for i in range(2)]
+    try:
+        outs = [p.communicate(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
+    summary = json.loads(outs[0][0])
+    assert summary["points"] == 4
+    assert outs[1][0].strip() == ""

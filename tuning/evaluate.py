@@ -26,6 +26,7 @@ import numpy as np
 
 import diffpen as dp
 
+from .errors import FitError
 from .first_state import FLIGHT_FRAMES
 from .trajfit import Batch, rotation_angle, simulate
 
@@ -202,7 +203,14 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     records, bodies = load_records(sf, list(data) if data else list(
         (sf.spec.data if sf.spec is not None else None) or []))
     if plot is not None:
-        os.makedirs(plot, exist_ok=True)
+        if os.path.exists(plot) and not os.path.isdir(plot):
+            raise FitError(f"--plot {plot} is a file: --plot names a folder for the "
+                           "pictures (one PNG per record); give a folder path.")
+        try:
+            os.makedirs(plot, exist_ok=True)
+        except OSError as exc:
+            raise FitError(f"--plot {plot}: cannot create the folder ({exc.strerror}); "
+                           "choose another path.") from None
     spec = sf.spec
     estimate = estimate or (spec.first_state if spec is not None else None) or "record"
     max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \

@@ -52,10 +52,11 @@ def version() -> str:
 
 
 # --------------------------------------------------------------------------- paths
-def check_output(path, *, what: str = "output") -> str:
+def check_output(path, *, what: str = "output", ext: str | None = None) -> str:
     """Check that ``path`` can be written as a file; return it as an absolute path.
 
-    Raises :class:`OutputError` naming ``what`` (e.g. ``"--out"``) when the path is empty, is
+    Raises :class:`OutputError` naming ``what`` (e.g. ``"--out"``; ``ext``: the file type its
+    example name suggests, default by ``what``) when the path is empty, is
     a directory, its parent folder does not exist or is not a folder, or either cannot be
     written. Nothing is created.
     """
@@ -64,7 +65,7 @@ def check_output(path, *, what: str = "output") -> str:
     p = os.path.abspath(os.fspath(path))
     if os.path.isdir(p) or str(path).endswith(os.sep):
         raise OutputError(f"{what} {path} is a directory: give a file name inside it, e.g. "
-                          f"{os.path.join(str(path), 'result' + _ext(what))}.")
+                          f"{os.path.join(str(path), 'result' + (ext or _ext(what)))}.")
     folder = os.path.dirname(p)
     if not os.path.exists(folder):
         raise OutputError(f"{what} {path}: the folder {folder} does not exist; create it "

@@ -91,16 +91,18 @@ def _body_map(scene, records, bodies):
 
 def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             estimate: str = "record", max_frames: int = FLIGHT_FRAMES,
-            cache: dict | None = None) -> Batch:
+            cache: dict | None = None, scene=None) -> Batch:
     """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
     ``estimate``). ``cache``: a dict that keeps the first states across calls on the same
     record objects (a tumbling box's torque-free fit takes 25-110 ms a record), e.g. the
-    evaluation batch and the fit's buckets of one fit. ``bodies``: ``{record body name:
+    evaluation batch and the fit's buckets of one fit. ``scene``: the scene the first
+    states are estimated against (default ``sim.scene``; e.g. with fitted plane offsets). ``bodies``: ``{record body name:
     scene body index}``; default: the only
     free body for one-body records, else names that are indices."""
     if not records:
         raise FitError("no records: give at least one record file.")
-    scene = sim.scene
+    if scene is None:
+        scene = sim.scene
     bmap = _body_map(scene, records, bodies)
     names = list(bmap)
     idx = np.array([bmap[n] for n in names], dtype=np.int32)

@@ -89,7 +89,8 @@ def _digest(path: str) -> str:
 def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence | None = None,
                      *, n: Sequence[int] = (16,), out: str | None = None, resume: bool = True,
                      chunk: int = 64, estimate: str | None = None,
-                     max_frames: int | None = None, progress: bool | None = False):
+                     max_frames: int | None = None, progress: bool | None = False,
+                     check=None):
     """Sweep the scene file's parameters (see the module docstring).
 
     Args:
@@ -102,6 +103,9 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
       estimate, max_frames: the records' first-state estimate and its cap on flight frames
         (None: the file's ``[fit]`` values, else ``"record"`` / ``FLIGHT_FRAMES``).
       progress: see :func:`tuning.sweep.sweep`.
+      check: ``check(info)`` called with the ``axes`` and ``metrics`` of ``info`` once they
+        are known, before any point is computed or written (e.g. the CLI's ``--metric`` and
+        ``--plot``); it raises to stop the sweep.
     Returns:
       ``(SweepResult, info)``: ``info`` holds ``axes`` ({path: values}), ``metrics`` (the
       names kept), ``records`` (count) and ``simulator`` (the compiled
@@ -161,6 +165,9 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
         kept = list(BOUNCE_METRICS) + ["settled"]
         metrics_fn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=3,
                                        settle_tol=tol)
+
+    if check is not None:
+        check({"axes": grid_axes, "metrics": kept})
 
     def finalize(m, pts):
         if "settled" in m:      # not settled within the rollout: NaN, not its end

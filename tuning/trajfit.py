@@ -29,6 +29,7 @@ This module also holds the params-leaf helpers (:func:`get_leaf`, :func:`with_le
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -153,7 +154,8 @@ class TrajFitResult:
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
       eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest.
-    cost_start, cost: pose loss (mean over records) before and after.
+    cost_start, cost: pose loss (mean over records) at the start and at the fitted values,
+      both over the whole records (with a growing horizon too).
     horizons: the horizons (s) fitted in turn.  iterations: LM iterations in all.
     history: cost after each iteration.  seconds: wall time.  message: LM's last word.
     unstable: records whose rollout at the fitted values ran past the safe step; when > 0
@@ -304,9 +306,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         if bool(params_unstable(sim, with_leaves(params, {
                 f.name: f.from_x(x[i]) for i, f in enumerate(free)}))):
             continue                    # past the safe step: no LM from here
-        hist, message, cost_start = [], "", None
+        hist, message = [], ""
+        # the start's cost on the whole records, the scale of the final cost (the first
+        # stage of a growing horizon sees only the first seconds of every record)
+        cost_start = whole_cost(cands[ci])
         for j, hz in enumerate(horizons):
-            if hz is None and j > 0 and whole_cost(cands[ci]) < whole_cost(x):
+            if hz is None and j > 0 and cost_start < whole_cost(x):
                 # the shorter horizons led somewhere the whole records like less than the
                 # start (parameters the early frames do not determine can drift): the
                 # whole-record stage starts from the start point instead
@@ -314,8 +319,6 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
             h = jnp.asarray(np.inf if hz is None else float(hz))
             res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
                                       progress=bar, offset=it_all)
-            if cost_start is None:
-                cost_start = float(res.cost_history[0])
             x = res.x
             it_all += res.iterations
             hist += [float(c) for c in res.cost_history]
@@ -497,8 +500,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         else:
             longest = max(r.duration for r in records)
             horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
-    if out is not None and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
-        raise FitError(f"--out {out}: its folder does not exist.")
+    if out is not None:
+        _check_out(out, scene_path, data)
     t0 = time.perf_counter()
     sim = sf.compile()
     params = sf.params(sim)
@@ -513,10 +516,25 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress)
+    moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
+             if name.startswith("extra.plane_offset.")}
+    if estimate == "fit" and moved:
+        # the first-state estimate counts flight frames against the planes: evaluated as the
+        # fitted scene file is (diffpen evaluate), with its fitted plane offsets
+        scene = copy.copy(sim.scene)
+        scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
+                        else pl for pl in sim.scene.planes]
+        batch = prepare(sim, records, bodies=bodies, estimate=estimate,
+                        max_frames=max_frames, scene=scene)
+        ev_fn = evaluator(sim, batch)
     after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
+    out_error = None
     if out is not None:
         from .fitted_scene import write_fitted
-        write_fitted(scene_path, res.values, out)
+        try:
+            write_fitted(scene_path, res.values, out)
+        except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
+            out_error = f"could not write --out {out}: {exc}"
     summary = res.as_dict()
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
@@ -525,9 +543,29 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                                  "rotation_error_deg": before.rotation_error_deg},
         "after": {"position_error_pct": after.position_error_pct,
                   "rotation_error_deg": after.rotation_error_deg},
-        "out": out, "seconds": time.perf_counter() - t0, "fit_seconds": res.seconds,
-        "reached": not (res.unstable or after.unstable)})
+        "out": None if out_error else out, "seconds": time.perf_counter() - t0,
+        "fit_seconds": res.seconds, "reached": not (res.unstable or after.unstable)})
+    if out_error:
+        summary["out_error"] = out_error
     return summary
+
+
+def _check_out(out: str, scene_path: str, data) -> None:
+    """``--out``: a writable ``.toml`` file that is not one of the inputs, checked before
+    anything is compiled (a typo must not cost a fit, nor overwrite a record)."""
+    from .io import OutputError, check_output
+    try:
+        p = check_output(out, what="--out", ext=".toml")
+    except OutputError as exc:
+        raise FitError(str(exc)) from None
+    if not p.lower().endswith(".toml"):
+        raise FitError(f"--out {out}: the fitted scene is a TOML file; give a name ending in "
+                       ".toml.")
+    inputs = [scene_path, *(data or [])]
+    if any(os.path.exists(f) and os.path.samefile(p, f) if os.path.exists(p) else False
+           for f in inputs):
+        raise FitError(f"--out {out} is one of the inputs (the scene file or a record): "
+                       "write the fitted scene to a new file.")
 
 
 def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, bodies: dict,

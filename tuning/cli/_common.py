@@ -51,12 +51,24 @@ def join_cluster(args) -> bool:
     """Join the cluster the arguments (or the launcher's environment) describe, after
     :func:`setup_jax` and before any computation; True when running as one of several
     processes. Bad flags raise :class:`CLIError`."""
-    from ..distributed import join, process_count
+    from ..distributed import detect, join, process_count
+    if (args.num_processes or 1) > 1 or (args.coordinator is None and detect() is not None):
+        _c_stdout_to_stderr()
     try:
         return join(args.coordinator, args.num_processes, args.process_id) \
             and process_count() > 1
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+
+
+def _c_stdout_to_stderr() -> None:
+    """Send what native code prints on standard output (the cluster transport's "[Gloo]
+    Rank 0 is connected ..." lines) to standard error, and keep Python's ``print`` on the
+    real standard output: ``--json`` then prints nothing but its JSON object."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = os.fdopen(saved, "w", buffering=1)
 
 
 def check_cluster_arguments(args) -> None:

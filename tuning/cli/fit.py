@@ -8,6 +8,7 @@ settling time ``DEFAULT_SETTLE`` s (band 1 mm).
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 from ._common import (CLIError, add_start_state_arguments, count, dump_json, fail, fmt,
@@ -24,11 +25,11 @@ DEFAULT_SETTLE = 2.6
 def add_arguments(p) -> None:
     p.add_argument("scene", nargs="?", metavar="SCENE.toml",
                    help="a scene file with [fit] targets (default: the built-in ball)")
-    p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m "
+    p.add_argument("--radius", type=positive("--radius"), help="ball radius, m "
                    "(default 0.1)")
-    p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg "
+    p.add_argument("--mass", type=positive("--mass"), help="ball mass, kg "
                    "(default 1)")
-    p.add_argument("--drop", type=positive("--drop"), default=1.0,
+    p.add_argument("--drop", type=positive("--drop"),
                    help="initial centre height, m (default 1)")
     p.add_argument("--target-apex", type=positive("--target-apex"), nargs="+", metavar="M",
                    help="apex heights of the lowest point above the plane, m, bounce by "
@@ -37,7 +38,7 @@ def add_arguments(p) -> None:
                    help=f"settling time, s (default {DEFAULT_SETTLE} when no target is given)")
     p.add_argument("--target-contact", type=positive("--target-contact"), metavar="S",
                    help="duration of the first contact, s")
-    p.add_argument("--settle-tol", type=positive("--settle-tol"), default=1e-3, metavar="M",
+    p.add_argument("--settle-tol", type=positive("--settle-tol"), metavar="M",
                    help="settling band: |z - rest| <= tol, m (default 1e-3)")
     p.add_argument("--data", metavar="FILE.csv", nargs="+",
                    help="fit to measured records: without a scene file, one CSV with columns "
@@ -63,7 +64,7 @@ def add_arguments(p) -> None:
                         "fit of lowest cost (default 1)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
-    p.add_argument("--law", type=law_name, default="linear",
+    p.add_argument("--law", type=law_name,
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default linear)")
     p.add_argument("--method", choices=["lm", "adam", "sgd"], default="lm",
                    help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
@@ -110,10 +111,30 @@ def _check_plot(args) -> None:
         require_matplotlib()
 
 
+#: The built-in ball's flags and their defaults: a scene file has its own values.
+BALL_FLAGS = {"radius": 0.1, "mass": 1.0, "drop": 1.0, "settle_tol": 1e-3, "law": "linear",
+              "dt": None, "k0": None, "c0": None, "target_apex": None,
+              "target_settle": None, "target_contact": None}
+
+
+def _refuse_ball_flags(args, why: str) -> None:
+    """A scene file sets the ball's geometry, law, step, start values and targets itself:
+    say so rather than ignore the flags given."""
+    given = ["--" + n.replace("_", "-") for n in BALL_FLAGS if getattr(args, n) is not None]
+    if given:
+        raise CLIError(f"{' '.join(given)} set the built-in ball's fit; {why} takes them from "
+                       "the scene file (edit its values, targets or [fit] table)")
+
+
 def _run(args) -> int:
     if args.maxiter is not None and args.maxiter < 1:
         raise CLIError("--maxiter must be a positive integer")
     _check_plot(args)
+    if args.scene is not None:
+        _refuse_ball_flags(args, f"a fit of {args.scene}")
+    for name, default in BALL_FLAGS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
@@ -315,16 +336,11 @@ def _records_in_file(path: str) -> bool:
 
 def _run_records(args) -> int:
     """SCENE.toml --data FILES...: the scene file's [fit] params fitted to all records."""
-    if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
-        raise CLIError("--data fits measured records; drop the --target-* flags")
     if args.method != "lm":
         raise CLIError("fits to records use Levenberg-Marquardt (--method lm)")
     if args.plot:
         raise CLIError("--plot draws ball fits; for records run diffpen evaluate FITTED.toml "
                        "--data FILES... --plot DIR on the scene written by --out")
-    if args.k0 is not None or args.c0 is not None:
-        raise CLIError("--k0/--c0 set the ball's start; a scene file's start values are its "
-                       "own (edit the file)")
     setup_jax()
     from ..trajfit import fit_files
     horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else None
@@ -332,9 +348,15 @@ def _run_records(args) -> int:
                     loss=args.loss, horizons=horizons, maxiter=args.maxiter,
                     starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
                     progress=False if args.json else None)
+    status = 0 if out["reached"] else 1
+    if out.get("out_error"):
+        status = 2
     if args.json:
         dump_json(out)
-        return 0
+        if out.get("out_error"):
+            print(f"diffpen fit: error: {out['out_error']} (the fitted values are in the "
+                  "JSON above)", file=sys.stderr)
+        return status
     print(f"diffpen fit: {args.scene} on {out['records']} record(s) "
           f"({out['estimate']} first state, {args.loss} pose loss)")
     for name, v in out["fitted"].items():
@@ -356,5 +378,9 @@ def _run_records(args) -> int:
     if out["out"]:
         print(f"wrote:     {out['out']}")
     print(f"status:    {out['message']}; {out['iterations']} LM iterations, "
-          f"{out['seconds']:.2f} s wall time ({out['fit_seconds']:.2f} s fitting)")
-    return 0
+          f"{out['seconds']:.2f} s wall time ({out['fit_seconds']:.2f} s fitting)"
+          + ("" if out["reached"] else "; NOT a result: a rollout ran past the safe step"))
+    if out.get("out_error"):
+        print(f"diffpen fit: error: {out['out_error']} (the fitted values are printed "
+              "above)", file=sys.stderr)
+    return status

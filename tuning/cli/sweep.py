@@ -260,18 +260,24 @@ def _run_scene(args) -> int:
     import numpy as np
 
     from ..scene_sweep import sweep_scene_file
+
+    def check(plan):            # before anything is computed or written
+        kept, names = plan["metrics"], list(plan["axes"])
+        if (args.metric or kept[0]) not in kept:
+            raise CLIError(f"--metric {args.metric} is not measured by this sweep; it "
+                           f"measures {', '.join(kept)}")
+        if args.plot and len(names) != 2:
+            raise CLIError(f"--plot draws a sweep over two parameters; this one has "
+                           f"{len(names)}: {', '.join(names)}")
     res, info = sweep_scene_file(args.scene, args.data or (), axes or None,
                                  n=args.n or [16], out=args.out, resume=not args.fresh,
                                  chunk=args.chunk or 32, estimate=args.first_state,
                                  max_frames=args.flight_frames,
-                                 progress=False if args.json or quiet else None)
+                                 progress=False if args.json or quiet else None, check=check)
     if quiet:
         return 0
     kept = info["metrics"]
     metric = args.metric or kept[0]
-    if metric not in kept:
-        raise CLIError(f"--metric {metric} is not measured by this sweep; it measures "
-                       f"{', '.join(kept)}")
     values = np.asarray(res.metrics[metric], float)
     values = values[:, 0] if values.ndim > 1 else values
     names = list(info["axes"])
@@ -282,9 +288,6 @@ def _run_scene(args) -> int:
         best = {"value": float(values[i]),
                 "point": {n: float(res.points[i, j]) for j, n in enumerate(names)}}
     if args.plot:
-        if len(names) != 2:
-            raise CLIError(f"--plot draws a sweep over two parameters; this one has "
-                           f"{len(names)}: {', '.join(names)}")
         from ..plots import heatmap
         ax0, ax1 = (info["axes"][n] for n in names)
         logs = tuple(bool(a[0] > 0 and np.allclose(np.diff(np.log(a)), np.log(a[1] / a[0])))
@@ -304,6 +307,8 @@ def _run_scene(args) -> int:
            "csv": args.out[:-4] + ".csv", "plot": args.plot,
            "range": [float(np.nanmin(values)), float(np.nanmax(values))]
            if finite_.any() else None, "lowest": best, "unstable": res.unstable}
+    if "settled" in res.metrics:        # the bounce: as the ball's sweep reports it
+        out["unsettled"] = int(np.sum(~np.asarray(res.metrics["settled"], bool)))
     if args.json:
         dump_json(out)
         return 0
@@ -321,6 +326,9 @@ def _run_scene(args) -> int:
     if res.unstable:
         print(f"{res.unstable} points are past the scene's safe step: their metrics are NaN "
               "(lower dt in the scene file to compute them)")
+    if out.get("unsettled"):
+        print(f"{out['unsettled']} points did not settle within the scene's duration: their "
+              "settling_time is NaN")
     print(f"wrote {args.out} and {out['csv']}" + (f"; heatmap {args.plot}" if args.plot else ""))
     return 0
 
