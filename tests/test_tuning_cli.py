@@ -133,3 +133,16 @@ def test_fit_data_csv(capsys, tmp_path):
     assert rc == 0
     assert out["k"] == pytest.approx(1e4, rel=0.02) and out["c"] == pytest.approx(20, rel=0.02)
     assert out["k_stderr"] > 0 and out["c_stderr"] > 0
+
+
+def test_an_interrupted_command_says_so_without_a_traceback(monkeypatch, capsys):
+    """Ctrl-C on a sweep printed a KeyboardInterrupt traceback; it now says how to resume
+    and exits 130 (the sweep's file is written atomically after every chunk)."""
+    from tuning.cli import sweep as sweep_cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(sweep_cli, "run", interrupted)
+    from tuning.cli import main as cli_main
+    assert cli_main(["sweep", "--n", "2"]) == 130
+    assert "interrupted; rerun the same command to resume" in capsys.readouterr().err

@@ -55,7 +55,15 @@ def main(argv=None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
-    return int(args._run(args) or 0)
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        # long runs write their results atomically as they go: nothing half-written is
+        # left, and a sweep resumes where it stopped
+        print(f"diffpen {argv[0]}: interrupted"
+              + ("; rerun the same command to resume the sweep" if argv[0] == "sweep"
+                 else ""), file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
