@@ -107,7 +107,7 @@ GOOD = _rows()
      r"line 3, column 5 \(qw\): the quaternion has norm 1.11803, not 1"),
     ("t,x,y,z\n" + "".join(f"{i * 10},0,0,1\n" for i in range(10)), "look like milliseconds"),
     ("t,x,y,z\n0,0,0,1\n0.1,0,0,145\n", r"line 3, column 4 \(z\): 145 m .* look like "
-                                        "millimetres"),
+                                        "centimetres or millimetres"),
     ("t,x,y,z\n0,1,2,3\n", "1 data row"),
     ('t,x,y,z\n0,"1,2,3\n', "cells"),
     ("t,x,y,z\n0,1_0,2,3\n0.1,1,2,3\n", "'1_0' is not a number"),
@@ -150,7 +150,7 @@ def test_ball_height_record_reads_through_the_same_module(tmp_path):
         load_csv(ms)
     mm = _write(tmp_path, "t,z\n" + "".join(f"{i * 0.005},{1000 - i}\n" for i in range(40)),
                 name="mm.csv")
-    with pytest.raises(RecordError, match="look like millimetres"):
+    with pytest.raises(RecordError, match="look like centimetres or millimetres"):
         load_csv(mm)
     ok = _write(tmp_path, "\ufefft,z,extra\n" + "".join(f"{i * 0.005},{1 - i * 1e-3},x\n"
                                                          for i in range(40)), name="ok.csv")

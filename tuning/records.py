@@ -53,7 +53,7 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 QUAT_TOL = 1e-3
 #: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
 MS_SPAN = 60.0
-#: a height |z| beyond this (m) looks like millimetres
+#: a height |z| beyond this (m) looks like centimetres or millimetres
 MM_LIMIT = 20.0
 
 
@@ -376,8 +376,9 @@ def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
             j = groups["position"][2]
             raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
                               f"{p[r, 2]:g} m is beyond {MM_LIMIT:g} m: positions look like "
-                              "millimetres, but they are in metres. Divide by 1000 (or pass "
-                              "check_units=False if they really are metres).")
+                              "centimetres or millimetres, but they are in metres. Divide by "
+                              "100 or 1000 (or pass check_units=False if they really are "
+                              "metres).")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 
@@ -411,8 +412,9 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     if check_units and np.abs(z).max() > MM_LIMIT:
         r = int(np.argmax(np.abs(z)))
         raise RecordError(f"{path}, line {data[r][0]}, column {iz + 1} (z): {z[r]:g} m is "
-                          f"beyond {MM_LIMIT:g} m: heights look like millimetres, but z is in "
-                          "metres. Divide by 1000 (or pass check_units=False).")
+                          f"beyond {MM_LIMIT:g} m: heights look like centimetres or "
+                          "millimetres, but z is in metres. Divide by 100 or 1000 (or pass "
+                          "check_units=False).")
     return t, z
 
 
