@@ -146,3 +146,12 @@ def test_an_interrupted_command_says_so_without_a_traceback(monkeypatch, capsys)
     from tuning.cli import main as cli_main
     assert cli_main(["sweep", "--n", "2"]) == 130
     assert "interrupted; rerun the same command to resume" in capsys.readouterr().err
+
+
+def test_sweep_target_needs_a_plot(tmp_path, capsys):
+    """--target (a contour on the heatmap) without --plot was ignored silently."""
+    from tuning.cli import main as cli_main
+    assert cli_main(["sweep", "--n", "2", "--target", "0.3",
+                     "--out", str(tmp_path / "s.npz")]) == 2
+    assert "--target marks a contour on the --plot heatmap" in capsys.readouterr().err
+    assert not (tmp_path / "s.npz").exists()

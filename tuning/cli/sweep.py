@@ -336,6 +336,9 @@ def _run_scene(args) -> int:
 def _check_outputs(args) -> None:
     """``--out`` (a ``.npz``), its ``.csv`` and ``--plot`` writable, checked by process 0
     (the one that writes) before anything is computed."""
+    if args.target is not None and not args.plot:
+        raise CLIError("--target marks a contour on the --plot heatmap; give --plot FILE.png "
+                       "too")
     writer = getattr(args, "process_id", None) in (None, 0)
     if writer:
         from ..io import check_output
