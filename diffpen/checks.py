@@ -158,37 +158,52 @@ def _last_state_finite(fields):
     return jnp.all(jnp.stack([jnp.isfinite(f[-1]).all() for f in fields]))
 
 
-#: Largest start spin, rad per inner step (``|w| dt / substeps``), that semi-implicit Euler
-#: is allowed to step: it integrates Euler's equations explicitly, which grows a spinning
-#: body's energy (a free box with moments 1:2:3 over 5000 steps: +0.008% at 0.003 rad per
-#: step, +1.9% at 0.03, +35% at 0.05, NaN by 0.1; verlet and rk4: within 0.4% up to 0.3).
+#: Largest start spin that semi-implicit Euler is allowed to step, as ``kappa |w| h`` (rad per
+#: inner step ``h``, scaled by the body's inertia anisotropy ``kappa = max |I_j - I_k| / I_i``,
+#: 0 for a sphere or a cube, 1 for moments 1:2:3). It integrates Euler's equations
+#: explicitly, which grows a spinning body's energy by about ``0.16 (kappa |w| h)^2`` per
+#: step (over 5000 steps, worst of three spin axes: +2% at 0.005, +8% at 0.01, +42% at 0.02,
+#: x2.5 at 0.03, NaN from 0.05 to 0.1); verlet and rk4 stay within 0.4% at |w| h = 0.3.
 SPIN_LIMIT = 0.05
+
+
+def anisotropy(inertia) -> float:
+    """``kappa = max_i |I_j - I_k| / I_i`` of principal moments ``inertia`` (3,): how fast the
+    gyroscopic term ``w x I w`` turns a spin, per unit ``|w|`` (0 for equal moments)."""
+    i = np.asarray(inertia, dtype=float)
+    return float(max(abs(i[1] - i[2]) / i[0], abs(i[0] - i[2]) / i[1],
+                     abs(i[0] - i[1]) / i[2]))
 
 
 def check_spin(sim, state, substeps: int) -> None:
     """Refuse (:class:`StabilityError`) a concrete start state in which a rigid body spins
-    faster than :data:`SPIN_LIMIT` rad per inner step under semi-implicit Euler, saying
-    which dt, substeps or integrator would step it."""
+    faster than :data:`SPIN_LIMIT` (``kappa |w| h``) under semi-implicit Euler, saying which
+    dt, substeps or integrator would step it."""
     from .params import _is_concrete
+    from .rigid import inertia_diagonal
     w = getattr(state, "angular_velocity", None)
     if (w is None or sim.integrator != "semi_implicit_euler" or not _is_concrete(w)
             or _batched(state)):
         return
+    kappa = np.array([anisotropy(inertia_diagonal(b)) if b.rigid and not b.pinned else 0.0
+                      for b in sim.scene.bodies])
+    if not kappa.any():
+        return
     h = sim.dt / substeps
     speed = np.linalg.norm(np.asarray(w, dtype=float).reshape(-1, 3), axis=-1)
-    if not speed.size or not np.isfinite(speed).all():
+    rate = kappa * speed * h
+    if not rate.size or not np.isfinite(rate).all() or rate.max() <= SPIN_LIMIT:
         return
-    b = int(np.argmax(speed))
-    if speed[b] * h <= SPIN_LIMIT:
-        return
-    need = int(np.ceil(speed[b] * h / SPIN_LIMIT))
+    b = int(np.argmax(rate))
+    need = int(np.ceil(rate[b] / SPIN_LIMIT))
     raise StabilityError(
-        f"body {b} spins at |w| = {speed[b]:.4g} rad/s: {speed[b] * h:.3g} rad per step of "
-        f"{h:.3g} s. Semi-implicit Euler steps the rotation explicitly and grows a fast "
-        f"spin's energy until it turns NaN (above {SPIN_LIMIT} rad per step). Use dt <= "
-        f"{SPIN_LIMIT / speed[b]:.3g} s, substeps={need * substeps}, or "
-        "integrator='verlet' or 'rk4' (stable to about 0.3 rad per step).",
-        stable_dt=SPIN_LIMIT / speed[b], substeps=need * substeps)
+        f"body {b} spins at |w| = {speed[b]:.4g} rad/s with inertia anisotropy kappa = "
+        f"{kappa[b]:.3g}: kappa |w| h = {rate[b]:.3g} per step of {h:.3g} s. Semi-implicit "
+        "Euler steps the gyroscopic term explicitly and grows such a spin's energy until it "
+        f"turns NaN (above {SPIN_LIMIT}). Use dt <= {SPIN_LIMIT / (kappa[b] * speed[b]):.3g} s, "
+        f"substeps={need * substeps}, or integrator='verlet' or 'rk4' (stable to about "
+        "|w| h = 0.3).",
+        stable_dt=SPIN_LIMIT / (kappa[b] * speed[b]), substeps=need * substeps)
 
 
 def check_finite_trajectory(traj, save_every: int, dt: float) -> None:
