@@ -51,48 +51,102 @@ def _family(law, what: str) -> str:
     return rec.closed_form
 
 
+def _nt_g(z):
+    """``g(zeta) = arccos(zeta) / sqrt(1 - zeta^2)`` for ``zeta < 1``, its continuation
+    ``arccosh(zeta) / sqrt(zeta^2 - 1)`` above (the overdamped no-tension contact still lets
+    go), 1 at ``zeta = 1``; near 1 its series ``sum a_n (zeta - 1)^n``, ``a_0 = 1``,
+    ``a_n = -n a_(n-1) / (2n + 1)`` (from ``(1 - z^2) g' = z g - 1``), so nothing cancels."""
+    u = z - 1.0
+    near = jnp.abs(u) < 0.1
+    un = jnp.where(near, u, 0.0)
+    series, a, p = jnp.ones_like(un), 1.0, jnp.ones_like(un)
+    for n in range(1, 14):
+        a = -n * a / (2 * n + 1)
+        p = p * un
+        series = series + a * p
+    below = z < 1.0
+    zb = jnp.where(~near & below, z, 0.5)
+    za = jnp.where(~near & ~below, z, 2.0)
+    under = jnp.arccos(zb) / jnp.sqrt(1.0 - zb * zb)
+    over = jnp.arccosh(za) / jnp.sqrt(za * za - 1.0)
+    return jnp.where(near, series, jnp.where(below, under, over))
+
+
 def _nt_log_e(z):
-    """ln e for the no-tension law as a function of zeta in (0, 1)."""
-    return -2.0 * z * jnp.arccos(z) / jnp.sqrt(1.0 - z * z)
+    """ln e of the no-tension law at damping ratio ``zeta`` >= 0 (every zeta: the contact
+    ends where its force reaches zero, with the body still moving out)."""
+    return -2.0 * z * _nt_g(z)
+
+
+def _concrete(*xs) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+def _require(name: str, x, ok, what: str) -> None:
+    """Raise ValueError naming ``name`` when concrete ``x`` fails ``ok`` (traced values pass:
+    under jit, vmap and grad out-of-range inputs give NaN or inf, as documented)."""
+    if not _concrete(x):
+        return
+    import numpy as np
+    a = np.asarray(x, dtype=float)
+    good = ok(a)
+    if not np.all(good):
+        bad = a[~good] if a.ndim else a
+        raise ValueError(f"{name} must be {what}, got {float(np.ravel(bad)[0]):g}.")
+
+
+def _positive(name, x):
+    import numpy as np
+    _require(name, x, lambda a: np.isfinite(a) & (a > 0.0), "a finite number > 0")
 
 
 def restitution(k, c, mass, law="linear"):
     """Coefficient of restitution of a ball on a fixed plane (no gravity during contact).
 
-    linear: ``exp(-pi zeta / sqrt(1 - zeta^2))``; no_tension: Schwager & Poschel (2007).
-    ``law``: a :class:`diffpen.laws.ContactLaw` or its name. Returns 0 for ``zeta >= 1``.
+    linear: ``exp(-pi zeta / sqrt(1 - zeta^2))``, 0 for ``zeta >= 1`` (the overdamped
+    linear contact never lets go); no_tension: ``exp(-2 zeta g(zeta))`` (Schwager &
+    Poschel 2007), ``g = arccos(zeta) / sqrt(1 - zeta^2)``, continued as ``arccosh(zeta) /
+    sqrt(zeta^2 - 1)`` above 1: the contact ends where its force reaches zero, so it always
+    lets go (``e(1) = exp(-2) = 0.135``, ``e ~ 1 / (4 zeta^2)`` for large zeta).
+    ``law``: a :class:`diffpen.laws.ContactLaw` or its name.
     """
     family = _family(law, "restitution")
     z = damping_ratio(k, c, mass)
+    if family == "no_tension":
+        return jnp.exp(_nt_log_e(z))
     under = z < 1.0
     zs = jnp.where(under, z, 0.5)
-    if family == "linear":
-        log_e = -jnp.pi * zs / jnp.sqrt(1.0 - zs * zs)
-    else:
-        log_e = _nt_log_e(zs)
-    return jnp.where(under, jnp.exp(log_e), 0.0)
+    return jnp.where(under, jnp.exp(-jnp.pi * zs / jnp.sqrt(1.0 - zs * zs)), 0.0)
 
 
 def contact_time(k, c, mass, law="linear"):
-    """Contact duration of a ball on a fixed plane, s (underdamped, no gravity); ``law`` a
-    :class:`diffpen.laws.ContactLaw` or its name."""
+    """Contact duration of a ball on a fixed plane, s (no gravity); ``law`` a
+    :class:`diffpen.laws.ContactLaw` or its name. linear: ``pi / (w0 sqrt(1 - zeta^2))``,
+    inf for ``zeta >= 1`` (it never lets go); no_tension: ``2 g(zeta) / w0`` for every zeta
+    (:func:`restitution`)."""
     family = _family(law, "contact_time")
     w0 = natural_frequency(k, mass)
     z = damping_ratio(k, c, mass)
-    s = jnp.sqrt(1.0 - z * z)
-    if family == "linear":
-        return jnp.pi / (w0 * s)
-    return 2.0 * jnp.arccos(z) / (w0 * s)
+    if family == "no_tension":
+        return 2.0 * _nt_g(z) / w0
+    under = z < 1.0
+    zs = jnp.where(under, z, 0.5)
+    return jnp.where(under, jnp.pi / (w0 * jnp.sqrt(1.0 - zs * zs)), jnp.inf)
 
 
 def zeta_from_restitution(e, law="linear"):
-    """Damping ratio giving restitution ``e`` in (0, 1); ``law`` a
+    """Damping ratio giving restitution ``e`` in (0, 1] (1: no damping); ``law`` a
     :class:`diffpen.laws.ContactLaw` or its name.
 
-    linear: ``zeta = -ln e / sqrt(pi^2 + ln^2 e)``. no_tension: solved by bisection with an
-    implicit-function gradient (one Newton step outside ``stop_gradient``).
+    linear: ``zeta = -ln e / sqrt(pi^2 + ln^2 e)`` (< 1). no_tension: solved by bisection
+    over ``[0, max(2, 1 / sqrt(e))]`` (it reaches every e > 0, overdamped below
+    ``exp(-2)``) with an implicit-function gradient (one Newton step outside
+    ``stop_gradient``). A concrete e outside (0, 1] raises ValueError.
     """
+    import numpy as np
     family = _family(law, "zeta_from_restitution")
+    _require("restitution e", e, lambda a: np.isfinite(a) & (a > 0.0) & (a <= 1.0),
+             "in (0, 1] (0 would need infinite damping)")
     log_e = jnp.log(e)
     if family == "linear":
         return -log_e / jnp.sqrt(jnp.pi ** 2 + log_e ** 2)
@@ -103,8 +157,9 @@ def zeta_from_restitution(e, law="linear"):
         mid = 0.5 * (lo + hi)
         go_up = _nt_log_e(mid) > target   # ln e decreases with zeta
         return jnp.where(go_up, mid, lo), jnp.where(go_up, hi, mid)
-    lo0 = jnp.zeros_like(target) + 1e-12
-    lo, hi = jax.lax.fori_loop(0, 60, body, (lo0, jnp.ones_like(target) - 1e-12))
+    lo0 = jnp.zeros_like(target)
+    hi0 = jnp.maximum(2.0, 1.0 / jnp.sqrt(jnp.exp(target)))
+    lo, hi = jax.lax.fori_loop(0, 80, body, (lo0, hi0))
     z0 = jax.lax.stop_gradient(0.5 * (lo + hi))
     dz = jax.grad(lambda z: _nt_log_e(z))
     slope = jnp.vectorize(dz)(z0)
@@ -112,24 +167,30 @@ def zeta_from_restitution(e, law="linear"):
 
 
 def kc_from_restitution(e, t_c, mass, law="linear"):
-    """(k [N/m], c [N s/m]) giving restitution ``e`` in (0, 1) and contact time ``t_c`` [s].
+    """(k [N/m], c [N s/m]) giving restitution ``e`` in (0, 1] and contact time ``t_c`` [s].
 
     Inverse of :func:`restitution` and :func:`contact_time` (no gravity during contact).
+    Concrete inputs out of range (e outside (0, 1], t_c or mass not > 0) raise ValueError.
     """
+    _positive("contact time t_c (s)", t_c)
+    _positive("mass (kg)", mass)
     z = zeta_from_restitution(e, law)
-    s = jnp.sqrt(1.0 - z * z)
     if _family(law, "kc_from_restitution") == "linear":
-        w0 = jnp.pi / (t_c * s)
+        w0 = jnp.pi / (t_c * jnp.sqrt(1.0 - z * z))
     else:
-        w0 = 2.0 * jnp.arccos(z) / (t_c * s)
+        w0 = 2.0 * _nt_g(z) / t_c
     return mass * w0 ** 2, 2.0 * z * mass * w0
 
 
 def kc_from_time_constant(tau, zeta, mass):
     """(k, c) from time constant ``tau = 1 / (zeta w0)`` [s] and damping ratio ``zeta``.
 
-    MuJoCo's ``solref`` convention: ``c = 2 m / tau``, ``k = m / (zeta tau)^2``.
+    MuJoCo's ``solref`` convention: ``c = 2 m / tau``, ``k = m / (zeta tau)^2``. Concrete
+    inputs that are not > 0 raise ValueError.
     """
+    _positive("time constant tau (s)", tau)
+    _positive("damping ratio zeta", zeta)
+    _positive("mass (kg)", mass)
     return mass / (zeta * tau) ** 2, 2.0 * mass / tau
 
 
@@ -164,9 +225,14 @@ def hunt_crossley_restitution(a_vin):
 
 
 def hunt_crossley_a_from_restitution(e, v_in):
-    """Hunt-Crossley ``a = c / k`` (s/m) giving restitution ``e`` in (0, 1) at impact speed
-    ``v_in`` (m/s)."""
-    e = jnp.asarray(e)
+    """Hunt-Crossley ``a = c / k`` (s/m) giving restitution ``e`` in (0, 1] at impact speed
+    ``v_in`` (m/s) (``e = 1``: ``a = 0``). Concrete inputs out of range raise ValueError."""
+    import numpy as np
+    _require("restitution e", e, lambda a: np.isfinite(a) & (a > 0.0) & (a <= 1.0),
+             "in (0, 1] (0 would need infinite damping)")
+    _positive("impact speed v_in (m/s)", v_in)
+    e_in = jnp.asarray(e)
+    e = jnp.where(e_in < 1.0, e_in, 0.5)
     es = jax.lax.stop_gradient(e)
 
     def resid(x, ee):
@@ -184,4 +250,4 @@ def hunt_crossley_a_from_restitution(e, v_in):
     dx = jax.grad(resid, argnums=0)
     slope = jnp.vectorize(dx)(x0, es)
     x = x0 - resid(x0, e) / slope
-    return x / v_in
+    return jnp.where(e_in < 1.0, x / v_in, 0.0)

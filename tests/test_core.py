@@ -162,6 +162,52 @@ def test_physical_parameterisation_round_trip(law):
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
 
 
+def test_overdamped_no_tension_still_lets_go(impact_sims):
+    """The no-tension closed forms returned e = 0 for zeta >= 1 (and NaN from
+    kc_from_restitution below e = exp(-2)); the contact ends where its force reaches zero,
+    so it always lets go: e(1) = exp(-2), continued by arccosh above. Checked against the
+    simulator (dt 1e-5, no gravity) at zeta 1 and 1.5, and round-tripped below exp(-2)."""
+    k, m = 1e4, 1.0
+    zetas = np.array([1.0, 1.5])
+    cs = 2 * zetas * math.sqrt(k * m)
+    e = np.asarray(physical.restitution(k, cs, m, "no_tension"))
+    assert e[0] == pytest.approx(math.exp(-2.0), rel=1e-12)
+    np.testing.assert_allclose(_restitution(impact_sims["no_tension"], k, cs), e, rtol=5e-3)
+    e_lo, tc = jnp.array([0.1, 0.02, 0.135, 0.1354]), jnp.array([0.01, 0.02, 0.005, 0.01])
+    kk, cc = physical.kc_from_restitution(e_lo, tc, m, "no_tension")
+    np.testing.assert_allclose(physical.restitution(kk, cc, m, "no_tension"), e_lo, rtol=1e-9)
+    np.testing.assert_allclose(physical.contact_time(kk, cc, m, "no_tension"), tc, rtol=1e-9)
+    # smooth through zeta = 1 (the series there meets both closed forms)
+    g = jax.grad(lambda c: physical.restitution(k, c, m, "no_tension"))
+    fd = (physical.restitution(k, 200.0 + 1e-4, m, "no_tension")
+          - physical.restitution(k, 200.0 - 1e-4, m, "no_tension")) / 2e-4
+    assert float(g(200.0)) == pytest.approx(float(fd), rel=1e-6)
+    # the linear law's overdamped contact never lets go
+    assert float(physical.contact_time(k, 300.0, m)) == math.inf
+    assert float(physical.restitution(k, 300.0, m)) == 0.0
+
+
+@pytest.mark.parametrize("call, words", [
+    (lambda: physical.kc_from_restitution(0.0, 0.01, 1.0), "restitution e must be in (0, 1]"),
+    (lambda: physical.kc_from_restitution(1.2, 0.01, 1.0), "got 1.2"),
+    (lambda: physical.kc_from_restitution(0.5, 0.0, 1.0), "contact time t_c"),
+    (lambda: physical.kc_from_restitution(0.5, 0.01, -1.0), "mass (kg)"),
+    (lambda: physical.kc_from_time_constant(0.01, 0.0, 1.0), "damping ratio zeta"),
+    (lambda: physical.hunt_crossley_a_from_restitution(-0.1, 1.0), "restitution e"),
+])
+def test_physical_conversions_refuse_out_of_range_values(call, words):
+    """Out-of-range inputs gave NaN, inf, a negative c or a bare ZeroDivisionError."""
+    with pytest.raises(ValueError) as e:
+        call()
+    assert words in str(e.value)
+
+
+def test_elastic_limits_of_the_conversions():
+    k, c = physical.kc_from_restitution(1.0, 0.01, 1.0)
+    assert float(c) == 0.0 and float(k) == pytest.approx((math.pi / 0.01) ** 2)
+    assert float(physical.hunt_crossley_a_from_restitution(1.0, 2.0)) == 0.0
+
+
 def test_time_constant_round_trip():
     k, c = physical.kc_from_time_constant(0.02, 0.8, 1.5)
     tau, zeta = physical.time_constant(k, c, 1.5)

@@ -26,6 +26,10 @@ __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first
 
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
+#: A settling-time fit's rollout lasts at least this many times the target (an unsettled
+#: ball's settling time reads as the rollout's end, far outside the target's tolerance).
+SETTLE_MARGIN = 1.1
+
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
                   "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
 
@@ -197,6 +201,14 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
             a = tg.get("apex_heights", np.array([0.5 * info["drop"]]))
             flights = np.sum(2.0 * np.sqrt(2.0 * np.maximum(a, 1e-6) / g))
             duration = 1.3 * (info["t_fall"] + flights) + 0.3
+    elif "settling_time" in tg and duration < SETTLE_MARGIN * float(tg["settling_time"][0]):
+        # an unsettled ball's settling time is the rollout's end (bounce_metrics_fn): within
+        # a tolerance of the target it would count as reached
+        raise FitError(f"duration {duration:g} s is too short for the settling-time target "
+                       f"{float(tg['settling_time'][0]):g} s: a ball still moving at the end "
+                       "could not be told from one that settled on time. Give a duration of "
+                       f"at least {SETTLE_MARGIN:g} x the target, or leave it out (default "
+                       "1.4 x the target + 0.2 s).")
     steps = int(math.ceil(duration / dt))
     sim = dp.compile(scene, dt, law=law, **compile_kw)
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
@@ -215,7 +227,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         k0 = kmax if k0 is not None else None
     kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=k_first)
     heights_only = (("apex_heights" in tg or "restitution" in tg)
-                    and not ({"settling_time", "contact_durations", "max_penetration"} & set(tg)))
+                    and not ({"settling_time", "contact_durations", "max_penetration",
+                              "decay_time"} & set(tg)))
     kpath, cpath = f"contact.{mat}.k", f"contact.{mat}.c"
     if free is None:
         free = [kpath, cpath]
@@ -223,7 +236,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
             free = [cpath]
             notes.append(f"bounce heights alone fix only the damping ratio (zeta ~ "
                          f"{zeta:.3g}); k is held at {kk:.4g} N/m and only c is fitted. Give a "
-                         "settling-time or contact-duration target to fit k as well.")
+                         "settling-time, decay-time or contact-duration target to fit k as well.")
     starts = None
     if (first_guess and k0 is None and zeta is not None and "settling_time" in tg
             and "contact_durations" not in tg and kpath in free):

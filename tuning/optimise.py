@@ -88,7 +88,8 @@ class OptaxLoop:
                 "loss": jnp.asarray(jnp.nan, loss_s.dtype),
                 "best_loss": jnp.asarray(jnp.inf, loss_s.dtype), "best_theta": theta0,
                 "best_m": jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), m_s),
-                "best_bad": jnp.asarray(True), "has_best": jnp.asarray(False),
+                "best_bad": jnp.asarray(True), "best_met": jnp.asarray(False),
+                "has_best": jnp.asarray(False),
                 "status": jnp.asarray(RUNNING)}
         if self.history:
             c["history"] = jnp.full((self.maxiter,), jnp.nan, loss_s.dtype)
@@ -104,8 +105,11 @@ class OptaxLoop:
         status = jnp.where(~finite, NON_FINITE, jnp.where(
             met, REACHED, jnp.where(c["it"] + 1 >= self.maxiter, LIMIT, RUNNING)))
         lower = loss < c["best_loss"]
-        # stable points first, then the lowest loss
-        better = finite & (~c["has_best"] | (lower & ~bad) | (c["best_bad"] & (~bad | lower)))
+        # stable points first, then points that meet every target (the loss weighs the
+        # targets together: a lower one can miss a tolerance), then the lowest loss
+        bb, bm = c["best_bad"], c["best_met"]
+        better = finite & (~c["has_best"] | (bb & ~bad) | ((bb == bad) & (
+            (met & ~bm) | ((met == bm) & lower))))
         go = status == RUNNING
 
         def pick(flag, a, b):
@@ -118,6 +122,7 @@ class OptaxLoop:
                 "best_theta": pick(better, c["theta"], c["best_theta"]),
                 "best_m": pick(better, m, c["best_m"]),
                 "best_bad": jnp.where(better, bad, c["best_bad"]),
+                "best_met": jnp.where(better, met, c["best_met"]),
                 "has_best": c["has_best"] | better,
                 "status": status}
         if "history" in c:

@@ -130,6 +130,9 @@ def achieved(metrics: dict, targets: dict, spec: tuple) -> tuple[dict, dict, boo
         t = targets[name]
         err = np.abs(m - t) / np.abs(t)
         err = np.where(np.isfinite(err), err, np.inf)
+        if name == "settling_time" and "settled" in metrics and not bool(
+                np.all(np.asarray(metrics["settled"]))):
+            err = np.full_like(err, np.inf)      # never settled: its time is the rollout's end
         ach[name] = m.tolist() if np.ndim(metrics[name]) else float(m[0])
         rel[name] = float(np.max(err))
         ok = ok and bool(np.all(err <= tol))
