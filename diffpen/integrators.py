@@ -66,7 +66,7 @@ def semi_implicit_euler(accel_fn: Callable, dt: float):
     """Symplectic (semi-implicit) Euler: ``v += h a(x, v)``, then ``x += h v``.
 
     One force evaluation per step. Stable for an undamped spring when ``w h < 2``; with
-    explicit damping when ``k h^2 + 2 c h < 4 m`` (physics-notes.md section 4).
+    explicit damping when ``k h^2 + 2 c h < 4 m`` (docs/physics-notes.md section 4).
     """
     def step(params, state: State) -> State:
         return drift(kick(state, accel_fn(params, state), dt), dt)
@@ -92,7 +92,7 @@ def verlet(accel_fn: Callable, dt: float):
     ``v+ = v + h/2 a(x, v)``; ``x' = x + h v+``; ``v' = v+ + h/2 a(x', v*)`` with the
     predicted end velocity ``v* = 2 v+ - v`` (so dampers stay second order). Two force
     evaluations per step (the state carries no acceleration). Second order; symplectic for
-    position-only forces; stable for an undamped spring when ``w h < 2`` (physics-notes.md
+    position-only forces; stable for an undamped spring when ``w h < 2`` (docs/physics-notes.md
     section 4).
     """
     half = 0.5 * dt
@@ -111,7 +111,7 @@ def verlet(accel_fn: Callable, dt: float):
 def rk4(accel_fn: Callable, dt: float):
     """Classical fourth-order Runge-Kutta on ``(x, v)``; four force evaluations per step.
 
-    Stable for an undamped spring when ``w h < 2.83`` (physics-notes.md section 4). For rigid
+    Stable for an undamped spring when ``w h < 2.83`` (docs/physics-notes.md section 4). For rigid
     bodies the orientation is advanced once with the RK4-weighted angular velocity.
     """
     half = 0.5 * dt
@@ -166,8 +166,8 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
 
         (I - h A_v - h^2 A_x) dv = h (a + h A_x v),   v' = v + dv,   x' = x + h v'
 
-    which is physics-notes.md section 4's ``(M - h df/dv - h^2 df/dx) dv = h (f0 + h df/dx v0)``
-    divided by the mass. Unconditionally stable on linear springs and contacts (it adds
+    which is docs/physics-notes.md section 4's
+    ``(M - h df/dv - h^2 df/dx) dv = h (f0 + h df/dx v0)`` divided by the mass. Unconditionally stable on linear springs and contacts (it adds
     numerical damping ``zeta_num ~ w h / 2``, so a fitted ``c`` depends on ``h``).
 
     Args:

@@ -183,7 +183,7 @@ def no_tension_contact(d, vn, k, c, width: float = 0.0):
     (:func:`_soft_clamp`), whose width shrinks to 0 with the contact, so the force is exactly
     0 for ``d <= -width / 2`` (a fixed force-space width ``k width`` left ``k width / 8``
     acting at any distance), and which leaves the static force ``k ramp(d)`` unchanged.
-    Closed forms: Schwager & Poschel (2007), see physics-notes.md section 2.
+    Closed forms: Schwager & Poschel (2007), see docs/physics-notes.md section 2.
     """
     f = linear_contact(d, vn, k, c, width)
     if width == 0.0:

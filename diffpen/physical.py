@@ -1,5 +1,5 @@
 """Physical parameterisations of contact <-> (k, c), differentiable (closed forms of
-physics-notes.md section 2).
+docs/physics-notes.md section 2).
 
 All functions are pure ``jax.numpy`` and work on scalars or arrays (elementwise), under
 ``jit``, ``vmap`` and ``grad``. ``mass`` is the effective mass of the contact in kg (the body's

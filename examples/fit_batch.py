@@ -11,6 +11,7 @@ Run: python examples/fit_batch.py
 (with XLA_FLAGS=--xla_force_host_platform_device_count=4 the rows are split over 4 CPU
 devices; the results are the same.)
 """
+import argparse
 import time
 
 import jax
@@ -27,7 +28,8 @@ K = 1e4                                       # contact stiffness, N/m (held)
 DT, DURATION = 2e-3, 1.0                      # time step and rollout, s
 
 
-def main():
+def main(argv=None):
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     scene = scenes.ball().scene
     targets = [{"apex_heights": [a]} for a in APEXES]
     # closed-form start per row (the checks refuse infeasible targets before compiling)

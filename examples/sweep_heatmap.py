@@ -5,7 +5,8 @@ Results go to sweep_heatmap.npz (+ .csv) in the current folder (``--out`` to cho
 twice and the second run resumes from the file (nothing is recomputed). The file carries a key
 of everything that determines it, so a file of other settings is refused, never mixed in
 (``--fresh`` overwrites it); a second run writing the same file at the same time is refused.
-Figures: examples/images/sweep_apex.png and sweep_penetration.png (needs matplotlib).
+Figures: sweep_apex.png and sweep_penetration.png in --figures (default examples/images;
+needs matplotlib).
 
 Run: python examples/sweep_heatmap.py [--out FILE.npz] [--fresh] [--n N]
 """
@@ -28,7 +29,8 @@ from tuning.sweep import grid_points, sweep  # noqa: E402
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False):
+def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
+         figures=os.path.join(HERE, "images")):
     sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0), dt)
     mfn = bounce_metrics_fn(sim, int(round(duration / dt)), n_apex=2)
     ks, cs = np.geomspace(1e3, 1e5, n), np.geomspace(1.0, 100.0, n)
@@ -48,15 +50,17 @@ def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False):
     pen = res.grid("max_penetration")
     print(f"first apex {np.nanmin(apex):.4f}..{np.nanmax(apex):.4f} m, max penetration "
           f"{np.nanmin(pen) * 1e3:.2f}..{np.nanmax(pen) * 1e3:.1f} mm")
+    if not figures:
+        return
     try:
         from tuning.plots import heatmap
-        heatmap(os.path.join(HERE, "images", "sweep_apex.png"), ks, cs, apex,
+        heatmap(os.path.join(figures, "sweep_apex.png"), ks, cs, apex,
                 metric="first apex (m)", target=0.4,
                 title=f"first apex over (k, c), {n}x{n}, contour: 0.4 m")
-        heatmap(os.path.join(HERE, "images", "sweep_penetration.png"), ks, cs, pen,
+        heatmap(os.path.join(figures, "sweep_penetration.png"), ks, cs, pen,
                 metric="max penetration (m)", target=0.01,
                 title=f"max penetration over (k, c), {n}x{n}, contour: 1 cm")
-        print("figures: examples/images/sweep_apex.png, sweep_penetration.png")
+        print(f"figures: {os.path.join(figures, 'sweep_apex.png')}, sweep_penetration.png")
     except ImportError as exc:
         print(exc)
 
@@ -66,5 +70,7 @@ if __name__ == "__main__":
     ap.add_argument("--out", default="sweep_heatmap.npz", help="results .npz (+ .csv)")
     ap.add_argument("--fresh", action="store_true", help="overwrite --out instead of resuming")
     ap.add_argument("--n", type=int, default=64, help="grid points per axis (default 64)")
+    ap.add_argument("--figures", default=os.path.join(HERE, "images"),
+                    help="folder for the two heatmaps (default examples/images; '' for none)")
     a = ap.parse_args()
-    main(n=a.n, out=a.out, fresh=a.fresh)
+    main(n=a.n, out=a.out, fresh=a.fresh, figures=a.figures)

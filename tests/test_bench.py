@@ -158,3 +158,10 @@ def test_plain_floor_is_batch_vectorisable_and_matches_its_scalar_runs():
     out = batched(ks, cs)
     for i in range(3):
         np.testing.assert_array_equal(out[i], bench.plain_ball_floor(ks[i], cs[i], steps=400))
+
+
+def test_bench_help_names_every_case():
+    """``diffpen bench --help`` listed 9 of the 11 cases (the columns-layout ones missing)."""
+    from tuning.cli.bench import KNOWN_CASES
+    from tuning.reports.bench import CASES
+    assert sorted(KNOWN_CASES) == sorted(CASES)

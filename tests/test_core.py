@@ -106,7 +106,7 @@ def test_restitution_matches_closed_form(impact_sims, law):
     cs = 2 * zetas * math.sqrt(k * m)
     e = _restitution(impact_sims[law], k, cs)
     expected = np.asarray(physical.restitution(k, cs, m, law))
-    # the table of physics-notes.md section 2
+    # the table of docs/physics-notes.md section 2
     table = {"linear": [0.729, 0.372, 0.163], "no_tension": [0.744, 0.451, 0.298]}[law]
     np.testing.assert_allclose(expected, table, atol=1.5e-3)
     np.testing.assert_allclose(e, expected, rtol=5e-3)

@@ -14,7 +14,7 @@ from tuning.reports.reference import (apex_heights, ball_reference, chain_refere
 @pytest.mark.parametrize("zeta", [0.1, 0.3])
 def test_ball_reference_matches_closed_form_restitution_and_contact_time(zeta):
     """No gravity: one contact of the linear law, e = exp(-pi z / sqrt(1 - z^2)) and
-    t_c = pi / w_d (physics-notes.md section 2)."""
+    t_c = pi / w_d (docs/physics-notes.md section 2)."""
     k, m = 1e4, 1.0
     c = 2 * zeta * math.sqrt(k * m)
     ref = ball_reference(k=k, c=c, m=m, r=0.1, z0=0.2, v0=-3.0, T=0.2, g=0.0)

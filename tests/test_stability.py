@@ -1,4 +1,4 @@
-"""Stable time steps: closed forms of physics-notes.md section 4, the amplification matrices
+"""Stable time steps: closed forms of docs/physics-notes.md section 4, the amplification matrices
 against the JAX steps, the limit seen empirically, the network bound, StabilityError and
 substeps="auto"."""
 import math

@@ -132,7 +132,7 @@ def test_metrics_match_event_located_values(ball_run):
     np.testing.assert_allclose(np.asarray(m.restitution), e, rtol=1e-3)
     assert float(m.resting_height) == pytest.approx(R - MASS * G / K, rel=1e-12)
     # and the restitution is the physical one: within 1% of the closed form with gravity
-    # during contact (physics-notes.md section 2: e ~ e0 - (1 + e0) (c / k) g / v_in)
+    # during contact (docs/physics-notes.md section 2: e ~ e0 - (1 + e0) (c / k) g / v_in)
     e0 = float(dp.physical.restitution(K, C, MASS))
     v_in = math.sqrt(2 * G * (DROP - R))
     assert float(m.restitution[0]) == pytest.approx(e0 - (1 + e0) * C / K * G / v_in, rel=1e-2)

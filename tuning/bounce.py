@@ -128,7 +128,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
 
 
 def first_guess_bounce(info: dict, targets: dict, *, law="linear", k0: float = 1e4):
-    """Closed-form start (k, c) from bounce targets (physics-notes.md section 2).
+    """Closed-form start (k, c) from bounce targets (docs/physics-notes.md section 2).
 
     The first apex gives the restitution ``e = sqrt(A_1 / H_0)`` and so the damping ratio; a
     contact-duration target gives w0 and hence k; otherwise k stays ``k0`` (a settling-time
@@ -214,7 +214,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
                             settle_tol=settle_tol)
     # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
-    # within ~0.5% of the continuous model (physics-notes.md section 4); beyond it a fit
+    # within ~0.5% of the continuous model (docs/physics-notes.md section 4); beyond it a fit
     # would tune the integrator's error instead of the contact. A start above it is lowered
     # BEFORE the first guess, so c is guessed for the k actually used.
     kmax = (0.25 / dt) ** 2 * m

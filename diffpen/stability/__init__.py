@@ -2,7 +2,7 @@
 
 For each integrator the largest stable step of ONE damped mode ``x'' = -K x - C v`` (K = w^2 in
 1/s^2, C = 2 zeta w in 1/s) is computed from the integrator's own amplification matrix (the
-method applied to that linear mode); the closed forms of physics-notes.md section 4 are its
+method applied to that linear mode); the closed forms of docs/physics-notes.md section 4 are its
 special cases and are checked by the tests:
 
   semi_implicit_euler  K h^2 + 2 C h < 4  (k h^2 + 2 c h < 4 m; w h < 2 undamped; h < 2 m / c)
@@ -11,7 +11,7 @@ special cases and are checked by the tests:
   implicit_euler       unconditionally stable (no limit)
 
 The scene's largest K and C come from Gershgorin bounds on ``M^-1 K`` and ``M^-1 C``
-(physics-notes.md section 4, "spring networks"): for each free body i,
+(docs/physics-notes.md section 4, "spring networks"): for each free body i,
 ``(sum_j k_ij + sum_{j free} k_ij) / m_i`` over its springs, plus ONE contact spring (the
 stiffest contact it can make: a plane, a fixed sphere, or another sphere, counted on both
 rows). One contact per body is exact for a body on a floor, in a corner of mutually

@@ -34,7 +34,7 @@ def _value(x):
 
 class Bound(NamedTuple):
     """Static rows of one force term's Gershgorin bounds on ``M^-1 K`` and ``M^-1 C``
-    (physics-notes.md section 4), carried by the term (:class:`diffpen.terms.Term`).
+    (docs/physics-notes.md section 4), carried by the term (:class:`diffpen.terms.Term`).
 
     Row r adds ``k_weight[r] * k`` and ``c_weight[r] * c`` of its parameter to the stiffness
     (1/s^2) and damping (1/s) rows of body ``body[r]``.

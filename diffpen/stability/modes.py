@@ -2,7 +2,7 @@
 
 K = w^2 in 1/s^2, C = 2 zeta w in 1/s. The largest stable step is computed from the
 integrator's own amplification matrix (the method applied to that linear mode); the closed
-forms of physics-notes.md section 4 are its special cases. ``safe_dt`` tightens the limit for
+forms of docs/physics-notes.md section 4 are its special cases. ``safe_dt`` tightens the limit for
 penalty contact (``SAFE_WH``, ``SAFE_CH``). See :mod:`diffpen.stability` for the overview.
 """
 from __future__ import annotations

@@ -140,7 +140,7 @@ _SIM_CACHE: dict = {}
 
 def case_smoothing(case: Case, radius: float) -> float:
     """Smoothing width (m) of a case: diffpen's default (1e-3 x radius) where it keeps
-    physics-notes.md section 5's rule sigma < m g / k, else 0 (the exact ramp max(d, 0))."""
+    docs/physics-notes.md section 5's rule sigma < m g / k, else 0 (the exact ramp max(d, 0))."""
     g = G if case.gravity else 0.0
     width = 1e-3 * radius
     return width if width < case.mass * g / case.k else 0.0
