@@ -355,16 +355,19 @@ class Simulator:
 
     def _build_step(self, n: int):
         """The integrator step over ``dt`` in ``n`` inner steps of ``h = dt / n``
-        (:mod:`diffpen.integrators`), with the terms' aux updates after each step."""
+        (:mod:`diffpen.integrators`), with the terms' aux updates after each inner step (a
+        plastic spring yields at the inner step's resolution, whatever ``n``: applied once per
+        saved step, its permanent set came out 13% short at 100 substeps)."""
         h = self.dt / n if n != 1 else self.dt
         method = self.analysis.integrator
         inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
         if self._searching:
-            step = substepped(self._searching_step(h, inv_mass), n)
+            inner = self._searching_step(h, inv_mass)
         else:
-            step = build_step(method, self._accel_at(h), self.dt, substeps=n,
-                              inv_mass=inv_mass)
-        return self._with_aux_updates(step) if self._aux_updates else step
+            inner = build_step(method, self._accel_at(h), h, inv_mass=inv_mass)
+        if self._aux_updates:
+            inner = self._with_aux_updates(inner)
+        return substepped(inner, n)
 
     def _accel_at(self, h: float):
         """``accel_fn(params, state)`` of an integrator whose inner step is ``h`` s."""
@@ -373,8 +376,8 @@ class Simulator:
         return accel
 
     def _with_aux_updates(self, step):
-        """Apply the extensions' ``aux_update(params, state)`` after each step (e.g. plastic
-        rest lengths, updated from the new positions)."""
+        """Apply the extensions' ``aux_update(params, state)`` after each (inner) step (e.g.
+        plastic rest lengths, updated from the new positions)."""
         updates = self._aux_updates
 
         def stepped(params, state):

@@ -320,3 +320,20 @@ def test_rigid_contact_bounds_take_the_laws_stiffness_at_the_reference_depth():
     # a small rocking; an unstable step would grow it instead)
     assert np.all(np.isfinite(z)) and z.max() < 0.16 and z[-300:].min() > 0.045
     assert speed[-300:].max() < speed[600:900].max() < 1.0
+
+
+def test_drag_is_in_the_stability_bound():
+    """Drag had no rows in the stability bound: c = 100 N s/m on 1 kg at dt = 0.05 s
+    (h c / m = 5, past the dashpot limit 2) was "no limit", the speed grew to 1e30 m/s and
+    substeps="auto" kept one substep."""
+    s = dp.Scene()
+    b = s.add_particle(1.0, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+    s.add_drag(b, c=100.0)
+    sim = dp.compile(s, 0.05)
+    assert sim.stability(sim.params()).stable_dt == pytest.approx(0.02, rel=1e-6)
+    with pytest.raises(dp.StabilityError, match="below 0.02 s"):
+        sim.rollout(sim.params(), 50)
+    auto = dp.compile(s, 0.05, substeps="auto")
+    v = auto.rollout(auto.params(), 50, save_every=50).velocity[-1, b]
+    assert np.all(np.isfinite(np.asarray(v)))
+    assert float(np.linalg.norm(np.asarray(v))) < 1.0

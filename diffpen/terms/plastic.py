@@ -114,5 +114,12 @@ def _plastic_groups(ctx: CompileContext) -> tuple:
     return tuple(dict.fromkeys(s.group for s in ctx.scene.plastic_springs))
 
 
-#: The plastic-spring term builder (no stability bound: its rows are not in the step limit).
-TERMS: tuple = (TermBuilder(_plastic_springs, groups=_plastic_groups),)
+def _plastic_bound(ctx: CompileContext):
+    """The plastic springs' Gershgorin rows: those of springs with their group's k and c
+    (yielding only shortens the rest length; the stiffness stays)."""
+    from .springs import _spring_rows
+    return _spring_rows(ctx, ctx.scene.plastic_springs)
+
+
+#: The plastic-spring term builder, with its stability bound.
+TERMS: tuple = (TermBuilder(_plastic_springs, _plastic_bound, groups=_plastic_groups),)

@@ -187,4 +187,12 @@ def _spring_groups(ctx: CompileContext) -> tuple:
 #: :data:`diffpen.terms.BUILTIN`).
 BODY_SPRINGS = with_bound(_body_springs, _body_springs_bound, groups=_spring_groups)
 WORLD_SPRINGS = with_bound(_world_springs, _world_springs_bound, groups=_spring_groups)
-DRAG = _drag
+def _drag_bound(ctx: CompileContext):
+    """Drag is a damper to the world: ``c / m_i`` per dragged body (its group's ``c`` in
+    ``params.extra["drag"]``), in the damping rows (explicit steps need ``h c / m < 2``)."""
+    rows = [(d.body, d.group, 0.0, 1.0, f"drag group {d.group!r}")
+            for d in ctx.scene.drags if not ctx.pinned[d.body]]
+    return _one(Bound.of(rows, "drag"))
+
+
+DRAG = with_bound(_drag, _drag_bound)
