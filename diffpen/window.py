@@ -44,9 +44,12 @@ def _power_mean_inside(d, delta, n: float):
         coef *= (n - 2 * j + 2) * (n - 2 * j + 1) / ((2 * j) * (2 * j - 1))
         term = term * u2
         series = series + coef * 2.0 / ((2 * j + 1) * (2 * j + 2)) * term
+    # the unselected branch on safe values (double where): d - dl > 0, so no negative base
+    # meets a fractional power (its NaN would reach reverse-mode gradients through where)
+    dd = jnp.where(small, 2.0, d)
     dl = jnp.where(small, 1.0, delta)
     p = n + 2.0
-    direct = ((d + dl) ** p - 2.0 * d ** p + (d - dl) ** p) / ((n + 1.0) * p * dl * dl)
+    direct = ((dd + dl) ** p - 2.0 * dd ** p + (dd - dl) ** p) / ((n + 1.0) * p * dl * dl)
     return jnp.where(small, d ** n * series, direct)
 
 

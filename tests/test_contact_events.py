@@ -456,3 +456,23 @@ def test_box_corner_gradients_against_the_continuous_system(box_corner_gradients
     for metric, p in (("t_end1", "dk"), ("t_end1", "dmu"), ("x@T1", "dmu")):
         m, i = BOX_METRICS.index(metric), ("dk", "dc", "dmu").index(p)
         assert g[i, m] == pytest.approx(ref[p][m], rel=0.02), (metric, p)
+
+
+def test_reverse_mode_through_a_hertz_contact_is_finite():
+    """Reverse mode through the Hunt-Crossley law with n = 1.5 was NaN: the window's masked
+    branch raised a negative base to the power 3.5 (where() discards the value, not the
+    NaN of its derivative). Now jax.grad equals jax.jacfwd."""
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.2))
+    s.add_plane()
+    sim = dp.compile(s, 1e-3, law="hunt_crossley", exponent=1.5)
+
+    def loss(k, c):
+        return sim.rollout(sim.params(k=k, c=c), 400, save_every=400).position[-1, 0, 2]
+    rev = jax.grad(loss, (0, 1))(1e5, 50.0)
+    fwd = jax.jacfwd(loss, (0, 1))(1e5, 50.0)
+    assert np.all(np.isfinite(np.asarray(rev)))
+    np.testing.assert_allclose(np.asarray(rev), np.asarray(fwd), rtol=1e-9)
+    from diffpen.window import window_mean
+    g = jax.grad(lambda d: window_mean(d, 0.1, 1e-3, 1.5)[1])(0.01)
+    assert np.isfinite(float(g))

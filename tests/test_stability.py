@@ -337,3 +337,20 @@ def test_drag_is_in_the_stability_bound():
     v = auto.rollout(auto.params(), 50, save_every=50).velocity[-1, b]
     assert np.all(np.isfinite(np.asarray(v)))
     assert float(np.linalg.norm(np.asarray(v))) < 1.0
+
+
+def test_traced_flag_of_verlet_in_float32_agrees_with_the_up_front_check():
+    """In float32 the traced flag compared the spectral radius with 1 + 1e-9 (= 1): a pure
+    dashpot mode, |rho| = 1 exactly, read 1.000002 and every (k, c) of a verlet ball was
+    flagged unstable (fits refused their start, sweeps returned NaN)."""
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.6))
+    s.add_plane()
+    sim = dp.compile(s, 1e-3, integrator="verlet", dtype=jnp.float32)
+    flag = jax.jit(lambda p: sim.rollout(p, 10, save_every=10).aux["unstable"][-1])
+    for k in (1e2, 1e3, 1e4):
+        p = sim.params(k=k, c=20.0)
+        assert sim.stability(p).safe
+        assert not bool(flag(p)), k
+    past = sim.params(k=1e7, c=20.0)                  # w h = 3.2: past the limit
+    assert not sim.stability(past).safe and bool(flag(past))
