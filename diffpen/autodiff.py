@@ -139,7 +139,8 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
 
 def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: bool,
                             has_aux: bool, args: tuple, kwargs: dict):
-    """Forward mode with the batched layout of :func:`_forward_batched` under ``jax.vmap``.
+    """Forward mode; under a ``jax.vmap`` of its arguments with the batched layout of
+    :func:`_forward_batched` (a ``custom_vmap`` rule), else plain (:func:`_forward`).
 
     Keyword arguments travel as positional arguments of the batching rule, so a batched
     keyword value is seen as batched. A batched value that ``fun`` closes over (not an
@@ -153,6 +154,12 @@ def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: boo
         return fun(*a[:n_args], **dict(zip(keys, a[n_args:])))
     loss = _scalar_loss(call, has_aux)
     flat = (*args, *(kwargs[k] for k in keys))
+    from .checks import _batched
+    if not _batched(flat):
+        # not under a vmap of the arguments: plain forward mode, which composes with every
+        # transformation (jax.jacfwd / jax.grad of it: second derivatives); the batching
+        # rule below is only a faster layout for batched arguments
+        return _forward(loss, argnums, single, has_aux, flat)
 
     @jax.custom_batching.custom_vmap
     def vg(*a):
@@ -184,7 +191,8 @@ def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, mode: str
     Returns:
       ``f(*args, **kwargs) -> (value, grad)`` (``((value, aux), grad)`` with ``has_aux``),
       ``grad`` shaped like the differentiated arguments (a tuple for a tuple ``argnums``).
-      Works under ``jax.jit`` and ``jax.vmap``. In forward mode the cost is about one forward
+      Works under ``jax.jit`` and ``jax.vmap``, and can be differentiated again
+      (``jax.jacfwd`` / ``jax.grad`` of it: second derivatives). In forward mode the cost is about one forward
       rollout with ``n`` extra tangent lanes and memory does not grow with the number of steps;
       in reverse mode it is a forward pass plus a backward pass (use
       ``Simulator.rollout(..., checkpoint=B)`` to bound its memory).
