@@ -151,7 +151,14 @@ class Simulator:
         self.smoothing = width
         self.exponent = exponent
         self.unroll = int(unroll)
-        self.dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+        try:
+            self.dtype = jnp.dtype(dtype) if dtype is not None else jnp.result_type(float)
+        except TypeError:
+            raise SceneError(f"dtype must be float32 or float64, got {dtype!r}.") from None
+        if self.dtype not in (jnp.float32, jnp.float64):
+            raise SceneError(f"dtype must be float32 or float64, got {self.dtype.name}: the "
+                             "step's contact windows and stability checks need at least "
+                             "float32's precision (integers cannot carry a state).")
         if self.dtype == jnp.float64 and not jax.config.jax_enable_x64:
             raise SceneError("dtype float64 needs jax.config.update('jax_enable_x64', True) "
                              "before compiling.")
@@ -209,6 +216,7 @@ class Simulator:
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
+        self._rollout_traces = [0]          # programs traced (rollout_cache_size)
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
@@ -432,6 +440,7 @@ class Simulator:
     # ------------------------------------------------------------------ rollout
     def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, substeps=1,
                       observe=None):
+        self._rollout_traces[0] += 1           # runs only when JAX traces a new program
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
@@ -447,10 +456,12 @@ class Simulator:
                                 view=view)
 
     def rollout_cache_size(self) -> int:
-        """How many rollout programs this simulator has compiled (one per static
-        combination of steps, save_every, checkpoint, substeps, observe and argument
-        shapes): a test hook for "does not recompile"."""
-        return self._rollout_jit._cache_size()
+        """How many rollout programs this simulator has traced (one per static combination
+        of steps, save_every, checkpoint, substeps, observe and argument shapes and dtypes;
+        new values never add one): a test hook for "does not recompile". (The jitted
+        function's own dispatch cache also counts host and device arrays of the same
+        shape apart, without compiling anything.)"""
+        return self._rollout_traces[0]
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,

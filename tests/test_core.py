@@ -309,6 +309,22 @@ def test_vmap_matches_loop_and_does_not_recompile(ball_sim):
     np.testing.assert_allclose(batched, looped, rtol=1e-12)
 
 
+def test_rollout_cache_size_counts_programs_not_argument_kinds(ball_sim):
+    """rollout_cache_size counted the jitted function's dispatch entries: python floats,
+    then a jax array k, then jax arrays k and c gave 1, 2, 3 with no program traced or
+    compiled. It counts traced programs now."""
+    before = ball_sim.rollout_cache_size()
+    ball_sim.rollout(ball_sim.params(k=1e4, c=20.0), 123, save_every=123)
+    once = ball_sim.rollout_cache_size()
+    assert once <= before + 1
+    ball_sim.rollout(ball_sim.params(k=jnp.asarray(2e4), c=20.0), 123, save_every=123)
+    ball_sim.rollout(ball_sim.params(k=jnp.asarray(3e4), c=jnp.asarray(9.0)), 123,
+                     save_every=123)
+    assert ball_sim.rollout_cache_size() == once
+    ball_sim.rollout(ball_sim.params(k=1e4, c=20.0), 124, save_every=124)   # a new length
+    assert ball_sim.rollout_cache_size() == once + 1
+
+
 def test_save_every_keeps_every_nth_state(ball_sim):
     p = ball_sim.params(k=1e4, c=20.0)
     full = ball_sim.rollout(p, steps=100)

@@ -282,3 +282,11 @@ def test_compile_unroll_must_be_an_int():
     for bad in (1.5, "x", 0, True):
         with pytest.raises(dp.SceneError, match="unroll must be a positive integer"):
             dp.compile(ball_scene(), 1e-3, unroll=bad)
+
+
+def test_compile_dtype_must_be_float32_or_float64():
+    """dtype=bfloat16 compiled and then refused its own params; int32 failed inside
+    lax.scan."""
+    for bad in (jnp.bfloat16, jnp.float16, jnp.int32, "nonsense"):
+        with pytest.raises(dp.SceneError, match="dtype must be float32 or float64"):
+            dp.compile(ball_scene(), 1e-3, dtype=bad)
