@@ -137,10 +137,20 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
     return out, out_batched
 
 
+def _differentiated(tree) -> bool:
+    """True when a leaf of ``tree`` is being differentiated by an outer ``jax.jvp`` /
+    ``jax.grad`` (a JVP or linearize tracer; JAX has no public test for it, so the tracer's
+    class name is read, as :func:`diffpen.checks._batched` does; tests/test_autodiff.py fails
+    if a JAX release renames them)."""
+    return any(type(leaf).__name__ in ("JVPTracer", "LinearizeTracer")
+               for leaf in jax.tree_util.tree_leaves(tree))
+
+
 def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: bool,
                             has_aux: bool, args: tuple, kwargs: dict):
-    """Forward mode; under a ``jax.vmap`` of its arguments with the batched layout of
-    :func:`_forward_batched` (a ``custom_vmap`` rule), else plain (:func:`_forward`).
+    """Forward mode with the batched layout of :func:`_forward_batched` (a ``custom_vmap``
+    rule, applied by any outer ``jax.vmap``, also of a ``jax.jit`` around this call); when
+    the call is itself being differentiated, plain forward mode (:func:`_forward`).
 
     Keyword arguments travel as positional arguments of the batching rule, so a batched
     keyword value is seen as batched. A batched value that ``fun`` closes over (not an
@@ -154,11 +164,10 @@ def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: boo
         return fun(*a[:n_args], **dict(zip(keys, a[n_args:])))
     loss = _scalar_loss(call, has_aux)
     flat = (*args, *(kwargs[k] for k in keys))
-    from .checks import _batched
-    if not _batched(flat):
-        # not under a vmap of the arguments: plain forward mode, which composes with every
-        # transformation (jax.jacfwd / jax.grad of it: second derivatives); the batching
-        # rule below is only a faster layout for batched arguments
+    if _differentiated(flat):
+        # differentiated again (jax.jacfwd / jax.grad of it: second derivatives): plain
+        # forward mode, which composes with every transformation; custom_vmap does not
+        # (its rule cannot be linearised); the rule below is only a faster batch layout
         return _forward(loss, argnums, single, has_aux, flat)
 
     @jax.custom_batching.custom_vmap
