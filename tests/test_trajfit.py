@@ -856,3 +856,40 @@ def test_evaluate_plot_must_be_a_folder(tmp_path, drag_record, capsys):
     f.write_text("x")
     assert main(["evaluate", scene, "--data", rec, "--plot", str(f)]) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+ROLLING = """
+dt = 1.25e-4
+[materials.rubber]
+k = 5183.0
+c = 3.045
+friction = 0.598
+[[rigid_spheres]]
+name = "ball"
+radius = 0.05
+mass = 0.3
+position = [0.0, 0.0, 0.3]
+velocity = [1.0, 0.0, 0.5]
+angular_velocity = [0.0, -10.0, 0.0]
+material = "rubber"
+[[planes]]
+name = "ground"
+material = "rubber"
+[fit]
+params = ["extra.friction.rubber"]
+"""
+
+
+def test_a_fit_whose_derivatives_blow_up_is_not_a_result(tmp_path):
+    """A sphere that lands rolling without slip: during the impact its viscous friction
+    (mu f_n / slip_speed, bounded by the safe step at the static load m g only) is past the
+    explicit step's limit for the tangents, so d position / d mu grows to 1e64 while the
+    motion stays bounded. The fit reported standard errors of 1e-128, correlations of
+    +-1 and "reached": true. Now it says the derivatives blew up and is not a result."""
+    scene, rec = _record_file(tmp_path, ROLLING, {}, ["ball"], "ball",
+                              integrator="semi_implicit_euler", dt=1.25e-4, every=5e-3,
+                              duration=0.8, noise=0.0, seed=0)
+    out = tf.fit_files(scene, [rec], horizons=(None,), maxiter=1)
+    assert out["diverged"] and not out["reached"]
+    assert "derivatives blew up" in out["message"]
+    assert math.isnan(out["stderr"]["extra.friction.rubber"])

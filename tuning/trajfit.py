@@ -162,6 +162,9 @@ class TrajFitResult:
       ``cost`` is NaN and the message says so: the fit is not a result.
     starts: with multi-start, per start point ``{"values", "screen_cost", "cost" (None
       when LM did not run from it), "chosen"}``; else one entry for the given start.
+    diverged: the rollouts' derivatives at the fitted values ran away (non-finite, or an
+      entry of the Jacobian past :data:`JACOBIAN_LIMIT`) while their values stayed
+      bounded: not a result (the message says so; standard errors and correlations NaN).
     """
     params: dp.Params
     names: list
@@ -178,6 +181,7 @@ class TrajFitResult:
     message: str
     unstable: int = 0
     starts: list = dataclasses.field(default_factory=list)
+    diverged: bool = False
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -187,7 +191,14 @@ class TrajFitResult:
                 "undetermined": self.undetermined, "cost_start": self.cost_start,
                 "cost": self.cost, "horizons": self.horizons, "iterations": self.iterations,
                 "seconds": self.seconds, "message": self.message, "unstable": self.unstable,
-                "starts": self.starts}
+                "diverged": self.diverged, "starts": self.starts}
+
+
+#: Largest |d residual / d parameter| a fit trusts. Residuals are pose errors of order 1
+#: (positions in body sizes, angles in radians) and parameters are log values or metres, so a
+#: derivative past this means the rollouts' tangents ran away (a sphere rolling without slip
+#: through an impact, its viscous friction past the explicit step's limit: 1e64 and more).
+JACOBIAN_LIMIT = 1e8
 
 
 def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
@@ -344,6 +355,16 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         message = (f"NOT a result: {n_bad} of {sum(len(b.paths) for b in batches)} records "
                    "ran past the safe step at the fitted values (State.aux['unstable']); "
                    f"lower dt or tighten the [fit.bounds] of k / c ({message})")
+    jmax = float(np.max(np.abs(J))) if J.size and np.all(np.isfinite(J)) else math.inf
+    diverged = not jmax <= JACOBIAN_LIMIT
+    if diverged:
+        # the rollouts' derivatives ran away while their values stayed bounded (a tangent
+        # mode the step cannot hold, e.g. stiff viscous friction under an impact's load):
+        # the Gauss-Newton steps, errors and correlations mean nothing
+        message = (f"NOT a result: the rollouts' derivatives blew up (largest |d residual / "
+                   f"d parameter| = {jmax:.3g}, past {JACOBIAN_LIMIT:g}); the step is too "
+                   "long for their tangent dynamics: lower dt or raise the slip_speed of "
+                   f"friction materials ({message})")
     values = {f.name: float(f.from_x(x[i])) for i, f in enumerate(free)}
     near = 1e-9 * (1.0 + np.abs(np.asarray(x, float)))
     ends = [f"{f.name} = {values[f.name]:.6g} "
@@ -373,11 +394,15 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                         | np.outer(~blind, blind), np.nan, cov / np.outer(se_x, se_x))
     stderr = {f.name: float(math.inf if blind[i] else values[f.name] * se_x[i] if f.log
                             else se_x[i]) for i, f in enumerate(free)}
+    if diverged:
+        stderr = {name: math.nan for name in stderr}
+        corr = np.full_like(corr, np.nan)
+        undetermined = []
     fitted = with_leaves(params, {n: jnp.asarray(v, sim.dtype) for n, v in values.items()})
     return TrajFitResult(fitted, names, values, stderr, corr, undetermined, cost_start, cost,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
-                         starts=start_info)
+                         starts=start_info, diverged=diverged)
 
 
 def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
@@ -544,7 +569,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         "after": {"position_error_pct": after.position_error_pct,
                   "rotation_error_deg": after.rotation_error_deg},
         "out": None if out_error else out, "seconds": time.perf_counter() - t0,
-        "fit_seconds": res.seconds, "reached": not (res.unstable or after.unstable)})
+        "fit_seconds": res.seconds,
+        "reached": not (res.unstable or after.unstable or res.diverged)})
     if out_error:
         summary["out_error"] = out_error
     return summary
