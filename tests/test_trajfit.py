@@ -893,3 +893,14 @@ def test_a_fit_whose_derivatives_blow_up_is_not_a_result(tmp_path):
     assert out["diverged"] and not out["reached"]
     assert "derivatives blew up" in out["message"]
     assert math.isnan(out["stderr"]["extra.friction.rubber"])
+
+
+def test_a_rigid_body_without_orientation_columns_is_warned_about(tmp_path, cube):
+    """A record with positions only of a box started it silently from the scene file's
+    orientation with no spin (31.9% position error against 1.40% with quaternions)."""
+    from tuning.records import BodyRecord, Record
+    t = np.arange(12) * 5e-3
+    pos = np.stack([np.zeros(12), np.zeros(12), 0.3 - 4.9 * t ** 2], axis=1)
+    rec = Record(path=str(tmp_path / "posonly.csv"), t=t, bodies={"0": BodyRecord(pos)})
+    with pytest.warns(UserWarning, match="no orientation columns .* posonly.csv"):
+        tf.prepare(cube, [rec])

@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -125,7 +127,7 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     quat = np.tile(np.array([1.0, 0, 0, 0]), (R, T, B, 1))
     qmask = np.zeros((R, T, B))
     times = np.zeros((R, T))
-    starts = []
+    starts, blind = [], []
     s_init = sim.init_state()
     for r, rec in enumerate(records):
         n = len(rec.t)
@@ -162,9 +164,18 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                     raise FitError(f"{rec.path}, body {name!r}: {exc}") from None
                 if cache is not None:               # the record is kept: its id stays its own
                     cache[key] = (rec, (p0, v0, q0, w0))
+            if q is None and scene.bodies[idx[b]].rigid:
+                blind.append(f"{os.path.basename(rec.path)} ({name})")
             state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
                                    orientation=q0, angular_velocity=w0, frame="world")
         starts.append(state)
+    if blind:
+        warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "
+                      f"for a rigid body: {', '.join(blind[:5])}"
+                      + (", ..." if len(blind) > 5 else "") + ". Those bodies start from the "
+                      "scene file's orientation and angular velocity, not from the record's; "
+                      "measure the orientation too to fit or evaluate their rotation.",
+                      stacklevel=2)
     start = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *starts)
     valid = pmask.sum(axis=(1, 2)) + qmask.sum(axis=(1, 2))
     if np.any(valid == 0):
