@@ -137,26 +137,21 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
     return out, out_batched
 
 
-def _differentiated(tree) -> bool:
-    """True when a leaf of ``tree`` is being differentiated by an outer ``jax.jvp`` /
-    ``jax.grad`` (a JVP or linearize tracer; JAX has no public test for it, so the tracer's
-    class name is read, as :func:`diffpen.checks._batched` does; tests/test_autodiff.py fails
-    if a JAX release renames them)."""
-    return any(type(leaf).__name__ in ("JVPTracer", "LinearizeTracer")
-               for leaf in jax.tree_util.tree_leaves(tree))
-
-
 def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: bool,
                             has_aux: bool, args: tuple, kwargs: dict):
-    """Forward mode with the batched layout of :func:`_forward_batched` (a ``custom_vmap``
-    rule, applied by any outer ``jax.vmap``, also of a ``jax.jit`` around this call); when
-    the call is itself being differentiated, plain forward mode (:func:`_forward`).
+    """Forward mode, in a form that composes with every JAX transformation.
 
-    Keyword arguments travel as positional arguments of the batching rule, so a batched
-    keyword value is seen as batched. A batched value that ``fun`` closes over (not an
-    argument) is invisible to the rule (``custom_vmap`` refuses it with an
-    ``AssertionError``); such a call takes plain forward mode under the outer ``vmap``
-    instead (the same values, lanes inside the batch: slower on large batches)."""
+    * Keyword arguments travel as positional ones, and values that ``fun`` closes over and
+      an outer transformation traces (``jax.closure_convert``: a batched or differentiated
+      value inside ``jax.jit``) become arguments too, so the batching rule sees them.
+    * Under ``jax.vmap`` the ``custom_vmap`` rule (:func:`_forward_batched`) lays the
+      tangent lanes out outside the batch; a batched value closed over outside any ``jit``
+      (which ``closure_convert`` leaves in place) takes plain forward mode under the vmap
+      instead (the same values, lanes inside the batch).
+    * Differentiated again (``jax.grad`` / ``jax.jacfwd`` of it, also through ``jit``), the
+      ``custom_jvp`` rule differentiates plain forward mode (:func:`_forward`):
+      second derivatives.
+    """
     keys = tuple(kwargs)
     n_args = len(args)
 
@@ -164,25 +159,33 @@ def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: boo
         return fun(*a[:n_args], **dict(zip(keys, a[n_args:])))
     loss = _scalar_loss(call, has_aux)
     flat = (*args, *(kwargs[k] for k in keys))
-    if _differentiated(flat):
-        # differentiated again (jax.jacfwd / jax.grad of it: second derivatives): plain
-        # forward mode, which composes with every transformation; custom_vmap does not
-        # (its rule cannot be linearised); the rule below is only a faster batch layout
-        return _forward(loss, argnums, single, has_aux, flat)
+    conv, hoisted = jax.closure_convert(loss, *flat)
+    full = (*flat, *hoisted)
+
+    def plain(*a):
+        return _forward(conv, argnums, single, has_aux, a)
 
     @jax.custom_batching.custom_vmap
-    def vg(*a):
-        return _forward(loss, argnums, single, has_aux, a)
+    def batched(*a):
+        return plain(*a)
 
-    @vg.def_vmap
+    @batched.def_vmap
     def _rule(axis_size, in_batched, *a):
-        return _forward_batched(loss, argnums, single, has_aux, axis_size, list(in_batched),
+        return _forward_batched(conv, argnums, single, has_aux, axis_size, list(in_batched),
                                 a)
+
+    @jax.custom_jvp
+    def vg(*a):
+        return batched(*a)
+
+    @vg.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(plain, primals, tangents)
     try:
-        return vg(*flat)
+        return vg(*full)
     except AssertionError:
-        # a batched value closed over by fun: custom_vmap cannot batch it
-        return _forward(loss, argnums, single, has_aux, flat)
+        # a batched value closed over outside jit: custom_vmap cannot batch it
+        return plain(*full)
 
 
 def value_and_grad(fun: Callable, argnums: int | Sequence[int] = 0, *, mode: str = "auto",

@@ -166,3 +166,22 @@ def test_forward_mode_can_be_differentiated_again(ball):
     for outer in (jax.jacfwd, jax.jacrev):
         got = outer(dp.grad(loss, (0, 1), mode="forward"), (0, 1))(k, c)
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-7)
+
+
+def test_forward_mode_composes_through_jit_and_closures():
+    """Forward mode failed when differentiated through jax.jit ("Linearization failed"), for
+    a gradient with respect to a closed-over value, and under vmap(jit(...)) of a closure
+    over the batched value (a bare AssertionError)."""
+    def loss(p, s=1.0):
+        return jnp.sum(jnp.sin(p * s) * p)
+    p, ss = jnp.array([0.3, 0.7]), jnp.array([1.0, 2.0])
+    fg = dp.grad(loss, mode="forward")
+    want = jax.grad(lambda q: jnp.sum(jax.grad(loss)(q) ** 2))(p)
+    got = jax.grad(jax.jit(lambda q: jnp.sum(fg(q) ** 2)))(p)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    want = jax.grad(lambda s: jnp.sum(jax.grad(lambda q: loss(q, s))(p)))(1.0)
+    got = jax.grad(lambda s: jnp.sum(dp.grad(lambda q: loss(q, s), mode="forward")(p)))(1.0)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    want = jax.vmap(lambda s: jax.grad(lambda q: loss(q, s))(p))(ss)
+    got = jax.vmap(jax.jit(lambda s: dp.grad(lambda q: loss(q, s), mode="forward")(p)))(ss)
+    np.testing.assert_allclose(got, want, rtol=1e-12)
