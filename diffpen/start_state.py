@@ -4,6 +4,7 @@
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -39,11 +40,16 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
             sim._rigid is None or not all(sim.scene.bodies[i].rigid for i in idx)):
         raise SceneError("orientation and angular_velocity can be set for rigid bodies "
                          "only (scene.add_box / scene.add_rigid_sphere).")
-    pinned = [int(i) for i in idx if sim.pinned[i]]
-    if pinned and (velocity is not None or angular_velocity is not None):
-        raise SceneError(f"body {pinned[0]} is pinned (fixed in space, it never moves): it "
-                         "takes no velocity. Set velocities of free bodies only, or unpin it "
-                         "in the scene.")
+    pinned = [j for j, i in enumerate(idx) if sim.pinned[i]]
+    for given in (velocity, angular_velocity):
+        if not pinned or given is None or isinstance(given, jax.core.Tracer):
+            continue
+        rows = np.broadcast_to(np.asarray(given, dtype=float), (len(idx), 3))
+        moving = [j for j in pinned if np.any(rows[j] != 0.0)]
+        if moving:
+            raise SceneError(f"body {int(idx[moving[0]])} is pinned (fixed in space, it never "
+                             "moves): it takes no velocity. Set velocities of free bodies "
+                             "only (zero is accepted), or unpin it in the scene.")
     s = sim.init_state() if state is None else state
 
     def rows(v, width):

@@ -904,3 +904,20 @@ def test_a_rigid_body_without_orientation_columns_is_warned_about(tmp_path, cube
     rec = Record(path=str(tmp_path / "posonly.csv"), t=t, bodies={"0": BodyRecord(pos)})
     with pytest.warns(UserWarning, match="no orientation columns .* posonly.csv"):
         tf.prepare(cube, [rec])
+
+
+def test_a_record_of_a_pinned_body_prepares(tmp_path):
+    """A record that also tracks a rope's pinned end failed ("body 0 is pinned ... takes
+    no velocity"): its estimated velocity went to state_from. A pinned body keeps zero
+    velocity; a zero velocity is accepted."""
+    text = ROPE.format(k=200.0, c=0.3)
+    scene, rec = _record_file(tmp_path, text, {}, ["rope[0]", "rope[2]"], "rope",
+                              integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.1,
+                              noise=1e-4, seed=1)
+    sf = load_scene_file(scene)
+    sim = sf.compile()
+    records, bodies = tf.load_records(sf, [rec])
+    for est in ("record", "fit"):
+        batch = tf.prepare(sim, records, bodies=bodies, estimate=est)
+        assert np.all(np.asarray(batch.start.velocity)[0, sf.names["rope[0]"]] == 0.0)
+    sim.state_from(body=sf.names["rope[0]"], velocity=(0.0, 0.0, 0.0))

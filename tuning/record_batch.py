@@ -166,6 +166,9 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                     cache[key] = (rec, (p0, v0, q0, w0))
             if q is None and scene.bodies[idx[b]].rigid:
                 blind.append(f"{os.path.basename(rec.path)} ({name})")
+            if scene.bodies[idx[b]].pinned:      # observed, never moved: no velocities
+                v0 = None if v0 is None else np.zeros(3)
+                w0 = None if w0 is None else np.zeros(3)
             state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
                                    orientation=q0, angular_velocity=w0, frame="world")
         starts.append(state)
