@@ -175,35 +175,42 @@ def anisotropy(inertia) -> float:
                      abs(i[0] - i[1]) / i[2]))
 
 
-def check_spin(sim, state, substeps: int) -> None:
-    """Refuse (:class:`StabilityError`) a concrete start state in which a rigid body spins
-    faster than :data:`SPIN_LIMIT` (``kappa |w| h``) under semi-implicit Euler, saying which
-    dt, substeps or integrator would step it."""
-    from .params import _is_concrete
+def spin_anisotropy(scene) -> np.ndarray:
+    """(n,) :func:`anisotropy` of each free rigid body's principal moments (0 for other
+    bodies), computed once per simulator."""
     from .rigid import inertia_diagonal
+    return np.array([anisotropy(inertia_diagonal(b)) if b.rigid and not b.pinned else 0.0
+                     for b in scene.bodies])
+
+
+def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
+    """The inner steps a concrete start state needs so that no rigid body spins faster than
+    :data:`SPIN_LIMIT` (``kappa |w| h``) under semi-implicit Euler: ``substeps`` when it is
+    enough; else, with ``auto``, the count that is, and otherwise :class:`StabilityError`
+    saying which dt, substeps or integrator would step it."""
+    from .params import _is_concrete
     w = getattr(state, "angular_velocity", None)
-    if (w is None or sim.integrator != "semi_implicit_euler" or not _is_concrete(w)
-            or _batched(state)):
-        return
-    kappa = np.array([anisotropy(inertia_diagonal(b)) if b.rigid and not b.pinned else 0.0
-                      for b in sim.scene.bodies])
-    if not kappa.any():
-        return
+    kappa = getattr(sim, "_spin_kappa", None)
+    if (w is None or kappa is None or not kappa.any() or sim.integrator != "semi_implicit_euler"
+            or not _is_concrete(w) or _batched(state)):
+        return substeps
     h = sim.dt / substeps
     speed = np.linalg.norm(np.asarray(w, dtype=float).reshape(-1, 3), axis=-1)
     rate = kappa * speed * h
     if not rate.size or not np.isfinite(rate).all() or rate.max() <= SPIN_LIMIT:
-        return
+        return substeps
     b = int(np.argmax(rate))
-    need = int(np.ceil(rate[b] / SPIN_LIMIT))
+    need = int(np.ceil(rate[b] / SPIN_LIMIT)) * substeps
+    if auto:
+        return need
     raise StabilityError(
         f"body {b} spins at |w| = {speed[b]:.4g} rad/s with inertia anisotropy kappa = "
         f"{kappa[b]:.3g}: kappa |w| h = {rate[b]:.3g} per step of {h:.3g} s. Semi-implicit "
         "Euler steps the gyroscopic term explicitly and grows such a spin's energy until it "
         f"turns NaN (above {SPIN_LIMIT}). Use dt <= {SPIN_LIMIT / (kappa[b] * speed[b]):.3g} s, "
-        f"substeps={need * substeps}, or integrator='verlet' or 'rk4' (stable to about "
-        "|w| h = 0.3).",
-        stable_dt=SPIN_LIMIT / (kappa[b] * speed[b]), substeps=need * substeps)
+        f"substeps={need} (or substeps='auto'), or integrator='verlet' or 'rk4' (stable to "
+        "about |w| h = 0.3).",
+        stable_dt=SPIN_LIMIT / (kappa[b] * speed[b]), substeps=need)
 
 
 def check_finite_trajectory(traj, save_every: int, dt: float) -> None:

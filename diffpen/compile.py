@@ -217,6 +217,7 @@ class Simulator:
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
+        self._spin_kappa = _checks.spin_anisotropy(scene)   # (n,) inertia anisotropy
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
@@ -515,8 +516,11 @@ class Simulator:
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
                             cache=self.gate_cache)                # host-side only
-        if check_stability:
-            _checks.check_spin(self, state, int(n))
+        if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
+            # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
+            # more substeps, a fixed count is refused (traced params never raise)
+            n = _checks.check_spin(self, state, int(n),
+                                   auto=substeps is None and self.substeps == "auto")
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
                                  substeps=int(n), observe=observe)

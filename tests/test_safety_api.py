@@ -1,6 +1,7 @@
 """Library input checks: scenes refuse bodies starting inside colliders or each other (unless
 asked), numbers are never coerced from strings or bools, params() refuses vectors, rollout
 names a bad params pytree, state or size before anything is traced."""
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -230,8 +231,20 @@ def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
     # past the gate (check_stability=False) the NaN orientation is caught, not returned
     with pytest.raises(dp.NonFiniteError, match="became NaN/inf by step"):
         bsim.rollout(bsim.params(), 400, check_stability=False)
-    # the fix it names steps it: 7 substeps, or verlet at the same dt
+    # the fix it names steps it: 7 substeps, or verlet at the same dt; "auto" picks them
     assert np.isfinite(bsim.rollout(bsim.params(), 400, substeps=7).orientation).all()
+    auto = dp.compile(s, 1e-3, substeps="auto")
+    np.testing.assert_array_equal(auto.rollout(auto.params(), 400).orientation,
+                                  bsim.rollout(bsim.params(), 400, substeps=7).orientation)
+    # traced params never raise (the rollout's aux flag is the traced check)
+    sp = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    sp.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+               inertia=(1.0, 2.0, 3.0))
+    sp.add_plane(offset=-10.0)
+    psim = dp.compile(sp, 1e-3)
+    with pytest.raises(dp.StabilityError):
+        psim.rollout(psim.params(k=1e4, c=20.0), 5)
+    jax.jit(lambda p: psim.rollout(p, 5).position)(psim.params(k=1e4, c=20.0))
     vsim = dp.compile(s, 1e-3, integrator="verlet")
     assert np.isfinite(vsim.rollout(vsim.params(), 400).orientation).all()
     # equal moments (a cube) have no gyroscopic term: the same spin is stepped exactly
