@@ -217,6 +217,7 @@ class Simulator:
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
+        self._validated: dict = {}          # params values checked (diffpen.params.validate)
         self._spin_kappa = _checks.spin_anisotropy(scene)   # (n,) inertia anisotropy
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",

@@ -130,7 +130,26 @@ def validate(sim, params: Params) -> None:
     """Check a :class:`Params` given to a rollout as :func:`build` checks its arguments: the
     simulator's materials, spring groups and extra entries, each value a scalar; finite and
     within its range when concrete (a params tree edited with ``_replace`` passes through
-    here too). Raises :class:`SceneError` saying what to change."""
+    here too). Raises :class:`SceneError` saying what to change. A set of concrete values
+    checked once is remembered per simulator (a repeated rollout pays a look-up)."""
+    memo = getattr(sim, "_validated", None)
+    key = None
+    if memo is not None:
+        from .stability.gating import _scalar_key
+        values = _scalar_key(params)
+        if values is not None:
+            key = (jax.tree_util.tree_structure(params), values)
+            if key in memo:
+                return
+    _validate(sim, params)
+    if key is not None:
+        if len(memo) >= 1024:
+            memo.clear()
+        memo[key] = True
+
+
+def _validate(sim, params: Params) -> None:
+    """:func:`validate` without the memo."""
     def same(kind, got, want):
         if not isinstance(got, dict) or set(got) != set(want):
             have = sorted(got) if isinstance(got, dict) else type(got).__name__
