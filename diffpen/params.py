@@ -62,6 +62,8 @@ def _given_or_declared(given: dict, name: str, fallback, declared):
     """``(k, c)`` of ``name``: ``given[name]`` (else ``fallback``), each None replaced by the
     scene's declared ``declared.k`` / ``declared.c``."""
     pair = given.get(name, fallback)
+    if hasattr(pair, "shape") and tuple(pair.shape) == (2,):     # an array (k, c)
+        pair = (pair[0], pair[1])
     if not isinstance(pair, (tuple, list)) or len(pair) != 2:
         raise SceneError(f"the value for {name!r} must be a (k, c) pair (None keeps the "
                          f"scene's value), got {pair!r}.")

@@ -250,4 +250,10 @@ def hunt_crossley_a_from_restitution(e, v_in):
     dx = jax.grad(resid, argnums=0)
     slope = jnp.vectorize(dx)(x0, es)
     x = x0 - resid(x0, e) / slope
-    return jnp.where(e_in < 1.0, x / v_in, 0.0)
+    # near e = 1 (and at it: a = 0) the series of the balance in x = a v_in, whose slope
+    # there is d x / d e = -3/2 (the bisection's branch has none at e = 1 exactly)
+    en = jnp.where(e_in > 1.0 - 1e-3, e_in, 1.0)
+    x0n = 1.5 * (1.0 - en * en) / (1.0 + en ** 3)
+    xn = x0n + 3.0 / (1.0 + en ** 3) * (x0n ** 2 * (1.0 - en ** 4) / 4.0
+                                        - x0n ** 3 * (1.0 + en ** 5) / 5.0)
+    return jnp.where(e_in > 1.0 - 1e-3, xn, x) / v_in

@@ -206,6 +206,12 @@ def test_elastic_limits_of_the_conversions():
     k, c = physical.kc_from_restitution(1.0, 0.01, 1.0)
     assert float(c) == 0.0 and float(k) == pytest.approx((math.pi / 0.01) ** 2)
     assert float(physical.hunt_crossley_a_from_restitution(1.0, 2.0)) == 0.0
+    # its slope there is -3 / (2 v_in), not 0 (a fit starting at e = 1 got no gradient)
+    g = jax.grad(lambda e: physical.hunt_crossley_a_from_restitution(e, 2.0))
+    assert float(g(1.0)) == pytest.approx(-0.75, rel=1e-9)
+    for e in (0.9989, 0.9991, 0.99999):        # both sides of the series' switch
+        a = physical.hunt_crossley_a_from_restitution(e, 2.0)
+        assert float(physical.hunt_crossley_restitution(a * 2.0)) == pytest.approx(e, rel=1e-10)
 
 
 def test_time_constant_round_trip():

@@ -303,3 +303,21 @@ def test_compile_dtype_must_be_float32_or_float64():
     for bad in (jnp.bfloat16, jnp.float16, jnp.int32, "nonsense"):
         with pytest.raises(dp.SceneError, match="dtype must be float32 or float64"):
             dp.compile(ball_scene(), 1e-3, dtype=bad)
+
+
+def test_a_step_no_substep_count_can_save_says_so():
+    """Friction 1e9 made the safe step 0 and the error read "Use dt < 0 s,
+    substeps=100001"."""
+    s = dp.Scene()
+    s.add_material("ice", k=1e4, c=20.0, friction=1e9)
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.1))
+    s.add_plane(material="ice")
+    sim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.StabilityError, match="no practical step.*implicit_euler"):
+        sim.rollout(sim.params(), 10)
+
+
+def test_contact_pairs_may_be_arrays():
+    sim = dp.compile(ball_scene(), 1e-3)
+    p = sim.params(contact={"default": np.array([1e4, 20.0])})
+    assert float(p.contact["default"].k) == 1e4 and float(p.contact["default"].c) == 20.0

@@ -239,7 +239,8 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                 f"is {rep.safe_dt:.3g} s (w_max <= {rep.omega_max:.4g} rad/s, C/m <= "
                 f"{rep.damping_rate:.4g} 1/s, set by {rep.limiting or 'the springs and contacts'}"
                 f"), {rep.substeps_needed} substeps per step of {an.dt:g} s. Lower that "
-                "stiffness, damping or friction, or raise the mass.",
+                "stiffness, damping or friction, raise the mass, or use "
+                "integrator='implicit_euler' (no step limit).",
                 stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
         why = ("unstable" if not rep.stable else
                f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "

@@ -379,7 +379,9 @@ def _run_records(args) -> int:
         print(f"wrote:     {out['out']}")
     print(f"status:    {out['message']}; {out['iterations']} LM iterations, "
           f"{out['seconds']:.2f} s wall time ({out['fit_seconds']:.2f} s fitting)"
-          + ("" if out["reached"] else "; NOT a result: a rollout ran past the safe step"))
+          + ("" if out["reached"] else "; NOT a result: "
+             + ("the derivatives blew up" if out.get("diverged") else
+                "a rollout ran past the safe step")))
     if out.get("out_error"):
         print(f"diffpen fit: error: {out['out_error']} (the fitted values are printed "
               "above)", file=sys.stderr)
