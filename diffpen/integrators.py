@@ -174,7 +174,7 @@ def rk4(accel_fn: Callable, dt: float):
 
 # --------------------------------------------------------------------------- implicit
 #: Largest number of degrees of freedom (3 x bodies) solved densely by ``implicit_euler``
-#: under ``solver="auto"``; larger scenes use conjugate gradients on Jacobian-vector products.
+#: under ``solver="auto"``; larger scenes use GMRES on Jacobian-vector products.
 DENSE_MAX_DOF = 96
 
 
@@ -193,14 +193,17 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
 
     Args:
       accel_fn, dt: as for every integrator (dt in s).
-      inv_mass: (n,) 1/kg, 0 for pinned bodies. Needed by the conjugate-gradient solver, which
-        works on the mass-weighted system ``M (I - h A_v - h^2 A_x)`` (symmetric for
-        conservative springs and contacts) restricted to free bodies.
-      solver: ``"dense"`` (Jacobians by forward mode, ``jnp.linalg.solve``), ``"cg"``
-        (matrix-free conjugate gradients on Jacobian-vector products; gradients through the
-        solve use a second CG on the transposed operator, from vector-Jacobian products), or
-        ``"auto"``: dense up to ``DENSE_MAX_DOF`` degrees of freedom, else CG.
-      cg_tol: relative residual tolerance of CG.  cg_maxiter: CG iteration cap (default 3n).
+      inv_mass: (n,) 1/kg, 0 for pinned bodies. Needed by the iterative solvers, which work
+        on the mass-weighted system ``M (I - h A_v - h^2 A_x)`` restricted to free bodies.
+      solver: ``"dense"`` (Jacobians by forward mode, ``jnp.linalg.solve``), ``"gmres"``
+        (matrix-free GMRES on Jacobian-vector products, any system), ``"cg"`` (conjugate
+        gradients: faster, but only right when that system is symmetric, as for conservative
+        springs and contacts; a damper with relative motion across its axis makes it
+        non-symmetric and CG's answer wrong), or ``"auto"``: dense up to ``DENSE_MAX_DOF``
+        degrees of freedom, else GMRES. Gradients through an iterative solve use a second
+        solve on the transposed operator, from vector-Jacobian products.
+      cg_tol: relative residual tolerance of the iterative solve.  cg_maxiter: its
+        iteration cap (default 3n).
     Differentiable with respect to params (and state) through either solve.
 
     Rigid bodies (states with orientations): the same step on generalised coordinates. The
@@ -208,23 +211,23 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
     translation and a world-frame rotation vector (the orientation becomes ``q`` rotated by
     ``dtheta``); ``A_x`` and ``A_v`` are the Jacobians of ``(a, alpha)`` with respect to them.
     After the solve, ``x' = x + h v'`` and ``q`` turns by ``h w'``. Rigid scenes use the dense
-    solve (``solver="cg"`` is refused: the rotational block is not symmetric).
+    solve (the iterative solvers are refused there).
     """
     from jax import lax
     from .errors import SceneError
 
-    if solver not in ("auto", "dense", "cg"):
-        raise SceneError(f"implicit_euler solver must be 'auto', 'dense' or 'cg', got "
-                         f"{solver!r}.")
+    if solver not in ("auto", "dense", "cg", "gmres"):
+        raise SceneError(f"implicit_euler solver must be 'auto', 'dense', 'gmres' or 'cg', "
+                         f"got {solver!r}.")
     h = dt
 
     def step(params, state: State) -> State:
         if state.orientation is not None:
-            if solver == "cg":
+            if solver in ("cg", "gmres"):
                 raise SceneError(
-                    "implicit_euler with solver='cg' supports particle and sphere scenes only "
-                    "(this scene has rotating rigid bodies, whose rotational block is not "
-                    "symmetric): use solver='dense' or 'auto'.")
+                    f"implicit_euler with solver={solver!r} supports particle and sphere "
+                    "scenes only (this scene has rotating rigid bodies, solved on generalised "
+                    "coordinates): use solver='dense' or 'auto'.")
             return _rigid_step(accel_fn, h, params, state)
         x0, v0 = state.position, state.velocity
         shape = x0.shape
@@ -245,8 +248,8 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
             dv = jnp.linalg.solve(mat, rhs)
         else:
             if inv_mass is None:
-                raise SceneError("implicit_euler with solver='cg' needs inv_mass (n,) 1/kg; "
-                                 "diffpen.compile passes it.")
+                raise SceneError(f"implicit_euler with an iterative solver needs inv_mass "
+                                 "(n,) 1/kg; diffpen.compile passes it.")
             im = jnp.repeat(jnp.asarray(inv_mass, xf.dtype).reshape(-1), shape[-1])
             free = (im > 0.0).astype(xf.dtype)
             w = jnp.where(im > 0.0, 1.0 / jnp.where(im > 0.0, im, 1.0), 1.0)  # mass, kg
@@ -266,8 +269,12 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
             maxiter = cg_maxiter if cg_maxiter is not None else max(3 * ndof, 20)
 
             def cg_solve(mv, b):
-                return jax.scipy.sparse.linalg.cg(mv, b, tol=cg_tol, atol=0.0,
-                                                  maxiter=maxiter)[0]
+                if solver == "cg":
+                    return jax.scipy.sparse.linalg.cg(mv, b, tol=cg_tol, atol=0.0,
+                                                      maxiter=maxiter)[0]
+                return jax.scipy.sparse.linalg.gmres(mv, b, tol=cg_tol, atol=0.0,
+                                                     restart=min(30, ndof),
+                                                     maxiter=maxiter)[0]
 
             def transpose_solve(vecmat, b):
                 return cg_solve(vecmat, b)
