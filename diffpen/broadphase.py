@@ -84,7 +84,9 @@ class Grid:
 
     Args:
       cell_size: m; at least the largest bounding-box width (2 x largest bounding radius +
-        2 margin), the default.
+        2 margin), the default. A step whose widest box (swept by ``|v| dt``) is wider
+        searches with cells that wide, so every overlapping pair lies in neighbouring cells
+        (fast bodies crowd the cells instead: reported as overflow when a cell is full).
       max_per_cell: static capacity of one cell (bodies); more is reported as overflow.
       max_pairs: static capacity of overlapping pairs; default 8 per body.
       bounds: ``((x0, y0, z0), (x1, y1, z1))`` m, the gridded region; bodies outside it are
@@ -245,10 +247,11 @@ def check(bp, ctx: CompileContext) -> None:
     if not (math.isfinite(bp.margin) and bp.margin >= 0.0):
         raise SceneError(f"broadphase margin must be >= 0 metres, got {bp.margin!r}.")
     if bp.max_pairs is not None and (not isinstance(bp.max_pairs, (int, np.integer))
-                                     or bp.max_pairs < 1):
+                                     or isinstance(bp.max_pairs, bool) or bp.max_pairs < 1):
         raise SceneError(f"broadphase max_pairs must be a positive int, got {bp.max_pairs!r}.")
     if isinstance(bp, Grid):
-        if not isinstance(bp.max_per_cell, (int, np.integer)) or bp.max_per_cell < 1:
+        if (not isinstance(bp.max_per_cell, (int, np.integer))
+                or isinstance(bp.max_per_cell, bool) or bp.max_per_cell < 1):
             raise SceneError(f"Grid max_per_cell must be a positive int, got "
                              f"{bp.max_per_cell!r}.")
         gi = _grid_bodies(ctx)
@@ -282,13 +285,17 @@ def check(bp, ctx: CompileContext) -> None:
 def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     """Half widths (len(idx), 3) m of the bodies' axis-aligned bounding boxes: the radius for
     spheres and particles, ``|R| h`` for boxes (R rotation, h half extents); plus, per axis,
-    ``|v| dt``: the box swept over the step window of the step-averaged contact, which acts
-    from a gap of ``|vn| h`` on (``ctx.step`` = dt)."""
+    ``|v| dt`` on every axis: the box swept over the step window of the step-averaged
+    contact, which acts from a gap of ``|vn| h`` on along the contact's normal, whatever its
+    direction (``ctx.step`` = dt; the speed, not each axis' component: a pair closing at an
+    angle was dropped)."""
     bodies = ctx.scene.bodies
     r = ctx.const(ctx.radius[idx] + margin)[:, None]
     boxes = np.array([bodies[i].kind == "box" for i in idx])
+    sweep = (jnp.linalg.norm(state.velocity[idx], axis=-1, keepdims=True) * ctx.step
+             if ctx.step else 0.0)
     if ctx.step:
-        r = r + jnp.abs(state.velocity[idx]) * ctx.step
+        r = r + sweep
     if not boxes.any():
         return jnp.broadcast_to(r, (len(idx), 3))
     from .rigid import quat_to_matrix
@@ -297,7 +304,7 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     rot = quat_to_matrix(state.orientation[idx])
     box_w = jnp.sum(jnp.abs(rot) * half[:, None, :], axis=-1) + margin
     if ctx.step:
-        box_w = box_w + jnp.abs(state.velocity[idx]) * ctx.step
+        box_w = box_w + sweep
     return jnp.where(jnp.asarray(boxes)[:, None], box_w, r)
 
 
@@ -324,6 +331,11 @@ def _find_pairs(bp, ctx: CompileContext, state) -> Pairs:
     cell, _, lo0, _, dims = _grid_layout(bp, ctx, gi)
     x = state.position[gi]
     lo, hi = aabb(x, half_widths(ctx, state, gi, _margin(bp, ctx)))
+    # neighbouring cells hold every overlapping pair while each box fits in a cell: a box
+    # swept wider by a fast body (|v| dt) widens this step's cells to it (the static cell
+    # count still covers the bounds; a crowded cell is reported as overflow)
+    widest = jnp.max(hi - lo)
+    cell = jnp.where(widest > cell * (1.0 + 1e-9), widest, cell)   # rounding keeps the cell
     a, b, ok, full = grid_candidates(x, cell, ctx.const(lo0), dims, bp.max_per_cell)
     a, b, ok = a.reshape(-1), b.reshape(-1), ok.reshape(-1)
     ga, gb = jnp.asarray(gi)[a], jnp.asarray(gi)[b]

@@ -175,7 +175,7 @@ class Simulator:
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
             broadphase=broadphase, step=dt,
-            velocity_lag=0.5 if integrator == "semi_implicit_euler" else 0.0)
+            velocity_lag=0.5 if method.name == "semi_implicit_euler" else 0.0)
         # the params keys: what the term builders declare they read, before any is built
         self.materials = _declared(builders, ctx, "materials", scene.materials,
                                    "contact material", "scene.add_material({!r}, k=..., c=...)")

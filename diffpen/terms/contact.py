@@ -260,6 +260,10 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
     n = ctx.n
 
     init = jax.jit(lambda s: _bp.find_pairs(bp, ctx, s).overflow)(_initial_state(ctx))
+    # per-body tables for the centred law, as the all-pairs sphere-sphere term has them
+    inv_m_all = ctx.const(ctx.inv_mass(np.arange(n)))
+    pinned_all = jnp.asarray(ctx.pinned)
+    g_vec = ctx.const(ctx.scene.gravity)
 
     def search(params, state):
         return _bp.find_pairs(bp, ctx, state)
@@ -280,7 +284,12 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
             d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
                                                       state.position[j], radius[j])
             vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
-            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h), 0.0)[:, None] * nrm
+            # gravity moves both ends alike unless one is pinned (as contact_sphere_sphere)
+            pa, pb = pinned_all[i], pinned_all[j]
+            g_side = jnp.where(pb & ~pa, 1.0, jnp.where(pa & ~pb, -1.0, 0.0))
+            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h, inv_m_all[i] + inv_m_all[j],
+                                                 g_side * geometry.dot(nrm, g_vec)),
+                           0.0)[:, None] * nrm
             f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
         if has_sb:
             from .rigid import sphere_box_force
