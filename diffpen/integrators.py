@@ -248,7 +248,7 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
             dv = jnp.linalg.solve(mat, rhs)
         else:
             if inv_mass is None:
-                raise SceneError(f"implicit_euler with an iterative solver needs inv_mass "
+                raise SceneError("implicit_euler with an iterative solver needs inv_mass "
                                  "(n,) 1/kg; diffpen.compile passes it.")
             im = jnp.repeat(jnp.asarray(inv_mass, xf.dtype).reshape(-1), shape[-1])
             free = (im > 0.0).astype(xf.dtype)
