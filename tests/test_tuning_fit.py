@@ -168,3 +168,23 @@ def test_library_fit_prints_nothing_unless_asked(short_problem, monkeypatch):
         F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"], method="optax",
               optimizer=optax.adam(0.05), maxiter=3, rtol=1e-9, **kw)
         assert bool(err.getvalue()) == drawn
+
+
+def test_optax_starts_from_the_cheapest_given_start():
+    """fit(method="optax", starts=[...]) checked the extra starts, then ignored them: the
+    loop now runs from the start of lowest cost."""
+    import diffpen as dp
+    from tuning.fit import fit
+    from tuning.bounce import bounce_metrics_fn
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    s.add_plane()
+    sim = dp.compile(s, 2e-3)
+    mfn = bounce_metrics_fn(sim, 600, n_apex=1)
+    target = {"apex_heights": [float(jax.jit(mfn)(sim.params(k=1e4, c=8.0))["apex_heights"][0])]}
+    p0 = sim.params(k=1e4, c=60.0)
+    far = fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1)
+    near = fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1,
+               starts=[{"contact.default.c": 8.1}, {"contact.default.c": 30.0}])
+    assert near.start["contact.default.c"] == pytest.approx(8.1)
+    assert near.rel_error["apex_heights"] < far.rel_error["apex_heights"]

@@ -28,6 +28,7 @@ import dataclasses
 import time
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
@@ -109,7 +110,9 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         `diffpen` command passes).
       starts: extra start points ``[{path: value}, ...]``; with ``method="lm"`` they are
         ranked by cost and LM runs from the best ``n_starts`` (all with the same compiled
-        function) until one reaches the targets; the best result is kept.
+        function) until one reaches the targets; the best result is kept. With
+        ``method="optax"`` the loop runs from the start of lowest cost among ``params0`` and
+        these (for several optax runs at once: :func:`tuning.batch_fit.fit_batch`).
       search: ``search(evaluate, slices, log_lo, log_hi) -> [theta, ...]`` (LM only): a
         problem-specific search for start points in log space; ``evaluate(theta) -> (r, J,
         metrics)`` is the fit's compiled residual/Jacobian function and ``slices`` maps each
@@ -131,10 +134,23 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         sol = fit_lm(problem, maxiter=maxiter, starts=starts, n_starts=n_starts,
                      search=search, progress=bar)
     else:
-        problem.start_points(starts)        # the same check of the extra starts as LM
+        points = problem.start_points(starts)   # the same check of the extra starts as LM
+        if len(points) > 1:
+            # optax runs from one point: the start of lowest cost (stable points first)
+            cost = jax.jit(lambda th: _start_cost(problem, th))
+            best = min(points, key=lambda th: float(cost(jnp.asarray(th))))
+            problem = dataclasses.replace(problem, x0=np.exp(np.asarray(best, float)))
         sol = fit_optax(problem, optimizer, maxiter=maxiter, progress=bar)
     bar.close()
     return _result(problem, sol, time.perf_counter() - t_start)
+
+
+def _start_cost(problem: Problem, theta):
+    """Sum of squared residuals at ``theta``; inf past the safe step or where not finite."""
+    r, m = problem.evaluate(theta)
+    bad = jnp.any(jnp.asarray(m["unstable"])) if "unstable" in m else False
+    c = jnp.sum(r * r)
+    return jnp.where(bad | ~jnp.isfinite(c), jnp.inf, c)
 
 
 def _result(problem: Problem, sol, seconds: float) -> FitResult:
