@@ -14,6 +14,8 @@ mass against a fixed collider; ``m_a m_b / (m_a + m_b)`` for two bodies).
 """
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import jax
 import jax.numpy as jnp
 
@@ -38,17 +40,18 @@ def damping_ratio(k, c, mass):
     return c / (2.0 * jnp.sqrt(k * mass))
 
 
-def _family(law, what: str) -> str:
-    """The closed-form family (``"linear"`` or ``"no_tension"``) of ``law``, a
-    :class:`diffpen.laws.ContactLaw` or a law name (``ContactLaw.closed_form``)."""
+def _family(law, what: str) -> "_Family":
+    """The closed forms (:class:`_Family`) of ``law``, a :class:`diffpen.laws.ContactLaw`
+    or a law name: the record names its family (``ContactLaw.closed_form``)."""
     try:
         rec = _laws.get(law)
     except ValueError as e:
         raise ValueError(str(e)) from None
-    if rec.closed_form not in ("linear", "no_tension"):
-        raise ValueError(f"{what} closed form exists for the 'linear' and 'no_tension' laws, not "
+    family = _FAMILIES.get(rec.closed_form)
+    if family is None:
+        raise ValueError(f"{what} closed form exists for the {sorted(_FAMILIES)} laws, not "
                          f"{rec.name!r}; use hunt_crossley_restitution for Hunt-Crossley.")
-    return rec.closed_form
+    return family
 
 
 def _nt_g(z):
@@ -110,13 +113,7 @@ def restitution(k, c, mass, law="linear"):
     lets go (``e(1) = exp(-2) = 0.135``, ``e ~ 1 / (4 zeta^2)`` for large zeta).
     ``law``: a :class:`diffpen.laws.ContactLaw` or its name.
     """
-    family = _family(law, "restitution")
-    z = damping_ratio(k, c, mass)
-    if family == "no_tension":
-        return jnp.exp(_nt_log_e(z))
-    under = z < 1.0
-    zs = jnp.where(under, z, 0.5)
-    return jnp.where(under, jnp.exp(-jnp.pi * zs / jnp.sqrt(1.0 - zs * zs)), 0.0)
+    return jnp.exp(_family(law, "restitution").log_e(damping_ratio(k, c, mass)))
 
 
 def contact_time(k, c, mass, law="linear"):
@@ -125,13 +122,7 @@ def contact_time(k, c, mass, law="linear"):
     inf for ``zeta >= 1`` (it never lets go); no_tension: ``2 g(zeta) / w0`` for every zeta
     (:func:`restitution`)."""
     family = _family(law, "contact_time")
-    w0 = natural_frequency(k, mass)
-    z = damping_ratio(k, c, mass)
-    if family == "no_tension":
-        return 2.0 * _nt_g(z) / w0
-    under = z < 1.0
-    zs = jnp.where(under, z, 0.5)
-    return jnp.where(under, jnp.pi / (w0 * jnp.sqrt(1.0 - zs * zs)), jnp.inf)
+    return family.w0_time(damping_ratio(k, c, mass)) / natural_frequency(k, mass)
 
 
 def zeta_from_restitution(e, law="linear"):
@@ -147,23 +138,7 @@ def zeta_from_restitution(e, law="linear"):
     family = _family(law, "zeta_from_restitution")
     _require("restitution e", e, lambda a: np.isfinite(a) & (a > 0.0) & (a <= 1.0),
              "in (0, 1] (0 would need infinite damping)")
-    log_e = jnp.log(e)
-    if family == "linear":
-        return -log_e / jnp.sqrt(jnp.pi ** 2 + log_e ** 2)
-    target = jax.lax.stop_gradient(log_e)
-
-    def body(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        go_up = _nt_log_e(mid) > target   # ln e decreases with zeta
-        return jnp.where(go_up, mid, lo), jnp.where(go_up, hi, mid)
-    lo0 = jnp.zeros_like(target)
-    hi0 = jnp.maximum(2.0, 1.0 / jnp.sqrt(jnp.exp(target)))
-    lo, hi = jax.lax.fori_loop(0, 80, body, (lo0, hi0))
-    z0 = jax.lax.stop_gradient(0.5 * (lo + hi))
-    dz = jax.grad(lambda z: _nt_log_e(z))
-    slope = jnp.vectorize(dz)(z0)
-    return z0 - (_nt_log_e(z0) - log_e) / slope
+    return family.zeta(jnp.log(e))
 
 
 def kc_from_restitution(e, t_c, mass, law="linear"):
@@ -175,11 +150,58 @@ def kc_from_restitution(e, t_c, mass, law="linear"):
     _positive("contact time t_c (s)", t_c)
     _positive("mass (kg)", mass)
     z = zeta_from_restitution(e, law)
-    if _family(law, "kc_from_restitution") == "linear":
-        w0 = jnp.pi / (t_c * jnp.sqrt(1.0 - z * z))
-    else:
-        w0 = 2.0 * _nt_g(z) / t_c
+    w0 = _family(law, "kc_from_restitution").w0_time(z) / t_c
     return mass * w0 ** 2, 2.0 * z * mass * w0
+
+
+# --------------------------------------------------------------------------- families
+def _linear_log_e(z):
+    under = z < 1.0
+    zs = jnp.where(under, z, 0.5)
+    return jnp.where(under, -jnp.pi * zs / jnp.sqrt(1.0 - zs * zs), -jnp.inf)
+
+
+def _linear_w0_time(z):
+    under = z < 1.0
+    zs = jnp.where(under, z, 0.5)
+    return jnp.where(under, jnp.pi / jnp.sqrt(1.0 - zs * zs), jnp.inf)
+
+
+def _linear_zeta(log_e):
+    return -log_e / jnp.sqrt(jnp.pi ** 2 + log_e ** 2)
+
+
+def _nt_zeta(log_e):
+    """The no-tension damping ratio of ``ln e``: bisection, then one Newton step outside
+    ``stop_gradient`` (the implicit-function gradient)."""
+    target = jax.lax.stop_gradient(log_e)
+
+    def body(_, lohi):
+        lo, hi = lohi
+        mid = 0.5 * (lo + hi)
+        go_up = _nt_log_e(mid) > target   # ln e decreases with zeta
+        return jnp.where(go_up, mid, lo), jnp.where(go_up, hi, mid)
+    lo0 = jnp.zeros_like(target)
+    hi0 = jnp.maximum(2.0, 1.0 / jnp.sqrt(jnp.exp(target)))
+    lo, hi = jax.lax.fori_loop(0, 80, body, (lo0, hi0))
+    z0 = jax.lax.stop_gradient(0.5 * (lo + hi))
+    slope = jnp.vectorize(jax.grad(_nt_log_e))(z0)
+    return z0 - (_nt_log_e(z0) - log_e) / slope
+
+
+class _Family(NamedTuple):
+    """The closed forms of one law family, functions of the damping ratio zeta: ``log_e``
+    (ln of the restitution), ``w0_time`` (contact time x w0) and ``zeta`` (of ln e)."""
+    log_e: Callable
+    w0_time: Callable
+    zeta: Callable
+
+
+#: closed forms per family name (``ContactLaw.closed_form``)
+_FAMILIES = {
+    "linear": _Family(_linear_log_e, _linear_w0_time, _linear_zeta),
+    "no_tension": _Family(_nt_log_e, lambda z: 2.0 * _nt_g(z), _nt_zeta),
+}
 
 
 def kc_from_time_constant(tau, zeta, mass):
