@@ -4,7 +4,7 @@ A 6-node rope hangs from one end and swings. Four records of it (three swings fi
 held out) are made here by a more accurate model than the fit uses (classical Runge-Kutta at
 a quarter of the step) with 0.2 mm of noise on its five free nodes, written as CSV, and
 fitted jointly through the same function as ``diffpen fit SCENE.toml --data FILES...``
-(``tuning.trajfit.fit_files``: each record starts from its own first state, Levenberg-
+(``tuning.scene_fit.fit_files``: each record starts from its own first state, Levenberg-
 Marquardt over a growing horizon). The held-out swing is then evaluated with the fitted scene
 (``diffpen evaluate``). Measured records work the same way: name the observed bodies in the
 scene file and give the columns ``NAME.x, NAME.y, NAME.z`` (``rope[3].x`` for a builder's
@@ -19,6 +19,8 @@ import os
 import tempfile
 
 from tuning import trajfit as tf
+from tuning.scene_fit import fit_files
+from tuning.synthetic import synthetic_record
 from tuning.evaluate import evaluate_files
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
@@ -54,7 +56,7 @@ def make_records(folder: str) -> list:
         sim = sf.compile(integrator="rk4", dt=2.5e-4)
         params = tf.with_leaves(sf.params(sim), TRUTH)
         bodies = {name: sf.names[name] for name in sf.spec.observe}
-        rec = tf.synthetic_record(sim, params, 1.0, 5e-3, bodies, noise=2e-4, seed=i)
+        rec = synthetic_record(sim, params, 1.0, 5e-3, bodies, noise=2e-4, seed=i)
         csv = os.path.join(folder, f"swing{i}.csv")
         write_record(csv, rec)
         paths.append(csv)
@@ -73,7 +75,7 @@ def main(argv=None) -> int:
     with open(scene, "w") as fh:
         fh.write(SCENE.format(vy=0.0))
     fitted = os.path.join(folder, "rope_fitted.toml")
-    out = tf.fit_files(scene, records[:-1], out=fitted)
+    out = fit_files(scene, records[:-1], out=fitted)
     print(f"fitted {out['records']} records in {out['fit_seconds']:.1f} s "
           f"({out['iterations']} LM iterations, horizons {out['horizons']}):")
     for name, v in out["fitted"].items():

@@ -496,7 +496,7 @@ def test_decay_weighs_early_frames(cube):
     pos = jnp.asarray(batch.pos + 1e-3 * rng.standard_normal(batch.pos.shape))
     dq = np.concatenate([np.ones(batch.quat.shape[:-1] + (1,)),
                          0.01 * rng.standard_normal(batch.quat.shape[:-1] + (3,))], axis=-1)
-    quat = tf.qmul(batch.quat, dq)
+    quat = pose.qmul(batch.quat, dq)
     quat = jnp.asarray(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
     plain = np.asarray(tf.pose_residuals(pos, quat, batch))
     tau = 0.05

@@ -24,15 +24,14 @@ Pipeline (each step a public function, all importable from here):
    determine.
 
 This module also holds the params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`),
-:class:`Free`, and the scene-file entry points (:func:`fit_files`, :func:`load_records`,
-:func:`synthetic_record`).
+:class:`Free` and :func:`load_records`. The command's file-level workflow, ``diffpen fit
+SCENE.toml --data FILES``, is :func:`tuning.scene_fit.fit_files`; records made by a
+simulator are :func:`tuning.synthetic.synthetic_record` (both importable from here too).
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
-import os
 import re
 import time
 from typing import Sequence
@@ -46,8 +45,8 @@ import diffpen as dp
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
-from .first_state import FLIGHT_FRAMES, first_state
-from .pose import ROT_WEIGHT, qmul, rotmat, body_size, pose_residuals, rotation_angle
+from .first_state import first_state
+from .pose import ROT_WEIGHT, body_size, pose_residuals, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
 from .stable import params_unstable, unsafe_start
 
@@ -490,158 +489,12 @@ def free_from_spec(spec) -> list:
                  log=spec.space.get(p, "log") == "log") for p in spec.free]
 
 
-def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
-              estimate: str | None = None, loss: str = "l2", horizons=None,
-              maxiter: int | None = None, starts: int = 0, keep: int = 1,
-              max_frames: int | None = None, progress: bool | None = False) -> dict:
-    """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
-    all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
-    the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
-    (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
-    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records; ``horizon =
-    []``: the whole records only) and ``flight_frames``, else ``"record"``,
-    :data:`AUTO_HORIZON` of the longest record (+ the whole records) and ``FLIGHT_FRAMES``
-    (20).
-
-    Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
-    ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
-    (:mod:`tuning.evaluate` summaries), ``records``, ``seconds``, ``out``.
-    """
-    from .evaluate import evaluate_batch, evaluator
-    from .scenefile import load_scene_file
-    sf = load_scene_file(scene_path)
-    if sf.spec is None or not sf.spec.free:
-        raise FitError(f"{scene_path}: say what to fit in a [fit] table, e.g. [fit] params = "
-                       "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
-                       "fit, with optional [fit.bounds]).")
-    free = free_from_spec(sf.spec)
-    estimate = estimate or sf.spec.first_state or "record"
-    max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES
-    data = list(data) if data else list(sf.spec.data or [])
-    records, bodies = load_records(sf, data)
-    if horizons is None:
-        if sf.spec.horizon is not None:
-            horizons = tuple(sf.spec.horizon) + (None,)
-        else:
-            longest = max(r.duration for r in records)
-            horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
-    if out is not None:
-        _check_out(out, scene_path, data)
-    t0 = time.perf_counter()
-    sim = sf.compile()
-    params = sf.params(sim)
-    check_stable(sim, params)
-    first_states = {}                   # shared by the evaluation batch and the fit's buckets
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
-                    cache=first_states)
-    ev_fn = evaluator(sim, batch)
-    before = evaluate_batch(sim, params, batch, fn=ev_fn)
-    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
-                              max_frames=max_frames, cache=first_states)
-    res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
-                      maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
-                      progress=progress)
-    moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
-             if name.startswith("extra.plane_offset.")}
-    if estimate == "fit" and moved:
-        # the first-state estimate counts flight frames against the planes: evaluated as the
-        # fitted scene file is (diffpen evaluate), with its fitted plane offsets
-        scene = copy.copy(sim.scene)
-        scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
-                        else pl for pl in sim.scene.planes]
-        batch = prepare(sim, records, bodies=bodies, estimate=estimate,
-                        max_frames=max_frames, scene=scene)
-        ev_fn = evaluator(sim, batch)
-    after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
-    out_error = None
-    if out is not None:
-        from .fitted_scene import write_fitted
-        try:
-            write_fitted(scene_path, res.values, out)
-        except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
-            out_error = f"could not write --out {out}: {exc}"
-    summary = res.as_dict()
-    summary.update({
-        "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
-        "flight_frames": max_frames,
-        "loss": loss, "before": {"position_error_pct": before.position_error_pct,
-                                 "rotation_error_deg": before.rotation_error_deg},
-        "after": {"position_error_pct": after.position_error_pct,
-                  "rotation_error_deg": after.rotation_error_deg},
-        "out": None if out_error else out, "seconds": time.perf_counter() - t0,
-        "fit_seconds": res.seconds,
-        "reached": not (res.unstable or after.unstable or res.diverged)})
-    if out_error:
-        summary["out_error"] = out_error
-    return summary
-
-
-def _check_out(out: str, scene_path: str, data) -> None:
-    """``--out``: a writable ``.toml`` file that is not one of the inputs, checked before
-    anything is compiled (a typo must not cost a fit, nor overwrite a record)."""
-    from .io import OutputError, check_output
-    try:
-        p = check_output(out, what="--out", ext=".toml")
-    except OutputError as exc:
-        raise FitError(str(exc)) from None
-    if not p.lower().endswith(".toml"):
-        raise FitError(f"--out {out}: the fitted scene is a TOML file; give a name ending in "
-                       ".toml.")
-    inputs = [scene_path, *(data or [])]
-    if any(os.path.exists(f) and os.path.samefile(p, f) if os.path.exists(p) else False
-           for f in inputs):
-        raise FitError(f"--out {out} is one of the inputs (the scene file or a record): "
-                       "write the fitted scene to a new file.")
-
-
-def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, bodies: dict,
-                     *, state=None, noise: float = 0.0, seed: int = 0,
-                     path: str = "<synthetic>", quaternions: bool = True,
-                     velocities: bool = True):
-    """A :class:`tuning.records.Record` made by rolling ``sim`` out: poses of ``bodies``
-    (``{name: body index}``) every ``every`` s (a multiple of ``sim.dt``) for ``duration``
-    s, plus Gaussian noise of ``noise`` m on the positions and ``noise / size`` rad about a
-    random axis on the orientations; with ``velocities`` also the velocity columns (world,
-    m/s) and body-frame angular velocities (rad/s), with noise ``10 noise`` m/s and
-    ``10 noise / size`` rad/s. For tests and examples (records from another integrator and
-    time step than the fit uses)."""
-    from .records import BodyRecord, Record
-    save = int(round(every / sim.dt))
-    if save < 1 or abs(save * sim.dt - every) > 1e-9 * every:
-        raise FitError(f"every = {every} s must be a multiple of the simulator's dt = "
-                       f"{sim.dt} s.")
-    n = int(round(duration / every))
-    s0 = sim.init_state() if state is None else state
-    traj = sim.rollout(params, n * save, s0, save_every=save)
-    rng = np.random.default_rng(seed)
-    t = np.arange(n + 1) * every
-    out = {}
-    for name, i in bodies.items():
-        p = np.concatenate([np.asarray(s0.position)[None, i], np.asarray(traj.position)[:, i]])
-        p = p + noise * rng.standard_normal(p.shape)
-        q = None
-        if quaternions and traj.orientation is not None and sim.scene.bodies[i].rigid:
-            q = np.concatenate([np.asarray(s0.orientation)[None, i],
-                                np.asarray(traj.orientation)[:, i]])
-            if noise:
-                size = body_size(sim.scene, i)
-                axis = rng.standard_normal((len(q), 3))
-                axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-                ang = noise / size * rng.standard_normal((len(q), 1))
-                dq = np.concatenate([np.cos(ang / 2), axis * np.sin(ang / 2)], axis=1)
-                q = qmul(dq, q)
-            q = q / np.linalg.norm(q, axis=1, keepdims=True)
-        v = w = None
-        if velocities:
-            v = np.concatenate([np.asarray(s0.velocity)[None, i],
-                                np.asarray(traj.velocity)[:, i]])
-            v = v + 10 * noise * rng.standard_normal(v.shape)
-            if traj.angular_velocity is not None and sim.scene.bodies[i].rigid:
-                ww = np.concatenate([np.asarray(s0.angular_velocity)[None, i],
-                                     np.asarray(traj.angular_velocity)[:, i]])
-                rot = np.concatenate([np.asarray(s0.orientation)[None, i],
-                                      np.asarray(traj.orientation)[:, i]])
-                w = np.einsum("tji,tj->ti", rotmat(rot), ww)        # R^T w: body frame
-                w = w + 10 * noise / body_size(sim.scene, i) * rng.standard_normal(w.shape)
-        out[name] = BodyRecord(position=p, quaternion=q, velocity=v, angular_velocity=w)
-    return Record(path=path, t=t, bodies=out)
+def __getattr__(name):
+    # the file-level workflow builds on this module: imported when first asked for
+    if name == "fit_files":
+        from .scene_fit import fit_files
+        return fit_files
+    if name == "synthetic_record":
+        from .synthetic import synthetic_record
+        return synthetic_record
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

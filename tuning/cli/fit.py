@@ -342,7 +342,7 @@ def _run_records(args) -> int:
         raise CLIError("--plot draws ball fits; for records run diffpen evaluate FITTED.toml "
                        "--data FILES... --plot DIR on the scene written by --out")
     setup_jax()
-    from ..trajfit import fit_files
+    from ..scene_fit import fit_files
     horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else None
     out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
                     loss=args.loss, horizons=horizons, maxiter=args.maxiter,

@@ -1,0 +1,125 @@
+"""``diffpen fit SCENE.toml --data FILES...``: a scene file's ``[fit]`` parameters fitted
+to record files (:func:`fit_files`), on top of :mod:`tuning.trajfit`'s
+:func:`~tuning.trajfit.fit_records`: the output path checked before anything is compiled,
+the records loaded and batched, the fit, the accuracy before and after (as ``diffpen
+evaluate`` measures it) and the fitted scene written (:mod:`tuning.fitted_scene`).
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import os
+import time
+from typing import Sequence
+
+from .errors import FitError
+from .first_state import FLIGHT_FRAMES
+from .record_batch import prepare, prepare_buckets
+from .trajfit import (AUTO_HORIZON, check_stable, fit_records, free_from_spec,
+                      load_records)
+
+__all__ = ["fit_files"]
+
+
+def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
+              estimate: str | None = None, loss: str = "l2", horizons=None,
+              maxiter: int | None = None, starts: int = 0, keep: int = 1,
+              max_frames: int | None = None, progress: bool | None = False) -> dict:
+    """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
+    all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
+    the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
+    (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
+    the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records; ``horizon =
+    []``: the whole records only) and ``flight_frames``, else ``"record"``,
+    :data:`AUTO_HORIZON` of the longest record (+ the whole records) and ``FLIGHT_FRAMES``
+    (20).
+
+    Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
+    ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
+    (:mod:`tuning.evaluate` summaries), ``records``, ``seconds``, ``out``.
+    """
+    from .evaluate import evaluate_batch, evaluator
+    from .scenefile import load_scene_file
+    sf = load_scene_file(scene_path)
+    if sf.spec is None or not sf.spec.free:
+        raise FitError(f"{scene_path}: say what to fit in a [fit] table, e.g. [fit] params = "
+                       "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
+                       "fit, with optional [fit.bounds]).")
+    free = free_from_spec(sf.spec)
+    estimate = estimate or sf.spec.first_state or "record"
+    max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES
+    data = list(data) if data else list(sf.spec.data or [])
+    records, bodies = load_records(sf, data)
+    if horizons is None:
+        if sf.spec.horizon is not None:
+            horizons = tuple(sf.spec.horizon) + (None,)
+        else:
+            longest = max(r.duration for r in records)
+            horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
+    if out is not None:
+        _check_out(out, scene_path, data)
+    t0 = time.perf_counter()
+    sim = sf.compile()
+    params = sf.params(sim)
+    check_stable(sim, params)
+    first_states = {}                   # shared by the evaluation batch and the fit's buckets
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
+                    cache=first_states)
+    ev_fn = evaluator(sim, batch)
+    before = evaluate_batch(sim, params, batch, fn=ev_fn)
+    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
+                              max_frames=max_frames, cache=first_states)
+    res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
+                      maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
+                      progress=progress)
+    moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
+             if name.startswith("extra.plane_offset.")}
+    if estimate == "fit" and moved:
+        # the first-state estimate counts flight frames against the planes: evaluated as the
+        # fitted scene file is (diffpen evaluate), with its fitted plane offsets
+        scene = copy.copy(sim.scene)
+        scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
+                        else pl for pl in sim.scene.planes]
+        batch = prepare(sim, records, bodies=bodies, estimate=estimate,
+                        max_frames=max_frames, scene=scene)
+        ev_fn = evaluator(sim, batch)
+    after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
+    out_error = None
+    if out is not None:
+        from .fitted_scene import write_fitted
+        try:
+            write_fitted(scene_path, res.values, out)
+        except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
+            out_error = f"could not write --out {out}: {exc}"
+    summary = res.as_dict()
+    summary.update({
+        "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
+        "flight_frames": max_frames,
+        "loss": loss, "before": {"position_error_pct": before.position_error_pct,
+                                 "rotation_error_deg": before.rotation_error_deg},
+        "after": {"position_error_pct": after.position_error_pct,
+                  "rotation_error_deg": after.rotation_error_deg},
+        "out": None if out_error else out, "seconds": time.perf_counter() - t0,
+        "fit_seconds": res.seconds,
+        "reached": not (res.unstable or after.unstable or res.diverged)})
+    if out_error:
+        summary["out_error"] = out_error
+    return summary
+
+
+def _check_out(out: str, scene_path: str, data) -> None:
+    """``--out``: a writable ``.toml`` file that is not one of the inputs, checked before
+    anything is compiled (a typo must not cost a fit, nor overwrite a record)."""
+    from .io import OutputError, check_output
+    try:
+        p = check_output(out, what="--out", ext=".toml")
+    except OutputError as exc:
+        raise FitError(str(exc)) from None
+    if not p.lower().endswith(".toml"):
+        raise FitError(f"--out {out}: the fitted scene is a TOML file; give a name ending in "
+                       ".toml.")
+    inputs = [scene_path, *(data or [])]
+    if any(os.path.exists(f) and os.path.samefile(p, f) if os.path.exists(p) else False
+           for f in inputs):
+        raise FitError(f"--out {out} is one of the inputs (the scene file or a record): "
+                       "write the fitted scene to a new file.")
