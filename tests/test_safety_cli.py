@@ -49,6 +49,19 @@ def err_of(capsys, argv):
     (["fit", "--maxiter", "many"], "--maxiter must be an integer"),
     (["report", "accuracy", "--plot", "/proc/nope/a.png"], "does not exist"),
     (["simulate", "nope.TOML"], "cannot read nope.TOML"),      # a file, not a scene name
+    # a figure type matplotlib cannot write failed after the whole sweep or report, and a
+    # name without one was written with .png added, another file than the one reported
+    (["sweep", "--plot", "heat.pngg"], "must end in one of .png"),
+    (["sweep", "--plot", "heat"], "must end in one of .png"),
+    (["fit", "--plot", "fit.npz"], "must end in one of .png"),
+    (["report", "accuracy", "--plot", "acc.pngg"], "must end in one of .png"),
+    # flags a report does not read were accepted and ignored
+    (["report", "stability", "--plot", "s.png"], "--plot is not read by the stability"),
+    (["report", "stability", "--k", "1e6", "--tol", "1e-3"], "--tol, --k are not read"),
+    (["report", "accuracy", "--scenes", "ball"], "--scenes is not read by the accuracy"),
+    (["report", "gradients", "--integrators", "rk4"], "--integrators is not read"),
+    # c = 0 crashed with a ZeroDivisionError (its central differences step c both ways)
+    (["report", "gradients", "--c", "0"], "--c must be > 0 for the gradients report"),
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)
@@ -206,3 +219,22 @@ def test_cli_sweep_keys_nan_for_unsettled_and_locks(capsys, tmp_path):
     with OutputLock(out):
         assert main(other) == 2
     assert "being written by another process" in capsys.readouterr().err
+
+
+def test_a_sweep_never_writes_over_its_inputs(capsys, no_compile, tmp_path):
+    """`diffpen sweep SCENE.toml --data REC.csv --out REC.npz` wrote its table to REC.csv,
+    over the measured record, with exit 0."""
+    import shutil
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    scene = shutil.copy(os.path.join(here, "examples", "cube_toss.toml"), tmp_path)
+    rec = shutil.copy(os.path.join(here, "examples", "data", "cube-toss", "toss_003.csv"),
+                      tmp_path / "toss.csv")
+    before = open(rec, "rb").read()
+    rc, err = err_of(capsys, ["sweep", str(scene), "--data", str(rec), "--param",
+                              "contact.board.k", "1e3", "1e4", "--n", "2", "--out",
+                              str(tmp_path / "toss.npz")])
+    assert rc == 2 and "is one of the inputs" in err, err
+    assert open(rec, "rb").read() == before
+    rc, err = err_of(capsys, ["sweep", "--out", str(tmp_path / "s.npz"), "--plot",
+                              str(tmp_path / "s.csv")])
+    assert rc == 2 and "must end in one of" in err, err

@@ -109,7 +109,8 @@ def test_output_paths_are_checked_before_computing(tmp_path, bad, words):
     def never(batch):
         raise AssertionError("computed before checking the output")
     with pytest.raises(IO.OutputError, match=words):
-        S.sweep(None, PARAMS0, POINTS, NAMES, out=bad.format(tmp=tmp_path), evaluate=never)
+        S.sweep(None, PARAMS0, POINTS, NAMES, out=bad.format(tmp=tmp_path), evaluate=never,
+                key={"case": "paths"})
     assert not any(f.startswith(".tmp-") for f in os.listdir(tmp_path))
 
 
@@ -137,3 +138,62 @@ def test_finalize_marks_points_of_an_evaluator_without_the_flag(tmp_path):
                   out=str(tmp_path / "f.npz"), progress=False)
     assert res.unstable == 1 and np.isnan(res.metrics["twice"][-1])
     assert np.isfinite(res.metrics["twice"][:-1]).all()
+
+
+def test_a_fully_resumed_sweep_writes_its_table_again(evaluate, tmp_path):
+    """A run killed between replacing the .npz and its .csv left the table a chunk short,
+    and every rerun found all points done and never wrote it again."""
+    out = str(tmp_path / "s.npz")
+    table = str(tmp_path / "s.csv")
+    run(evaluate, out, {"dt": 1e-3})
+    full = open(table).read()
+    with open(table, "w") as fh:                 # the table of a run killed one chunk early
+        fh.write("\n".join(full.splitlines()[:5]) + "\n")
+    res = run(evaluate, out, {"dt": 1e-3})
+    assert res.evaluated == 0 and res.done.all()
+    assert open(table).read() == full
+
+
+def test_a_sweep_to_a_file_without_key_is_keyed_by_its_function(tmp_path):
+    """With out= and no key=, a rerun of another computation (another dt, scene, metric)
+    resumed into the same file and mixed its rows with the old ones."""
+    out = str(tmp_path / "s.npz")
+
+    def twice(p):
+        return {"m": 2.0 * p.contact["default"].k}
+
+    def thrice(p):
+        return {"m": 3.0 * p.contact["default"].k}
+    def stop_first(i, res):
+        raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        S.sweep(twice, PARAMS0, POINTS, NAMES, chunk=4, out=out, on_chunk=stop_first,
+                batch_map=lambda f: jax.jit(jax.vmap(f)))
+    with pytest.raises(S.SweepError, match="metrics_fn"):
+        S.sweep(thrice, PARAMS0, POINTS, NAMES, chunk=4, out=out,
+                batch_map=lambda f: jax.jit(jax.vmap(f)))
+    res = S.sweep(twice, PARAMS0, POINTS, NAMES, chunk=4, out=out,
+                  batch_map=lambda f: jax.jit(jax.vmap(f)))
+    assert res.evaluated == 6
+    np.testing.assert_allclose(res.metrics["m"], 2.0 * POINTS[:, 0])
+    # an evaluator made by make_evaluator carries its function; any other needs a key
+    ev = S.make_evaluator(thrice, PARAMS0, NAMES, batch_map=lambda f: jax.jit(jax.vmap(f)))
+    with pytest.raises(S.SweepError, match="metrics_fn"):
+        S.sweep(None, PARAMS0, POINTS, NAMES, chunk=4, out=out, evaluate=ev)
+    with pytest.raises(S.SweepError, match="needs key="):
+        S.sweep(None, PARAMS0, POINTS, NAMES, chunk=4, out=out,
+                evaluate=lambda batch: {"m": batch[:, 0]})
+
+
+def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
+    rec = tmp_path / "rec.csv"
+    rec.write_text("t,z\n0,1\n")
+    with pytest.raises(IO.OutputError, match="one of the inputs"):
+        IO.check_distinct({"--out's table": str(rec)}, inputs=[str(rec)])
+    with pytest.raises(IO.OutputError, match="same file as --out"):
+        IO.check_distinct({"--out": str(tmp_path / "a.npz"), "--plot": str(tmp_path / "a.npz")})
+    IO.check_distinct({"--out": str(tmp_path / "a.npz"), "--plot": None}, inputs=[str(rec)])
+    for bad in ("heat.pngg", "heat", "heat.npz"):
+        with pytest.raises(IO.OutputError, match="must end in one of"):
+            IO.check_plot(str(tmp_path / bad))
+    assert IO.check_plot(str(tmp_path / "heat.PDF")).endswith("heat.PDF")

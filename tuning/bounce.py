@@ -261,6 +261,9 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     tol = dict(BOUNCE_METRICS)
     if rtol is not None:
         tol.update(rtol if isinstance(rtol, dict) else {k: rtol for k in tol})
+    # the targets' tolerances (a name given in rtol that is not a target is refused by fit)
+    tol = {k: v for k, v in tol.items()
+           if k in targets or (isinstance(rtol, dict) and k in rtol)}
     search = None
     if starts is not None and method == "lm" and free == [kpath, cpath]:
         search = _apex_settle_search([math.log(s[kpath]) for s in starts],

@@ -2,7 +2,9 @@
 of killed runs, and the key of everything that determines a result.
 
 * :func:`check_output` says, before anything is computed, why a path cannot be written
-  (missing parent folder, a directory, no write permission).
+  (missing parent folder, a directory, no write permission); :func:`check_plot` also that
+  a figure can be saved under that name (a file type matplotlib writes);
+  :func:`check_distinct` that no output is one of the run's inputs or another output.
 * :func:`atomic_write` writes through a temporary file in the output's own folder and
   ``os.replace`` (a crash never leaves a half-written file; the temporary file is never put
   anywhere else, e.g. in ``/``).
@@ -29,7 +31,8 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["OutputError", "check_output", "atomic_write", "OutputLock", "clean_orphans",
+__all__ = ["OutputError", "check_output", "check_plot", "check_distinct", "PLOT_TYPES",
+           "atomic_write", "OutputLock", "clean_orphans",
            "result_key", "key_digest", "key_differences", "describe_simulator", "version",
            "TMP_PREFIX"]
 
@@ -82,6 +85,47 @@ def check_output(path, *, what: str = "output", ext: str | None = None) -> str:
 
 def _ext(what: str) -> str:
     return ".png" if "plot" in what else ".npz"
+
+
+#: file types a figure can be saved as (matplotlib's Agg backend writes all of them)
+PLOT_TYPES = (".png", ".pdf", ".svg", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff")
+
+
+def check_plot(path, *, what: str = "--plot") -> str:
+    """:func:`check_output` for a figure, and its name must end in one of :data:`PLOT_TYPES`
+    (matplotlib picks the format from it: an unknown one fails only once the figure is
+    drawn, after the computation, and a name without one is written with ``.png`` added,
+    another file than the one named). Returns the absolute path."""
+    p = check_output(path, what=what, ext=".png")
+    if os.path.splitext(p)[1].lower() not in PLOT_TYPES:
+        raise OutputError(f"{what} {path}: a figure's name must end in one of "
+                          f"{', '.join(PLOT_TYPES)} (it sets the file type), e.g. "
+                          f"{os.path.splitext(str(path))[0]}.png.")
+    return p
+
+
+def _same_file(a: str, b: str) -> bool:
+    a, b = os.path.abspath(os.fspath(a)), os.path.abspath(os.fspath(b))
+    if os.path.exists(a) and os.path.exists(b):
+        return os.path.samefile(a, b)
+    return os.path.normcase(os.path.realpath(a)) == os.path.normcase(os.path.realpath(b))
+
+
+def check_distinct(outputs: dict, inputs=()) -> None:
+    """Refuse, before anything is computed, an output that is one of the ``inputs`` (a scene
+    file, a record: it would be overwritten) or the same file as another output (one would
+    overwrite the other). ``outputs``: {what it is (e.g. ``"--out"``): path}; None paths are
+    skipped. Raises :class:`OutputError` naming both."""
+    named = [(w, p) for w, p in outputs.items() if p]
+    for i, (what, path) in enumerate(named):
+        for src in inputs:
+            if src and _same_file(path, src):
+                raise OutputError(f"{what} {path} is one of the inputs ({src}): writing it "
+                                  "would overwrite it; choose another name.")
+        for other, opath in named[:i]:
+            if _same_file(path, opath):
+                raise OutputError(f"{what} {path} is the same file as {other} {opath}: one "
+                                  "would overwrite the other; choose another name.")
 
 
 def atomic_write(path, write: Callable) -> None:

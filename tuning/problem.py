@@ -72,12 +72,25 @@ def target_spec(targets: dict, weights: dict | None, rtol) -> tuple:
     weights: ``{metric: weight}`` (default 1; must be > 0).  rtol: relative tolerance, a float
     for every metric or ``{metric: tol}`` (default 1e-3 for metrics left out)."""
     weights = weights or {}
+    for what, given in (("weights", weights), ("rtol", rtol if isinstance(rtol, dict) else {})):
+        stray = [n for n in given if n not in targets]
+        if stray:        # a misspelt metric would otherwise be ignored silently
+            raise FitError(f"{what} names {stray}, which are not targets; the targets are "
+                           f"{list(targets)}.")
     spec = []
     for name, arr in targets.items():
-        w = float(weights.get(name, 1.0))
-        if not w > 0.0:
-            raise FitError(f"weight of target {name!r} must be > 0, got {w!r}.")
-        tol = float(rtol.get(name, 1e-3) if isinstance(rtol, dict) else rtol)
+        try:
+            w = float(weights.get(name, 1.0))
+            tol = float(rtol.get(name, 1e-3) if isinstance(rtol, dict) else rtol)
+        except (TypeError, ValueError):
+            raise FitError(f"weight and rtol of target {name!r} must be numbers, got "
+                           f"{weights.get(name, 1.0)!r} and {rtol!r}.") from None
+        if not (w > 0.0 and math.isfinite(w)):
+            raise FitError(f"weight of target {name!r} must be a finite number > 0, got "
+                           f"{w!r}.")
+        if not (tol > 0.0 and math.isfinite(tol)):
+            raise FitError(f"rtol of target {name!r} must be a finite number > 0 (a relative "
+                           f"tolerance, e.g. 1e-3), got {tol!r}.")
         spec.append(TargetSpec(name, arr.size, w, tol))
     return tuple(spec)
 
@@ -250,6 +263,10 @@ class FreeLeaves:
             if p not in flat0:
                 raise FitError(f"bounds given for unknown parameter {p!r}; known: "
                                f"{list(flat0)}.")
+            if p not in free:          # a bound that bounds nothing: a typo or a missing free
+                raise FitError(f"bounds given for {p!r}, which is not fitted; the fitted "
+                               f"parameters are {list(free)} (add it to free, or drop its "
+                               "bounds).")
         x0 = np.array([float(flat0[p]) for p in free])
         if positive_start and np.any(x0 <= 0.0):
             bad = [p for p, v in zip(free, x0) if v <= 0.0]

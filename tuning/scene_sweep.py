@@ -103,9 +103,10 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
       estimate, max_frames: the records' first-state estimate and its cap on flight frames
         (None: the file's ``[fit]`` values, else ``"record"`` / ``FLIGHT_FRAMES``).
       progress: see :func:`tuning.sweep.sweep`.
-      check: ``check(info)`` called with the ``axes`` and ``metrics`` of ``info`` once they
-        are known, before any point is computed or written (e.g. the CLI's ``--metric`` and
-        ``--plot``); it raises to stop the sweep.
+      check: ``check(info)`` called with the ``axes`` and ``metrics`` of ``info`` and the
+        record files read (``data``) once they are known, before any point is computed or
+        written (e.g. the CLI's ``--metric``, ``--plot`` and that no output is a record);
+        it raises to stop the sweep.
     Returns:
       ``(SweepResult, info)``: ``info`` holds ``axes`` ({path: values}), ``metrics`` (the
       names kept), ``records`` (count) and ``simulator`` (the compiled
@@ -167,7 +168,7 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
                                        settle_tol=tol)
 
     if check is not None:
-        check({"axes": grid_axes, "metrics": kept})
+        check({"axes": grid_axes, "metrics": kept, "data": list(data)})
 
     def finalize(m, pts):
         if "settled" in m:      # not settled within the rollout: NaN, not its end

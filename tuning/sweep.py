@@ -43,7 +43,8 @@ from .io import (OutputLock, atomic_write, check_output, clean_orphans,
 from .progress import Progress
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
-           "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "UNSTABLE"]
+           "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "function_key",
+           "UNSTABLE"]
 
 #: name of the optional per-point metric that flags a rollout past its safe step (from
 #: ``traj.aux["unstable"][-1]``); points where it is true are returned as NaN and counted.
@@ -132,7 +133,26 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     if batch_map is None:
         from .shard import sharded_map
         batch_map = sharded_map      # every device; jax.jit(jax.vmap(f)) on a single one
-    return batch_map(one)
+    evaluate = batch_map(one)
+    try:        # what it computes, for the key of a sweep given only the evaluator
+        evaluate.metrics_fn, evaluate.params0 = metrics_fn, params0
+    except AttributeError:   # a batch_map whose result takes no attributes
+        pass
+    return evaluate
+
+
+def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
+    """A digest of what ``metrics_fn`` computes: the sha256 of its jaxpr traced at
+    ``params0`` (the operations, the scene's constants, dt and step counts as literals) and of
+    the arrays it closes over. A sweep written to ``out`` without ``key=`` stores it, so that
+    a rerun with another scene, dt, duration or metric is refused, not mixed in."""
+    closed = jax.make_jaxpr(metrics_fn)(params0)
+    h = hashlib.sha256(str(closed.jaxpr).encode())
+    for c in closed.consts:
+        a = np.asarray(c)
+        h.update(str((a.dtype, a.shape)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = None) -> dict:
@@ -233,8 +253,11 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         :func:`sweep_key`); a file with another key raises :class:`SweepError` naming what
         differs. ``resume=False`` overwrites ``out``.
       key: what determines ``metrics_fn`` beyond the swept leaves (scene, law, integrator,
-        dt, duration, metric settings...): stored in the file and compared on resume. Give
-        it whenever ``out`` is used; :func:`tuning.io.describe_simulator` builds most of it.
+        dt, duration, metric settings...): stored in the file and compared on resume
+        (:func:`tuning.io.describe_simulator` builds most of it). With ``out`` and no key,
+        the key is :func:`function_key` of ``metrics_fn`` (or of the function a
+        :func:`make_evaluator` evaluator was built from; any other ``evaluate`` needs a
+        key): a rerun computing anything else is refused, never mixed in.
       keys: metrics to keep (default all).  shape, axes: grid layout (see :func:`grid_points`).
       batch_map: lifts the per-point function to a batch (default
         :func:`tuning.shard.sharded_map`: split over all devices with a ``NamedSharding``;
@@ -268,6 +291,15 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}.")
     n = points.shape[0]
+    if out and key is None:     # the key must say what computes the metrics: derive it
+        fn = metrics_fn if metrics_fn is not None else getattr(evaluate, "metrics_fn", None)
+        if fn is None:
+            raise SweepError("a sweep written to out= needs key= (what determines the "
+                             "metrics: scene, law, dt, duration...) when it is given only "
+                             "a prebuilt evaluate=: without one, a rerun with other physics "
+                             "would resume into the same file.")
+        p0 = params0 if metrics_fn is not None else getattr(evaluate, "params0", params0)
+        key = {"metrics_fn": function_key(fn, p0)}
     full_key = sweep_key(names, points, params0, keys, shape, key)
     # several processes: all must run the same sweep; process 0 alone checks, locks, reads
     # and writes ``out`` and hands what it resumed to the others (no shared file system)
@@ -352,3 +384,7 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
         if on_chunk is not None:
             on_chunk(i, res)
     bar.close()
+    if out and res.evaluated == 0 and res.done.any():
+        # everything was resumed: write the pair again, so that a run killed between
+        # replacing the .npz and its .csv does not leave the table a chunk short for good
+        _save(out, res)

@@ -105,9 +105,9 @@ def _targets(args) -> dict:
 def _check_plot(args) -> None:
     """--plot: a writable path and matplotlib present, checked before anything is fitted."""
     if args.plot:
-        from ..io import check_output
+        from ..io import check_plot
         from ..plots import require_matplotlib
-        check_output(args.plot, what="--plot")
+        check_plot(args.plot, what="--plot")
         require_matplotlib()
 
 

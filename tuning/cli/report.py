@@ -11,6 +11,7 @@ dt and smoothing width and the largest finite-difference step that agrees with j
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 
@@ -45,8 +46,32 @@ def add_arguments(p) -> None:
                    help="accuracy: timed runs per point after compilation (median reported)")
 
 
+#: the flags each report reads (besides --quick and --json); any other is refused, not ignored
+USES = {"stability": {"scenes", "dtypes", "integrators"},
+        "accuracy": {"plot", "tol", "k", "c", "mass", "radius", "height", "integrators",
+                     "repeats"},
+        "gradients": {"k", "c", "mass", "radius", "height"}}
+
+
+def _unused_flags(args) -> list:
+    """The flags given (not at their defaults) that ``args.what``'s report does not read."""
+    import argparse
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    defaults = vars(p.parse_args([args.what]))
+    return [f"--{name}" for name in ("plot", "tol", "k", "c", "mass", "radius", "height",
+                                     "scenes", "dtypes", "integrators", "repeats")
+            if name not in USES[args.what] and getattr(args, name) != defaults[name]]
+
+
 def run(args) -> int:
     from diffpen.integrators import INTEGRATORS
+    unused = _unused_flags(args)
+    if unused:
+        reads = ", ".join(f"--{n}" for n in sorted(USES[args.what]))
+        return fail("report", f"{', '.join(unused)} {'is' if len(unused) == 1 else 'are'} "
+                              f"not read by the {args.what} report (it reads --quick, --json, "
+                              f"{reads}); drop {'it' if len(unused) == 1 else 'them'}")
     integs = tuple(args.integrators or ("semi_implicit_euler", "verlet", "rk4",
                                         "implicit_euler"))
     bad = [i for i in integs if i not in INTEGRATORS]
@@ -55,14 +80,22 @@ def run(args) -> int:
                               f"{sorted(INTEGRATORS)}")
     if args.c < 0 or not math.isfinite(args.c):
         return fail("report", f"--c must be a finite number >= 0, got {args.c}")
+    if args.what == "gradients" and args.c == 0:
+        return fail("report", "--c must be > 0 for the gradients report: its central "
+                              "differences step c both ways, and a negative c is refused")
     if args.height <= args.radius:
         return fail("report", "--height must be above --radius (the ball starts above the "
                               "plane)")
     if args.plot:
-        from ..io import OutputError, check_output
+        from ..io import OutputError, check_plot
         try:
-            check_output(args.plot, what="--plot")
+            check_plot(args.plot, what="--plot")
         except OutputError as exc:
+            return fail("report", str(exc))
+        try:
+            from ..plots import require_matplotlib
+            require_matplotlib()
+        except ImportError as exc:
             return fail("report", str(exc))
     setup_jax(x64=True)
     if args.what == "stability":
@@ -118,11 +151,16 @@ def _stability(args, integs) -> int:
 
 # --------------------------------------------------------------------------- accuracy
 def _accuracy(args, integs) -> int:
-    from tuning.reports.accuracy import BallSpec, accuracy, plot_accuracy, recommend
+    from tuning.reports.accuracy import (BallSpec, accuracy, horizon, plot_accuracy,
+                                         recommend)
     if args.repeats < 1:
         return fail("report", "--repeats must be >= 1")
     spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
                     height=args.height)
+    try:            # simulated long enough for its apexes and settling (3 s at least)
+        spec = dataclasses.replace(spec, T=horizon(spec))
+    except ValueError as exc:
+        return fail("report", str(exc))
     n_dt = 4 if args.quick else 6
 
     def progress(*a):

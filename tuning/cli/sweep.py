@@ -263,6 +263,13 @@ def _run_scene(args) -> int:
 
     def check(plan):            # before anything is computed or written
         kept, names = plan["metrics"], list(plan["axes"])
+        if not plan["data"] and (args.first_state or args.flight_frames):
+            raise CLIError("--first-state and --flight-frames set how records start; this "
+                           "sweep has none (give --data FILES, or [fit] data in the file)")
+        if _is_writer():        # the file's own [fit] data are inputs too
+            from ..io import check_distinct
+            check_distinct({"--out": args.out, "--out's table": args.out[:-4] + ".csv",
+                            "--plot": args.plot}, inputs=plan["data"])
         if (args.metric or kept[0]) not in kept:
             raise CLIError(f"--metric {args.metric} is not measured by this sweep; it "
                            f"measures {', '.join(kept)}")
@@ -334,8 +341,9 @@ def _run_scene(args) -> int:
 
 
 def _check_outputs(args) -> None:
-    """``--out`` (a ``.npz``), its ``.csv`` and ``--plot`` writable, checked by process 0
-    (the one that writes) before anything is computed."""
+    """``--out`` (a ``.npz``), its ``.csv`` and ``--plot`` (a figure type) writable, none of
+    them an input (the scene file, a record) nor the same file as another, checked by
+    process 0 (the one that writes) before anything is computed."""
     if args.target is not None and not args.plot:
         raise CLIError("--target marks a contour on the --plot heatmap; give --plot FILE.png "
                        "too")
@@ -346,8 +354,14 @@ def _check_outputs(args) -> None:
     if not args.out.endswith(".npz"):
         raise CLIError(f"--out {args.out} must end in .npz (a .csv is written beside it)")
     if writer:
-        check_output(args.out[:-4] + ".csv", what="--out's table")
+        from ..io import check_distinct, check_plot
+        table = args.out[:-4] + ".csv"
+        check_output(table, what="--out's table")
         if args.plot:
-            check_output(args.plot, what="--plot")
+            check_plot(args.plot, what="--plot")
+        scene = getattr(args, "scene", None)
+        check_distinct({"--out": args.out, "--out's table": table, "--plot": args.plot},
+                       inputs=[scene, *(getattr(args, "data", None) or [])])
+        if args.plot:
             from ..plots import require_matplotlib
             require_matplotlib()

@@ -28,7 +28,7 @@ from .extreme import INTEGRATORS
 from .reference import (G, BallReference, apex_heights, ball_reference, chain_reference,
                         settling_time, spring_closed_form)
 
-__all__ = ["time_call", "BallSpec", "accuracy", "recommend", "plot_accuracy"]
+__all__ = ["time_call", "BallSpec", "horizon", "accuracy", "recommend", "plot_accuracy"]
 
 
 def time_call(fn: Callable, repeats: int = 5) -> float:
@@ -56,6 +56,32 @@ class BallSpec:
     T: float = 3.0
     n_apex: int = 3
     settle_frac: float = 0.01
+
+
+def _apex_time(ref: BallReference, n: int) -> float:
+    """Time (s) of the ``n``-th apex of the reference (inf if it has fewer contacts)."""
+    if len(ref.contacts) < n:
+        return math.inf
+    t_end = ref.contacts[n - 1][1]
+    _, v = ref.state([t_end])
+    return t_end + max(float(v[0]), 0.0) / G
+
+
+def horizon(spec: BallSpec, longest: float = 60.0) -> float:
+    """The simulated time (s) the ball's report needs: past its ``n_apex``-th apex and 10%
+    past its settling time when it settles, 3 s at least (the default ``BallSpec.T``).
+    Raises ValueError when the ball does not bounce ``n_apex`` times within ``longest`` s."""
+    ref = ball_reference(k=spec.k, c=spec.c, m=spec.mass, r=spec.radius, z0=spec.height,
+                         T=longest)
+    if len(ref.apexes) < spec.n_apex or len(ref.contacts) < spec.n_apex:
+        raise ValueError(f"the ball (k {spec.k:g} N/m, c {spec.c:g} N s/m, {spec.mass:g} kg, "
+                         f"dropped from {spec.height:g} m) does not bounce {spec.n_apex} "
+                         f"times within {longest:g} s: lower the damping c")
+    need = [3.0, _apex_time(ref, spec.n_apex) + 0.05]
+    ts = ref.settling_time(spec.settle_frac)
+    if math.isfinite(ts) and ts < longest:
+        need.append(1.1 * ts)
+    return max(need)
 
 
 def _ball_errors(spec: BallSpec, ref: BallReference, t, z, v):
@@ -106,6 +132,10 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
     out = {"ball": dataclasses.asdict(spec), "problems": {}, "widths": [], "default": []}
     ref = ball_reference(k=spec.k, c=spec.c, m=spec.mass, r=spec.radius, z0=spec.height,
                          T=spec.T)
+    if "ball" in problems and not (len(ref.apexes) >= spec.n_apex
+                                   and _apex_time(ref, spec.n_apex) < spec.T):
+        raise ValueError(f"the ball's apex {spec.n_apex} comes after T = {spec.T:g} s: give a "
+                         f"longer BallSpec.T (tuning.reports.accuracy.horizon picks one)")
     if "ball" in problems:
         scene = ball_scene(mass=spec.mass, radius=spec.radius, height=spec.height)
         res = {}

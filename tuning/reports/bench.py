@@ -4,8 +4,9 @@ For every standard scene this measures, after compilation and as the median of s
 (``jax.block_until_ready``):
 
 * ``compile_s``: wall time to lower and compile diffpen's forward rollout;
-* ``forward_s`` and ``steps_per_s`` (body-steps per second: batch x steps / forward_s for
-  batched scenes, steps / forward_s otherwise);
+* ``forward_s`` and ``steps_per_s`` (the case's ``work`` per second: ball-steps, batch x
+  steps / forward_s, for batched balls; sphere-steps, spheres x steps / forward_s, for the
+  many-sphere cases; steps / forward_s for the spring networks);
 * ``grad_s``: one gradient of a scalar loss of the rollout w.r.t. the scene's (k, c)
   (per batch element under ``vmap`` for batched scenes), and ``grad_over_forward``;
 * ``memory_bytes``: XLA's memory analysis of the compiled forward and gradient executables

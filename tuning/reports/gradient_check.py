@@ -21,9 +21,30 @@ from ..scenes import ball_scene
 from .accuracy import BallSpec
 from .reference import G, ball_reference
 
-__all__ = ["gradient_report", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
+__all__ = ["gradient_report", "largest_agreeing_step", "SMALLEST_CHECKED_STEP", "GradientCase", "EVENT_CASES", "EVENT_METRICS",
            "event_metrics_fn", "event_reference", "event_gradient_rows", "event_gradient_table",
            "event_phase_errors", "cube_toss_gradients"]
+
+
+#: the smallest relative step :func:`largest_agreeing_step` requires to agree (below it,
+#: central differences of a float64 rollout are rounding noise)
+SMALLEST_CHECKED_STEP = 1e-5
+
+
+def largest_agreeing_step(rel_steps, fds, g, agree: float = 0.01) -> float | None:
+    """The largest relative step ``s`` of ``rel_steps`` (descending) whose central difference
+    ``fds`` agrees with the derivative ``g`` within ``agree`` (relative), with every smaller
+    step down to :data:`SMALLEST_CHECKED_STEP` agreeing too; None if there is none. Steps
+    below that floor are never returned (nothing is checked there), and the floor is
+    compared with a relative tolerance: ``10.0 ** -5`` computed as ``9.999999999999999e-06``
+    is the floor."""
+    steps = np.asarray(rel_steps, float)
+    ok = np.abs(np.asarray(fds, float) - g) <= agree * abs(g)
+    checked = steps >= SMALLEST_CHECKED_STEP * (1 - 1e-9)
+    for j in np.flatnonzero(checked):
+        if ok[j:][checked[j:]].all():
+            return float(steps[j])
+    return None
 
 
 def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=(0.0, 1e-4,
@@ -45,6 +66,10 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
     Returns one dict per (dt, width, quantity, parameter).
     """
     spec = spec or BallSpec(T=t_height)
+    if not (spec.k > 0 and spec.c > 0):
+        raise ValueError(f"the gradient report steps k and c both ways (central differences "
+                         f"of relative size down to 1e-8): give k > 0 and c > 0, got "
+                         f"k = {spec.k:g}, c = {spec.c:g}")
     say = progress or (lambda *_: None)
     T = t_height
 
@@ -90,12 +115,7 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
                             a, b = quantities(spec.k, base + h), quantities(spec.k, base - h)
                         fds.append(float((a[qi] - b[qi]) / (2 * h)))
                     fds = np.array(fds)
-                    ok = np.abs(fds - g) <= agree * abs(g)
-                    largest = None
-                    for j, s in enumerate(rel_steps):
-                        if all(ok[j:][np.array(rel_steps[j:]) >= 1e-5]):
-                            largest = float(s)
-                            break
+                    largest = largest_agreeing_step(rel_steps, fds, g, agree)
                     r = ref_d[(qname, pname)]
                     rows.append({"dt": dt, "width": w, "quantity": qname, "param": pname,
                                  "grad": float(g), "reference": float(r),
