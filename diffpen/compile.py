@@ -123,7 +123,8 @@ class Simulator:
         stability bounds).
       gate_cache: the :class:`diffpen.stability.GateCache` of up-front stability verdicts.
       layout: ``"rows"`` or ``"columns"``, how rollouts hold positions and velocities while
-        they step (:mod:`diffpen.layout`; results are the same either way).
+        they step (:mod:`diffpen.layout`; results are the same either way; the ``"auto"``
+        given to :func:`compile` is resolved to one of them).
       columns: ``layout == "columns"``.
     """
 
@@ -131,7 +132,7 @@ class Simulator:
                  law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
                  exponent: float = 1.0, dtype=None, unroll: int = 1,
                  substeps: int | str = 1, broadphase=None, terms=None,
-                 layout: str = "rows"):
+                 layout: str = "auto"):
         if not isinstance(scene, Scene):
             raise SceneError(f"compile expects a diffpen.Scene, got {type(scene).__name__}.")
         if not scene.bodies:
@@ -542,7 +543,7 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
             law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
             exponent: float = 1.0,
             dtype=None, unroll: int = 1, substeps: int | str = 1,
-            broadphase=None, terms=None, layout: str = "rows") -> Simulator:
+            broadphase=None, terms=None, layout: str = "auto") -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
 
     Args:
@@ -576,12 +577,13 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         (:class:`diffpen.terms.TermBuilder`: its Term's force, stability bound, extra params
         and aux state, and the contact materials and spring groups it reads).
       layout: how rollouts hold positions and velocities while they step
-        (:mod:`diffpen.layout`; users always see (n, 3) rows): ``"rows"`` (default), or
-        ``"columns"``: three (n,) arrays, which XLA CPU vectorises along a ``jax.vmap``
-        batch: faster for large batched sweeps (tens of thousands of rollouts), slower for
-        small ones; same values bit for bit. Needs a scene whose every force term returns
-        columns (sphere and particle contacts with planes) and an explicit integrator;
-        otherwise :class:`SceneError` says what stands in the way.
+        (:mod:`diffpen.layout`; users always see (n, 3) rows): ``"auto"`` (default):
+        ``"columns"`` where the scene allows it, else ``"rows"``; ``"columns"``: three
+        (n,) arrays, which XLA CPU vectorises along a ``jax.vmap`` batch (1024 balls: the
+        recording rollout 1.06x the plain floor against 1.48x in rows); same values bit for
+        bit. Columns need a scene whose every force term returns columns (sphere and
+        particle contacts with planes) and an explicit integrator; asked for explicitly
+        otherwise, :class:`SceneError` says what stands in the way.
     Returns:
       :class:`Simulator`.
     """

@@ -31,6 +31,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
          figures=os.path.join(HERE, "images")):
+    if figures:             # the figures' folder first: a missing one must not cost the sweep
+        os.makedirs(figures, exist_ok=True)
     sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0), dt)
     mfn = bounce_metrics_fn(sim, int(round(duration / dt)), n_apex=2)
     ks, cs = np.geomspace(1e3, 1e5, n), np.geomspace(1.0, 100.0, n)

@@ -81,3 +81,55 @@ def test_columns_refused_with_what_stands_in_the_way():
         dp.compile(box, 1e-3, layout="columns")
     with pytest.raises(dp.SceneError, match="layout must be one of"):
         dp.compile(_scene(), 1e-3, layout="soa")
+
+
+def test_auto_layout_takes_columns_wherever_a_scene_allows_them():
+    """layout="auto" (the default) steps in columns when nothing stands in the way, and in
+    rows otherwise (rotating bodies, an implicit integrator), never refusing a scene."""
+    assert dp.compile(_scene(), dt=1e-3).layout == "columns"
+    assert dp.compile(_scene(), dt=1e-3, layout="rows").layout == "rows"
+    assert dp.compile(_scene(), dt=1e-3, integrator="implicit_euler").layout == "rows"
+    box = dp.Scene()
+    box.add_box(half_extents=(0.05, 0.05, 0.05), mass=0.37, position=(0.0, 0.0, 0.3))
+    box.add_plane()
+    assert dp.compile(box, dt=1e-3).layout == "rows"
+    with pytest.raises(dp.SceneError, match="rotating bodies"):
+        dp.compile(box, dt=1e-3, layout="columns")
+
+
+def test_a_batched_rollout_loop_is_one_kernel():
+    """diffpen raises XLA CPU's small-loop limit (diffpen.SMALL_LOOP_BYTES): a batched
+    rollout's loop is compiled into one call instead of launching each fusion of its body
+    once per step (at XLA's 1 kB default a batch of 1024 balls stepped 2.4x slower in
+    columns)."""
+    import os
+    flags = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("DIFFPEN_KEEP_XLA_FLAGS") == "1" or (
+            "xla_cpu_small_while_loop_byte_threshold" not in flags):
+        pytest.skip("XLA_FLAGS set by the caller")
+    sim = dp.compile(_scene(), dt=1e-3, dtype=jnp.float32)
+    ks = jnp.linspace(5e3, 2e4, 1024, dtype=jnp.float32)
+    f = jax.jit(jax.vmap(lambda k: sim.rollout(sim.params(k=k, c=20.0), 64,
+                                               save_every=64).position[-1, 0, 2]))
+    text = f.lower(ks).compile().as_text()
+    assert "xla_cpu_small_call" in text
+
+
+def test_xla_flags_set_at_import_respect_the_callers(tmp_path):
+    import subprocess
+    import sys
+    code = "import os, diffpen; print(os.environ.get('XLA_FLAGS', ''))"
+
+    def flags(**env):
+        base = {k: v for k, v in os.environ.items()
+                if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
+        return subprocess.run([sys.executable, "-c", code], env=dict(base, **env),
+                              capture_output=True, text=True, check=True).stdout.strip()
+    import os
+    mine = flags()
+    assert (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
+            f"{dp.SMALL_LOOP_BYTES}") in mine
+    theirs = flags(XLA_FLAGS="--xla_backend_extra_options=foo=1")
+    assert "--xla_backend_extra_options=foo=1" in theirs and "small_while" not in theirs
+    assert flags(XLA_FLAGS="--xla_dump_hlo_pass_re=x", DIFFPEN_KEEP_XLA_FLAGS="1") == \
+        "--xla_dump_hlo_pass_re=x"

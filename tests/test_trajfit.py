@@ -869,7 +869,7 @@ name = "ball"
 radius = 0.05
 mass = 0.3
 position = [0.0, 0.0, 0.3]
-velocity = [1.0, 0.0, 0.5]
+velocity = [1.0, 0.05, 0.5]
 angular_velocity = [0.0, -10.0, 0.0]
 material = "rubber"
 [[planes]]

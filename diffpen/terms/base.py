@@ -32,14 +32,58 @@ def gather(x, idx: np.ndarray, n: int):
     return x[idx]
 
 
+#: :func:`scatter` sums by static row picks (no XLA scatter) when there are at most this many
+#: pairs, each body in at most :data:`SCATTER_ROUNDS` of them
+SCATTER_PAIRS = 256
+SCATTER_ROUNDS = 8
+
+
+def _rounds(idx: np.ndarray, n: int):
+    """(R, n) static row picks for :func:`scatter`: round r takes, for each body, its r-th pair
+    (in pair order), or the index ``m`` (a zero row) when it has fewer; None past the
+    limits above."""
+    m = idx.shape[0]
+    if m > SCATTER_PAIRS or m == 0:
+        return None
+    counts = np.bincount(idx, minlength=n)
+    R = int(counts.max())
+    if R > SCATTER_ROUNDS:
+        return None
+    table = np.full((R, n), m, dtype=np.int64)
+    seen = np.zeros(n, dtype=np.int64)
+    for p, b in enumerate(idx):
+        table[seen[b], b] = p
+        seen[b] += 1
+    return table
+
+
+def _pick(ext, rows: np.ndarray):
+    """``ext[rows]`` for static ``rows``: a slice when they are consecutive."""
+    if np.array_equal(rows, np.arange(rows[0], rows[0] + rows.shape[0])):
+        return ext[int(rows[0]):int(rows[0]) + rows.shape[0]]
+    return ext[jnp.asarray(rows)]
+
+
 def scatter(values, idx: np.ndarray, n: int):
     """Segment sum of per-pair ``values`` (m, ...) onto ``n`` bodies by static ``idx`` (m,);
-    per column for :class:`diffpen.layout.Columns`."""
+    per column for :class:`diffpen.layout.Columns`.
+
+    Small ones (:data:`SCATTER_PAIRS`, :data:`SCATTER_ROUNDS`) are sums of static row picks
+    in pair order (the same additions as the segment sum, so the same values): XLA CPU
+    compiles a rollout loop into one kernel only when its body has no scatter
+    (``diffpen.SMALL_LOOP_BYTES``)."""
     if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
         return values
     if isinstance(values, Columns):
         return Columns(*(scatter(v, idx, n) for v in values))
-    return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+    table = _rounds(np.asarray(idx), n)
+    if table is None:
+        return jax.ops.segment_sum(values, jnp.asarray(idx), num_segments=n)
+    ext = jnp.concatenate([values, jnp.zeros((1,) + values.shape[1:], values.dtype)])
+    out = _pick(ext, table[0])
+    for rows in table[1:]:
+        out = out + _pick(ext, rows)
+    return out
 
 
 def static_dot(n: np.ndarray, v):

@@ -277,7 +277,7 @@ def event_phase_errors(case: GradientCase, dt: float = 1e-3, phases: int = 6, *,
 def cube_toss_gradients(path, *, frames: int | None = None, k: float = 2e4, c: float = 20.0,
                         mu: float = 0.18, dt: float = 1e-3, dtype=None,
                         rel_steps=(1e-6, 1e-4, 0.03, 0.1)) -> dict:
-    """Pose-loss gradient of a recorded cube toss (``/work/shared/data/cube-toss`` format:
+    """Pose-loss gradient of a recorded cube toss (``examples/data/cube-toss`` format:
     columns t, x, y, z, qw..qz, vx..vz, wx..wz with the angular velocity in the body frame):
     a 0.37 kg cube of half-width 0.0524 m (inertia 8.1e-4 kg m^2) started from row 0 on a
     rough plane (material ``board``: ``k`` N/m, ``c`` N s/m, friction ``mu``), loss = mean
