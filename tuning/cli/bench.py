@@ -7,8 +7,8 @@ import sys
 
 #: ``tuning.reports.bench.CASES``' names, listed here so that ``--help`` does not import JAX
 #: (tests/test_bench.py checks that the two agree)
-KNOWN_CASES = ("ball_b1", "ball_b1024", "ball_b1024_columns", "ball_b65536",
-               "ball_b65536_columns", "chain", "cloth32", "cloth64", "jelly10", "spheres1000",
+KNOWN_CASES = ("ball_b1", "ball_b1024", "ball_b1024_rows", "ball_b65536",
+               "ball_b65536_rows", "chain", "cloth32", "cloth64", "jelly10", "spheres1000",
                "spheres10000")
 
 
