@@ -476,3 +476,27 @@ def test_reverse_mode_through_a_hertz_contact_is_finite():
     from diffpen.window import window_mean
     g = jax.grad(lambda d: window_mean(d, 0.1, 1e-3, 1.5)[1])(0.01)
     assert np.isfinite(float(g))
+
+
+def test_centred_friction_takes_the_normal_force_contact_plane_applies():
+    """With a centred law the rigid sphere's friction recomputed its normal force without the
+    centred damping: it scaled mu by another force than the one applied."""
+    scene = dp.Scene()
+    scene.add_material("rough", k=1e4, c=20.0, friction=0.5, slip_speed=0.01)
+    scene.add_plane(material="rough")
+    scene.add_rigid_sphere(0.1, 1.0, (0.0, 0.0, 0.095), velocity=(2.0, 0.0, -0.3))
+    sim = dp.compile(scene, 1e-3, law=laws.linear(centred=True))
+    params, state = sim.params(), sim.init_state()
+    h = sim.dt
+    from diffpen.layout import rows
+
+    def fz_ft(sim):
+        fz = float(rows(sim.term("contact_plane").force(params, state, h=h)[0])[0, 2])
+        return fz, np.asarray(sim.term("friction_sphere_plane").force(params, state, h=h)[0][0])
+    fz, ft = fz_ft(sim)
+    u = 2.0                                         # slip speed of the contact point, m/s
+    expect = 0.5 * fz * u / np.sqrt(u * u + 0.01 ** 2)
+    assert fz > 0 and abs(-ft[0] / expect - 1.0) < 1e-12, (ft, expect)
+    # and with the plain law both are its plain step average
+    fz, ft = fz_ft(dp.compile(scene, 1e-3))
+    assert abs(-ft[0] / (0.5 * fz * u / np.sqrt(u * u + 0.01 ** 2)) - 1.0) < 1e-12
