@@ -354,3 +354,28 @@ def test_traced_flag_of_verlet_in_float32_agrees_with_the_up_front_check():
         assert not bool(flag(p)), k
     past = sim.params(k=1e7, c=20.0)                  # w h = 3.2: past the limit
     assert not sim.stability(past).safe and bool(flag(past))
+
+
+def test_implicit_euler_refuses_a_resting_depth_its_dtype_cannot_resolve():
+    """float32, k = 1e9 N/m under a 0.1 g ball: the static depth m g / k = 1e-12 m is far
+    below float32's resolution of positions at the ball's size (1e-8 m); implicit_euler's
+    linearisation, which differentiates the contact, gave NaN gradients without an error
+    (diffpen report stability: 10 FAIL rows). Now a StabilityError asks for float64."""
+    from tuning.scenes import ball_scene
+    scene = ball_scene(mass=1e-4, height=0.5)
+    sim = dp.compile(scene, 1e-5, integrator="implicit_euler", dtype=jnp.float32)
+    with pytest.raises(dp.StabilityError, match="float64"):
+        sim.rollout(sim.params(k=1e9, c=63.2), 10)
+    # float64 resolves it, and a heavier body in float32 too
+    sim64 = dp.compile(scene, 1e-5, integrator="implicit_euler", dtype=jnp.float64)
+    s = sim64.init_state()
+    s = s._replace(velocity=s.velocity.at[0, 2].set(-100.0))
+
+    def z_end(kc):
+        tr = sim64.rollout(sim64.params(k=kc[0], c=kc[1]), 1000, s, save_every=1000)
+        return tr.position[-1, 0, 2]
+    g = jax.jacfwd(z_end)(jnp.asarray([1e9, 63.2]))
+    assert np.isfinite(np.asarray(g)).all()
+    heavy = dp.compile(ball_scene(mass=1.0, height=0.5), 1e-5, integrator="implicit_euler",
+                       dtype=jnp.float32)
+    heavy.rollout(heavy.params(k=1e9, c=63.2), 10)

@@ -94,7 +94,7 @@ class Analysis(NamedTuple):
     bounds: every term's :class:`Bound` blocks, in term order.
     contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
       and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
-    dtype: the simulator's float dtype.
+    dtype: the simulator's float dtype.  gravity: |g| of the scene, m/s^2.
     """
     integrator: Integrator
     dt: float
@@ -105,6 +105,7 @@ class Analysis(NamedTuple):
     bounds: tuple
     contact_scale: Callable | None
     dtype: Any
+    gravity: float = 0.0
 
     @property
     def inner_dt(self) -> float:

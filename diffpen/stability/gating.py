@@ -181,14 +181,38 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
 IMPLICIT_PRECISION = 0.1
 
 
+#: implicit_euler in a float dtype of machine epsilon eps needs a body's static deflection
+#: under gravity, g / K (K its stiffness over mass, 1/s^2), to be at least this fraction of the
+#: resolution of its positions, eps x its size: below it the body rests on a contact (or
+#: hangs on a spring) the dtype cannot resolve, and the step's linearisation, which
+#: differentiates the forces, gives NaN gradients (float32, k 1e9 N/m on 0.1 g).
+RESTING_RESOLUTION = 0.01
+
+
 def _implicit_precision(an: Analysis, params, substeps: int) -> None:
     """Raise StabilityError when implicit_euler's linear system cannot be resolved in the
-    simulator's dtype (float32 with a very stiff, light body and a large step)."""
+    simulator's dtype (float32 with a very stiff, light body and a large step), or a body's
+    static deflection under gravity is below the dtype's resolution of its positions (see
+    :data:`RESTING_RESOLUTION`)."""
     r = rates(an, params)
     if r is None:
         return
     K = float(np.max(r.K_row, initial=0.0))
     eps = float(np.finfo(np.dtype(an.dtype)).eps)
+    K_i = np.asarray(r.K_row, float)
+    stiff = (K_i > 0.0) & ~np.asarray(an.pinned, bool)
+    if an.gravity > 0.0 and stiff.any():
+        depth = an.gravity / K_i[stiff]
+        res = eps * np.asarray(an.d_ref, float)[stiff]
+        j = int(np.argmin(depth / res))
+        if depth[j] < RESTING_RESOLUTION * res[j]:
+            raise StabilityError(
+                f"{an.integrator.name} cannot resolve this system in "
+                f"{np.dtype(an.dtype).name}: a body's static deflection under gravity, "
+                f"{depth[j]:.2g} m (g / (k / m)), is below {RESTING_RESOLUTION:g} of the "
+                f"resolution of its positions ({res[j]:.2g} m: machine epsilon x its size), "
+                "and the step's linearisation, which differentiates the forces, gives NaN "
+                "gradients there. Use dtype=float64, or a softer k or a heavier body.")
     h = an.dt / substeps
     if K * h * h * eps <= IMPLICIT_PRECISION:
         return

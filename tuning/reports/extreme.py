@@ -223,9 +223,10 @@ def run_case(case: Case, *, remedy: bool = True, max_inner_steps: int = 2_000_00
     try:
         out = _run_case(case, 1, max_inner_steps)
     except dp.StabilityError as e:
-        row.update(outcome="refused", detail=str(e).split(":")[0] + f": safe step "
-                   f"{e.stable_dt:.3g} s, needs substeps={e.substeps}", substeps=e.substeps,
-                   stable_dt=e.stable_dt)
+        row.update(outcome="refused", detail=str(e).split(":")[0] + (
+                   f": safe step {e.stable_dt:.3g} s, needs substeps={e.substeps}"
+                   if e.stable_dt is not None else ": asks for float64"),
+                   substeps=e.substeps, stable_dt=e.stable_dt)
         steps = max(2, int(round(case.duration / case.dt)))
         if remedy:
             # the error's advice: the substeps it names, or implicit_euler when those would
