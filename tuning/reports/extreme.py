@@ -166,8 +166,8 @@ def _case_sim(case: Case, substeps, integrator=None):
         sim = dp.compile(scene, case.dt / substeps, integrator=integrator,
                          dtype=jnp.dtype(case.dtype), smoothing=width)
         steps = max(2, int(round(case.duration / case.dt))) * substeps
-        save_every = next(d for d in range(1, steps + 1)
-                          if steps % d == 0 and steps // d <= MAX_SAVED)
+        save_every = -(-steps // MAX_SAVED)          # every state, or every n-th past the cap
+        steps = -(-steps // save_every) * save_every  # (then < save_every inner steps more)
 
         def loss(kc, state):
             k, c = kc[0], kc[1]
