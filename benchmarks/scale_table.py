@@ -3,7 +3,7 @@
     python benchmarks/scale_table.py [--batches 1 1024 65536] [--steps 2000] [--json OUT]
 
 For each batch size, in one process, after compilation, medians of interleaved turns
-(``tuning.reports.bench.interleaved_times``, ``jax.block_until_ready``), float32, the ball of the
+(``tuning.reports.timing.interleaved_times``, ``jax.block_until_ready``), float32, the ball of the
 bench (radius 0.1 m, 1 kg, dropped from 1 m, dt = 1 ms, k in 5e3..2e4 N/m, c = 20 N s/m):
 
 * stepping: the final state only (``save_every=steps``), against the floor's final ``z``;
@@ -16,7 +16,7 @@ bench (radius 0.1 m, 1 kg, dropped from 1 m, dt = 1 ms, k in 5e3..2e4 N/m, c = 2
 * fast: :func:`tuning.ball_fast.ball_heights` (the batched ball path sweeps use), recording,
   against the floor recording.
 
-The floor is :func:`tuning.reports.bench.plain_ball_floor`: scalar ``z`` and ``v`` per ball, hard
+The floor is :func:`tuning.reports.floors.plain_ball_floor`: scalar ``z`` and ``v`` per ball, hard
 ``max(d, 0)``. Batch 1 uses ``jax.jit`` without ``vmap``.
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
-from tuning.reports import bench
+from tuning.reports import floors, timing
 from tuning.scenes import ball_scene
 
 
@@ -63,10 +63,10 @@ def measure(batch: int, steps: int, repeats: int) -> dict:
     unroll = 8 if batch == 1 else 1     # the floor's fastest forms (see tuning.reports.bench._ball)
 
     def floor_final(k, c):
-        return bench.plain_ball_floor(k, c, steps=steps, dt=dt, record=False, unroll=unroll)
+        return floors.plain_ball_floor(k, c, steps=steps, dt=dt, record=False, unroll=unroll)
 
     def floor_rec(k, c, unroll=unroll):
-        return bench.plain_ball_floor(k, c, steps=steps, dt=dt, unroll=unroll)
+        return floors.plain_ball_floor(k, c, steps=steps, dt=dt, unroll=unroll)
 
     def grad_of(fn):
         return dp.value_and_grad(lambda k, c: jnp.sum(fn(k, c) ** 2), (0, 1))
@@ -95,7 +95,7 @@ def measure(batch: int, steps: int, repeats: int) -> dict:
     }
     row = dict(batch=batch, steps=steps, load=os.getloadavg()[0])
     for name, (f, floor, a) in pairs.items():
-        t = bench.interleaved_times({"diffpen": f, "floor": floor}, a, repeats=repeats)
+        t = timing.interleaved_times({"diffpen": f, "floor": floor}, a, repeats=repeats)
         row[name] = dict(diffpen_s=t["diffpen"], floor_s=t["floor"],
                          ratio=t["diffpen"] / t["floor"])
         print(f"batch {batch:6d} {name:10s} diffpen {t['diffpen']:.3e} s  floor "

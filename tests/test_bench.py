@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tuning.reports import bench
+from tuning.reports import bench, floors, timing
 
 
 def test_checkpointed_gradient_memory_is_bounded_and_exact():
@@ -36,6 +36,7 @@ class _Clock:
 @pytest.fixture
 def clock(monkeypatch):
     c = _Clock()
+    monkeypatch.setattr(timing, "time", c)
     monkeypatch.setattr(bench, "time", c)
     return c
 
@@ -105,7 +106,7 @@ def test_interleaved_times_are_medians_of_turns(clock):
     def b():
         clock.sleep(2 * U)
         return jnp.zeros(())
-    t = bench.interleaved_times({"a": a, "b": b, "none": None}, (), repeats=7)
+    t = timing.interleaved_times({"a": a, "b": b, "none": None}, (), repeats=7)
     assert set(t) == {"a", "b"}
     assert t["a"] == pytest.approx(U, rel=1e-9) and t["b"] == pytest.approx(2 * U, rel=1e-9)
     assert calls["a"] >= 2 * 7                 # an untimed call before each timed one
@@ -124,12 +125,12 @@ def test_interleaved_times_time_each_call_after_itself(clock):
             last["who"] = name
             return jnp.zeros(())
         return f
-    t = bench.interleaved_times({"a": make("a"), "b": make("b")}, (), repeats=7)
+    t = timing.interleaved_times({"a": make("a"), "b": make("b")}, (), repeats=7)
     assert t["a"] == pytest.approx(U, rel=1e-9) and t["b"] == pytest.approx(U, rel=1e-9)
 
 
 def test_settled_time_times_a_call_after_itself(clock):
-    """bench.settled_time (the unit of interleaved_times and benchmarks/step_cost.py, whose
+    """timing.settled_time (the unit of interleaved_times and benchmarks/step_cost.py, whose
     own copy of this logic had no test) times a call right after an untimed call of the same
     function, whatever ran before it."""
     last = {"who": None}
@@ -144,7 +145,7 @@ def test_settled_time_times_a_call_after_itself(clock):
     times = []
     for _ in range(5):
         b(0.0)                                   # another program ran just before
-        times.append(bench.settled_time(a, (0.0,)))
+        times.append(timing.settled_time(a, (0.0,)))
     # settled: U exactly (the virtual clock); unsettled it would be 3 U
     assert times == pytest.approx([U] * 5, rel=1e-9), times
 
@@ -174,13 +175,13 @@ def test_plain_floor_is_batch_vectorisable_and_matches_its_scalar_runs():
     (no (B, 3) minor axis), and each row equals the row run alone."""
     ks = jnp.asarray([5e3, 1e4, 2e4])
     cs = jnp.asarray([5.0, 20.0, 40.0])
-    batched = jax.vmap(lambda k, c: bench.plain_ball_floor(k, c, steps=400))
+    batched = jax.vmap(lambda k, c: floors.plain_ball_floor(k, c, steps=400))
     jaxpr = jax.make_jaxpr(batched)(ks, cs)
     scan = [e for e in jaxpr.jaxpr.eqns if e.primitive.name == "scan"][0]
     assert all(v.aval.shape == (3,) for v in scan.outvars[:2])    # the carry: z and v
     out = batched(ks, cs)
     for i in range(3):
-        np.testing.assert_array_equal(out[i], bench.plain_ball_floor(ks[i], cs[i], steps=400))
+        np.testing.assert_array_equal(out[i], floors.plain_ball_floor(ks[i], cs[i], steps=400))
 
 
 def test_bench_help_names_every_case():

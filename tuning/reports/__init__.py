@@ -13,7 +13,8 @@
 * :mod:`tuning.reports.two_point`: the prototype contact law whose step window follows the
   true two-point path (exact event terms, ~54x the default law's cost);
 * :mod:`tuning.reports.bench`: speed against baselines measured in the same process
-  (``diffpen bench``).
+  (``diffpen bench``): its cases and how they are run; :mod:`tuning.reports.floors`, the
+  hand-written baselines; :mod:`tuning.reports.timing`, medians of calls taken in turns.
 
 They compute and return plain data; ``tuning.cli.report`` and ``tuning.cli.bench`` print. The
 package imports its modules lazily: import the one you need.

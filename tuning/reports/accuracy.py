@@ -13,11 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import statistics
-import time
 from typing import Callable
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -27,20 +24,9 @@ from ..scenes import ball_scene
 from .extreme import INTEGRATORS
 from .reference import (G, BallReference, apex_heights, ball_reference, chain_reference,
                         settling_time, spring_closed_form)
+from .timing import median_time
 
-__all__ = ["time_call", "BallSpec", "horizon", "accuracy", "recommend", "plot_accuracy"]
-
-
-def time_call(fn: Callable, repeats: int = 5) -> float:
-    """Median wall time (s) of ``fn()`` over ``repeats`` runs after one warm-up (compile) run;
-    ``fn`` returns arrays, waited for with jax.block_until_ready."""
-    jax.block_until_ready(fn())
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
+__all__ = ["BallSpec", "horizon", "accuracy", "recommend", "plot_accuracy"]
 
 
 # --------------------------------------------------------------------------- accuracy
@@ -154,7 +140,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 t = np.asarray(traj.time)
                 z, v = (np.asarray(traj.position[:, 0, 2]), np.asarray(traj.velocity[:, 0, 2]))
                 errs = _ball_errors(spec, ref, t, z, v)
-                wall = time_call(lambda: sim.rollout(params, steps).position, repeats)
+                wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
                 pts.append({"dt": dt, "error": errs["apex_rel_error"], "time": wall,
                             "settling_error": errs["settling_error"],
                             "substeps": sim.stability(params).substeps_needed})
@@ -182,7 +168,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
             errs = _ball_errors(spec, ref, np.asarray(traj.time, float),
                                 np.asarray(traj.position[:, 0, 2], float),
                                 np.asarray(traj.velocity[:, 0, 2], float))
-            wall = time_call(lambda: sim.rollout(params, steps).position, repeats)
+            wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
             out["default"].append({"dtype": dtype, "dt": 1e-3, "smoothing": sim.smoothing,
                                    "steps": steps, "error": errs["apex_rel_error"],
                                    "settling_error": errs["settling_error"], "time": wall,
@@ -204,7 +190,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 x = np.asarray(traj.position[:, 0, 2]) - 1.0
                 err = float(np.max(np.abs(x - spring_closed_form(np.asarray(traj.time), k=k,
                                                                  c=c, m=m, x0=x0)))) / x0
-                wall = time_call(lambda: sim.rollout(params, steps).position, repeats)
+                wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
                 pts.append({"dt": dt, "error": err, "time": wall})
                 say("spring", integ, pts[-1])
             res[integ] = pts
@@ -232,7 +218,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                     refs[dt] = chain_reference(tt, x0=x0, m=m, k=k, c=c, rest=L)
                 tip = np.asarray(traj.position[:, -1])
                 err = float(np.max(np.linalg.norm(tip - refs[dt][:, -1], axis=-1))) / (n * L)
-                wall = time_call(lambda: sim.rollout(params, steps).position, repeats)
+                wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
                 pts.append({"dt": dt, "error": err, "time": wall})
                 say("chain", integ, pts[-1])
             res[integ] = pts

@@ -13,7 +13,7 @@ For every standard scene this measures, after compilation and as the median of s
   (arguments + outputs + temporaries; the peak a device must hold);
 * ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
   hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX); for
-  the ball, the plain floor :func:`plain_ball_floor`: scalar ``z`` and ``v`` per ball, so a
+  the ball, the plain floor :func:`tuning.reports.floors.plain_ball_floor`: scalar ``z`` and ``v`` per ball, so a
   batch is one vector per component;
 * ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
 * ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
@@ -41,88 +41,11 @@ import diffpen as dp
 from diffpen import builders
 
 from ..scenes import ball_scene
+from .floors import G, network_floor, plain_ball_floor
+from .timing import interleaved_times, median_time, memory_bytes
 
-__all__ = ["Case", "CASES", "run_case", "run", "median_time", "settled_time",
-           "interleaved_times", "memory_bytes", "plain_ball_floor"]
-
-G = 9.81
-
-
-def median_time(fn: Callable, *args, repeats: int = 5) -> float:
-    """Median wall time (s) of ``fn(*args)`` over ``repeats`` runs after one warm-up run."""
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
-
-
-def settled_time(fn: Callable, args: tuple) -> float:
-    """Wall time (s) of one ``fn(*args)`` (``jax.block_until_ready``) taken right after an
-    untimed call of the same function: the measurement unit of :func:`interleaved_times` and
-    ``benchmarks/step_cost.py``. A call timed right after a different program reads slower
-    (caches, the thread pool), whatever ran before it."""
-    jax.block_until_ready(fn(*args))                # settle: the same program just ran
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    return time.perf_counter() - t0
-
-
-def interleaved_times(fns: dict, args: tuple, repeats: int = 5,
-                      budget_s: float = 20.0) -> dict:
-    """Median wall time (s) of each ``fn(*args)`` in ``fns`` (None entries skipped), after a
-    warm-up call each, with the timed calls taken in turns (fn1, fn2, ..., fn1, fn2, ...) so
-    that every function sees the same machine load: ``repeats`` rounds, more (up to 200) when
-    a round takes under ~0.5 s / repeats, fewer (3 at least) when the rounds would take over
-    ``budget_s`` seconds in all.
-
-    Every timed call directly follows an untimed call of the same function: a call timed
-    right after a different program reads slower (caches, the thread pool; measured: the
-    same batch-1 rollout 1.2x slower after a batch-1 gradient and 2.3x after a batch-1024
-    rollout), which would bias each ratio by which function happens to come first."""
-    live = {k: f for k, f in fns.items() if f is not None}
-    times = {k: [] for k in live}
-
-    def timed(f):
-        return settled_time(f, args)
-    first = 0.0
-    for k, f in live.items():
-        times[k].append(timed(f))
-        first += times[k][-1]
-    # short calls get more rounds (up to ~0.5 s in all): their medians are noisier; long
-    # ones fewer, so that a case takes about budget_s at most (two calls per timed one)
-    rounds = max(repeats, min(200, int(0.5 / max(first, 1e-9))))
-    if 2.0 * first * rounds > budget_s:
-        rounds = max(3, int(budget_s / (2.0 * first)))
-    for _ in range(rounds - 1):
-        for k, f in live.items():
-            times[k].append(timed(f))
-    return {k: float(np.median(v)) for k, v in times.items()}
-
-
-def memory_bytes(compiled) -> int | None:
-    """Arguments + outputs + temporaries of a compiled XLA executable, bytes (None if the
-    backend gives no analysis)."""
-    try:
-        m = compiled.memory_analysis()
-    except Exception:            # backends without memory analysis
-        return None
-    if m is None:
-        return None
-    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
-               - m.alias_size_in_bytes)
-
-
-def _numpy_time(fn: Callable, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+__all__ = ["Case", "CASES", "run_case", "run", "sphere_scaling", "gradient_memory",
+           "spheres_in_box"]
 
 
 def _gradients(loss: Callable, floor_loss: Callable | None, *, batched: bool) -> dict:
@@ -148,28 +71,6 @@ class Case(NamedTuple):
 
 
 # --------------------------------------------------------------------------- ball
-def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
-                     drop: float = 1.0, record: bool = True, unroll: int = 8):
-    """The plain floor of the ball workloads: a ``lax.scan`` of the scalar height ``z`` (m)
-    and vertical velocity ``v`` (m/s) of one ball of unit mass dropped from rest at ``drop``
-    onto the plane z = 0, hard contact ``f = k max(d, 0) - c [d > 0] v`` with
-    ``d = radius - z``, symplectic Euler. Scalars, no (3,) vectors, no generality: under
-    ``jax.vmap`` the carry is one (B,) array per component, which XLA vectorises along the
-    batch. ``unroll``: of the ``lax.scan``. Returns (steps,) heights when ``record``, else
-    the final ``z``."""
-    def step(s, _):
-        z, v = s
-        d = radius - z
-        f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v
-        v = v + dt * (f - G)
-        z = z + dt * v
-        return (z, v), (z if record else None)
-    z0 = jnp.full_like(k, drop)
-    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps,
-                              unroll=unroll)
-    return zs if record else z
-
-
 def _ball(batch: int, quick: bool, layout: str = "auto"):
     def build(dtype, quick_=quick):
         steps = 2000 if not quick_ else 500
@@ -238,84 +139,6 @@ def _ball(batch: int, quick: bool, layout: str = "auto"):
 
 
 # --------------------------------------------------------------------------- spring networks
-def _network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
-    """Hand-written floor for spring networks: per-spring k and c, symplectic Euler, gravity,
-    drag, pinned nodes; no contact (the network scenes have none). Lattice springs (one index
-    offset per family) use dense slices added back in place (``lax.dynamic_update_slice``),
-    the fastest way found to write them in JAX; the other springs a gather and, per node, a
-    sum of static row picks."""
-    from diffpen.terms import spring_bands
-    springs = [s for s in sim.scene.springs if s.b is not None]
-    ia = np.array([s.a for s in springs])
-    ib = np.array([s.b for s in springs])
-    rest_np = np.array([s.rest_length for s in springs])
-    group = [s.group for s in springs]
-    names = sorted(set(group))
-    gi = np.array([names.index(g) for g in group])
-    free = jnp.asarray((~sim.pinned)[:, None], dtype)
-    inv_m = jnp.asarray(np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None], dtype)
-    grav = jnp.asarray(sim.scene.gravity, dtype) * free
-    dt, n = sim.dt, sim.n_bodies
-    drag = [d for d in sim.scene.drags if not sim.pinned[d.body]]
-    drag_c = np.zeros(n)
-    for d in drag:
-        drag_c[d.body] += sim.scene.drag_groups[d.group]
-    drag_c = jnp.asarray(drag_c[:, None], dtype)
-    has_drag = bool(drag)
-    bands, other = spring_bands(ia, ib)
-    dense = []
-    for d, lo, hi, ids in bands:             # slot j holds the spring from lo + j to lo + j + d
-        slot = np.minimum(ia[ids], ib[ids]) - lo
-        on, rest_b, grp = np.zeros(hi - lo), np.zeros(hi - lo), np.zeros(hi - lo, int)
-        on[slot], rest_b[slot], grp[slot] = 1.0, rest_np[ids], gi[ids]
-        dense.append((d, lo, hi, jnp.asarray(on, dtype), jnp.asarray(rest_b, dtype), grp))
-    rest = jnp.asarray(rest_np[other], dtype)
-    oa, ob, og = ia[other], ib[other], gi[other]
-
-    def node_sum(f, idx):
-        # per node, the sum of its springs' rows: a few static row picks (a segment sum is an
-        # XLA scatter, which keeps XLA CPU from compiling the loop into one kernel)
-        picks = [[] for _ in range(n)]
-        for p, node in enumerate(idx):
-            picks[node].append(p)
-        ext = jnp.concatenate([f, jnp.zeros((1, 3), f.dtype)])
-        out = 0.0
-        for r in range(max(len(q) for q in picks)):
-            out = out + ext[np.array([q[r] if r < len(q) else len(idx) for q in picks])]
-        return out
-
-    def tension(dx, dv, rest_len, k, c):
-        length = jnp.sqrt(jnp.sum(dx * dx, -1))
-        u = dx / length[:, None]
-        return (-k * (length - rest_len) - c * jnp.sum(u * dv, -1))[:, None] * u
-
-    def final(kvec, cvec, x0, v0):
-        def step(s, _):
-            x, v = s
-            force = jnp.zeros_like(x)
-            for d, lo, hi, on, rest_b, grp in dense:
-                f = tension(x[lo + d:hi + d] - x[lo:hi], v[lo + d:hi + d] - v[lo:hi], rest_b,
-                            kvec[grp], cvec[grp]) * on[:, None]
-                # in place, as diffpen does (.at[].add would be an XLA scatter, which keeps
-                # XLA CPU from compiling the loop into one kernel)
-                force = jax.lax.dynamic_update_slice(force, force[lo + d:hi + d] + f,
-                                                     (lo + d, 0))
-                force = jax.lax.dynamic_update_slice(force, force[lo:hi] - f, (lo, 0))
-            if len(other):
-                f = tension(x[oa] - x[ob], v[oa] - v[ob], rest, kvec[og], cvec[og])
-                force = force + node_sum(f, oa) - node_sum(f, ob)
-            if has_drag:
-                force = force - drag_c * v
-            v = v + dt * (force * inv_m + grav)
-            return (x + dt * v, v), None
-        (x, _), _ = jax.lax.scan(step, (x0, v0), None, length=steps)
-        return x
-
-    kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
-    cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
-    return final, kvec, cvec, (ia, ib, rest_np, gi, names)
-
-
 def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: int, dt: float):
     def build(dtype, quick):
         n_steps = quick_steps if quick else steps
@@ -331,7 +154,7 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
             p = sim.params(springs=springs)
             return sim.rollout(p, steps=n_steps, state=state, save_every=n_steps).position[-1]
 
-        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = _network_floor(
+        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = network_floor(
             sim, p0, n_steps, dtype)
 
         def floor_kc(k, c):
@@ -540,7 +363,7 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
                 out.update(natural_vs_floor=ts["natural"] / ts["floor"])
     if baselines and spec.get("numpy") is not None:
         nrep = 1 if spec["work"] > 2e6 else 3
-        t_np = _numpy_time(spec["numpy"], nrep)
+        t_np = median_time(spec["numpy"], repeats=nrep)
         out.update(numpy_s=t_np, vs_numpy=fwd / t_np)
     return out
 

@@ -1,0 +1,118 @@
+"""The hand-written floors the benchmarks compare diffpen with: the plainest fast JAX an
+expert would write for the same physics, with no generality. The ball's is a ``lax.scan`` of
+scalar height and velocity per ball with a hard ``max(d, 0)`` contact; the spring networks'
+evaluates lattice springs on dense slices added back in place. Independent of diffpen's step
+(they read a compiled simulator's scene and parameters only)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import diffpen as dp
+
+__all__ = ["G", "plain_ball_floor", "network_floor"]
+
+#: gravity of the benchmark scenes, m/s^2
+G = 9.81
+
+
+def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
+                     drop: float = 1.0, record: bool = True, unroll: int = 8):
+    """The plain floor of the ball workloads: a ``lax.scan`` of the scalar height ``z`` (m)
+    and vertical velocity ``v`` (m/s) of one ball of unit mass dropped from rest at ``drop``
+    onto the plane z = 0, hard contact ``f = k max(d, 0) - c [d > 0] v`` with
+    ``d = radius - z``, symplectic Euler. Scalars, no (3,) vectors, no generality: under
+    ``jax.vmap`` the carry is one (B,) array per component, which XLA vectorises along the
+    batch. ``unroll``: of the ``lax.scan``. Returns (steps,) heights when ``record``, else
+    the final ``z``."""
+    def step(s, _):
+        z, v = s
+        d = radius - z
+        f = k * jnp.maximum(d, 0.0) - c * (d > 0.0) * v
+        v = v + dt * (f - G)
+        z = z + dt * v
+        return (z, v), (z if record else None)
+    z0 = jnp.full_like(k, drop)
+    (z, _), zs = jax.lax.scan(step, (z0, jnp.zeros_like(z0)), None, length=steps,
+                              unroll=unroll)
+    return zs if record else z
+
+
+
+def network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
+    """Hand-written floor for spring networks: per-spring k and c, symplectic Euler, gravity,
+    drag, pinned nodes; no contact (the network scenes have none). Lattice springs (one index
+    offset per family) use dense slices added back in place (``lax.dynamic_update_slice``),
+    the fastest way found to write them in JAX; the other springs a gather and, per node, a
+    sum of static row picks."""
+    from diffpen.terms import spring_bands
+    springs = [s for s in sim.scene.springs if s.b is not None]
+    ia = np.array([s.a for s in springs])
+    ib = np.array([s.b for s in springs])
+    rest_np = np.array([s.rest_length for s in springs])
+    group = [s.group for s in springs]
+    names = sorted(set(group))
+    gi = np.array([names.index(g) for g in group])
+    free = jnp.asarray((~sim.pinned)[:, None], dtype)
+    inv_m = jnp.asarray(np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None], dtype)
+    grav = jnp.asarray(sim.scene.gravity, dtype) * free
+    dt, n = sim.dt, sim.n_bodies
+    drag = [d for d in sim.scene.drags if not sim.pinned[d.body]]
+    drag_c = np.zeros(n)
+    for d in drag:
+        drag_c[d.body] += sim.scene.drag_groups[d.group]
+    drag_c = jnp.asarray(drag_c[:, None], dtype)
+    has_drag = bool(drag)
+    bands, other = spring_bands(ia, ib)
+    dense = []
+    for d, lo, hi, ids in bands:             # slot j holds the spring from lo + j to lo + j + d
+        slot = np.minimum(ia[ids], ib[ids]) - lo
+        on, rest_b, grp = np.zeros(hi - lo), np.zeros(hi - lo), np.zeros(hi - lo, int)
+        on[slot], rest_b[slot], grp[slot] = 1.0, rest_np[ids], gi[ids]
+        dense.append((d, lo, hi, jnp.asarray(on, dtype), jnp.asarray(rest_b, dtype), grp))
+    rest = jnp.asarray(rest_np[other], dtype)
+    oa, ob, og = ia[other], ib[other], gi[other]
+
+    def node_sum(f, idx):
+        # per node, the sum of its springs' rows: a few static row picks (a segment sum is an
+        # XLA scatter, which keeps XLA CPU from compiling the loop into one kernel)
+        picks = [[] for _ in range(n)]
+        for p, node in enumerate(idx):
+            picks[node].append(p)
+        ext = jnp.concatenate([f, jnp.zeros((1, 3), f.dtype)])
+        out = 0.0
+        for r in range(max(len(q) for q in picks)):
+            out = out + ext[np.array([q[r] if r < len(q) else len(idx) for q in picks])]
+        return out
+
+    def tension(dx, dv, rest_len, k, c):
+        length = jnp.sqrt(jnp.sum(dx * dx, -1))
+        u = dx / length[:, None]
+        return (-k * (length - rest_len) - c * jnp.sum(u * dv, -1))[:, None] * u
+
+    def final(kvec, cvec, x0, v0):
+        def step(s, _):
+            x, v = s
+            force = jnp.zeros_like(x)
+            for d, lo, hi, on, rest_b, grp in dense:
+                f = tension(x[lo + d:hi + d] - x[lo:hi], v[lo + d:hi + d] - v[lo:hi], rest_b,
+                            kvec[grp], cvec[grp]) * on[:, None]
+                # in place, as diffpen does (.at[].add would be an XLA scatter, which keeps
+                # XLA CPU from compiling the loop into one kernel)
+                force = jax.lax.dynamic_update_slice(force, force[lo + d:hi + d] + f,
+                                                     (lo + d, 0))
+                force = jax.lax.dynamic_update_slice(force, force[lo:hi] - f, (lo, 0))
+            if len(other):
+                f = tension(x[oa] - x[ob], v[oa] - v[ob], rest, kvec[og], cvec[og])
+                force = force + node_sum(f, oa) - node_sum(f, ob)
+            if has_drag:
+                force = force - drag_c * v
+            v = v + dt * (force * inv_m + grav)
+            return (x + dt * v, v), None
+        (x, _), _ = jax.lax.scan(step, (x0, v0), None, length=steps)
+        return x
+
+    kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
+    cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
+    return final, kvec, cvec, (ia, ib, rest_np, gi, names)
