@@ -32,19 +32,28 @@ the window's closed forms and their derivatives are :mod:`diffpen.window`
 (:func:`window_mean`, re-exported here). Deep in contact it equals the pointwise law.
 
 **Damping at the window's centre** (``ContactLaw.centred``; opt in with
-``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)``).
-Semi-implicit Euler's velocity is the mean over the step that ended, half a step behind the
-position the force is evaluated at, and a damper fed with it dissipates too much (apexes
-0.3-0.9% low at dt 1e-3 on the quick-start ball). A centred record evaluates the law's
-velocity dependence at the centre speed ``vn + (h / 2) (F0 / m_eff + g_n)`` instead (one
-explicit pass: ``F0`` the step average at ``vn``; the window is still taken along
-``d - vn s``, so the force stays continuous). At dt 1e-3 the apexes are then within 0.5%
-(quick-start ball +0.03/+0.08/+0.13% against -0.29/-0.59/-0.91%; 0.3 kg ball <= +0.48%
-against -1.21%) and d duration1 / dc is 0.4% off the continuous derivative (37% without).
-It is not the default: batched ball rollouts (vmap 1024, float32) cost 0.87-1.03x with k
-and c both batched (as ``diffpen bench`` runs them) but 1.7-2.1x with k batched and c
-shared, where its few extra operations per contact push XLA's CPU loop past a cliff (one
-more multiply-add anywhere in the step shows the same cliff); batch-1 gradients 0.93-1.06x.
+``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)``
+or ``get(name, centred=True)``). Semi-implicit Euler's velocity is the mean over the step
+that ended, half a step behind the position the force is evaluated at, and a damper fed with
+it dissipates too much (apexes 0.3-0.9% low at dt 1e-3 on the quick-start ball). A centred
+record evaluates the law's velocity dependence at the centre speed
+``vc = vn + (h / 2) (F / m_eff + g_n)`` and solves for ``F`` (one division per contact by a
+denominator >= 1; the window is still taken along ``d - vn s``, so the force stays
+continuous). At dt 1e-3 the apexes are then within 0.5% (quick-start ball
++0.04/+0.08/+0.13% against -0.29/-0.59/-0.91%; 0.3 kg ball <= 0.47% against -1.21%, over
+where the impact falls in the step) and d duration1 / dc is 0.4% off the continuous
+derivative (37% without). Cost (``benchmarks/step_cost.py``, float32): batch-1 rollouts
+1.11-1.13x the plain step average, gradients 1.04-1.14x, batched (vmap 1024) 0.85-0.96x.
+
+Why it is not the default: each contact estimates the centre speed from its own force and
+gravity only (``g_n``), which is exact for a body on one contact but not for a body resting
+on several (the other contacts' forces are missing from its acceleration). At rest the
+damper then sees a speed ``(h / 2) (F / m_eff + g_n)`` that is not 0, and the resting depth
+is off by O(c h / m): two stacked 1 kg balls at c 20 N s/m, h 1 ms rest 0.5% (the plane's
+contact) and 2% (the pair's) too deep. The plain step average rests exactly at ``m g / k``.
+Box corners, sphere-box and box-fixed-sphere pairs take the plain step average either way,
+and so do integrators whose velocity does not lag (verlet, rk4, implicit Euler) and smoothed
+laws (``smoothing > 0``).
 """
 from __future__ import annotations
 
@@ -264,39 +273,41 @@ def _hunt_crossley_averaged(exponent: float):
 # --------------------------------------------------------------------------- centred damping
 def _linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     """Step average of the linear law with its damping at the window centre's speed
-    ``vc = vn + lag (F0 inv_mass + accel)``, ``F0 = k mean - c frac vn`` the step average at
-    ``vn`` (the window from ``vn``): ``F = F0 - c frac lag (accel + inv_mass F0)``. One
-    explicit pass, no division (the exact solve for ``F`` differs by O((c lag / m)^2), which
-    the explicit stability bound keeps below 1, and costs a per-contact division: 1.7x the
-    batched rollout)."""
+    ``vc = vn + lag (F inv_mass + accel)``: ``F = k mean - c frac vc`` solved for ``F``,
+    ``F = (k mean - c frac (vn + lag accel)) / (1 + c frac lag inv_mass)`` (the window from
+    ``vn``). The denominator is >= 1: no division by anything that can vanish, and where
+    ``c lag / m`` nears the explicit damping limit the force stays the damper's (a
+    one-pass explicit estimate, ``F0 - c frac lag (accel + inv_mass F0)``, scaled the whole
+    force by ``1 - c lag / m`` there: an overdamped ball sank to three times its resting
+    depth)."""
     frac, mean = window_mean(d, vn, h)
     cf = c * frac
-    f0 = k * mean - cf * vn
-    return f0 - cf * (lag * accel + (lag * inv_mass) * f0)
+    return (k * mean - cf * (vn + lag * accel)) / (1.0 + cf * (lag * inv_mass))
 
 
 def _hunt_crossley_centred(exponent: float):
     def centred(d, vn, k, c, h, lag, inv_mass, accel):
-        """``max(k - c vc, 0) mean`` with ``vc = vn + lag (F0 inv_mass + accel)``, ``F0`` the
-        step average at ``vn`` (one explicit pass)."""
+        """``F = max(k - c vc, 0) mean`` with ``vc = vn + lag (F inv_mass + accel)`` solved
+        for ``F``: ``max(k - c (vn + lag accel), 0) mean / (1 + c lag inv_mass mean)``."""
         _, mean = window_mean(d, vn, h, exponent)
-        f0 = jnp.maximum(k - c * vn, 0.0) * mean
-        return jnp.maximum(k - c * (vn + lag * accel + (lag * inv_mass) * f0), 0.0) * mean
+        return (jnp.maximum(k - c * (vn + lag * accel), 0.0) * mean
+                / (1.0 + (c * lag * inv_mass) * mean))
     return centred
 
 
 def _no_tension_centred(d, vn, k, c, h, lag, inv_mass, accel):
     """The no_tension step average (:func:`_no_tension_averaged`: window and clamp offset
     ``t = max(c vn, 0) / k`` from ``vn``) with the damping's change to the centre speed
-    ``vc - vn = lag (F0 inv_mass + accel)`` added at the window's slope ``frac``:
-    ``F = max(F0 - c frac lag (accel + inv_mass F0), 0)``, ``F0 = k mean - c frac min(vn, 0)``
-    (the linear law's form while approaching; continuous at ``vn = 0``)."""
+    ``vc - vn = lag (F inv_mass + accel)`` taken at the window's slope ``frac`` and solved
+    for ``F``: ``F = max((F0 - c frac lag accel) / (1 + c frac lag inv_mass), 0)``,
+    ``F0 = k mean - c frac min(vn, 0)`` (the linear law's form while approaching;
+    continuous at ``vn = 0``)."""
     kp = k > 0.0
     t = jnp.maximum(c * vn, 0.0) / jnp.where(kp, k, 1.0)
     frac, mean = window_mean(d - t, vn, h)
     cf = c * frac
-    f0 = k * mean - cf * jnp.minimum(vn, 0.0)
-    return jnp.maximum(f0 - cf * (lag * accel + (lag * inv_mass) * f0), 0.0)
+    f0 = k * mean - cf * (jnp.minimum(vn, 0.0) + lag * accel)
+    return jnp.maximum(f0 / (1.0 + cf * (lag * inv_mass)), 0.0)
 
 
 # --------------------------------------------------------------------------- records
@@ -457,7 +468,7 @@ def get(law, exponent: float = 1.0, centred: bool = False) -> ContactLaw:
     if isinstance(law, str) and law in CONTACT_LAWS:
         if law == "hunt_crossley":
             return hunt_crossley(exponent, centred)
-        return {"linear": linear, "no_tension": no_tension}[law](centred) if centred \
+        return {"linear": linear, "no_tension": no_tension}[law](True) if centred \
             else CONTACT_LAWS[law]
     raise ValueError(f"unknown contact law {law!r}; choose one of {sorted(CONTACT_LAWS)} or "
                      "pass a diffpen.laws.ContactLaw record.")

@@ -163,21 +163,22 @@ def test_linear_window_closed_form_derivatives_equal_autodiff():
 
 @pytest.mark.parametrize("law", LAWS)
 def test_centred_damping_is_the_average_at_the_centre_speed(law):
-    """``centred=True`` records: the step average with the damping at the centre speed
-    ``vc = vn + lag (F0 / m + g_n)``, ``F0`` the step average at ``vn`` (semi-implicit
-    Euler's velocity lags by h / 2): ``k mean - c frac vc`` (linear; no_tension while
-    approaching) and ``max(k - c vc, 0) mean`` (Hunt-Crossley), the window from ``vn``.
-    Exactly 0 apart, the plain average for ``lag = 0`` and for the default records,
-    continuous through contact start."""
+    """Centred records: the step average with the damping at the centre speed
+    ``vc = vn + lag (F / m + g_n)`` of the force ``F`` itself (semi-implicit Euler's velocity
+    lags by h / 2): ``F = k mean - c frac vc`` (linear; no_tension while approaching) and
+    ``F = max(k - c vc, 0) mean`` (Hunt-Crossley), the window from ``vn``. Exactly 0 apart,
+    the plain average for ``lag = 0`` and for the default records, continuous through
+    contact start."""
     rec = {"linear": laws.linear, "no_tension": laws.no_tension,
            "hunt_crossley": lambda c: laws.hunt_crossley(1.5, c)}[law](True)
-    plain = laws.get(law, 1.5)
+    plain = laws.get(law, 1.5)                             # the default: not centred
+    assert plain.centred is None and laws.get(law, 1.5, centred=True).centred is not None
     k, c, h, m, g = 2e4, 300.0, 1e-3, 0.7, -9.81
     lag = 0.5 * h
     d = jnp.array([-4e-3, -1e-4, 0.0, 1e-4, 2.5e-3, 2e-2, 2e-2])
     vn = jnp.array([-3.0, -0.2, -0.2, 0.4, 5.0, -0.3, 0.2])
     f = rec.centred_force(d, vn, k, c, h, lag, 1.0 / m, g)
-    vc = vn + lag * (rec.averaged(d, vn, k, c, h) / m + g)
+    vc = vn + lag * (f / m + g)
     frac, mean = laws.window_mean(d, vn, h, rec.exponent)
     if law == "hunt_crossley":
         want = jnp.maximum(k - c * vc, 0.0) * mean
@@ -195,6 +196,32 @@ def test_centred_damping_is_the_average_at_the_centre_speed(law):
     for d0 in (0.0, -2e-4, 2e-4):
         a, b = (rec.centred_force(d0 + s, -0.2, k, c, h, lag, 1.0 / m, g) for s in (-eps, eps))
         assert abs(float(a - b)) < 1e-3
+
+
+@pytest.mark.parametrize("law", ["linear", "no_tension"])
+def test_centred_damping_keeps_an_overdamped_ball_above_its_resting_depth(law):
+    """Regression: the centred records estimated the centre speed in one explicit pass,
+    ``F0 - c frac lag (g_n + F0 / m)``, which scales the whole force by ``1 - c h / (2 m)``:
+    near the explicit damping limit (c h / (2 m) -> 1) the force nearly vanished and an
+    overdamped ball (0.1 kg, k 100 N/m, c 150 N s/m, zeta 24) at 0.99 x the stable step sank
+    to 28 mm, three times its resting depth of 9.8 mm. Solved for the force it creeps down towards the resting depth and never passes it, at every step
+    up to the limit, as the plain step average does. (Hunt-Crossley's damping grows with
+    depth: its ball is not overdamped at impact.)"""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("b", k=100.0, c=150.0)
+    scene.add_sphere(radius=0.1, mass=0.1, position=(0.0, 0.0, 0.3), material="b")
+    scene.add_plane(material="b")
+    probe = dp.compile(scene, 1e-4, law=law)
+    stable = float(probe.stability(probe.params()).stable_dt)
+    rest = 0.1 - 0.1 * 9.81 / 100.0
+    for frac in (0.5, 0.99):
+        dt = frac * stable
+        sim = dp.compile(scene, dt, law=laws.get(law, 1.0))
+        z = np.asarray(sim.rollout(sim.params(), int(6.0 / dt), check_stability=False)
+                       .position[:, 0, 2])
+        assert np.isfinite(z).all()
+        assert z.min() > rest - 1e-4, (frac, z.min(), rest)
+        assert abs(z[-1] - rest) < 2e-3, (frac, z[-1], rest)
 
 
 def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
@@ -229,15 +256,21 @@ def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
     assert np.abs(z[0] - z[1]).max() < 1e-12
 
 
-def test_ball_fast_path_declines_centred_laws():
-    """tuning.ball_fast applies the plain step average: it must not take a simulator whose
-    law is centred (it would differ from the rollout), and still takes the default one."""
-    from tuning.ball_fast import supports
+@pytest.mark.parametrize("centred", [True, False])
+def test_ball_fast_path_applies_the_simulators_law(centred):
+    """tuning.ball_fast steps the simulator's own force, plain (the default) or centred (it
+    declined centred laws before): its heights equal the rollout's bit for bit either way."""
+    from tuning.ball_fast import ball_heights, supports
     scene = dp.Scene()
     scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
     scene.add_plane()
-    assert supports(dp.compile(scene, 1e-3)) is None
-    assert "centred" in supports(dp.compile(scene, 1e-3, law=laws.linear(centred=True)))
+    sim = dp.compile(scene, 1e-3, law=laws.linear(centred=centred))
+    assert supports(sim) is None
+    k, c = jnp.array([5e3, 1e4]), jnp.array([10.0, 30.0])
+    z = np.asarray(ball_heights(sim, k, c, 900))
+    for i in range(2):
+        want = sim.rollout(sim.params(k=k[i], c=c[i]), 900).position[:, 0, 2]
+        np.testing.assert_array_equal(z[:, i], np.asarray(want))
 
 
 @pytest.mark.parametrize("law", LAWS)
