@@ -20,6 +20,17 @@ def _is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def _known_value(x):
+    """``x`` itself when concrete, the concrete value under a tracer that has one (jax.grad,
+    jax.jvp outside jit), else None (jit, vmap: abstract)."""
+    if _is_concrete(x):
+        return x
+    try:
+        return x.to_concrete_value()
+    except Exception:  # noqa: BLE001 - any failure means "abstract"
+        return None
+
+
 def _check_value(name: str, v) -> None:
     """Validate a parameter value: a real scalar (no strings or bools, no arrays: vmap over
     values instead); finite and >= 0 when concrete."""
@@ -40,13 +51,15 @@ def _check_value(name: str, v) -> None:
         raise SceneError(f"{name} must be a scalar, got an array of shape {shape}: "
                          "for several values, jax.vmap a function that calls "
                          "sim.params(k=...) per value (or use tuning.sweep).")
-    if not _is_concrete(v):
+    known = _known_value(v)     # under jax.grad the value is known: check it too
+    if known is None:
         return
-    arr = np.asarray(v, dtype=float)
+    arr = np.asarray(known, dtype=float)
+    shown = v if known is v else float(arr)
     if not np.all(np.isfinite(arr)):
-        raise SceneError(f"{name} must be finite, got {v!r}.")
+        raise SceneError(f"{name} must be finite, got {shown!r}.")
     if np.any(arr < 0.0):
-        raise SceneError(f"{name} must be >= 0, got {v!r}: stiffness and damping cannot be "
+        raise SceneError(f"{name} must be >= 0, got {shown!r}: stiffness and damping cannot be "
                          "negative.")
 
 

@@ -321,3 +321,42 @@ def test_contact_pairs_may_be_arrays():
     sim = dp.compile(ball_scene(), 1e-3)
     p = sim.params(contact={"default": np.array([1e4, 20.0])})
     assert float(p.contact["default"].k) == 1e4 and float(p.contact["default"].c) == 20.0
+
+
+def test_bad_params_under_jax_grad_are_refused_as_in_a_plain_rollout(sim):
+    """Regression: sim.params checked values only when concrete, so under jax.grad (whose
+    tracers carry the value) a NaN k raised "cannot convert float NaN to integer" from the
+    stability gate, and a negative k or c ran and returned NaN or a gradient silently. Now
+    the same SceneError as for the plain value."""
+    def loss(k, c):
+        return sim.rollout(sim.params(k=k, c=c), 50, save_every=50).position[-1, 0, 2]
+    for args, argnum, words in (((float("nan"), 20.0), 0, "must be finite, got nan"),
+                                ((1e4, float("inf")), 1, "must be finite, got inf"),
+                                ((-1e4, 20.0), 0, "must be >= 0, got -10000.0"),
+                                ((1e4, -50.0), 1, "must be >= 0, got -50.0")):
+        with pytest.raises(dp.SceneError, match=words):
+            loss(*args)
+        with pytest.raises(dp.SceneError, match=words):
+            jax.grad(loss, argnum)(*args)
+        with pytest.raises(dp.SceneError, match=words):
+            jax.jvp(loss, args, (1.0, 0.0))
+
+
+def test_stability_report_refuses_non_finite_params(sim):
+    """Regression: sim.stability with a NaN k (params edited with _replace) raised
+    "cannot convert float NaN to integer"; now a SceneError that says what to fix."""
+    p = sim.params(k=1e4, c=20.0)
+    mat = next(iter(p.contact))
+    bad = p._replace(contact={**p.contact, mat: p.contact[mat]._replace(k=float("nan"))})
+    with pytest.raises(dp.SceneError, match="NaN, infinite or negative"):
+        sim.stability(bad)
+
+
+def test_traced_stability_flag_marks_nan_and_negative_rows(sim):
+    """Regression: under jit + vmap the rollout's aux["unstable"] flag compared the safe step
+    with NaN (always False) and never saw a negative k: a batch row with k = NaN or -1e4
+    ended NaN and was not flagged, so sweeps and fits counted it as a valid run."""
+    run = jax.jit(jax.vmap(lambda k: sim.rollout(sim.params(k=k, c=20.0), 200,
+                                                 save_every=200).aux["unstable"][-1]))
+    flags = np.asarray(run(jnp.array([1e4, jnp.nan, -1e4, 2e4, 1e9])))
+    assert flags.tolist() == [False, True, True, False, True]

@@ -300,4 +300,16 @@ def unsafe(an: Analysis, params, h=None):
     wc = jnp.sqrt(Kc)
     bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) <= h))
     bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) <= h))
+    # a NaN or negative stiffness, damping or friction reads as no limit above (every
+    # comparison with NaN is False; a negative value never reaches one): flag it too, and a
+    # parameter that is not finite anywhere else (e.g. a plane offset)
+    signed = jax.tree_util.tree_leaves({k: v for k, v in params.extra.items()
+                                        if k != "friction"})
+    nonneg = jax.tree_util.tree_leaves((params.contact, params.springs,
+                                        params.extra.get("friction", {})))
+    for a in signed + nonneg:
+        a = jnp.asarray(a)
+        bad = bad | jnp.any(~jnp.isfinite(a))
+    for a in nonneg:
+        bad = bad | jnp.any(jnp.asarray(a) < 0.0)
     return bad

@@ -91,10 +91,18 @@ def report(sim, params, *, substeps: int | None = None,
     packed-spheres bound (``packed_dt`` is then ``stable_dt``).
     """
     an = _analysis(sim)
-    r = rates(an, params)
+    with np.errstate(invalid="ignore"):      # NaN values are refused just below
+        r = rates(an, params)
     if r is None:
         return None
     K_row, C_row, source, Kc, Cc = r.K_row, r.C_row, r.source, r.Kc, r.Cc
+    for rows in (K_row, C_row, Kc, Cc):
+        rows = np.asarray(rows, dtype=float)
+        if rows.size and not (np.all(np.isfinite(rows)) and np.all(rows >= 0.0)):
+            raise SceneError("the stability analysis got a stiffness, damping or friction "
+                             "value that is NaN, infinite or negative: every contact and "
+                             "spring k and c and every friction mu must be finite and >= 0 "
+                             "(build the params with sim.params(...), which checks them).")
     rec = an.integrator
     K, C = float(np.max(K_row, initial=0.0)), float(np.max(C_row, initial=0.0))
     sdt = stable_dt(rec, K, C)
