@@ -267,3 +267,34 @@ class OverlapIndex:
                     _refuse(f"box {i} at {_fmt(b.position)} and plane {j} (normal "
                             f"{_fmt(col.normal)}, offset {col.offset:.4g} m)", float(d.max()),
                             tol, f"raise it by {d.max():.4g} m along the plane's normal")
+
+
+def check_start_pose(scene, i: int, position, orientation=None) -> None:
+    """Check body ``i`` of ``scene`` at a new start pose (``position`` (3,) m, ``orientation``
+    (4,) unit quaternion or None for the scene's) against the scene's planes and fixed
+    spheres, by the rule of the scene's own check (raises SceneError). Bodies placed with
+    ``allow_overlap`` (or a scene built with it), pinned and non-colliding bodies pass."""
+    import dataclasses
+    body = scene.bodies[i]
+    if (scene.allow_overlap or i in scene._overlap.allowed or body.pinned
+            or not body.collide):
+        return
+    moved = dataclasses.replace(body, position=tuple(float(a) for a in position))
+    if orientation is not None and body.kind == "box":
+        moved = dataclasses.replace(moved, orientation=tuple(float(a) for a in orientation))
+    if body.kind == "box":
+        corners = box_corners(moved)
+        tol = OVERLAP_TOL * min(body.half_extents)
+        for j, pl in enumerate(scene.planes):
+            d = pl.offset - corners @ np.asarray(pl.normal)
+            if _over(d.max(), tol):
+                _refuse(f"box {i} started at {_fmt(moved.position)} (corner "
+                        f"{_fmt(corners[d.argmax()])}) and plane {j} (normal {_fmt(pl.normal)}, "
+                        f"offset {pl.offset:.4g} m)", float(d.max()), tol,
+                        f"raise its start by {d.max():.4g} m along the plane's normal")
+        return
+    x, r = np.asarray(moved.position)[None], np.array([body.radius])
+    for j, pl in enumerate(scene.planes):
+        OverlapIndex._plane(np.asarray(pl.normal), pl.offset, j, x, r, [i], scene, body.kind)
+    for j, fs in enumerate(scene.fixed_spheres):
+        OverlapIndex._fixed(fs, j, x, r, [i], scene, body.kind)

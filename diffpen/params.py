@@ -127,6 +127,9 @@ def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
     for name, default in sim._extra_defaults.items():
         given = out_x.get(name, {})
         if isinstance(default, dict):
+            if not isinstance(given, dict):
+                raise SceneError(f"params extra[{name!r}] must be a dict of group name -> "
+                                 f"value (groups: {sorted(default)}), got {given!r}.")
             unknown = set(given) - set(default)
             if unknown:
                 raise SceneError(f"params extra[{name!r}] names {sorted(unknown)}, not in "

@@ -21,6 +21,35 @@ from .elements import (DEFAULT, AnchoredSpring, Body, Drag, FixedSphere, Materia
 from .errors import SceneError
 from .overlap import OverlapIndex
 
+
+def _flag(name: str, value) -> bool:
+    """A True/False argument: a bool (or numpy bool), not a string or number."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise SceneError(f"{name} must be True or False, got {value!r}.")
+    return bool(value)
+
+
+#: what a refused add_* call could have changed before it was refused (restored on failure)
+_STATE = ("spring_groups", "plastic_groups", "drag_groups", "springs", "plastic_springs",
+          "anchored_springs", "drags")
+
+
+def _all_or_nothing(method):
+    """Run an add_* method so that a refused call (SceneError) leaves the scene as it was:
+    a group it declared before the refusal would make the corrected retry fail."""
+    import functools
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        saved = {name: type(getattr(self, name))(getattr(self, name)) for name in _STATE}
+        try:
+            return method(self, *args, **kwargs)
+        except SceneError:
+            for name, value in saved.items():
+                setattr(self, name, value)
+            raise
+    return run
+
 __all__ = ["Scene", "DEFAULT"]
 
 class Scene:
@@ -41,7 +70,7 @@ class Scene:
                  allow_overlap: bool = False):
         self.gravity = vec3("gravity", gravity)
         #: start bodies overlapped on purpose (no initial-overlap check; see diffpen.overlap)
-        self.allow_overlap = bool(allow_overlap)
+        self.allow_overlap = _flag("allow_overlap", allow_overlap)
         self._overlap = OverlapIndex()
         self.bodies: list[Body] = []
         self.springs: list[Spring] = []
@@ -68,8 +97,8 @@ class Scene:
             raise SceneError("a pinned body cannot have an initial velocity: drop velocity= "
                              "or pinned=True.")
         self._check_material(material)
-        body = Body(kind, mass, radius, position, velocity, bool(pinned), material,
-                    bool(collide))
+        body = Body(kind, mass, radius, position, velocity, _flag("pinned", pinned), material,
+                    _flag("collide", collide))
         if kind != "box":      # boxes are checked with their orientation (_make_rigid)
             self._overlap.check_body(self, body, len(self.bodies),
                                      allow=self._allowed(allow_overlap))
@@ -209,6 +238,7 @@ class Scene:
         self.spring_groups[name] = new
         return name
 
+    @_all_or_nothing
     def add_spring(self, a: int, b, *, k: float | None = None, c: float | None = None,
                    rest_length: float | None = None, group: str = DEFAULT) -> int:
         """Join body ``a`` to body ``b`` (an index) or to a fixed world point (a 3-tuple).
@@ -246,7 +276,8 @@ class Scene:
         else:
             g = self.spring_groups[group]
             for name, given, have in (("k", k, g.k), ("c", c, g.c)):
-                if given is not None and float(given) != have:
+                if given is not None and positive(f"spring {name}", given,
+                                                  allow_zero=True) != have:
                     raise SceneError(
                         f"spring group {group!r} already has {name}={have}; got {name}={given}. "
                         "Stiffness and damping are per group: use another group name.")
@@ -257,6 +288,7 @@ class Scene:
         return len(self.springs) - 1
 
     # ----------------------------------------------------------------- drag
+    @_all_or_nothing
     def add_drag(self, bodies, c: float | None = None, *, group: str = "drag") -> str:
         """Add a velocity drag ``F = -c v`` (v in m/s, world frame) on each of ``bodies``.
 
@@ -282,7 +314,8 @@ class Scene:
                 raise SceneError(f"drag group {group!r} is new: give c= (N s/m).")
             self.drag_groups[group] = positive(f"drag group {group!r} c (N s/m)", c,
                                                 allow_zero=True)
-        elif c is not None and float(c) != self.drag_groups[group]:
+        elif c is not None and positive("drag c (N s/m)", c,
+                                        allow_zero=True) != self.drag_groups[group]:
             raise SceneError(f"drag group {group!r} already has c={self.drag_groups[group]}; "
                              f"got c={c}. Use another group name.")
         have = {(d.body, d.group) for d in self.drags}
@@ -294,6 +327,7 @@ class Scene:
         return group
 
     # ----------------------------------------------------------------- plastic springs
+    @_all_or_nothing
     def add_plastic_spring(self, a: int, b: int, *, k: float | None = None,
                            c: float | None = None, yield_strain: float | None = None,
                            rest_length: float | None = None, group: str = "plastic") -> int:
@@ -319,13 +353,14 @@ class Scene:
             if yield_strain is None:
                 raise SceneError(f"plastic group {group!r} is new: give yield_strain= (a "
                                  "fraction in (0, 1), e.g. 0.05).")
-            ys = float(yield_strain)
+            ys = positive("yield_strain", yield_strain)
             if not (0.0 < ys < 1.0):
                 raise SceneError(f"yield_strain must be in (0, 1) (compression at which the "
                                  f"spring starts to crumple, as a fraction of its rest length), "
                                  f"got {yield_strain!r}.")
             self.plastic_groups[group] = ys
-        elif yield_strain is not None and float(yield_strain) != self.plastic_groups[group]:
+        elif yield_strain is not None and positive(
+                "yield_strain", yield_strain) != self.plastic_groups[group]:
             raise SceneError(f"plastic group {group!r} already has yield_strain="
                              f"{self.plastic_groups[group]}; got {yield_strain}. Use another "
                              "group name.")
@@ -336,7 +371,8 @@ class Scene:
         else:
             g = self.spring_groups[group]
             for name, given, have in (("k", k, g.k), ("c", c, g.c)):
-                if given is not None and float(given) != have:
+                if given is not None and positive(f"spring {name}", given,
+                                                  allow_zero=True) != have:
                     raise SceneError(f"spring group {group!r} already has {name}={have}; got "
                                      f"{name}={given}. Use another group name.")
         if rest_length is None:
@@ -426,6 +462,7 @@ class Scene:
                            collide, allow_overlap)
         return self._make_rigid(i, orientation, angular_velocity, inertia, None)
 
+    @_all_or_nothing
     def add_anchored_spring(self, a: int, b, anchor_a: Sequence[float] = (0.0, 0.0, 0.0),
                             anchor_b: Sequence[float] = (0.0, 0.0, 0.0), *,
                             k: float | None = None, c: float | None = None,
@@ -489,7 +526,7 @@ class Scene:
             return
         g = self.spring_groups[group]
         for name, given, have in (("k", k, g.k), ("c", c, g.c)):
-            if given is not None and float(given) != have:
+            if given is not None and positive(f"spring {name}", given, allow_zero=True) != have:
                 raise SceneError(
                     f"spring group {group!r} already has {name}={have}; got {name}={given}. "
                     "Stiffness and damping are per group: use another group name.")

@@ -26,6 +26,24 @@ def init_state(sim) -> State:
                  orientation=q, angular_velocity=w, aux=aux)
 
 
+def _check_rows(name: str, given, width: int, count: int) -> None:
+    """``given`` must be ``width`` numbers, or ``(count, width)`` of them (one row per body):
+    a SceneError naming the argument otherwise (not a broadcasting error from inside JAX)."""
+    if given is None:
+        return
+    if isinstance(given, jax.core.Tracer):
+        shape = tuple(given.shape)
+    else:
+        try:
+            arr = np.asarray(given, dtype=float)
+        except (TypeError, ValueError):
+            raise SceneError(f"{name} must be numbers, {width} per body, got {given!r}.") from None
+        shape = arr.shape
+    if shape not in ((width,), (count, width)) and not (count == 1 and shape == (1, width)):
+        want = f"({width},)" + (f" or ({count}, {width}), one row per body" if count > 1 else "")
+        raise SceneError(f"{name} must have shape {want}, got shape {shape}.")
+
+
 def state_from(sim, state: State | None = None, *, body=0, position=None, velocity=None,
                orientation=None, angular_velocity=None, frame: str = "body") -> State:
     """``sim.state_from(...)``: see :meth:`diffpen.Simulator.state_from` (arguments, units)."""
@@ -36,6 +54,13 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
             idx >= sim.n_bodies):
         raise SceneError(f"body must be a body index or a list of them in 0.."
                          f"{sim.n_bodies - 1}, got {body!r}.")
+    if len(set(idx.tolist())) != len(idx):
+        raise SceneError(f"body lists a body more than once ({body!r}): give each body once, "
+                         "with its own row of values.")
+    for name, given, width in (("position", position, 3), ("velocity", velocity, 3),
+                               ("orientation", orientation, 4),
+                               ("angular_velocity", angular_velocity, 3)):
+        _check_rows(name, given, width, len(idx))
     if (orientation is not None or angular_velocity is not None) and (
             sim._rigid is None or not all(sim.scene.bodies[i].rigid for i in idx)):
         raise SceneError("orientation and angular_velocity can be set for rigid bodies "
@@ -50,6 +75,15 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
             raise SceneError(f"body {int(idx[moving[0]])} is pinned (fixed in space, it never "
                              "moves): it takes no velocity. Set velocities of free bodies "
                              "only (zero is accepted), or unpin it in the scene.")
+    if position is not None and not isinstance(position, jax.core.Tracer):
+        # a start pose deep inside a plane or fixed sphere: the scene's own overlap rule
+        from .overlap import check_start_pose
+        pos = np.broadcast_to(np.asarray(position, dtype=float), (len(idx), 3))
+        quat = None
+        if orientation is not None and not isinstance(orientation, jax.core.Tracer):
+            quat = np.broadcast_to(np.asarray(orientation, dtype=float), (len(idx), 4))
+        for j, i in enumerate(idx):
+            check_start_pose(sim.scene, int(i), pos[j], None if quat is None else quat[j])
     s = sim.init_state() if state is None else state
 
     def rows(v, width):

@@ -360,3 +360,77 @@ def test_traced_stability_flag_marks_nan_and_negative_rows(sim):
                                                  save_every=200).aux["unstable"][-1]))
     flags = np.asarray(run(jnp.array([1e4, jnp.nan, -1e4, 2e4, 1e9])))
     assert flags.tolist() == [False, True, True, False, True]
+
+
+def test_state_from_checks_shapes_duplicates_and_start_overlaps():
+    """Regression: state_from broadcast whatever it got (raw JAX broadcasting errors for a
+    (2,) position or a (3,) quaternion, 'could not convert string to float' for text),
+    took body=[0, 0] with the last row silently winning, and started a body 0.6 m inside
+    the ground without the scene's overlap check (diffpen evaluate then reported a
+    10801% error)."""
+    s = dp.Scene()
+    b = s.add_box((0.05,) * 3, 0.37, (0.0, 0.0, 0.2))
+    s.add_plane()
+    box = dp.compile(s, 1e-3)
+    for kw, words in ((dict(position=(0, 0)), r"position must have shape \(3,\), got shape "
+                       r"\(2,\)"),
+                      (dict(orientation=(1, 0, 0)), r"orientation must have shape \(4,\)"),
+                      (dict(angular_velocity=(1, 0)), r"angular_velocity must have shape"),
+                      (dict(position="abc"), "position must be numbers, 3 per body"),
+                      (dict(position=[[0, 0, 1], [0, 0, 2]]), r"got shape \(2, 3\)"),
+                      (dict(position=(0, 0, -0.2)), "box 0 started at .* plane 0 .* raise "
+                       "its start by 0.25 m")):
+        with pytest.raises(dp.SceneError, match=words):
+            box.state_from(body=b, **kw)
+    box.state_from(body=b, position=(0.0, 0.0, 0.04))      # resting on a corner: fine
+    ball = dp.compile(ball_scene(), 1e-3)
+    with pytest.raises(dp.SceneError, match="more than once"):
+        ball.state_from(body=[0, 0], position=[[0, 0, 1], [0, 0, 2]])
+    with pytest.raises(dp.SceneError, match="sphere 0 at .* plane 0 .* overlap by 0.6 m"):
+        ball.state_from(position=(0.0, 0.0, -0.5))
+    free = dp.compile(ball_scene(allow_overlap=True), 1e-3)
+    free.state_from(position=(0.0, 0.0, -0.5))              # the scene allows it
+
+
+def test_scene_flags_and_group_values_are_not_coerced():
+    """Regression: pinned="no" and collide="no" became True (a pinned body), Scene(
+    allow_overlap="no") True; a group's k="x" raised a bare ValueError; yield_strain="0.1"
+    was read as 0.1 and [0.1] raised TypeError; sim.params(extra={"plastic": 0.1}) raised
+    TypeError."""
+    s = dp.Scene()
+    with pytest.raises(dp.SceneError, match="pinned must be True or False, got 'no'"):
+        s.add_particle(1.0, (0, 0, 1), pinned="no")
+    with pytest.raises(dp.SceneError, match="collide must be True or False"):
+        s.add_particle(1.0, (0, 0, 1), collide="no")
+    with pytest.raises(dp.SceneError, match="allow_overlap must be True or False"):
+        dp.Scene(allow_overlap="no")
+    a, b = s.add_particle(1.0, (0, 0, 1)), s.add_particle(1.0, (1, 0, 1))
+    s.add_spring(a, b, k=1.0, group="g")
+    with pytest.raises(dp.SceneError, match="spring k must be a number, got 'x'"):
+        s.add_spring(a, b, k="x", group="g")
+    with pytest.raises(dp.SceneError, match="yield_strain must be a number, got '0.1'"):
+        s.add_plastic_spring(a, b, k=1.0, yield_strain="0.1", group="p1")
+    with pytest.raises(dp.SceneError, match="yield_strain must be one number"):
+        s.add_plastic_spring(a, b, k=1.0, yield_strain=[0.1], group="p2")
+    s.add_plastic_spring(a, b, k=1.0, yield_strain=0.1, group="p3")
+    sim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.SceneError, match=r"params extra\['plastic'\] must be a dict"):
+        sim.params(extra={"plastic": 0.1})
+
+
+def test_a_refused_add_call_leaves_the_scene_unchanged():
+    """Regression: a refused add_spring / add_plastic_spring / add_anchored_spring still
+    declared its group, so the corrected retry failed with 'group already has k=...'."""
+    s = dp.Scene()
+    a, b = s.add_particle(1.0, (0, 0, 1)), s.add_particle(1.0, (1, 0, 1))
+    with pytest.raises(dp.SceneError, match="rest_length"):
+        s.add_spring(a, b, k=5.0, group="g", rest_length=-1.0)
+    assert "g" not in s.spring_groups and not s.springs
+    s.add_spring(a, b, k=6.0, group="g", rest_length=1.0)
+    with pytest.raises(dp.SceneError, match="is new: give k="):
+        s.add_plastic_spring(a, b, yield_strain=0.1, group="pl")
+    assert "pl" not in s.plastic_groups
+    with pytest.raises(dp.SceneError, match="rest_length"):
+        s.add_anchored_spring(a, b, k=2.0, group="h", rest_length=-1.0)
+    assert "h" not in s.spring_groups and not s.anchored_springs
+    s.add_anchored_spring(a, b, k=3.0, group="h")

@@ -238,3 +238,29 @@ def test_a_sweep_never_writes_over_its_inputs(capsys, no_compile, tmp_path):
     rc, err = err_of(capsys, ["sweep", "--out", str(tmp_path / "s.npz"), "--plot",
                               str(tmp_path / "s.csv")])
     assert rc == 2 and "must end in one of" in err, err
+
+
+def test_negative_numbers_in_exponent_notation_are_values():
+    """Regression: argparse read -1e-2 as an option, so `diffpen sweep SCENE --param
+    extra.plane_offset.ground -1e-2 1e-2` failed with 'expected 3 arguments' while -0.01
+    worked."""
+    from tuning.cli import build_parser
+    args = build_parser({"sweep"}).parse_args(
+        ["sweep", "s.toml", "--param", "extra.plane_offset.ground", "-1e-2", "1e-2"])
+    assert args.param == [["extra.plane_offset.ground", "-1e-2", "1e-2"]]
+
+
+def test_a_record_starting_inside_the_ground_is_refused_naming_the_file(capsys, tmp_path):
+    """Regression: a record whose first pose is 0.6 m inside the plane started the rollout
+    there (diffpen evaluate exited 0 with a 10801% error); now the scene's overlap rule
+    refuses it, naming the file and the body."""
+    scene = tmp_path / "ball.toml"
+    scene.write_text('dt = 1e-3\nduration = 0.1\n[materials.rubber]\nk = 8000.0\nc = 15.0\n'
+                     '[[spheres]]\nname = "ball"\nradius = 0.1\nmass = 1.0\n'
+                     'position = [0.0, 0.0, 0.6]\nmaterial = "rubber"\n'
+                     '[[planes]]\nmaterial = "rubber"\n')
+    rec = tmp_path / "under.csv"
+    rec.write_text("t,x,y,z\n" + "".join(f"{0.005 * i},0,0,-0.5\n" for i in range(10)))
+    rc, err = err_of(capsys, ["evaluate", str(scene), "--data", str(rec), "--json"])
+    assert rc == 2
+    assert "under.csv, body 'ball', first state" in err and "overlap by 0.6 m" in err

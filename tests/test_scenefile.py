@@ -429,6 +429,16 @@ BAD = [
      r"fit says nothing to fit: add a \[fit.targets\] table, data = \"record.csv\", or "
      r"params"),
     (BALL + FIT.replace("[fit]", '[fit]\ndata = "r.csv"'), r"fit has both \[fit.targets\] and data"),
+    # regression: a typo of a plane's name was told to be an integer
+    (BALL.replace("[[planes]]", '[[planes]]\nname = "ground"') + FIT.replace(
+        "[fit]", '[fit]\nplane = "grnd"'),
+     r"fit\.plane names plane 'grnd', which the scene does not have; named planes: "
+     r"\['ground'\]"),
+    # regression: linear-space bounds let a fit try a negative stiffness or damping
+    (BALL + FIT + '[fit.space]\n"contact.rubber.k" = "linear"\n'
+     '[fit.bounds]\n"contact.rubber.k" = [-1e5, 1e5]\n',
+     r"fit\.bounds\.contact\.rubber\.k has lo = -100000 < 0, but 'contact\.rubber\.k' "
+     r"cannot be negative"),
 ]
 
 

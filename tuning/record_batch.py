@@ -169,8 +169,11 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             if scene.bodies[idx[b]].pinned:      # observed, never moved: no velocities
                 v0 = None if v0 is None else np.zeros(3)
                 w0 = None if w0 is None else np.zeros(3)
-            state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
-                                   orientation=q0, angular_velocity=w0, frame="world")
+            try:
+                state = sim.state_from(state, body=int(idx[b]), position=p0, velocity=v0,
+                                       orientation=q0, angular_velocity=w0, frame="world")
+            except dp.SceneError as exc:            # e.g. a first pose inside the ground
+                raise FitError(f"{rec.path}, body {name!r}, first state: {exc}") from None
         starts.append(state)
     if blind:
         warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "

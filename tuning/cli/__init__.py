@@ -7,6 +7,7 @@ Each subcommand lives in its own module ``tuning.cli.<name>`` defining
 from __future__ import annotations
 
 import argparse
+import re
 import importlib
 import sys
 
@@ -25,6 +26,17 @@ COMMANDS = {
 }
 
 
+#: a negative number in any notation (-2, -0.5, -.5, -1e-2, -2.5E+3)
+_NEGATIVE = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
+
+
+def _negative_numbers(parser: argparse.ArgumentParser) -> None:
+    """Let ``parser`` read ``-1e-2`` as a value, as it reads ``-0.01`` (argparse's own pattern
+    leaves out exponents, so ``--param NAME -1e-2 1e-2`` was refused as a missing value)."""
+    if hasattr(parser, "_negative_number_matcher"):
+        parser._negative_number_matcher = _NEGATIVE
+
+
 def build_parser(available=None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="diffpen", description="Differentiable penalty-contact simulation: tune stiffness "
@@ -40,6 +52,7 @@ def build_parser(available=None) -> argparse.ArgumentParser:
                 continue  # subcommand not installed in this build
             raise
         p = sub.add_parser(name, help=helptext, description=helptext)
+        _negative_numbers(p)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser

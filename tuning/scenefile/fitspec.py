@@ -7,7 +7,7 @@ import numpy as np
 import diffpen as dp
 
 from .. import validate as V
-from .leaves import _default_params, _keystr_paths, leaf_space, param_leaves
+from .leaves import _default_params, _keystr_paths, leaf_space, param_leaves, signed_leaf
 from .record import FitSpec, SceneFile
 from .schema import FIT, TARGETS, _x64
 
@@ -27,6 +27,10 @@ class _FitTable:
             p = fit["plane"]
             if isinstance(p, str) and p in self.plane_names:
                 plane = self.plane_names[p]
+            elif isinstance(p, str):
+                raise (w / "plane").error(
+                    f"names plane {p!r}, which the scene does not have; named planes: "
+                    f"{sorted(self.plane_names) or 'none'} (or give a plane index).")
             else:
                 plane = V.integer(w / "plane", p, low=0)
                 if plane >= len(self.scene.planes):
@@ -170,6 +174,10 @@ class _FitTable:
             if space.get(q) == "log" and lo <= 0.0:
                 raise wp.error(f"has lo = {lo:g} <= 0 for a leaf fitted in log space; give lo "
                                "> 0, or set [fit.space] to \"linear\" for it.")
+            if lo < 0.0 and not signed_leaf(q):
+                raise wp.error(f"has lo = {lo:g} < 0, but {q!r} cannot be negative (a "
+                               "stiffness, damping, friction, slip speed, drag or yield "
+                               "strain); give lo >= 0.")
             if not lo <= v <= hi:
                 raise wp.error(f"[{lo:g}, {hi:g}] does not contain the start value {v:g} from "
                                "the scene; widen the bounds or change the start value.")

@@ -26,13 +26,19 @@ def _keystr_paths(params) -> dict:
 SIGNED = ("offset",)
 
 
-def leaf_space(path: str, value) -> str:
-    """``"linear"`` for signed leaves (a path with a part naming an offset, or a value <= 0),
-    ``"log"`` for the positive ones (stiffness, damping, friction, slip speed, drag, yield
-    strain)."""
+def signed_leaf(path: str) -> bool:
+    """Whether leaf ``path`` may take negative values (a part naming an offset: a plane
+    offset); the others (stiffness, damping, friction, slip speed, drag, yield strain) are
+    >= 0."""
     parts = path.split(".")
     kind = parts[1] if parts[0] == "extra" and len(parts) > 1 else parts[-1]
-    if any(s in kind for s in SIGNED):
+    return any(s in kind for s in SIGNED)
+
+
+def leaf_space(path: str, value) -> str:
+    """``"linear"`` for signed leaves (:func:`signed_leaf`, or a value <= 0), ``"log"`` for
+    the positive ones (stiffness, damping, friction, slip speed, drag, yield strain)."""
+    if signed_leaf(path):
         return "linear"
     try:
         v = float(np.asarray(value))
