@@ -14,8 +14,9 @@ SMALL_LOOP_BYTES = 1_000_000
 
 def _configure_xla_cpu() -> None:
     """XLA CPU options for this process, applied through ``XLA_FLAGS`` before JAX starts its
-    CPU backend (no effect if it already has); ``DIFFPEN_KEEP_XLA_FLAGS=1`` keeps the flags
-    as they are.
+    CPU backend; ``DIFFPEN_KEEP_XLA_FLAGS=1`` keeps the flags as they are. If JAX's backend
+    already started (some JAX computation ran before ``import diffpen``), XLA has read its
+    flags: a :class:`diffpen.PerformanceWarning` says so (import diffpen first).
 
     * A rollout's loop is compiled into a single kernel when its carry and body touch at most
       :data:`SMALL_LOOP_BYTES` (``xla_cpu_small_while_loop_byte_threshold``, a backend extra
@@ -24,8 +25,9 @@ def _configure_xla_cpu() -> None:
       synchronisation every step). Measured on 1024 batched balls x 2000 steps in the
       columns layout: 4.4 ms instead of 10.3 ms forward, 0.022 s instead of 0.032 s for the
       gradient; larger loops (65536 balls) keep XLA's per-fusion threading; batch 1, the
-      spring networks and the spheres are unchanged. Skipped when ``XLA_FLAGS`` already sets
-      ``xla_backend_extra_options``.
+      spring networks and the spheres are unchanged. Added to the caller's own
+      ``xla_backend_extra_options`` when ``XLA_FLAGS`` has some (left out when they set the
+      threshold themselves).
     * jaxlib 0.10.x: XLA CPU's experimental YNN fusions are turned off. They made a batched
       rollout 140x slower from batch ~4096 on (2.2 s instead of 16 ms for 4096 balls x 2000
       steps, measured) and change nothing measurable elsewhere. Skipped when ``XLA_FLAGS``
@@ -33,18 +35,47 @@ def _configure_xla_cpu() -> None:
     """
     if _os.environ.get("DIFFPEN_KEEP_XLA_FLAGS") == "1":
         return
-    flags = _os.environ.get("XLA_FLAGS", "")
-    if "xla_backend_extra_options" not in flags:
-        flags += (" --xla_backend_extra_options="
-                  f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}")
+    before = _os.environ.get("XLA_FLAGS", "")
+    option = f"xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
+    tokens = before.split()
+    extra = [i for i, t in enumerate(tokens) if t.startswith("--xla_backend_extra_options=")]
+    if not extra:
+        tokens.append("--xla_backend_extra_options=" + option)
+    elif "xla_cpu_small_while_loop_byte_threshold" not in before:
+        i = extra[-1]                       # XLA reads the last one: add ours to it
+        value = tokens[i].split("=", 1)[1]
+        tokens[i] = "--xla_backend_extra_options=" + (f"{value},{option}" if value else option)
     try:
         import jaxlib
         version = tuple(int(v) for v in jaxlib.__version__.split(".")[:2])
     except Exception:
         version = None
-    if version == (0, 10) and "xla_cpu_experimental_ynn_fusion_type" not in flags:
-        flags += " --xla_cpu_experimental_ynn_fusion_type="
-    _os.environ["XLA_FLAGS"] = flags.strip()
+    if version == (0, 10) and "xla_cpu_experimental_ynn_fusion_type" not in before:
+        tokens.append("--xla_cpu_experimental_ynn_fusion_type=")
+    flags = " ".join(tokens)
+    if flags != before.strip() and _backend_started():
+        import warnings
+        from .errors import PerformanceWarning
+        warnings.warn("JAX's backend started before `import diffpen` (some JAX computation "
+                      "ran first), so XLA has read its flags and diffpen's XLA CPU options "
+                      "(rollout loops compiled into one kernel; jaxlib 0.10: YNN fusions "
+                      "off) do not apply in this process: batched rollouts run up to ~3x "
+                      "slower (results are the same). Import diffpen before any JAX "
+                      f"computation, or start Python with XLA_FLAGS='{flags}'.",
+                      PerformanceWarning, stacklevel=3)
+    _os.environ["XLA_FLAGS"] = flags
+
+
+def _backend_started() -> bool:
+    """Whether JAX (if imported) has initialised a backend, i.e. read ``XLA_FLAGS``."""
+    import sys
+    if "jax" not in sys.modules:
+        return False
+    try:
+        from jax._src import xla_bridge
+        return bool(getattr(xla_bridge, "_backends", None))
+    except Exception:
+        return False
 
 
 _configure_xla_cpu()

@@ -129,7 +129,31 @@ def test_xla_flags_set_at_import_respect_the_callers(tmp_path):
     mine = flags()
     assert (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
             f"{dp.SMALL_LOOP_BYTES}") in mine
+    # the caller's own backend options are kept, ours added to them (they were dropped)
     theirs = flags(XLA_FLAGS="--xla_backend_extra_options=foo=1")
-    assert "--xla_backend_extra_options=foo=1" in theirs and "small_while" not in theirs
+    assert (f"--xla_backend_extra_options=foo=1,xla_cpu_small_while_loop_byte_threshold="
+            f"{dp.SMALL_LOOP_BYTES}") in theirs.split()
+    own = flags(XLA_FLAGS="--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5")
+    assert "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=5" in own.split()
+    assert str(dp.SMALL_LOOP_BYTES) not in own
     assert flags(XLA_FLAGS="--xla_dump_hlo_pass_re=x", DIFFPEN_KEEP_XLA_FLAGS="1") == \
         "--xla_dump_hlo_pass_re=x"
+
+
+def test_importing_diffpen_after_jax_started_warns():
+    """Regression: after any JAX computation the backend has read XLA_FLAGS, so the options
+    diffpen sets at import (one-kernel rollout loops) silently did not apply (a batch of 4096
+    balls ran 2.9x slower, XLA_FLAGS still showing them). Now a PerformanceWarning says to
+    import diffpen first; importing it first warns nothing."""
+    import os
+    import subprocess
+    import sys
+    base = {k: v for k, v in os.environ.items()
+            if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
+
+    def run(code):
+        return subprocess.run([sys.executable, "-W", "always", "-c", code], env=base,
+                              capture_output=True, text=True, check=True).stderr
+    late = run("import jax.numpy as jnp; jnp.ones(3).block_until_ready(); import diffpen")
+    assert "PerformanceWarning" in late and "Import diffpen before any JAX" in late
+    assert "PerformanceWarning" not in run("import diffpen, jax.numpy as jnp; jnp.ones(3)")

@@ -69,7 +69,8 @@ def scatter(values, idx: np.ndarray, n: int):
     per column for :class:`diffpen.layout.Columns`.
 
     Small ones (:data:`SCATTER_PAIRS`, :data:`SCATTER_ROUNDS`) are sums of static row picks
-    in pair order (the same additions as the segment sum, so the same values): XLA CPU
+    in pair order (the same additions as the segment sum, so the same values for one force
+    evaluation; whole rollouts may differ by rounding where XLA fuses around them): XLA CPU
     compiles a rollout loop into one kernel only when its body has no scatter
     (``diffpen.SMALL_LOOP_BYTES``)."""
     if idx.shape[0] == n and np.array_equal(idx, np.arange(n)):
