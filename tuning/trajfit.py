@@ -145,9 +145,11 @@ class TrajFitResult:
     """Outcome of :func:`fit_records`.
 
     params: fitted :class:`diffpen.Params`.  values: ``{name: value}`` of the fitted leaves.
-    stderr: ``{name: standard error}`` (Gauss-Newton ``s^2 (J^T J)^-1``; the residuals of
-      one record are correlated in time, so these are lower bounds; inf for a parameter
-      the records do not depend on).
+    stderr: ``{name: standard error}``: the larger of Gauss-Newton's ``s^2 (J^T J)^-1`` and
+      the records-as-clusters sandwich (:func:`_record_sandwich`, which takes in what the
+      residuals of one record share: the noise of its first frame, correlated frames; with
+      few records it is itself uncertain); inf for a parameter the records do not depend
+      on.
     correlation: (p, p) parameter correlation matrix (rows/columns in ``names`` order; NaN
       in the rows of parameters the records do not depend on).
     undetermined: directions of the fitted (log/linear) parameters the records leave
@@ -387,7 +389,17 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     s2 = cost / max(m - p, 1)
     blind = np.diag(JtJ) <= 0.0             # the records do not depend on these at all
     with np.errstate(divide="ignore", invalid="ignore"):
-        cov = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale) * s2
+        inv = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale)
+        cov = inv * s2
+        robust = _record_sandwich(inv, J, r, _record_rows(batches, loss,
+                                                            sim.scene.has_rotation, len(r)))
+        if robust is not None:
+            # the larger of the two per parameter: the classical one treats every residual
+            # as independent noise; the sandwich takes in what a record's residuals share
+            # (its start state's noise, correlated frames), with few records noisily
+            var = np.maximum(np.diag(cov), np.diag(robust))
+            keep = np.sqrt(np.maximum(var, 0.0) / np.maximum(np.diag(cov), 1e-300))
+            cov = cov * np.outer(keep, keep)
         se_x = np.where(blind, np.inf, np.sqrt(np.maximum(np.diag(cov), 0.0)))
         corr = np.where(np.outer(blind, blind) | np.outer(blind, ~blind)
                         | np.outer(~blind, blind), np.nan, cov / np.outer(se_x, se_x))
@@ -402,6 +414,38 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged)
+
+
+def _record_rows(batches, loss: str, rotating: bool, n: int):
+    """The record (0 .. R-1 over all batches) of each residual row, in the order of
+    :func:`tuning.pose.pose_residuals` (per batch: positions (R, T, B, 3, or 1 for the l1
+    loss), then rotations the same way where the scene rotates and the batch has
+    orientations); None if that does not add up to ``n`` rows."""
+    per = 1 if loss == "l1" else 3
+    ids, first = [], 0
+    for b in batches:
+        R, T, B = b.pos.shape[:3]
+        block = np.repeat(np.arange(first, first + R), T * B * per)
+        ids += [block, block] if (rotating and b.has_rotation) else [block]
+        first += R
+    ids = np.concatenate(ids) if ids else np.zeros(0, int)
+    return ids if len(ids) == n else None
+
+
+def _record_sandwich(inv, J, r, rows):
+    """Records-as-clusters covariance ``inv B inv * R / (R - 1)`` (``inv`` = (J^T J)^-1,
+    ``B`` = sum over records of ``g g^T``, ``g = J_r^T r_r`` the record's score): what the
+    fitted values would scatter by if the records were measured again, whatever the errors
+    within one record share (the noise of its first frame, which fixes its start state;
+    correlated frames). None with fewer than two records."""
+    if rows is None:
+        return None
+    R = int(rows.max()) + 1 if rows.size else 0
+    if R < 2:
+        return None
+    g = np.zeros((R, J.shape[1]))
+    np.add.at(g, rows, J * np.asarray(r)[:, None])
+    return inv @ (g.T @ g) @ inv * (R / (R - 1.0))
 
 
 def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
