@@ -264,3 +264,21 @@ def test_a_record_starting_inside_the_ground_is_refused_naming_the_file(capsys, 
     rc, err = err_of(capsys, ["evaluate", str(scene), "--data", str(rec), "--json"])
     assert rc == 2
     assert "under.csv, body 'ball', first state" in err and "overlap by 0.6 m" in err
+
+
+def test_terminal_bar_ends_on_the_last_update_and_keeps_its_label_whole():
+    """Regression: on a terminal, updates within 50 ms of the last drawn one were skipped and
+    close() drew nothing, so a fit's bar stayed at e.g. 222/300 after 300 iterations; and
+    the label was split around the bar ("diffpen [###...] fit 222/300")."""
+    from tuning.progress import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    out = Tty()
+    bar = Progress(300, "diffpen fit", None, stream=out)
+    for i in range(1, 301):
+        bar.update(i, 1.0 / i)
+    bar.close()
+    last = out.getvalue().rstrip("\n").split("\r")[-1]
+    assert last.startswith("diffpen fit [########################] 300/300")

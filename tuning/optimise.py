@@ -186,7 +186,7 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         history.append(loss)
         costs.append(loss)
         if progress is not None:
-            progress.update(it, loss)
+            progress.update(it + 1, loss)      # iterations done, 1..maxiter
         if status == REACHED:
             converged, message, iterations = True, MESSAGES[REACHED], it
             break

@@ -39,12 +39,14 @@ class Progress:
         self._t0 = time.perf_counter()
         self._last = self._t0 if not self.tty else 0.0
         self._drawn = False
+        self._pending = None            # the last update not drawn (throttled)
 
     @property
     def stream(self):
         return self._stream if self._stream is not None else sys.stderr
 
-    def _text(self, i: int, value) -> str:
+    def _text(self, i: int, value):
+        """``(count, frac)``: ``"i/total"`` plus the value, and the fraction done."""
         frac = min(i, self.total) / max(self.total, 1)
         if value is None:
             tail = ""
@@ -52,15 +54,16 @@ class Progress:
             tail = f" {100.0 * float(value):.1f}% done"
         else:
             tail = f" {self.value} {float(value):.3e}"
-        return f"{self.label} {i}/{self.total}{tail}", frac
+        return f"{i}/{self.total}{tail}", frac
 
     def update(self, i: int, value=None, force: bool = False) -> None:
         """Report that ``i`` of ``total`` units are done (``value``: the current loss, or
         the fraction done for ``value="done"``)."""
         if not self.enabled:
             return
+        self._pending = (i, value)
         now = time.perf_counter()
-        text, frac = self._text(i, value)
+        count, frac = self._text(i, value)
         if self.tty:
             if not force and now - self._last < 0.05:
                 return
@@ -68,17 +71,24 @@ class Progress:
             width = 24
             done = int(width * frac)
             bar = "#" * done + "." * (width - done)
-            head, _, rest = text.partition(" ")
-            self.stream.write(f"\r{head} [{bar}] {rest}")
+            self.stream.write(f"\r{self.label} [{bar}] {count}")
             self._drawn = True
+            self._pending = None
         else:
             if not force and now - self._last < self.every:
                 return
             self._last = now
-            self.stream.write(f"{text} ({now - self._t0:.0f} s)\n")
+            self.stream.write(f"{self.label} {count} ({now - self._t0:.0f} s)\n")
+            self._pending = None
         self.stream.flush()
 
     def close(self) -> None:
-        if self.enabled and self.tty and self._drawn:
-            self.stream.write("\n")
-            self.stream.flush()
+        """End the bar: on a terminal, draw the last update if it was skipped (updates
+        closer than 50 ms apart are), then end the line."""
+        if self.enabled and self.tty:
+            pending = self._pending
+            if pending is not None:
+                self.update(*pending, force=True)
+            if self._drawn:
+                self.stream.write("\n")
+                self.stream.flush()
