@@ -91,6 +91,8 @@ def test_ratios_are_those_of_the_workloads_they_name(known_case):
     for key, value in expect.items():
         assert row[key] == pytest.approx(value, rel=1e-9), key
     assert row["steps"] == 10 and row["batch"] == 100 and row["grad_mode"] == "forward"
+    # regression: a --quick row (batch <= 256, fewer steps) kept only the full case's name
+    assert row["quick"] is False and bench.run_case("known", repeats=1, quick=True)["quick"]
 
 
 def test_interleaved_times_are_medians_of_turns(clock):
@@ -168,6 +170,13 @@ def test_floor_and_numpy_baselines_compute_the_same_physics():
     a = net["args"]
     np.testing.assert_allclose(net["floor"](*a), net["forward"](*a), rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(net["numpy"](), net["floor"](*a), rtol=1e-9, atol=1e-12)
+
+
+def test_numpy_network_baseline_runs_in_the_cases_dtype():
+    """Regression: the spring networks' NumPy baseline summed forces with np.bincount
+    (float64) and kept float64 rest lengths, so a float32 case timed float64 NumPy."""
+    net = bench.CASES["chain"].build(jnp.float32, True)
+    assert net["numpy"]().dtype == np.float32
 
 
 def test_plain_floor_is_batch_vectorisable_and_matches_its_scalar_runs():

@@ -1,5 +1,7 @@
 """Open-loop evaluation against records (tuning.evaluate, diffpen evaluate)."""
 import json
+import os
+import shutil
 
 import jax.numpy as jnp
 import numpy as np
@@ -115,6 +117,17 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
     # bad input: a clear error, exit status 2
     assert main(["evaluate", scene, "--data", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
+    # regression: two records with the same file name in different folders wrote one plot
+    # (the second over the first) while "plots" listed the same path twice
+    same = []
+    for i, sub in enumerate(("a", "b")):
+        os.makedirs(tmp_path / sub, exist_ok=True)
+        same.append(str(tmp_path / sub / "toss.csv"))
+        shutil.copy(paths[i], same[-1])
+    plots = tmp_path / "same"
+    assert main(["evaluate", scene, "--data", *same, "--json", "--plot", str(plots)]) == 0
+    listed = json.loads(capsys.readouterr().out)["plots"]
+    assert len(set(listed)) == 2 and all(os.path.exists(p) for p in listed)
 
 
 TWO = """

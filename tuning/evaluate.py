@@ -229,8 +229,11 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
                 "bodies": bodies})
     if plot is not None:
         paths = []
-        for r in range(min(n_plot, len(records))):
-            name = os.path.splitext(os.path.basename(records[r].path))[0]
+        shown = range(min(n_plot, len(records)))
+        names = [os.path.splitext(os.path.basename(records[r].path))[0] for r in shown]
+        for r, name in zip(shown, names):
+            if names.count(name) > 1:      # same file name in two folders: one plot each
+                name = f"{r:03d}_{name}"
             paths.append(plot_records(os.path.join(plot, f"{name}.png"), batch, ev, [r]))
         out["plots"] = paths
     return out

@@ -102,9 +102,13 @@ def _qmul_j(a, b):
 
 # --------------------------------------------------------------------------- loss
 def rotation_angle(q_sim, q_data):
-    """Angle (rad) of ``q_sim^-1 q_data`` for unit quaternions (..., 4)."""
-    d = jnp.abs(jnp.sum(q_sim * q_data, axis=-1))
-    return 2.0 * jnp.arccos(jnp.clip(d, 0.0, 1.0))
+    """Angle (rad) of ``q_sim^-1 q_data`` for unit quaternions (..., 4):
+    ``2 atan2(|v|, |w|)`` of the relative quaternion ``(w, v)``, accurate near 0 (the
+    arccos of the dot product read identical float32 orientations as 0.009 deg apart on
+    average, up to 0.056 deg)."""
+    q_sim, q_data = jnp.asarray(q_sim), jnp.asarray(q_data)
+    dq = _qmul_j(q_sim * jnp.array([1.0, -1.0, -1.0, -1.0], q_sim.dtype), q_data)
+    return 2.0 * jnp.arctan2(jnp.linalg.norm(dq[..., 1:], axis=-1), jnp.abs(dq[..., 0]))
 
 
 def _norm_residual(e, eps: float = 1e-3):

@@ -68,6 +68,9 @@ def run(args) -> int:
         print(json.dumps(rows, indent=1))
     else:
         print(_table(rows))
+        if args.quick:
+            print("\n--quick: CI-sized runs (batch <= 256, fewer steps; the batch and steps "
+                  "columns say what ran), not the full-size figures the case names stand for.")
         print("\nvs_floor: forward time / minimal hand-written lax.scan (hard contact; for the "
               "ball, scalar z and v per ball); "
               "vs_numpy: forward time / vectorised NumPy (< 1 is faster); steps_per_s counts "

@@ -15,7 +15,8 @@ def add_arguments(p) -> None:
                    help="records to evaluate on (default: the scene file's [fit] data)")
     add_start_state_arguments(p)
     p.add_argument("--plot", metavar="DIR", help="draw simulated against measured "
-                   "trajectories of the first records into DIR (needs matplotlib)")
+                   "trajectories of the first 4 records into DIR, one PNG each (needs "
+                   "matplotlib)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 

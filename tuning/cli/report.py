@@ -225,7 +225,10 @@ def _gradients(args) -> int:
     spec = BallSpec(k=args.k, c=args.c, mass=args.mass, radius=args.radius,
                     height=args.height, T=2.0)
     kw = dict(dts=(1e-3,), widths=(0.0, 1e-3)) if args.quick else {}
-    rows = gradient_report(spec=spec, **kw)
+    try:
+        rows = gradient_report(spec=spec, **kw)
+    except ValueError as exc:
+        return fail("report", str(exc))
     from tuning.reports.gradient_check import EVENT_CASES, event_gradient_rows, event_gradient_table
     ev_dts = (1e-3,) if args.quick else (1e-3, 1e-4)
     events = event_gradient_rows(EVENT_CASES, ev_dts)

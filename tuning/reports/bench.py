@@ -169,6 +169,7 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
         inv_m = np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None].astype(npdt)
         grav = (np.asarray(scene.gravity) * (~sim.pinned)[:, None]).astype(npdt)
         x0, v0 = np.asarray(state.position, npdt), np.asarray(state.velocity, npdt)
+        rest_n = np.asarray(rest, npdt)
         n = sim.n_bodies
 
         def numpy_final():
@@ -178,9 +179,10 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
                 dv = v[ia] - v[ib]
                 length = np.sqrt(np.sum(dx * dx, -1))
                 u = dx / length[:, None]
-                f = (-kn * (length - rest) - cn * np.sum(u * dv, -1))[:, None] * u
+                f = (-kn * (length - rest_n) - cn * np.sum(u * dv, -1))[:, None] * u
+                # np.bincount sums in float64: back to the case's dtype
                 force = np.stack([np.bincount(ia, f[:, j], n) - np.bincount(ib, f[:, j], n)
-                                  for j in range(3)], -1)
+                                  for j in range(3)], -1).astype(npdt)
                 v = v + dt * ((force - drag_np * v) * inv_m + grav)
                 x = x + dt * v
             return x
@@ -335,7 +337,10 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     # reverse mode is shown for comparison only: one timed run when a forward takes > 0.2 s
     grad_rev = median_time(spec["grad_reverse"], *args,
                            repeats=1 if fwd > 0.2 else max(1, repeats // 2))
-    out = dict(case=name, dtype=np.dtype(dtype).name, batch=spec["batch"], steps=spec["steps"],
+    # quick: a CI-sized run of the case (batch <= 256, fewer steps): the row says so, so that
+    # nothing reading the JSON by case name takes it for the full-size figures
+    out = dict(case=name, quick=bool(quick), dtype=np.dtype(dtype).name, batch=spec["batch"],
+               steps=spec["steps"],
                compile_s=compile_s, forward_s=fwd, steps_per_s=spec["work"] / fwd,
                grad_s=grad, grad_over_forward=grad / fwd, grad_mode=spec["grad_mode"],
                grad_reverse_s=grad_rev, reverse_over_forward=grad_rev / fwd,

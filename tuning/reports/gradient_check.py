@@ -75,6 +75,11 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
 
     def ref_quantities(k, c):
         ref = ball_reference(k=k, c=c, m=spec.mass, r=spec.radius, z0=spec.height, T=T)
+        if len(ref.contacts) < 2:
+            raise ValueError(f"the ball (k {k:g} N/m, c {c:g} N s/m, {spec.mass:g} kg, "
+                             f"dropped from {spec.height:g} m) does not land twice within "
+                             f"{T:g} s, which the report's first-apex and z_T quantities "
+                             "need: lower the drop height or the damping c")
         (_, t1), t2 = ref.contacts[0], ref.contacts[1][0]
         z, v = ref.state([T])
         return ref.apexes[0], float(z[0]), 0.5 * (t1 + t2)
