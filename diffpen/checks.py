@@ -83,9 +83,13 @@ def _int(name: str, v) -> int:
 
 
 def _estimate(sim, steps: int, save_every: int, observe) -> tuple[float, float]:
-    """(bytes of the saved trajectory, seconds at STEP_RATE)."""
+    """(bytes the saved trajectory needs at its peak, seconds at STEP_RATE). A rollout in
+    the columns layout turns its saved positions and velocities into rows once, after the
+    loop (diffpen.rollout): both copies exist for a moment."""
     n = int(sim.n_bodies)
     per_body = 6 + (7 if getattr(sim.scene, "has_rotation", False) else 0)
+    if getattr(sim, "columns", False):
+        per_body += 6
     itemsize = np.dtype(sim.dtype).itemsize
     saved = steps // save_every
     stored = 0.0 if observe is not None else float(saved) * n * per_body * itemsize

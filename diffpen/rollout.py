@@ -31,9 +31,12 @@ def rollout(step: Callable, params, state: State, *, steps: int, save_every: int
       unroll: ``lax.scan`` unroll factor (speed only).
       observe: ``observe(state) -> pytree`` saved instead of whole states.
       dtype: float dtype of ``Trajectory.time`` (default: that of ``state.time``).
-      view: ``view(state) -> state`` applied to each state before it is saved or observed
-        (the simulator's conversion from its stepping layout to the users' one,
-        :mod:`diffpen.layout`); None: states are saved as stepped.
+      view: ``view(state) -> state``, the simulator's conversion from its stepping layout to
+        the users' one (:mod:`diffpen.layout`), applied to each state before ``observe``
+        sees it, and to the whole saved trajectory at once after the loop (one transpose
+        instead of interleaving every saved state's columns inside it: the natural
+        ``sim.rollout(...).position[-1]`` under vmap of 1024 balls 4.6x the plain floor
+        instead of 6.9x); None: states are saved as stepped.
     Returns:
       :class:`Trajectory` with ``steps // save_every`` saved states.
     """
@@ -44,9 +47,11 @@ def rollout(step: Callable, params, state: State, *, steps: int, save_every: int
     n_saves = steps // save_every
 
     def record(s):
+        if observe is None:
+            return s                      # viewed once, after the loop (below)
         if view is not None:
             s = view(s)
-        return s if observe is None else (observe(s), s.aux)
+        return observe(s), s.aux
 
     def inner(s, _):
         return step(params, s), None
@@ -89,5 +94,9 @@ def rollout(step: Callable, params, state: State, *, steps: int, save_every: int
     if observe is not None:
         observed, aux = saved
         return Trajectory(t, None, None, None, None, aux, observed)
+    if view is not None:
+        # the whole trajectory at once: one transpose after the loop instead of interleaving
+        # every saved state's columns into rows inside it
+        saved = view(saved)
     return Trajectory(t, saved.position, saved.velocity, saved.orientation,
                       saved.angular_velocity, saved.aux)
