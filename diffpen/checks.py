@@ -422,3 +422,54 @@ def _check_state(sim, state) -> None:
             np.isfinite(np.asarray(t))):
         raise SceneError(f"the start state's time is {np.asarray(t).tolist()}: give a finite "
                          "time in s (sim.init_state() starts at 0).")
+
+
+#: how much coarser than at the scene's own scale (1 m or its largest body) the dtype's
+#: resolution at the scene's farthest coordinate may be before it counts as far out
+FAR_COARSER = 16.0
+
+
+def check_coordinates(scene, dtype) -> None:
+    """Refuse a scene placed so far from the origin that ``dtype`` cannot resolve its motion
+    there: the spacing of representable numbers at its farthest coordinate (body positions,
+    plane offsets, fixed spheres) above 1e-4 of its smallest body or 1% of the static
+    deflection ``m g / k`` of its declared contact materials, where that is more than
+    :data:`FAR_COARSER` times the spacing at the scene's own scale. There a step's
+    displacement ``|v| dt`` rounds away (float32: a box sliding at x = 1e4 m never moved while
+    friction stopped its velocity; a ball resting on a plane at z = 1e4 m froze, reading
+    -0.3 m/s). Raises SceneError: move the scene near the origin, or use float64."""
+    bodies = scene.bodies
+    if not bodies:
+        return
+    pos = np.abs(np.array([b.position for b in bodies], dtype=float))
+    far = float(pos.max())
+    for pl in scene.planes:
+        far = max(far, abs(float(pl.offset)))
+    for fs in scene.fixed_spheres:
+        far = max(far, float(np.max(np.abs(fs.center))) + float(fs.radius))
+    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in bodies]
+    sizes = [s for s in sizes if s > 0.0]
+    scale = max([1.0] + sizes)
+    dt = np.dtype(dtype).type
+    res_far = float(np.spacing(dt(far)))
+    if not np.isfinite(far) or res_far <= FAR_COARSER * float(np.spacing(dt(scale))):
+        return
+    limits = []
+    if sizes:
+        limits.append((1e-4 * min(sizes), f"1e-4 of its smallest body ({min(sizes):.3g} m)"))
+    g = float(np.linalg.norm(scene.gravity))
+    ks = [m.k for m in scene.materials.values() if m.k]
+    free = [b.mass for b in bodies if not b.pinned]
+    if g > 0.0 and ks and free:
+        depth = min(free) * g / max(ks)
+        limits.append((0.01 * depth, f"1% of a body's resting depth m g / k ({depth:.3g} m)"))
+    if not limits:
+        return
+    limit, what = min(limits)
+    if res_far > limit:
+        raise SceneError(
+            f"the scene reaches {far:.4g} m from the origin, where {np.dtype(dtype).name} "
+            f"resolves positions only to {res_far:.2g} m, more than {what}: a step's "
+            "displacement |v| dt would round away there (bodies freeze while their velocity "
+            "changes). Move the scene near the origin (only positions relative to each other "
+            "and to the planes matter), or compile with dtype=float64.")

@@ -164,6 +164,7 @@ class Simulator:
             raise SceneError("dtype float64 needs jax.config.update('jax_enable_x64', True) "
                              "before compiling.")
 
+        _checks.check_coordinates(scene, self.dtype)
         bodies = scene.bodies
         self.n_bodies = len(bodies)
         self.mass = np.array([b.mass for b in bodies])

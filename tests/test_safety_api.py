@@ -434,3 +434,29 @@ def test_a_refused_add_call_leaves_the_scene_unchanged():
         s.add_anchored_spring(a, b, k=2.0, group="h", rest_length=-1.0)
     assert "h" not in s.spring_groups and not s.anchored_springs
     s.add_anchored_spring(a, b, k=3.0, group="h")
+
+
+def test_a_scene_far_from_the_origin_is_refused_where_the_dtype_cannot_resolve_it():
+    """Regression: in float32 a ball resting on a plane at z = 1e4 m froze (one distinct
+    height in 20000 steps, reading vz = -0.3 m/s) and a box sliding at x = 1e4 m never moved
+    while friction stopped it, with no error: a step's displacement rounds away there. Now
+    compile refuses it and says to move the scene or use float64; near the origin, at 100 m,
+    and in float64 it compiles."""
+    def scene(z):
+        s = dp.Scene()
+        s.add_material("m", k=1e4, c=20.0)
+        s.add_plane(offset=z, material="m")
+        s.add_sphere(0.1, 1.0, (0.0, 0.0, z + 0.099), material="m")
+        return s
+    with pytest.raises(dp.SceneError, match="1e\\+04 m from the origin.*float32.*dtype=float64"):
+        dp.compile(scene(1e4), 1e-3, dtype=jnp.float32)
+    box = dp.Scene()
+    box.add_material("rough", k=1e4, c=20.0, friction=0.4)
+    box.add_plane(material="rough")
+    box.add_box((0.05,) * 3, 1.0, (1e4, 0.0, 0.0495), velocity=(2.0, 0.0, 0.0),
+                material="rough")
+    with pytest.raises(dp.SceneError, match="from the origin"):
+        dp.compile(box, 1e-3, dtype=jnp.float32)
+    for z in (0.0, 100.0):
+        dp.compile(scene(z), 1e-3, dtype=jnp.float32)
+    dp.compile(scene(1e4), 1e-3, dtype=jnp.float64)
