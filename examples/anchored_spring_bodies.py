@@ -52,7 +52,7 @@ def build():
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/anchored_spring_bodies.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/anchored_spring_bodies.png",
                         gif_help="also write an animated GIF next to --out")
     args = ap.parse_args(argv)
 

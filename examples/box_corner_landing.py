@@ -44,7 +44,7 @@ def build():
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/box_corner_landing.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/box_corner_landing.png",
                         gif_help="also write an animated GIF next to --out")
     ap.add_argument("--implicit", action="store_true",
                     help="implicit_euler at dt = 5 ms (past the explicit limit)")

@@ -34,7 +34,7 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/cloth_drape.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/cloth_drape.png",
                         quick_help="coarser cloth, shorter run")
     args = ap.parse_args(argv)
 

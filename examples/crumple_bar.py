@@ -32,7 +32,7 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/crumple_bar.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/crumple_bar.png",
                         quick_help="coarser bar, shorter run")
     args = ap.parse_args(argv)
 

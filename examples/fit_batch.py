@@ -29,7 +29,7 @@ DT, DURATION = 2e-3, 1.0                      # time step and rollout, s
 
 
 def main(argv=None):
-    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
+    argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split())).parse_args(argv)
     scene = scenes.ball().scene
     targets = [{"apex_heights": [a]} for a in APEXES]
     # closed-form start per row (the checks refuse infeasible targets before compiling)

@@ -39,7 +39,7 @@ K0 = {"trampoline": None, "swamp": 300.0}
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--plot", default=os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                                    "images", "fit_bounce.png"),
                     help="figure path (default examples/images/fit_bounce.png; '' for none)")

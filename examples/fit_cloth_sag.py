@@ -36,7 +36,7 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--quick", action="store_true", help="looser tolerance, fewer iterations")
     ap.add_argument("--true-k", type=float, default=35.0,
                     help="stiffness (N/m) used to make the target sag")

@@ -53,7 +53,7 @@ def split(files):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--first-state", choices=["record", "fit"], default="fit",
                     help="start state: row 0 with the velocity columns, or a gravity parabola "
                          "fitted to the first flight frames (default)")
@@ -64,7 +64,7 @@ def main(argv=None) -> int:
                          "1.0; none: --horizon)")
     ap.add_argument("--flight-frames", type=int, default=20,
                     help="with --first-state fit: at most this many first frames of free "
-                         "flight in the parabola (default 20; the library's default is 10)")
+                         "flight in the parabola (default 20, as the library's)")
     ap.add_argument("--maxiter", type=int, default=8, help="LM iterations per stage")
     ap.add_argument("--starts", type=int, default=0,
                     help="multi-start: this many more start points drawn around the scene "

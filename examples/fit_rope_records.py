@@ -64,7 +64,7 @@ def make_records(folder: str) -> list:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--out", default=None, help="folder for the scene, records and fitted "
                     "scene (default: a temporary folder)")
     args = ap.parse_args(argv)

@@ -36,7 +36,7 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/jelly_drop.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/jelly_drop.png",
                         quick_help="coarser lattice, shorter run")
     args = ap.parse_args(argv)
 

@@ -21,7 +21,7 @@ from _common import example_parser, example_pyplot, save_figure, save_gif
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/paper_chain.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/paper_chain.png",
                         quick_help="accepted for uniformity; the demo is already quick")
     ap.add_argument("--steps", type=int, default=2000)
     ap.add_argument("--seed", type=int, default=0)

@@ -29,7 +29,7 @@ def build(n: int):
 
 
 def main(argv=None) -> int:
-    ap = example_parser(__doc__.splitlines()[0], "examples/images/rope_swing.png",
+    ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/rope_swing.png",
                         quick_help="coarser rope, shorter run (seconds)",
                         gif_help="also write an animated GIF next to --out")
     args = ap.parse_args(argv)

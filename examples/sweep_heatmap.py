@@ -68,7 +68,7 @@ def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--out", default="sweep_heatmap.npz", help="results .npz (+ .csv)")
     ap.add_argument("--fresh", action="store_true", help="overwrite --out instead of resuming")
     ap.add_argument("--n", type=int, default=64, help="grid points per axis (default 64)")

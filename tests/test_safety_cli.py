@@ -282,3 +282,11 @@ def test_terminal_bar_ends_on_the_last_update_and_keeps_its_label_whole():
     bar.close()
     last = out.getvalue().rstrip("\n").split("\r")[-1]
     assert last.startswith("diffpen fit [########################] 300/300")
+
+
+def test_an_output_folder_that_takes_no_files_gets_a_clear_error(capsys, tmp_path):
+    """Regression: `diffpen sweep --out /proc/x.npz` passed the path checks (the folder reads
+    as writable) and then failed with a raw "[Errno 2] ... '/proc/.x.npz.lock'"."""
+    from tuning.io import OutputError, OutputLock
+    with pytest.raises(OutputError, match="cannot create a file in /proc"):
+        OutputLock("/proc/x.npz", what="--out").acquire()

@@ -191,7 +191,12 @@ class OutputLock:
     def acquire(self) -> "OutputLock":
         import fcntl
         while True:
-            fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:      # e.g. a folder that takes no new files (/proc)
+                raise OutputError(f"{self.what} {self.path}: cannot create a file in "
+                                  f"{os.path.dirname(self.lock_path)} ({exc.strerror}); "
+                                  "choose another path.") from None
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as exc:
