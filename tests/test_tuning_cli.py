@@ -155,3 +155,20 @@ def test_sweep_target_needs_a_plot(tmp_path, capsys):
                      "--out", str(tmp_path / "s.npz")]) == 2
     assert "--target marks a contour on the --plot heatmap" in capsys.readouterr().err
     assert not (tmp_path / "s.npz").exists()
+
+
+def test_simulate_a_scene_file_keeps_each_materials_k_and_c(capsys, tmp_path):
+    """Regression: `diffpen simulate SCENE.toml` passed the first material's k and c to every
+    material: a foam ball (k 300) on a foam plane, in a file declaring steel (1e5) first,
+    bounced as steel (contact 0.0099 s instead of 0.22 s). Now each material keeps its own;
+    --k / --c set all of them."""
+    path = tmp_path / "two.toml"
+    path.write_text('dt = 1e-3\nduration = 1.0\n[materials.steel]\nk = 1e5\nc = 50.0\n'
+                    '[materials.foam]\nk = 300.0\nc = 2.0\n[[spheres]]\nradius = 0.1\n'
+                    'mass = 1.0\nposition = [0.0, 0.0, 0.3]\nmaterial = "foam"\n'
+                    '[[planes]]\nmaterial = "foam"\n')
+    rc, out = run_json(capsys, ["simulate", str(path)])
+    assert rc == 0 and out["k"] == 300.0 and out["c"] == 2.0
+    assert out["contact_durations"][0] == pytest.approx(0.2184, rel=0.01)
+    rc, out = run_json(capsys, ["simulate", str(path), "--k", "1e5", "--c", "50"])
+    assert out["contact_durations"][0] < 0.011

@@ -71,17 +71,27 @@ def _run(args) -> int:
 
     import diffpen as dp
     sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
-    k = setup.k if args.k is None else args.k
-    c = setup.c if args.c is None else args.c
-    kw = {}
-    if sim.materials:
-        kw.update(k=k, c=c)
-    params = sim.params(**kw)
+    # each material its own declared k and c (the scene's k / c where it declares none);
+    # --k / --c, when given, set every material's (they once replaced every material's values
+    # with the first material's)
+    contact = {}
+    for name in sim.materials:
+        mat = setup.scene.materials[name]
+        contact[name] = (args.k if args.k is not None else mat.k if mat.k is not None
+                         else setup.k,
+                         args.c if args.c is not None else mat.c if mat.c is not None
+                         else setup.c)
+    params = sim.params(contact=contact) if contact else sim.params()
+    ks = {v[0] for v in contact.values()}
+    cs = {v[1] for v in contact.values()}
     s0 = sim.init_state()
     traj = sim.rollout(params, steps, s0)
     out = {"scene": args.scene, "description": setup.description, "dt": dt, "steps": steps,
-           "duration": steps * dt, "law": sim.law, "k": k if sim.materials else None,
-           "c": c if sim.materials else None, "n_bodies": sim.n_bodies}
+           "duration": steps * dt, "law": sim.law,
+           "k": ks.pop() if len(ks) == 1 else None, "c": cs.pop() if len(cs) == 1 else None,
+           "n_bodies": sim.n_bodies}
+    if len(contact) > 1:
+        out["materials"] = {name: {"k": kc[0], "c": kc[1]} for name, kc in contact.items()}
     if setup.metrics is not None:
         out.update(setup.metrics(sim, traj, params))
     else:
