@@ -102,6 +102,16 @@ def test_jelly_group_keeps_the_unfitted_member(tmp_path, values):
     _roundtrip(tmp_path, RUN + JELLY + PLANE, values)
 
 
+def test_the_written_scene_gets_plain_file_permissions(tmp_path):
+    """Regression: the fitted scene was written through mkstemp and kept its owner-only mode
+    (-rw-------) while every other output gets 0o666 less the umask."""
+    import os
+    _roundtrip(tmp_path, RUN + ROPE + PLANE, {"springs.rope.stretch.k": 432.0})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert os.stat(tmp_path / "scene_fitted.toml").st_mode & 0o777 == 0o666 & ~umask
+
+
 def test_rope_groups(tmp_path):
     """A rope's stretch (k, c), bend pair (bare k) and drag."""
     _roundtrip(tmp_path, RUN + ROPE + "bend = 20.0\ndrag = 0.01\n" + PLANE,

@@ -971,3 +971,37 @@ def test_rotation_angle_is_accurate_near_zero_in_float32():
         other = np.asarray(pose.qmul(jnp.asarray(q), jnp.asarray(turn)))
         got = np.asarray(pose.rotation_angle(jnp.asarray(q), jnp.asarray(other)))
         np.testing.assert_allclose(got, angle, rtol=1e-6)
+
+
+def test_records_may_observe_builder_nodes_beside_named_bodies(tmp_path):
+    """Regression: with a named body in the scene, a record column of a builder's node
+    (rope[3].x, the README's multi-body form) was refused as 'names body rope[3], which the
+    scene does not have'; now it resolves to the node (a node outside the builder is still
+    refused, naming the record)."""
+    scene = tmp_path / "mixed.toml"
+    scene.write_text('dt = 1e-3\nduration = 0.2\n[[boxes]]\nname = "cube"\n'
+                     'half_extents = [0.05, 0.05, 0.05]\nmass = 0.4\n'
+                     'position = [0.0, 0.0, 0.5]\n[[ropes]]\nn = 4\nstart = [0.0, 0.5, 1.0]\n'
+                     'end = [0.3, 0.5, 1.0]\nmass = 0.1\nk = 200.0\nc = 0.2\n'
+                     '[fit]\nparams = ["springs.rope.stretch.k"]\n')
+    sf = load_scene_file(str(scene))
+    good, bad = tmp_path / "good.csv", tmp_path / "bad.csv"
+    for path, node in ((good, "rope[3]"), (bad, "rope[9]")):
+        path.write_text(f"t,cube.x,cube.y,cube.z,{node}.x,{node}.y,{node}.z\n"
+                        "0.0,0.0,0.0,0.5,0.3,0.5,1.0\n0.01,0.0,0.0,0.4995,0.3,0.5,0.9995\n")
+    _, bodies = tf.load_records(sf, [str(good)])
+    assert bodies == {"cube": sf.names["cube"], "rope[3]": sf.body_index("rope[3]")}
+    with pytest.raises(tf.FitError, match="bad.csv: the columns of 'rope\\[9\\]'"):
+        tf.load_records(sf, [str(bad)])
+
+
+def test_a_record_fit_refuses_a_method_it_does_not_use(tmp_path):
+    """Regression: [fit] method = "adam" in a scene file with records was silently ignored
+    (the fit ran Levenberg-Marquardt), while --method adam was refused."""
+    from tuning.scene_fit import fit_files
+    scene, rec = _record_file(tmp_path, ROPE.format(k=200.0, c=0.3).replace(
+        "[fit]", '[fit]\nmethod = "adam"'), {"springs.rope.stretch.k": 300.0},
+        ["rope[1]"], "rope", integrator="semi_implicit_euler", dt=1e-3, every=5e-3,
+        duration=0.05, noise=0.0, seed=0)
+    with pytest.raises(tf.FitError, match="method = 'adam', but fits to records use"):
+        fit_files(scene, [rec])

@@ -41,6 +41,7 @@ import tomllib
 import numpy as np
 
 from .fit import FitError
+from .io import plain_mode
 
 __all__ = ["write_fitted", "dumps_toml"]
 
@@ -344,6 +345,7 @@ def write_fitted(src: str, values: dict, out: str) -> str:
     folder = os.path.dirname(os.path.abspath(out))
     fd, tmp = tempfile.mkstemp(prefix=".fitted-", suffix=".toml", dir=folder)
     try:
+        plain_mode(tmp)          # a scene file like any other (mkstemp makes it owner-only)
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
         try:

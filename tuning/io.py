@@ -128,6 +128,14 @@ def check_distinct(outputs: dict, inputs=()) -> None:
                                   "would overwrite the other; choose another name.")
 
 
+def plain_mode(path) -> None:
+    """Give ``path`` the permissions a plain ``open(path, "w")`` would (``0o666`` less the
+    umask): ``tempfile.mkstemp`` makes its files owner-only."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
 def atomic_write(path, write: Callable) -> None:
     """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
     flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
@@ -137,9 +145,7 @@ def atomic_write(path, write: Callable) -> None:
     folder = os.path.dirname(p)
     fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=os.path.basename(p), dir=folder)
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        plain_mode(tmp)
         with os.fdopen(fd, "wb") as fh:
             write(fh)
             fh.flush()

@@ -293,7 +293,9 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
         if not body:
             raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} has an empty body "
                               "name; write NAME.x etc.")
-        if names is not None and body not in names:
+        # a builder's node (rope[3], cloth[0, 4]) is resolved against the scene by the
+        # caller (SceneFile.body_index), named bodies or not
+        if names is not None and body not in names and "[" not in body:
             raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
                               f"{_q(body)}, which the scene does not have; named bodies: "
                               f"{', '.join(names[:10]) or 'none'}"
@@ -323,7 +325,8 @@ def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
     """Read a motion record (format in the module docstring).
 
     body_names: the scene's observed body names (a header without names then belongs to the
-    only one; names in the header must be among them), or None (a plain header is body
+    only one; names in the header must be among them, or be a builder's node such as
+    ``rope[3]``, which the caller resolves), or None (a plain header is body
     ``"body"``; any names are accepted). max_rows, max_bytes: size guard, checked from the file
     size before anything is parsed. check_units: refuse times that look like milliseconds and
     positions that look like millimetres.

@@ -45,6 +45,10 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         raise FitError(f"{scene_path}: say what to fit in a [fit] table, e.g. [fit] params = "
                        "[\"contact.default.k\", \"contact.default.c\"] (the params leaves to "
                        "fit, with optional [fit.bounds]).")
+    if sf.spec.method != "lm":
+        raise FitError(f"{scene_path}: [fit] method = {sf.spec.method!r}, but fits to records "
+                       "use Levenberg-Marquardt (method and lr choose the optimiser of "
+                       "bounce-target fits): drop method, or set it to \"lm\".")
     free = free_from_spec(sf.spec)
     estimate = estimate or sf.spec.first_state or "record"
     max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES

@@ -507,7 +507,10 @@ def load_records(sf, paths: Sequence[str]):
                                    "(name = ...) and prefix the columns (NAME.x, ...).")
                 bodies[name] = free[0]
             else:
-                bodies[name] = sf.body_index(name)
+                try:
+                    bodies[name] = sf.body_index(name)
+                except Exception as exc:            # SceneFileError: say which record
+                    raise FitError(f"{rec.path}: the columns of {name!r}: {exc}") from None
     return records, bodies
 
 
