@@ -175,3 +175,20 @@ def test_cli_bounce_sweep_counts_the_unsettled_points(tmp_path, capsys):
                  "--out", str(tmp_path / "b.npz"), "--json"]) == 0
     got = json.loads(capsys.readouterr().out)
     assert got["unsettled"] == 4                  # 0.6 s: no ball settles
+
+
+def test_a_damping_declared_zero_is_swept_in_log_steps(tmp_path):
+    """Regression: the spacing followed the leaf's start value, so a damping declared 0 (a
+    rope's bare `bend = 20.0`) was swept linearly (0.01, 0.505, 1) beside its log-spaced k.
+    The kind of leaf decides now; LO = 0 for it asks for [fit.space] linear."""
+    from tuning.scene_sweep import sweep_axes
+    scene = tmp_path / "rope.toml"
+    scene.write_text("dt = 1e-3\nduration = 0.1\n[[ropes]]\nn = 4\nstart = [0.0, 0.0, 1.0]\n"
+                     "end = [0.3, 0.0, 1.0]\nmass = 0.1\nk = 200.0\nc = 0.2\nbend = 20.0\n"
+                     "pinned = [0]\n")
+    sf = load_scene_file(str(scene))
+    params = sf.params(sf.compile())
+    axes = sweep_axes(sf, params, [("springs.rope.bend.c", 0.01, 1.0)], [3])
+    np.testing.assert_allclose(axes["springs.rope.bend.c"], [0.01, 0.1, 1.0])
+    with pytest.raises(FitError, match="log steps and needs LO > 0"):
+        sweep_axes(sf, params, [("springs.rope.bend.c", 0.0, 1.0)], [3])

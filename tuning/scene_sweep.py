@@ -70,11 +70,15 @@ def sweep_axes(sf, params, axes: Sequence | None, n: Sequence[int]) -> dict:
             raise FitError(f"{p}: the range must be finite with LO < HI, got {lo:g} {hi:g}.")
         if int(m) < 2:
             raise FitError(f"{p}: at least 2 points per axis, got {m}.")
+        # the kind of leaf decides (log for the positive ones), not its start value: a
+        # damping declared 0 was swept linearly while its k beside it went in log steps
         space = (spec.space.get(p) if spec is not None and p in spec.space else None) or \
-            leaf_space(p, leaves[p])
+            leaf_space(p, 1.0)
         if space == "log" and lo <= 0.0:
             if leaf_space(p, 1.0) == "log":
-                raise FitError(f"{p}: a positive parameter needs LO > 0, got {lo:g}.")
+                raise FitError(f"{p}: a positive parameter is swept in log steps and needs "
+                               f"LO > 0, got {lo:g} (to include {lo:g}, set [fit.space] "
+                               f"\"{p}\" = \"linear\" in the scene file).")
             space = "linear"
         out[p] = (np.geomspace(lo, hi, int(m)) if space == "log"
                   else np.linspace(lo, hi, int(m)))
