@@ -290,3 +290,16 @@ def test_an_output_folder_that_takes_no_files_gets_a_clear_error(capsys, tmp_pat
     from tuning.io import OutputError, OutputLock
     with pytest.raises(OutputError, match="cannot create a file in /proc"):
         OutputLock("/proc/x.npz", what="--out").acquire()
+
+
+def test_plot_with_a_scene_file_fit_is_refused_before_fitting(capsys, tmp_path):
+    """Regression: `diffpen fit SCENE.toml --plot y.png` with [fit.targets] fitted, printed a
+    note and wrote no file (exit 0); now it is refused up front, pointing to evaluate."""
+    scene = tmp_path / "ball.toml"
+    scene.write_text("[materials.rubber]\nk = 1e4\nc = 10.0\n[[spheres]]\nradius = 0.1\n"
+                     "mass = 1.0\nposition = [0.0, 0.0, 1.0]\nmaterial = \"rubber\"\n"
+                     "[[planes]]\nmaterial = \"rubber\"\n[fit]\n"
+                     "params = [\"contact.rubber.k\"]\n[fit.targets]\napex_heights = [0.3]\n")
+    rc, err = err_of(capsys, ["fit", str(scene), "--plot", str(tmp_path / "y.png")])
+    assert rc == 2 and "not scene-file fits" in err
+    assert not (tmp_path / "y.png").exists()

@@ -73,8 +73,9 @@ def add_arguments(p) -> None:
     p.add_argument("--maxiter", type=count("--maxiter"), help="iteration limit")
     p.add_argument("--k0", type=positive("--k0"), help="start stiffness, N/m")
     p.add_argument("--c0", type=positive("--c0"), help="start damping, N s/m")
-    p.add_argument("--plot", metavar="FILE.png", help="trajectory against the targets and the "
-                   "loss curve (needs matplotlib)")
+    p.add_argument("--plot", metavar="FILE.png", help="the built-in ball's fits only: its "
+                   "trajectory against the targets and the loss curve (needs matplotlib); for "
+                   "scene files use diffpen evaluate ... --plot DIR")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
@@ -147,6 +148,10 @@ def _run(args) -> int:
     if args.data:
         args.data = args.data[0]
     if args.scene is not None:
+        if args.plot:       # refused before fitting (it was a note after it, and no file)
+            raise CLIError("--plot draws fits of the built-in ball (targets or --data t,z), "
+                           "not scene-file fits; plot a scene file's motion with diffpen "
+                           "evaluate FITTED.toml --data FILES... --plot DIR")
         from .. import scenefile
         setup_jax()
         return _report(args, *scenefile.fit_file(args.scene, progress=None if not args.json
