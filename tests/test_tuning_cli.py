@@ -172,3 +172,5 @@ def test_simulate_a_scene_file_keeps_each_materials_k_and_c(capsys, tmp_path):
     assert out["contact_durations"][0] == pytest.approx(0.2184, rel=0.01)
     rc, out = run_json(capsys, ["simulate", str(path), "--k", "1e5", "--c", "50"])
     assert out["contact_durations"][0] < 0.011
+    assert main(["simulate", str(path)]) == 0          # the text output too
+    assert "k=300 N/m, c=2 N s/m" in capsys.readouterr().out

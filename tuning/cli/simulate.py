@@ -109,10 +109,17 @@ def _run(args) -> int:
         dump_json(out)
         return 0
     print(f"diffpen simulate: {setup.description or args.scene}")
+    if "materials" in out:
+        kc = "; ".join(f"{name}: k={v['k']:g} N/m, c={v['c']:g} N s/m"
+                       for name, v in out["materials"].items())
+    elif sim.materials:
+        kc = f"k={out['k']:g} N/m, c={out['c']:g} N s/m"
+    else:
+        kc = ""
     print(f"  {steps} steps of dt={dt:g} s ({steps * dt:g} s), {sim.law} law"
-          + (f", k={k:g} N/m, c={c:g} N s/m" if sim.materials else ""))
+          + (f", {kc}" if kc else ""))
     skip = {"scene", "description", "dt", "steps", "duration", "law", "k", "c", "n_bodies",
-            "out"}
+            "out", "materials"}
     for key, val in out.items():
         if key not in skip:
             print(f"  {key}: {fmt(val)}")
