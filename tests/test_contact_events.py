@@ -533,3 +533,24 @@ def test_centred_friction_takes_the_normal_force_contact_plane_applies():
     # and with the plain law both are its plain step average
     fz, ft = fz_ft(dp.compile(scene, 1e-3))
     assert abs(-ft[0] / (0.5 * fz * u / np.sqrt(u * u + 0.01 ** 2)) - 1.0) < 1e-12
+
+
+def test_friction_at_a_touching_start_takes_the_contact_side_of_the_tie():
+    """Regression: a box placed exactly on a rough named plane (depth 0, normal speed 0)
+    starts at the tie of the friction's max(fn, 0), whose derivative JAX splits 0.5 / 0.5
+    while the contact window takes the contact side: d (x + z + vy) / d plane offset after
+    one step was -4.196 against -8.446 from above (300 steps: 8.02 against 0.607). Now it
+    equals the one-sided difference from above."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    s.add_material("rough", k=2e4, c=20.0, friction=0.4, slip_speed=0.02)
+    s.add_box((0.05, 0.05, 0.05), mass=0.37, position=(0.0, 0.0, 0.05),
+              velocity=(1.0, 0.2, 0.0), material="rough")
+    s.add_plane(material="rough", name="ground")
+    sim = dp.compile(s, 5e-4)
+
+    def f(o):
+        tr = sim.rollout(sim.params(extra={"plane_offset": {"ground": o}}), 1, save_every=1)
+        return tr.position[-1, 0, 0] + tr.position[-1, 0, 2] + tr.velocity[-1, 0, 1]
+    h = 1e-8
+    above = (float(f(h)) - float(f(0.0))) / h
+    assert float(jax.grad(f)(0.0)) == pytest.approx(above, rel=1e-5)
