@@ -583,8 +583,9 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         ``"columns"`` where the scene allows it, else ``"rows"``; ``"columns"``: three
         (n,) arrays, which XLA CPU vectorises along a ``jax.vmap`` batch (1024 balls: the
         recording rollout 1.06x the plain floor against 1.48x in rows); the same values
-        up to rounding (XLA may fuse the two layouts differently). Columns need a scene whose every force term returns columns (sphere and
-        particle contacts with planes) and an explicit integrator; asked for explicitly
+        up to rounding (XLA may fuse the two layouts differently). Columns need a scene
+        whose every force term returns columns (sphere and particle contacts with planes)
+        and an explicit integrator; asked for explicitly
         otherwise, :class:`SceneError` says what stands in the way.
     Returns:
       :class:`Simulator`.

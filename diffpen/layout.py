@@ -17,7 +17,8 @@ faster from about a thousand rollouts on (1024 balls: recording 1.06x the plain 
 1.48x in rows, the gradient 1.02x against 1.30x). The terms always read rows: they get
 the state with its columns stacked (:func:`rows`), and XLA turns a slice of that stack (the
 ground's ``z``) back into the column itself, so nothing is copied. Rollouts convert once at
-the start and once per saved state. Values are the same in either layout up to rounding: each
+the start and, after the loop, the whole saved trajectory at once (each state given to
+``observe=`` as it is saved). Values are the same in either layout up to rounding: each
 component sees the same operations in the same order, but XLA may fuse them differently
 (tilted planes, gravity with x or y parts, rk4: the last bit or two, e.g. 9e-16 m/s after
 336 steps in float64); axis-aligned scenes at ``-O0`` agree bit for bit (tested).

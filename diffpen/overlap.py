@@ -48,6 +48,13 @@ def box_corners(body) -> np.ndarray:
     return np.asarray(body.position) + (signs * h) @ quat_matrix(body.orientation).T
 
 
+def _corner_depths(box, plane) -> tuple[np.ndarray, np.ndarray]:
+    """``(depths (8,) m, corners (8, 3) m)`` of a box's corners below a plane at the box's
+    pose (positive: under the surface)."""
+    corners = box_corners(box)
+    return plane.offset - corners @ np.asarray(plane.normal), corners
+
+
 def _sphere_box_depth(xs, rs, box) -> np.ndarray:
     """Depths (m) of spheres ``xs`` (m, (m, 3)) with radii ``rs`` (m,) against one box."""
     rot = quat_matrix(box.orientation)
@@ -193,9 +200,8 @@ class OverlapIndex:
     def _check_box(self, scene, box, idx: int) -> None:
         half = min(box.half_extents)
         if not box.pinned:
-            corners = box_corners(box)
             for j, pl in enumerate(scene.planes):
-                d = pl.offset - corners @ np.asarray(pl.normal)
+                d, corners = _corner_depths(box, pl)
                 tol = OVERLAP_TOL * half
                 if _over(d.max(), tol):
                     _refuse(f"box {idx} at {_fmt(box.position)} (corner "
@@ -260,8 +266,7 @@ class OverlapIndex:
                 b = scene.bodies[i]
                 if b.kind != "box":
                     continue
-                corners = box_corners(b)
-                d = col.offset - corners @ np.asarray(col.normal)
+                d, _ = _corner_depths(b, col)
                 tol = OVERLAP_TOL * min(b.half_extents)
                 if _over(d.max(), tol):
                     _refuse(f"box {i} at {_fmt(b.position)} and plane {j} (normal "
@@ -283,10 +288,9 @@ def check_start_pose(scene, i: int, position, orientation=None) -> None:
     if orientation is not None and body.kind == "box":
         moved = dataclasses.replace(moved, orientation=tuple(float(a) for a in orientation))
     if body.kind == "box":
-        corners = box_corners(moved)
         tol = OVERLAP_TOL * min(body.half_extents)
         for j, pl in enumerate(scene.planes):
-            d = pl.offset - corners @ np.asarray(pl.normal)
+            d, corners = _corner_depths(moved, pl)
             if _over(d.max(), tol):
                 _refuse(f"box {i} started at {_fmt(moved.position)} (corner "
                         f"{_fmt(corners[d.argmax()])}) and plane {j} (normal {_fmt(pl.normal)}, "

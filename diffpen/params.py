@@ -26,7 +26,7 @@ def _known_value(x):
     if _is_concrete(x):
         return x
     try:
-        return x.to_concrete_value()
+        return x.to_concrete_value()        # None for an abstract tracer
     except Exception:  # noqa: BLE001 - any failure means "abstract"
         return None
 

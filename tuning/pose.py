@@ -28,8 +28,8 @@ import diffpen as dp
 if TYPE_CHECKING:
     from .record_batch import Batch
 
-__all__ = ["ROT_WEIGHT", "body_size", "rotation_angle", "pose_residuals", "qmul", "qconj",
-           "rotmat", "rotvec", "exp_quat"]
+__all__ = ["ROT_WEIGHT", "body_size", "rotation_angle", "pose_residuals", "residual_records",
+           "qmul", "qconj", "rotmat", "rotvec", "exp_quat"]
 
 #: default weight of the rotation residual, per radian, against the position in units of
 #: the body size: one degree counts as much as 1% of the size.
@@ -114,6 +114,15 @@ def rotation_angle(q_sim, q_data):
 def _norm_residual(e, eps: float = 1e-3):
     """Per-sample scalar residual whose square is ``sqrt(|e|^2 + eps^2)`` (~ ``|e|``)."""
     return (jnp.sum(e * e, axis=-1) + eps * eps) ** 0.25
+
+
+def residual_records(batch: Batch, loss: str = "l2", rotating: bool = True) -> np.ndarray:
+    """The record (0 .. R-1) of each row of :func:`pose_residuals` for ``batch``, in its
+    order: positions (R, T, B, 3 components, or 1 for ``loss="l1"``), then rotations the same
+    way when the scene rotates (``rotating``) and the batch has orientations."""
+    R, T, B = batch.pos.shape[:3]
+    block = np.repeat(np.arange(R), T * B * (1 if loss == "l1" else 3))
+    return np.concatenate([block, block]) if (rotating and batch.has_rotation) else block
 
 
 def pose_residuals(pos, quat, batch: Batch, *, rot_weight: float = ROT_WEIGHT,

@@ -46,7 +46,7 @@ from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
 from .first_state import first_state
-from .pose import ROT_WEIGHT, body_size, pose_residuals, rotation_angle
+from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
 from .stable import params_unstable, unsafe_start
 
@@ -391,8 +391,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale)
         cov = inv * s2
-        robust = _record_sandwich(inv, J, r, _record_rows(batches, loss,
-                                                            sim.scene.has_rotation, len(r)))
+        rows, first = [], 0                 # each residual's record over all batches
+        for b in batches:
+            rows.append(residual_records(b, loss, sim.scene.has_rotation) + first)
+            first += b.pos.shape[0]
+        rows = np.concatenate(rows)
+        robust = _record_sandwich(inv, J, r, rows if len(rows) == len(r) else None)
         if robust is not None:
             # the larger of the two per parameter: the classical one treats every residual
             # as independent noise; the sandwich takes in what a record's residuals share
@@ -414,22 +418,6 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged)
-
-
-def _record_rows(batches, loss: str, rotating: bool, n: int):
-    """The record (0 .. R-1 over all batches) of each residual row, in the order of
-    :func:`tuning.pose.pose_residuals` (per batch: positions (R, T, B, 3, or 1 for the l1
-    loss), then rotations the same way where the scene rotates and the batch has
-    orientations); None if that does not add up to ``n`` rows."""
-    per = 1 if loss == "l1" else 3
-    ids, first = [], 0
-    for b in batches:
-        R, T, B = b.pos.shape[:3]
-        block = np.repeat(np.arange(first, first + R), T * B * per)
-        ids += [block, block] if (rotating and b.has_rotation) else [block]
-        first += R
-    ids = np.concatenate(ids) if ids else np.zeros(0, int)
-    return ids if len(ids) == n else None
 
 
 def _record_sandwich(inv, J, r, rows):

@@ -10,6 +10,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from ..integrators import Integrator
+from ..params import _known_value
 from .modes import SAFE_CH, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG"]
@@ -21,15 +22,8 @@ FLAG = "unstable"
 
 def _value(x):
     """Concrete float array of a parameter value, or None when it is an abstract tracer."""
-    import jax
-    if isinstance(x, jax.core.Tracer):
-        try:
-            x = x.to_concrete_value()
-        except Exception:  # noqa: BLE001 - any failure means "not concrete"
-            return None
-        if x is None:
-            return None
-    return np.asarray(x, dtype=float)
+    v = _known_value(x)
+    return None if v is None else np.asarray(v, dtype=float)
 
 
 class Bound(NamedTuple):
