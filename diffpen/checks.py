@@ -217,6 +217,23 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
         stable_dt=SPIN_LIMIT / (kappa[b] * speed[b]), substeps=need)
 
 
+def spin_unsafe(sim, state, h: float):
+    """Traced counterpart of :func:`check_spin`: a bool scalar, True when a rigid body of the
+    (possibly traced, e.g. vmapped) start ``state`` spins past :data:`SPIN_LIMIT`
+    (``kappa |w| h``) under semi-implicit Euler, ``h`` the inner step in s. It joins the
+    rollout's ``State.aux["unstable"]`` flag, so a sweep over start spins marks the rows a
+    concrete rollout would refuse (they end NaN)."""
+    w = getattr(state, "angular_velocity", None)
+    kappa = getattr(sim, "_spin_kappa", None)
+    if (w is None or kappa is None or not kappa.any()
+            or sim.integrator != "semi_implicit_euler"):
+        return jnp.zeros((), bool)
+    w = jnp.asarray(w)
+    speed = jnp.sqrt(jnp.sum(w * w, axis=-1))
+    rate = jnp.asarray(kappa, speed.dtype) * speed * h
+    return jnp.any(rate > SPIN_LIMIT) | jnp.any(~jnp.isfinite(rate))
+
+
 def check_finite_trajectory(traj, save_every: int, dt: float) -> None:
     """Raise NonFiniteError when a concrete trajectory became NaN/inf (traced ones pass):
     with whole states, naming the first step and body; with ``observe`` output only, saying
@@ -237,7 +254,9 @@ def check_finite_trajectory(traj, save_every: int, dt: float) -> None:
     # orientations and angular velocities too: a fast spin turns them NaN first
     fields = [f for f in (traj.position, traj.velocity, traj.orientation,
                           traj.angular_velocity) if f is not None]
-    if not _is_concrete(traj.position) or bool(_last_state_finite(fields)):
+    # every field concrete: under vmap over a start spin alone, a box's positions (which do not
+    # depend on it) come back concrete while its angular velocities are tracers
+    if not all(map(_is_concrete, fields)) or bool(_last_state_finite(fields)):
         return
     bad = np.zeros(np.shape(traj.position)[:-1], dtype=bool)
     for f in fields:

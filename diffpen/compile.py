@@ -449,6 +449,7 @@ class Simulator:
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
+        flag = flag | _checks.spin_unsafe(self, state, self.dt / substeps)
         old = state.aux.get(_stability.FLAG)
         flag = flag if old is None else (jnp.asarray(old, bool) | flag)
         state = state._replace(aux={**state.aux, _stability.FLAG: flag})

@@ -255,6 +255,52 @@ def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
     np.testing.assert_allclose(w[-1, 0], [300.0, 10.0, 10.0], rtol=1e-12)
 
 
+def test_a_traced_sweep_over_start_spins_flags_the_rows_past_the_spin_limit():
+    """Under jit(vmap) over start spins, rows past SPIN_LIMIT ended NaN with
+    aux["unstable"] False (the traced flag had no spin term), while a concrete rollout of the
+    same start refuses it."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    box = s.add_box((0.1, 0.2, 0.3), 1.0, (0.0, 0.0, 0.0), inertia=(1.0, 2.0, 3.0))
+    s.add_plane(offset=-10.0)
+    bsim = dp.compile(s, 1e-2)
+    p = bsim.params(k=100.0, c=0.0)
+    axis = jnp.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+
+    def one(w):
+        st = bsim.state_from(body=box, angular_velocity=w * axis)
+        tr = bsim.rollout(p, 300, state=st, save_every=300)
+        return jnp.isfinite(tr.orientation[-1]).all(), tr.aux["unstable"][-1]
+
+    # kappa = 1, h = 0.01: kappa |w| h = 0.01, 0.04 (inside 0.05), 0.1, 0.4 (past it)
+    finite, flag = jax.jit(jax.vmap(one))(jnp.array([1.0, 4.0, 10.0, 40.0]))
+    np.testing.assert_array_equal(flag, [False, False, True, True])
+    assert bool(finite[0]) and bool(finite[1])
+    assert not bool(finite[3])                  # the flagged row is the one that blew up
+    # verlet has no such limit: nothing flagged
+    vsim = dp.compile(s, 1e-2, integrator="verlet")
+    flags = jax.vmap(lambda w: vsim.rollout(p, 2, state=vsim.state_from(
+        body=box, angular_velocity=w * axis)).aux["unstable"][-1])(jnp.array([1.0, 40.0]))
+    np.testing.assert_array_equal(flags, [False, False])
+
+
+def test_vmap_over_a_start_spin_alone_runs():
+    """vmap over state_from(angular_velocity=...) of a free box crashed with a raw
+    TracerBoolConversionError: its positions do not depend on the spin, so they came back
+    concrete while the angular velocities were tracers, and the finite check tested only
+    the positions for concreteness."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    box = s.add_box((0.1, 0.2, 0.3), 1.0, (0.0, 0.0, 1.0))
+    bsim = dp.compile(s, 1e-3)
+    p = bsim.params()
+
+    def final_spin(w):
+        st = bsim.state_from(body=box, angular_velocity=jnp.array([0.0, 0.0, 1.0]) * w)
+        return bsim.rollout(p, 20, state=st, save_every=20).angular_velocity[-1, box]
+
+    np.testing.assert_allclose(jax.vmap(final_spin)(jnp.array([1.0, 2.0])),
+                               [[0.0, 0.0, 1.0], [0.0, 0.0, 2.0]], atol=1e-12)
+
+
 def test_anchored_spring_between_particles_equals_a_spring():
     """Zero anchors on two particles (accepted by the scene) crashed the rollout: the term
     read orientations a scene without rotating bodies does not have."""
