@@ -222,6 +222,34 @@ def test_anchored_spring_to_world_point_holds_box_at_static_equilibrium():
     assert float(tau[box, 1]) < 0.0                                # restoring
 
 
+def test_the_safe_step_counts_the_rotational_stiffness_of_a_pre_stretched_anchored_spring():
+    """A box held between two world points 10 m away by zero-rest anchored springs at its
+    +-x faces turns at w = sqrt(2 T a / I) = 172 rad/s (T the tension, a the lever). The
+    bound counted only k (1/m + r^2 / I) (w 22 rad/s): it passed dt = 0.05 s (w h = 8.6)
+    and the box spun up 400x with no error. The closed form is now the bound's w_max (to
+    the rows' rounding up) and the step it names keeps the spin bounded."""
+    L, k, a, th = 10.0, 100.0, 0.1, 0.02
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    b = scene.add_box((a, a, a), 1.0, (0.0, 0.0, 0.0),
+                      orientation=(np.cos(th / 2), 0.0, 0.0, np.sin(th / 2)))
+    scene.add_anchored_spring(b, None, (a, 0, 0), (L, 0, 0), k=k, c=0.0, rest_length=0.0)
+    scene.add_anchored_spring(b, None, (-a, 0, 0), (-L, 0, 0), k=k, c=0.0, rest_length=0.0)
+    inertia = 2.0 * a * a / 3.0
+    w_true = np.sqrt(2.0 * k * (L - a) * a / inertia)
+    sim = dp.compile(scene, dt=0.05)
+    rep = sim.stability(sim.params())
+    assert not rep.safe
+    assert w_true <= rep.omega_max <= 1.05 * w_true
+    with pytest.raises(dp.StabilityError, match="anchored springs"):
+        sim.rollout(sim.params(), 10)
+    ok = dp.compile(scene, dt=0.9 * rep.safe_dt)
+    w = ok.rollout(ok.params(), 400).angular_velocity[:, b, 2]
+    # a small oscillation of amplitude th: |w| <= w_true th, times semi-implicit Euler's
+    # amplitude factor 1 / sqrt(1 - (w h / 2)^2) (2.29 at 0.9 of the limit; 400x before)
+    wh = w_true * 0.9 * rep.safe_dt
+    assert float(np.abs(w).max()) <= 1.1 * w_true * th / np.sqrt(1.0 - (wh / 2.0) ** 2)
+
+
 # --------------------------------------------------------------------------- sphere-box
 def test_sphere_box_geometry_matches_closest_point_by_sampling():
     rng = np.random.default_rng(1)

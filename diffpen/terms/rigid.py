@@ -454,10 +454,47 @@ def _sphere_box_bound(ctx: CompileContext):
     return () if out is None else (out,)
 
 
+def _start_stretch(scene, sp) -> float:
+    """``| |p_b - p_a| - rest |`` (m) of an anchored spring at the scene's start poses."""
+    def end(i, anchor):
+        if i is None:
+            return np.asarray(anchor, dtype=float)
+        body = scene.bodies[i]
+        rot = (np.asarray(_rigid.quat_to_matrix(np.asarray(body.orientation, float), xp=np))
+               if body.rigid else np.eye(3))
+        return np.asarray(body.position, float) + rot @ np.asarray(anchor, float)
+    return abs(float(np.linalg.norm(end(sp.b, sp.anchor_b) - end(sp.a, sp.anchor_a)))
+               - sp.rest_length)
+
+
+def _tension_mobility(scene, i, lever, stretch: float) -> float:
+    """Per unit k (1/kg): the rotational stiffness of a spring's tension ``T = k stretch``
+    acting at body-frame lever ``lever`` of body i, ``T |r| / I_min``: turning the body by
+    ``dtheta`` swings the force's point of action by ``|r| dtheta`` across it. It dominates
+    ``k r^2 / I`` once the stretch exceeds the lever (a box held by long pre-stretched
+    springs: 0 for pinned or non-rigid bodies)."""
+    if i is None:
+        return 0.0
+    body = scene.bodies[i]
+    if body.pinned or not body.rigid:
+        return 0.0
+    inv = 1.0 / _rigid.inertia_diagonal(body)
+    return stretch * float(np.linalg.norm(lever)) * float(inv.max())
+
+
 def _anchored_bound(ctx: CompileContext):
+    """Each spring's ``k (J M^-1 J^T)`` on both ends (:func:`_pair_rows`) plus the
+    rotational stiffness of its tension at the start poses (:func:`_tension_mobility`): the
+    bound holds while no spring stretches far beyond its start stretch."""
     scene, rows = ctx.scene, []
     for sp in scene.anchored_springs:
         rows += _pair_rows(scene, sp.a, sp.b, sp.group, sp.anchor_a, sp.anchor_b)
+        s0 = _start_stretch(scene, sp)
+        geo = (_tension_mobility(scene, sp.a, sp.anchor_a, s0)
+               + _tension_mobility(scene, sp.b, sp.anchor_b, s0))
+        if geo > 0.0:
+            rows += [(b, sp.group, geo * (2.0 if sp.b is not None else 1.0))
+                     for b in (sp.a, sp.b) if b is not None and not scene.bodies[b].pinned]
     out = _rows_bound(rows, "springs")
     return () if out is None else (out,)
 
