@@ -212,6 +212,37 @@ def cube_sim():
     return dp.compile(scene, 1.0 / 1480.0)
 
 
+def test_a_bowl_of_planes_counts_its_contacts_pushing_together():
+    """A ball resting at the bottom of a bowl of 16 planes tilted 3 degrees feels ~16 k. The
+    bound counted one plane contact (w 100 rad/s, true 400): at 0.9 of that step the
+    resting ball launched itself with no error. Mutually orthogonal planes (a floor with
+    walls) and opposite walls still count as one contact."""
+    from diffpen.terms.contact import plane_crowding
+    assert plane_crowding([(0, 0, 1)]) == 1.0
+    assert plane_crowding([(0, 0, 1), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)]) \
+        == pytest.approx(1.0)
+    a = math.radians(30.0)                        # a V groove: 2 cos^2 a
+    assert plane_crowding([(math.sin(a), 0, math.cos(a)), (-math.sin(a), 0, math.cos(a))]) \
+        == pytest.approx(2.0 * math.cos(a) ** 2)
+    n, r, k, tilt = 16, 0.1, 1e4, math.radians(3.0)
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    for i in range(n):
+        phi = 2.0 * math.pi * i / n
+        s.add_plane(normal=(-math.sin(tilt) * math.cos(phi), -math.sin(tilt) * math.sin(phi),
+                            math.cos(tilt)))
+    s.add_sphere(r, 1.0, (0.0, 0.0, r / math.cos(tilt) - 9.81 / (n * k)), allow_overlap=True)
+    probe = dp.compile(s, 1e-3)
+    rep = probe.stability(probe.params(k=k, c=0.0))
+    w_true = math.sqrt(n * k * math.cos(tilt) ** 2)
+    assert w_true <= rep.omega_max <= 1.01 * w_true
+    with pytest.raises(dp.StabilityError):          # 0.9 of the one-contact safe step
+        sim = dp.compile(s, 0.9 * 0.5 / 100.0)
+        sim.rollout(sim.params(k=k, c=0.0), 10)
+    sim = dp.compile(s, 0.9 * rep.safe_dt)
+    z = sim.rollout(sim.params(k=k, c=0.0), 1000).position[:, 0, 2]
+    assert float(jnp.max(z) - jnp.min(z)) < 1e-4       # it stays at rest
+
+
 def test_traced_flag_is_raised_under_jit_vmap_and_grad(cube_sim):
     """k = 2e6 N/m at h = 1/1480 s: outside jit rollout raises StabilityError; under jit,
     vmap and grad nothing can be raised, and the rollout's flag is set instead (sticky,

@@ -160,9 +160,44 @@ def _movers(ctx: CompileContext):
     return [i for i in range(ctx.n) if ctx.collide[i] and not ctx.pinned[i]]
 
 
+def plane_crowding(normals) -> float:
+    """How many plane contacts can push a body along one direction at once, as a stiffness
+    factor: ``max_u sum_p max(n_p . u, 0)^2`` over unit vectors u, for the unit ``normals``
+    (P, 3) of a scene's planes (1 for a floor, for a floor with walls or any set of mutually
+    orthogonal planes, for opposite walls; about P for P planes of a shallow bowl, whose
+    contacts all push up together). Planes facing each other (``n_p . u < 0``) are not
+    counted: a body squeezed between them is not bounded either way. Maximised over the
+    normals, their pairwise and total sums and 256 spread directions, each refined by the
+    fixed point ``u <- sum_p max(n_p . u, 0) n_p`` (which never lowers the value)."""
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    if len(n) <= 1:
+        return float(len(n))
+    i = np.arange(256) + 0.5                        # a Fibonacci sphere
+    z = 1.0 - 2.0 * i / 256
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * i
+    rad = np.sqrt(1.0 - z * z)
+    cands = [n, np.stack([rad * np.cos(phi), rad * np.sin(phi), z], axis=1),
+             n.sum(axis=0, keepdims=True)]
+    if len(n) <= 64:
+        a, b = np.triu_indices(len(n), 1)
+        cands.append(n[a] + n[b])
+    u = np.concatenate(cands)
+    u = u[np.linalg.norm(u, axis=1) > 1e-9]
+    u = u / np.linalg.norm(u, axis=1, keepdims=True)
+    for _ in range(32):
+        proj = np.maximum(u @ n.T, 0.0)
+        nxt = proj @ n
+        norm = np.linalg.norm(nxt, axis=1, keepdims=True)
+        u = np.where(norm > 1e-12, nxt / np.where(norm > 1e-12, norm, 1.0), u)
+    return max(1.0, float((np.maximum(u @ n.T, 0.0) ** 2).sum(axis=1).max()))
+
+
 def _plane_bound(ctx: CompileContext):
-    """One contact spring per (free, colliding body, plane), k / m (one contact at a time)."""
-    rows = [(i, pl.material, 1.0, 1.0, f"contact with plane {p} (material {pl.material!r})")
+    """One contact spring per (free, colliding body, plane), k / m, one contact at a time,
+    times :func:`plane_crowding` of the scene's planes (the contacts of a bowl of planes
+    push together)."""
+    w = plane_crowding([pl.normal for pl in ctx.scene.planes])
+    rows = [(i, pl.material, w, w, f"contact with plane {p} (material {pl.material!r})")
             for i in _movers(ctx) for p, pl in enumerate(ctx.scene.planes)]
     return _one(Bound.of(rows, "contact", combine="contact"))
 

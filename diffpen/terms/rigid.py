@@ -26,6 +26,7 @@ from .. import rigid as _rigid
 from ..geometry import rotate
 from ..laws import spring_force
 from ..stability import Bound
+from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
 from .springs import _spring_axis
@@ -399,10 +400,11 @@ def _friction_row(scene, i: int, material: str, levers):
 def _box_plane_bound(ctx: CompileContext):
     """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
     scene, contact, friction = ctx.scene, [], []
+    crowd = plane_crowding([pl.normal for pl in scene.planes])
     for i in _box_rows(ctx):
         b = scene.bodies[i]
         for pl in scene.planes:
-            contact.append((i, pl.material, _face_mobility(b)))
+            contact.append((i, pl.material, crowd * _face_mobility(b)))
             if scene.materials[pl.material].friction > 0.0:
                 friction.append(_friction_row(scene, i, pl.material,
                                               geometry.box_corners(b.half_extents)))
