@@ -170,3 +170,47 @@ def test_builder_node_names_round_trip(tmp_path):
     back = read_record(path, body_names=["cloth[1,2]", "rope[3]"])
     np.testing.assert_array_equal(back.bodies["cloth[1,2]"].position, p)
     np.testing.assert_array_equal(back.bodies["rope[3]"].position, p + 1)
+
+
+def test_one_named_body_keeps_its_name(tmp_path):
+    """Regression: a one-body record was written t,x,y,z, dropping the body's name: read back
+    it was body "body" and a scene observing two bodies refused it. A plain one-body file
+    (and a record of body "body") still reads as before."""
+    t = np.array([0.0, 0.01, 0.02])
+    p = np.zeros((3, 3)) + [0.0, 0.0, 0.1]
+    path = str(tmp_path / "cube.csv")
+    write_record(path, Record("x", t, {"cube": BodyRecord(position=p)}))
+    assert open(path).readline().strip() == "t,cube.x,cube.y,cube.z"
+    back = read_record(path, body_names=["ball", "cube"])
+    assert list(back.bodies) == ["cube"]
+    np.testing.assert_array_equal(back.bodies["cube"].position, p)
+    write_record(path, Record("x", t, {"body": BodyRecord(position=p)}))
+    assert open(path).readline().strip() == "t,x,y,z"
+    assert list(read_record(path, body_names=["cube"]).bodies) == ["cube"]
+    assert list(read_record(path).bodies) == ["body"]
+
+
+@pytest.mark.parametrize("header", ["t,z,z", "t,T,z", "T,Z,t,z"])
+def test_ball_height_record_refuses_a_column_twice(tmp_path, header):
+    """Regression: read_height_record used the first of two z (or t) columns; read_record
+    refuses duplicates, and so does it now."""
+    n = len(header.split(","))
+    path = _write(tmp_path, header + "\n" + "".join(
+        ",".join([f"{i * 0.005}"] * n) + "\n" for i in range(40)))
+    with pytest.raises(RecordError, match=r"line 1: column '[tz]' appears twice in the header"):
+        read_height_record(path)
+
+
+def test_a_scene_body_left_out_of_observe_is_named_as_such(tmp_path):
+    """Regression: with [fit] observe = ["cube"], columns of the scene's body 'ball' were
+    refused as a body the scene does not have; the message now says it is not observed."""
+    path = _write(tmp_path, _rows(3, "cube.x,cube.y,cube.z,ball.x,ball.y,ball.z"))
+    with pytest.raises(RecordError, match=r"rec.csv, line 1, column 5: 'ball.x' names body "
+                                          r"'ball', which is not in \[fit\] observe \(cube\); "
+                                          r"add 'ball' to observe or drop its columns"):
+        read_record(path, body_names=["cube"], scene_names=["ball", "cube"])
+    with pytest.raises(RecordError, match="which the scene does not have; named bodies: cube"):
+        read_record(path, body_names=["cube"], scene_names=["cube"])
+    with pytest.raises(RecordError, match=r"column 2: 'cube.x' names body 'cube', which the "
+                                          r"scene does not have; named bodies: none \(give"):
+        read_record(path, body_names=[])

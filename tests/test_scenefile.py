@@ -420,6 +420,13 @@ BAD = [
      r"bounds 'contact.rubber.c', which is not in \[fit\] params"),
     ('broadphase = { kind = "octree" }\n' + BALL,
      r"broadphase\.kind must be one of 'aabb', 'grid'"),
+    # regression: grid bounds with lo >= hi passed the file and failed in compile, naming
+    # neither the file nor the key
+    ('broadphase = { kind = "grid", bounds = [[1.0, 1.0, 1.0], [0.0, 0.0, 0.0]] }\n' + BALL,
+     r"broadphase\.bounds = \[\[1\.0, 1\.0, 1\.0\], \[0\.0, 0\.0, 0\.0\]\] has lo >= hi "
+     r"on x, y, z: give \[\[x0, y0, z0\], \[x1, y1, z1\]\] \(m\) with x0 < x1"),
+    ('broadphase = { kind = "grid", bounds = [[0.0, 0.0, 0.0], [1.0, 1.0, 0.0]] }\n' + BALL,
+     r"broadphase\.bounds = .* has lo >= hi on z:"),
     ('law = "soft"\n' + BALL, r"law must be one of 'hunt_crossley', 'linear', 'no_tension'"),
     ("[[particles]]\nmass = 1.0\n", r"particles\[0\] is missing required key 'position'"),
     ("gravity = [0, 0, -9.81]\n", r"has no bodies"),
@@ -467,6 +474,13 @@ def test_20000_spheres_need_a_broad_phase(tmp_path):
     p.write_text(_spheres(200))
     with pytest.raises(SceneFileError, match="19,900 contact pairs"):
         load_scene_file(str(p), max_dense_pairs=1000)
+
+
+def test_grid_bounds_are_read(tmp_path):
+    p = tmp_path / "grid.toml"
+    p.write_text('broadphase = { kind = "grid", bounds = [[-1, -1, 0], [1, 1, 2.5]] }\n' + BALL)
+    bp = load_scene_file(str(p)).setup.compile_options["broadphase"]
+    assert bp.bounds == ((-1.0, -1.0, 0.0), (1.0, 1.0, 2.5))
 
 
 def test_builder_node_counts_are_guarded_before_building(tmp_path):

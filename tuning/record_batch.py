@@ -81,6 +81,7 @@ def _body_map(scene, records, bodies):
             except (TypeError, ValueError):
                 raise FitError(f"record body {n!r}: give bodies={{name: body index}} (or name "
                                "the scene's bodies) to say which body it is.") from None
+    seen = {}
     for n in names:
         if n not in bodies:
             raise FitError(f"record body {n!r} is not in bodies {sorted(bodies)}.")
@@ -88,6 +89,9 @@ def _body_map(scene, records, bodies):
         if not 0 <= i < scene.n_bodies:
             raise FitError(f"record body {n!r} maps to body {i}, not in the scene "
                            f"({scene.n_bodies} bodies).")
+        if seen.setdefault(i, n) != n:
+            raise FitError(f"record bodies {seen[i]!r} and {n!r} both map to body {i}: "
+                           "observe each scene body under one name.")
     return {n: bodies[n] for n in names}
 
 

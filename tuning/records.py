@@ -254,7 +254,7 @@ def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) ->
 
 
 # --------------------------------------------------------------------------- records
-def _parse_header(path: str, header: list[str], hline: int, body_names):
+def _parse_header(path: str, header: list[str], hline: int, body_names, scene_names=None):
     """t column index and {body: {group: [column index per component]}} from the header.
     Column letters are read in any case (``T,X,Y,Z``); body names keep theirs."""
     header = [f"{h.rpartition('.')[0]}.{h.rpartition('.')[2].lower()}" if "." in h
@@ -295,11 +295,19 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
                               "name; write NAME.x etc.")
         # a builder's node (rope[3], cloth[0, 4]) is resolved against the scene by the
         # caller (SceneFile.body_index), named bodies or not
-        if names is not None and body not in names and "[" not in body:
+        if names is not None and not plain and body not in names and "[" not in body:
+            if scene_names is not None and body in scene_names:
+                raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
+                                  f"{_q(body)}, which is not in [fit] observe "
+                                  f"({', '.join(names[:10])}"
+                                  f"{', ...' if len(names) > 10 else ''}); add {_q(body)} to "
+                                  "observe or drop its columns.")
+            fix = "" if names else (" (give the body a name = \"...\" in the scene, or "
+                                    "write plain x, y, z for a scene of one free body)")
             raise RecordError(f"{path}, line {hline}, column {j + 1}: {_q(h)} names body "
                               f"{_q(body)}, which the scene does not have; named bodies: "
                               f"{', '.join(names[:10]) or 'none'}"
-                              f"{', ...' if len(names) > 10 else ''}.")
+                              f"{', ...' if len(names) > 10 else ''}{fix}.")
         group, i = _SUFFIX[comp]
         cols.setdefault(body, {}).setdefault(group, [None] * len(GROUPS[group]))[i] = j
     if not cols:
@@ -320,22 +328,25 @@ def _parse_header(path: str, header: list[str], hline: int, body_names):
     return header.index("t"), cols
 
 
-def read_record(path, body_names=None, *, max_rows: int = DEFAULT_MAX_ROWS,
+def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFAULT_MAX_ROWS,
                 max_bytes: int = DEFAULT_MAX_BYTES, check_units: bool = True) -> Record:
     """Read a motion record (format in the module docstring).
 
     body_names: the scene's observed body names (a header without names then belongs to the
     only one; names in the header must be among them, or be a builder's node such as
-    ``rope[3]``, which the caller resolves), or None (a plain header is body
-    ``"body"``; any names are accepted). max_rows, max_bytes: size guard, checked from the file
-    size before anything is parsed. check_units: refuse times that look like milliseconds and
-    positions that look like millimetres.
+    ``rope[3]``, which the caller resolves; an empty list: the scene names no body, a plain
+    header is body ``"body"``), or None (a plain header is body ``"body"``; any names are
+    accepted). scene_names: all the scene's body names when ``body_names`` is a part of them
+    (``[fit] observe``): a column of one left out is refused as not observed. max_rows,
+    max_bytes: size guard, checked from the file size before anything is parsed.
+    check_units: refuse times that look like milliseconds and positions that look like
+    millimetres.
     Raises :class:`RecordError` (file, line, column and the fix). Nothing is compiled.
     """
     path = os.fspath(path)
     text = _read_text(path, max_rows, max_bytes)
     header, hline, data = _rows(path, text)
-    it, cols = _parse_header(path, header, hline, body_names)
+    it, cols = _parse_header(path, header, hline, body_names, scene_names)
     _check_lengths(path, header, data)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
@@ -396,6 +407,10 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     text = _read_text(path, max_rows, max_bytes)
     header, hline, data = _rows(path, text)
     low = [h.lower() for h in header]
+    dup = next((h for h in ("t", "z") if low.count(h) > 1), None)
+    if dup:
+        raise RecordError(f"{path}, line {hline}: column {_q(dup)} appears twice in the header; "
+                          "name each column once.")
     if "t" not in low or "z" not in low:
         raise RecordError(f"{path}, line {hline}: the first row must be a header with columns "
                           f"'t' and 'z' (time in s, ball centre height in m); it has "
@@ -422,9 +437,12 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
 
 
 def write_record(path, record: Record) -> None:
-    """Write ``record`` in the format :func:`read_record` reads (names prefixed when there is
-    more than one body; missing samples as empty cells), atomically."""
+    """Write ``record`` in the format :func:`read_record` reads (names prefixed, so that a
+    one-body record reads back for a scene of several bodies, except for one body named
+    ``"body"`` -- a plain header's -- or by an index; missing samples as empty cells),
+    atomically."""
     names = list(record.bodies)
+    plain = len(names) == 1 and (names[0] == "body" or not isinstance(names[0], str))
     header, blocks = ["t"], [np.asarray(record.t, dtype=float)[:, None]]
     for name in names:
         b = record.bodies[name]
@@ -432,7 +450,7 @@ def write_record(path, record: Record) -> None:
             a = getattr(b, group)
             if a is None:
                 continue
-            header += [c if len(names) == 1 else f"{name}.{c}" for c in comps]
+            header += [c if plain else f"{name}.{c}" for c in comps]
             blocks.append(np.asarray(a, dtype=float))
     table = np.concatenate(blocks, axis=1)
     tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"

@@ -188,8 +188,13 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
             b = t["bounds"]
             if not isinstance(b, list) or len(b) != 2:
                 raise (w / "bounds").error("must be [[x0, y0, z0], [x1, y1, z1]] (m).")
-            kw["bounds"] = tuple(V.vector(w / "bounds" / i, x, unit="m")
-                                 for i, x in enumerate(b))
+            kw["bounds"] = lo, hi = tuple(V.vector(w / "bounds" / i, x, unit="m")
+                                          for i, x in enumerate(b))
+            bad = [a for a, x0, x1 in zip("xyz", lo, hi) if not x0 < x1]
+            if bad:
+                raise (w / "bounds").error(
+                    f"= {V._show(b, 60)} has lo >= hi on {', '.join(bad)}: give "
+                    "[[x0, y0, z0], [x1, y1, z1]] (m) with x0 < x1, y0 < y1 and z0 < z1.")
         return dp.broadphase.Grid(**kw)
 
 
