@@ -176,3 +176,56 @@ def test_plots_show_every_observed_body(tmp_path, monkeypatch):
     assert any("rotation error, b" in s for s in titles)
     with open(path, "rb") as fh:
         assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_evaluate_refuses_a_plot_folder_it_cannot_write_before_rolling_out(
+        setup, tmp_path, capsys, monkeypatch):
+    """--plot DIR, an existing folder that takes no files: the records were rolled out, then
+    saving the first picture failed with a traceback and exit status 1 (the status of records
+    past the safe step). Now refused with status 2 before anything is compiled."""
+    scene, paths, *_ = setup
+
+    def boom(*a, **k):
+        raise AssertionError("rolled out before checking --plot")
+    monkeypatch.setattr(ev, "evaluator", boom)
+    folder = tmp_path / "plots"
+    folder.mkdir()
+    real = os.access
+
+    def access(path, mode, *a, **k):        # a read-only folder, even for root
+        if os.path.abspath(path) == str(folder) and mode & os.W_OK:
+            return False
+        return real(path, mode, *a, **k)
+    monkeypatch.setattr(os, "access", access)
+    capsys.readouterr()
+    assert main(["evaluate", scene, "--data", *paths, "--plot", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert f"--plot {folder}: the folder {folder} is not writable" in err
+    assert "Traceback" not in err
+
+
+def test_cli_evaluate_plot_folder_holds_this_runs_plots_only(setup, tmp_path, capsys):
+    """A second run into a --plot folder left the first run's pictures of other records (or
+    another scene) beside its own, looking current. Each run lists its plots with the scene
+    in DIR/plots.json, and the next run removes those listed that it does not redraw (and no
+    file the index does not list)."""
+    pytest.importorskip("matplotlib")
+    scene, paths, *_ = setup
+    plots = tmp_path / "plots"
+    capsys.readouterr()
+    assert main(["evaluate", scene, "--data", *paths, "--json", "--plot", str(plots)]) == 0
+    capsys.readouterr()
+    assert sorted(os.listdir(plots)) == ["plots.json", "toss_0.png", "toss_1.png"]
+    index = json.loads((plots / "plots.json").read_text())
+    assert index == {"scene": os.path.abspath(scene), "files": ["toss_0.png", "toss_1.png"],
+                     "records": [os.path.abspath(p) for p in paths]}
+    (plots / "mine.png").write_bytes(b"not listed")          # never touched
+    outside = tmp_path / "outside.png"
+    outside.write_bytes(b"not in the folder")
+    index["files"].append("../outside.png")                  # only plain names are removed
+    (plots / "plots.json").write_text(json.dumps(index))
+    assert main(["evaluate", scene, "--data", paths[0], "--json", "--plot", str(plots)]) == 0
+    assert json.loads(capsys.readouterr().out)["plots"] == [str(plots / "toss_0.png")]
+    assert sorted(os.listdir(plots)) == ["mine.png", "plots.json", "toss_0.png"]
+    assert outside.exists()
+    assert json.loads((plots / "plots.json").read_text())["files"] == ["toss_0.png"]

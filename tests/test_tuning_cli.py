@@ -174,3 +174,62 @@ def test_simulate_a_scene_file_keeps_each_materials_k_and_c(capsys, tmp_path):
     assert out["contact_durations"][0] < 0.011
     assert main(["simulate", str(path)]) == 0          # the text output too
     assert "k=300 N/m, c=2 N s/m" in capsys.readouterr().out
+
+
+def test_simulate_out_must_be_a_new_npz_not_the_scene_file(capsys, tmp_path, monkeypatch):
+    """`diffpen simulate SCENE.toml --out SCENE.toml` wrote the trajectory over the scene
+    file (exit 0); --out is now refused, before anything is loaded, when it is the scene
+    file or does not end in .npz."""
+    import diffpen as dp
+
+    def boom(*a, **k):
+        raise AssertionError("compiled before checking --out")
+    monkeypatch.setattr(dp, "compile", boom)
+    scene = tmp_path / "ball.toml"
+    text = ("dt = 1e-3\nduration = 0.02\n[[spheres]]\nradius = 0.1\nmass = 1.0\n"
+            "position = [0.0, 0.0, 0.5]\n[[planes]]\n")
+    scene.write_text(text)
+    assert main(["simulate", str(scene), "--out", str(scene)]) == 2
+    assert "is one of the inputs" in capsys.readouterr().err
+    assert scene.read_text() == text
+    assert main(["simulate", str(scene), "--out", str(tmp_path / "traj.txt")]) == 2
+    assert "must end in .npz" in capsys.readouterr().err
+    assert not (tmp_path / "traj.txt").exists()
+
+
+def test_sweep_refuses_a_csv_beside_out_that_is_not_its_table(capsys, tmp_path):
+    """`diffpen sweep --out record.npz` overwrote an unrelated record.csv (a t,z record)
+    with its table, while an unrelated record.npz was refused."""
+    rec = tmp_path / "record.csv"
+    rec.write_text("t,z\n0.0,1.0\n0.1,0.95\n")
+    for fresh in ([], ["--fresh"]):
+        assert main(["sweep", "--n", "2", "--duration", "0.3", "--out",
+                     str(tmp_path / "record.npz")] + fresh) == 2
+        err = capsys.readouterr().err
+        assert "record.csv exists and is not the table of a sweep" in err
+        assert "Move it, or choose another output path" in err
+        assert rec.read_text() == "t,z\n0.0,1.0\n0.1,0.95\n"
+        assert not (tmp_path / "record.npz").exists()
+
+
+def test_sweep_counts_unsettled_points_apart_from_unstable_ones(capsys, tmp_path):
+    """Points past the safe step kept the blown-up rollout's `settled` in the .npz and .csv,
+    and "N points did not settle" counted them: they are settled False now and the count is
+    over the points within the safe step, the unstable ones counted apart."""
+    out = str(tmp_path / "u.npz")
+    argv = ["sweep", "--n", "3", "--duration", "1", "--dt", "4e-3", "--chunk", "9", "--out",
+            out]
+    rc, js = run_json(capsys, argv)
+    assert rc == 0
+    with np.load(out) as f:
+        unstable = f["metric:unstable"].astype(bool)
+        settled = f["metric:settled"].astype(bool)
+    table = np.genfromtxt(str(tmp_path / "u.csv"), delimiter=",", names=True)
+    assert 0 < unstable.sum() < 9 and js["unstable"] == unstable.sum()
+    assert not (settled & unstable).any()
+    np.testing.assert_array_equal(table["settled"], settled.astype(float))
+    assert js["unsettled"] == int(np.sum(~settled & ~unstable)) > 0
+    assert main(argv) == 0                  # resumed: the text says the same
+    text = capsys.readouterr().out
+    assert (f"{js['unsettled']} points did not settle within 1 s: their settling_time is NaN "
+            f"(besides the {js['unstable']} past the safe step)") in text

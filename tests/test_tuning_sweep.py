@@ -113,3 +113,113 @@ def test_random_points_and_bad_input():
         S.sweep(lambda p: {}, None, np.ones((3, 3)), NAMES)
     with pytest.raises(ValueError, match=">= 0"):
         S.sweep(lambda p: {}, None, -np.ones((3, 2)), NAMES)
+
+
+# a sweep of a few host-cheap metrics: resume keys, tables and flags without rollouts
+TOY_NAMES = ["contact.default.k"]
+TOY_POINTS = np.arange(1.0, 9.0)[:, None]          # (8, 1)
+
+
+def toy_params():
+    from diffpen.state import ContactParams
+    return dp.Params({"default": ContactParams(np.float64(1.0), np.float64(2.0))}, {}, {})
+
+
+def toy(p):
+    k = p.contact["default"].k
+    return {"twice": 2.0 * k, "settled": k > 2.0, "unstable": k > 6.0}
+
+
+def toy_sweep(out, evaluate=None, **kw):
+    import jax
+    if evaluate is None:
+        kw.setdefault("batch_map", lambda f: jax.jit(jax.vmap(f)))
+    return S.sweep(None if evaluate is not None else toy, toy_params(), TOY_POINTS, TOY_NAMES,
+                   chunk=4, out=out, evaluate=evaluate, progress=False, **kw)
+
+
+def stop_first(i, res):
+    raise KeyboardInterrupt
+
+
+def test_a_sweep_without_key_is_keyed_by_its_finalize(tmp_path):
+    """Without key=, the key was only the digest of metrics_fn: a run resumed with another
+    finalize= mixed rows post-processed two ways."""
+    out = str(tmp_path / "f.npz")
+
+    def halve(th):
+        def finalize(m, pts):
+            m["twice"] = np.where(pts[:, 0] > th, 0.5 * m["twice"], m["twice"])
+            return m
+        return finalize
+    with pytest.raises(KeyboardInterrupt):
+        toy_sweep(out, on_chunk=stop_first)
+    before = open(out, "rb").read()
+    with pytest.raises(S.SweepError, match='finalize: file has "<absent>"'):
+        toy_sweep(out, finalize=halve(2.0))
+    assert open(out, "rb").read() == before                 # refused, nothing mixed in
+    with pytest.raises(KeyboardInterrupt):
+        toy_sweep(out, finalize=halve(2.0), resume=False, on_chunk=stop_first)
+    with pytest.raises(S.SweepError, match="finalize: file has"):
+        toy_sweep(out, finalize=halve(3.0))                 # the same code, another value
+    res = toy_sweep(out, finalize=halve(2.0))               # the same finalize resumes
+    assert res.evaluated == 4 and res.done.all()
+    np.testing.assert_array_equal(res.metrics["twice"][:6],
+                                  np.where(TOY_POINTS[:6, 0] > 2.0, 1.0, 2.0) * TOY_POINTS[:6, 0])
+
+
+def test_a_sweep_without_key_is_keyed_by_the_metrics_its_evaluator_keeps(tmp_path):
+    """A run resumed with a make_evaluator keeping other metrics ended with every point done
+    and each metric NaN on half of them: refused now, naming the metrics."""
+    import jax
+    out = str(tmp_path / "e.npz")
+
+    def ev(keys):
+        return S.make_evaluator(toy, toy_params(), TOY_NAMES, keys=keys,
+                                batch_map=lambda f: jax.jit(jax.vmap(f)))
+    with pytest.raises(KeyboardInterrupt):
+        toy_sweep(out, evaluate=ev(["twice"]), on_chunk=stop_first)
+    with pytest.raises(S.SweepError, match=r'metrics: file has \["twice"\], this run has '
+                                           r'\["settled"\]'):
+        toy_sweep(out, evaluate=ev(["settled"]))
+    res = toy_sweep(out, evaluate=ev(["twice"]))
+    assert res.evaluated == 4 and np.isfinite(res.metrics["twice"][:6]).all()
+
+
+def test_points_past_the_safe_step_are_not_settled(tmp_path):
+    """Points past the safe step had their float metrics NaN but kept the bool 'settled' of
+    the blown-up rollout, in memory, the .npz and the .csv."""
+    out = str(tmp_path / "u.npz")
+    res = toy_sweep(out)
+    k = TOY_POINTS[:, 0]
+    bad = k > 6.0                     # their rollouts' "settled" would say True
+    assert res.unstable == 2
+    assert np.isnan(res.metrics["twice"][bad]).all()
+    np.testing.assert_array_equal(res.metrics["settled"], (k > 2.0) & ~bad)
+    np.testing.assert_array_equal(S.load_sweep(out).metrics["settled"], (k > 2.0) & ~bad)
+    table = np.genfromtxt(str(tmp_path / "u.csv"), delimiter=",", names=True)
+    np.testing.assert_array_equal(table["settled"], ((k > 2.0) & ~bad).astype(float))
+
+
+def test_a_csv_that_is_not_the_sweeps_table_is_refused(tmp_path):
+    """The .csv beside out= was overwritten whatever it held (e.g. a t,z record) while an
+    unrelated .npz at out= was refused."""
+    rec = tmp_path / "record.csv"
+    rec.write_text("t,z\n0.0,1.0\n0.1,0.95\n")
+    for fresh in (False, True):
+        with pytest.raises(S.SweepError, match="is not the table of a sweep in .*Move it, "
+                                               "or choose another output path"):
+            toy_sweep(str(tmp_path / "record.npz"), resume=not fresh)
+        assert rec.read_text() == "t,z\n0.0,1.0\n0.1,0.95\n"
+        assert not (tmp_path / "record.npz").exists()
+    # beside a sweep file too: the table must be that sweep's
+    out = str(tmp_path / "s.npz")
+    toy_sweep(out)
+    table = open(str(tmp_path / "s.csv")).read()
+    assert toy_sweep(out).evaluated == 0                    # its own table: resumed
+    assert toy_sweep(out, resume=False).evaluated == 8      # and overwritten when asked
+    (tmp_path / "s.csv").write_text("t,z\n0.0,1.0\n")
+    with pytest.raises(S.SweepError, match="not the table"):
+        toy_sweep(out, resume=False)
+    assert (tmp_path / "s.csv").read_text() == "t,z\n0.0,1.0\n"
+    assert table.startswith("contact.default.k,") and table.splitlines()[0].endswith(",done")

@@ -32,6 +32,10 @@ from .trajfit import Batch, rotation_angle, simulate
 
 __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
 
+#: the file in an ``evaluate --plot`` folder naming the scene, the records and the plots of
+#: the run that drew them (the next run into the folder removes those it does not redraw)
+PLOT_INDEX = "plots.json"
+
 
 @dataclasses.dataclass
 class Evaluation:
@@ -190,11 +194,14 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     """``diffpen evaluate SCENE.toml --data FILES...``: open-loop accuracy of the scene file
     (its parameter values as written) on the records. Returns the JSON-ready summary
     (``position_error_pct``, ``rotation_error_deg``, ``records``, ``seconds`` of the
-    rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder) also draws
-    the first ``n_plot`` records to ``plot/NAME.png``. ``estimate`` / ``max_frames``: the
-    first-state estimate and its frame cap (:func:`tuning.first_state.first_state`); None:
-    the scene file's ``[fit] first_state`` / ``flight_frames``, else ``"record"`` /
-    ``FLIGHT_FRAMES`` (20)."""
+    rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder, checked
+    before anything is compiled) also draws the first ``n_plot`` records to
+    ``plot/NAME.png`` and lists them in ``plot/plots.json`` with the scene and the records
+    (:data:`PLOT_INDEX`); the PNGs an earlier run's index lists that this run does not
+    redraw are removed (no other file in the folder is touched). ``estimate`` /
+    ``max_frames``: the first-state estimate and its frame cap
+    (:func:`tuning.first_state.first_state`); None: the scene file's ``[fit] first_state`` /
+    ``flight_frames``, else ``"record"`` / ``FLIGHT_FRAMES`` (20)."""
     import os
 
     from .scenefile import load_scene_file
@@ -202,7 +209,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     sf = load_scene_file(scene_path)
     records, bodies = load_records(sf, list(data) if data else list(
         (sf.spec.data if sf.spec is not None else None) or []))
-    if plot is not None:
+    if plot is not None:            # checked before anything is compiled or rolled out
         if os.path.exists(plot) and not os.path.isdir(plot):
             raise FitError(f"--plot {plot} is a file: --plot names a folder for the "
                            "pictures (one PNG per record); give a folder path.")
@@ -211,6 +218,15 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
         except OSError as exc:
             raise FitError(f"--plot {plot}: cannot create the folder ({exc.strerror}); "
                            "choose another path.") from None
+        if not os.access(plot, os.W_OK | os.X_OK):
+            raise FitError(f"--plot {plot}: the folder {os.path.abspath(plot)} is not "
+                           "writable; choose another path.")
+        if os.path.isdir(os.path.join(plot, PLOT_INDEX)):
+            raise FitError(f"--plot {plot}: {os.path.join(plot, PLOT_INDEX)} is a folder; "
+                           "the plots' index is written there: move it or choose another "
+                           "path.")
+        from .plots import require_matplotlib
+        require_matplotlib()
     spec = sf.spec
     estimate = estimate or (spec.first_state if spec is not None else None) or "record"
     max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
@@ -228,12 +244,46 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     out.update({"scene": scene_path, "estimate": estimate, "compile_seconds": compile_s,
                 "bodies": bodies})
     if plot is not None:
-        paths = []
         shown = range(min(n_plot, len(records)))
         names = [os.path.splitext(os.path.basename(records[r].path))[0] for r in shown]
-        for r, name in zip(shown, names):
-            if names.count(name) > 1:      # same file name in two folders: one plot each
-                name = f"{r:03d}_{name}"
-            paths.append(plot_records(os.path.join(plot, f"{name}.png"), batch, ev, [r]))
-        out["plots"] = paths
+        files = [f"{r:03d}_{name}.png" if names.count(name) > 1    # same file name in two
+                 else f"{name}.png" for r, name in zip(shown, names)]   # folders: one each
+        # an earlier run's plots that this one does not redraw would look current: the
+        # index lists every file a run wrote (first with the earlier ones, so that a run
+        # stopped half way leaves none unlisted), and those it listed are removed after
+        old = [f for f in _listed_plots(plot) if f not in files]
+        index = {"scene": os.path.abspath(scene_path),
+                 "records": [os.path.abspath(records[r].path) for r in shown]}
+        _write_plot_index(plot, dict(index, files=files + old))
+        out["plots"] = [plot_records(os.path.join(plot, f), batch, ev, [r])
+                        for r, f in zip(shown, files)]
+        for f in old:
+            if os.path.isfile(os.path.join(plot, f)):
+                os.remove(os.path.join(plot, f))
+        _write_plot_index(plot, dict(index, files=files))
     return out
+
+
+def _listed_plots(folder: str) -> list:
+    """The plot files the index in ``folder`` lists (plain ``.png`` names in the folder;
+    anything else in it is ignored); [] without a readable index."""
+    import json
+    import os
+    try:
+        with open(os.path.join(folder, PLOT_INDEX)) as fh:
+            files = json.load(fh).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    if not isinstance(files, list):
+        return []
+    return [f for f in files if isinstance(f, str) and f.lower().endswith(".png")
+            and f == os.path.basename(f)]
+
+
+def _write_plot_index(folder: str, index: dict) -> None:
+    import json
+    import os
+
+    from .io import atomic_write
+    text = json.dumps(index, indent=1) + "\n"
+    atomic_write(os.path.join(folder, PLOT_INDEX), lambda fh: fh.write(text.encode()))

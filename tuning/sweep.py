@@ -38,7 +38,7 @@ import diffpen as dp
 
 from . import distributed
 from . import params as P
-from .io import (OutputLock, atomic_write, check_output, clean_orphans,
+from .io import (OutputLock, _plain, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
 from .progress import Progress
 
@@ -47,7 +47,8 @@ __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
            "UNSTABLE"]
 
 #: name of the optional per-point metric that flags a rollout past its safe step (from
-#: ``traj.aux["unstable"][-1]``); points where it is true are returned as NaN and counted.
+#: ``traj.aux["unstable"][-1]``); points where it is true are returned as NaN (bool metrics
+#: False) and counted.
 UNSTABLE = "unstable"
 
 
@@ -65,7 +66,8 @@ class SweepResult:
     metric reshapes to ``shape + metric.shape[1:]``.  axes: per-parameter grid values.
     seconds: wall time of this call.  evaluated: points computed by this call (the rest were
     read back from ``out``).  key: the key stored with the results (see :func:`sweep_key`).
-    unstable: points whose rollout went past its safe step (their metrics are NaN).
+    unstable: points whose rollout went past its safe step (their float metrics are NaN,
+    their bool metrics False).
     """
     names: list
     points: np.ndarray
@@ -136,6 +138,7 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     evaluate = batch_map(one)
     try:        # what it computes, for the key of a sweep given only the evaluator
         evaluate.metrics_fn, evaluate.params0 = metrics_fn, params0
+        evaluate.keys = None if keys is None else list(keys)
     except AttributeError:   # a batch_map whose result takes no attributes
         pass
     return evaluate
@@ -153,6 +156,63 @@ def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
         h.update(str((a.dtype, a.shape)).encode())
         h.update(np.ascontiguousarray(a).tobytes())
     return h.hexdigest()
+
+
+def _data(v) -> bool:
+    """Plain data (numbers, strings, arrays and lists of them): stored by value in a key."""
+    if isinstance(v, np.ndarray):
+        return v.dtype.kind in "biuf"
+    if v is None or isinstance(v, (bool, int, float, str, np.number, np.bool_)):
+        return True
+    if isinstance(v, (list, tuple)):
+        return all(_data(x) for x in v)
+    if isinstance(v, dict):
+        return all(isinstance(k, str) and _data(x) for k, x in v.items())
+    return False
+
+
+def _code_key(fn: Callable) -> str:
+    """``"module.name sha256:..."``: a digest of a Python function's own code (its bytecode,
+    constants and names, those of functions defined in it, and the values of the numbers,
+    strings and arrays it closes over or takes as defaults; of anything else only the type).
+    A sweep written to ``out`` without ``key=`` stores it for ``finalize=``, so that a rerun
+    post-processing its rows another way is refused. What it calls is not followed. Raises
+    :class:`SweepError` for a callable without code of its own (a ``functools.partial``, an
+    object with ``__call__``)."""
+    code = getattr(fn, "__code__", None)
+    if code is None:
+        raise SweepError(f"a sweep written to out= needs key= when finalize= is not a plain "
+                         f"function (got {type(fn).__name__}): say what it does in the key.")
+    h = hashlib.sha256()
+
+    def feed(const):
+        if hasattr(const, "co_code"):                # the function, or one defined inside
+            h.update(const.co_code)
+            h.update(repr(const.co_names).encode())
+            for c in const.co_consts:
+                feed(c)
+        elif isinstance(const, tuple):
+            h.update(b"(")
+            for c in const:
+                feed(c)
+            h.update(b")")
+        elif isinstance(const, frozenset):           # set literals: no stable order
+            h.update(repr(sorted(map(repr, const))).encode())
+        else:
+            h.update(repr(const).encode())
+    feed(code)
+    values = list(getattr(fn, "__defaults__", None) or ())
+    values += sorted((getattr(fn, "__kwdefaults__", None) or {}).items())
+    for cell in getattr(fn, "__closure__", None) or ():
+        try:
+            values.append(cell.cell_contents)
+        except ValueError:                           # a cell not yet filled
+            values.append(None)
+    for v in values:
+        h.update((json.dumps(_plain(v)) if _data(v)
+                  else type(v).__qualname__).encode())
+    name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', type(fn).__name__)}"
+    return f"{name} sha256:{h.hexdigest()[:16]}"
 
 
 def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = None) -> dict:
@@ -216,6 +276,21 @@ def _read_key(path: str):
         return None
 
 
+def _own_table(csv_path: str, out: str) -> bool:
+    """Whether ``csv_path`` is the table :func:`_save` wrote beside the sweep file ``out``:
+    ``out`` is a sweep file and the table's header is its swept names ... ``done``."""
+    try:
+        with np.load(out, allow_pickle=False) as f:
+            if "key" not in f.files:
+                return False
+            names = [str(n) for n in f["names"]]
+        with open(csv_path, "rb") as fh:
+            header = fh.readline(1 << 16).decode().strip().split(",")
+    except Exception:  # noqa: BLE001 - no sweep file, or a table that is not text
+        return False
+    return len(header) > len(names) and header[:len(names)] == names and header[-1] == "done"
+
+
 def load_sweep(path: str) -> SweepResult:
     """Read a sweep written by :func:`sweep` (complete or interrupted)."""
     with np.load(path, allow_pickle=False) as f:
@@ -241,14 +316,15 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     Args:
       metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``. A metric named
         ``"unstable"`` (e.g. ``traj.aux["unstable"][-1]``) marks points whose rollout went
-        past its safe step: their other float metrics are NaN and they are counted in
-        ``result.unstable``.
+        past its safe step: their other float metrics are NaN, their bool metrics (e.g.
+        ``settled``) False, and they are counted in ``result.unstable``.
       params0: :class:`diffpen.Params` giving the leaves that are not swept.
       points: (N, P) parameter values, SI units.  names: (P,) leaf paths.
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
       out: ``.npz`` path; results (and a ``.csv`` beside it) are written atomically after
-        every chunk. The paths are checked before anything is computed, and an exclusive
-        lock (``.<name>.lock`` beside it) keeps a second writer out.
+        every chunk. The paths are checked before anything is computed (a ``.csv`` there
+        that is not the table of the sweep in ``out`` is refused, never overwritten), and an
+        exclusive lock (``.<name>.lock`` beside it) keeps a second writer out.
       resume: continue a sweep found at ``out`` when its key equals this sweep's (see
         :func:`sweep_key`); a file with another key raises :class:`SweepError` naming what
         differs. ``resume=False`` overwrites ``out``.
@@ -257,8 +333,11 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         (:func:`tuning.io.describe_simulator` builds most of it). With ``out`` and no key,
         the key is :func:`function_key` of ``metrics_fn`` (or of the function a
         :func:`make_evaluator` evaluator was built from; any other ``evaluate`` needs a
-        key): a rerun computing anything else is refused, never mixed in.
-      keys: metrics to keep (default all).  shape, axes: grid layout (see :func:`grid_points`).
+        key) and a digest of ``finalize``'s code: a rerun computing anything else is
+        refused, never mixed in.
+      keys: metrics to keep (default all; a :func:`make_evaluator` evaluator's own ``keys``
+        when it was given some: the key holds the metrics it keeps).
+      shape, axes: grid layout (see :func:`grid_points`).
       batch_map: lifts the per-point function to a batch (default
         :func:`tuning.shard.sharded_map`: split over all devices with a ``NamedSharding``;
         ``jax.jit(jax.vmap(f))`` on a single device).
@@ -300,6 +379,10 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
                              "would resume into the same file.")
         p0 = params0 if metrics_fn is not None else getattr(evaluate, "params0", params0)
         key = {"metrics_fn": function_key(fn, p0)}
+        if finalize is not None:    # rows post-processed another way are other results
+            key["finalize"] = _code_key(finalize)
+    if getattr(evaluate, "keys", None) is not None:     # what a prebuilt evaluator keeps
+        keys = evaluate.keys
     full_key = sweep_key(names, points, params0, keys, shape, key)
     # several processes: all must run the same sweep; process 0 alone checks, locks, reads
     # and writes ``out`` and hands what it resumed to the others (no shared file system)
@@ -319,6 +402,11 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
                 lock = OutputLock(out, what="sweep output").acquire()
                 clean_orphans(out)
                 clean_orphans(csv_path)
+                if os.path.exists(csv_path) and not _own_table(csv_path, out):
+                    raise SweepError(
+                        f"{csv_path} exists and is not the table of a sweep in {out}: the "
+                        "sweep writes its table there, which would overwrite it. Move it, or "
+                        "choose another output path (diffpen sweep --out).")
                 if not (os.path.exists(out) and resume):
                     return None
                 diff = key_differences(_read_key(out), full_key)
@@ -366,9 +454,9 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
         if UNSTABLE in got:   # past the safe step: never returned as a result
             bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)
         for k, v in got.items():
-            if bad is not None and k != UNSTABLE and v.dtype.kind == "f" and bad.any():
-                v = np.array(v)
-                v[bad] = np.nan
+            if bad is not None and k != UNSTABLE and v.dtype.kind in "fb" and bad.any():
+                v = np.array(v)        # a blown-up rollout's "settled" is no result either
+                v[bad] = np.nan if v.dtype.kind == "f" else False
             if k not in res.metrics:
                 res.metrics[k] = np.full((n,) + v.shape[1:], np.nan if v.dtype.kind == "f"
                                          else 0, dtype=v.dtype)

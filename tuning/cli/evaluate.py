@@ -15,8 +15,9 @@ def add_arguments(p) -> None:
                    help="records to evaluate on (default: the scene file's [fit] data)")
     add_start_state_arguments(p)
     p.add_argument("--plot", metavar="DIR", help="draw simulated against measured "
-                   "trajectories of the first 4 records into DIR, one PNG each (needs "
-                   "matplotlib)")
+                   "trajectories of the first 4 records into DIR, one PNG each, listed with "
+                   "the scene in DIR/plots.json (the PNGs an earlier run listed there that "
+                   "this run does not redraw are removed; needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
@@ -28,7 +29,7 @@ def run(args) -> int:
         from ..evaluate import evaluate_files
         out = evaluate_files(args.scene, args.data, estimate=args.first_state,
                              plot=args.plot, max_frames=args.flight_frames)
-    except (CLIError, ValueError, ImportError) as exc:
+    except (CLIError, ValueError, ImportError, OSError) as exc:
         return fail("evaluate", str(exc))
     code = 1 if out.get("unstable") else 0      # records past the safe step: not results
     if code:

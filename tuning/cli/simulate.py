@@ -60,8 +60,14 @@ def _run(args) -> int:
     if args.c is not None and not args.c >= 0.0:
         raise CLIError("--c must be >= 0 (N s/m)")
     if args.out:
-        from ..io import check_output
+        from ..io import check_distinct, check_output
+        from ..scenefile import is_scene_path
         check_output(args.out, what="--out")
+        check_distinct({"--out": args.out},
+                       inputs=[args.scene] if is_scene_path(args.scene) else [])
+        if not args.out.lower().endswith(".npz"):
+            raise CLIError(f"--out {args.out} must end in .npz (the trajectory is written as "
+                           "a NumPy .npz archive)")
     setup = _load(args)                       # scene built and validated: nothing compiled yet
     dt = args.dt or setup.dt
     steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))

@@ -56,7 +56,8 @@ def add_arguments(p) -> None:
                    "call (bounds memory; default 512, 32 with SCENE.toml)")
     p.add_argument("--out", default="sweep.npz", help="results .npz (a .csv is written "
                    "beside it); an interrupted sweep with the same settings resumes from it, "
-                   "a file of other settings is refused")
+                   "a file of other settings is refused, and so is a .csv there that is not "
+                   "its table")
     p.add_argument("--fresh", action="store_true", help="overwrite an existing --out file "
                    "instead of resuming it")
     p.add_argument("--plot", metavar="FILE.png", help="heatmap of --metric over (k, c)")
@@ -206,7 +207,7 @@ def _run(args) -> int:
         heatmap(args.plot, ks, cs, grid, metric=label, target=args.target,
                 title=f"{label}: {nk}x{nc} sweep, {args.duration:g} s ball, dt={args.dt:g} s")
     finite_ = np.isfinite(grid)
-    unsettled = int(np.sum(~np.asarray(res.metrics["settled"], bool)))
+    unsettled = _unsettled(res)
     out = {"points": int(points.shape[0]), "grid": [nk, nc], "evaluated": res.evaluated,
            "seconds": res.seconds, "out": args.out,
            "csv": args.out[:-4] + ".csv", "plot": args.plot,
@@ -226,7 +227,8 @@ def _run(args) -> int:
         print(f"{args.metric}: {out['range'][0]:.4g} .. {out['range'][1]:.4g} over the grid")
     if unsettled:
         print(f"{unsettled} points did not settle within {args.duration:g} s: their "
-              "settling_time is NaN")
+              "settling_time is NaN" + (f" (besides the {res.unstable} past the safe "
+                                        "step)" if res.unstable else ""))
     if res.unstable:
         print(f"{res.unstable} points are past the explicit step's safe limit (w0 dt > 0.5 or "
               "c dt / m > 1): their metrics are NaN (lower --dt to compute them)")
@@ -235,6 +237,17 @@ def _run(args) -> int:
         print(f"note: w0 dt reaches {w_max:.2f} at the stiff end; above ~0.25 the explicit "
               "step's error in restitution exceeds ~0.5% (lower --dt for accuracy there)")
     return 0
+
+
+def _unsettled(res) -> int:
+    """Points within the safe step that did not settle (those past it are counted apart, in
+    ``res.unstable``: their ``settled`` is False, not a result)."""
+    import numpy as np
+    n = res.points.shape[0]
+    settled = np.asarray(res.metrics["settled"], bool).reshape(n, -1).all(axis=1)
+    unstable = np.asarray(res.metrics.get("unstable", np.zeros(n, bool)),
+                          bool).reshape(n, -1).any(axis=1)
+    return int(np.sum(res.done & ~settled & ~unstable))
 
 
 def _is_writer() -> bool:
@@ -315,7 +328,7 @@ def _run_scene(args) -> int:
            "range": [float(np.nanmin(values)), float(np.nanmax(values))]
            if finite_.any() else None, "lowest": best, "unstable": res.unstable}
     if "settled" in res.metrics:        # the bounce: as the ball's sweep reports it
-        out["unsettled"] = int(np.sum(~np.asarray(res.metrics["settled"], bool)))
+        out["unsettled"] = _unsettled(res)
     if args.json:
         dump_json(out)
         return 0
@@ -335,7 +348,8 @@ def _run_scene(args) -> int:
               "(lower dt in the scene file to compute them)")
     if out.get("unsettled"):
         print(f"{out['unsettled']} points did not settle within the scene's duration: their "
-              "settling_time is NaN")
+              "settling_time is NaN" + (f" (besides the {res.unstable} past the safe "
+                                        "step)" if res.unstable else ""))
     print(f"wrote {args.out} and {out['csv']}" + (f"; heatmap {args.plot}" if args.plot else ""))
     return 0
 
