@@ -300,9 +300,10 @@ class Simulator:
         (n_bodies, 3) N m, or None for scenes without rotating bodies. Pure; jitted.
 
         ``h``: the integrator's inner step, s. None (default): the instantaneous, pointwise
-        forces. Given: contacts apply their force averaged over the step window of length
-        ``h`` centred on this state (``diffpen.laws.ContactLaw.averaged``), which is what the
-        step integrates (static: a new value recompiles)."""
+        forces. Given: contacts apply their force averaged over the window ``s in [-h, h]``
+        around this state, weighted by the hat ``1 - |s| / h`` of the step grid
+        (``diffpen.laws.ContactLaw.averaged``, ``diffpen.window``), which is what the step
+        integrates (static: a new value recompiles)."""
         return self._forces_jit(params, state, h=h)
 
     def _forces(self, params: Params, state: State, found: dict | None = None, *,

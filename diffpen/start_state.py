@@ -75,6 +75,14 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
             raise SceneError(f"body {int(idx[moving[0]])} is pinned (fixed in space, it never "
                              "moves): it takes no velocity. Set velocities of free bodies "
                              "only (zero is accepted), or unpin it in the scene.")
+    if orientation is not None and not isinstance(orientation, jax.core.Tracer):
+        norms = np.linalg.norm(np.broadcast_to(np.asarray(orientation, dtype=float),
+                                               (len(idx), 4)), axis=-1)
+        bad = np.flatnonzero(~(norms > 1e-12) | ~np.isfinite(norms))
+        if bad.size:
+            raise SceneError(f"orientation of body {int(idx[bad[0]])} has norm "
+                             f"{norms[bad[0]]:.3g}: give a unit quaternion (w, x, y, z), "
+                             "e.g. (1, 0, 0, 0) for no rotation (it is normalised).")
     if position is not None and not isinstance(position, jax.core.Tracer):
         # a start pose deep inside a plane or fixed sphere: the scene's own overlap rule
         from .overlap import check_start_pose

@@ -11,6 +11,9 @@ import pathlib
 
 from tuning import plots
 
+#: this folder (examples/): the README's pictures are in its images/
+HERE = pathlib.Path(__file__).resolve().parent
+
 __all__ = ["example_parser", "example_pyplot", "save_figure", "save_strip", "save_gif"]
 
 
@@ -19,10 +22,15 @@ def example_parser(description: str, default_out: str, *,
                    gif_help: str = "also write an animated GIF") -> argparse.ArgumentParser:
     """An ``argparse.ArgumentParser`` with the flags every example takes: ``--quick``,
     ``--out`` (the PNG, default ``default_out``; the GIF goes next to it) and ``--gif``.
-    Add the example's own flags to the returned parser."""
+    A default under ``examples/`` names the README's pictures in this folder, wherever the
+    script runs from (as the other examples' defaults do), not a folder of that name under
+    the current one. Add the example's own flags to the returned parser."""
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--quick", action="store_true", help=quick_help)
-    ap.add_argument("--out", default=default_out)
+    if default_out.startswith("examples/"):
+        default_out = str(HERE / default_out[len("examples/"):])
+    ap.add_argument("--out", default=default_out,
+                    help="the picture (default: %(default)s)")
     ap.add_argument("--gif", action="store_true", help=gif_help)
     return ap
 

@@ -255,6 +255,18 @@ def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
     np.testing.assert_allclose(w[-1, 0], [300.0, 10.0, 10.0], rtol=1e-12)
 
 
+def test_state_from_refuses_a_zero_quaternion():
+    """state_from normalised a zero orientation to NaN: sim.step returned NaN positions and
+    rollout blamed "NaN/inf in" an orientation typed as zeros (add_box refuses it)."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    box = s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0))
+    bsim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.SceneError, match="orientation of body 0 has norm 0.*unit quaternion"):
+        bsim.state_from(body=box, orientation=(0.0, 0.0, 0.0, 0.0))
+    st = bsim.state_from(body=box, orientation=(2.0, 0.0, 0.0, 0.0))     # normalised
+    np.testing.assert_allclose(st.orientation[box], [1.0, 0.0, 0.0, 0.0])
+
+
 def test_a_traced_sweep_over_start_spins_flags_the_rows_past_the_spin_limit():
     """Under jit(vmap) over start spins, rows past SPIN_LIMIT ended NaN with
     aux["unstable"] False (the traced flag had no spin term), while a concrete rollout of the

@@ -105,7 +105,30 @@ def test_network_bound_is_safe_and_tight_for_a_chain():
     assert w_true <= rep.omega_max <= 1.05 * w_true
     assert rep.stable_dt == pytest.approx(2 / rep.omega_max)
     assert rep.margin == pytest.approx(rep.stable_dt / 1e-3)
-    assert math.isclose(rep.safe_dt, rep.stable_dt)    # springs only: no contact tightening
+    # springs only: no contact tightening, SAFE_STABLE of the undamped limit
+    assert math.isclose(rep.safe_dt, stability.SAFE_STABLE * rep.stable_dt)
+
+
+@pytest.mark.parametrize("frac", [0.95, 0.999999])
+def test_a_step_near_the_springs_stability_limit_is_refused(frac):
+    """Springs had no margin: a particle on an undamped spring released at 1 cm stretch
+    reached 7.1 cm at 0.99 of the limit and 70.8 m at 0.999999 (semi-implicit Euler's
+    amplitude 1 / sqrt(1 - (w h / 2)^2)), all accepted as safe. Within 10% of the limit
+    the rollout is refused; at 0.9 the amplitude stays within its 2.3x."""
+    k, m = 100.0, 1.0
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    p = s.add_particle(m, (0.01, 0.0, 0.0))
+    s.add_spring(p, (0.0, 0.0, 0.0), k=k, c=0.0, rest_length=0.0)
+    limit = 2.0 / math.sqrt(k / m)
+    sim = dp.compile(s, frac * limit)
+    with pytest.raises(dp.StabilityError, match="within 10% of its undamped stability limit"):
+        sim.rollout(sim.params(), 10)
+    flag = jax.jit(lambda q: sim.rollout(q, 2).aux["unstable"][-1])(sim.params())
+    assert bool(flag)
+    ok = dp.compile(s, 0.899 * limit)
+    x = ok.rollout(ok.params(), 2000).position[:, p, 0]
+    wh = 0.899 * 2.0
+    assert float(jnp.max(jnp.abs(x))) <= 0.01 * 1.01 / math.sqrt(1.0 - (wh / 2.0) ** 2)
 
 
 def test_stability_error_names_dt_and_substeps(ball_scene, ball_sim):

@@ -22,7 +22,8 @@ Each force term carries its own rows of these bounds (a :class:`Bound` on its
 it (the rigid-body terms' rows include rotation: a contact at a lever arm r adds about
 k r^2 / I, up to ~3 k / m for a box corner). A term without a bound adds nothing.
 
-Rollouts of explicit integrators are held to a *safe* step (``safe_dt``): the stability limit,
+Rollouts of explicit integrators are held to a *safe* step (``safe_dt``): ``SAFE_STABLE = 0.9``
+of the stability limit (near the limit a stable oscillation's amplitude grows without bound),
 tightened to ``w_c h <= SAFE_WH = 0.5`` and ``C_c h <= SAFE_CH = 1`` for the contact springs
 (w_c^2 = k / m, C_c = c / m of the stiffest contact of a body), because a penalty
 contact that switches on or off between steps injects energy ~ (w h)^2 / 4 (see SAFE_WH).
@@ -41,8 +42,8 @@ Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps
 """
 from .bounds import FLAG, Analysis, Bound, Rates, rates, scene_rates, unsafe
 from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report
-from .modes import SAFE_CH, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt, stable_dt
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt, stable_dt
 
-__all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH", "SAFE_CH",
+__all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH", "SAFE_CH", "SAFE_STABLE",
            "Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG",
            "StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..integrators import Integrator
 from ..params import _known_value
-from .modes import SAFE_CH, SAFE_WH, _spectral_radius_2x2
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG"]
 
@@ -264,7 +264,8 @@ def unsafe(an: Analysis, params, h=None):
     simulator's) is past the safe step for ``params`` (tracers welcome: jit, vmap, grad).
 
     The same rows as the up-front check (:func:`rates` with ``jax.numpy``) and the same
-    limits: ``h >= min(stable_dt, SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
+    limits: ``h >= min(stable_dt, SAFE_STABLE x the undamped limit, SAFE_WH / w_c,
+    SAFE_CH / C_c)``, the stability limit
     from the integrator's closed form when it has one (then it agrees with the up-front check
     to rounding), else from the spectral radius of its amplification matrix at ``h`` for the
     modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
@@ -282,11 +283,15 @@ def unsafe(an: Analysis, params, h=None):
     if rec.stable_dt is not None:
         sdt = rec.stable_dt(K, C, xp=jnp)
         sdt = jnp.where((K <= 0.0) & (C <= 0.0), jnp.inf, sdt)
-        bad = sdt <= h
+        undamped = rec.stable_dt(K, jnp.zeros_like(C), xp=jnp)
+        bad = (sdt <= h) | ((K > 0.0) & (SAFE_STABLE * undamped <= h))
     else:
+        # the undamped mode held to SAFE_STABLE of its limit: h / SAFE_STABLE within it
         Ks = jnp.stack([K, K, jnp.zeros_like(K)])
         Cs = jnp.stack([C, jnp.zeros_like(C), C])
-        rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, h, xp=jnp), jnp)
+        hs = jnp.stack([jnp.asarray(h, K.dtype), jnp.asarray(h / SAFE_STABLE, K.dtype),
+                        jnp.asarray(h, K.dtype)])
+        rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, hs, xp=jnp), jnp)
         # a neutral mode (a pure dashpot's |rho| = 1 exactly) reads 1 + 2e-6 in float32:
         # the margin follows the dtype's rounding
         margin = max(1e-9, 64.0 * float(jnp.finfo(rho.dtype).eps))

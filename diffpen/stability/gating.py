@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import SceneError, StabilityError
 from .bounds import Analysis, rates
-from .modes import SAFE_CH, SAFE_WH, safe_dt, stable_dt
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, mode_stable_dt, safe_dt, stable_dt
 
 __all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
 
@@ -27,8 +27,8 @@ class StabilityReport(NamedTuple):
     stable_dt: largest linearly stable inner step, s (inf: no limit).
     margin: stable_dt / inner_dt (> 1 stable; < 1 unstable).
     stable: margin > 1.
-    safe_dt: largest inner step the rollout accepts, s: ``min(stable_dt, SAFE_WH / w_max,
-      SAFE_CH / C)`` for explicit integrators (inf for implicit ones); see ``SAFE_WH``.
+    safe_dt: largest inner step the rollout accepts, s: ``min(stable_dt, SAFE_STABLE x
+      the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH / C_contact)`` for explicit integrators (inf for implicit ones); see ``SAFE_WH``.
     safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is <= 1.
     safe: safe_margin > 1.
     substeps_needed: smallest substep count whose inner step is within safe_dt.
@@ -115,7 +115,8 @@ def report(sim, params, *, substeps: int | None = None,
         substeps = an.substeps if isinstance(an.substeps, int) else 1
     h = an.dt / substeps
     margin = math.inf if math.isinf(sdt) else sdt / h
-    safe = safe_dt(rec, float(np.max(Kc, initial=0.0)), float(np.max(Cc, initial=0.0)), sdt)
+    safe = safe_dt(rec, float(np.max(Kc, initial=0.0)), float(np.max(Cc, initial=0.0)), sdt,
+                   K)
     safe_margin = math.inf if math.isinf(safe) else safe / h
     body = int(np.argmax(K_row)) if K > 0.0 else None
     return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
@@ -275,6 +276,9 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                 "integrator='implicit_euler' (no step limit).",
                 stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
         why = ("unstable" if not rep.stable else
+               f"stable but within {1.0 - SAFE_STABLE:.0%} of its undamped stability limit, "
+               "where oscillations grow without bound as the limit nears" if rep.omega_max > 0.0 and h > SAFE_STABLE * mode_stable_dt(
+                   an.integrator, rep.omega_max ** 2, 0.0) else
                f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
                f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
                f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
