@@ -288,7 +288,9 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     ``|v| dt`` on every axis: the box swept over the step window of the step-averaged
     contact, which acts from a gap of ``|vn| h`` on along the contact's normal, whatever its
     direction (``ctx.step`` = dt; the speed, not each axis' component: a pair closing at an
-    angle was dropped)."""
+    angle was dropped). A box's sweep adds its corners' turning speed ``|w| |h|`` (``|h|``
+    the half-diagonal): a spinning box's corner reaches a sphere its centre's speed does
+    not (a 10 cm box at 100 rad/s missed a ball 5 mm from its face)."""
     bodies = ctx.scene.bodies
     r = ctx.const(ctx.radius[idx] + margin)[:, None]
     boxes = np.array([bodies[i].kind == "box" for i in idx])
@@ -305,6 +307,10 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
     box_w = jnp.sum(jnp.abs(rot) * half[:, None, :], axis=-1) + margin
     if ctx.step:
         box_w = box_w + sweep
+        if state.angular_velocity is not None:     # None: no rotating body in the scene
+            turn = (jnp.linalg.norm(state.angular_velocity[idx], axis=-1, keepdims=True)
+                    * jnp.linalg.norm(half, axis=-1, keepdims=True))
+            box_w = box_w + turn * ctx.step
     return jnp.where(jnp.asarray(boxes)[:, None], box_w, r)
 
 
@@ -369,11 +375,12 @@ def brute_force_pairs(ctx: CompileContext, state, margin: float = 0.0) -> set:
 
 
 def warn_overflow(traj) -> None:
-    """Warn when a concrete trajectory's ``aux["broadphase_overflow"]`` is set."""
+    """Warn when a concrete trajectory's (or ``sim.forces``' search's)
+    ``aux["broadphase_overflow"]`` is set."""
     flag = traj.aux.get(OVERFLOW) if isinstance(traj.aux, dict) else None
     if flag is not None and float(np.asarray(flag).reshape(-1)[-1]) > 0.0:
-        warnings.warn("the broad phase overflowed its static capacity during this rollout: "
-                      "some contacts were not evaluated. Raise max_pairs (or Grid "
+        warnings.warn("the broad phase overflowed its static capacity: some contacts were "
+                      "not evaluated. Raise max_pairs (or Grid "
                       "max_per_cell), or widen Grid bounds.", BroadPhaseOverflowWarning,
                       stacklevel=3)
 

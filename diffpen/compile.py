@@ -24,6 +24,7 @@ delegate to them.
 """
 from __future__ import annotations
 
+import types
 from typing import Callable
 
 import jax
@@ -219,6 +220,7 @@ class Simulator:
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
+        self._search_aux_jit = jax.jit(self._search_aux)
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
         self._validated: dict = {}          # params values checked (diffpen.params.validate)
         self._spin_kappa = _checks.spin_anisotropy(scene)   # (n,) inertia anisotropy
@@ -303,8 +305,29 @@ class Simulator:
         forces. Given: contacts apply their force averaged over the window ``s in [-h, h]``
         around this state, weighted by the hat ``1 - |s| / h`` of the step grid
         (``diffpen.laws.ContactLaw.averaged``, ``diffpen.window``), which is what the step
-        integrates (static: a new value recompiles)."""
-        return self._forces_jit(params, state, h=h)
+        integrates (static: a new value recompiles). With a broad phase and concrete
+        values, a search past its static capacity warns
+        (:class:`diffpen.broadphase.BroadPhaseOverflowWarning`), as a rollout does: the
+        forces then miss contacts."""
+        out = self._forces_jit(params, state, h=h)
+        if self._reporting and all(map(_is_concrete, jax.tree_util.tree_leaves(
+                (params, state)))):
+            view = types.SimpleNamespace(aux=self._search_aux_jit(params, state))
+            for term in self._reporting:
+                term.report(view)
+        return out
+
+    def _search_aux(self, params: Params, state: State) -> dict:
+        """The ``State.aux`` entries the terms' searches record for ``state`` (e.g. the broad
+        phase's overflow flag)."""
+        aux = {}
+        for term in self._searching:
+            if term.record is not None:
+                # this state's search alone: the term's entries start cleared (not sticky)
+                fresh = {**state.aux, **{k: jnp.zeros_like(jnp.asarray(v))
+                                         for k, v in (term.aux or {}).items()}}
+                aux.update(term.record(fresh, term.search(params, state)))
+        return aux
 
     def _forces(self, params: Params, state: State, found: dict | None = None, *,
                 h: float | None = None, columns: bool = False):

@@ -147,6 +147,19 @@ def test_overflow_is_reported_never_silent(crowded):
     np.testing.assert_array_equal(np.asarray(traj.aux[bp.OVERFLOW]), 1.0)
 
 
+def test_forces_warn_when_their_search_overflows(crowded):
+    """sim.forces on a crowded state returned forces missing contacts (4061 N off all
+    pairs) with no flag and no warning; only step and rollout reported the overflow."""
+    state = crowded.init_state()
+    p = crowded.params(k=1e4, c=20.0)
+    with pytest.warns(bp.BroadPhaseOverflowWarning, match="some contacts were not evaluated"):
+        crowded.forces(p, state)
+    roomy = dp.compile(crowded.scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        roomy.forces(p, state)                    # room for every pair: silent
+
+
 def test_full_cell_is_reported_as_overflow():
     scene = dp.Scene(gravity=(0.0, 0.0, 0.0), allow_overlap=True)     # crowded on purpose
     for i in range(5):                                    # five spheres in one cell
@@ -385,6 +398,25 @@ def test_fast_and_oblique_approaches_equal_all_pairs():
     assert np.abs(forces["all"]).max() > 1e-3
     for name in ("aabb", "grid"):
         np.testing.assert_allclose(forces[name], forces["all"], rtol=1e-12)
+
+
+def test_a_spinning_box_reaches_a_sphere_its_centre_speed_does_not():
+    """A 10 cm box spinning at 100 rad/s (corners at 14 m/s) with a ball 5 mm from its face:
+    the bounding boxes were swept by the centre's |v| dt only, so AABB and Grid dropped the
+    pair (0 N against 5.76 N from all pairs) with no overflow reported."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(0.0, 0.0, -100.0))
+    ball = s.add_sphere(0.02, 0.1, (0.125, 0.09, 0.0))
+    runs = {}
+    for name, b in (("all", None), ("aabb", bp.AABB()), ("grid", bp.Grid())):
+        sim = dp.compile(s, 1e-3, broadphase=b)
+        p = sim.params(k=1e4, c=5.0)
+        f = np.asarray(sim.forces(p, sim.init_state(), h=1e-3)[0][ball])
+        runs[name] = (f, np.asarray(sim.rollout(p, 20).velocity))
+    assert runs["all"][0][0] > 1.0
+    for name in ("aabb", "grid"):
+        np.testing.assert_allclose(runs[name][0], runs["all"][0], rtol=1e-12)
+        np.testing.assert_allclose(runs[name][1], runs["all"][1], rtol=0, atol=1e-12)
 
 
 def test_broadphase_pairs_take_the_centred_law_as_all_pairs_do():
