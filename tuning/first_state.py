@@ -19,7 +19,8 @@ from .pose import exp_quat, qconj, qmul, rotmat, rotvec
 __all__ = ["first_state", "flight_frames", "torque_free", "FLIGHT_FRAMES"]
 
 #: Default cap on the free-flight frames of the "fit" estimate (more frames average more
-#: noise out; the cube tosses' held-out errors: 14.8% / 18.8 deg with 10, 14.0% / 18.5 with 20).
+#: noise out; the cube tosses' held-out errors: 14.8% / 18.8 deg with 10, 14.0% / 18.5 with 20,
+#: before the velocity lag below).
 FLIGHT_FRAMES = 20
 
 
@@ -144,7 +145,8 @@ def _free_flight(scene, index) -> bool:
 
 
 def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
-                estimate: str = "fit", max_frames: int = FLIGHT_FRAMES, margin: float = 0.005):
+                estimate: str = "fit", max_frames: int = FLIGHT_FRAMES, margin: float = 0.005,
+                lag: float = 0.0):
     """Start pose and velocities of one body from the first frames of its record.
 
     Args:
@@ -163,6 +165,13 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         velocity.
         Finite-difference velocity columns are biased (the cube records' row-0 vertical
         velocity by about +0.023 m/s): ``"fit"`` avoids that bias.
+      lag: s, the integrator's velocity lag: ``h / 2`` for semi-implicit and implicit Euler
+        (inner step h), whose steps ``x += h v_new`` trace the fitted path
+        ``p0 + v t + a t^2 / 2`` only from the velocity ``v - a h / 2`` (0 for verlet and
+        rk4). A velocity estimated from the positions is returned as ``v - lag a``, ``a``
+        the fit's acceleration (gravity in free flight): otherwise a ball dropped from rest
+        and recorded by the simulator itself started at -g h / 2 and the fit moved k by
+        2%. Velocity columns are taken as given, as the state's velocity.
     Returns:
       ``(position (3,), velocity (3,), orientation (4,) or None, omega_world (3,) or None)``.
     """
@@ -188,20 +197,24 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     if len(use) < 2:
         use = np.arange(1)
     A = np.stack([np.ones(len(use)), tt[use]], axis=1)
+    accel = np.zeros(3)                 # the acceleration of the fitted path, m/s^2
     if free and len(use) >= 2:
         coef = np.linalg.lstsq(A, pos[use] - 0.5 * g * tt[use, None] ** 2, rcond=None)[0]
+        accel = g
     elif len(use) >= 3:
         A3 = np.concatenate([A, 0.5 * tt[use, None] ** 2], axis=1)
-        coef = np.linalg.lstsq(A3, pos[use], rcond=None)[0][:2]
+        coef3 = np.linalg.lstsq(A3, pos[use], rcond=None)[0]
+        coef, accel = coef3[:2], coef3[2]
     elif len(use) == 2:
         coef = np.linalg.lstsq(A, pos[use], rcond=None)[0]
     else:
         coef = np.stack([pos[0], np.zeros(3)])
-    p0, v0 = (pos[0], None) if estimate == "record" else (coef[0], coef[1])
+    fitted_v = coef[1] - lag * accel    # the velocity from which the steps trace the path
+    p0, v0 = (pos[0], None) if estimate == "record" else (coef[0], fitted_v)
     if estimate == "record" and vel is not None and np.all(np.isfinite(vel[0])):
         v0 = vel[0]
     if v0 is None:
-        v0 = coef[1]
+        v0 = fitted_v
     if quat is None:
         return p0, v0, None, None
     q = quat / np.linalg.norm(quat, axis=-1, keepdims=True)

@@ -133,6 +133,9 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     times = np.zeros((R, T))
     starts, blind = [], []
     s_init = sim.init_state()
+    # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it
+    lag = (0.5 * sim.analysis.inner_dt
+           if sim.integrator in ("semi_implicit_euler", "implicit_euler") else 0.0)
     for r, rec in enumerate(records):
         n = len(rec.t)
         u = (rec.t - rec.t[0]) / (save_every * sim.dt)
@@ -156,14 +159,15 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                 qmask[r, :n, b] = okq
             else:
                 q = None
-            key = (id(rec), name, int(idx[b]), estimate, max_frames)
+            key = (id(rec), name, int(idx[b]), estimate, max_frames, lag)
             if cache is not None and key in cache:
                 p0, v0, q0, w0 = cache[key][1]
             else:
                 try:
                     p0, v0, q0, w0 = first_state(scene, int(idx[b]), rec.t, p, q,
                                                  br.velocity, br.angular_velocity,
-                                                 estimate=estimate, max_frames=max_frames)
+                                                 estimate=estimate, max_frames=max_frames,
+                                                 lag=lag)
                 except FitError as exc:             # say which file and body
                     raise FitError(f"{rec.path}, body {name!r}: {exc}") from None
                 if cache is not None:               # the record is kept: its id stays its own
