@@ -84,7 +84,8 @@ from . import geometry, integrators, laws, physical, stability  # noqa: E402
 from . import autodiff, broadphase, builders, plastic, rigid, rollout, terms  # noqa: E402
 from .autodiff import grad, value_and_grad  # noqa: E402
 from .compile import Simulator, compile  # noqa: E402
-from .errors import NonFiniteError, PerformanceWarning, SceneError, StabilityError  # noqa: E402
+from .errors import (ContactWarning, NonFiniteError, PerformanceWarning,  # noqa: E402
+                     SceneError, StabilityError)
 from .integrators import Integrator  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .state import ContactParams, Params, SpringParams, State, Trajectory  # noqa: E402
@@ -94,7 +95,7 @@ __version__ = "0.1.0"
 __all__ = [
     "Scene", "compile", "Simulator", "Integrator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
-    "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning",
+    "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning", "ContactWarning",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
     "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

@@ -224,6 +224,7 @@ class Simulator:
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
         self._validated: dict = {}          # params values checked (diffpen.params.validate)
         self._spin_kappa = _checks.spin_anisotropy(scene)   # (n,) inertia anisotropy
+        self._tunnel_table = _checks.tunnelling_table(scene)  # spheres that can meet
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
@@ -550,6 +551,9 @@ class Simulator:
             # more substeps, a fixed count is refused (traced params never raise)
             n = _checks.check_spin(self, state, int(n),
                                    auto=substeps is None and self.substeps == "auto")
+            if self._tunnel_table is not None and all(map(_is_concrete, (state.position,
+                                                                         state.velocity))):
+                _checks.check_tunnelling(self, params, state)
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
                                  substeps=int(n), observe=observe)

@@ -1,7 +1,8 @@
 """Exceptions raised by diffpen. Each message says what to change."""
 from __future__ import annotations
 
-__all__ = ["SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning"]
+__all__ = ["SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning",
+           "ContactWarning"]
 
 
 class SceneError(ValueError):
@@ -31,3 +32,9 @@ class PerformanceWarning(UserWarning):
     """A call that works but runs several times slower than an equivalent form; the message
     names the fast form (filter it with ``warnings.simplefilter("ignore",
     diffpen.PerformanceWarning)``)."""
+
+
+class ContactWarning(UserWarning):
+    """A start state that drives a contact past what a penalty spring can hold (two spheres
+    closing too fast for their contact: they would pass through each other); the message
+    says what to change."""

@@ -84,3 +84,41 @@ def test_matrix_lists_every_case_and_counts_outcomes():
     summary = extreme.summarize_matrix([{"outcome": "ok"},
                                         {"outcome": "refused", "remedy": "ok"}])
     assert summary == {"cases": 2, "ok": 1, "refused": 1, "refused->remedy ok": 1}
+
+
+def test_spheres_closing_too_fast_for_their_contact_warn():
+    """Two 1 kg spheres of radius 0.1 m at k 1e4 N/m closing at 100 m/s passed through each
+    other (and a ball through a fixed sphere) with no word: the contact stores at most
+    k (r_a + r_b)^2 / 2 = 200 J before the centres meet, the pair brings 2500 J. At 10 m/s
+    (25 J) they bounce, silently."""
+    import warnings
+
+    import numpy as np
+
+    def pair(v):
+        s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        s.add_sphere(0.1, 1.0, (-0.5, 0.0, 0.0), velocity=(v / 2, 0.0, 0.0))
+        s.add_sphere(0.1, 1.0, (0.5, 0.0, 0.0), velocity=(-v / 2, 0.0, 0.0))
+        return dp.compile(s, dt=1e-3)
+    sim = pair(100.0)
+    with pytest.warns(dp.ContactWarning, match=r"sphere 0 and sphere 1 close at 100 m/s.*"
+                      r"stores at most 200 J.*bring 2.5e\+03 J.*Raise k above 1.25e\+05"):
+        traj = sim.rollout(sim.params(k=1e4, c=0.0), 600)
+    assert float(traj.position[-1, 0, 0]) > float(traj.position[-1, 1, 0])   # passed through
+    slow = pair(10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        traj = slow.rollout(slow.params(k=1e4, c=0.0), 600)
+    assert float(traj.position[-1, 0, 0]) < float(traj.position[-1, 1, 0])   # bounced
+    # moving apart: nothing to warn about, however fast
+    apart = pair(-100.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apart.rollout(apart.params(k=1e4, c=0.0), 10)
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_sphere(0.1, 1.0, (-1.0, 0.0, 0.0), velocity=(100.0, 0.0, 0.0))
+    s.add_fixed_sphere((0.0, 0.0, 0.0), 0.1)
+    fixed = dp.compile(s, dt=1e-3)
+    with pytest.warns(dp.ContactWarning, match="sphere 0 and fixed sphere 0 close at 100 m/s"):
+        fixed.rollout(fixed.params(k=1e4, c=0.0), 10)
+    assert np.isfinite(float(traj.position[-1, 0, 0]))
