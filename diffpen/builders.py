@@ -44,6 +44,9 @@ def _count(name: str, value, minimum: int = 2) -> int:
 
 
 def _pos(name: str, value) -> float:
+    if isinstance(value, (str, bytes, bool, np.bool_)):     # numbers only, never coerced
+        raise SceneError(f"{name} must be a number, got {value!r}"
+                         + (": write it without quotes." if isinstance(value, str) else "."))
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -70,6 +73,9 @@ def _kc(name: str, value) -> tuple[float, float] | None:
     if isinstance(value, (int, float, np.floating, np.integer)):
         value = (value, 0.0)
     try:
+        if isinstance(value, (str, bytes)) or any(
+                isinstance(v, (str, bytes, bool, np.bool_)) for v in value):
+            raise ValueError                        # numbers only, never coerced
         k, c = (float(v) for v in value)
     except (TypeError, ValueError):
         raise SceneError(f"{name} must be (k, c) in (N/m, N s/m), a bare k, or None to leave "
@@ -84,7 +90,8 @@ def _pins(name: str, pinned, shape: tuple[int, ...]) -> set[tuple[int, ...]]:
     out = set()
     for p in (pinned or ()):
         q = (p,) if isinstance(p, (int, np.integer)) else tuple(p)
-        if len(q) != len(shape) or not all(isinstance(v, (int, np.integer)) for v in q):
+        if len(q) != len(shape) or not all(isinstance(v, (int, np.integer))
+                                           and not isinstance(v, (bool, np.bool_)) for v in q):
             raise SceneError(f"{name}: each pinned node must be {len(shape)} integer grid "
                              f"index(es) for a grid of shape {shape}, got {p!r}.")
         if not all(-s <= v < s for v, s in zip(q, shape)):
@@ -342,6 +349,8 @@ def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[
     mass = _pos("bar mass (kg)", mass)
     k, c = _kc("bar (k, c)", (k, c))
     try:
+        if isinstance(yield_strain, (str, bytes, bool, np.bool_)):
+            raise ValueError                        # numbers only, never coerced
         ys = float(yield_strain)
     except (TypeError, ValueError):
         ys = float("nan")
@@ -414,6 +423,8 @@ def paper_chain(*, seed: int = 0, spread: float = 80.0, n_balls: int = 7, mass: 
     kd = _kc("chain KD", (kd, 0.0))[0]
     g = _kc("chain g", (g, 0.0))[0]
     p0, p1 = _vec("chain first (m)", first), _vec("chain last (m)", last)
+    spread = 0.0 if spread == 0 and not isinstance(spread, (str, bytes, bool)) else _pos(
+        "paper chain spread (m, the z scatter of the start positions; 0 for none)", spread)
     rng = np.random.default_rng(seed)
     scene = Scene(gravity=(0.0, 0.0, -g))
     balls = [scene.add_particle(mass, p0, pinned=True, collide=False)]

@@ -54,8 +54,9 @@ def main(argv=None) -> int:
     for label, (x, rest) in runs.items():
         length = _length(x, nodes)
         print(f"{label:32s}: length {length[0]:.3f} m -> shortest {length.min():.3f} m -> "
-              f"final {length[-1]:.3f} m (permanent set {length[0] - length[-1]:+.3f} m); "
-              f"members' rest lengths: {rest[-1].sum() / rest[0].sum():.1%} of the initial")
+              f"final {length[-1]:.3f} m ({length[0] - length[-1]:+.3f} m shorter, its "
+              f"vibration included); members' rest lengths (the permanent set): "
+              f"{rest[-1].sum() / rest[0].sum():.1%} of the initial")
     _draw(runs, nodes, t, pathlib.Path(args.out), args.gif)
     return 0
 

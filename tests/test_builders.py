@@ -6,7 +6,7 @@ from scipy.optimize import minimize
 
 import diffpen as dp
 from jaxpr_scopes import traced_scopes
-from diffpen.builders import add_cloth, add_jelly, add_rope
+from diffpen.builders import add_cloth, add_crumple_bar, add_jelly, add_rope, paper_chain
 
 
 def _scopes(sim, params):
@@ -209,3 +209,41 @@ def test_cli_simulate_cloth_sag_matches_scipy_static_equilibrium(capsys):
     centre = n // 2 * n + n // 2             # node (4, 4) of the 9 x 9 grid
     assert out["max_speed"] < 1e-6
     assert out["centre_sag"] == pytest.approx(-ref[centre, 2], rel=1e-5)
+
+
+@pytest.mark.parametrize("build, words", [
+    # a two-character string was split into (k, c) = (5, 0)
+    (lambda s: add_rope(s, 3, (0, 0, 0), (1, 0, 0), 1.0, 10.0, bend="50"), "rope"),
+    (lambda s: add_cloth(s, 3, 3, 0.1, 1.0, shear="12"), "cloth"),
+    (lambda s: add_rope(s, 3, (0, 0, 0), (1, 0, 0), "2", 10.0), "without quotes"),
+    (lambda s: add_rope(s, 3, (0, 0, 0), (1, 0, 0), 1.0, True), "rope"),     # k = 1 N/m
+    (lambda s: add_rope(s, 3, (0, 0, 0), (1, 0, 0), 1.0, 10.0, pinned=[True]), "pinned"),
+    (lambda s: add_crumple_bar(s, 3, (0, 0, 0), (1, 0, 0), 1.0, 10.0, yield_strain="0.1"),
+     "yield_strain"),
+])
+def test_builders_refuse_strings_and_bools_as_numbers(build, words):
+    """The builders coerced what dp.Scene refuses: bend="50" became (k, c) = (5, 0),
+    mass="2" a number, k=True 1 N/m, pinned=[True] node 1."""
+    with pytest.raises(dp.SceneError, match=words):
+        build(dp.Scene())
+
+
+@pytest.mark.parametrize("spread", [-5.0, float("nan"), float("inf"), "8"])
+def test_paper_chain_spread_is_checked(spread):
+    """spread=-5 raised numpy's "high - low < 0", NaN or inf an OverflowError."""
+    with pytest.raises(dp.SceneError, match="spread"):
+        paper_chain(spread=spread)
+    assert paper_chain(spread=0.0)[1] is not None
+
+
+def test_yield_strain_params_are_real_scalars():
+    """sim.params took a string or a vector yield strain (a vector of the wrong length then
+    failed inside the rollout with a raw broadcasting error)."""
+    s = dp.Scene()
+    add_crumple_bar(s, 4, (0, 0, 0), (1, 0, 0), 1.0, 100.0, group="bar")
+    sim = dp.compile(s, 1e-3)
+    for bad, words in (("0.1", "without quotes"), (np.array([0.1, 0.2]), "scalar"),
+                       (True, "must be a number"), (1.5, r"in \(0, 1\)")):
+        with pytest.raises(dp.SceneError, match=words):
+            sim.params(extra={"plastic": {"bar": bad}})
+    sim.params(extra={"plastic": {"bar": 0.1}})

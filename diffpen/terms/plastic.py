@@ -53,10 +53,14 @@ def rest_update(length, rest, rest0, yield_strain, width: float):
 
 
 def _check_yield(label: str, value) -> None:
-    """Concrete yield strains must lie in (0, 1); tracers (grad, vmap) are not checked."""
-    if isinstance(value, jax.core.Tracer):
+    """A yield strain: a real scalar as every parameter (``params._check_value``: no strings,
+    bools or arrays), within (0, 1) when concrete (under jax.grad too)."""
+    from ..params import _check_value, _known_value
+    _check_value(label, value)
+    known = _known_value(value)
+    if known is None:
         return
-    arr = np.asarray(value, dtype=float)
+    arr = np.asarray(known, dtype=float)
     if not np.all((arr > 0.0) & (arr < 1.0)):
         raise SceneError(f"{label} is a yield strain and must be in (0, 1) (compression at "
                          f"which a member starts to crumple, as a fraction of its length), got "
