@@ -74,8 +74,13 @@ def sphere_box(xs, rs, xb, rot, half):
       ``(d, n, p)``: penetration depth d (m; ``rs - distance`` from the centre to the box, or
       ``rs + depth`` of the centre inside the box along its shallowest face), the unit normal
       n (3,) pointing from the box to the sphere, and the contact point p (3,) on the box
-      surface, world frame, m. Continuous across the box surface; finite gradients when the
-      centre lies on the surface.
+      surface, world frame, m. d and p are continuous across the box surface; n is
+      continuous while the centre is outside the box, at faces, edges and corners alike (it
+      follows the closest point), and where the centre crosses a face away from its edges.
+      With the centre inside the box or on its surface, the face of least depth decides, so
+      n and p jump inside where two faces are equally deep, and n jumps where the centre
+      crosses the surface at an edge or corner (outside it points along the diagonal, on and
+      inside along a face normal). Finite gradients when the centre lies on the surface.
     """
     local = rotate_back(rot, xs - xb)
     closest = jnp.clip(local, -half, half)

@@ -15,8 +15,6 @@ bodies compressed on purpose.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .errors import SceneError
@@ -64,6 +62,32 @@ def _sphere_box_depth(xs, rs, box) -> np.ndarray:
     dist = np.linalg.norm(local - closest, axis=-1)
     inside = dist <= 0.0
     return np.where(inside, rs + np.min(half - np.abs(local), axis=-1), rs - dist)
+
+
+def _box_fixed_sphere(box, i: int, fs, j: int, started: bool = False) -> None:
+    """Refuse box ``i`` (at its pose in ``box``) deep inside fixed sphere ``j`` (the pair the
+    simulator evaluates as a sphere against the box), with the move that makes them touch."""
+    center = np.asarray(fs.center, dtype=float)
+    d = float(_sphere_box_depth(center[None], np.array([fs.radius]), box)[0])
+    tol = OVERLAP_TOL * min(fs.radius, min(box.half_extents))
+    if not _over(d, tol):
+        return
+    rot = quat_matrix(box.orientation)
+    half = np.asarray(box.half_extents)
+    local = (center - np.asarray(box.position)) @ rot
+    delta = local - np.clip(local, -half, half)
+    if np.linalg.norm(delta) > 0.0:             # centre outside the box: along the gap
+        n = delta / np.linalg.norm(delta)
+    else:                                       # inside: through the shallowest face
+        a = int(np.argmin(half - np.abs(local)))
+        n = np.zeros(3)
+        n[a] = 1.0 if local[a] >= 0.0 else -1.0
+    away = 0.0 - rot @ n                        # from the sphere's centre to the box
+    where = "started at" if started else "at"
+    _refuse(f"box {i} {where} {_fmt(box.position)} (half extents {_fmt(half)}) and fixed "
+            f"sphere {j} (center {_fmt(center)}, radius {fs.radius:.4g} m)", d, tol,
+            f"it starts inside fixed sphere {j}: move {'its start' if started else 'it'} "
+            f"{d:.4g} m along {_fmt(away)} to touch the sphere's surface")
 
 
 def _fmt(v) -> str:
@@ -168,7 +192,7 @@ class OverlapIndex:
             if body.pinned and box.pinned:
                 continue
             d = float(_sphere_box_depth(x[None], np.array([r]), box)[0])
-            tol = OVERLAP_TOL * min(r if r > 0 else math.inf, min(box.half_extents))
+            tol = OVERLAP_TOL * min(r, min(box.half_extents))   # a particle: any overlap
             if _over(d, tol):
                 _refuse(f"{body.kind} {idx} at {_fmt(x)} (radius {r:.4g} m) and box {j} at "
                         f"{_fmt(box.position)}", d, tol, "move it out of the box")
@@ -208,13 +232,15 @@ class OverlapIndex:
                             f"{_fmt(corners[d.argmax()])}) and plane {j} (normal {_fmt(pl.normal)}, offset {pl.offset:.4g} m)",
                             float(d.max()), tol, f"raise it by {d.max():.4g} m along the "
                             "plane's normal")
+            for j, fs in enumerate(scene.fixed_spheres):
+                _box_fixed_sphere(box, idx, fs, j)
         near = self._near(box.position, box.radius, len(scene.bodies))
         near = [i for i in near if not (box.pinned and scene.bodies[i].pinned)]
         if near:
             xs = np.array([scene.bodies[i].position for i in near])
             rs = np.array([scene.bodies[i].radius for i in near])
             d = _sphere_box_depth(xs, rs, box)
-            tol = OVERLAP_TOL * np.minimum(np.where(rs > 0, rs, np.inf), half)
+            tol = OVERLAP_TOL * np.minimum(rs, half)          # a particle: any overlap
             bad = np.flatnonzero(_over(d, tol))
             if bad.size:
                 b = int(bad[0])
@@ -272,6 +298,10 @@ class OverlapIndex:
                     _refuse(f"box {i} at {_fmt(b.position)} and plane {j} (normal "
                             f"{_fmt(col.normal)}, offset {col.offset:.4g} m)", float(d.max()),
                             tol, f"raise it by {d.max():.4g} m along the plane's normal")
+        else:
+            for i in idx:
+                if scene.bodies[i].kind == "box":
+                    _box_fixed_sphere(scene.bodies[i], i, col, j)
 
 
 def check_start_pose(scene, i: int, position, orientation=None) -> None:
@@ -296,6 +326,8 @@ def check_start_pose(scene, i: int, position, orientation=None) -> None:
                         f"{_fmt(corners[d.argmax()])}) and plane {j} (normal {_fmt(pl.normal)}, "
                         f"offset {pl.offset:.4g} m)", float(d.max()), tol,
                         f"raise its start by {d.max():.4g} m along the plane's normal")
+        for j, fs in enumerate(scene.fixed_spheres):
+            _box_fixed_sphere(moved, i, fs, j, started=True)
         return
     x, r = np.asarray(moved.position)[None], np.array([body.radius])
     for j, pl in enumerate(scene.planes):

@@ -43,6 +43,17 @@ def sim():
      ["box 0", "plane 0", "raise it by 0.1 m"]),
     (lambda s: (s.add_fixed_sphere((0, 0, 0), 0.5), s.add_particle(1.0, (0.0, 0.0, 0.1))),
      ["particle 0", "inside fixed sphere 0"]),
+    # a box deep inside a fixed sphere, either added first (issue: accepted, 5500 N at step 1)
+    (lambda s: (s.add_fixed_sphere((0, 0, 0), 0.5), s.add_box((0.1,) * 3, 1.0, (0, 0, 0.05))),
+     ["box 0", "fixed sphere 0", "overlap by 0.55 m", "move it 0.55 m along (0, 0, 1)"]),
+    (lambda s: (s.add_box((0.1,) * 3, 1.0, (0, 0, 0.05)), s.add_fixed_sphere((0, 0, 0), 0.5)),
+     ["box 0", "fixed sphere 0", "overlap by 0.55 m", "move it 0.55 m along (0, 0, 1)"]),
+    # a particle inside a box: any overlap, as against planes and fixed spheres (issue: 4 cm
+    # inside a 0.1 m box was accepted)
+    (lambda s: (s.add_box((0.1,) * 3, 1.0, (0, 0, 0)), s.add_particle(1.0, (0.0, 0.0, 0.06))),
+     ["particle 1", "box 0", "overlap by 0.04 m"]),
+    (lambda s: (s.add_particle(1.0, (0.0, 0.0, 0.099)), s.add_box((0.1,) * 3, 1.0, (0, 0, 0))),
+     ["box 1", "particle 0", "overlap by 0.001 m"]),
 ])
 def test_bodies_starting_inside_are_refused_with_the_overlap_and_the_fix(build, words):
     with pytest.raises(dp.SceneError) as exc:
@@ -70,6 +81,24 @@ def test_resting_and_pinned_overlaps_pass_and_allow_overlap_is_per_body():
         scene.add_sphere(0.1, 1.0, (0.0, 0.0, -1.0))
     assert scene.n_bodies == n
     scene.add_sphere(0.1, 1.0, (2.0, 0.0, 1.0))
+
+
+def test_boxes_touching_fixed_spheres_and_particles_on_boxes_pass():
+    """The box-fixed-sphere and particle-box checks refuse starts inside only: a box resting
+    on a fixed sphere, a particle on a box face, pinned and allowed bodies pass, and
+    state_from checks a box's start pose against fixed spheres too."""
+    scene = dp.Scene()
+    scene.add_fixed_sphere((0.0, 0.0, 0.0), 0.5)
+    b = scene.add_box((0.1,) * 3, 1.0, (0.0, 0.0, 0.599))       # resting: 1 mm deep
+    scene.add_particle(1.0, (0.0, 0.0, 0.699))                  # on the box's top face
+    scene.add_box((0.1,) * 3, 1.0, (0.0, 0.0, 0.0), pinned=True)
+    scene.add_box((0.1,) * 3, 1.0, (2.0, 0.0, 0.0), allow_overlap=True)
+    scene.add_fixed_sphere((2.0, 0.0, 0.0), 0.3)                # skips the allowed box
+    sim = dp.compile(scene, 1e-3)
+    with pytest.raises(dp.SceneError, match=r"box 0 started at \(0, 0, 0.3\) .* fixed sphere 0 "
+                       r".* move its start 0.3 m along \(0, 0, 1\)"):
+        sim.state_from(body=b, position=(0.0, 0.0, 0.3))
+    sim.state_from(body=b, position=(0.0, 0.0, 0.6))             # touching: fine
 
 
 def test_overlap_check_looks_only_at_neighbours():
