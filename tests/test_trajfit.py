@@ -407,6 +407,30 @@ def test_directions_a_record_cannot_determine_are_reported(cube):
     assert res.stderr == {"contact.board.k": math.inf, "contact.board.c": math.inf}
 
 
+def test_parameters_of_an_undetermined_direction_get_no_standard_error():
+    """Regression: with two drag groups on one ball only their sum acts; the fit listed the
+    undetermined direction (0.71, -0.71) yet reported 0.0744 +- 0.0017 and 0.0247 +- 0.0017
+    (truth 0.05 each) with a correlation of +1: the pseudo-inverse kept only the determined
+    direction. Both now get an infinite standard error and NaN correlations."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.05, mass=0.2, position=(0.0, 0.0, 2.0), velocity=(3.0, 0.0, 2.0))
+    scene.add_drag(0, 0.05, group="g1")
+    scene.add_drag(0, 0.05, group="g2")
+    sim = dp.compile(scene, 1e-3)
+    truth = sim.params()
+    recs = [tf.synthetic_record(sim, truth, 0.3, 5e-3, {"ball": 0}, noise=1e-4, seed=s,
+                                velocities=False) for s in range(2)]
+    batch = tf.prepare(sim, recs, bodies={"ball": 0})
+    start = tf.with_leaves(truth, {"extra.drag.g1": 0.08, "extra.drag.g2": 0.03})
+    res = tf.fit_records(sim, start, batch, [tf.Free("extra.drag.g1", 1e-4, 1.0),
+                                             tf.Free("extra.drag.g2", 1e-4, 1.0)],
+                         horizons=(None,), maxiter=10, progress=False)
+    assert len(res.undetermined) == 1
+    assert sum(res.values.values()) == pytest.approx(0.1, rel=0.05)
+    assert res.stderr == {"extra.drag.g1": math.inf, "extra.drag.g2": math.inf}
+    assert np.all(np.isnan(res.correlation))
+
+
 def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
     """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
     a growing horizon; the file's [fit] first_state and flight_frames are used, its horizon

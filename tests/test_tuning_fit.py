@@ -188,3 +188,58 @@ def test_optax_starts_from_the_cheapest_given_start():
                starts=[{"contact.default.c": 8.1}, {"contact.default.c": 30.0}])
     assert near.start["contact.default.c"] == pytest.approx(8.1)
     assert near.rel_error["apex_heights"] < far.rel_error["apex_heights"]
+
+
+def test_fit_refuses_bad_iteration_and_start_counts_and_duplicate_free():
+    """Regression: maxiter <= 0 gave a misleading optax error ("the first iteration already
+    failed") and an LM result at the start; n_starts = 0 was blamed on the safe step; a
+    parameter named twice in free was fitted as two."""
+    sim = dp.compile(ball_scene(), 1e-3)
+    mfn = B.bounce_metrics_fn(sim, 10)
+    p0 = sim.params(k=1e4, c=10.0)
+    tg, free = {"apex_heights": [0.2]}, ["contact.default.c"]
+    for method in ("optax", "lm"):
+        for maxiter in (0, -5, 2.5, True):
+            with pytest.raises(F.FitError, match="maxiter must be a positive integer"):
+                F.fit(mfn, p0, tg, free=free, method=method, maxiter=maxiter)
+    with pytest.raises(F.FitError, match="n_starts must be a positive integer"):
+        F.fit(mfn, p0, tg, free=free, method="lm", starts=[{"contact.default.c": 5.0}],
+              n_starts=0)
+    with pytest.raises(F.FitError, match=r"free names \['contact.default.c'\] more than once"):
+        F.fit(mfn, p0, tg, free=["contact.default.c", "contact.default.k",
+                                 "contact.default.c"], method="lm")
+
+
+def test_iterations_history_and_progress_bar_agree(short_problem, monkeypatch):
+    """Regression: an optax fit that reached its targets said iterations=39 while its bar
+    ended at 40/300 and its history had 40 entries (at the limit: maxiter entries, maxiter
+    iterations); an LM iteration that found no decrease was counted but not drawn. Now optax
+    has one history entry per iteration, LM one more (the start), and the bar ends at the
+    iterations reported."""
+    import io
+    import re
+    import sys
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+    sim, mfn = short_problem
+    p0 = sim.params(k=1e4, c=10.0)
+    free = ["contact.default.c"]
+    cases = [("optax", {"apex_heights": [0.2]}, {}, 0),
+             ("optax", {"apex_heights": [0.2]}, {"maxiter": 5, "rtol": 1e-9}, 0),
+             ("lm", {"apex_heights": [0.2]}, {"maxiter": 20}, 1),
+             ("lm", {"apex_heights": [0.55]}, {"maxiter": 10, "starts": [
+                 {"contact.default.c": 5.0}, {"contact.default.c": 50.0}]}, None)]
+    for method, targets, kw, extra in cases:
+        err = Terminal()
+        monkeypatch.setattr(sys, "stderr", err)
+        res = F.fit(mfn, p0, targets, free=free, method=method, progress=True, sim=sim, **kw)
+        done, total = (int(v) for v in re.findall(r"(\d+)/(\d+) ", err.getvalue())[-1])
+        assert done == res.iterations, (method, kw, err.getvalue()[-200:])
+        if extra is not None:
+            assert len(res.loss_history) == res.iterations + extra
+        if kw.get("maxiter") == 5:
+            assert res.iterations == total == 5 and not res.converged
+        if "starts" in kw:          # every run may take maxiter iterations
+            assert res.iterations > kw["maxiter"] and total == 3 * kw["maxiter"]

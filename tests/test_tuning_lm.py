@@ -37,3 +37,68 @@ def test_non_finite_start_is_refused():
     with pytest.raises(FitError, match="not finite at the start"):
         levenberg_marquardt(lambda x: (np.full(3, np.nan), np.zeros((3, 2))), [1.0, 1.0],
                             [0.1, 0.1], [10.0, 10.0])
+
+
+def _weak(eps, b_max=3.0):
+    """r = a - 2 + eps b: b barely matters, and past b_max the residual is not finite (as a
+    contact past its bounds)."""
+    def res_and_jac(x):
+        a, b = np.asarray(x)
+        r = np.array([a - 2.0 + eps * b])
+        return (r if b <= b_max else r * np.nan), np.array([[1.0, eps]])
+    return res_and_jac
+
+
+def _reached(r):
+    return bool(np.all(np.abs(r) <= 1e-6))
+
+
+def test_a_parameter_the_residuals_barely_depend_on_does_not_stall():
+    """Regression: Marquardt's scaling diag(J^T J) was used as it was (only exact zeros
+    floored), so the step in b was the one b would need alone (1e8 here): every trial left
+    the finite region and LM stopped at its start as a "local minimum". The scaling is now
+    floored at SCALE_FLOOR x its largest entry."""
+    out = levenberg_marquardt(_weak(1e-8), [1.0, 1.0], [0.1, 0.1], [10.0, 10.0], maxiter=20,
+                              stop=_reached)
+    assert out.message == "targets reached" and out.iterations <= 3
+    assert out.x[0] == pytest.approx(2.0, abs=1e-5)
+
+
+def test_max_step_limits_each_parameter_of_a_trial_step():
+    """A weak parameter just above the scaling floor still gets a step 100x the others';
+    max_step cuts it (entry by entry, halving after a rejected trial it cut) so the others
+    can move."""
+    seen = []
+
+    def rj(x):
+        seen.append(np.asarray(x, float))
+        return _weak(1e-4)(x)
+    out = levenberg_marquardt(rj, [1.0, 1.0], [0.1, 0.1], [10.0, 10.0], maxiter=20,
+                              stop=_reached, max_step=0.5)
+    assert out.message == "targets reached" and out.iterations <= 5
+    assert out.x[1] <= 3.0
+    # every trial point lies within 0.5 of a point evaluated before it (the current one)
+    for i in range(1, len(seen)):
+        assert min(np.max(np.abs(seen[i] - x)) for x in seen[:i]) <= 0.5 + 1e-12
+
+
+class _Bar:
+    def __init__(self):
+        self.counts = []
+
+    def update(self, i, value=None):
+        self.counts.append(i)
+
+
+def test_progress_ends_at_the_iterations_run():
+    """Regression: an iteration that found no decrease counted in ``iterations`` and in
+    the history but not on the progress bar (a fit's bar ended one short)."""
+    def res_and_jac(x):       # least squares minimum 2 at a = 0: ends without decrease
+        a = float(np.asarray(x)[0])
+        return np.array([a - 1.0, a + 1.0]), np.ones((2, 1))
+    bar = _Bar()
+    out = levenberg_marquardt(res_and_jac, [5.0], [-10.0], [10.0], maxiter=50, xtol=0.0,
+                              ftol=0.0, progress=bar, offset=7)
+    assert out.message == "no further decrease (local minimum)"
+    assert bar.counts[-1] == 7 + out.iterations
+    assert len(out.cost_history) == out.iterations + 1

@@ -57,8 +57,11 @@ class FitResult:
     rel_error: ``{metric: max |achieved - target| / |target|}``.
     reached: every target within its tolerance.  converged: the stopping rule fired (not
       the iteration limit).
-    loss_history: (iterations + 1,) loss after each iteration (the first entry is the start).
-    iterations: iterations run.  seconds: wall time of the loop, compilation included.
+    loss_history: loss per iteration, the first entry at the start: LM (iterations + 1,),
+      the start then the loss after each iteration (of the run kept, with several starts);
+      optax (iterations,): each iteration evaluates the loss at its point, then steps.
+    iterations: iterations run (LM with several starts: all runs together); a progress bar
+      ends at this count.  seconds: wall time of the loop, compilation included.
     traces: how many times the residual function was traced (fixed per method, whatever
       the number of iterations: the loop compiles once).
     evaluations: compiled-function calls (iterations, LM trial points and start search).
@@ -105,12 +108,13 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
       method: ``"optax"`` (first order, any optax transformation) or ``"lm"``.
       optimizer: optax transformation for ``method="optax"`` (default
         :func:`default_optimizer`); it acts on log-parameters.
-      maxiter: iteration limit.  progress: False (default): print nothing; None or True: a
-        progress bar on stderr when it is a terminal, else a line every 5 s (what the
-        `diffpen` command passes).
+      maxiter: iteration limit (>= 1; with ``method="lm"``, of each run from a start
+        point).  progress: False (default): print nothing; None or True: a progress bar on
+        stderr when it is a terminal, else a line every 5 s (what the `diffpen` command
+        passes).
       starts: extra start points ``[{path: value}, ...]``; with ``method="lm"`` they are
-        ranked by cost and LM runs from the best ``n_starts`` (all with the same compiled
-        function) until one reaches the targets; the best result is kept. With
+        ranked by cost and LM runs from the best ``n_starts`` (>= 1; all with the same
+        compiled function) until one reaches the targets; the best result is kept. With
         ``method="optax"`` the loop runs from the start of lowest cost among ``params0`` and
         these (for several optax runs at once: :func:`tuning.batch_fit.fit_batch`).
       search: ``search(evaluate, slices, log_lo, log_hi) -> [theta, ...]`` (LM only): a
@@ -124,10 +128,23 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     Returns:
       :class:`FitResult`.
     """
-    problem = Problem.build(metrics_fn, params0, targets, free=free, bounds=bounds,
-                            weights=weights, rtol=rtol, sim=sim)
     if method not in ("lm", "optax"):
         raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
+    if isinstance(maxiter, bool) or not isinstance(maxiter, (int, np.integer)) or maxiter < 1:
+        raise FitError(f"maxiter must be a positive integer (the iteration limit), got "
+                       f"{maxiter!r}.")
+    if isinstance(n_starts, bool) or not isinstance(n_starts, (int, np.integer)) \
+            or n_starts < 1:
+        raise FitError(f"n_starts must be a positive integer (how many start points LM runs "
+                       f"from), got {n_starts!r}.")
+    if free is not None:
+        free = list(free)
+        twice = sorted({p for p in free if free.count(p) > 1})
+        if twice:
+            raise FitError(f"free names {twice} more than once; name each fitted parameter "
+                           f"once.")
+    problem = Problem.build(metrics_fn, params0, targets, free=free, bounds=bounds,
+                            weights=weights, rtol=rtol, sim=sim)
     bar = Progress(maxiter, label, progress)
     t_start = time.perf_counter()
     if method == "lm":

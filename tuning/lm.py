@@ -2,10 +2,12 @@
 
 :func:`levenberg_marquardt` minimises ``|r(x)|^2`` given a function that returns the
 residuals and their Jacobian (jitted by the caller, so every trial point reuses one compiled
-function), with Marquardt's diagonal scaling and a projection onto box bounds after every
-step. :func:`fit_lm` runs it on a :class:`tuning.problem.Problem` (behind
-:func:`tuning.fit.fit` with ``method="lm"``: a forward-mode Jacobian, several starts and an
-optional problem-specific start search sharing one compiled function);
+function), with Marquardt's diagonal scaling (each entry floored at :data:`SCALE_FLOOR`
+times the largest), an optional limit on the change of any one parameter per trial step and
+a projection onto box bounds after every step. :func:`fit_lm` runs it on a
+:class:`tuning.problem.Problem` (behind :func:`tuning.fit.fit` with ``method="lm"``: a
+forward-mode Jacobian, several starts and an optional problem-specific start search sharing
+one compiled function);
 :func:`tuning.sysid.fit_trajectory` runs it on log-parameters too.
 """
 from __future__ import annotations
@@ -22,7 +24,16 @@ from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
 from .stable import FLAG, unsafe_start
 
-__all__ = ["LMResult", "levenberg_marquardt", "fit_lm"]
+__all__ = ["LMResult", "levenberg_marquardt", "fit_lm", "SCALE_FLOOR", "MAX_LOG_STEP"]
+
+#: Marquardt's scaling ``diag(J^T J)`` is floored at this fraction of its largest entry. The
+#: step in each parameter is about the one that parameter would need alone, so a parameter the
+#: residuals barely depend on would get a huge step (out of range, rejected) and the others
+#: could only creep while ``lam`` climbs.
+SCALE_FLOOR = 1e-6
+#: :func:`fit_lm`'s largest change of one log-parameter in a trial step (a factor e^2 = 7.4);
+#: a rejected trial that hit it halves it for the next trial of the same iteration.
+MAX_LOG_STEP = 2.0
 
 
 @dataclasses.dataclass
@@ -40,14 +51,19 @@ class LMResult:
 def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
                         maxiter: int = 50, xtol: float = 1e-8, ftol: float = 1e-12,
                         stop: Callable | None = None, lam0: float = 1e-3,
-                        progress: Progress | None = None, offset: int = 0) -> LMResult:
-    """Box-projected Levenberg-Marquardt with Marquardt's diagonal scaling.
+                        progress: Progress | None = None, offset: int = 0,
+                        max_step: float | None = None) -> LMResult:
+    """Box-projected Levenberg-Marquardt with Marquardt's diagonal scaling (floored at
+    :data:`SCALE_FLOOR` times its largest entry).
 
     Args:
       res_and_jac: ``x (p,) -> (r (m,), J (m, p), ...)`` (jitted by the caller; extra
         outputs are ignored). Trial points reuse it, so one compiled function serves all.
       x0, lo, hi: (p,) start and bounds.
       stop: ``stop(r) -> bool``: extra success test on the residuals.
+      max_step: largest change of any one entry of ``x`` in a trial step (None: no limit);
+        larger entries are cut to it, and a rejected trial that was cut halves it for the
+        next trial of the same iteration.
     Returns: :class:`LMResult` (``jacobian`` evaluated at ``x``).
     """
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
@@ -66,14 +82,17 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
         JtJ = J.T @ J
         g = J.T @ r
         d = np.diag(JtJ).copy()
-        d[d <= 0.0] = 1.0
+        d = np.maximum(d, SCALE_FLOOR * d.max()) if d.max() > 0.0 else np.ones_like(d)
         improved = False
+        radius = np.inf if max_step is None else float(max_step)
         for _ in range(12):
             try:
                 step = -np.linalg.solve(JtJ + lam * np.diag(d), g)
             except np.linalg.LinAlgError:
                 lam *= 10.0
                 continue
+            cut = bool(np.any(np.abs(step) > radius))
+            step = np.clip(step, -radius, radius)
             xn = np.clip(x + step, lo, hi)
             rn, Jn = (np.asarray(a) for a in res_and_jac(jnp.asarray(xn))[:2])
             cn = float(rn @ rn) if np.all(np.isfinite(rn)) else np.inf
@@ -81,9 +100,13 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
                 improved = True
                 break
             lam *= 4.0
+            if cut:
+                radius *= 0.5
         if not improved:
             message, converged = "no further decrease (local minimum)", True
             hist.append(cost)
+            if progress is not None:
+                progress.update(offset + it, cost)
             break
         dx = np.max(np.abs(xn - x))
         rel_drop = (cost - cn) / max(cost, 1e-300)
@@ -105,7 +128,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
            progress: Progress | None = None) -> Solution:
     """Levenberg-Marquardt on ``problem`` in log space, with a forward-mode Jacobian
     (``jax.jacfwd``: few parameters) and ONE compiled residual/Jacobian function for every
-    evaluated point.
+    evaluated point; a trial step changes no log-parameter by more than :data:`MAX_LOG_STEP`.
 
     Args:
       maxiter: iteration limit of each LM run (``Solution.iterations`` adds up all runs).
@@ -158,11 +181,14 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         points = [points[i] for i in np.argsort(ranked)[:n_starts] if np.isfinite(ranked[i])]
         if not points:
             raise unsafe_start(None)
+    if progress is not None:   # every run may take maxiter iterations
+        progress.total = maxiter * len(points)
     best = None
     used = 0
     for th in points:
         try:
             out = levenberg_marquardt(evaluate, th, log_lo, log_hi, maxiter=maxiter,
+                                      max_step=MAX_LOG_STEP,
                                       stop=lambda r: bool(np.all(np.abs(r) <= tols)),
                                       progress=progress, offset=used)
         except FitError:

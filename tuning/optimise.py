@@ -131,13 +131,17 @@ class OptaxLoop:
 
     def run(self, theta0, *args) -> dict:
         """The whole loop as one ``lax.while_loop`` (traceable: jit, vmap over rows). Returns
-        the final carry; ``iterations`` is ``c["it"]``, or ``maxiter`` at the limit."""
+        the final carry; see :meth:`iterations`."""
         return jax.lax.while_loop(lambda c: c["status"] == RUNNING,
                                   lambda c: self.step(c, *args), self.init(theta0, *args))
 
     def iterations(self, c: dict):
-        """Iterations run by a finished carry (traceable)."""
-        return jnp.where(c["status"] == LIMIT, self.maxiter, c["it"])
+        """Iterations run by a finished carry (traceable): the loop's steps, ``c["it"] + 1``
+        when it reached the targets or its limit (``maxiter``), ``c["it"]`` when the loss
+        became non-finite (that step is not counted); the loss history holds one entry per
+        iteration, the loss at the point it started from."""
+        return jnp.where(c["status"] == LIMIT, self.maxiter,
+                         jnp.where(c["status"] == REACHED, c["it"] + 1, c["it"]))
 
 
 def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None = None, *,
@@ -148,7 +152,9 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
     (``optax.multi_transform``) sends the frozen ones to ``optax.set_to_zero``, so only the
     free leaves ever move. ``optimizer`` acts on log-parameters (default
     :func:`default_optimizer`). ``progress``: a :class:`tuning.progress.Progress` or None.
-    Returns a :class:`tuning.problem.Solution` at the best point (see the module docstring).
+    Returns a :class:`tuning.problem.Solution` at the best point (see the module docstring);
+    each iteration evaluates the loss at its point (the first at the start) and then steps, so
+    the history has one entry per iteration (:meth:`OptaxLoop.iterations`).
     """
     opt = optimizer if optimizer is not None else default_optimizer()
     leaves, free = problem.leaves, problem.free
@@ -187,8 +193,8 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         costs.append(loss)
         if progress is not None:
             progress.update(it + 1, loss)      # iterations done, 1..maxiter
-        if status == REACHED:
-            converged, message, iterations = True, MESSAGES[REACHED], it
+        if status == REACHED:     # this iteration's loss met the targets
+            converged, message, iterations = True, MESSAGES[REACHED], it + 1
             break
     if not bool(c["has_best"]):
         raise FitError(f"the first iteration already failed: {message}.")

@@ -149,9 +149,10 @@ class TrajFitResult:
       the records-as-clusters sandwich (:func:`_record_sandwich`, which takes in what the
       residuals of one record share: the noise of its first frame, correlated frames; with
       few records it is itself uncertain); inf for a parameter the records do not depend
-      on.
+      on or that takes part in an undetermined direction (an entry above 0.1 in its unit
+      vector: only a combination with the others is determined).
     correlation: (p, p) parameter correlation matrix (rows/columns in ``names`` order; NaN
-      in the rows of parameters the records do not depend on).
+      in the rows and columns of parameters whose standard error is inf).
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
       eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest.
@@ -383,11 +384,16 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     scale = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
     S = JtJ / np.outer(scale, scale)
     ev, evec = np.linalg.eigh(S)
+    loose_dirs = ev < 1e-8 * max(ev[-1], 1e-300)
     undetermined = [{"eigenvalue_ratio": float(ev[i] / max(ev[-1], 1e-300)),
                      "direction": {names[j]: float(evec[j, i]) for j in range(p)}}
-                    for i in range(p) if ev[i] < 1e-8 * max(ev[-1], 1e-300)]
+                    for i in range(p) if loose_dirs[i]]
     s2 = cost / max(m - p, 1)
-    blind = np.diag(JtJ) <= 0.0             # the records do not depend on these at all
+    # no error for parameters the records do not depend on at all, nor for those with an
+    # entry above 0.1 in an undetermined direction's unit vector (only a combination of
+    # them is determined: pinv below keeps the determined part alone, which would give
+    # them a small error that means nothing)
+    blind = (np.diag(JtJ) <= 0.0) | np.any(np.abs(evec[:, loose_dirs]) > 0.1, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale)
         cov = inv * s2

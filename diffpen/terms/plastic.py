@@ -56,8 +56,15 @@ def _check_yield(label: str, value) -> None:
     """A yield strain: a real scalar as every parameter (``params._check_value``: no strings,
     bools or arrays), within (0, 1) when concrete (under jax.grad too)."""
     from ..params import _check_value, _known_value
-    _check_value(label, value)
-    known = _known_value(value)
+    try:
+        known = _known_value(value)
+        arr = None if known is None else np.asarray(known, dtype=float)
+    except (TypeError, ValueError):
+        known = arr = None                    # not a number: _check_value says so
+    if arr is None or np.all(np.isfinite(arr) & (arr >= 0.0)):
+        _check_value(label, value)       # a real scalar (its range is checked below)
+    elif arr.shape != ():
+        _check_value(label, np.full(arr.shape, 0.5))    # says: one scalar, not an array
     if known is None:
         return
     arr = np.asarray(known, dtype=float)
