@@ -50,10 +50,14 @@ def _argnums_tuple(argnums) -> tuple[int, ...]:
 
 def _unravel_diff(args: tuple, argnums: tuple[int, ...]):
     diff = tuple(args[i] for i in argnums)
+    for i in argnums:       # each leaf: raveling would promote an int beside a float
+        for leaf in jax.tree_util.tree_leaves(args[i]):
+            dtype = jnp.result_type(leaf)
+            if not jnp.issubdtype(dtype, jnp.inexact):
+                raise TypeError("value_and_grad differentiates float inputs only; got "
+                                f"dtype {dtype} in argument {i} (argnums={argnums}): "
+                                f"write {leaf!r} as a float (e.g. 1e4, not 10000).")
     flat, unravel = ravel_pytree(diff)
-    if not jnp.issubdtype(flat.dtype, jnp.inexact):
-        raise TypeError("value_and_grad differentiates float inputs only; got "
-                        f"dtype {flat.dtype} at argnums={argnums}.")
     return flat, unravel
 
 
@@ -137,6 +141,17 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
     return out, out_batched
 
 
+def _top_level(values) -> bool:
+    """True when no JAX transformation is active and every leaf of ``values`` is concrete:
+    nothing a function could close over is then traced."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:                     # unknown JAX internals: take the general path
+        return False
+    return trace_state_clean() and not any(
+        isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(values))
+
+
 def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: bool,
                             has_aux: bool, args: tuple, kwargs: dict):
     """Forward mode, in a form that composes with every JAX transformation.
@@ -159,6 +174,11 @@ def _forward_value_and_grad(fun: Callable, argnums: tuple[int, ...], single: boo
         return fun(*a[:n_args], **dict(zip(keys, a[n_args:])))
     loss = _scalar_loss(call, has_aux)
     flat = (*args, *(kwargs[k] for k in keys))
+    if _top_level(flat):
+        # concrete values under no transformation: run fun itself, not an abstract trace of
+        # it, so what it calls checks the values as under jax.value_and_grad (a simulator's
+        # params, its stability gate, substeps="auto")
+        return _forward(loss, argnums, single, has_aux, flat)
     conv, hoisted = jax.closure_convert(loss, *flat)
     full = (*flat, *hoisted)
 

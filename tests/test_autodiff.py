@@ -185,3 +185,44 @@ def test_forward_mode_composes_through_jit_and_closures():
     want = jax.vmap(lambda s: jax.grad(lambda q: loss(q, s))(p))(ss)
     got = jax.vmap(jax.jit(lambda s: dp.grad(lambda q: loss(q, s), mode="forward")(p)))(ss)
     np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_forward_mode_called_with_values_checks_them_as_jax_does(ball):
+    """Called outside jit with concrete values, forward mode traced the loss abstractly: a k
+    past the safe step, a negative k and a NaN c came back as numbers (a NaN value and
+    gradient for the NaN c), and a substeps="auto" simulator raised "traced with abstract
+    parameters". jax.value_and_grad refuses the first three and steps the fourth."""
+    sim = ball[0]
+
+    def loss(k, c):
+        return sim.rollout(sim.params(k=k, c=c), 50, save_every=50).position[-1, 0, 2]
+    vg = dp.value_and_grad(loss, (0, 1), mode="forward")
+    with pytest.raises(dp.StabilityError):
+        vg(5e8, 20.0)
+    with pytest.raises(dp.SceneError, match="must be >= 0"):
+        vg(-1e4, 20.0)
+    with pytest.raises(dp.SceneError, match="must be finite"):
+        vg(1e4, float("nan"))
+    auto = dp.compile(sim.scene, sim.dt, substeps="auto")
+
+    def auto_loss(k, c):
+        return auto.rollout(auto.params(k=k, c=c), 50, save_every=50).position[-1, 0, 2]
+    v, g = dp.value_and_grad(auto_loss, (0, 1), mode="forward")(1e4, 20.0)
+    v_ref, g_ref = jax.value_and_grad(auto_loss, (0, 1))(1e4, 20.0)
+    np.testing.assert_allclose(v, v_ref, rtol=1e-12)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-9)
+    # under jit nothing is known: the traced flag is the check there, as before
+    jax.jit(vg)(1e4, 20.0)
+
+
+def test_an_int_beside_a_float_is_refused_not_differentiated_to_zero(ball):
+    """dp.grad(loss, (0, 1))(10000, 20.0) returned (0, -0.0451): raveling promoted the int
+    to float, and unraveling cast its tangent back to int."""
+    sim = ball[0]
+
+    def loss(k, c):
+        return sim.rollout(sim.params(k=k, c=c), 50, save_every=50).position[-1, 0, 2]
+    with pytest.raises(TypeError, match="float inputs only.*argument 0"):
+        dp.grad(loss, (0, 1))(10000, 20.0)
+    with pytest.raises(TypeError, match="float inputs only"):
+        jax.jit(dp.grad(loss, (0, 1)))(10000, 20.0)
