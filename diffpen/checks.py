@@ -5,7 +5,8 @@ of what a rollout returns:
   substeps; :func:`check_pairs`: the pair count without a broad phase;
 * :func:`check_rollout` / :func:`check_rollout_options`: the params pytree, ``steps`` and
   ``save_every`` (with a size and time estimate for runs too large to hold), a given start
-  state (type, shapes, dtypes, finite values), substeps and checkpoint;
+  state (type, shapes, dtypes, finite values), substeps and checkpoint; :func:`check_step`:
+  ``sim.step``'s params and state, the same way;
 * :func:`check_finite_trajectory`: a concrete trajectory that became NaN/inf, with the first
   step and body.
 
@@ -29,8 +30,8 @@ from .errors import (ContactWarning, NonFiniteError, PerformanceWarning, SceneEr
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
-           "check_finite_trajectory", "check_pairs", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
-           "MAX_PAIRS"]
+           "check_finite_trajectory", "check_pairs", "check_step", "estimate", "memory_bytes",
+           "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS", "MAX_PAIRS"]
 
 #: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
 #: evaluated every step: 5e6 pairs already take seconds per step)
@@ -83,18 +84,47 @@ def _int(name: str, v) -> int:
     return int(v)
 
 
-def _estimate(sim, steps: int, save_every: int, observe) -> tuple[float, float]:
-    """(bytes the saved trajectory needs at its peak, seconds at STEP_RATE). A rollout in
-    the columns layout turns its saved positions and velocities into rows once, after the
-    loop (diffpen.rollout): both copies exist for a moment."""
+def estimate(sim, steps: int, save_every: int = 1, observe=None) -> tuple[float, float]:
+    """(bytes one rollout's saved trajectory needs at its peak, seconds at STEP_RATE): the
+    saved states, or with ``observe`` the saved ``observe(state)`` outputs and times. A
+    rollout in the columns layout turns its saved positions and velocities into rows once,
+    after the loop (diffpen.rollout): both copies exist for a moment. One rollout: a batch
+    under ``jax.vmap`` is not counted."""
     n = int(sim.n_bodies)
+    itemsize = np.dtype(sim.dtype).itemsize
+    saved = steps // save_every
+    seconds = float(steps) * max(n, 1) / STEP_RATE
+    if observe is not None:
+        return float(saved) * (observed_bytes(sim, observe) + itemsize), seconds
     per_body = 6 + (7 if getattr(sim.scene, "has_rotation", False) else 0)
     if getattr(sim, "columns", False):
         per_body += 6
-    itemsize = np.dtype(sim.dtype).itemsize
-    saved = steps // save_every
-    stored = 0.0 if observe is not None else float(saved) * n * per_body * itemsize
-    return stored, float(steps) * max(n, 1) / STEP_RATE
+    return float(saved) * n * per_body * itemsize, seconds
+
+
+_OBSERVED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def observed_bytes(sim, observe) -> float:
+    """Bytes of one ``observe(state)`` output on this simulator's state (``jax.eval_shape``:
+    nothing is computed; remembered per simulator and function), 0 when ``observe`` cannot
+    be evaluated so (the rollout then reports its error)."""
+    try:
+        memo = _OBSERVED.setdefault(sim, weakref.WeakKeyDictionary())
+        return memo[observe]
+    except (KeyError, TypeError):
+        pass
+    try:
+        out = jax.eval_shape(observe, _spec(sim))
+        size = float(sum(math.prod(leaf.shape) * np.dtype(leaf.dtype).itemsize
+                         for leaf in jax.tree_util.tree_leaves(out)))
+    except Exception:  # noqa: BLE001 - the rollout itself reports a failing observe
+        return 0.0
+    try:
+        _OBSERVED[sim][observe] = size
+    except (KeyError, TypeError):
+        pass
+    return size
 
 
 def compile_arguments(scene, dt, integrator, law, exponent, smoothing, unroll, substeps):
@@ -378,17 +408,29 @@ def check_pairs(scene, broadphase) -> None:
             "diffpen.broadphase.AABB(max_pairs).")
 
 
-def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
-    """Check ``sim.rollout``'s arguments; raise :class:`SceneError` saying what to change."""
+def _check_params(sim, params, what: str) -> None:
     if not isinstance(params, Params):
-        raise SceneError(f"rollout needs the params pytree from sim.params(k=..., c=...), got "
+        raise SceneError(f"{what} needs the params pytree from sim.params(k=..., c=...), got "
                          f"{type(params).__name__}"
                          + (" (None)" if params is None else "") + ".")
     from .params import validate
     validate(sim, params)
+
+
+def check_step(sim, params, state) -> None:
+    """Check ``sim.step``'s arguments as :func:`check_rollout` checks a rollout's: the params
+    pytree and its values, the state's type, shapes, dtypes and finite values. Raises
+    :class:`SceneError` saying what to change."""
+    _check_params(sim, params, "step")
+    _check_state(sim, state)
+
+
+def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
+    """Check ``sim.rollout``'s arguments; raise :class:`SceneError` saying what to change."""
+    _check_params(sim, params, "rollout")
     steps = _int("steps", steps)
     save_every = _int("save_every", save_every)
-    stored, seconds = _estimate(sim, steps, save_every, observe)
+    stored, seconds = estimate(sim, steps, save_every, observe)
     if steps > MAX_STEPS:
         raise SceneError(
             f"steps={steps} is more than a rollout can count ({MAX_STEPS}, int32)"
@@ -398,6 +440,14 @@ def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
             "body-steps/s. Roll out in pieces (pass the last state as state=) or use a "
             "larger dt.")
     mem = memory_bytes()
+    if stored > 0.5 * mem and observe is not None:
+        raise SceneError(
+            f"steps={steps} with save_every={save_every} and observe= would store "
+            f"{steps // save_every} observed outputs of "
+            f"{human_bytes(stored / (steps // save_every))} each (with their times): "
+            f"{human_bytes(stored)}, more than half of this machine's {human_bytes(mem)} "
+            f"(about {human_time(seconds)} of compute). Save less often (save_every=), "
+            "observe less, or roll out in pieces.")
     if stored > 0.5 * mem:
         raise SceneError(
             f"steps={steps} with save_every={save_every} would store "

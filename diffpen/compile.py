@@ -378,8 +378,14 @@ class Simulator:
             return a, self._rigid.alpha(state, tau)
 
     def step(self, params: Params, state: State) -> State:
-        """Advance ``state`` by one time step ``dt``. Pure; jitted."""
-        return self._step_jit(params, state)
+        """Advance ``state`` by one time step ``dt``. Pure; jitted.
+
+        The plain step: its arguments are checked as a rollout's are (the params pytree and
+        its values, the state's shapes, dtypes and finite values; :class:`SceneError`), and
+        params are cast to the simulator's dtype, but no stability gate runs and
+        ``State.aux["unstable"]`` is not set (:meth:`rollout` does both)."""
+        _checks.check_step(self, params, state)
+        return self._step_jit(jax.tree_util.tree_map(self._cast, params), state)
 
     def step_function(self, substeps: int | None = None):
         """The pure (unjitted) step ``step(params, state) -> state`` over ``dt`` in
@@ -487,11 +493,13 @@ class Simulator:
                                 view=view)
 
     def rollout_cache_size(self) -> int:
-        """How many rollout programs this simulator has traced (one per static combination
-        of steps, save_every, checkpoint, substeps, observe and argument shapes and dtypes;
-        new values never add one): a test hook for "does not recompile". (The jitted
-        function's own dispatch cache also counts host and device arrays of the same
-        shape apart, without compiling anything.)"""
+        """How many times this simulator's rollout has been traced (once per static
+        combination of steps, save_every, checkpoint, substeps, observe and the shapes and
+        dtypes of one rollout's arguments; new values never add one): a test hook for "does
+        not recompile". ``jax.vmap`` at a new batch size compiles the batched program again
+        without adding to it (the rollout is traced once per example shape), and the jitted
+        function's own dispatch cache counts host and device arrays of the same shape apart,
+        without compiling anything."""
         return self._rollout_traces[0]
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,

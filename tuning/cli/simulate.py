@@ -2,6 +2,8 @@
 scene file, print its metrics, and optionally write the trajectory (.npz)."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 from ._common import (CLIError, count, dump_json, fail, finite, fmt, law_name, positive,
                       setup_jax)
 
@@ -38,14 +40,15 @@ def _load(args):
     return get_scene(args.scene)
 
 
-def _check_size(scene, steps: int, write: bool) -> None:
+def _check_size(sim, steps: int, write: bool) -> None:
     """Refuse a rollout whose saved trajectory cannot fit in memory (every step of every body
-    is kept, float64), with the estimate, before anything is compiled."""
-    from diffpen.checks import STEP_RATE, human_bytes, human_time, memory_bytes
-    n = max(scene.n_bodies, 1)
-    per_body = 6 + (7 if scene.has_rotation else 0)
-    stored = float(steps) * n * per_body * 8 * (2 if write else 1)
-    seconds = float(steps) * n / STEP_RATE
+    is kept), with the library's own estimate (``diffpen.checks.estimate``, twice over with
+    --out), before the rollout is compiled. ``sim``: the simulator, or before compiling a
+    stand-in in the rows layout (the least the library counts)."""
+    from diffpen.checks import STEP_RATE, estimate, human_bytes, human_time, memory_bytes
+    n = max(sim.n_bodies, 1)
+    stored, seconds = estimate(sim, steps)
+    stored *= 2 if write else 1
     mem = memory_bytes()
     if stored > 0.5 * mem:
         raise CLIError(f"--steps {steps} keeps {steps} states of {n} bodies: about "
@@ -71,12 +74,16 @@ def _run(args) -> int:
     setup = _load(args)                       # scene built and validated: nothing compiled yet
     dt = args.dt or setup.dt
     steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
-    _check_size(setup.scene, steps, bool(args.out))
+    # before compiling, as the rows layout; then as the simulator holds it (columns: more)
+    _check_size(SimpleNamespace(n_bodies=setup.scene.n_bodies, scene=setup.scene,
+                                dtype=setup.compile_options.get("dtype") or "float64",
+                                columns=False), steps, bool(args.out))
     setup_jax()
     import numpy as np
 
     import diffpen as dp
     sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
+    _check_size(sim, steps, bool(args.out))
     # each material its own declared k and c (the scene's k / c where it declares none);
     # --k / --c, when given, set every material's (they once replaced every material's values
     # with the first material's)
