@@ -218,6 +218,13 @@ def spin_anisotropy(scene) -> np.ndarray:
                      for b in scene.bodies])
 
 
+def _kick_drift(sim) -> bool:
+    """The simulator steps as semi-implicit Euler (by its record's step, not its name)."""
+    from .integrators import kick_then_drift
+    rec = getattr(getattr(sim, "analysis", None), "integrator", None)
+    return kick_then_drift(rec if rec is not None else sim.integrator)
+
+
 def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
     """The inner steps a concrete start state needs so that no rigid body spins faster than
     :data:`SPIN_LIMIT` (``kappa |w| h``) under semi-implicit Euler: ``substeps`` when it is
@@ -226,7 +233,7 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
     from .params import _is_concrete
     w = getattr(state, "angular_velocity", None)
     kappa = getattr(sim, "_spin_kappa", None)
-    if (w is None or kappa is None or not kappa.any() or sim.integrator != "semi_implicit_euler"
+    if (w is None or kappa is None or not kappa.any() or not _kick_drift(sim)
             or not _is_concrete(w) or _batched(state)):
         return substeps
     h = sim.dt / substeps
@@ -344,8 +351,7 @@ def spin_unsafe(sim, state, h: float):
     concrete rollout would refuse (they end NaN)."""
     w = getattr(state, "angular_velocity", None)
     kappa = getattr(sim, "_spin_kappa", None)
-    if (w is None or kappa is None or not kappa.any()
-            or sim.integrator != "semi_implicit_euler"):
+    if w is None or kappa is None or not kappa.any() or not _kick_drift(sim):
         return jnp.zeros((), bool)
     w = jnp.asarray(w)
     speed = jnp.sqrt(jnp.sum(w * w, axis=-1))

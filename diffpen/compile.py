@@ -41,7 +41,7 @@ from . import stability as _stability
 from . import start_state as _start_state
 from . import terms as _terms
 from .errors import SceneError
-from .integrators import build_step, substepped
+from .integrators import build_step, kick_then_drift, substepped
 from .scene import Scene
 from .params import _is_concrete
 from .state import Params, State, Trajectory
@@ -178,7 +178,7 @@ class Simulator:
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
             broadphase=broadphase, step=dt,
-            velocity_lag=0.5 if method.name == "semi_implicit_euler" else 0.0)
+            velocity_lag=0.5 if kick_then_drift(method) else 0.0)
         # the params keys: what the term builders declare they read, before any is built
         self.materials = _declared(builders, ctx, "materials", scene.materials,
                                    "contact material", "scene.add_material({!r}, k=..., c=...)")

@@ -29,7 +29,9 @@ record; ``diffpen.compile(..., law=)`` takes a record or one of the names in
 **Step-averaged force** (what the integrators use; ``ContactLaw.averaged``): the mean of
 the force over the integrator's step window, continuous through contact start and end;
 the window's closed forms and their derivatives are :mod:`diffpen.window`
-(:func:`window_mean`, re-exported here). Deep in contact it equals the pointwise law.
+(:func:`window_mean`, re-exported here). Deep in contact it equals the pointwise law for
+the linear laws; for Hunt-Crossley with ``n != 1`` the window's mean of ``d^n`` differs from
+``d^n`` by ``O((vn h / d)^2)``.
 
 **Damping at the window's centre** (``ContactLaw.centred``; opt in with
 ``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)``

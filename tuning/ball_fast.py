@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
+from diffpen.integrators import kick_then_drift
 
 from . import params as P
 
@@ -40,7 +41,7 @@ def supports(sim: dp.Simulator) -> str | None:
         return "the fast path needs exactly one body and one plane"
     if tuple(sim.terms) != ("contact_plane",):
         return f"the fast path handles the plane contact only, not {list(sim.terms)}"
-    if sim.integrator != "semi_implicit_euler" or sim.substeps != 1:
+    if not kick_then_drift(sim.analysis.integrator) or sim.substeps != 1:
         return "the fast path needs the semi-implicit Euler step without substeps"
     if sim.broadphase is not None or bool(np.any(sim.pinned)):
         return "the fast path needs no broad phase and a free body"

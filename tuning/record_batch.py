@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
+from diffpen.integrators import implicit_euler, kick_then_drift
 
 from .first_state import FLIGHT_FRAMES, first_state
 from .fit import FitError
@@ -134,8 +135,9 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     starts, blind = [], []
     s_init = sim.init_state()
     # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it
+    rec = sim.analysis.integrator
     lag = (0.5 * sim.analysis.inner_dt
-           if sim.integrator in ("semi_implicit_euler", "implicit_euler") else 0.0)
+           if kick_then_drift(rec) or rec.make is implicit_euler else 0.0)
     for r, rec in enumerate(records):
         n = len(rec.t)
         u = (rec.t - rec.t[0]) / (save_every * sim.dt)
