@@ -30,6 +30,10 @@ __all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first
 #: ball's settling time reads as the rollout's end, far outside the target's tolerance).
 SETTLE_MARGIN = 1.1
 
+#: Fewest steps :func:`fit_bounce` rolls out: a coarser dt cannot resolve the fall and the
+#: bounces the targets describe.
+MIN_STEPS = 100
+
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
                   "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
 
@@ -194,6 +198,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     g, m = info["g"], info["mass"]
     n_apex = max([tg[k].size for k in ("apex_heights", "restitution", "contact_durations")
                   if k in tg] + [1])
+    given = duration is not None
     if duration is None:
         if "settling_time" in tg:
             duration = 1.4 * float(tg["settling_time"][0]) + 0.2
@@ -210,6 +215,12 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        f"at least {SETTLE_MARGIN:g} x the target, or leave it out (default "
                        "1.4 x the target + 0.2 s).")
     steps = int(math.ceil(duration / dt))
+    if steps < MIN_STEPS:
+        raise FitError(f"time step dt = {dt:g} s leaves {steps} step(s) in the "
+                       f"{duration:.3g} s rollout "
+                       + ("(duration)" if given else "the targets need") +
+                       f": at least {MIN_STEPS} are needed to resolve the fall and the "
+                       f"bounces. Give dt <= {duration / MIN_STEPS:.3g} s (default 1e-3 s).")
     sim = dp.compile(scene, dt, law=law, **compile_kw)
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
                             settle_tol=settle_tol)

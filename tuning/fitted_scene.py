@@ -306,10 +306,13 @@ def _differences(before: dict, after: dict, values: dict) -> list[str]:
     return out
 
 
-def write_fitted(src: str, values: dict, out: str) -> str:
+def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> str:
     """Write ``src`` (a scene file) to ``out`` with the fitted ``values`` (``{dotted leaf
     path: value}``) in place, and check that ``out`` reads back with those values and every
-    other leaf unchanged. Returns ``out``.
+    other leaf unchanged. ``fit``: ``[fit]`` keys set in ``out`` (the fit's start-state
+    settings where the command line overrode the scene file's, e.g. ``{"first_state":
+    "record"}``), so that ``diffpen evaluate`` of ``out`` measures what the fit reported.
+    Returns ``out``.
 
     Raises :class:`FitError` (``SceneFileError`` for an unreadable ``src``) naming the leaf
     when a path is not a leaf of the scene's params, a value cannot be placed, or the
@@ -333,6 +336,8 @@ def write_fitted(src: str, values: dict, out: str) -> str:
     doc = copy.deepcopy(tomllib.loads(V.read_text_file(src, "TOML scene")))
     for path, v in fitted.items():
         _place(doc, path, v, sf)
+    if fit:
+        doc.setdefault("fit", {}).update(fit)
     fit = doc.get("fit")
     if isinstance(fit, dict) and "data" in fit:      # keep record paths valid from out's folder
         base = os.path.dirname(os.path.abspath(src))

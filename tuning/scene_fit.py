@@ -27,7 +27,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
               max_frames: int | None = None, progress: bool | None = False) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
-    the fitted scene to ``out``. ``max_frames``: the first-state estimate's frame cap
+    the fitted scene to ``out`` (with ``estimate`` / ``max_frames`` in its ``[fit]`` table
+    where they differ from the scene file's). ``max_frames``: the first-state estimate's frame cap
     (:func:`first_state`). ``estimate``, ``horizons`` and ``max_frames`` left None take
     the scene file's ``[fit] first_state``, ``horizon`` (+ the whole records; ``horizon =
     []``: the whole records only) and ``flight_frames``, else ``"record"``,
@@ -50,8 +51,14 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                        "use Levenberg-Marquardt (method and lr choose the optimiser of "
                        "bounce-target fits): drop method, or set it to \"lm\".")
     free = free_from_spec(sf.spec)
-    estimate = estimate or sf.spec.first_state or "record"
-    max_frames = max_frames or sf.spec.flight_frames or FLIGHT_FRAMES
+    file_estimate = sf.spec.first_state or "record"
+    file_frames = sf.spec.flight_frames or FLIGHT_FRAMES
+    estimate = estimate or file_estimate
+    max_frames = max_frames or file_frames
+    # command-line start-state overrides go into the fitted scene's [fit] table, so that
+    # diffpen evaluate of the written file measures what this fit reports
+    overrides = {k: v for k, v, f in (("first_state", estimate, file_estimate),
+                                      ("flight_frames", max_frames, file_frames)) if v != f}
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
     if horizons is None:
@@ -92,7 +99,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     if out is not None:
         from .fitted_scene import write_fitted
         try:
-            write_fitted(scene_path, res.values, out)
+            write_fitted(scene_path, res.values, out, fit=overrides)
         except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
             out_error = f"could not write --out {out}: {exc}"
     summary = res.as_dict()

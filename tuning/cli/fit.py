@@ -20,6 +20,8 @@ UNITS = {"apex_heights": "m", "settling_time": "s", "contact_durations": "s",
 #: Default targets of ``diffpen fit`` (feasible: reached at k ~ 2.2e3 N/m, c ~ 11 N s/m).
 DEFAULT_APEX = 0.40
 DEFAULT_SETTLE = 2.6
+#: Default learning rate of ``--method adam|sgd``.
+DEFAULT_LR = 0.05
 
 
 def add_arguments(p) -> None:
@@ -68,7 +70,7 @@ def add_arguments(p) -> None:
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default linear)")
     p.add_argument("--method", choices=["lm", "adam", "sgd"], default="lm",
                    help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
-    p.add_argument("--lr", type=positive("--lr"), default=0.05,
+    p.add_argument("--lr", type=positive("--lr"), default=DEFAULT_LR,
                    help="learning rate on log-parameters for adam/sgd (default 0.05)")
     p.add_argument("--maxiter", type=count("--maxiter"), help="iteration limit")
     p.add_argument("--k0", type=positive("--k0"), help="start stiffness, N/m")
@@ -127,12 +129,27 @@ def _refuse_ball_flags(args, why: str) -> None:
                        "the scene file (edit its values, targets or [fit] table)")
 
 
+def _refuse_data_flags(args) -> None:
+    """--data REC.csv (no scene file) fits k and c with Levenberg-Marquardt from the record's
+    own start: say so rather than ignore the flags it does not read."""
+    given = [f for f, on in (("--drop", args.drop is not None),
+                             ("--settle-tol", args.settle_tol is not None),
+                             ("--method", args.method != "lm"),
+                             ("--lr", args.lr != DEFAULT_LR)) if on]
+    if given:
+        raise CLIError(f"--data {args.data[0]} does not read {' '.join(given)}: a t,z record "
+                       "is fitted by Levenberg-Marquardt from its own start height (it reads "
+                       "--radius, --mass, --law, --dt, --k0, --c0 and --maxiter); drop them")
+
+
 def _run(args) -> int:
     if args.maxiter is not None and args.maxiter < 1:
         raise CLIError("--maxiter must be a positive integer")
     _check_plot(args)
     if args.scene is not None:
         _refuse_ball_flags(args, f"a fit of {args.scene}")
+    elif args.data:
+        _refuse_data_flags(args)
     for name, default in BALL_FLAGS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)

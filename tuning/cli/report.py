@@ -191,7 +191,9 @@ def _accuracy(args, integs) -> int:
                 extra = ""
                 if p.get("substeps", 1) not in (None, 1):
                     extra = f"  (substeps {p['substeps']})"
-                if "settling_error" in p:
+                if "note" in p:
+                    extra += f"  refused ({p['note']})"
+                elif "settling_error" in p:
                     extra += f"  settling-time error {p['settling_error']:.2g} s"
                 print(f"  {integ:19} {p['dt']:10.3g} {p['error']:10.3g} {p['time']:10.3g}"
                       + extra)
@@ -199,9 +201,17 @@ def _accuracy(args, integs) -> int:
         print("\nball, semi-implicit Euler at dt = "
               f"{res['widths'][0]['dt']:g} s: smoothing width against apex error")
         for w in res["widths"]:
+            if "note" in w:
+                print(f"  width {w['width']:8.1e} m   refused ({w['note']})")
+                continue
             print(f"  width {w['width']:8.1e} m   apex error {w['error']:.3g}   settling-time "
                   f"error {w['settling_error']:.2g} s")
     for d in res["default"]:
+        if "note" in d:
+            print(f"\ndefault (semi_implicit_euler, dt = 1e-3 s, smoothing {d['smoothing']:g} "
+                  f"m, {d['dtype']}): refused ({d['note']}) at this --k / --c; "
+                  "see the dt ladder above")
+            continue
         print(f"\ndefault (semi_implicit_euler, dt = 1e-3 s, smoothing {d['smoothing']:g} m, "
               f"{d['dtype']}): apex error {d['error']:.3g}, settling-time error "
               f"{d['settling_error']:.2g} s, {d['time'] * 1e3:.3g} ms for {d['steps']} steps "

@@ -84,6 +84,11 @@ def _run(args) -> int:
     import diffpen as dp
     sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
     _check_size(sim, steps, bool(args.out))
+    if not sim.materials and (args.k is not None or args.c is not None):
+        given = " and ".join(f for f, v in (("--k", args.k), ("--c", args.c)) if v is not None)
+        raise CLIError(f"{given} set contact materials, but {args.scene} has no contact "
+                       "materials (nothing in it makes contact): drop "
+                       + ("it" if " and " not in given else "them"))
     # each material its own declared k and c (the scene's k / c where it declares none);
     # --k / --c, when given, set every material's (they once replaced every material's values
     # with the first material's)

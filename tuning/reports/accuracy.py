@@ -107,8 +107,10 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
 
     Plus the ball's smoothing-width ladder (semi-implicit Euler at ``width_dt``) and the
     default configuration (semi-implicit Euler, dt = 1e-3 s, default smoothing) in each of
-    ``default_dtypes``. Times: median of ``repeats`` rollouts of the whole problem after
-    compilation. ``dts`` (s), when given, replaces the halving ladder for every problem.
+    ``default_dtypes``. A rollout the simulator refuses (``StabilityError``) or that blows up
+    (``NonFiniteError``) is a point of infinite error with the error's name as ``"note"``.
+    Times: median of ``repeats`` rollouts of the whole problem after compilation. ``dts``
+    (s), when given, replaces the halving ladder for every problem.
     Returns a JSON-able dict: ``{"problems": {name: {integrator: [points]}}, "widths":
     [...], "default": [...], "ball": spec}``; a point is ``{"dt", "error", "time", ...}``.
     """
@@ -153,7 +155,13 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
         for w in widths:
             sim = dp.compile(scene, width_dt, smoothing=w, dtype=jnp.float64)
             steps = int(round(spec.T / width_dt))
-            traj = sim.rollout(sim.params(k=spec.k, c=spec.c), steps)
+            try:
+                traj = sim.rollout(sim.params(k=spec.k, c=spec.c), steps)
+            except (dp.StabilityError, dp.NonFiniteError) as e:    # refused, as in the ladder
+                out["widths"].append({"width": w, "dt": width_dt, "error": math.inf,
+                                      "settling_error": math.inf, "note": type(e).__name__})
+                say("width", w, out["widths"][-1])
+                continue
             errs = _ball_errors(spec, ref, np.asarray(traj.time),
                                 np.asarray(traj.position[:, 0, 2]),
                                 np.asarray(traj.velocity[:, 0, 2]))
@@ -164,7 +172,15 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
             sim = dp.compile(scene, 1e-3, dtype=jnp.dtype(dtype))
             params = sim.params(k=spec.k, c=spec.c)
             steps = int(round(spec.T / 1e-3))
-            traj = sim.rollout(params, steps)
+            try:
+                traj = sim.rollout(params, steps)
+            except (dp.StabilityError, dp.NonFiniteError) as e:    # refused, as in the ladder
+                out["default"].append({"dtype": dtype, "dt": 1e-3, "smoothing": sim.smoothing,
+                                       "steps": steps, "error": math.inf,
+                                       "settling_error": math.inf, "time": math.nan,
+                                       "time_per_step": math.nan, "note": type(e).__name__})
+                say("default", dtype, out["default"][-1])
+                continue
             errs = _ball_errors(spec, ref, np.asarray(traj.time, float),
                                 np.asarray(traj.position[:, 0, 2], float),
                                 np.asarray(traj.velocity[:, 0, 2], float))
@@ -267,6 +283,8 @@ def plot_accuracy(result: dict, path: str) -> None:
                         xytext=(3, 3), textcoords="offset points")
         if name == "ball":
             for d in result.get("default", []):
+                if not math.isfinite(d["error"]):
+                    continue
                 ax.loglog([d["error"]], [d["time"]], "*", ms=12,
                           color="k" if d["dtype"] == "float64" else "0.5",
                           label=f"default ({d['dtype']}, dt 1e-3)")

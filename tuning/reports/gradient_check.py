@@ -63,7 +63,8 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
     finite-difference step (from ``rel_steps``) at which central differences of the
     simulator agree with jax.grad within ``agree`` (relative), with every smaller step down
     to 1e-5 agreeing too.
-    Returns one dict per (dt, width, quantity, parameter).
+    Returns one dict per (dt, width, quantity, parameter). Raises ValueError when a (dt,
+    width) is past the simulator's safe step at ``spec``'s k and c.
     """
     spec = spec or BallSpec(T=t_height)
     if not (spec.k > 0 and spec.c > 0):
@@ -72,6 +73,18 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
                          f"k = {spec.k:g}, c = {spec.c:g}")
     say = progress or (lambda *_: None)
     T = t_height
+    scene = ball_scene(mass=spec.mass, radius=spec.radius, height=spec.height)
+    for dt in dts:          # the rollouts below run jitted, with no concrete stability check
+        for w in widths:
+            sim = dp.compile(scene, dt, smoothing=w, dtype=jnp.float64)
+            rep = sim.stability(sim.params(k=spec.k, c=spec.c))
+            if not rep.safe:
+                raise ValueError(
+                    f"the ball (k {spec.k:g} N/m, c {spec.c:g} N s/m, {spec.mass:g} kg) is "
+                    f"past the safe step of {rep.integrator} at the report's dt = {dt:g} s "
+                    f"(safe step {rep.safe_dt:.3g} s, set by {rep.limiting or 'the contact'}): "
+                    "its gradients would be those of an unstable rollout; lower --k or --c, "
+                    "or raise --mass")
 
     def ref_quantities(k, c):
         ref = ball_reference(k=k, c=c, m=spec.mass, r=spec.radius, z0=spec.height, T=T)
@@ -94,7 +107,6 @@ def gradient_report(*, spec: BallSpec | None = None, dts=(1e-3, 2.5e-4), widths=
         qu, qd = ref_quantities(*up), ref_quantities(*dn)
         ref_d[("apex", name)] = (qu[0] - qd[0]) / (2 * h)
         ref_d[("z_T", name)] = (qu[1] - qd[1]) / (2 * h)
-    scene = ball_scene(mass=spec.mass, radius=spec.radius, height=spec.height)
     rows = []
     for dt in dts:
         steps = int(round(T / dt))

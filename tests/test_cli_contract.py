@@ -1,0 +1,67 @@
+"""The `diffpen` command line keeps its word: flags a mode does not read are refused, a
+step too coarse for the rollout is refused with a message, and a fitted scene written by
+--out evaluates as the fit that wrote it."""
+import pathlib
+import tomllib
+
+import pytest
+
+from tuning.cli import main
+
+EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
+CUBE = str(EXAMPLES / "cube_toss.toml")
+TOSS = EXAMPLES / "data" / "cube-toss" / "toss_003.csv"
+RECORD = str(EXAMPLES / "record.csv")
+
+
+@pytest.fixture(autouse=True)
+def no_disk_cache(monkeypatch):
+    """Keep the command's persistent compilation cache out of the test session."""
+    monkeypatch.setenv("DIFFPEN_CACHE", "0")
+
+
+def test_fit_out_writes_the_start_state_overrides(tmp_path, capsys):
+    """Regression: --first-state / --flight-frames were not written to --out's [fit] table
+    (the input's first_state = "fit", flight_frames = 20 stayed), so diffpen evaluate of
+    the fitted scene measured other errors than the fit reported."""
+    rec = tmp_path / "toss.csv"
+    rows = TOSS.read_text(encoding="utf-8").splitlines(True)[:40]
+    rec.write_text("".join(rows), encoding="utf-8")
+    out = tmp_path / "fitted.toml"
+    rc = main(["fit", CUBE, "--data", str(rec), "--maxiter", "1", "--horizon", "0.1",
+               "--first-state", "record", "--flight-frames", "5", "--out", str(out),
+               "--json"])
+    assert rc in (0, 1), capsys.readouterr().err
+    fit = tomllib.loads(out.read_text(encoding="utf-8"))["fit"]
+    assert fit["first_state"] == "record" and fit["flight_frames"] == 5
+
+
+@pytest.mark.parametrize("dt", ["10", "0.1"])
+def test_fit_refuses_a_dt_too_coarse_for_the_rollout(dt, capsys):
+    """Regression: `diffpen fit --dt 10` ended in JAX's 'zero-size array to reduction
+    operation min' (an empty trajectory reached the metrics)."""
+    assert main(["fit", "--dt", dt]) == 2
+    err = capsys.readouterr().err
+    assert f"dt = {dt} s leaves" in err and "Give dt <=" in err and "zero-size" not in err
+
+
+@pytest.mark.parametrize("flags", [["--method", "adam"], ["--lr", "5"], ["--drop", "7"],
+                                   ["--settle-tol", "0.5"]])
+def test_fit_data_refuses_flags_it_does_not_read(flags, capsys, monkeypatch):
+    """Regression: `diffpen fit --data REC.csv` ignored --method, --lr, --drop and
+    --settle-tol (exit 0, the same LM fit)."""
+    import tuning.sysid as sysid
+
+    def boom(*a, **k):
+        raise AssertionError("fitted despite flags it does not read")
+    monkeypatch.setattr(sysid, "fit_trajectory", boom)
+    assert main(["fit", "--data", RECORD, *flags]) == 2
+    assert f"does not read {flags[0]}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("scene, flags", [("chain", ["--k", "1"]), ("cloth", ["--c", "1000"])])
+def test_simulate_refuses_k_and_c_without_contact_materials(scene, flags, capsys):
+    """Regression: `diffpen simulate chain|cloth --k 1 --c 1000` silently ignored --k/--c."""
+    assert main(["simulate", scene, "--steps", "5", *flags]) == 2
+    assert f"{flags[0]} set contact materials, but {scene} has no contact materials" in \
+        capsys.readouterr().err
