@@ -42,8 +42,10 @@ Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps
 """
 from .bounds import FLAG, Analysis, Bound, Rates, rates, scene_rates, unsafe
 from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report
-from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt, stable_dt
+from .modes import (SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt,
+                    stable_dt)
 
-__all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH", "SAFE_CH", "SAFE_STABLE",
-           "Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG",
-           "StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
+__all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH",
+           "SAFE_CH", "SAFE_STABLE", "Bound", "Analysis", "Rates", "rates", "scene_rates",
+           "unsafe", "FLAG", "StabilityReport", "report", "gate", "GateCache",
+           "MAX_AUTO_SUBSTEPS"]

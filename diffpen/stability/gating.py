@@ -28,7 +28,8 @@ class StabilityReport(NamedTuple):
     margin: stable_dt / inner_dt (> 1 stable; < 1 unstable).
     stable: margin > 1.
     safe_dt: largest inner step the rollout accepts, s: ``min(stable_dt, SAFE_STABLE x
-      the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH / C_contact)`` for explicit integrators (inf for implicit ones); see ``SAFE_WH``.
+      the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH / C_contact)`` for
+      explicit integrators (inf for implicit ones); see ``SAFE_WH``.
     safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is <= 1.
     safe: safe_margin > 1.
     substeps_needed: smallest substep count whose inner step is within safe_dt.
@@ -277,7 +278,8 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                 stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
         why = ("unstable" if not rep.stable else
                f"stable but within {1.0 - SAFE_STABLE:.0%} of its undamped stability limit, "
-               "where oscillations grow without bound as the limit nears" if rep.omega_max > 0.0 and h > SAFE_STABLE * mode_stable_dt(
+               "where oscillations grow without bound as the limit nears"
+               if rep.omega_max > 0.0 and h > SAFE_STABLE * mode_stable_dt(
                    an.integrator, rep.omega_max ** 2, 0.0) else
                f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
                f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
