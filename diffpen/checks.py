@@ -256,89 +256,112 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
 
 
 def tunnelling_table(scene):
-    """The static part of :func:`check_tunnelling`, once per simulator: the colliding spheres
-    ``(index (n,), radius (n,), mass (n,) with inf for pinned, material (n,))`` and the fixed
-    spheres ``(centre (f, 3), radius (f,), material (f,))``, or None when no two spheres can
-    meet."""
-    idx = [i for i, b in enumerate(scene.bodies)
+    """The static part of :func:`check_tunnelling`, once per simulator: the colliding
+    spheres ``(index (n,), radius (n,), mass (n,) with inf for pinned, material (n,))``, the
+    free colliding spheres and particles the fixed spheres act on ``(index (p,), radius (p,),
+    mass (p,), material (p,))`` and the fixed spheres ``(centre (f, 3), radius (f,),
+    material (f,))``, or None when nothing can pass through anything."""
+    bodies = scene.bodies
+    idx = [i for i, b in enumerate(bodies)
            if b.kind == "sphere" and b.collide and b.radius > 0.0]
     fixed = scene.fixed_spheres
-    if len(idx) < 2 and not (idx and fixed):
+    fidx = [i for i, b in enumerate(bodies)
+            if fixed and b.kind in ("sphere", "particle") and b.collide and not b.pinned]
+    if len(idx) < 2 and not fidx:
         return None
-    bodies = [scene.bodies[i] for i in idx]
-    return (np.array(idx, dtype=int), np.array([b.radius for b in bodies]),
-            np.array([np.inf if b.pinned else b.mass for b in bodies]),
-            [b.material for b in bodies],
-            np.array([f.center for f in fixed], dtype=float).reshape(-1, 3),
-            np.array([f.radius for f in fixed]), [f.material for f in fixed])
+
+    def rows(ids):
+        return (np.array(ids, dtype=int), np.array([bodies[i].radius for i in ids]),
+                np.array([np.inf if bodies[i].pinned else bodies[i].mass for i in ids]),
+                [bodies[i].material for i in ids])
+    return (rows(idx if len(idx) >= 2 else []), rows(fidx),
+            (np.array([f.center for f in fixed], dtype=float).reshape(-1, 3),
+             np.array([f.radius for f in fixed]), [f.material for f in fixed]))
+
+
+def _impact(rel, vrel, reach):
+    """Normal speed (m/s) at which bodies at relative position ``rel`` (k, 3) with relative
+    velocity ``vrel`` (k, 3) (both b - a) would touch at centre distance ``reach`` (k,), moving
+    in straight lines: ``|u| sqrt(1 - b^2 / reach^2)`` with ``b`` the distance between their
+    paths; 0 when they move apart or their paths pass further apart than ``reach``."""
+    u2 = np.einsum("ij,ij->i", vrel, vrel)
+    along = -np.einsum("ij,ij->i", rel, vrel)                   # > 0: approaching
+    b2 = np.einsum("ij,ij->i", rel, rel) - np.where(u2 > 0.0, along ** 2 / np.where(
+        u2 > 0.0, u2, 1.0), 0.0)
+    frac = np.clip(1.0 - np.maximum(b2, 0.0) / reach ** 2, 0.0, 1.0)
+    return np.where(along > 0.0, np.sqrt(u2 * frac), 0.0)
 
 
 def check_tunnelling(sim, params, state) -> None:
     """Warn (:class:`ContactWarning`) when, in a concrete start state, two colliding spheres
-    (or a sphere and a fixed sphere) close faster than their contact can stop before their
-    centres meet: the kinetic energy of their closing speed along the line of centres,
-    ``mu v_n^2 / 2`` (``mu`` the reduced mass), above the law's stored energy at the depth
-    ``r_a + r_b`` (``ContactLaw.energy``; damping, which only helps, left out). Such spheres
-    pass through each other if they meet. Start speeds only: what gravity or springs add on
-    the way is not counted. A screen with the fastest speed and heaviest mass against the
-    softest contact skips the pairwise check in ordinary scenes; more than 4000 spheres are
-    not checked pairwise."""
+    (or a sphere or particle and a fixed sphere) would reach each other faster than their
+    contact can stop before their centres meet: the kinetic energy of the normal speed they
+    would touch at (straight paths from the start state: none if the paths pass further apart
+    than the contact reaches), ``mu v_n^2 / 2`` (``mu`` the reduced mass), above the law's
+    stored energy at the depth ``r_a + r_b`` (``ContactLaw.energy``; damping, which only
+    helps, left out). Such bodies pass through each other if they meet. Start speeds only:
+    what gravity or springs add on the way is not counted. A screen with the fastest speed
+    and heaviest mass against the softest contact skips the pairwise check in ordinary
+    scenes; more than 4000 spheres are not checked pairwise."""
     table = getattr(sim, "_tunnel_table", None)
     if table is None:
         return
-    idx, rad, mass, mats, fc, fr, fmats = table
-    v = np.asarray(state.velocity, dtype=float)[idx]
-    speed = np.linalg.norm(v, axis=-1)
-    vmax = float(speed.max(initial=0.0))
+    (idx, rad, mass, mats), (fidx, frad, fmass, fmats_b), (fc, fr, fmats) = table
+    vel = np.asarray(state.velocity, dtype=float)
+    both = np.concatenate([idx, fidx]).astype(int)
+    vmax = float(np.linalg.norm(vel[both], axis=-1).max(initial=0.0)) if both.size else 0.0
     if not vmax > 0.0 or not np.isfinite(vmax):
         return
     law = sim.contact_law
 
     def k_of(m):
         return float(np.asarray(params.contact[m].k))
-    finite = mass[np.isfinite(mass)]
+    allm = np.concatenate([mass, fmass])
+    finite = allm[np.isfinite(allm)]
     m_max = float(finite.max(initial=0.0))
-    k_min = min(k_of(m) for m in set(mats) | set(fmats) | {"default"}
-                if m in params.contact)
-    r_min = float(rad.min()) + min(float(rad.min()), float(fr.min(initial=np.inf)))
-    if m_max * vmax ** 2 <= float(law.energy(r_min, k_min)):
-        return                                       # no pair can bring that much
-    if len(idx) > 4000:
-        return
-    x = np.asarray(state.position, dtype=float)[idx]
+    k_min = min([k_of(m) for m in set(mats) | set(fmats) | {"default"} if m in params.contact]
+                or [np.inf])
+    r_min = min(2.0 * float(rad.min(initial=np.inf)),
+                float(frad.min(initial=np.inf)) + float(fr.min(initial=np.inf)))
+    if m_max * vmax ** 2 <= float(law.energy(r_min, k_min)) or len(idx) > 4000:
+        return                                   # no pair can bring that much
+    pos = np.asarray(state.position, dtype=float)
     from .terms.base import _pair_material
     worst = None
-    for a in range(len(idx)):
-        # other spheres b > a, then the fixed spheres
-        rel = np.concatenate([x[a + 1:] - x[a], fc - x[a]])
-        vrel = np.concatenate([v[a + 1:] - v[a], -np.broadcast_to(v[a], (len(fc), 3))])
-        dist = np.linalg.norm(rel, axis=-1)
-        close = -np.einsum("ij,ij->i", rel, vrel) / np.where(dist > 0.0, dist, 1.0)
-        other_m = np.concatenate([mass[a + 1:], np.full(len(fc), np.inf)])
-        inv = (1.0 / mass[a] if np.isfinite(mass[a]) else 0.0) + np.where(
-            np.isfinite(other_m), 1.0 / np.where(np.isfinite(other_m), other_m, 1.0), 0.0)
-        ke = 0.5 * np.where(inv > 0.0, 1.0 / np.where(inv > 0.0, inv, 1.0), 0.0) * np.maximum(
-            close, 0.0) ** 2
+
+    def consider(ke, vn, mat, reach, a, other):
+        nonlocal worst
+        if mat not in params.contact:
+            return
+        k = k_of(mat)
+        cap = float(law.energy(reach, k))
+        if ke > cap and (worst is None or ke / cap > worst[0]):
+            worst = (ke / cap, a, other, vn, mat, k, cap, ke)
+
+    def reduced(ma, mb):
+        inv = (1.0 / ma if np.isfinite(ma) else 0.0) + np.where(
+            np.isfinite(mb), 1.0 / np.where(np.isfinite(mb), mb, 1.0), 0.0)
+        return np.where(inv > 0.0, 1.0 / np.where(inv > 0.0, inv, 1.0), 0.0)
+    for a in range(len(idx)):                     # sphere pairs, b > a
+        reach = rad[a] + rad[a + 1:]
+        vn = _impact(pos[idx[a + 1:]] - pos[idx[a]], vel[idx[a + 1:]] - vel[idx[a]], reach)
+        ke = 0.5 * reduced(mass[a], mass[a + 1:]) * vn ** 2
         for c in np.nonzero(ke > 0.0)[0]:
-            fixed_c = c >= len(idx) - a - 1
-            mat = (fmats[c - (len(idx) - a - 1)] if fixed_c
-                   else _pair_material(sim.scene, mats[a], mats[a + 1 + c]))
-            if mat not in params.contact:
-                continue
-            R = rad[a] + (fr[c - (len(idx) - a - 1)] if fixed_c else rad[a + 1 + c])
-            k = k_of(mat)
-            cap = float(law.energy(R, k))
-            if ke[c] > cap and (worst is None or ke[c] / cap > worst[0]):
-                other = (f"fixed sphere {c - (len(idx) - a - 1)}" if fixed_c
-                         else f"sphere {int(idx[a + 1 + c])}")
-                worst = (ke[c] / cap, int(idx[a]), other, float(close[c]), mat, k, cap,
-                         float(ke[c]))
+            consider(ke[c], vn[c], _pair_material(sim.scene, mats[a], mats[a + 1 + c]),
+                     reach[c], int(idx[a]), f"sphere {int(idx[a + 1 + c])}")
+    for a in range(len(fidx)):                    # bodies against the fixed spheres
+        reach = frad[a] + fr
+        vn = _impact(fc - pos[fidx[a]], -np.broadcast_to(vel[fidx[a]], fc.shape), reach)
+        ke = 0.5 * fmass[a] * vn ** 2
+        for c in np.nonzero(ke > 0.0)[0]:
+            consider(ke[c], vn[c], fmats[c], reach[c], int(fidx[a]), f"fixed sphere {c}")
     if worst is not None:
         ratio, i, other, vn, mat, k, cap, ke = worst
+        kind = sim.scene.bodies[i].kind
         warnings.warn(
-            f"sphere {i} and {other} close at {vn:.3g} m/s: their contact (material {mat!r}, "
-            f"k = {k:.3g}) stores at most {cap:.3g} J before their centres meet, and they "
-            f"bring {ke:.3g} J: if they meet they pass through each other (a penalty "
+            f"{kind} {i} and {other} would meet at {vn:.3g} m/s: their contact (material "
+            f"{mat!r}, k = {k:.3g}) stores at most {cap:.3g} J before their centres meet, and "
+            f"they bring {ke:.3g} J: if they meet they pass through each other (a penalty "
             f"contact cannot stop them). Raise k above {k * ratio:.3g}, or slow them down.",
             ContactWarning, stacklevel=3)
 

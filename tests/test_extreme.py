@@ -101,7 +101,7 @@ def test_spheres_closing_too_fast_for_their_contact_warn():
         s.add_sphere(0.1, 1.0, (0.5, 0.0, 0.0), velocity=(-v / 2, 0.0, 0.0))
         return dp.compile(s, dt=1e-3)
     sim = pair(100.0)
-    with pytest.warns(dp.ContactWarning, match=r"sphere 0 and sphere 1 close at 100 m/s.*"
+    with pytest.warns(dp.ContactWarning, match=r"sphere 0 and sphere 1 would meet at 100 m/s.*"
                       r"stores at most 200 J.*bring 2.5e\+03 J.*Raise k above 1.25e\+05"):
         traj = sim.rollout(sim.params(k=1e4, c=0.0), 600)
     assert float(traj.position[-1, 0, 0]) > float(traj.position[-1, 1, 0])   # passed through
@@ -119,6 +119,33 @@ def test_spheres_closing_too_fast_for_their_contact_warn():
     s.add_sphere(0.1, 1.0, (-1.0, 0.0, 0.0), velocity=(100.0, 0.0, 0.0))
     s.add_fixed_sphere((0.0, 0.0, 0.0), 0.1)
     fixed = dp.compile(s, dt=1e-3)
-    with pytest.warns(dp.ContactWarning, match="sphere 0 and fixed sphere 0 close at 100 m/s"):
+    with pytest.warns(dp.ContactWarning, match="sphere 0 and fixed sphere 0 would meet at 100 m/s"):
         fixed.rollout(fixed.params(k=1e4, c=0.0), 10)
     assert np.isfinite(float(traj.position[-1, 0, 0]))
+
+
+def test_the_impact_warning_takes_the_paths_and_covers_particles():
+    """Spheres whose paths pass 1 m apart (they never touch) or graze (0.19 m apart, 9.75 J
+    at touch against 20 J) were warned about from their closing speed along the line of
+    centres; a particle fired through a fixed sphere (200 J against 5 J) was not."""
+    import warnings
+
+    def pair(b):
+        s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        s.add_sphere(0.1, 1.0, (-1.0, 0.0, 0.0), velocity=(10.0, 0.0, 0.0))
+        s.add_sphere(0.1, 1.0, (1.0, b, 0.0), velocity=(-10.0, 0.0, 0.0))
+        return dp.compile(s, dt=1e-3)
+    for b in (1.0, 0.19):
+        sim = pair(b)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            sim.rollout(sim.params(k=1e3, c=0.0), 10)
+    sim = pair(0.05)                    # 0.5 mu (20 sqrt(1 - 0.25^2))^2 = 93.75 J > 20 J
+    with pytest.warns(dp.ContactWarning, match=r"would meet at 19.4 m/s.*bring 93.7"):
+        sim.rollout(sim.params(k=1e3, c=0.0), 10)
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_particle(1.0, (1.0, 0.0, 0.0), velocity=(-20.0, 0.0, 0.0))
+    s.add_fixed_sphere((0.0, 0.0, 0.0), 0.1)
+    sim = dp.compile(s, dt=1e-3)
+    with pytest.warns(dp.ContactWarning, match="particle 0 and fixed sphere 0 would meet"):
+        sim.rollout(sim.params(k=1e3, c=0.0), 10)

@@ -166,7 +166,8 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         Finite-difference velocity columns are biased (the cube records' row-0 vertical
         velocity by about +0.023 m/s): ``"fit"`` avoids that bias.
       lag: s, the integrator's velocity lag: ``h / 2`` for semi-implicit and implicit Euler
-        (inner step h), whose steps ``x += h v_new`` trace the fitted path
+        (inner step h; :func:`tuning.record_batch.prepare` takes ``h = dt`` for
+        ``substeps="auto"``, whose count depends on the parameters), whose steps ``x += h v_new`` trace the fitted path
         ``p0 + v t + a t^2 / 2`` only from the velocity ``v - a h / 2`` (0 for verlet and
         rk4). A velocity estimated from the positions is returned as ``v - lag a``, ``a``
         the fit's acceleration (gravity in free flight): otherwise a ball dropped from rest

@@ -134,7 +134,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     times = np.zeros((R, T))
     starts, blind = [], []
     s_init = sim.init_state()
-    # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it
+    # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it (h the
+    # inner step; for substeps="auto", whose count depends on the parameters, dt: one substep)
     rec = sim.analysis.integrator
     lag = (0.5 * sim.analysis.inner_dt
            if kick_then_drift(rec) or rec.make is implicit_euler else 0.0)
