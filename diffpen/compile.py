@@ -35,6 +35,7 @@ from . import broadphase as _broadphase
 from . import checks as _checks
 from . import laws, rigid
 from . import layout as _layout
+from . import motion as _motion
 from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
@@ -223,8 +224,8 @@ class Simulator:
         self._search_aux_jit = jax.jit(self._search_aux)
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
         self._validated: dict = {}          # params values checked (diffpen.params.validate)
-        self._spin_kappa = _checks.spin_anisotropy(scene)   # (n,) inertia anisotropy
-        self._tunnel_table = _checks.tunnelling_table(scene)  # spheres that can meet
+        self._spin_kappa = _motion.spin_anisotropy(scene)   # (n,) inertia anisotropy
+        self._tunnel_table = _motion.tunnelling_table(scene)  # spheres that can meet
         self._rollout_jit = jax.jit(self._rollout_impl,
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
@@ -480,7 +481,7 @@ class Simulator:
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
-        flag = flag | _checks.spin_unsafe(self, state, self.dt / substeps)
+        flag = flag | _motion.spin_unsafe(self, state, self.dt / substeps)
         old = state.aux.get(_stability.FLAG)
         flag = flag if old is None else (jnp.asarray(old, bool) | flag)
         state = state._replace(aux={**state.aux, _stability.FLAG: flag})
@@ -557,11 +558,11 @@ class Simulator:
         if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
             # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
             # more substeps, a fixed count is refused (traced params never raise)
-            n = _checks.check_spin(self, state, int(n),
+            n = _motion.check_spin(self, state, int(n),
                                    auto=substeps is None and self.substeps == "auto")
             if self._tunnel_table is not None and all(map(_is_concrete, (state.position,
                                                                          state.velocity))):
-                _checks.check_tunnelling(self, params, state)
+                _motion.check_tunnelling(self, params, state)
         traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
                                  checkpoint=None if checkpoint is None else int(checkpoint),
                                  substeps=int(n), observe=observe)

@@ -9,16 +9,10 @@ import diffpen as dp
 from diffpen.state import ContactParams
 
 
-def ball_scene():
-    scene = dp.Scene()
-    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
-    scene.add_plane()
-    return scene
-
-
 @pytest.fixture(scope="module")
-def sim():
-    return dp.compile(ball_scene(), 1e-3)
+def sim(ball_sim):
+    """The quick-start ball of conftest.py, compiled at dt = 1e-3 s."""
+    return ball_sim
 
 
 def test_step_refuses_what_rollout_refuses(sim):
@@ -42,10 +36,10 @@ def test_step_refuses_what_rollout_refuses(sim):
     assert np.isfinite(float(z))
 
 
-def test_step_casts_params_to_the_simulators_dtype():
+def test_step_casts_params_to_the_simulators_dtype(ball_scene):
     """float64 params on a float32 simulator upcast the stepped state to float64 (a state
     rollout then refuses); rollout casts them, and so does step."""
-    sim32 = dp.compile(ball_scene(), 1e-3, dtype=jnp.float32)
+    sim32 = dp.compile(ball_scene, 1e-3, dtype=jnp.float32)
     p64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64),
                                  sim32.params(k=1e4, c=20.0))
     s1 = sim32.step(p64, sim32.init_state())

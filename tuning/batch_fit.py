@@ -34,7 +34,7 @@ import optax
 import diffpen as dp
 
 from . import params as P
-from .errors import FitError
+from .errors import FitError, positive_int
 from .optimise import (LIMIT, MESSAGES, NON_FINITE, REACHED, RUNNING, OptaxLoop,
                        default_optimizer)
 from .problem import (FreeLeaves, achieved, normalise_targets, residuals, target_spec,
@@ -147,10 +147,7 @@ class BatchFitter:
         if not (math.isfinite(lr) and lr > 0.0):
             raise FitError(f"learning_rate must be a positive number (a relative step, e.g. "
                            f"0.05), got {learning_rate!r}.")
-        if isinstance(maxiter, bool) or not isinstance(maxiter, (int, np.integer)) \
-                or maxiter < 1:
-            raise FitError(f"maxiter must be a positive integer (iterations per row), got "
-                           f"{maxiter!r}.")
+        positive_int("maxiter", maxiter, "iterations per row")
         leaves = FreeLeaves.build(params0, free, bounds, sim)
         # a point past the safe step is never reached (tuning.stable)
         self.metrics_fn = with_flag(metrics_fn, sim)

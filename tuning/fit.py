@@ -35,7 +35,7 @@ import optax
 
 import diffpen as dp
 
-from .errors import FitError
+from .errors import FitError, positive_int
 from .lm import fit_lm
 from .optimise import default_optimizer, fit_optax
 from .problem import (RESIDUAL_FACTOR, Problem, default_bounds, residual_reached,
@@ -130,13 +130,8 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     """
     if method not in ("lm", "optax"):
         raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
-    if isinstance(maxiter, bool) or not isinstance(maxiter, (int, np.integer)) or maxiter < 1:
-        raise FitError(f"maxiter must be a positive integer (the iteration limit), got "
-                       f"{maxiter!r}.")
-    if isinstance(n_starts, bool) or not isinstance(n_starts, (int, np.integer)) \
-            or n_starts < 1:
-        raise FitError(f"n_starts must be a positive integer (how many start points LM runs "
-                       f"from), got {n_starts!r}.")
+    positive_int("maxiter", maxiter, "the iteration limit")
+    positive_int("n_starts", n_starts, "how many start points LM runs from")
     if free is not None:
         free = list(free)
         twice = sorted({p for p in free if free.count(p) > 1})
