@@ -59,8 +59,13 @@ def _check_value(name: str, v) -> None:
     if not np.all(np.isfinite(arr)):
         raise SceneError(f"{name} must be finite, got {shown!r}.")
     if np.any(arr < 0.0):
-        raise SceneError(f"{name} must be >= 0, got {shown!r}: stiffness and damping cannot be "
-                         "negative.")
+        why = ("stiffness and damping cannot be negative" if name.startswith(_PAIR_KINDS)
+               else "it cannot be negative")
+        raise SceneError(f"{name} must be >= 0, got {shown!r}: {why}.")
+
+
+#: the names under which :func:`_check_value` sees stiffness and damping values
+_PAIR_KINDS = ("contact k", "contact c", "spring k", "spring c")
 
 
 def cast(dtype, v):

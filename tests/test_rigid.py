@@ -321,7 +321,8 @@ def test_box_on_fixed_sphere_and_rigid_sphere_spin_kept_on_frictionless_plane():
     assert {"contact_box_fixed_sphere", "contact_plane", "contact_box_plane"} <= set(sim.terms)
     f, _ = sim.forces(sim.params(k=1e4, c=0.0), sim.init_state())
     np.testing.assert_allclose(np.asarray(f[box]), [0.0, 0.0, 1e4 * 0.001], rtol=1e-6)
-    traj = sim.rollout(sim.params(k=1e4, c=50.0), steps=300, save_every=300)
+    # c 20: at c 50 the corners' damped mode is at 0.96 of its limit (refused, SAFE_STABLE)
+    traj = sim.rollout(sim.params(k=1e4, c=20.0), steps=300, save_every=300)
     np.testing.assert_allclose(np.asarray(traj.angular_velocity[-1, ball]), [0, 0, 5.0],
                                rtol=1e-12)
 

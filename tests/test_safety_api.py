@@ -215,6 +215,12 @@ def test_unknown_extra_keys_are_refused():
     p = bsim.params()
     with pytest.raises(dp.SceneError, match="friction parameter of group 'ice' must be >= 0"):
         bsim.rollout(p._replace(extra={**p.extra, "friction": {"ice": -0.5}}), 10)
+    # the message speaks of the value refused (it blamed "stiffness and damping" for a mu)
+    with pytest.raises(dp.SceneError, match="got -0.1: it cannot be negative") as info:
+        bsim.params(extra={"friction": {"ice": -0.1}})
+    assert "stiffness" not in str(info.value)
+    with pytest.raises(dp.SceneError, match="stiffness and damping cannot be negative"):
+        bsim.params(k=-1.0)
     with pytest.raises(dp.SceneError, match=r"params.extra\['friction'\] has \[\]"):
         bsim.rollout(p._replace(extra={**p.extra, "friction": {}}), 10)
 

@@ -91,17 +91,17 @@ def test_matplotlib_hint_names_an_installable_spec(monkeypatch):
 
 
 def test_stability_message_names_the_limit_that_applies():
-    """c h / m = 1 exactly at a tiny k: the message must not claim w h = 0.5 > 0.5."""
+    """c h / m past 1 at a tiny k: the message must not claim w h = 0.5 > 0.5."""
     import diffpen as dp
     scene = dp.Scene()
     scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
     scene.add_plane()
     sim = dp.compile(scene, 1e-3)
     with pytest.raises(dp.StabilityError) as exc:
-        sim.rollout(sim.params(k=1.0, c=1000.0), 10)
+        sim.rollout(sim.params(k=1.0, c=1100.0), 10)
     msg = str(exc.value)
-    assert "c h / m = 1" in msg and "w h = 0.001" in msg
-    assert "0.5 > 0.5" not in msg and "must be below 0.001 s" in msg
+    assert "c h / m = 1.1" in msg and "w h = 0.001" in msg
+    assert "0.5 > 0.5" not in msg and "must be at most 0.000909091 s" in msg
 
 
 def test_tiny_mass_gets_valid_bounds_and_a_huge_k0_consistent_notes(monkeypatch):

@@ -121,7 +121,7 @@ def test_a_step_near_the_springs_stability_limit_is_refused(frac):
     s.add_spring(p, (0.0, 0.0, 0.0), k=k, c=0.0, rest_length=0.0)
     limit = 2.0 / math.sqrt(k / m)
     sim = dp.compile(s, frac * limit)
-    with pytest.raises(dp.StabilityError, match="within 10% of its undamped stability limit"):
+    with pytest.raises(dp.StabilityError, match="within 10% of its stability limit"):
         sim.rollout(sim.params(), 10)
     flag = jax.jit(lambda q: sim.rollout(q, 2).aux["unstable"][-1])(sim.params())
     assert bool(flag)
@@ -129,6 +129,69 @@ def test_a_step_near_the_springs_stability_limit_is_refused(frac):
     x = ok.rollout(ok.params(), 2000).position[:, p, 0]
     wh = 0.899 * 2.0
     assert float(jnp.max(jnp.abs(x))) <= 0.01 * 1.01 / math.sqrt(1.0 - (wh / 2.0) ** 2)
+
+
+@pytest.mark.parametrize("frac", [0.95, 0.999])
+def test_a_step_near_a_damped_springs_limit_is_refused(frac):
+    """SAFE_STABLE held only the undamped limit: a spring of damping ratio 0.25 (k 1e4 N/m,
+    c 50 N s/m, 1 kg) has its damped semi-implicit Euler limit (k h^2 + 2 c h = 4 m,
+    0.015616 s) below 0.9 of the undamped one, so the safe step was the damped limit itself:
+    at 0.999 of it the particle rang at the Nyquist frequency, 1.2 cm after 0.5 s from a 1 cm
+    start (physically 4e-8 m), accepted and unflagged. Now held to 0.9 of the damped limit."""
+    k, c, m = 1e4, 50.0, 1.0
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    p = s.add_particle(m, (1.01, 0.0, 0.0))
+    s.add_spring(p, (0.0, 0.0, 0.0), k=k, c=c, rest_length=1.0)
+    limit = (-2.0 * c + math.sqrt(4.0 * c * c + 16.0 * m * k)) / (2.0 * k)
+    sim = dp.compile(s, frac * limit)
+    rep = sim.stability(sim.params())
+    assert rep.stable_dt == pytest.approx(limit)
+    assert rep.safe_dt == pytest.approx(stability.SAFE_STABLE * limit)
+    with pytest.raises(dp.StabilityError, match="within 10% of its stability limit"):
+        sim.rollout(sim.params(), 10)
+    flag = jax.jit(lambda q: sim.rollout(q, 2).aux["unstable"][-1])(sim.params())
+    assert bool(flag)
+    ok = dp.compile(s, stability.SAFE_STABLE * limit)   # at the safe step: accepted, decays
+    x = ok.rollout(ok.params(), int(0.5 / ok.dt)).position[:, p, 0] - 1.0
+    assert abs(float(x[-1])) < 1e-6
+
+
+def test_a_step_equal_to_the_safe_step_is_accepted(ball_sim):
+    """The safe step is the largest accepted (c h / m <= 1, w h <= 0.5): a rollout at it was
+    refused ("needs c h / m < 1") and the advice asked for one substep more than the rule."""
+    params = ball_sim.params(k=1e4, c=2000.0)           # c h / m = 1 at substeps=2
+    rep = ball_sim.stability(params)
+    assert rep.safe_dt == pytest.approx(5e-4) and rep.substeps_needed == 2
+    assert stability.report(ball_sim, params, substeps=2).safe
+    ball_sim.rollout(params, 4, substeps=2)
+    flag = jax.jit(lambda q: ball_sim.rollout(q, 2, substeps=2).aux["unstable"][-1])(params)
+    assert not bool(flag)
+
+
+def test_anchored_springs_count_the_tension_gravity_can_hang_on_them():
+    """A 1 g, 1 cm link between a world point and a 10 kg weight on anchored springs at rest
+    length: loaded, the springs' tension (~98 N) turns the link at ~7700 rad/s, but the bound
+    counted the start stretch (0) alone: omega_max 2739 rad/s, and at 0.9 of that safe step
+    (5.9e-4 s) the link spun up to 3.75e4 rad/s and tipped 89.5 deg, unflagged. The bound
+    now counts twice the weight of the bodies the springs join."""
+    a, k = 0.005, 1e3
+    sc = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    link = sc.add_box((a, a, a), 1e-3, (0.0, 0.0, 0.9 - a), collide=False)
+    w = sc.add_sphere(0.03, 10.0, (0.0, 0.0, 0.9 - 2 * a - 0.1), collide=False)
+    sc.add_anchored_spring(link, None, anchor_a=(0, 0, a), anchor_b=(0.0, 0.0, 1.0), k=k,
+                           c=0.0, group="s")
+    sc.add_anchored_spring(link, w, anchor_a=(0, 0, -a), group="s")
+    sim = dp.compile(sc, dt=5.9e-4)
+    rep = sim.stability(sim.params())
+    # the loaded link's turning mode: tension m g on both springs at lever a, I = m_l a^2 / 6
+    w_loaded = math.sqrt(2.0 * 10.0 * 9.81 * a / (1e-3 * (2 * a) ** 2 / 6.0))
+    assert rep.omega_max >= w_loaded
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(sim.params(), 10)
+    ok = dp.compile(sc, dt=rep.safe_dt)
+    st = ok.state_from(body=link, angular_velocity=(1e-3, 0.0, 0.0))
+    tr = ok.rollout(ok.params(), int(0.3 / rep.safe_dt), state=st)
+    assert float(jnp.max(jnp.abs(tr.angular_velocity[:, link]))) < 0.1
 
 
 def test_stability_error_names_dt_and_substeps(ball_scene, ball_sim):
@@ -139,10 +202,11 @@ def test_stability_error_names_dt_and_substeps(ball_scene, ball_sim):
     err = info.value
     K, C = 1e8, 50.0
     # the safe step: w h <= 0.5 (tighter than linear stability, 2 / w ~ 2e-4 s)
-    assert err.stable_dt == pytest.approx(min(stability.SAFE_WH / math.sqrt(K),
-                                              stability.mode_stable_dt("semi_implicit_euler",
-                                                                       K, C)))
-    assert err.substeps == math.floor(1e-3 / err.stable_dt) + 1
+    assert err.stable_dt == pytest.approx(min(
+        stability.SAFE_WH / math.sqrt(K),
+        stability.SAFE_STABLE * stability.mode_stable_dt("semi_implicit_euler", K, C)))
+    # the fewest substeps whose inner step is at most the safe step (equal is accepted)
+    assert err.substeps == math.ceil(1e-3 / err.stable_dt * (1.0 - 1e-12))
     assert f"{err.stable_dt:.3g}" in str(err) and "unstable" in str(err)
     # the advice works: with that many substeps the same run is stable and sane
     fixed = dp.compile(ball_scene, 1e-3, substeps=err.substeps)
@@ -385,7 +449,7 @@ def test_drag_is_in_the_stability_bound():
     s.add_drag(b, c=100.0)
     sim = dp.compile(s, 0.05)
     assert sim.stability(sim.params()).stable_dt == pytest.approx(0.02, rel=1e-6)
-    with pytest.raises(dp.StabilityError, match="below 0.02 s"):
+    with pytest.raises(dp.StabilityError, match="at most 0.018 s"):
         sim.rollout(sim.params(), 50)
     auto = dp.compile(s, 0.05, substeps="auto")
     v = auto.rollout(auto.params(), 50, save_every=50).velocity[-1, b]

@@ -34,8 +34,9 @@ class Bound(NamedTuple):
     (1/s^2) and damping (1/s) rows of body ``body[r]``.
 
     body: (m,) int body indices.
-    param: ``"contact"`` (params.contact), ``"springs"`` (params.springs), or the name of a
-      ``Params.extra`` entry whose values act as damping (``"friction"``: mu, with
+    param: ``"contact"`` (params.contact), ``"springs"`` (params.springs), ``"load"`` (no
+      parameter: ``k_weight`` is the row's stiffness in 1/s^2, fixed by the scene), or the
+      name of a ``Params.extra`` entry whose values act as damping (``"friction"``: mu, with
       ``c_weight`` in 1/s per unit mu and no stiffness).
     names: the material / group names that ``key`` indexes.  key: (m,) int.
     k_weight, c_weight: (m,): dimensionless factors when ``per_mass`` (the row is divided by
@@ -125,6 +126,8 @@ def _block_values(block: Bound, params, xp):
         pairs = [params.contact[n] for n in block.names]
     elif block.param == "springs":
         pairs = [params.springs[n] for n in block.names]
+    elif block.param == "load":
+        pairs = [(1.0, 0.0) for _ in block.names]
     else:
         pairs = [(None, params.extra[block.param][n]) for n in block.names]
     ks, cs = [], []
@@ -264,11 +267,11 @@ def unsafe(an: Analysis, params, h=None):
     simulator's) is past the safe step for ``params`` (tracers welcome: jit, vmap, grad).
 
     The same rows as the up-front check (:func:`rates` with ``jax.numpy``) and the same
-    limits: ``h >= min(stable_dt, SAFE_STABLE x the undamped limit, SAFE_WH / w_c,
-    SAFE_CH / C_c)``, the stability limit
+    limits: ``h > min(SAFE_STABLE x stable_dt, SAFE_STABLE x the undamped limit,
+    SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
     from the integrator's closed form when it has one (then it agrees with the up-front check
-    to rounding), else from the spectral radius of its amplification matrix at ``h`` for the
-    modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
+    to rounding), else from the spectral radius of its amplification matrix at
+    ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
     """
     import jax
     import jax.numpy as jnp
@@ -284,21 +287,20 @@ def unsafe(an: Analysis, params, h=None):
         sdt = rec.stable_dt(K, C, xp=jnp)
         sdt = jnp.where((K <= 0.0) & (C <= 0.0), jnp.inf, sdt)
         undamped = rec.stable_dt(K, jnp.zeros_like(C), xp=jnp)
-        bad = (sdt <= h) | ((K > 0.0) & (SAFE_STABLE * undamped <= h))
+        bad = (SAFE_STABLE * sdt < h) | ((K > 0.0) & (SAFE_STABLE * undamped < h))
     else:
-        # the undamped mode held to SAFE_STABLE of its limit: h / SAFE_STABLE within it
+        # every mode held to SAFE_STABLE of its limit: h / SAFE_STABLE within it
         Ks = jnp.stack([K, K, jnp.zeros_like(K)])
         Cs = jnp.stack([C, jnp.zeros_like(C), C])
-        hs = jnp.stack([jnp.asarray(h, K.dtype), jnp.asarray(h / SAFE_STABLE, K.dtype),
-                        jnp.asarray(h, K.dtype)])
+        hs = jnp.full((3,), h / SAFE_STABLE, K.dtype)
         rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, hs, xp=jnp), jnp)
         # a neutral mode (a pure dashpot's |rho| = 1 exactly) reads 1 + 2e-6 in float32:
         # the margin follows the dtype's rounding
         margin = max(1e-9, 64.0 * float(jnp.finfo(rho.dtype).eps))
         bad = jnp.any(rho > 1.0 + margin)
     wc = jnp.sqrt(Kc)
-    bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) <= h))
-    bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) <= h))
+    bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) < h))
+    bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) < h))
     # a NaN or negative stiffness, damping or friction reads as no limit above (every
     # comparison with NaN is False; a negative value never reaches one): flag it too, and a
     # parameter that is not finite anywhere else (e.g. a plane offset)

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import SceneError, StabilityError
 from .bounds import Analysis, rates
-from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, mode_stable_dt, safe_dt, stable_dt
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, safe_dt, stable_dt
 
 __all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
 
@@ -27,11 +27,12 @@ class StabilityReport(NamedTuple):
     stable_dt: largest linearly stable inner step, s (inf: no limit).
     margin: stable_dt / inner_dt (> 1 stable; < 1 unstable).
     stable: margin > 1.
-    safe_dt: largest inner step the rollout accepts, s: ``min(stable_dt, SAFE_STABLE x
-      the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH / C_contact)`` for
+    safe_dt: largest inner step the rollout accepts, s: ``min(SAFE_STABLE x stable_dt,
+      SAFE_STABLE x the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH /
+      C_contact)`` for
       explicit integrators (inf for implicit ones); see ``SAFE_WH``.
-    safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is <= 1.
-    safe: safe_margin > 1.
+    safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is < 1.
+    safe: safe_margin >= 1 (a step equal to the safe step is accepted).
     substeps_needed: smallest substep count whose inner step is within safe_dt.
     omega_max: bound on the highest angular frequency sqrt(K), rad/s.
     damping_rate: bound on the largest C, 1/s.
@@ -74,8 +75,10 @@ def _needed(dt: float, sdt: float) -> int:
     if sdt <= 0.0:
         return MAX_AUTO_SUBSTEPS + 1
     n = max(1, math.ceil(dt / sdt))
-    while dt / n >= sdt:  # strict: a step equal to the limit is marginal, not stable
+    while dt / n > sdt * (1.0 + SAFE_TIE):  # a step equal to the safe step is accepted
         n += 1
+    while n > 1 and dt / (n - 1) <= sdt * (1.0 + SAFE_TIE):
+        n -= 1
     return n
 
 
@@ -121,7 +124,7 @@ def report(sim, params, *, substeps: int | None = None,
     safe_margin = math.inf if math.isinf(safe) else safe / h
     body = int(np.argmax(K_row)) if K > 0.0 else None
     return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
-                           safe, safe_margin, safe_margin > 1.0,
+                           safe, safe_margin, safe_margin >= 1.0 - SAFE_TIE,
                            _needed(an.dt, safe), math.sqrt(K), C, body,
                            (f"{source(body)} on body {body}" if body is not None else ""),
                            pdt)
@@ -277,19 +280,18 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                 "integrator='implicit_euler' (no step limit).",
                 stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
         why = ("unstable" if not rep.stable else
-               f"stable but within {1.0 - SAFE_STABLE:.0%} of its undamped stability limit, "
-               "where oscillations grow without bound as the limit nears"
-               if rep.omega_max > 0.0 and h > SAFE_STABLE * mode_stable_dt(
-                   an.integrator, rep.omega_max ** 2, 0.0) else
-               f"stable but past its safe step for contact (needs w h < {SAFE_WH} and "
-               f"c h / m < {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
+               f"stable but within {1.0 - SAFE_STABLE:.0%} of its stability limit, where "
+               "oscillations grow without bound (or, damped, stop decaying) as the limit nears"
+               if h > SAFE_STABLE * rep.stable_dt * (1.0 + SAFE_TIE) else
+               f"stable but past its safe step for contact (needs w h <= {SAFE_WH} and "
+               f"c h / m <= {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
                f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
                " contact energy errors of several % or more)")
         raise StabilityError(
             f"integrator {an.integrator.name!r} is {why} at step {h:.6g} s: the step must be "
-            f"below {rep.safe_dt:.6g} s (linear stability limit {rep.stable_dt:.4g} s; w_max "
+            f"at most {rep.safe_dt:.6g} s (linear stability limit {rep.stable_dt:.4g} s; w_max "
             f"<= {rep.omega_max:.4g} rad/s, C/m <= {rep.damping_rate:.4g} 1/s, set by "
-            f"{rep.limiting or 'the springs and contacts'}). Use dt < {rep.safe_dt:.4g} s, "
+            f"{rep.limiting or 'the springs and contacts'}). Use dt <= {rep.safe_dt:.4g} s, "
             f"compile with substeps={rep.substeps_needed} (or substeps='auto'), or "
             "integrator='implicit_euler'.",
             stable_dt=rep.safe_dt, substeps=rep.substeps_needed)

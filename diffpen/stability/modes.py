@@ -109,22 +109,24 @@ def stable_dt(integrator, K: float, C: float) -> float:
 #: (no velocity reversal within a step).
 SAFE_WH = 0.5
 SAFE_CH = 1.0
-#: ... and to ``SAFE_STABLE`` of the undamped stability limit of the stiffest mode (springs
-#: too): as the step nears it, a stable oscillation's amplitude grows without bound
-#: (``1 / sqrt(1 - (w h / 2)^2)`` for semi-implicit Euler and Verlet: 2.3x at 0.9 of the
-#: limit, 7x at 0.99, 700x at 0.999999).
+#: ... and to ``SAFE_STABLE`` of the stability limit of the stiffest and most damped modes
+#: (springs too, damping included): as the step nears it, a stable oscillation's amplitude
+#: grows without bound (``1 / sqrt(1 - (w h / 2)^2)`` for semi-implicit Euler and Verlet
+#: undamped: 2.3x at 0.9 of the limit, 7x at 0.99, 700x at 0.999999), and a damped mode stops
+#: decaying (its eigenvalue nears -1: a spring of damping ratio 0.25 at 0.999 of its damped
+#: limit rang at the step's Nyquist frequency, larger after 0.5 s than at its start).
 SAFE_STABLE = 0.9
 
 
 def safe_dt(integrator, Kc: float, Cc: float, stable: float, K: float = 0.0) -> float:
-    """Largest inner step (s) the rollout accepts: the stability limit ``stable`` (s),
-    tightened for explicit integrators to ``SAFE_STABLE`` of the undamped limit of the
-    stiffest mode ``K`` (1/s^2), ``sqrt(Kc) h <= SAFE_WH`` and ``Cc h <= SAFE_CH``
-    where Kc (1/s^2), Cc (1/s) bound the contact springs alone (springs that never switch
-    off need no more than that)."""
+    """Largest inner step (s) the rollout accepts (a step equal to it is accepted): the
+    stability limit ``stable`` (s), tightened for explicit integrators to ``SAFE_STABLE`` of
+    it and of the undamped limit of the stiffest mode ``K`` (1/s^2), ``sqrt(Kc) h <= SAFE_WH``
+    and ``Cc h <= SAFE_CH`` where Kc (1/s^2), Cc (1/s) bound the contact springs alone
+    (springs that never switch off need no more than that)."""
     if not resolve(integrator).explicit:
         return stable
-    cands = [stable]
+    cands = [SAFE_STABLE * stable]
     if K > 0.0:
         cands.append(SAFE_STABLE * mode_stable_dt(integrator, K, 0.0))
     if Kc > 0.0:
@@ -132,4 +134,9 @@ def safe_dt(integrator, Kc: float, Cc: float, stable: float, K: float = 0.0) -> 
     if Cc > 0.0:
         cands.append(SAFE_CH / Cc)
     return min(cands)
+
+
+#: relative rounding allowance of "a step equal to the safe step is accepted" (dt / substeps
+#: and the safe step are computed along different paths)
+SAFE_TIE = 1e-12
 

@@ -484,21 +484,56 @@ def _tension_mobility(scene, i, lever, stretch: float) -> float:
     return stretch * float(np.linalg.norm(lever)) * float(inv.max())
 
 
+def _carried_weights(scene) -> dict:
+    """Per free body, the weight (N) of the free bodies joined to it by springs of any kind
+    (its connected component through free bodies; pinned bodies and world anchors carry
+    their share to the world): the most a spring of that component can come to carry at
+    rest under gravity, whatever its start stretch."""
+    free = [i for i, b in enumerate(scene.bodies) if not b.pinned]
+    parent = {i: i for i in free}
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+    links = ([(sp.a, sp.b) for sp in scene.springs]
+             + [(sp.a, sp.b) for sp in scene.anchored_springs]
+             + [(sp.a, sp.b) for sp in scene.plastic_springs])
+    for a, b in links:
+        if a in parent and b in parent:
+            parent[root(a)] = root(b)
+    g = float(np.linalg.norm(scene.gravity))
+    total = {}
+    for i in free:
+        total[root(i)] = total.get(root(i), 0.0) + scene.bodies[i].mass * g
+    return {i: total[root(i)] for i in free}
+
+
 def _anchored_bound(ctx: CompileContext):
     """Each spring's ``k (J M^-1 J^T)`` on both ends (:func:`_pair_rows`) plus the
-    rotational stiffness of its tension at the start poses (:func:`_tension_mobility`): the
-    bound holds while no spring stretches far beyond its start stretch."""
-    scene, rows = ctx.scene, []
+    rotational stiffness of its tension (:func:`_tension_mobility`): at the start poses
+    (per unit k), and under the load gravity can hang on it (``"load"`` rows, 1/s^2: twice
+    the weight of the bodies the spring's component joins, :func:`_carried_weights`, the
+    peak of a load released from rest). A 1 g link holding a 10 kg weight on springs at
+    rest length turns at ~7700 rad/s once loaded: counted at the start stretch (0) alone,
+    the bound passed a step 3x past its limit. Tension beyond that (impacts, stretching
+    by hand) is not bounded."""
+    scene, rows, load = ctx.scene, [], []
+    carried = _carried_weights(scene)
     for sp in scene.anchored_springs:
         rows += _pair_rows(scene, sp.a, sp.b, sp.group, sp.anchor_a, sp.anchor_b)
+        ends = [b for b in (sp.a, sp.b) if b is not None and not scene.bodies[b].pinned]
         s0 = _start_stretch(scene, sp)
-        geo = (_tension_mobility(scene, sp.a, sp.anchor_a, s0)
-               + _tension_mobility(scene, sp.b, sp.anchor_b, s0))
-        if geo > 0.0:
-            rows += [(b, sp.group, geo * (2.0 if sp.b is not None else 1.0))
-                     for b in (sp.a, sp.b) if b is not None and not scene.bodies[b].pinned]
-    out = _rows_bound(rows, "springs")
-    return () if out is None else (out,)
+        t_load = 2.0 * max((carried[b] for b in ends), default=0.0)
+        both = 2.0 if sp.b is not None else 1.0
+        for tension, out, key in ((s0, rows, sp.group), (t_load, load, "gravity")):
+            geo = (_tension_mobility(scene, sp.a, sp.anchor_a, tension)
+                   + _tension_mobility(scene, sp.b, sp.anchor_b, tension))
+            if geo > 0.0:
+                out += [(b, key, geo * both) for b in ends]
+    blocks = (_rows_bound(rows, "springs"), _rows_bound(load, "load"))
+    return tuple(b for b in blocks if b is not None)
 
 
 # --------------------------------------------------------------------------- params keys
