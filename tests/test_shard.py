@@ -105,7 +105,8 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     # the README's snippet
     final_height = lambda k, c: sim.rollout(sim.params(k=k, c=c), 60,
                                             save_every=60).position[-1, 0, 2]
-    heights = sharded_map(final_height)(jnp.geomspace(1e3, 1e5, 6), jnp.full(6, 20.0))
+    heights_run = sharded_map(final_height)
+    heights = heights_run(jnp.geomspace(1e3, 1e5, 6), jnp.full(6, 20.0))
 
     # batched fits: 4 rows (divide 4 devices evenly) and 3 (do not)
     fitter = BatchFitter(lambda p: {"z": final(p)["z"]}, p0, maxiter=4)
@@ -136,8 +137,28 @@ CLUSTER_SCRIPT = textwrap.dedent("""
         differ = None
     except ValueError as exc:
         differ = str(exc)
+    # process 1 given other work than process 0, each with the programs compiled above: the
+    # sweep's chunk, an out= on one process only, a batched fit's targets, a sharded batch
+    other, mismatch = jax.process_index(), {}
+    for name, call in (
+            ("chunk", lambda: sw.sweep(final, p0, pts, names, chunk=4 + other,
+                                       progress=False, evaluate=ev)),
+            ("out", lambda: sw.sweep(final, p0, pts, names, chunk=4, progress=False,
+                                     evaluate=ev, key={"metric": "z"}, out=None if other
+                                     else os.path.join(tempfile.mkdtemp(), "o.npz"))),
+            ("fit", lambda: fitter([{"z": 0.08 + 0.004 * i + 0.001 * other}
+                                    for i in range(3)],
+                                   starts=[{"contact.default.k": 3e3 * (i + 1)}
+                                           for i in range(3)])),
+            ("map", lambda: heights_run(jnp.geomspace(1e3, 1e5, 6) * (1 + other),
+                                        jnp.full(6, 20.0)))):
+        try:
+            call()
+            mismatch[name] = None
+        except ValueError as exc:
+            mismatch[name] = str(exc)
     print(json.dumps({
-        "raised": raised, "differ": differ,
+        "raised": raised, "differ": differ, "mismatch": mismatch,
         "joined": joined, "processes": jax.process_count(), "devices": jax.device_count(),
         "writes": sweep_writes, "scene_apex": scene_apex,
         "scene_writes": writes[len(sweep_writes):],
@@ -160,7 +181,9 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
     sweep, a scene file's sweep, the README's sharded_map snippet and batched fits (rows that
     divide the 4 devices and rows that do not) return, on both processes, the single-process
     results bit for bit;
-    only process 0 writes the sweep file, and a rerun resumes from it on both."""
+    only process 0 writes the sweep file, and a rerun resumes from it on both. Processes
+    given other work (a sweep's chunk, an out= on one only, a batched fit's targets, a
+    sharded batch) all stop with the same error."""
     from device_subprocess import run_cluster
     import os
     os.environ["CLUSTER_TMP"] = str(tmp_path)
@@ -171,6 +194,7 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         del os.environ["CLUSTER_TMP"]
     assert alone["processes"] == 1 and alone["devices"] == 1 and not alone["joined"]
     assert alone["differ"] is None
+    assert alone["mismatch"] == {"chunk": None, "out": None, "fit": None, "map": None}
     assert alone["evaluated"] == [9, 0]
     for i, r in enumerate(procs):
         assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
@@ -179,6 +203,13 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
         assert r["raised"] == "ZeroDivisionError"
         assert "processes [1] were given a different sweep" in r["differ"]
+        # other work on process 1: the same error on both, before rows of one process's work
+        # were returned as the other's (or the cluster hung)
+        for name, words in (("chunk", "different chunk"), ("out", "different out"),
+                            ("fit", "different batched fit (targets, starts and settings)"),
+                            ("map", "different sharded_map batch")):
+            assert "processes [1] were given a " + words in (r["mismatch"][name] or ""), name
+        assert r["mismatch"] == procs[0]["mismatch"]
         for key in ("z", "v", "again_z", "heights", "scene_apex"):
             assert r[key] == alone[key], key                     # bit for bit (exact floats)
         assert r["scene_writes"] == ([0, 0, 0] if i == 0 else [])
@@ -209,6 +240,11 @@ def test_cluster_arguments_are_checked_before_anything_runs(capsys):
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         distributed.join("localhost:1234", 2, 5)
     assert distributed.join("localhost:1234", 1, 0) is False     # one process: nothing to join
+    with pytest.raises(ValueError, match="timeout_s must be a number of seconds >= 1"):
+        distributed.join("localhost:1234", 2, 0, timeout_s=0)
+    with pytest.raises(SystemExit):
+        main(["sweep", "--n", "2", "--cluster-timeout", "0"])
+    assert "--cluster-timeout must be an integer >= 1" in capsys.readouterr().err
 
 
 def test_cluster_launchers_are_detected(monkeypatch):
@@ -257,3 +293,55 @@ def test_cluster_sweep_prints_only_its_json_on_standard_output(tmp_path):
     summary = json.loads(outs[0][0])
     assert summary["points"] == 4
     assert outs[1][0].strip() == ""
+
+
+def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
+    """Two 2-process ``diffpen sweep`` clusters, started together, that cannot run: a scene
+    file's sweep given another --chunk on process 1 (process 0 wrote rows of other points
+    and process 1 hung), and a sweep whose process 0 cannot write its --out (process 0 stopped
+    before joining and process 1 waited, silent, for 300 s). Every process stops at once with
+    the same error, each first says on standard error what it waits for, and the scene
+    file's sweep imports diffpen before joining (JAX's backend started first and diffpen
+    warned that batched rollouts run slower)."""
+    import subprocess
+    import sys
+
+    from device_subprocess import _env, free_port
+    (tmp_path / "a").mkdir()
+    scene = tmp_path / "ball.toml"
+    scene.write_text("dt = 2e-3\nduration = 0.4\n[[spheres]]\nradius = 0.1\nmass = 1.0\n"
+                     "position = [0.0, 0.0, 0.3]\n[[planes]]\n[fit]\n"
+                     "params = ['contact.default.k', 'contact.default.c']\n[fit.bounds]\n"
+                     "'contact.default.k' = [2e3, 2e4]\n'contact.default.c' = [2.0, 20.0]\n")
+    chunk = [str(scene), "--n", "2", "--json", "--out", str(tmp_path / "a" / "s.npz")]
+    ball = ["--n", "2", "--duration", "0.4", "--dt", "2e-3", "--json"]
+    runs = {"chunk": [chunk + ["--chunk", "4"], chunk + ["--chunk", "2"]],
+            "out": [ball + ["--out", str(tmp_path / "missing" / "s.npz")],
+                    ball + ["--out", str(tmp_path / "s.npz")]]}
+    procs = {}
+    for name, argvs in runs.items():
+        coordinator = f"localhost:{free_port()}"
+        procs[name] = [subprocess.Popen(
+            [sys.executable, "-m", "tuning.cli", "sweep", *argv, "--coordinator", coordinator,
+             "--num-processes", "2", "--process-id", str(i), "--cluster-timeout", "60"],
+            env=_env(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            for i, argv in enumerate(argvs)]
+    try:
+        outs = {name: [p.communicate(timeout=90) for p in ps] for name, ps in procs.items()}
+    finally:
+        for ps in procs.values():
+            for p in ps:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    errors = {"chunk": "processes [1] were given a different chunk (points per call, "
+                       "diffpen sweep --chunk) from process 0",
+              "out": f"--out {tmp_path / 'missing' / 's.npz'}: the folder"}
+    for name, ps in procs.items():
+        for i, (p, (out, err)) in enumerate(zip(ps, outs[name])):
+            assert p.returncode == 2 and out.strip() == "", (name, i, err[-2000:])
+            assert f"process {i} of 2 waits up to 60 s for every process to join the " \
+                   "cluster through the coordinator localhost:" in err, (name, i, err[-2000:])
+            assert errors[name] in err, (name, i, err[-2000:])
+            assert "backend started before" not in err, (name, i, err[-2000:])
+    assert not (tmp_path / "a" / "s.npz").exists() and not (tmp_path / "s.npz").exists()

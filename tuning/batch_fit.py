@@ -17,11 +17,13 @@ rows that have stopped keep their state) is one per-row function lifted to the b
 batch axis is split over a 1-D device ``Mesh`` with ``NamedSharding(mesh, P("batch"))``, and
 the results equal the single-device run. A batch that is not a multiple of the device count is
 padded by repeating its last row; the padding never reaches the result. Over several processes
-(:mod:`tuning.distributed`) every process calls with the same rows and gets every row back.
+(:mod:`tuning.distributed`) every process calls with the same rows and gets every row back;
+processes given different targets, starts or settings stop at once with the same error.
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import time
 from typing import Callable, Sequence
@@ -33,6 +35,7 @@ import optax
 
 import diffpen as dp
 
+from . import distributed
 from . import params as P
 from .errors import FitError, positive_int
 from .optimise import (LIMIT, MESSAGES, NON_FINITE, REACHED, RUNNING, OptaxLoop,
@@ -155,6 +158,7 @@ class BatchFitter:
         self.x0, self.lo, self.hi = leaves.x0, leaves.lo, leaves.hi
         self.weights, self.rtol = weights, rtol
         self.optimizer = default_optimizer(lr) if optimizer is None else optimizer
+        self._learning_rate = None if optimizer is not None else lr
         self.maxiter = int(maxiter)
         self.mesh = batch_mesh() if mesh is None else mesh
         self._leaves = leaves
@@ -182,6 +186,22 @@ class BatchFitter:
                                "entries (one compiled program serves the batch).")
         stacked = {k: np.stack([row[k] for row in norm]) for k in layout}
         return stacked, target_spec(norm[0], self.weights, self.rtol)
+
+    def _work(self, tg: dict, spec: tuple, x0: np.ndarray) -> bytes:
+        """A digest of one call's work: the targets, starts, target settings, fitted leaves
+        and their bounds, the frozen leaves, the iteration limit, the default optimiser's step
+        and the devices (several processes must all pass the same)."""
+        frozen = sorted(P.flatten(self.params0).items())
+        h = hashlib.sha256(repr((spec, self.free, self.maxiter, self._learning_rate,
+                                 [d.id for d in self.mesh.devices.flat],
+                                 [n for n, _ in frozen])).encode())
+        arrays = [x0, self.lo, self.hi, *(tg[k] for k in sorted(tg))]
+        arrays += [v for _, v in frozen]
+        for a in arrays:
+            a = np.ascontiguousarray(np.asarray(a, np.float64))
+            h.update(repr(a.shape).encode())
+            h.update(a.tobytes())
+        return h.digest()
 
     # ------------------------------------------------------------------ program
     def _program(self, spec: tuple) -> Callable:
@@ -231,6 +251,10 @@ class BatchFitter:
         rows, starts = _rows(targets, starts)
         tg, spec = self._targets(rows)
         x0 = self._starts(starts, len(rows))
+        # several processes: each fills its devices' rows from its own batch, so all must pass
+        # the same (else rows of other fits would be returned as this one's)
+        distributed.check_same("batched fit (targets, starts and settings)",
+                               self._work(tg, spec, x0))
         t0 = time.perf_counter()
         run = self._program(spec)
         out = jax.device_get(jax.block_until_ready(

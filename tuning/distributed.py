@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import sys
 from typing import Callable
 
 import numpy as np
@@ -89,21 +90,41 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
       timeout_s: seconds to wait for every process to join before failing (no hang).
     Returns: True when this process is part of a cluster (now or already), False when it runs
       alone. Raises ``ValueError`` for an incomplete or inconsistent set of arguments.
+
+    Before it waits, it writes one line on standard error: which process waits, for how long
+    and on which coordinator (a process that is never joined by the others, e.g. because
+    process 0 stopped or was given another number of processes, says why it is waiting).
     """
     import jax
     given = check(coordinator, num_processes, process_id)
+    if isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) \
+            or not timeout_s >= 1:
+        raise ValueError(f"timeout_s must be a number of seconds >= 1, got {timeout_s!r}.")
     if jax.distributed.is_initialized():
         return True
     if given:
         if num_processes == 1:
             return False
+        _say_waiting(f"process {int(process_id)} of {int(num_processes)}", timeout_s,
+                     f"the coordinator {coordinator} (every process needs the same coordinator "
+                     f"and number of processes, and its own id in 0..{int(num_processes) - 1})")
         jax.distributed.initialize(coordinator, int(num_processes), int(process_id),
                                    initialization_timeout=int(timeout_s))
         return True
-    if detect() is None:
+    launcher = detect()
+    if launcher is None:
         return False
+    name = {"slurm": "SLURM", "ompi": "Open MPI"}.get(launcher, launcher)
+    _say_waiting("this process", timeout_s, f"the coordinator that the {name} launch names")
     jax.distributed.initialize(initialization_timeout=int(timeout_s))
     return True
+
+
+def _say_waiting(who: str, timeout_s, where: str) -> None:
+    """One line on standard error before :func:`join` waits for the cluster."""
+    sys.stderr.write(f"{who} waits up to {int(timeout_s)} s for every process to join the "
+                     f"cluster through {where}\n")
+    sys.stderr.flush()
 
 
 def process_count() -> int:

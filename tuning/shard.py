@@ -8,18 +8,22 @@ it is exactly ``jax.jit(jax.vmap(fn))``.
 Several processes (hosts): every process calls :func:`tuning.distributed.join` (or
 ``jax.distributed.initialize``) before anything else (see the README, "Beyond one machine");
 ``jax.devices()`` then lists the devices of all processes and the same code shards over them.
-Every process must run the same program with the same batch; each gets the whole result back
+Every process must run the same program with the same batch (a call whose batch differs
+between processes stops with the same error on all of them); each gets the whole result back
 as ordinary arrays on its own first device (the program gathers the rows of every device), so
 the results are identical on every process and readable anywhere.
 """
 from __future__ import annotations
 
+import hashlib
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from .distributed import check_same
 
 __all__ = ["batch_mesh", "sharded_map", "pad_to_multiple"]
 
@@ -60,6 +64,16 @@ def _host(a) -> np.ndarray:
     return a.astype(jax.dtypes.canonicalize_dtype(a.dtype), copy=False)
 
 
+def _digest(tree) -> bytes:
+    """SHA-256 of a pytree of host arrays: their shapes, dtypes and values."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    h = hashlib.sha256(str(len(leaves)).encode())
+    for a in leaves:
+        h.update(repr((a.shape, a.dtype.str)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.digest()
+
+
 def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False) -> Callable:
     """``jax.vmap(fn)`` over the leading axis of every argument, sharded over ``mesh``.
 
@@ -73,20 +87,27 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False
       not a multiple of the device count is padded (by repeating its last row) and the padding
       is dropped from the outputs. The jitted program is built once per mesh, shapes and
       dtypes, so repeated calls with new values do not recompile. Over several processes
-      every process passes the same batch and gets the same, whole result.
+      every process passes the same batch and gets the same, whole result (a batch that
+      differs between processes raises the same ``ValueError`` on all of them).
     """
     mesh = batch_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
     spec = NamedSharding(mesh, P("batch"))
     # a mesh over several processes: gather every row onto every device inside the program
     # (a replicated output), so that each process holds the whole result
-    multi = len({d.process_index for d in mesh.devices.flat}) > 1
+    processes = len({d.process_index for d in mesh.devices.flat})
+    multi = processes > 1
+    every = processes == jax.process_count()    # the batch is checked across all processes
     program = jax.jit(fn if batched else jax.vmap(fn), in_shardings=spec,
                       out_shardings=NamedSharding(mesh, P()) if multi else spec)
 
     def run(*args):
         if multi:     # every process holds the whole batch; each device takes its rows
-            padded, n = pad_to_multiple(jax.tree_util.tree_map(_host, args), n_dev)
+            host = jax.tree_util.tree_map(_host, args)
+            if every:
+                check_same("sharded_map batch (the arguments' shapes, dtypes and values)",
+                           _digest(host))
+            padded, n = pad_to_multiple(host, n_dev)
             placed = jax.tree_util.tree_map(
                 lambda a: jax.make_array_from_callback(a.shape, spec, lambda i: a[i]), padded)
             out = program(*placed)

@@ -17,9 +17,9 @@ differs (``resume=False`` overwrites). One writer per output (a lock), checked p
 any computing, and temporary files of a killed run are removed.
 
 Several processes (:mod:`tuning.distributed`): every process calls :func:`sweep` with the same
-points and key; each chunk is split over the devices of all of them and gathered, only process
-0 checks, locks, reads (to resume) and writes ``out``, and every process returns the same
-result.
+points, key and chunk (processes given others stop at once with the same error); each chunk
+is split over the devices of all of them and gathered, only process 0 checks, locks, reads (to
+resume) and writes ``out``, and every process returns the same result.
 """
 from __future__ import annotations
 
@@ -384,9 +384,14 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     if getattr(evaluate, "keys", None) is not None:     # what a prebuilt evaluator keeps
         keys = evaluate.keys
     full_key = sweep_key(names, points, params0, keys, shape, key)
-    # several processes: all must run the same sweep; process 0 alone checks, locks, reads
-    # and writes ``out`` and hands what it resumed to the others (no shared file system)
+    # several processes: all must run the same sweep, split the same way (each process fills
+    # its devices' rows from its own chunk); process 0 alone checks, locks, reads and writes
+    # ``out`` and hands what it resumed to the others (no shared file system)
     distributed.check_same("sweep (key and points)", key_digest(full_key).encode())
+    distributed.check_same("chunk (points per call, diffpen sweep --chunk)",
+                           str(min(int(chunk), n)).encode())
+    distributed.check_same("out (a file on some processes, none on others)",
+                           str(bool(out)).encode())
     writer = distributed.is_writer()
     lock = None
     try:

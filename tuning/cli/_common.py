@@ -45,20 +45,41 @@ def add_cluster_arguments(p) -> None:
                    help="address of process 0, the same on every process")
     g.add_argument("--num-processes", type=int, metavar="N", help="processes in all")
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..N-1")
+    g.add_argument("--cluster-timeout", type=count("--cluster-timeout"), default=300,
+                   metavar="S", help="seconds to wait for every process to join before "
+                   "failing (default 300)")
 
 
-def join_cluster(args) -> bool:
+def in_cluster(args) -> bool:
+    """Whether the arguments (or the launcher's environment) describe several processes."""
+    from ..distributed import detect
+    return (args.num_processes or 1) > 1 or (args.coordinator is None
+                                             and detect() is not None)
+
+
+def join_cluster(args, check=None) -> bool:
     """Join the cluster the arguments (or the launcher's environment) describe, after
-    :func:`setup_jax` and before any computation; True when running as one of several
-    processes. Bad flags raise :class:`CLIError`."""
-    from ..distributed import detect, join, process_count
-    if (args.num_processes or 1) > 1 or (args.coordinator is None and detect() is not None):
+    :func:`setup_jax` and ``import diffpen`` (its XLA options are set before JAX's backend
+    starts, which joining does) and before any computation; True when running as one of
+    several processes. ``check()``: run by process 0 once every process has joined (its
+    checks of the output files); an error it raises stops every process (the others say
+    "process 0 stopped: ..."), none is left waiting. Bad flags raise :class:`CLIError`."""
+    from ..distributed import from_process_zero, is_writer, join, process_count
+    if in_cluster(args):
         _c_stdout_to_stderr()
     try:
-        return join(args.coordinator, args.num_processes, args.process_id) \
-            and process_count() > 1
+        joined = join(args.coordinator, args.num_processes, args.process_id,
+                      timeout_s=args.cluster_timeout) and process_count() > 1
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+    if joined and check is not None:
+        try:
+            from_process_zero(check)
+        except (CLIError, ValueError, ImportError, OSError) as exc:
+            if is_writer():
+                raise
+            raise CLIError(f"process 0 stopped: {exc}") from None
+    return joined
 
 
 def _c_stdout_to_stderr() -> None:

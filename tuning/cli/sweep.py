@@ -9,8 +9,8 @@ import math
 import os
 
 from ._common import (CLIError, add_cluster_arguments, add_start_state_arguments,
-                      check_cluster_arguments, count, dump_json, fail, finite, join_cluster,
-                      positive, setup_jax)
+                      check_cluster_arguments, count, dump_json, fail, finite, in_cluster,
+                      join_cluster, positive, setup_jax)
 
 METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
            "restitution")
@@ -154,10 +154,11 @@ def _run(args) -> int:
     _check_outputs(args)
     check_cluster_arguments(args)
     setup_jax()
-    quiet = join_cluster(args) and not _is_writer()     # process 0 alone writes and prints
+    import diffpen as dp        # before the join starts JAX's backend (diffpen's XLA options)
+    # process 0 alone writes and prints; in a cluster it checks its outputs after the join
+    quiet = join_cluster(args, lambda: _check_outputs(args, files=True)) \
+        and not _is_writer()
     import numpy as np
-
-    import diffpen as dp
 
     from ..bounce import bounce_metrics_fn
     from ..io import describe_simulator
@@ -269,9 +270,12 @@ def _run_scene(args) -> int:
     axes = [(p, finite(f"--param {p} LO")(lo), finite(f"--param {p} HI")(hi))
             for p, lo, hi in (args.param or [])]
     setup_jax()
-    quiet = join_cluster(args) and not _is_writer()
+    import diffpen  # noqa: F401 - before the join starts JAX's backend (its XLA options)
+    quiet = join_cluster(args, lambda: _check_outputs(args, files=True)) \
+        and not _is_writer()
     import numpy as np
 
+    from ..distributed import from_process_zero
     from ..scene_sweep import sweep_scene_file
 
     def check(plan):            # before anything is computed or written
@@ -279,10 +283,11 @@ def _run_scene(args) -> int:
         if not plan["data"] and (args.first_state or args.flight_frames):
             raise CLIError("--first-state and --flight-frames set how records start; this "
                            "sweep has none (give --data FILES, or [fit] data in the file)")
-        if _is_writer():        # the file's own [fit] data are inputs too
-            from ..io import check_distinct
-            check_distinct({"--out": args.out, "--out's table": args.out[:-4] + ".csv",
-                            "--plot": args.plot}, inputs=plan["data"])
+        from ..io import check_distinct     # the file's own [fit] data are inputs too
+        # checked by process 0, the one that writes; its error stops every process
+        from_process_zero(lambda: check_distinct(
+            {"--out": args.out, "--out's table": args.out[:-4] + ".csv",
+             "--plot": args.plot}, inputs=plan["data"]))
         if (args.metric or kept[0]) not in kept:
             raise CLIError(f"--metric {args.metric} is not measured by this sweep; it "
                            f"measures {', '.join(kept)}")
@@ -354,14 +359,18 @@ def _run_scene(args) -> int:
     return 0
 
 
-def _check_outputs(args) -> None:
+def _check_outputs(args, files: bool | None = None) -> None:
     """``--out`` (a ``.npz``), its ``.csv`` and ``--plot`` (a figure type) writable, none of
     them an input (the scene file, a record) nor the same file as another, checked by
-    process 0 (the one that writes) before anything is computed."""
+    process 0 (the one that writes) before anything is computed: running alone, before JAX is
+    set up; in a cluster, once every process has joined (``files=True``, through
+    :func:`._common.join_cluster`), so that its error stops every process, not process 0
+    alone while the others wait for it. ``files=None``: the files are checked unless the
+    arguments describe a cluster."""
     if args.target is not None and not args.plot:
         raise CLIError("--target marks a contour on the --plot heatmap; give --plot FILE.png "
                        "too")
-    writer = getattr(args, "process_id", None) in (None, 0)
+    writer = not in_cluster(args) if files is None else files
     if writer:
         from ..io import check_output
         check_output(args.out, what="--out")
