@@ -23,8 +23,11 @@ differentiated by autodiff.
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 
 __all__ = ["window_mean"]
 
@@ -53,7 +56,7 @@ def _power_mean_inside(d, delta, n: float):
     return jnp.where(small, d ** n * series, direct)
 
 
-def _window_linear_parts(d, vn, h, autodiff: bool = True):
+def _window_linear_parts(d, vn, h, autodiff: bool = True, guard: bool = True):
     """:func:`window_mean` for exponent 1 with its intermediates:
     ``(frac, mean, u, delta, on, pos)``.
 
@@ -68,7 +71,8 @@ def _window_linear_parts(d, vn, h, autodiff: bool = True):
     floored at 1e-15 m where e > 0, so the derivative of u stays finite in float32 (only
     sub-femtometre windows change). The guard also keeps the division off a batch-1 step's
     critical path (the compiled select branches around it: 0.055 against 0.078 ms for 3000
-    steps unguarded)."""
+    steps unguarded); ``guard=False`` (the closed-form path only) leaves the selects out,
+    for batched steps (:func:`_closed_parts`)."""
     delta = jnp.abs(vn) * h
     on = d >= 0.0
     if autodiff:
@@ -78,7 +82,10 @@ def _window_linear_parts(d, vn, h, autodiff: bool = True):
         e = jnp.maximum(delta - jnp.abs(d), 0.0)
         ramp = jnp.maximum(d, 0.0)
     pos = e > 0.0
-    u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
+    if guard or autodiff:
+        u = jnp.where(pos, e / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)
+    else:               # the same values (e = 0 gives u = 0), no select: see _closed_parts
+        u = e / jnp.maximum(delta, 1e-15)
     u2 = 0.5 * u * u
     frac = jnp.where(on, 1.0 - u2, u2)
     mean = ramp + e * u2 * (1.0 / 3.0)
@@ -90,9 +97,50 @@ def _window_linear(d, vn, h):
     return _window_linear_parts(d, vn, h)[:2]
 
 
+@functools.lru_cache(maxsize=None)
+def _closed_parts(h: float):
+    """``(d, vn) -> (frac, mean, u, delta, on, pos, u / delta)`` of the closed-form path for
+    the static step ``h``, batched without the select around the division.
+
+    One rollout's step keeps the double ``where`` around ``e / delta``: XLA CPU compiles it
+    to a branch, which keeps the division off the critical path of a batch-1 step. Under
+    ``jax.vmap`` (a ``custom_vmap`` rule) the division is taken on every lane, where the
+    selects only cost: ``e / max(delta, 1e-15)`` is the same number (``u = 0`` where
+    ``e = 0``; finite always, ``e <= delta``). Batched stepping of 1024 balls 13% faster,
+    batch 1 unchanged; only primal values pass through here (derivatives come from
+    :func:`_window_linear_jvp`), so the rule needs no autodiff."""
+    def parts(d, vn, guard):
+        frac, mean, u, delta, on, pos = _window_linear_parts(d, vn, h, autodiff=False,
+                                                             guard=guard)
+        floor = jnp.maximum(delta, 1e-15)
+        du = jnp.where(pos, u / jnp.where(pos, floor, 1.0), 0.0) if guard else u / floor
+        return frac, mean, u, delta, on, pos, du
+
+    @custom_vmap
+    def closed(d, vn):
+        return parts(d, vn, True)
+
+    @closed.def_vmap
+    def _batched(axis_size, in_batched, d, vn):
+        d, vn = (x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+                 for x, b in zip((d, vn), in_batched))
+        return parts(d, vn, False), (True,) * 7
+
+    # derivatives of these values (second-order derivatives of the window) by autodiff of
+    # the guarded form: a custom_vmap function has none of its own
+    @jax.custom_jvp
+    def differentiable(d, vn):
+        return closed(d, vn)
+
+    @differentiable.defjvp
+    def _jvp(primals, tangents):
+        return closed(*primals), jax.jvp(lambda a, b: parts(a, b, True), primals, tangents)[1]
+    return differentiable
+
+
 def _window_linear_closed(d, vn, h):
     """The same values, the primal of the closed-form derivatives (a static step)."""
-    return _window_linear_parts(d, vn, h, autodiff=False)[:2]
+    return _closed_parts(h)(d, vn)[:2]
 
 
 _window_linear_static = jax.custom_jvp(_window_linear_closed, nondiff_argnums=(2,))
@@ -111,8 +159,7 @@ def _window_linear_jvp(h, primals, tangents):
     it, 1.30-1.36x without (benchmarks/step_cost.py)."""
     d, vn = primals
     dd, dvn = tangents
-    frac, mean, u, delta, on, pos = _window_linear_parts(d, vn, h, autodiff=False)
-    du = jnp.where(pos, u / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)  # u / delta
+    frac, mean, u, delta, on, pos, du = _closed_parts(h)(d, vn)          # du = u / delta
     ddelta = (h * jnp.sign(vn)) * dvn
     dfrac = du * dd - jnp.where(on, du, -du) * (1.0 - u) * ddelta
     dmean = frac * dd + (u * u) * (0.5 - u * (1.0 / 3.0)) * ddelta

@@ -123,6 +123,25 @@ def test_step_average_matches_its_definition(law):
                                rtol=5e-6 if law == "hunt_crossley" else 1e-13)  # d^n: curved
 
 
+def test_batched_linear_window_equals_the_unbatched_one():
+    """Under vmap the closed-form window takes its division without the selects around it
+    (a custom_vmap rule, faster batched stepping): the same numbers as one call per element,
+    values and derivatives, forward and reverse mode, edge cases included."""
+    h = 1e-3
+    d = jnp.asarray([0.0, 0.0, 1e-4, -1e-4, 1e-3, -1e-3, 5e-4, -5e-4, 2e-5, -3e-4])
+    vn = jnp.asarray([0.0, 1.0, 0.1, -0.1, 0.0, 1.0, 0.5, -0.5, 1e-14, 0.7])
+    one = [laws.window_mean(a, b, h) for a, b in zip(d, vn)]
+    batched = jax.vmap(lambda a, b: laws.window_mean(a, b, h))(d, vn)
+    for i in (0, 1):
+        np.testing.assert_array_equal(np.asarray(batched[i]), np.asarray([o[i] for o in one]))
+        for mode in (jax.grad, jax.jacfwd):
+            f = mode(lambda a, b, i=i: laws.window_mean(a, b, h)[i], argnums=(0, 1))
+            got = jax.vmap(f)(d, vn)
+            for j in (0, 1):
+                want = np.asarray([f(a, b)[j] for a, b in zip(d, vn)])
+                np.testing.assert_allclose(np.asarray(got[j]), want, rtol=1e-13, atol=0.0)
+
+
 def test_linear_window_closed_form_derivatives_equal_autodiff():
     """With a static step the linear window carries closed-form derivatives (a custom JVP,
     what makes reverse-mode rollout gradients cheap); they equal autodiff of the same
