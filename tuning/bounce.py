@@ -34,6 +34,12 @@ SETTLE_MARGIN = 1.1
 #: bounces the targets describe.
 MIN_STEPS = 100
 
+#: A decay-time fit's default rollout lasts at least this many times the target: the decay
+#: time is reported only when the energy left at the end is at most
+#: ``tuning.metrics.DECAY_TAIL`` of the start's (ln 1000 ~ 6.9 decay times for an
+#: exponential decay; a bouncing ball's energy dies out sooner).
+DECAY_MARGIN = 8.0
+
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
                   "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
 
@@ -71,7 +77,7 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
     if h0 <= 0.0:
         raise FitError(f"body {body} starts in contact (lowest point {h0:.4g} m above the "
                        "plane): start it above the surface.")
-    drop = h0 + max(v0, 0.0) ** 2 / (2.0 * g)
+    drop = h0 + v0 ** 2 / (2.0 * g)   # energy height: the first impact speed, either sign
     t_fall = _fall_time(h0, v0, g)
     tg = normalise_targets(targets)
     for name, arr in tg.items():
@@ -112,7 +118,9 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
 
     Rolls out ``steps`` steps of ``sim`` and returns the fields of
     :class:`tuning.metrics.BallMetrics` as a dict. A settling time not reached within the
-    rollout is reported as the rollout's end time (a lower bound) for the optimiser.
+    rollout is reported as the rollout's end time (a lower bound) for the optimiser. A decay
+    time cut short by the rollout's end is nan (``decay_valid`` False; never a reached
+    target).
     ``"unstable"`` (bool) is true when the rollout went past its safe step
     (:func:`tuning.stable.rollout_unstable`): fits report such a point as not reached and
     sweeps return NaN for it.
@@ -178,15 +186,16 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     Args:
       scene: the scene (the body must start above the plane).
       targets: ``{"apex_heights": [m, ...], "settling_time": s, "contact_durations": [s],
-        "restitution": [...], "max_penetration": m}``; apexes are of the lowest point above
-        the surface.
+        "restitution": [...], "max_penetration": m, "decay_time": s}``; apexes are of the
+        lowest point above the surface.
       dt: time step, s.  law: contact law.  settle_tol: settling band, m.
       k0, c0: start values (N/m, N s/m); default from the first guess.
       free: leaf paths to fit (default: k and c of the plane's material).
       method: ``"lm"`` (default) or ``"optax"`` (with ``optimizer``).
       maxiter: default 40 (lm) or 400 (optax).
       rtol: per-metric relative tolerances (default :data:`BOUNCE_METRICS`).
-      duration: rollout length, s (default: covers the targets with margin).
+      duration: rollout length, s (default: covers the targets with margin; for a
+        decay-time target :data:`DECAY_MARGIN` x the target + 0.2 s).
       progress: False (default): print nothing; None or True: progress on stderr (a bar on a
         terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
@@ -206,6 +215,17 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
             a = tg.get("apex_heights", np.array([0.5 * info["drop"]]))
             flights = np.sum(2.0 * np.sqrt(2.0 * np.maximum(a, 1e-6) / g))
             duration = 1.3 * (info["t_fall"] + flights) + 0.3
+        if "decay_time" in tg:
+            # the decay must have died out by the end, or the metric is nan (cut short)
+            duration = max(duration, DECAY_MARGIN * float(tg["decay_time"][0]) + 0.2)
+    elif "decay_time" in tg and duration <= float(tg["decay_time"][0]):
+        # int E dt / E(0) < duration: never reached; a rollout that ends before the energy
+        # has died out gives nan (tuning.metrics.DECAY_TAIL), so longer is needed anyway
+        raise FitError(f"duration {duration:g} s is too short for the decay-time target "
+                       f"{float(tg['decay_time'][0]):g} s: the decay time is only measured "
+                       "when the energy has died out by the end of the rollout. Give a "
+                       f"duration of several times the target, or leave it out (default "
+                       f"{DECAY_MARGIN:g} x the target + 0.2 s).")
     elif "settling_time" in tg and duration < SETTLE_MARGIN * float(tg["settling_time"][0]):
         # an unsettled ball's settling time is the rollout's end (bounce_metrics_fn): within
         # a tolerance of the target it would count as reached

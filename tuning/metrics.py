@@ -33,8 +33,25 @@ import diffpen as dp
 __all__ = [
     "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",
     "max_penetration", "resting_height", "settling_time", "BallMetrics", "ball_metrics",
-    "initial_apex", "energy_decay_time", "ball_energy",
+    "initial_apex", "energy_decay_time", "ball_energy", "plane_offset", "DECAY_TAIL",
 ]
+
+#: :func:`ball_metrics` reports the decay time only when the energy above rest left at the
+#: end of the record is at most this fraction of the start's (the integral then misses at
+#: most about this fraction of an exponential decay's area); otherwise the rollout cut the
+#: decay short: ``decay_time`` is nan and ``decay_valid`` False.
+DECAY_TAIL = 1e-3
+
+
+def plane_offset(plane, params=None):
+    """The offset (m) the simulation uses for ``plane`` (a :class:`diffpen.elements.Plane`):
+    ``params.extra["plane_offset"][plane.name]`` for a named plane when ``params`` carries
+    it (a fitted, differentiable offset), else the scene's ``plane.offset``."""
+    if plane.name and params is not None:
+        named = getattr(params, "extra", {}).get("plane_offset", {})
+        if plane.name in named:
+            return named[plane.name]
+    return plane.offset
 
 
 def height_above_plane(position, radius: float, normal=(0.0, 0.0, 1.0), offset: float = 0.0):
@@ -94,7 +111,9 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
       h: (S,) height of the lowest point above the surface, m, uniformly sampled.
       n: number of apexes to return (static).
       flight_gap: m; samples with ``h <= flight_gap`` count as in contact.
-      after_contact: count only apexes after the first contact (bounce apexes; the default).
+      after_contact: count only apexes after the first contact that starts after the first
+        sample (bounce apexes; the default): a body that starts in contact (launched from
+        the surface) has its launch flight left out, as no bounce has happened yet.
     Returns:
       (heights (n,), valid (n,) bool); heights of missing apexes are nan.
     """
@@ -103,7 +122,10 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
     is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
     if after_contact:
-        touched = jnp.arange(h.shape[0] - 2) >= _first(h <= flight_gap)   # since contact
+        # since the first contact that starts after t = 0 (one in progress at t = 0 is the
+        # launch, not a bounce)
+        entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
+        touched = jnp.arange(h.shape[0] - 2) >= entry
         is_top = is_top & touched
     q_safe = jnp.where(is_top, q, -1.0)
     vertex = h0 - (hp - hm) ** 2 / (8.0 * q_safe)
@@ -111,9 +133,11 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
 
 
 def initial_apex(h0, v0, g: float):
-    """Apex of the initial free flight from height ``h0`` (m) and normal velocity ``v0`` (m/s):
-    ``h0 + max(v0, 0)^2 / (2 g)``; the drop height when released at rest."""
-    return h0 + jnp.maximum(v0, 0.0) ** 2 / (2.0 * g)
+    """Energy height of the initial free flight from height ``h0`` (m) and normal velocity
+    ``v0`` (m/s): ``h0 + v0^2 / (2 g)`` whatever the sign of ``v0``. Thrown up, it is the
+    apex; thrown down, the height a drop from rest would need for the same first impact
+    speed; the drop height when released at rest."""
+    return h0 + jnp.asarray(v0) ** 2 / (2.0 * g)
 
 
 def restitutions(apexes, first_apex):
@@ -188,14 +212,23 @@ def crossings(t, h, level: float, n: int, direction: int, *, flight: bool = Fals
 def contact_durations(t, h, n: int, *, level: float = 0.0, flight: bool = False):
     """Durations of the first ``n`` completed contacts (``h < level``), s.
 
-    Each contact runs from a downward crossing of ``level`` to the next upward one; the
-    trajectory is assumed to start out of contact. A contact still open at the end is nan.
+    Each contact runs from a downward crossing of ``level`` to the next upward one: the time
+    the body overlaps the surface (``h < level``; ``level`` is 0 in :func:`ball_metrics`),
+    whatever the contact law's force does inside it. With a law that cannot pull, such as
+    ``no_tension``, the force reaches zero before the overlap ends, so the force-based
+    contact time of :func:`diffpen.physical.contact_time` is shorter (about 10% at
+    e = 0.667). A contact already in progress at the first sample (a body that starts in
+    contact) is not a full contact and is left out: the first duration is that of the first
+    contact that starts after t = 0. A contact still open at the end is nan.
     ``flight``: locate the crossings on the adjacent free flights (:func:`crossings`).
 
     Returns: (durations (n,), valid (n,) bool).
     """
     down, vd = crossings(t, h, level, n, -1, flight=flight)
-    up, vu = crossings(t, h, level, n, +1, flight=flight)
+    up, vu = crossings(t, h, level, n + 1, +1, flight=flight)
+    # starting in contact, the first upward crossing ends the contact in progress
+    start_in = h[0] < level
+    up, vu = jnp.where(start_in, up[1:], up[:-1]), jnp.where(start_in, vu[1:], vu[:-1])
     valid = vd & vu
     return jnp.where(valid, up - down, jnp.nan), valid
 
@@ -273,7 +306,9 @@ def energy_decay_time(t, energy):
     settling time (the last exit from a band, which jumps when a late bounce passes through
     the band) it is a smooth function of k and c wherever the trajectory is, so its exact
     gradient is the continuous system's (up to the integrator's error): use it where a fit
-    needs a settling measure. Args: t (S,) s.  Returns: s.
+    needs a settling measure. It is the integral over the samples only: a record that ends
+    with energy left gives a value cut short (:func:`ball_metrics` reports nan then, see
+    :data:`DECAY_TAIL`). Args: t (S,) s.  Returns: s.
     """
     e = jnp.asarray(energy)
     area = jnp.sum(0.5 * (e[1:] + e[:-1]) * (t[1:] - t[:-1]))
@@ -283,14 +318,15 @@ def energy_decay_time(t, energy):
 def ball_energy(sim, position, velocity, params, *, body: int = 0, plane: int = 0):
     """Mechanical energy above static rest of a sphere on a plane, J, per sample:
     ``m v^2 / 2 + m g (h - h_rest) + (E_c(d) - E_c(d_rest))`` with the contact law's elastic
-    energy ``E_c`` (:attr:`diffpen.laws.ContactLaw.energy`). position, velocity: (S, 3)."""
+    energy ``E_c`` (:attr:`diffpen.laws.ContactLaw.energy`). position, velocity: (S, 3).
+    Heights are above the plane's offset in ``params`` (:func:`plane_offset`)."""
     pl = sim.scene.planes[plane]
     radius, mass = float(sim.radius[body]), float(sim.mass[body])
     n = np.asarray(pl.normal, float)
     g = float(-np.dot(np.asarray(sim.scene.gravity), n))
     law = sim.contact_law
     k = params.contact[pl.material].k
-    h = height_above_plane(position, radius, pl.normal, pl.offset)
+    h = height_above_plane(position, radius, pl.normal, plane_offset(pl, params))
     d_rest = law.resting_depth(mass * g, k, sim.smoothing)
     kinetic = 0.5 * mass * jnp.sum(velocity * velocity, axis=-1)
     potential = mass * g * (h + d_rest) + (law.energy(-h, k, sim.smoothing)
@@ -304,14 +340,20 @@ class BallMetrics(NamedTuple):
     apex_heights: (n_apex,) m, lowest point above the surface at the top of each rebound.
     apex_valid: (n_apex,) bool.
     restitution: (n_apex,) per bounce.
-    contact_durations: (n_apex,) s.
+    contact_durations: (n_apex,) s, the overlap time ``h < 0`` of each contact that starts
+      after t = 0 (:func:`contact_durations`; not where the force ends).
     max_penetration: m.
     resting_height: centre height at static rest, m.
     settling_time: s (nan if not settled within the rollout).
     settled: bool.
-    drop_height: apex before the first impact (lowest point), m.
+    drop_height: apex before the first impact (lowest point), m: the energy height
+      ``h0 + v0^2 / (2 g)`` (:func:`initial_apex`), or for a body that starts in contact
+      (launched from the surface) the apex of its launch flight.
     decay_time: energy-decay time ``int E dt / E(0)``, s (:func:`energy_decay_time`;
-      smooth in k and c).
+      smooth in k and c); 0 for a body at rest from the start (no energy above rest), nan
+      when the record ends with more than :data:`DECAY_TAIL` of the start energy left (cut
+      short: roll out longer).
+    decay_valid: bool, False where ``decay_time`` is nan.
     """
     apex_heights: object
     apex_valid: object
@@ -323,6 +365,7 @@ class BallMetrics(NamedTuple):
     settled: object
     drop_height: object
     decay_time: object = None
+    decay_valid: object = None
 
     def as_dict(self) -> dict:
         """Plain Python numbers/lists (nan for absent events), for printing and JSON."""
@@ -341,7 +384,8 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
 
     Args:
       sim: a compiled :class:`diffpen.Simulator`.  traj: its :class:`diffpen.Trajectory`.
-      params: the :class:`diffpen.Params` of the rollout (k sets the resting height).
+      params: the :class:`diffpen.Params` of the rollout (k sets the resting height; a named
+        plane's offset is ``params.extra["plane_offset"][name]``, :func:`plane_offset`).
       body: body index.  n_apex: number of bounces reported (static).
       settle_tol: settling band, m.  plane: plane index.
     Returns:
@@ -358,12 +402,15 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     s0 = sim.init_state() if state0 is None else state0
     t = jnp.concatenate([jnp.reshape(s0.time, (1,)), traj.time])
     pos = jnp.concatenate([s0.position[None, body], traj.position[:, body]])
-    h = height_above_plane(pos, radius, pl.normal, pl.offset)
+    offset = plane_offset(pl, params)
+    h = height_above_plane(pos, radius, pl.normal, offset)
     n = jnp.asarray(pl.normal, dtype=h.dtype)
     v0n = jnp.dot(s0.velocity[body], n)
     gap = 0.5 * sim.smoothing
     apex, valid = apex_heights(h, n_apex, flight_gap=gap)
-    h_drop = initial_apex(h[0], v0n, g)
+    # starting in contact (launched from the surface), the launch flight's apex
+    launch, _ = apex_heights(h, 1, flight_gap=gap, after_contact=False)
+    h_drop = jnp.where(h[0] <= gap, launch[0], initial_apex(h[0], v0n, g))
     k = params.contact[pl.material].k
     rest_z = resting_height(k, mass, g, radius, law=sim.contact_law, width=sim.smoothing)
     centre = h + radius                                          # centre height above plane
@@ -371,12 +418,18 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     dur, _ = contact_durations(t, h, n_apex, flight=True)
     if traj.velocity is not None:
         vel = jnp.concatenate([s0.velocity[None, body], traj.velocity[:, body]])
-        decay = energy_decay_time(t, ball_energy(sim, pos, vel, params, body=body,
-                                                 plane=plane))
+        e = ball_energy(sim, pos, vel, params, body=body, plane=plane)
+        # a start energy within rounding of rest: at rest from the start, decay time 0
+        noise = 100.0 * jnp.finfo(e.dtype).eps * mass * g * (jnp.abs(pos[0] @ n) + radius)
+        at_rest = e[0] <= noise
+        decay_valid = at_rest | (e[-1] <= DECAY_TAIL * e[0])
+        decay = jnp.where(at_rest, 0.0, energy_decay_time(t, jnp.where(at_rest, 1.0, e)))
+        decay = jnp.where(decay_valid, decay, jnp.nan)
     else:
         decay = jnp.full((), jnp.nan, h.dtype)
+        decay_valid = jnp.zeros((), bool)
     return BallMetrics(
         apex_heights=apex, apex_valid=valid, restitution=restitutions(apex, h_drop),
         contact_durations=dur, max_penetration=max_penetration(h),
-        resting_height=rest_z + pl.offset, settling_time=ts, settled=settled,
-        drop_height=h_drop, decay_time=decay)
+        resting_height=rest_z + offset, settling_time=ts, settled=settled,
+        drop_height=h_drop, decay_time=decay, decay_valid=decay_valid)

@@ -1,0 +1,104 @@
+"""Ball metrics at the edges: a fitted (named) plane offset, a decay cut short by the rollout,
+a ball thrown down, a ball starting in contact or launched from the surface, a ball at rest."""
+import math
+
+import jax
+import numpy as np
+import pytest
+
+import diffpen as dp
+from tuning import bounce as B
+from tuning import metrics as M
+from tuning.errors import FitError
+
+G = 9.81
+
+
+def ball(z=1.0, vz=0.0, offset=0.0, name=None):
+    scene = dp.Scene(gravity=(0.0, 0.0, -G))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, z), velocity=(0.0, 0.0, vz))
+    scene.add_plane(offset=offset, name=name)
+    return scene
+
+
+def metrics(scene, steps, *, n_apex=2, offset_param=None, k=1e4, c=20.0, dt=1e-3):
+    sim = dp.compile(scene, dt)
+    p = sim.params(k=k, c=c)
+    if offset_param is not None:
+        p.extra["plane_offset"]["ground"] = offset_param
+    s0 = sim.init_state()
+    tr = sim.rollout(p, steps, s0)
+    m = jax.jit(lambda tr, p: M.ball_metrics(sim, tr, p, n_apex=n_apex, state0=s0))(tr, p)
+    return {k: np.asarray(v) for k, v in m._asdict().items()}
+
+
+def test_a_named_plane_is_measured_at_its_offset_param():
+    """The metrics measured heights from the scene's offset (0) while the simulation used the
+    named plane's offset param (0.2 m): apex nan, no penetration, drop height 0.9 m."""
+    named = metrics(ball(name="ground"), 1200, offset_param=0.2)
+    moved = metrics(ball(offset=0.2), 1200)
+    for f in ("apex_heights", "max_penetration", "drop_height", "resting_height",
+              "contact_durations", "decay_time"):
+        np.testing.assert_allclose(named[f], moved[f], rtol=1e-9, err_msg=f)
+    assert named["drop_height"] == pytest.approx(0.7)
+
+
+def test_a_decay_cut_short_by_the_rollout_is_nan():
+    """The decay time was the integral over the rollout only: a rollout ending mid-bounce
+    gave a value (fitted as reached) far below the ball's real decay time."""
+    short = metrics(ball(), 800)
+    assert math.isnan(float(short["decay_time"])) and not short["decay_valid"]
+    long = metrics(ball(), 5000, c=60.0)
+    assert long["decay_valid"] and 0.3 < float(long["decay_time"]) < 5.0
+
+
+def test_a_decay_time_target_sets_the_rollout_length(monkeypatch):
+    """The default rollout ignored a decay-time target (~1.6 s for a 3 s target)."""
+    seen = {}
+
+    def stop(sim, steps, **kw):
+        seen["steps"] = steps
+        raise RuntimeError("stop")
+    monkeypatch.setattr(B, "bounce_metrics_fn", stop)
+    with pytest.raises(RuntimeError, match="stop"):
+        B.fit_bounce(ball(), {"decay_time": 3.0})
+    assert seen["steps"] * 1e-3 >= 6.9 * 3.0     # ln 1000 decay times of an exponential
+    with pytest.raises(FitError, match="too short for the decay-time target"):
+        B.fit_bounce(ball(), {"decay_time": 3.0}, duration=3.0)
+
+
+def test_a_ball_thrown_down_has_its_impact_speed_in_the_drop_height():
+    """max(v0, 0) dropped the downward speed: restitution 1.125 for a true 0.724, and a
+    reachable apex target was refused as above the drop height."""
+    assert float(M.initial_apex(0.9, -5.0, G)) == pytest.approx(0.9 + 25.0 / (2 * G))
+    info = B.check_bounce_targets(ball(vz=-5.0), {"apex_heights": [1.0]})
+    assert info["drop"] == pytest.approx(0.9 + 25.0 / (2 * G))
+    m = metrics(ball(vz=-5.0), 1500, n_apex=1)
+    v_in = math.sqrt(25.0 + 2 * G * 0.9)
+    e_true = math.sqrt(2 * G * float(m["apex_heights"][0])) / v_in
+    assert float(m["restitution"][0]) == pytest.approx(e_true, rel=1e-9)
+
+
+def test_a_contact_in_progress_at_the_start_is_not_a_contact_duration():
+    """Starting 2 cm deep, the i-th upward crossing was paired with the i-th downward one:
+    negative durations reported as valid."""
+    m = metrics(ball(z=0.08), 1000, n_apex=2)
+    d = m["contact_durations"]
+    assert np.all(d > 0.025) and np.all(d < 0.04), d
+
+
+def test_a_launch_from_the_surface_is_not_a_bounce():
+    """Launched up from the surface, the launch flight was bounce 1 (restitution 1.0)."""
+    m = metrics(ball(z=0.1, vz=3.0), 1500, n_apex=2)
+    launch = float(m["drop_height"])
+    assert launch == pytest.approx(9.0 / (2 * G), rel=3e-2)
+    assert float(m["apex_heights"][0]) < 0.7 * launch
+    e = m["restitution"]
+    assert 0.6 < float(e[0]) < 0.8 and float(e[0]) == pytest.approx(float(e[1]), rel=2e-2)
+
+
+def test_a_ball_at_rest_from_the_start_has_decay_time_zero():
+    """No energy above rest: the decay time was rounding noise over rounding noise (the
+    rollout's length)."""
+    m = metrics(ball(z=0.1 - G / 1e4), 500, n_apex=1)
+    assert float(m["decay_time"]) == 0.0 and m["decay_valid"]
