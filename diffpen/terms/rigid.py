@@ -24,12 +24,11 @@ import numpy as np
 from .. import geometry
 from .. import rigid as _rigid
 from ..geometry import rotate
-from ..laws import spring_force
 from ..stability import Bound
 from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
-from .springs import _spring_axis
+from .springs import _spring_axis, _spring_vector
 
 __all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
            "sphere_box_pairs", "sphere_box_rows", "TERMS", "BOUND_LABEL"]
@@ -290,6 +289,7 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
     ia = np.array([s.a for s in springs], dtype=np.int32)
     gi = np.array([ctx.group_index[s.group] for s in springs], dtype=np.int32)
     rest = ctx.const([s.rest_length for s in springs])
+    zero = np.array([s.rest_length for s in springs], dtype=float) == 0.0
     anchor_a = ctx.const([s.anchor_a for s in springs])
     anchor_b = ctx.const([s.anchor_b if s.b is not None else (0.0, 0.0, 0.0)
                           for s in springs])
@@ -325,7 +325,8 @@ def _anchored_springs(ctx: CompileContext) -> Term | None:
                      else eye)
         x, xd, u, r_a, r_b = jax.vmap(anchored_spring_pair)(xa, va, wa, rot_a, anchor_a, xb,
                                                              vb, wb, rot_b, anchor_b, rest)
-        f = spring_force(x, xd, k, c)[:, None] * u          # on a, at its anchor
+        # on a, at its anchor (delta: from b's anchor to a's)
+        f = _spring_vector(x, xd, u, xa + r_a - xb - r_b, k, c, zero)
         force, tau = scatter(f, ia, n), scatter(jnp.cross(r_a, f), ia, n)
         if not all_world:
             fb = jnp.where(is_world, 0.0, f) if has_world else f

@@ -20,6 +20,22 @@ def _spring_axis(delta, rel_vel, rest):
     return length - rest, jnp.sum(u * rel_vel, axis=-1), u
 
 
+def _spring_vector(ext, rate, u, delta, k, c, zero: np.ndarray):
+    """``spring_force(ext, rate, k, c) u`` of (m,) springs, (m, 3), with ``zero`` (m,) the
+    static mask of springs whose rest length is 0: those take ``-k delta - c rate u``, the
+    same force written so that it stays smooth where the ends meet (``|delta| u`` has a zero
+    derivative at ``delta = 0``, which dropped the ``-k I`` of the force's Jacobian: a
+    particle started on its zero-length spring's anchor got ``d x(T) / d x0 = +1`` against
+    ``cos(w T) = -0.99``). Springs of positive rest length keep the axial form."""
+    f = laws.spring_force(ext, rate, k, c)[:, None] * u
+    zero = np.asarray(zero, bool)
+    if not zero.any():
+        return f
+    kk = jnp.broadcast_to(jnp.asarray(k), ext.shape)[:, None]
+    fz = -kk * delta - (c * rate)[:, None] * u
+    return fz if zero.all() else jnp.where(jnp.asarray(zero)[:, None], fz, f)
+
+
 def spring_bands(ia: np.ndarray, ib: np.ndarray, *, min_fill: float = 0.5,
                  min_size: int = 8):
     """Split springs into *bands* (families with one index offset) and the rest.
@@ -84,21 +100,26 @@ def _body_springs(ctx: CompileContext) -> Term | None:
         gidx = np.zeros(hi - lo, dtype=np.int32)
         gidx[slot] = gi_all[ids]
         gidx[mask == 0.0] = gi_all[ids[0]]
-        band_data.append((d, lo, hi, ctx.const(mask), ctx.const(rest_len), gidx))
+        band_data.append((d, lo, hi, ctx.const(mask), ctx.const(rest_len), gidx,
+                          (rest_len == 0.0) & (mask == 1.0)))
 
     ia, ib, gi = ia_all[rest_ids], ib_all[rest_ids], gi_all[rest_ids]
     rest = ctx.const(rest_all[rest_ids])
+    zero = rest_all[rest_ids] == 0.0
 
     def force(params, state):
         x, v = state.position, state.velocity
         total = None
-        for d, lo, hi, mask, rest_len, gidx in band_data:
+        for d, lo, hi, mask, rest_len, gidx, zero_b in band_data:
             k, c = ctx.spring_kc(params, gidx)
             x, v = state.position, state.velocity
             delta = x[lo + d:hi + d] - x[lo:hi]       # from the low end to the high end
             dv = v[lo + d:hi + d] - v[lo:hi]
             ext, rate, u = jax.vmap(_spring_axis)(delta, dv, rest_len)
-            f = (laws.spring_force(ext, rate, k, c) * mask)[:, None] * u
+            if zero_b.any():
+                f = _spring_vector(ext, rate, u, delta, k, c, zero_b) * mask[:, None]
+            else:
+                f = (laws.spring_force(ext, rate, k, c) * mask)[:, None] * u
             if total is None:
                 total = jnp.zeros((n,) + f.shape[1:], f.dtype)
             # in-place row-block updates: XLA evaluates the band's forces once, in the
@@ -110,7 +131,7 @@ def _body_springs(ctx: CompileContext) -> Term | None:
             delta = x[ia] - x[ib]
             dv = v[ia] - v[ib]
             ext, rate, u = jax.vmap(_spring_axis)(delta, dv, rest)
-            f = laws.spring_force(ext, rate, k, c)[:, None] * u
+            f = _spring_vector(ext, rate, u, delta, k, c, zero)
             fr = scatter(f, ia, n) - scatter(f, ib, n)
             total = fr if total is None else total + fr
         return total, None
@@ -125,6 +146,7 @@ def _world_springs(ctx: CompileContext) -> Term | None:
     ia = np.array([r[0] for r in rows], dtype=np.int32)
     anchors = ctx.const([r[1] for r in rows])
     rest = ctx.const([r[2] for r in rows])
+    zero = np.array([r[2] for r in rows], dtype=float) == 0.0
     gi = np.array([r[3] for r in rows], dtype=np.int32)
     n = ctx.n
 
@@ -132,7 +154,7 @@ def _world_springs(ctx: CompileContext) -> Term | None:
         k, c = ctx.spring_kc(params, gi)
         delta = gather(state.position, ia, n) - anchors
         x, xd, u = jax.vmap(_spring_axis)(delta, gather(state.velocity, ia, n), rest)
-        return scatter(laws.spring_force(x, xd, k, c)[:, None] * u, ia, n), None
+        return scatter(_spring_vector(x, xd, u, delta, k, c, zero), ia, n), None
     return Term("world_springs", force)
 
 
