@@ -84,7 +84,10 @@ def test_record_sweep_equals_the_evaluation_and_resumes(box_files):
         np.testing.assert_allclose(res.metrics["rotation_error_deg"][i],
                                    ev.rotation_error_deg["mean"], rtol=1e-9, atol=1e-9)
     pe = res.metrics["position_error_pct"]
-    assert int(np.argmin(pe)) == 4 and pe[4] < 1e-6 < pe.min(initial=1.0, where=np.arange(9) != 4)
+    # k = 9000 with this box's damping is past its safe step (0.9 of the damped limit):
+    # those points are NaN, as every unstable point of a sweep
+    assert np.isnan(pe[[2, 5, 8]]).all() and np.isfinite(np.delete(pe, [2, 5, 8])).all()
+    assert int(np.nanargmin(pe)) == 4 and pe[4] < 1e-6 < np.nanmin(np.delete(pe, 4))
     again, _ = sweep_scene_file(scene, [rec], axes, n=[3], out=out, chunk=4)
     assert again.evaluated == 0
     np.testing.assert_array_equal(again.metrics["position_error_pct"], pe)

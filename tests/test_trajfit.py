@@ -87,7 +87,9 @@ def _fit_cli(capsys, argv):
 @pytest.mark.parametrize("case", ["rope", "box_springs"])
 def test_record_fit_recovers_parameters(tmp_path, capsys, case):
     """diffpen fit SCENE.toml --data REC.csv recovers spring k and c within 2% from a record
-    made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise."""
+    made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise; the box's
+    c within 3%: the fit integrator's own step error moves it by +1.25% on the noise-free
+    record (+0.6% at half the step), this record's noise by another +1.1%."""
     if case == "rope":
         truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
         text = ROPE.format(k=200.0, c=0.3)
@@ -103,7 +105,8 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, case):
     out_toml = tmp_path / "fitted.toml"
     out = _fit_cli(capsys, ["fit", scene, "--data", rec, "--out", str(out_toml)])
     for name, v in truth.items():
-        assert out["fitted"][name] == pytest.approx(v, rel=0.02), (name, out["fitted"])
+        rel = 0.03 if name == "springs.hang.c" else 0.02
+        assert out["fitted"][name] == pytest.approx(v, rel=rel), (name, out["fitted"])
         assert 0 < out["stderr"][name] < 0.05 * v
     assert out["after"]["position_error_pct"]["mean"] < out["before"]["position_error_pct"][
         "mean"]
@@ -549,6 +552,11 @@ def test_multi_start_keeps_the_fit_of_lowest_cost(cube):
     assert len(chosen) == 1 and chosen[0]["cost"] == min(u["cost"] for u in ran)
     assert chosen[0]["cost"] == pytest.approx(res.cost, rel=1e-12)
     assert res.values["contact.board.c"] == pytest.approx(30.0, rel=0.02)
+    # cost_start is at the given values (c = 8), as without multi-start (it was the chosen
+    # start's); the chosen start's is cost_chosen_start (screened on the whole records here)
+    assert res.cost_start == pytest.approx(screen[0], rel=1e-9)
+    assert res.cost_chosen_start == pytest.approx(screen[1], rel=1e-9)
+    assert res.as_dict()["cost_start"] == res.cost_start
     # drawn starts: inside the bounds and within a factor `spread` of the start value
     pts = tf._start_points([tf.Free("contact.board.c", 1.0, 400.0).resolved(),
                             tf.Free("extra.plane_offset.ground", -0.02, 0.02).resolved()],

@@ -36,7 +36,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     (20).
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
-    ``undetermined``, ``cost_start``/``cost``, the accuracy before and after
+    ``undetermined``, ``cost_start``/``cost`` (at the scene file's and the fitted values;
+    ``cost_chosen_start`` at the multi-start point the fit kept), the accuracy before and after
     (:mod:`tuning.evaluate` summaries), ``records``, ``seconds``, ``out``.
     """
     from .evaluate import evaluate_batch, evaluator

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 import diffpen as dp
+from diffpen.integrators import implicit_euler, kick_then_drift
 
 from .errors import FitError
 from .pose import body_size, qmul, rotmat
@@ -32,17 +33,36 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
                        f"{sim.dt} s.")
     n = int(round(duration / every))
     s0 = sim.init_state() if state is None else state
-    traj = sim.rollout(params, n * save, s0, save_every=save)
+    rec = sim.analysis.integrator
+    lagged = velocities and (kick_then_drift(rec) or rec.make is implicit_euler)
+    # every frame's state, s0 first: (n + 1, bodies, ...) per field
+    if lagged:             # every step, and one past the last frame: the next kick's rates
+        traj = sim.rollout(params, n * save + 1, s0)
+    else:
+        traj = sim.rollout(params, n * save, s0, save_every=save)
+    step = save if lagged else 1
+
+    def frames(field, nxt=0):
+        if getattr(traj, field) is None:
+            return None
+        a = np.concatenate([np.asarray(getattr(s0, field))[None],
+                            np.asarray(getattr(traj, field))])
+        return a[nxt::step][:n + 1]
+    fr = {f: frames(f) for f in ("position", "velocity", "orientation", "angular_velocity")}
+    if lagged:
+        share = 0.5 * sim.analysis.inner_dt / sim.dt     # (h / 2) / dt of the next step
+        for f in ("velocity", "angular_velocity"):
+            if fr[f] is not None:
+                fr[f] = fr[f] + share * (frames(f, 1) - fr[f])
     rng = np.random.default_rng(seed)
     t = np.arange(n + 1) * every
     out = {}
     for name, i in bodies.items():
-        p = np.concatenate([np.asarray(s0.position)[None, i], np.asarray(traj.position)[:, i]])
+        p = fr["position"][:, i]
         p = p + noise * rng.standard_normal(p.shape)
         q = None
-        if quaternions and traj.orientation is not None and sim.scene.bodies[i].rigid:
-            q = np.concatenate([np.asarray(s0.orientation)[None, i],
-                                np.asarray(traj.orientation)[:, i]])
+        if quaternions and fr["orientation"] is not None and sim.scene.bodies[i].rigid:
+            q = fr["orientation"][:, i]
             if noise:
                 size = body_size(sim.scene, i)
                 axis = rng.standard_normal((len(q), 3))
@@ -53,14 +73,11 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
         v = w = None
         if velocities:
-            v = np.concatenate([np.asarray(s0.velocity)[None, i],
-                                np.asarray(traj.velocity)[:, i]])
+            v = fr["velocity"][:, i]
             v = v + 10 * noise * rng.standard_normal(v.shape)
-            if traj.angular_velocity is not None and sim.scene.bodies[i].rigid:
-                ww = np.concatenate([np.asarray(s0.angular_velocity)[None, i],
-                                     np.asarray(traj.angular_velocity)[:, i]])
-                rot = np.concatenate([np.asarray(s0.orientation)[None, i],
-                                      np.asarray(traj.orientation)[:, i]])
+            if fr["angular_velocity"] is not None and sim.scene.bodies[i].rigid:
+                ww = fr["angular_velocity"][:, i]
+                rot = fr["orientation"][:, i]
                 w = np.einsum("tji,tj->ti", rotmat(rot), ww)        # R^T w: body frame
                 w = w + 10 * noise / body_size(sim.scene, i) * rng.standard_normal(w.shape)
         out[name] = BodyRecord(position=p, quaternion=q, velocity=v, angular_velocity=w)

@@ -156,8 +156,9 @@ class TrajFitResult:
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
       eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest.
-    cost_start, cost: pose loss (mean over records) at the start and at the fitted values,
-      both over the whole records (with a growing horizon too).
+    cost_start, cost: pose loss (mean over records) at the start (the given ``params``, with
+      multi-start too) and at the fitted values, both over the whole records (with a
+      growing horizon too).
     horizons: the horizons (s) fitted in turn.  iterations: LM iterations in all.
     history: cost after each iteration.  seconds: wall time.  message: LM's last word.
     unstable: records whose rollout at the fitted values ran past the safe step; when > 0
@@ -167,6 +168,8 @@ class TrajFitResult:
     diverged: the rollouts' derivatives at the fitted values ran away (non-finite, or an
       entry of the Jacobian past :data:`JACOBIAN_LIMIT`) while their values stayed
       bounded: not a result (the message says so; standard errors and correlations NaN).
+    cost_chosen_start: the pose loss over the whole records at the start point the kept fit
+      ran from (with multi-start, the chosen one of ``starts``; else ``cost_start``).
     """
     params: dp.Params
     names: list
@@ -184,6 +187,7 @@ class TrajFitResult:
     unstable: int = 0
     starts: list = dataclasses.field(default_factory=list)
     diverged: bool = False
+    cost_chosen_start: float | None = None
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -191,7 +195,8 @@ class TrajFitResult:
                                     for j, b in enumerate(self.names)}
                                 for i, a in enumerate(self.names)},
                 "undetermined": self.undetermined, "cost_start": self.cost_start,
-                "cost": self.cost, "horizons": self.horizons, "iterations": self.iterations,
+                "cost_chosen_start": self.cost_chosen_start, "cost": self.cost,
+                "horizons": self.horizons, "iterations": self.iterations,
                 "seconds": self.seconds, "message": self.message, "unstable": self.unstable,
                 "diverged": self.diverged, "starts": self.starts}
 
@@ -345,7 +350,9 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                             for i, f in enumerate(free)}, sim.dt)
     # lowest final cost among the stable fits (an unstable one only when all are)
     best = min(runs, key=lambda u: (u[4] > 0, float(u[2] @ u[2])))
-    _, x, r, J, n_bad, hist, message, cost_start = best
+    _, x, r, J, n_bad, hist, message, cost_chosen_start = best
+    # cost_start is at the given values (cands[0]), whichever start the fit kept
+    cost_start = cost_chosen_start if best[0] == 0 else whole_cost(cands[0])
     cost = float(r @ r)
     start_info = [{"values": {f.name: float(f.from_x(xc[i])) for i, f in enumerate(free)},
                    "screen_cost": screened[j] if screened else None,
@@ -423,7 +430,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     return TrajFitResult(fitted, names, values, stderr, corr, undetermined, cost_start, cost,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
-                         starts=start_info, diverged=diverged)
+                         starts=start_info, diverged=diverged,
+                         cost_chosen_start=cost_chosen_start)
 
 
 def _record_sandwich(inv, J, r, rows):
