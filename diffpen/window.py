@@ -122,8 +122,16 @@ def _closed_parts(h: float):
 
     @closed.def_vmap
     def _batched(axis_size, in_batched, d, vn):
-        d, vn = (x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
-                 for x, b in zip((d, vn), in_batched))
+        # each lane's d and vn broadcast together (e.g. (n,) and ()): line both up on the
+        # lane's shape behind the batch axis
+        lanes = [jnp.shape(x)[1:] if b else jnp.shape(x) for x, b in zip((d, vn), in_batched)]
+        lane = jnp.broadcast_shapes(*lanes)
+
+        def lined(x, b, shape):
+            if b:
+                x = jnp.reshape(x, (axis_size,) + (1,) * (len(lane) - len(shape)) + shape)
+            return jnp.broadcast_to(x, (axis_size,) + lane)
+        d, vn = (lined(x, b, sh) for x, b, sh in zip((d, vn), in_batched, lanes))
         return parts(d, vn, False), (True,) * 7
 
     # derivatives of these values (second-order derivatives of the window) by autodiff of

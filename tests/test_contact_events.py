@@ -140,6 +140,13 @@ def test_batched_linear_window_equals_the_unbatched_one():
             for j in (0, 1):
                 want = np.asarray([f(a, b)[j] for a, b in zip(d, vn)])
                 np.testing.assert_allclose(np.asarray(got[j]), want, rtol=1e-13, atol=0.0)
+    # lanes whose d and vn differ in rank (a (3,) d against a scalar vn per lane): the rule
+    # put the batch axis in front of both, so they no longer broadcast lane by lane
+    d3 = jnp.reshape(d[:9], (3, 3))
+    got = jax.vmap(lambda a, b: laws.window_mean(a, b, h))(d3, vn[:3])
+    for i in (0, 1):
+        want = [laws.window_mean(a, b, h)[i] for a, b in zip(d3, vn[:3])]
+        np.testing.assert_array_equal(np.asarray(got[i]), np.asarray(want))
 
 
 def test_linear_window_closed_form_derivatives_equal_autodiff():

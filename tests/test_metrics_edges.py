@@ -67,6 +67,19 @@ def test_a_decay_time_target_sets_the_rollout_length(monkeypatch):
         B.fit_bounce(ball(), {"decay_time": 3.0}, duration=3.0)
 
 
+def test_a_decay_fit_moves_from_a_slow_start_and_never_reaches_a_cut_decay():
+    """With the cut-short decay nan, a fit started where the decay outlasts the rollout had
+    no residual to follow (LM stayed at the start, not reached); the optimiser now sees the
+    integral over the rollout (a lower bound), and a fit whose decay is still cut short at
+    the end is not reached, saying why."""
+    target = 0.6560032789523235            # the decay time of k 1e4, c 20
+    res = B.fit_bounce(ball(0.5), {"decay_time": target}, k0=1e4, c0=6.0)
+    assert res.reached and res.achieved["decay_time"] == pytest.approx(target, rel=2e-3)
+    cut = B.fit_bounce(ball(0.5), {"decay_time": target}, k0=1e4, c0=20.0,
+                       duration=1.5 * target)
+    assert not cut.reached and "cut short" in cut.message
+
+
 def test_a_ball_thrown_down_has_its_impact_speed_in_the_drop_height():
     """max(v0, 0) dropped the downward speed: restitution 1.125 for a true 0.724, and a
     reachable apex target was refused as above the drop height."""

@@ -101,7 +101,7 @@ def test_stability_message_names_the_limit_that_applies():
         sim.rollout(sim.params(k=1.0, c=1100.0), 10)
     msg = str(exc.value)
     assert "c h / m = 1.1" in msg and "w h = 0.001" in msg
-    assert "0.5 > 0.5" not in msg and "must be at most 0.000909091 s" in msg
+    assert "0.5 > 0.5" not in msg and "must be at most 0.00090909 s" in msg
 
 
 def test_tiny_mass_gets_valid_bounds_and_a_huge_k0_consistent_notes(monkeypatch):

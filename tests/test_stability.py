@@ -168,6 +168,28 @@ def test_a_step_equal_to_the_safe_step_is_accepted(ball_sim):
     assert not bool(flag)
 
 
+def test_a_step_a_rounding_above_the_safe_step_is_accepted_traced_too():
+    """dt = 3 x the safe step with 3 substeps lands 2e-16 (relative) above it: the gate
+    accepted it (a step equal to the safe step is), but the traced flag, what fits and
+    sweeps read, compared strictly and flagged it unstable. The error's advice, rounded up
+    to 4 digits ("use dt <= 0.006647 s" for 0.00664694), was refused too."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    a = s.add_particle(0.3, (0.0, 0.0, 1.0))
+    b = s.add_particle(0.7, (0.0, 0.0, 0.5))
+    s.add_spring(a, b, k=1e4, c=0.0, rest_length=0.4)
+    base = dp.compile(s, dt=1e-3)
+    safe = stability.report(base, base.params()).safe_dt
+    sim = dp.compile(s, dt=3 * safe, substeps=3)
+    tr = sim.rollout(sim.params(), 5)
+    assert not bool(np.asarray(tr.aux["unstable"]).any())
+    over = dp.compile(s, dt=1.001 * safe)
+    with pytest.raises(dp.StabilityError) as info:
+        over.rollout(over.params(), 5)
+    advised = float(str(info.value).split("Use dt <= ")[1].split(" s")[0])
+    ok = dp.compile(s, dt=advised)
+    ok.rollout(ok.params(), 5)
+
+
 def test_anchored_springs_count_the_tension_gravity_can_hang_on_them():
     """A 1 g, 1 cm link between a world point and a 10 kg weight on anchored springs at rest
     length: loaded, the springs' tension (~98 N) turns the link at ~7700 rad/s, but the bound
@@ -189,6 +211,18 @@ def test_anchored_springs_count_the_tension_gravity_can_hang_on_them():
     with pytest.raises(dp.StabilityError):
         sim.rollout(sim.params(), 10)
     ok = dp.compile(sc, dt=rep.safe_dt)
+    # the same springs lying free (hung from nothing) carry no weight: no such rows
+    free = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    l2 = free.add_box((a, a, a), 1e-3, (0.0, 0.0, 0.9 - a), collide=False)
+    w2 = free.add_sphere(0.03, 10.0, (0.0, 0.0, 0.9 - 2 * a - 0.1), collide=False)
+    free.add_anchored_spring(l2, w2, anchor_a=(0, 0, -a), k=k, c=0.0, group="s")
+    weightless = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    l3 = weightless.add_box((a, a, a), 1e-3, (0.0, 0.0, 0.9 - a), collide=False)
+    w3 = weightless.add_sphere(0.03, 10.0, (0.0, 0.0, 0.9 - 2 * a - 0.1), collide=False)
+    weightless.add_anchored_spring(l3, w3, anchor_a=(0, 0, -a), k=k, c=0.0, group="s")
+    rates = [dp.compile(x, 1e-4).stability(dp.compile(x, 1e-4).params()).omega_max
+             for x in (free, weightless)]
+    assert rates[0] == pytest.approx(rates[1], rel=1e-12)
     st = ok.state_from(body=link, angular_velocity=(1e-3, 0.0, 0.0))
     tr = ok.rollout(ok.params(), int(0.3 / rep.safe_dt), state=st)
     assert float(jnp.max(jnp.abs(tr.angular_velocity[:, link]))) < 0.1

@@ -113,14 +113,16 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
 
 
 def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex: int = 3,
-                      settle_tol: float = 1e-3, save_every: int = 1) -> Callable:
+                      settle_tol: float = 1e-3, save_every: int = 1,
+                      decay_cut: str = "nan") -> Callable:
     """``params -> {metric: value}`` for a sphere bouncing on a plane (traceable).
 
     Rolls out ``steps`` steps of ``sim`` and returns the fields of
     :class:`tuning.metrics.BallMetrics` as a dict. A settling time not reached within the
     rollout is reported as the rollout's end time (a lower bound) for the optimiser. A decay
-    time cut short by the rollout's end is nan (``decay_valid`` False; never a reached
-    target).
+    time cut short by the rollout's end (``decay_valid`` False) is nan, or with
+    ``decay_cut="bound"`` (what :func:`fit_bounce` uses, never calling it reached) its
+    integral over the rollout, a lower bound that still moves with k and c.
     ``"unstable"`` (bool) is true when the rollout went past its safe step
     (:func:`tuning.stable.rollout_unstable`): fits report such a point as not reached and
     sweeps return NaN for it.
@@ -132,7 +134,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
         s0 = sim.init_state()
         traj = sim.rollout(params, steps, s0, save_every=save_every, check_finite=False)
         m = ball_metrics(sim, traj, params, body=body, plane=plane, n_apex=n_apex,
-                         settle_tol=settle_tol, state0=s0)._asdict()
+                         settle_tol=settle_tol, state0=s0, decay_cut=decay_cut)._asdict()
         m["settling_time"] = jnp.where(m["settled"], m["settling_time"], t_end)
         m["unstable"] = rollout_unstable(sim, traj, params)   # fits and sweeps refuse these
         return m
@@ -243,7 +245,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        f"bounces. Give dt <= {duration / MIN_STEPS:.3g} s (default 1e-3 s).")
     sim = dp.compile(scene, dt, law=law, **compile_kw)
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
-                            settle_tol=settle_tol)
+                            settle_tol=settle_tol, decay_cut="bound")
     # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
     # within ~0.5% of the continuous model (docs/physics-notes.md section 4); beyond it a fit
     # would tune the integrator's error instead of the contact. A start above it is lowered
@@ -308,6 +310,14 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
               maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
               label="diffpen fit", starts=starts, search=search)
     res.notes = notes + res.notes
+    if "decay_time" in tg:
+        # the optimiser saw a cut-short decay as its lower bound: never a reached target
+        if not bool(mfn(res.params)["decay_valid"]):
+            res.reached = False
+            res.message = "decay time cut short by the rollout (targets not reached)"
+            res.notes.append(f"the decay time at the fitted values is cut short by the "
+                             f"{duration:g} s rollout (energy left at its end): give a "
+                             f"longer duration")
     return res
 
 

@@ -376,7 +376,7 @@ class BallMetrics(NamedTuple):
 
 
 def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_tol: float = 1e-3,
-                 plane: int = 0, state0=None) -> BallMetrics:
+                 plane: int = 0, state0=None, decay_cut: str = "nan") -> BallMetrics:
     """All metrics of ``body`` (a sphere) bouncing on plane ``plane`` of ``sim``'s scene.
 
     The initial state (``state0`` or ``sim.init_state()``) is prepended to the saved samples,
@@ -388,9 +388,15 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         plane's offset is ``params.extra["plane_offset"][name]``, :func:`plane_offset`).
       body: body index.  n_apex: number of bounces reported (static).
       settle_tol: settling band, m.  plane: plane index.
+      decay_cut: a decay time cut short by the rollout (``decay_valid`` False) is ``"nan"``,
+        or ``"bound"``: the integral over the rollout, a lower bound that still moves with k
+        and c (what a fit's optimiser takes; never a reached target, see
+        :func:`tuning.bounce.fit_bounce`).
     Returns:
       :class:`BallMetrics`.
     """
+    if decay_cut not in ("nan", "bound"):
+        raise ValueError(f"decay_cut must be 'nan' or 'bound', got {decay_cut!r}.")
     scene = sim.scene
     pl = scene.planes[plane]
     radius = float(sim.radius[body])
@@ -409,8 +415,10 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     gap = 0.5 * sim.smoothing
     apex, valid = apex_heights(h, n_apex, flight_gap=gap)
     # starting in contact (launched from the surface), the launch flight's apex
-    launch, _ = apex_heights(h, 1, flight_gap=gap, after_contact=False)
-    h_drop = jnp.where(h[0] <= gap, launch[0], initial_apex(h[0], v0n, g))
+    launch, launched = apex_heights(h, 1, flight_gap=gap, after_contact=False)
+    h_energy = initial_apex(h[0], v0n, g)
+    # (no launch flight, e.g. at rest on the plane: the energy height, as before)
+    h_drop = jnp.where((h[0] <= gap) & launched[0], launch[0], h_energy)
     k = params.contact[pl.material].k
     rest_z = resting_height(k, mass, g, radius, law=sim.contact_law, width=sim.smoothing)
     centre = h + radius                                          # centre height above plane
@@ -424,7 +432,8 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         at_rest = e[0] <= noise
         decay_valid = at_rest | (e[-1] <= DECAY_TAIL * e[0])
         decay = jnp.where(at_rest, 0.0, energy_decay_time(t, jnp.where(at_rest, 1.0, e)))
-        decay = jnp.where(decay_valid, decay, jnp.nan)
+        if decay_cut == "nan":
+            decay = jnp.where(decay_valid, decay, jnp.nan)
     else:
         decay = jnp.full((), jnp.nan, h.dtype)
         decay_valid = jnp.zeros((), bool)

@@ -98,7 +98,7 @@ def _body_map(scene, records, bodies):
 
 def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             estimate: str = "record", max_frames: int = FLIGHT_FRAMES,
-            cache: dict | None = None, scene=None) -> Batch:
+            cache: dict | None = None, scene=None, params=None) -> Batch:
     """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
     ``estimate``). ``cache``: a dict that keeps the first states across calls on the same
     record objects (a tumbling box's torque-free fit takes 25-110 ms a record), e.g. the
@@ -107,7 +107,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     scene body index}``; default: the only
     free body for one-body records, else names that are indices. Bodies a record does not
     observe start from the scene file's state, their velocities moved by the integrator's
-    lag as the observed ones' are (:func:`first_state`)."""
+    lag as the observed ones' are (:func:`first_state`), their accelerations at ``params``
+    (default ``sim.params()``, the scene's declared values)."""
     if not records:
         raise FitError("no records: give at least one record file.")
     if scene is None:
@@ -189,7 +190,7 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                 raise FitError(f"{rec.path}, body {name!r}, first state: {exc}") from None
         if lag:
             state = _lag_unobserved(sim, state, [int(idx[b]) for b, name in enumerate(names)
-                                                 if name in rec.bodies], lag)
+                                                 if name in rec.bodies], lag, params)
         starts.append(state)
     if blind:
         warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "
@@ -208,18 +209,25 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                  np.array([len(r.t) for r in records]), [r.path for r in records])
 
 
-def _lag_unobserved(sim: dp.Simulator, state, observed, lag: float):
+def _lag_unobserved(sim: dp.Simulator, state, observed, lag: float, params=None):
     """``state`` with the velocities of the bodies a record does not observe (the scene
     file's) moved by ``-lag`` times their accelerations there (at the scene file's
     parameters), as :func:`first_state` moves the observed ones: every body starts from the
     velocity the integrator steps from (a 5 x 5 cloth observed at 4 nodes, its other nodes
     at the scene file's rest while the observed ones took the lag, fitted c 10% low; 1.3%
-    with it)."""
+    with it). ``params``: where the accelerations are taken (default ``sim.params()``)."""
     rest = np.ones(len(sim.scene.bodies), bool)
     rest[list(observed)] = False
     if not rest.any():
         return state
-    a, alpha = _acceleration(sim)(sim.params(), state)
+    if params is None:
+        try:
+            params = sim.params()
+        except dp.SceneError as exc:
+            raise FitError(f"the bodies a record does not observe start from the scene's "
+                           f"velocities less the integrator's lag, which needs the scene's "
+                           f"parameters: {exc} Pass them as prepare(..., params=...).") from None
+    a, alpha = _acceleration(sim)(params, state)
     m = jnp.asarray(rest)[:, None]
     w = state.angular_velocity
     if w is not None and alpha is not None:

@@ -25,7 +25,9 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
     random axis on the orientations; with ``velocities`` also the velocity columns (world,
     m/s) and body-frame angular velocities (rad/s), with noise ``10 noise`` m/s and
     ``10 noise / size`` rad/s. For tests and examples (records from another integrator and
-    time step than the fit uses)."""
+    time step than the fit uses). With semi-implicit or implicit Euler the rollout starts
+    from ``state`` (default the scene's) with its velocities less the lag below, so that
+    they are the motion's rates at t = 0, as a fit reads a scene's."""
     from .records import BodyRecord, Record
     save = int(round(every / sim.dt))
     if save < 1 or abs(save * sim.dt - every) > 1e-9 * every:
@@ -34,18 +36,24 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
     n = int(round(duration / every))
     s0 = sim.init_state() if state is None else state
     rec = sim.analysis.integrator
-    lagged = velocities and (kick_then_drift(rec) or rec.make is implicit_euler)
-    # every frame's state, s0 first: (n + 1, bodies, ...) per field
+    lagged = kick_then_drift(rec) or rec.make is implicit_euler
+    start = s0
+    if lagged:
+        # the start's velocities are the motion's rates at t = 0, as a fit reads a scene
+        # file's (tuning.record_batch.prepare): the rollout steps from them less the lag
+        from .record_batch import _lag_unobserved
+        start = _lag_unobserved(sim, s0, [], 0.5 * sim.analysis.inner_dt, params)
+    # every frame's state, the start first: (n + 1, bodies, ...) per field
     if lagged:             # every step, and one past the last frame: the next kick's rates
-        traj = sim.rollout(params, n * save + 1, s0)
+        traj = sim.rollout(params, n * save + 1, start)
     else:
-        traj = sim.rollout(params, n * save, s0, save_every=save)
+        traj = sim.rollout(params, n * save, start, save_every=save)
     step = save if lagged else 1
 
     def frames(field, nxt=0):
         if getattr(traj, field) is None:
             return None
-        a = np.concatenate([np.asarray(getattr(s0, field))[None],
+        a = np.concatenate([np.asarray(getattr(start, field))[None],
                             np.asarray(getattr(traj, field))])
         return a[nxt::step][:n + 1]
     fr = {f: frames(f) for f in ("position", "velocity", "orientation", "angular_velocity")}

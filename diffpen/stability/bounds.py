@@ -11,7 +11,7 @@ import numpy as np
 
 from ..integrators import Integrator
 from ..params import _known_value
-from .modes import SAFE_CH, SAFE_STABLE, SAFE_WH, _spectral_radius_2x2
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG"]
 
@@ -287,20 +287,22 @@ def unsafe(an: Analysis, params, h=None):
         sdt = rec.stable_dt(K, C, xp=jnp)
         sdt = jnp.where((K <= 0.0) & (C <= 0.0), jnp.inf, sdt)
         undamped = rec.stable_dt(K, jnp.zeros_like(C), xp=jnp)
-        bad = (SAFE_STABLE * sdt < h) | ((K > 0.0) & (SAFE_STABLE * undamped < h))
+        tie = 1.0 + SAFE_TIE         # a step equal to the safe step is accepted
+        bad = (SAFE_STABLE * sdt * tie < h) | ((K > 0.0) & (SAFE_STABLE * undamped * tie < h))
     else:
         # every mode held to SAFE_STABLE of its limit: h / SAFE_STABLE within it
         Ks = jnp.stack([K, K, jnp.zeros_like(K)])
         Cs = jnp.stack([C, jnp.zeros_like(C), C])
-        hs = jnp.full((3,), h / SAFE_STABLE, K.dtype)
+        hs = jnp.full((3,), h / (SAFE_STABLE * (1.0 + SAFE_TIE)), K.dtype)
         rho = _spectral_radius_2x2(rec.amplification(Ks, Cs, hs, xp=jnp), jnp)
         # a neutral mode (a pure dashpot's |rho| = 1 exactly) reads 1 + 2e-6 in float32:
         # the margin follows the dtype's rounding
         margin = max(1e-9, 64.0 * float(jnp.finfo(rho.dtype).eps))
         bad = jnp.any(rho > 1.0 + margin)
     wc = jnp.sqrt(Kc)
-    bad = bad | ((Kc > 0.0) & (SAFE_WH / jnp.where(Kc > 0.0, wc, 1.0) < h))
-    bad = bad | ((Cc > 0.0) & (SAFE_CH / jnp.where(Cc > 0.0, Cc, 1.0) < h))
+    tie = 1.0 + SAFE_TIE
+    bad = bad | ((Kc > 0.0) & (SAFE_WH * tie / jnp.where(Kc > 0.0, wc, 1.0) < h))
+    bad = bad | ((Cc > 0.0) & (SAFE_CH * tie / jnp.where(Cc > 0.0, Cc, 1.0) < h))
     # a NaN or negative stiffness, damping or friction reads as no limit above (every
     # comparison with NaN is False; a negative value never reaches one): flag it too, and a
     # parameter that is not finite anywhere else (e.g. a plane offset)

@@ -69,6 +69,15 @@ class StabilityReport(NamedTuple):
                 + (f", set by {self.limiting}" if self.limiting else ""))
 
 
+def _down(x: float, digits: int) -> float:
+    """``x`` rounded down to ``digits`` significant digits: a step the advice names must
+    pass the check (rounded up, "use dt <= 0.006647 s" was refused at 0.00664694 s)."""
+    if not (math.isfinite(x) and x > 0.0):
+        return x
+    q = 10.0 ** (math.floor(math.log10(x)) - digits + 1)
+    return math.floor(x / q * (1.0 + 1e-15)) * q
+
+
 def _needed(dt: float, sdt: float) -> int:
     if math.isinf(sdt):
         return 1
@@ -289,9 +298,10 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                " contact energy errors of several % or more)")
         raise StabilityError(
             f"integrator {an.integrator.name!r} is {why} at step {h:.6g} s: the step must be "
-            f"at most {rep.safe_dt:.6g} s (linear stability limit {rep.stable_dt:.4g} s; w_max "
-            f"<= {rep.omega_max:.4g} rad/s, C/m <= {rep.damping_rate:.4g} 1/s, set by "
-            f"{rep.limiting or 'the springs and contacts'}). Use dt <= {rep.safe_dt:.4g} s, "
+            f"at most {_down(rep.safe_dt, 6):.6g} s (linear stability limit "
+            f"{rep.stable_dt:.4g} s; w_max <= {rep.omega_max:.4g} rad/s, C/m <= "
+            f"{rep.damping_rate:.4g} 1/s, set by {rep.limiting or 'the springs and contacts'})."
+            f" Use dt <= {_down(rep.safe_dt, 4):.4g} s, "
             f"compile with substeps={rep.substeps_needed} (or substeps='auto'), or "
             "integrator='implicit_euler'.",
             stable_dt=rep.safe_dt, substeps=rep.substeps_needed)

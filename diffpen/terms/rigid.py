@@ -487,9 +487,12 @@ def _tension_mobility(scene, i, lever, stretch: float) -> float:
 
 def _carried_weights(scene) -> dict:
     """Per free body, the weight (N) of the free bodies joined to it by springs of any kind
-    (its connected component through free bodies; pinned bodies and world anchors carry
-    their share to the world): the most a spring of that component can come to carry at
-    rest under gravity, whatever its start stretch."""
+    (its connected component through free bodies) when that component hangs from the world
+    (a spring to a world point or a pinned body), else 0: the most a spring of a hanging
+    component can come to carry at rest under gravity, whatever its start stretch. A
+    component that hangs from nothing rests on contacts, which carry its weight (a chain of
+    100 light links lying on the ground was held to a 5x smaller step, needlessly); tension
+    from weight carried over a contact (a chain draped over a fixed sphere) is not counted."""
     free = [i for i, b in enumerate(scene.bodies) if not b.pinned]
     parent = {i: i for i in free}
 
@@ -504,11 +507,14 @@ def _carried_weights(scene) -> dict:
     for a, b in links:
         if a in parent and b in parent:
             parent[root(a)] = root(b)
+    # a component hangs only from the world: a spring to a world point or a pinned body
+    held = {root(a if a in parent else b) for a, b in links
+            if (a in parent) != (b in parent)}
     g = float(np.linalg.norm(scene.gravity))
     total = {}
     for i in free:
         total[root(i)] = total.get(root(i), 0.0) + scene.bodies[i].mass * g
-    return {i: total[root(i)] for i in free}
+    return {i: (total[root(i)] if root(i) in held else 0.0) for i in free}
 
 
 def _anchored_bound(ctx: CompileContext):
