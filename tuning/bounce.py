@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -312,7 +313,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     res.notes = notes + res.notes
     if "decay_time" in tg:
         # the optimiser saw a cut-short decay as its lower bound: never a reached target
-        if not bool(mfn(res.params)["decay_valid"]):
+        if not bool(jax.jit(lambda p: mfn(p)["decay_valid"])(res.params)):
             res.reached = False
             res.message = "decay time cut short by the rollout (targets not reached)"
             res.notes.append(f"the decay time at the fitted values is cut short by the "
