@@ -531,3 +531,11 @@ def test_implicit_euler_refuses_a_resting_depth_its_dtype_cannot_resolve():
     heavy = dp.compile(ball_scene(mass=1.0, height=0.5), 1e-5, integrator="implicit_euler",
                        dtype=jnp.float32)
     heavy.rollout(heavy.params(k=1e9, c=63.2), 10)
+    # between 1% and half of that resolution the gradients were finite and wrong: a 0.1 g
+    # ball at rest, d z / dk -42.9 at k 5e5 N/m and +17.9 at 1e6 (m g / k^2 ~ 1e-15)
+    light = dp.compile(ball_scene(mass=1e-4, height=0.3), 1e-3, integrator="implicit_euler",
+                       dtype=jnp.float32)
+    for k in (5e5, 1e6):
+        with pytest.raises(dp.StabilityError, match="wrong or NaN gradients"):
+            light.rollout(light.params(k=k, c=0.4 * np.sqrt(k * 1e-4)), 10)
+    light.rollout(light.params(k=1e4, c=0.4), 10)

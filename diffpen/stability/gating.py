@@ -206,9 +206,11 @@ IMPLICIT_PRECISION = 0.1
 #: implicit_euler in a float dtype of machine epsilon eps needs a body's static deflection
 #: under gravity, g / K (K its stiffness over mass, 1/s^2), to be at least this fraction of the
 #: resolution of its positions, eps x its size: below it the body rests on a contact (or
-#: hangs on a spring) the dtype cannot resolve, and the step's linearisation, which
-#: differentiates the forces, gives NaN gradients (float32, k 1e9 N/m on 0.1 g).
-RESTING_RESOLUTION = 0.01
+#: hangs on a spring) within a rounding of its position, and the step's linearisation, which
+#: differentiates the forces, gives NaN gradients (float32, k 1e9 N/m on 0.1 g) or finite,
+#: wrong ones (float32, 0.1 g at rest: d z / dk -42.9 at k 5e5 N/m, +17.9 at 1e6, where
+#: m g / k^2 ~ 1e-15, at deflections of 2.7-16.5% of that resolution; right from 27%).
+RESTING_RESOLUTION = 0.5
 
 
 def _implicit_precision(an: Analysis, params, substeps: int) -> None:
@@ -233,8 +235,9 @@ def _implicit_precision(an: Analysis, params, substeps: int) -> None:
                 f"{np.dtype(an.dtype).name}: a body's static deflection under gravity, "
                 f"{depth[j]:.2g} m (g / (k / m)), is below {RESTING_RESOLUTION:g} of the "
                 f"resolution of its positions ({res[j]:.2g} m: machine epsilon x its size), "
-                "and the step's linearisation, which differentiates the forces, gives NaN "
-                "gradients there. Use dtype=float64, or a softer k or a heavier body.")
+                "and the step's linearisation, which differentiates the forces, gives wrong "
+                "or NaN gradients there. Use dtype=float64, or a softer k or a heavier "
+                "body.")
     h = an.dt / substeps
     if K * h * h * eps <= IMPLICIT_PRECISION:
         return
