@@ -115,3 +115,6 @@ def test_a_ball_at_rest_from_the_start_has_decay_time_zero():
     rollout's length)."""
     m = metrics(ball(z=0.1 - G / 1e4), 500, n_apex=1)
     assert float(m["decay_time"]) == 0.0 and m["decay_valid"]
+    # a ball resting on the plane has no launch flight: its drop height is its energy
+    # height, its start height (a first version of the launch rule read nan there)
+    assert float(m["drop_height"]) == pytest.approx(-G / 1e4, abs=1e-6)
