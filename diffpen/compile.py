@@ -18,9 +18,11 @@ spring groups the builders say they read (asked before any term is built), the
 ``Params.extra`` defaults and the ``State.aux`` entries and updates come from the built
 Terms. Each term carries its stability bound, which :mod:`diffpen.stability` sums; the pure
 rollout is :func:`diffpen.rollout.rollout`.
-Parameter building and validation live in :mod:`diffpen.params`, start states in
-:mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state`` and ``state_from``
-delegate to them.
+Term assembly (which builders run, the params keys they declare, the terms built) lives in
+:mod:`diffpen.assembly`, the step built from the terms in :mod:`diffpen.stepping`, parameter
+building and validation in :mod:`diffpen.params`, start states in
+:mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state``, ``state_from`` and
+``step_function`` delegate to them.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import assembly as _assembly
 from . import broadphase as _broadphase
 from . import checks as _checks
 from . import laws, rigid
@@ -40,9 +43,10 @@ from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
 from . import start_state as _start_state
+from . import stepping as _stepping
 from . import terms as _terms
 from .errors import SceneError
-from .integrators import build_step, kick_then_drift, substepped
+from .integrators import kick_then_drift
 from .scene import Scene
 from .params import _is_concrete
 from .state import Params, State, Trajectory
@@ -57,55 +61,6 @@ BUILTIN_TERMS: tuple = _terms.BUILTIN
 
 
 # --------------------------------------------------------------------------- simulator
-def _builders(terms) -> tuple:
-    """The term builders of ``compile(..., terms=...)``: BUILTIN_TERMS for None."""
-    if terms is None:
-        return BUILTIN_TERMS
-    if isinstance(terms, (str, bytes)) or not hasattr(terms, "__iter__"):
-        raise SceneError(f"terms must be a sequence of term builders (e.g. "
-                         f"(*diffpen.terms.BUILTIN, my_builder)), got {terms!r}.")
-    terms = tuple(terms)
-    for b in terms:
-        if not callable(b):
-            raise SceneError(f"terms must hold term builders, build(ctx) -> Term | None "
-                             f"(diffpen.terms.TermBuilder or a function); got {b!r}.")
-    return terms
-
-
-def _declared(builders, ctx: CompileContext, facet: str, known: dict, what: str,
-              fix: str) -> tuple:
-    """The union of the builders' ``facet`` declarations (:func:`diffpen.terms.declared`),
-    each one checked against the scene's ``known`` names."""
-    names = _terms.declared(builders, ctx, facet)
-    for name in names:
-        if not isinstance(name, str) or name not in known:
-            raise SceneError(f"a term declares the {what} {name!r}, which the scene does not "
-                             f"have: declare it with {fix.format(name)}; the scene has "
-                             f"{sorted(known)}.")
-    return names
-
-
-def _build_terms(builders, ctx: CompileContext) -> tuple:
-    """Build every term the scene needs, in order, and assemble onto ``ctx`` what they
-    declare: ``Params.extra`` defaults and checks, initial ``State.aux`` entries and the
-    aux updates run after each step."""
-    built = []
-    for build in builders:
-        term = build(ctx)
-        if term is None:
-            continue
-        if not isinstance(term, Term):
-            raise SceneError(f"term builder {build!r} returned {type(term).__name__}, not a "
-                             "diffpen.terms.Term (or None).")
-        _terms.merge_extra(ctx.extra_defaults, term.extra)
-        ctx.extra_checks.update(term.checks)
-        ctx.aux_init.update(term.aux)
-        if term.update is not None:
-            ctx.aux_updates.append(term.update)
-        built.append(term)
-    return tuple(built)
-
-
 class Simulator:
     """A compiled scene: a frozen holder of pure, jitted functions. Build it with
     :func:`compile`; its attributes cannot be reassigned.
@@ -174,16 +129,16 @@ class Simulator:
         self.pinned = np.array([b.pinned for b in bodies])
         collide = np.array([b.collide for b in bodies])
 
-        builders = _builders(terms)
+        builders = _assembly.builders(terms)
         ctx = CompileContext(
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
             broadphase=broadphase, step=dt,
             velocity_lag=0.5 if kick_then_drift(method) else 0.0)
         # the params keys: what the term builders declare they read, before any is built
-        self.materials = _declared(builders, ctx, "materials", scene.materials,
+        self.materials = _assembly.declared(builders, ctx, "materials", scene.materials,
                                    "contact material", "scene.add_material({!r}, k=..., c=...)")
-        self.spring_groups = _declared(builders, ctx, "groups", scene.spring_groups,
+        self.spring_groups = _assembly.declared(builders, ctx, "groups", scene.spring_groups,
                                        "spring group", "scene.add_spring_group({!r}, k=...)")
         ctx.material_index.update({m: i for i, m in enumerate(self.materials)})
         ctx.group_index.update({g: i for i, g in enumerate(self.spring_groups)})
@@ -192,7 +147,7 @@ class Simulator:
         self.context = ctx
         self.broadphase = broadphase
         self._rigid = rigid.RigidDynamics(ctx) if scene.has_rotation else None
-        self._terms: tuple[Term, ...] = _build_terms(builders, ctx)
+        self._terms: tuple[Term, ...] = _assembly.build_terms(builders, ctx)
         self.terms = tuple(t.name for t in self._terms)
         self._searching = tuple(t for t in self._terms if t.search is not None)
         self._reporting = tuple(t for t in self._terms if t.report is not None)
@@ -395,70 +350,8 @@ class Simulator:
         n = substeps if substeps is not None else (
             self.substeps if isinstance(self.substeps, int) else 1)
         if n not in self._steps:
-            self._steps[n] = self._build_step(n)
+            self._steps[n] = _stepping.build(self, n)
         return self._steps[n]
-
-    def _build_step(self, n: int):
-        """The integrator step over ``dt`` in ``n`` inner steps of ``h = dt / n``
-        (:mod:`diffpen.integrators`), with the terms' aux updates after each inner step (a
-        plastic spring yields at the inner step's resolution, whatever ``n``: applied once per
-        saved step, its permanent set came out 13% short at 100 substeps)."""
-        h = self.dt / n if n != 1 else self.dt
-        method = self.analysis.integrator
-        inv_mass = np.where(self.pinned, 0.0, 1.0 / self.mass)
-        if self._searching:
-            inner = self._searching_step(h, inv_mass)
-        else:
-            inner = build_step(method, self._accel_at(h), h, inv_mass=inv_mass)
-        if self._aux_updates:
-            inner = self._with_aux_updates(inner)
-        return substepped(inner, n)
-
-    def _accel_at(self, h: float):
-        """``accel_fn(params, state)`` of an integrator whose inner step is ``h`` s."""
-        def accel(params, state):
-            return self.acceleration(params, state, h=h)
-        return accel
-
-    def _with_aux_updates(self, step):
-        """Apply the extensions' ``aux_update(params, state)`` after each (inner) step (e.g.
-        plastic rest lengths, updated from the new positions)."""
-        updates = self._aux_updates
-
-        def stepped(params, state):
-            state = step(params, state)
-            aux = dict(state.aux)
-            for update in updates:
-                aux.update(update(params, state))
-            return state._replace(aux=aux)
-        return stepped
-
-    def _searching_step(self, h: float, inv_mass):
-        """One integrator step of ``h`` s that runs each term's ``search`` once, at the state
-        the step starts from: the force evaluation at that state (the first one of every
-        integrator, the only one of semi-implicit Euler) uses it, and ``record`` writes its
-        ``State.aux`` entries. Evaluations at other states (verlet's second, rk4's stages 2-4,
-        implicit Euler's Jacobian products) search for themselves."""
-        searching = self._searching
-        method = self.analysis.integrator
-
-        def step(params, state):
-            found = {}
-            for term in searching:
-                with jax.named_scope(term.name):
-                    found[term.name] = term.search(params, state)
-
-            def accel(p, s):
-                # the very objects the step got: the integrator evaluates at its start state
-                return self.acceleration(p, s, found if (s is state and p is params) else None,
-                                         h=h)
-            new = build_step(method, accel, h, inv_mass=inv_mass)(params, state)
-            aux = dict(new.aux)
-            for term in searching:
-                if term.record is not None:
-                    aux.update(term.record(aux, found[term.name]))
-            return new._replace(aux=aux)
-        return step
 
     def stability(self, params: Params):
         """Largest stable step of this integrator for ``params`` and the current margin.

@@ -11,33 +11,10 @@ from tuning.record_batch import _lag_unobserved
 from tuning.records import BodyRecord, Record
 from tuning.scenefile import load_scene_file
 
+from record_scenes import BOX as BOX_TEMPLATE
+
 # the box of tests/test_trajfit.py (k 400, c 2), released at rest on two anchored springs
-BOX = """
-dt = 1e-3
-[[boxes]]
-name = "box"
-half_extents = [0.1, 0.05, 0.03]
-mass = 1.0
-position = [0.0, 0.0, 0.0]
-orientation = [0.98, 0.1, 0.15, 0.0]
-collide = false
-[[anchored_springs]]
-a = "box"
-anchor_a = [0.1, 0.05, 0.03]
-anchor_b = [0.05, 0.02, 0.3]
-k = 400.0
-c = 2.0
-rest_length = 0.2
-group = "hang"
-[[anchored_springs]]
-a = "box"
-anchor_a = [-0.1, -0.05, 0.03]
-anchor_b = [-0.12, 0.0, 0.3]
-group = "hang"
-rest_length = 0.2
-[fit]
-params = ["springs.hang.k", "springs.hang.c"]
-"""
+BOX = BOX_TEMPLATE.format(k=400.0, c=2.0)
 
 ROPE = """
 dt = 1e-3

@@ -20,6 +20,8 @@ from tuning.first_state import flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
+from record_scenes import BOX
+
 ROPE = """
 dt = 1e-3
 [[ropes]]
@@ -34,32 +36,6 @@ pinned = [0]
 params = ["springs.rope.stretch.k", "springs.rope.stretch.c"]
 """
 
-BOX = """
-dt = 1e-3
-[[boxes]]
-name = "box"
-half_extents = [0.1, 0.05, 0.03]
-mass = 1.0
-position = [0.0, 0.0, 0.0]
-orientation = [0.98, 0.1, 0.15, 0.0]
-collide = false
-[[anchored_springs]]
-a = "box"
-anchor_a = [0.1, 0.05, 0.03]
-anchor_b = [0.05, 0.02, 0.3]
-k = {k}
-c = {c}
-rest_length = 0.2
-group = "hang"
-[[anchored_springs]]
-a = "box"
-anchor_a = [-0.1, -0.05, 0.03]
-anchor_b = [-0.12, 0.0, 0.3]
-group = "hang"
-rest_length = 0.2
-[fit]
-params = ["springs.hang.k", "springs.hang.c"]
-"""
 
 
 def _record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
