@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from tuning import trajfit as tf
-from tuning.record_batch import _lag_unobserved
+from tuning.record_batch import lag_start
 from tuning.records import BodyRecord, Record
 from tuning.scenefile import load_scene_file
 
@@ -39,7 +39,7 @@ def _scene(tmp_path, text):
 def _stepped_from(sim, params):
     """The state a semi-implicit Euler record starts its rollout from: the scene's rates
     less the lag (tuning.synthetic.synthetic_record), what the fit's start must find."""
-    return _lag_unobserved(sim, sim.init_state(), [], 0.5 * sim.dt, params)
+    return lag_start(sim, sim.init_state(), [], 0.5 * sim.dt, params)
 
 
 def test_spin_of_a_body_on_springs_takes_its_angular_acceleration(tmp_path):

@@ -27,7 +27,7 @@ from .first_state import FLIGHT_FRAMES, first_state
 from .fit import FitError
 from .pose import body_size
 
-__all__ = ["Batch", "prepare", "prepare_buckets", "simulate"]
+__all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "lag_start"]
 
 
 @dataclasses.dataclass
@@ -189,7 +189,7 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             except dp.SceneError as exc:            # e.g. a first pose inside the ground
                 raise FitError(f"{rec.path}, body {name!r}, first state: {exc}") from None
         if lag:
-            state = _lag_unobserved(sim, state, [int(idx[b]) for b, name in enumerate(names)
+            state = lag_start(sim, state, [int(idx[b]) for b, name in enumerate(names)
                                                  if name in rec.bodies], lag, params)
         starts.append(state)
     if blind:
@@ -209,9 +209,10 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                  np.array([len(r.t) for r in records]), [r.path for r in records])
 
 
-def _lag_unobserved(sim: dp.Simulator, state, observed, lag: float, params=None):
-    """``state`` with the velocities of the bodies a record does not observe (the scene
-    file's) moved by ``-lag`` times their accelerations there (at the scene file's
+def lag_start(sim: dp.Simulator, state, observed, lag: float, params=None):
+    """``state`` with the velocities (m/s, rad/s) of the bodies not in ``observed`` (body
+    indices; the scene file's velocities, read as the motion's rates) moved by ``-lag``
+    (s) times their accelerations there (at the scene file's
     parameters), as :func:`first_state` moves the observed ones: every body starts from the
     velocity the integrator steps from (a 5 x 5 cloth observed at 4 nodes, its other nodes
     at the scene file's rest while the observed ones took the lag, fitted c 10% low; 1.3%

@@ -41,8 +41,8 @@ def synthetic_record(sim: dp.Simulator, params, duration: float, every: float, b
     if lagged:
         # the start's velocities are the motion's rates at t = 0, as a fit reads a scene
         # file's (tuning.record_batch.prepare): the rollout steps from them less the lag
-        from .record_batch import _lag_unobserved
-        start = _lag_unobserved(sim, s0, [], 0.5 * sim.analysis.inner_dt, params)
+        from .record_batch import lag_start
+        start = lag_start(sim, s0, [], 0.5 * sim.analysis.inner_dt, params)
     # every frame's state, the start first: (n + 1, bodies, ...) per field
     if lagged:             # every step, and one past the last frame: the next kick's rates
         traj = sim.rollout(params, n * save + 1, start)
