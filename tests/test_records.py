@@ -2,6 +2,7 @@
 record is refused with its file, line and column, and write/read round-trips."""
 import glob
 import os
+import re
 
 import numpy as np
 import pytest
@@ -214,3 +215,31 @@ def test_a_scene_body_left_out_of_observe_is_named_as_such(tmp_path):
     with pytest.raises(RecordError, match=r"column 2: 'cube.x' names body 'cube', which the "
                                           r"scene does not have; named bodies: none \(give"):
         read_record(path, body_names=[])
+
+
+def test_empty_cell_hint_only_where_a_sample_may_be_missing(tmp_path):
+    """Regression: a bad cell of the t,z record (or of a record's t column) said "write a
+    decimal number (or leave the cell empty for a missing sample)", and an empty cell there
+    was then refused ("a value is required here"). The hint is now given only in the
+    columns that allow a missing sample (a body's x, y, z, ...)."""
+    rows = [f"{i * 0.01!r},{1.0 - 0.5 * 9.81 * (i * 0.01) ** 2!r}" for i in range(30)]
+    for cell, words in (("1..2", "'1..2' is not a number; write a decimal number."),
+                        ("inf", "'inf' is not finite; write a finite decimal number."),
+                        ("", "a value is required here")):
+        path = _write(tmp_path, "t,z\n" + "\n".join(rows[:10] + [f"0.1,{cell}"] + rows[11:]))
+        with pytest.raises(RecordError, match=r"line 12, column 2 \(z\): " + re.escape(words)) \
+                as exc:
+            read_height_record(path)
+        assert "missing sample" not in str(exc.value)
+    short = _write(tmp_path, "t,z\n" + "\n".join(rows[:10] + ["0.1"] + rows[11:]))
+    with pytest.raises(RecordError, match="line 12: 1 cells but the header has 2") as exc:
+        read_height_record(short)
+    assert "missing sample" not in str(exc.value)
+    for t_cell in ("abc", "inf"):
+        with pytest.raises(RecordError, match=r"line 4, column 1 \(t\)") as exc:
+            read_record(_write(tmp_path, GOOD.replace("0.0200,", f"{t_cell},")))
+        assert "missing sample" not in str(exc.value)
+    # a body column allows one: there the hint stays
+    with pytest.raises(RecordError, match=r"write a decimal number \(or leave the cell empty "
+                                          r"for a missing sample\)"):
+        read_record(_write(tmp_path, GOOD.replace("0.0200,0.12", "0.0200,abc")))

@@ -219,22 +219,25 @@ def _column_slow(path: str, data, j: int, name: str, *, allow_missing: bool) -> 
                 raise ValueError
             v = float(cell)
         except ValueError:
+            hint = " (or leave the cell empty for a missing sample)" if allow_missing else ""
             raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): {cell[:40]!r} is "
-                              "not a number; write a decimal number (or leave the cell empty "
-                              "for a missing sample).") from None
+                              f"not a number; write a decimal number{hint}.") from None
         if not math.isfinite(v):
+            fix = ("leave the cell empty for a missing sample" if allow_missing else
+                   "write a finite decimal number")
             raise RecordError(f"{path}, line {no}, column {j + 1} ({name}): {cell!r} is not "
-                              "finite; leave the cell empty for a missing sample.")
+                              f"finite; {fix}.")
         out[r] = v
     return out
 
 
-def _check_lengths(path: str, header, data) -> None:
+def _check_lengths(path: str, header, data, *, allow_missing: bool = True) -> None:
     for no, cells in data:
         if len(cells) != len(header):
+            hint = " (empty for a missing sample)" if allow_missing else ""
             raise RecordError(f"{path}, line {no}: {len(cells)} cells but the header has "
                               f"{len(header)}; every row needs one "
-                              "cell per column (empty for a missing sample).")
+                              f"cell per column{hint}.")
 
 
 def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) -> None:
@@ -416,7 +419,7 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
                           f"'t' and 'z' (time in s, ball centre height in m); it has "
                           f"{len(header)} column(s) and lacks {'t' if 't' not in low else 'z'} "
                           "(the file's content is not shown: is it the record you meant?).")
-    _check_lengths(path, header, data)
+    _check_lengths(path, header, data, allow_missing=False)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
                           "it, or pass max_rows= to read it anyway.")
