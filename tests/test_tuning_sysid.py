@@ -76,3 +76,86 @@ def test_record_must_start_in_flight(record):
     t, z = record
     with pytest.raises(FitError, match="start with the ball in free flight"):
         S.record_events(t, z, radius=1.5)
+
+
+# --------------------------------------------------------------------------- hard contacts
+def _hard_ball(t, *, drop=1.0, e=0.7, radius=0.1, g=9.81):
+    """Centre height of a ball dropped from rest at ``drop`` whose bounces are instantaneous
+    (closed form: parabolas, the velocity reversed and scaled by ``e`` at each impact)."""
+    z = np.empty_like(t)
+    t0, z0, v0 = 0.0, drop, 0.0
+    while True:
+        s = (v0 + np.sqrt(v0 ** 2 + 2 * g * (z0 - radius))) / g      # to the next impact
+        m = (t >= t0) & (t < t0 + s)
+        z[m] = z0 + v0 * (t[m] - t0) - 0.5 * g * (t[m] - t0) ** 2
+        if t0 + s > t[-1]:
+            return z
+        t0, z0, v0 = t0 + s, radius, e * (g * s - v0)
+
+
+@pytest.mark.parametrize("rate, phase", [(100.0, 0.0), (100.0, 0.4), (200.0, 0.0),
+                                         (200.0, 0.3)])
+def test_bounces_between_samples_split_the_flights(rate, phase):
+    """At 100-200 Hz a hard bounce leaves no sample near the floor: the flights were not
+    split ("fewer than two flights"); they are now split where the velocity reverses. With
+    phase 0.4 at 100 Hz and 0.3 at 200 Hz no bounce leaves a single lowest sample (the two
+    samples around each are about as high)."""
+    import diffpen as dp
+    t = np.arange(0.0, 1.6, 1.0 / rate) + phase / rate
+    z = _hard_ball(t) + 5e-4 * np.random.default_rng(1).standard_normal(t.shape)
+    ev = S.record_events(t, z, radius=0.1)
+    assert len(ev.apex) == 4                       # 3 bounces in 1.6 s
+    assert np.all(np.abs(ev.restitution / 0.7 - 1) < 0.01), ev.restitution
+    k, c = S.first_guess(ev, 1.0)
+    assert float(dp.physical.restitution(k, c, 1.0)) == pytest.approx(0.7, rel=0.01)
+
+
+def test_noise_near_an_apex_makes_no_bounce():
+    """Sharp dips at the apexes (spikes of 2 cm, far above the margin) are not bounces: a
+    bounce's samples lie within a frame's travel of the floor."""
+    rate = 100.0
+    t = np.arange(0.0, 1.6, 1.0 / rate)
+    z = _hard_ball(t) + 5e-4 * np.random.default_rng(2).standard_normal(t.shape)
+    apexes = [int(np.argmax(np.where((t > a) & (t < b), z, -1.0)))
+              for a, b in ((0.5, 1.0), (1.1, 1.4))]
+    z[apexes] -= 0.02
+    ev = S.record_events(t, z, radius=0.1)
+    assert len(ev.apex) == 4, ev.apex
+    assert np.all(np.abs(ev.restitution / 0.7 - 1) < 0.01), ev.restitution
+
+
+@pytest.fixture(scope="module")
+def hard_1khz():
+    # 1 s at 1 kHz, 0.5 mm noise: both measured contact durations are noise below 0
+    t = np.arange(0.0, 1.0, 1e-3)
+    return t, _hard_ball(t, drop=0.6) + 5e-4 * np.random.default_rng(4).standard_normal(
+        t.shape)
+
+
+def test_an_unresolved_contact_time_gives_k_as_a_lower_bound(hard_1khz):
+    """A hard contact at 1 kHz: the durations are noise (a few hundredths of a ms either
+    side of 0). The first guess refused ("need a positive contact duration") or, with
+    durations of 0.01-0.1 ms, chased k to 1e10-1e11 N/m (a minutes-long fit). Now k is held
+    at the smallest stiffness the record allows, reported as a lower bound, and c is fitted."""
+    import diffpen as dp
+    t, z = hard_1khz
+    ev = S.record_events(t, z, radius=0.1)
+    k, c = S.first_guess(ev, 1.0)
+    assert len(ev.apex) == 3 and np.all(ev.contact < 3 * ev.contact_resolution)
+    assert 1e8 < k < 1e10
+    res = S.fit_trajectory(t, z, radius=0.1, mass=1.0, maxiter=6)
+    assert res.k_lower_bound == pytest.approx(k) and res.k == pytest.approx(k)
+    assert res.k_stderr == np.inf and 0 < res.c_stderr < 0.05 * res.c
+    assert any("LOWER BOUND" in n for n in res.notes), res.notes
+    assert float(dp.physical.restitution(res.k, res.c, 1.0)) == pytest.approx(0.7, rel=0.01)
+    assert res.rms == pytest.approx(5e-4, rel=0.1)           # the record is explained
+    assert res.dt > 1e-6                                    # fast: ~1e5 steps, not 1e8
+
+
+def test_a_held_k_is_capped_to_keep_the_fit_fast(hard_1khz, monkeypatch):
+    t, z = hard_1khz
+    monkeypatch.setattr(S, "HELD_STEPS", 2e4, raising=False)
+    res = S.fit_trajectory(t, z, radius=0.1, mass=1.0, maxiter=2)
+    assert res.k == pytest.approx((0.25 * 2e4 / (t[-1] - t[0])) ** 2)
+    assert res.k < res.k_lower_bound and res.k_stderr == np.inf
+    assert any("to keep the model within" in n for n in res.notes), res.notes

@@ -7,9 +7,15 @@ columns ``t,z``. Pipeline (each step is a public function):
 2. :func:`record_events` finds the free flights, fits each with the gravity parabola (linear
    least squares with g known) and derives apex heights, landing/take-off times, per-bounce
    restitution ``sqrt(H_n / H_{n-1})`` and contact durations, plus the noise level (from the
-   second differences) and the initial state.
+   second differences) and the initial state; a bounce between two samples (a contact
+   shorter than a frame) splits the flights too. Each contact duration comes with its
+   standard error (the parabolas' timing at the record's noise).
 3. :func:`first_guess` turns the median restitution and contact time into (k, c) with the
    closed forms of :mod:`diffpen.physical` (a few percent off: gravity acts during contact).
+   A record that does not resolve the contact time (durations not above 3 standard errors,
+   e.g. a hard contact) gives k at that resolution: the smallest stiffness consistent with
+   the record, a lower bound, which :func:`fit_trajectory` then holds (fitting c only) and
+   reports as such.
 4. :func:`choose_dt` picks the time step from the data: the simulated trajectory at dt and
    at dt/2 must agree far below the noise (the model's own discretisation error otherwise
    dominates the misfit); it warns when it cannot.
@@ -81,6 +87,8 @@ class RecordEvents:
     takeoff: (F,) time each flight left the surface, s (nan for the first flight).
     restitution: (F-1,) ``sqrt(H_n / H_{n-1})``.  contact: (F-1,) contact durations, s.
     z0, v0: centre height (m) and vertical velocity (m/s) at ``t[0]`` from the first flight.
+    contact_resolution: (F-1,) standard errors of the contact durations, s (the parabolas'
+    landing and take-off times, uncertain by the error of their heights there over the speed).
     """
     noise: float
     apex: np.ndarray
@@ -91,6 +99,7 @@ class RecordEvents:
     contact: np.ndarray
     z0: float
     v0: float
+    contact_resolution: np.ndarray | None = None
 
 
 def _noise(z) -> float:
@@ -102,16 +111,30 @@ def _noise(z) -> float:
 def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6) -> RecordEvents:
     """Locate the flights of a record and measure them with gravity-parabola fits.
 
-    A sample is in flight when its lowest point is above ``max(5 noise, 1 mm)``; each run of
-    at least ``min_samples`` such samples is fitted with ``z = a + b s - g s^2 / 2`` (least
-    squares, ``s = t - mean t``). Raises :class:`FitError` if the record does not start in
-    free flight or has no complete bounce.
+    A sample is in flight when its lowest point is above ``max(5 noise, 1 mm)`` and it is not
+    beside a bounce between two samples (a contact shorter than a frame: the velocity
+    reverses between two samples that lie within a frame's travel of the surface); each run
+    of at least ``min_samples`` such samples is fitted with ``z = a + b s - g s^2 / 2`` (least
+    squares, ``s = t - mean t``), whose covariance at the noise gives the standard errors of
+    the contact durations. Raises :class:`FitError` if the record does not start in free
+    flight or has no complete bounce.
     """
     t, z = np.asarray(t, float), np.asarray(z, float)
     sigma = _noise(z)
     h = z - radius
     margin = max(5.0 * sigma, 1e-3)
     fly = h > margin
+    # A bounce between two samples (a contact shorter than a frame) can leave no sample near
+    # the surface. The flight's velocity then reverses between samples i and i+1: the step
+    # after them exceeds the step before them by twice the margin or more (a free flight's
+    # steps decrease by g dt^2), and the lower of the two lies below that jump (within about
+    # a frame's travel of the surface, so noise near an apex never counts). Both samples are
+    # taken out of the flights, which splits them at the bounce.
+    jump = np.full(h.shape, -np.inf)
+    jump[1:-2] = (h[3:] - h[2:-1]) - (h[1:-2] - h[:-3])
+    pair = ((jump > 2.0 * margin) & (np.minimum(h, np.roll(h, -1)) < jump)
+            & fly & np.roll(fly, 1) & np.roll(fly, -1) & np.roll(fly, -2))
+    fly &= ~(pair | np.roll(pair, 1))
     if not fly[0]:
         raise FitError("the record must start with the ball in free flight (its first "
                        f"height {z[0]:.4g} m is within {margin:.2g} m of contact at radius "
@@ -120,7 +143,7 @@ def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6)
     starts = [0] + [int(e) + 1 for e in edges if fly[e + 1]]
     ends = [int(e) + 1 for e in edges if not fly[e + 1]] + ([len(z)] if fly[-1] else [])
     arcs = [(a, b) for a, b in zip(starts, ends) if b - a >= min_samples]
-    apex, apex_t, land, take = [], [], [], []
+    apex, apex_t, land, take, land_err, take_err = [], [], [], [], [], []
     z0 = v0 = None
     for j, (a, b) in enumerate(arcs):
         ts, hs = t[a:b], h[a:b]
@@ -136,6 +159,13 @@ def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6)
         apex_t.append(ta)
         land.append(ta + disc if b < len(z) else np.nan)
         take.append(ta - disc if j > 0 else np.nan)
+        # standard error of the times the parabola crosses the surface: the error of its
+        # height there (covariance of the fit at the record's noise) over the speed there
+        cov = sigma ** 2 * np.linalg.pinv(A.T @ A)
+        speed = math.sqrt(2.0 * g * max(H, 0.0))
+        for sc, out in ((ta + disc - tm, land_err), (ta - disc - tm, take_err)):
+            u = np.array([1.0, sc])
+            out.append(math.sqrt(max(float(u @ cov @ u), 0.0)) / speed if speed > 0 else np.inf)
         if j == 0:
             s0 = t[0] - tm
             z0 = aa + bb * s0 - 0.5 * g * s0 * s0 + radius
@@ -146,8 +176,39 @@ def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6)
     apex, land, take = np.array(apex), np.array(land), np.array(take)
     e = np.sqrt(np.maximum(apex[1:], 0.0) / apex[:-1])
     contact = take[1:] - land[:-1]
+    resolution = np.hypot(np.array(take_err[1:]), np.array(land_err[:-1]))
     return RecordEvents(sigma, apex, np.array(apex_t), land, take, e, contact, float(z0),
-                        float(v0))
+                        float(v0), resolution)
+
+
+#: A contact duration is resolved by the record when it exceeds this many of its standard
+#: errors (``RecordEvents.contact_resolution``).
+RESOLVED = 3.0
+#: A held k (a record that does not resolve the contact time) is capped so that the model
+#: covers the record in about this many steps at ``w0 dt = 0.25``.
+HELD_STEPS = 5e5
+
+
+def _contact_time(events: RecordEvents, n_bounces: int = 3) -> tuple[float, float, bool]:
+    """(restitution, contact duration s, whether the record resolves the duration) over the
+    first ``n_bounces`` usable bounces (medians). An unresolved duration is given at the
+    record's resolution, ``RESOLVED`` standard errors: the longest contact the record cannot
+    tell from an instantaneous bounce."""
+    e = events.restitution[:n_bounces]
+    tc = events.contact[:n_bounces]
+    res = (np.zeros_like(tc) if events.contact_resolution is None
+           else events.contact_resolution[:n_bounces])
+    usable = np.isfinite(e) & np.isfinite(tc) & (e > 0.0) & (e < 1.0)
+    if not usable.any():
+        raise FitError("no usable bounce in the record (need 0 < restitution < 1).")
+    bound = RESOLVED * float(np.median(res[usable]))
+    ok = usable & (tc > 0.0)
+    if ok.any() and float(np.median(tc[usable])) > bound:
+        return float(np.median(e[ok])), float(np.median(tc[ok])), True
+    if not (0.0 < bound < math.inf):
+        raise FitError("no usable bounce in the record (need 0 < restitution < 1 and a "
+                       "positive contact duration).")
+    return float(np.median(e[usable])), bound, False
 
 
 def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
@@ -156,17 +217,15 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
 
     Restitution and contact time are the medians over the first ``n_bounces`` bounces (the
     largest, best resolved ones); :func:`diffpen.physical.kc_from_restitution` converts them.
+    A contact time the record does not resolve (not above ``RESOLVED`` standard errors of the
+    measured durations, e.g. a hard contact shorter than the timing the noise allows) is taken
+    at that resolution: k is then the smallest stiffness consistent with the record, a lower
+    bound.
     """
-    e = events.restitution[:n_bounces]
-    tc = events.contact[:n_bounces]
-    ok = np.isfinite(e) & np.isfinite(tc) & (e > 0.0) & (e < 1.0) & (tc > 0.0)
-    if not ok.any():
-        raise FitError("no usable bounce in the record (need 0 < restitution < 1 and a "
-                       "positive contact duration).")
+    e, tc, _ = _contact_time(events, n_bounces)
     # the law's closed forms, or the linear law's as a start for laws without any
     law_cf = dp.laws.get(law).closed_form or "linear"
-    k, c = dp.physical.kc_from_restitution(float(np.median(e[ok])), float(np.median(tc[ok])),
-                                           mass, law_cf)
+    k, c = dp.physical.kc_from_restitution(e, tc, mass, law_cf)
     return float(k), float(c)
 
 
@@ -219,13 +278,17 @@ def _layout(t, dt: float):
 
 
 def choose_dt(t, *, radius, mass, z0, v0, k, c, g=9.81, law="linear", noise=1e-3,
-              dt=None, w0dt: float = 0.02, max_halvings: int = 3):
+              dt=None, w0dt: float = 0.02, max_halvings: int = 3, match_c: bool = False):
     """Time step for fitting the record, from the data.
 
     Start from the record's sample interval divided so that ``w0 dt <= w0dt`` (w0 of the first
     guess), then halve until the simulated heights at ``dt`` and ``dt / 2`` differ by less
     than a sixth of the noise (rms over the record). A ``dt`` given by the user is only
-    checked. Returns ``(dt, discretisation_rms, warning or None)``.
+    checked. ``match_c``: compare the two after matching their restitution (the difference
+    less its least-squares multiple of the heights' change with ``c``), for a fit in which k
+    is held and the fitted c absorbs the step's own restitution error (most of the
+    difference between dt and dt/2 at one c, for a contact of a few steps).
+    Returns ``(dt, discretisation_rms, warning or None)``.
     """
     t = np.asarray(t, float)
     w0 = math.sqrt(k / mass)
@@ -244,7 +307,13 @@ def choose_dt(t, *, radius, mass, z0, v0, k, c, g=9.81, law="linear", noise=1e-3
             st, every = _layout(t, s.dt)
             zz.append(np.asarray(_model_heights(s, s.params(k=k, c=c), td, t[0], st,
                                                 every=every)))
-        err = float(np.sqrt(np.mean((zz[0] - zz[1]) ** 2)))
+        diff = zz[0] - zz[1]
+        if match_c:
+            st, every = _layout(t, sims[1].dt)
+            dc = np.asarray(_model_heights(sims[1], sims[1].params(k=k, c=c * 1.001), td,
+                                           t[0], st, every=every)) - zz[1]
+            diff = diff - dc * float(diff @ dc) / max(float(dc @ dc), 1e-300)
+        err = float(np.sqrt(np.mean(diff ** 2)))
         if err <= noise / 6.0:
             return dt, err, None
         if i < tries:
@@ -266,7 +335,11 @@ class TrajectoryFit:
     model at dt and dt/2, m.  iterations: LM iterations over all horizons.  seconds: wall
     time.  horizons: (H,) end times of the grown horizons, s.  history: cost after each
     accepted step.  z_fit: (N,) model heights at the record's times.  events: the
-    :class:`RecordEvents`.  notes: warnings and choices, in words.
+    :class:`RecordEvents`.  notes: warnings and choices, in words.  k_lower_bound: None
+    when the record resolves the contact time; otherwise the smallest k consistent with the
+    record, N/m (the contact time at its timing resolution): k was then held, not fitted (at
+    this bound unless ``k0`` was given or :data:`HELD_STEPS` capped it), only c and the start
+    state were fitted, and ``k_stderr`` is inf (undetermined).
     """
     k: float
     c: float
@@ -286,6 +359,7 @@ class TrajectoryFit:
     converged: bool
     message: str
     notes: list
+    k_lower_bound: float | None = None
 
 
 def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
@@ -299,13 +373,18 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
       radius: m.  mass: kg.  g: gravity, m/s^2.  law: contact law (a name or a
         :class:`diffpen.laws.ContactLaw`).
       dt: time step, s (default chosen from the data by :func:`choose_dt`).
-      k0, c0: start values (default: :func:`first_guess` from the record's events).
+      k0, c0: start values (default: :func:`first_guess` from the record's events). When
+        the record does not resolve the contact time, k is held (at ``k0`` if given, else at
+        the record's lower bound, capped so the model takes about :data:`HELD_STEPS` steps)
+        and only c and the start state are fitted, with a time step checked at matched
+        restitution (``choose_dt(..., w0dt=0.25, match_c=True)``).
       maxiter: LM iterations per horizon (the last, full horizon gets twice as many).
       grow: grow the horizon bounce by bounce (otherwise fit the whole record at once).
       progress: False (default): print nothing; None or True: progress on stderr (a bar on a
         terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns:
-      :class:`TrajectoryFit` with standard errors from the Gauss-Newton covariance.
+      :class:`TrajectoryFit` with standard errors from the Gauss-Newton covariance
+      (``k_stderr`` inf and ``k_lower_bound`` set when k is held).
     """
     t0_wall = time.perf_counter()
     t, z = np.asarray(t, float), np.asarray(z, float)
@@ -318,14 +397,33 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
                        f"from above the ground (its parabola starts at {ev.z0:.4g} m): check "
                        "the units (t in seconds, z in metres) and --radius.")
     kg, cg = first_guess(ev, mass, law=law)
-    notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
-                 f"{np.median(ev.restitution[:3]):.4g}, contact time "
-                 f"{np.median(ev.contact[:3]) * 1e3:.4g} ms -> k={kg:.5g} N/m, c={cg:.5g} N s/m")
+    e_ev, tc_ev, resolved = _contact_time(ev)
     k_start = kg if k0 is None else float(k0)
     c_start = cg if c0 is None else float(c0)
+    if resolved:
+        notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
+                     f"{np.median(ev.restitution[:3]):.4g}, contact time "
+                     f"{np.median(ev.contact[:3]) * 1e3:.4g} ms -> k={kg:.5g} N/m, "
+                     f"c={cg:.5g} N s/m")
+    else:
+        notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
+                     f"{e_ev:.4g}, contact time not resolved (measured "
+                     f"{np.median(ev.contact[:3]) * 1e3:.3g} ms, not above {tc_ev * 1e3:.3g} "
+                     f"ms = {RESOLVED:g} standard errors of the flights' timing) -> "
+                     f"k={kg:.5g} N/m, c={cg:.5g} N s/m at a {tc_ev * 1e3:.3g} ms contact")
+        # the stiffest contact simulated within about HELD_STEPS steps over the record
+        k_cap = mass * (0.25 * HELD_STEPS / max(float(t[-1] - t[0]), 1e-9)) ** 2
+        if k0 is None and kg > k_cap:
+            k_start, c_start = k_cap, (cg * math.sqrt(k_cap / kg) if c0 is None else c_start)
+            notes.append(f"k is held at {k_cap:.5g} N/m, below the record's bound {kg:.5g} "
+                         f"N/m, to keep the model within about {HELD_STEPS:.0e} steps: its "
+                         f"contacts last {tc_ev * math.sqrt(kg / k_cap) * 1e3:.3g} ms, longer "
+                         f"than the record allows (pass --k0 {kg:.3g} to hold the bound; "
+                         "slower)")
     noise = max(ev.noise, 1e-6)
     dt, dt_err, warn = choose_dt(t, radius=radius, mass=mass, z0=ev.z0, v0=ev.v0, k=k_start,
-                                 c=c_start, g=g, law=law, noise=noise, dt=dt)
+                                 c=c_start, g=g, law=law, noise=noise, dt=dt,
+                                 **({} if resolved else {"w0dt": 0.25, "match_c": True}))
     if warn:
         warnings.warn(warn, stacklevel=2)
         notes.append("WARNING: " + warn)
@@ -337,8 +435,15 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     zd = jnp.asarray(z)
 
     # theta = (log k, log c, z0, v0): the start state is fitted too (nuisance parameters),
-    # so its uncertainty enters the standard errors of k and c.
+    # so its uncertainty enters the standard errors of k and c. A record that does not
+    # resolve the contact time does not determine k: it is held, theta = (log c, z0, v0).
+    f0 = 0 if resolved else 1
+
+    def full(theta):        # log_k: the held k, set with the bounds below
+        return theta if f0 == 0 else jnp.concatenate([jnp.full((1,), log_k), theta])
+
     def residuals(theta, w):
+        theta = full(theta)
         p = sim.params(k=jnp.exp(theta[0]), c=jnp.exp(theta[1]))
         zs = _model_heights(sim, p, td, t[0], steps, theta[2], theta[3], every)
         return w * (zs - zd)
@@ -360,6 +465,14 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
                    math.log(min(c_start * 1e3, c_safe)), ev.z0 + 0.05, ev.v0 + 1.0])
     lo = np.minimum(lo, hi - 1e-9)
     x = np.clip(np.array([math.log(k_start), math.log(c_start), ev.z0, ev.v0]), lo, hi)
+    log_k = float(x[0])
+    if f0:
+        notes.append(f"k is a LOWER BOUND, not determined by the record: any contact of "
+                     f"k >= {kg:.5g} N/m (the contact time at the record's timing "
+                     f"resolution) explains it as well. k is held at {math.exp(log_k):.5g} "
+                     "N/m (its standard error is undetermined: inf); c and the start state "
+                     "are fitted (c sets the restitution at that k)")
+    x, lo, hi = x[f0:], lo[f0:], hi[f0:]
     hist, its, converged, message = [], 0, False, ""
     bar = Progress(len(horizons) * maxiter, "diffpen fit --data", progress)
     for j, hz in enumerate(horizons):
@@ -387,6 +500,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     # first order, so the error is estimated (Richardson) as twice the change on halving dt:
     # 2 (z_dt/2 - z_dt). It is added to the statistical error in quadrature, so the standard
     # errors cover the model's dependence on dt as well as the noise.
+    x = np.asarray(full(jnp.asarray(x)))
     sim2 = _ball_sim(radius, mass, ev.z0, ev.v0, g, dt / 2, law)
     steps2, every2 = _layout(t, dt / 2)
     p_fit = sim.params(k=float(np.exp(x[0])), c=float(np.exp(x[1])))
@@ -398,6 +512,9 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         shift = np.linalg.lstsq(J, 2.0 * dz, rcond=None)[0]
     except np.linalg.LinAlgError:
         shift = np.zeros(p)
+    if f0:      # k held: no statistical or dt part (reported as undetermined below)
+        se_log = np.concatenate([[np.inf], se_log])
+        shift = np.concatenate([[0.0], shift])
     se_stat = se_log.copy()
     se_log = np.sqrt(se_log ** 2 + shift ** 2)
     k, c = (float(v) for v in np.exp(x[:2]))
@@ -405,15 +522,21 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         notes.append(f"the time step dominates the standard errors (and on long records "
                      f"may bias k and c beyond them): refit with --dt {dt / 2:.3g} for "
                      "tighter, more reliable errors")
-    notes.append(f"standard errors: noise part k {k * se_stat[0]:.3g} N/m, c "
-                 f"{c * se_stat[1]:.3g} N s/m; dt part (shift to dt -> 0, Richardson) k "
-                 f"{k * abs(shift[0]):.3g} N/m, c {c * abs(shift[1]):.3g} N s/m")
+    if f0:
+        notes.append(f"standard errors: k undetermined (held); c: noise part "
+                     f"{c * se_stat[1]:.3g} N s/m, dt part (shift to dt -> 0, Richardson) "
+                     f"{c * abs(shift[1]):.3g} N s/m")
+    else:
+        notes.append(f"standard errors: noise part k {k * se_stat[0]:.3g} N/m, c "
+                     f"{c * se_stat[1]:.3g} N s/m; dt part (shift to dt -> 0, Richardson) k "
+                     f"{k * abs(shift[0]):.3g} N/m, c {c * abs(shift[1]):.3g} N s/m")
     return TrajectoryFit(
         k=k, c=c, k_stderr=k * float(se_log[0]), c_stderr=c * float(se_log[1]),
         first_guess=(kg, cg), rms=float(np.sqrt(np.mean(r * r))), noise=noise, dt=dt,
         dt_error=dt_err, iterations=its, seconds=time.perf_counter() - t0_wall,
         horizons=horizons, history=hist, z_fit=np.asarray(r) + z, events=ev,
-        converged=converged, message=message, notes=notes)
+        converged=converged, message=message, notes=notes,
+        k_lower_bound=None if resolved else kg)
 
 
 # --------------------------------------------------------------------------- synthetic data

@@ -316,7 +316,7 @@ def _run_data(args) -> int:
                     f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, {args.law} "
                     "law)",
            "k": res.k, "c": res.c, "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
-           "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
+           "k_lower_bound": res.k_lower_bound, "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
            "first_guess": list(res.first_guess), "rms": res.rms, "noise": res.noise,
            "dt": res.dt, "iterations": res.iterations, "seconds": res.seconds,
            "message": res.message, "notes": res.notes, "law": args.law,
@@ -331,14 +331,21 @@ def _run_data(args) -> int:
     if args.plot:
         from ..plots import trajectory_fit_figure
         trajectory_fit_figure(args.plot, t, z, res.z_fit, res.history,
-                              title=f"k={res.k:.5g}+-{res.k_stderr:.2g} N/m, "
-                                    f"c={res.c:.5g}+-{res.c_stderr:.2g} N s/m")
+                              title=(f"k={res.k:.5g}+-{res.k_stderr:.2g} N/m, "
+                                     if res.k_lower_bound is None else
+                                     f"k={res.k:.5g} N/m (held, lower bound), ")
+                                    + f"c={res.c:.5g}+-{res.c_stderr:.2g} N s/m")
     if args.json:
         dump_json(out)
         return 0 if out["reached"] else 1
     print(f"diffpen fit: {out['scene']}")
-    print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} N/m   c = {res.c:.6g} +- "
-          f"{res.c_stderr:.2g} N s/m   (standard errors, Gauss-Newton)")
+    if res.k_lower_bound is None:
+        print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} N/m   c = {res.c:.6g} +- "
+              f"{res.c_stderr:.2g} N s/m   (standard errors, Gauss-Newton)")
+    else:
+        print(f"fitted:    k = {res.k:.6g} N/m HELD (a lower bound: the record does not "
+              f"resolve the contact time)   c = {res.c:.6g} +- {res.c_stderr:.2g} N s/m   "
+              "(standard error, Gauss-Newton)")
     print(f"first guess from the record's events: k = {res.first_guess[0]:.5g} N/m, "
           f"c = {res.first_guess[1]:.5g} N s/m")
     print(f"residual rms {res.rms * 1e3:.3g} mm against record noise {res.noise * 1e3:.3g} mm")
