@@ -234,8 +234,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     sim = sf.compile()
     params = sf.params(sim)
     check_stable(sim, params)
-    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
-                    params=params)
+    batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
     fn = evaluator(sim, batch)
     t0 = time.perf_counter()
     jax.block_until_ready(fn(params))

@@ -27,7 +27,7 @@ from .first_state import FLIGHT_FRAMES, first_state
 from .fit import FitError
 from .pose import body_size
 
-__all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "lag_start"]
+__all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start"]
 
 
 @dataclasses.dataclass
@@ -45,6 +45,9 @@ class Batch:
     when this batch is one of :func:`prepare_buckets`).
     bodies: (B,) body indices.  names: B body names.  size: (B,) m.  time: (R, T) s from
     each record's first frame.  length: (R,) frames per record.  paths: R record paths.
+    lag: the integrator's velocity lag, s (0: none).  lagged: (R, n_bodies) bool, the bodies a
+    record does not observe: :func:`simulate` moves their start velocities by ``-lag`` times
+    their accelerations at the parameters it rolls out (None: no such body).
     """
     start: dp.State
     steps: int
@@ -63,6 +66,8 @@ class Batch:
     length: np.ndarray
     paths: list
     n_records: int = 0
+    lag: float = 0.0
+    lagged: np.ndarray | None = None
 
     @property
     def has_rotation(self) -> bool:
@@ -98,7 +103,7 @@ def _body_map(scene, records, bodies):
 
 def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             estimate: str = "record", max_frames: int = FLIGHT_FRAMES,
-            cache: dict | None = None, scene=None, params=None) -> Batch:
+            cache: dict | None = None, scene=None) -> Batch:
     """Pad ``records`` into a :class:`Batch` for ``sim`` (see :func:`first_state` for
     ``estimate``). ``cache``: a dict that keeps the first states across calls on the same
     record objects (a tumbling box's torque-free fit takes 25-110 ms a record), e.g. the
@@ -107,8 +112,9 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     scene body index}``; default: the only
     free body for one-body records, else names that are indices. Bodies a record does not
     observe start from the scene file's state, their velocities moved by the integrator's
-    lag as the observed ones' are (:func:`first_state`), their accelerations at ``params``
-    (default ``sim.params()``, the scene's declared values)."""
+    lag as the observed ones' are (:func:`first_state`), their accelerations taken by
+    :func:`simulate` at the parameters it rolls out (``Batch.lagged``): a fit moves them
+    with its parameters, and its result does not depend on where it started."""
     if not records:
         raise FitError("no records: give at least one record file.")
     if scene is None:
@@ -136,6 +142,7 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     qmask = np.zeros((R, T, B))
     times = np.zeros((R, T))
     starts, blind = [], []
+    lagged = np.zeros((R, scene.n_bodies), bool)
     s_init = sim.init_state()
     # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it (h the
     # inner step; for substeps="auto", whose count depends on the parameters, dt: one substep)
@@ -189,8 +196,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             except dp.SceneError as exc:            # e.g. a first pose inside the ground
                 raise FitError(f"{rec.path}, body {name!r}, first state: {exc}") from None
         if lag:
-            state = lag_start(sim, state, [int(idx[b]) for b, name in enumerate(names)
-                                                 if name in rec.bodies], lag, params)
+            lagged[r] = True
+            lagged[r, [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]] = False
         starts.append(state)
     if blind:
         warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "
@@ -206,7 +213,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
         raise FitError(f"records {bad} have no measured sample of the scene's bodies.")
     return Batch(start, int(steps), int(save_every), index, frac, pos, pmask, quat, qmask,
                  1.0 / np.maximum(pmask.sum(axis=(1, 2)), 1.0), idx, names, size, times,
-                 np.array([len(r.t) for r in records]), [r.path for r in records])
+                 np.array([len(r.t) for r in records]), [r.path for r in records],
+                 lag=lag, lagged=lagged if lagged.any() else None)
 
 
 def lag_start(sim: dp.Simulator, state, observed, lag: float, params=None):
@@ -227,9 +235,15 @@ def lag_start(sim: dp.Simulator, state, observed, lag: float, params=None):
         except dp.SceneError as exc:
             raise FitError(f"the bodies a record does not observe start from the scene's "
                            f"velocities less the integrator's lag, which needs the scene's "
-                           f"parameters: {exc} Pass them as prepare(..., params=...).") from None
-    a, alpha = _acceleration(sim)(params, state)
-    m = jnp.asarray(rest)[:, None]
+                           f"parameters: {exc} Pass them as lag_start(..., params=...).") from None
+    return _lag(sim, params, state, jnp.asarray(rest), lag, _acceleration(sim))
+
+
+def _lag(sim, params, state, rest, lag: float, accel=None):
+    """``state`` with the velocities of the bodies where ``rest`` ((n_bodies,) bool) moved by
+    ``-lag`` times their accelerations at ``params`` (traceable: jit, vmap, grad)."""
+    a, alpha = (accel or sim.acceleration)(params, state)
+    m = rest[:, None]
     w = state.angular_velocity
     if w is not None and alpha is not None:
         w = jnp.where(m, w - lag * alpha, w)
@@ -300,4 +314,16 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
         qb = jnp.where(jnp.sum(qa * qb, -1, keepdims=True) < 0, -qb, qb)
         qi = qa + f * (qb - qa)
         return (pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)) + bad
-    return jax.vmap(one)(batch.start, jnp.asarray(batch.index), jnp.asarray(batch.frac))
+    return jax.vmap(one)(start_states(sim, params, batch), jnp.asarray(batch.index),
+                         jnp.asarray(batch.frac))
+
+
+def start_states(sim: dp.Simulator, params, batch: Batch):
+    """The records' start states (leading axis R) that :func:`simulate` rolls out at
+    ``params``: ``batch.start`` with the velocities of the bodies a record does not observe
+    moved by the integrator's lag at ``params`` (``Batch.lagged``; the observed ones took
+    theirs from the record). Pure: jit, grad and vmap it."""
+    if batch.lagged is None or not batch.lag:
+        return batch.start
+    return jax.vmap(lambda s, m: _lag(sim, params, s, m, batch.lag))(
+        batch.start, jnp.asarray(batch.lagged))

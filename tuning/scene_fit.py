@@ -76,11 +76,11 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     check_stable(sim, params)
     first_states = {}                   # shared by the evaluation batch and the fit's buckets
     batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
-                    cache=first_states, params=params)
+                    cache=first_states)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
     buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
-                              max_frames=max_frames, cache=first_states, params=params)
+                              max_frames=max_frames, cache=first_states)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress)
@@ -93,7 +93,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
                         else pl for pl in sim.scene.planes]
         batch = prepare(sim, records, bodies=bodies, estimate=estimate,
-                        max_frames=max_frames, scene=scene, params=params)
+                        max_frames=max_frames, scene=scene)
         ev_fn = evaluator(sim, batch)
     after = evaluate_batch(sim, res.params, batch, fn=ev_fn)
     out_error = None

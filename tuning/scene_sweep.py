@@ -138,8 +138,7 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
         estimate = estimate or (spec.first_state if spec is not None else None) or "record"
         max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
             FLIGHT_FRAMES
-        batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
-                        params=params0)
+        batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
         key.update(records=[[os.path.basename(r.path), _digest(r.path)] for r in records],
                    estimate=estimate, flight_frames=max_frames)
         kept = list(RECORD_METRICS)
