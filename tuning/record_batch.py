@@ -74,6 +74,12 @@ class Batch:
         return bool(self.quat_mask.any())
 
 
+#: Observed bodies whose first pose lies farther than this (m; or 10% of the smallest observed
+#: body's size) from the scene file's start, in a scene with bodies the record does not
+#: observe, make :func:`prepare` warn: those start at the scene file's pose.
+MOVED_START = 0.01
+
+
 def _body_map(scene, records, bodies):
     names = list(dict.fromkeys(n for r in records for n in r.bodies))
     if bodies is None:
@@ -141,7 +147,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     quat = np.tile(np.array([1.0, 0, 0, 0]), (R, T, B, 1))
     qmask = np.zeros((R, T, B))
     times = np.zeros((R, T))
-    starts, blind = [], []
+    starts, blind, moved = [], [], []
+    free = np.array([not b.pinned for b in scene.bodies])
     lagged = np.zeros((R, scene.n_bodies), bool)
     s_init = sim.init_state()
     # kick-then-drift integrators trace a fitted path from the velocity h / 2 before it (h the
@@ -195,10 +202,28 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
                                        orientation=q0, angular_velocity=w0, frame="world")
             except dp.SceneError as exc:            # e.g. a first pose inside the ground
                 raise FitError(f"{rec.path}, body {name!r}, first state: {exc}") from None
+        seen = [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]
+        rest = free.copy()
+        rest[seen] = False
+        if rest.any() and seen:
+            # the unobserved bodies start where the scene file puts them: say so when the
+            # record moves the observed ones far from there (their links then start stretched)
+            shift = np.max(np.linalg.norm(np.asarray(state.position)[seen]
+                                          - np.asarray(s_init.position)[seen], axis=1))
+            if shift > max(MOVED_START, 0.1 * float(np.min(size))):
+                moved.append(f"{os.path.basename(rec.path)} ({shift * 1e3:.3g} mm)")
         if lag:
             lagged[r] = True
             lagged[r, [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]] = False
         starts.append(state)
+    if moved:
+        warnings.warn(f"{len(moved)} record(s) start their observed bodies far from the scene "
+                      f"file's positions: {', '.join(moved[:5])}"
+                      + (", ..." if len(moved) > 5 else "") + ". The bodies a record does "
+                      "not observe start where the scene file puts them, so "
+                      "the springs or contacts joining them to the observed ones start "
+                      "strained; place the scene file's bodies at the records' first pose, or "
+                      "observe them.", stacklevel=2)
     if blind:
         warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "
                       f"for a rigid body: {', '.join(blind[:5])}"
