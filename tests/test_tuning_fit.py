@@ -243,3 +243,22 @@ def test_iterations_history_and_progress_bar_agree(short_problem, monkeypatch):
             assert res.iterations == total == 5 and not res.converged
         if "starts" in kw:          # every run may take maxiter iterations
             assert res.iterations > kw["maxiter"] and total == 3 * kw["maxiter"]
+
+
+def test_an_unsettled_settling_time_is_not_reached_and_the_message_says_why():
+    """Regression: a settling time that is only the rollout's end (the motion never settled)
+    but within 1e-3 of its target stopped the optax loop as converged, and the message read
+    "targets NOT reached (targets reached)". Now the loop goes on and the message names the
+    reason, for either method."""
+    def mfn(p):         # a 1 s rollout: settles at 2 / c s, else reads the rollout's end
+        t = 2.0 / p.contact["default"].c
+        return {"settling_time": jnp.minimum(t, 1.0), "settled": t < 1.0}
+    p0 = dp.Params({"default": ContactParams(np.float64(1.0), np.float64(1.5))}, {}, {})
+    for method in ("optax", "lm"):
+        res = F.fit(mfn, p0, {"settling_time": 0.9995}, free=["contact.default.c"],
+                    method=method, maxiter=5)
+        assert not res.reached and res.rel_error["settling_time"] == np.inf
+        assert "has not settled within the rollout" in res.message, res.message
+        assert "(targets reached)" not in res.message
+        if method == "optax":
+            assert not res.converged and res.iterations == 5

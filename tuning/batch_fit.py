@@ -7,10 +7,11 @@ optax loop of :func:`tuning.fit.fit` with ``method="optax"`` (:class:`tuning.opt
 the same iteration and stopping rule): the free leaves of the :class:`diffpen.Params` are
 optimised in log space by an optax transformation, projected onto box bounds after every
 step, the loss is ``sum_j w_j ((m_j - t_j) / |t_j|)^2``, a row stops when all its targets
-are within tolerance at a point inside the safe step (or its loss is not finite), and the
-row reports its best point (the lowest loss among stable points). So row ``i`` of
-:func:`fit_batch` is :func:`tuning.fit.fit` run alone on row ``i``'s targets and start, with
-the same optimiser and ``maxiter``.
+are within tolerance at a point inside the safe step that, for a settling-time target, has
+settled (or its loss is not finite), and the row reports its best point (the lowest loss among
+stable points). So row ``i`` of :func:`fit_batch` is :func:`tuning.fit.fit` run alone on row
+``i``'s targets and start, with the same optimiser and ``maxiter`` (same ``reached``,
+``converged`` and message).
 
 The whole loop (:meth:`tuning.optimise.OptaxLoop.run`, a ``lax.while_loop`` over iterations;
 rows that have stopped keep their state) is one per-row function lifted to the batch by :func:`tuning.shard.sharded_map`: the
@@ -38,8 +39,9 @@ import diffpen as dp
 from . import distributed
 from . import params as P
 from .errors import FitError, positive_int
+from .fit import at_bounds, result_message
 from .optimise import (LIMIT, MESSAGES, NON_FINITE, REACHED, RUNNING, OptaxLoop,
-                       default_optimizer)
+                       default_optimizer, settling)
 from .problem import (FreeLeaves, achieved, normalise_targets, residuals, target_spec,
                       tolerances, with_flag)
 from .shard import batch_mesh, sharded_map
@@ -61,8 +63,12 @@ class BatchFitResult:
     loss: (N,) loss at the fitted values (inf if the first evaluation already failed).
     loss_history: (N, maxiter) loss per iteration (nan after the row stopped).
     converged: (N,) bool, the stopping rule fired (every target within its tolerance).
-    reached: (N,) bool, every target of the reported point is within its tolerance.
+    reached: (N,) bool, every target of the reported point is within its tolerance (and
+      it is not past its safe step; with a settling-time target, it settled: as in
+      :func:`tuning.problem.achieved`).
     iterations: (N,) iterations run.  status: (N,) int code, see :data:`MESSAGES`.
+    messages: (N,) what happened to each row, in words (the ``message`` that
+      :func:`tuning.fit.fit` gives for that row).
     devices: devices the batch axis was split over.  seconds: wall time of the call,
       compilation included (a later call with the same layout reuses the program).
     """
@@ -78,17 +84,13 @@ class BatchFitResult:
     reached: np.ndarray
     iterations: np.ndarray
     status: np.ndarray
+    messages: list
     devices: int
     seconds: float
     params0: dp.Params = dataclasses.field(repr=False, default=None)
 
     def __len__(self) -> int:
         return self.values.shape[0]
-
-    @property
-    def messages(self) -> list:
-        """What happened to each row, in words."""
-        return [MESSAGES.get(int(s), "not run") for s in self.status]
 
     def params(self, row: int) -> dp.Params:
         """The fitted :class:`diffpen.Params` of ``row``."""
@@ -216,7 +218,7 @@ class BatchFitter:
             return jnp.sum(r * r), (r, m)
 
         loop = OptaxLoop(loss_fn, self.optimizer, lambda th: jnp.clip(th, log_lo, log_hi),
-                         tolerances(spec), self.maxiter)
+                         tolerances(spec), self.maxiter, settling=settling(spec))
 
         def one(theta0, tgt):
             """One row: theta0 (P,) log start, tgt {metric: (n,)} -> fitted row."""
@@ -267,18 +269,27 @@ class BatchFitter:
                for k, v in tg.items()}
         rel = {k: np.empty(n) for k in tg}
         reached = np.zeros(n, bool)
+        status = np.asarray(out["status"], int)
+        theta, loss = np.asarray(out["theta"], float), np.asarray(out["loss"], float)
+        messages = []
         for i in range(n):
-            _, rel_i, reached[i] = achieved({k: v[i] for k, v in ach.items()},
-                                             {k: v[i] for k, v in tg.items()}, spec)
+            # every metric of the row: achieved checks "settled" and "unstable" too
+            m_i = {k: np.asarray(v)[i] for k, v in out["metrics"].items()}
+            _, rel_i, reached[i] = achieved(m_i, {k: v[i] for k, v in tg.items()}, spec)
             for k in tg:
                 rel[k][i] = rel_i[k]
-        status = np.asarray(out["status"], int)
+            said = MESSAGES.get(int(status[i]), "not run")
+            messages.append(result_message(said, reached[i], m_i, spec,
+                                           at_bounds(self.free, theta[i], self._leaves))
+                            if np.isfinite(loss[i]) else
+                            f"the first iteration already failed: {said}")
         return BatchFitResult(
-            free=list(self.free), values=np.exp(np.asarray(out["theta"], float)), start=x0,
-            targets=tg, achieved=ach, rel_error=rel, loss=np.asarray(out["loss"], float),
+            free=list(self.free), values=np.exp(theta), start=x0,
+            targets=tg, achieved=ach, rel_error=rel, loss=loss,
             loss_history=np.asarray(out["history"], float), converged=status == REACHED,
             reached=reached, iterations=np.asarray(out["iterations"], int), status=status,
-            devices=int(run.mesh.devices.size), seconds=seconds, params0=self.params0)
+            messages=messages, devices=int(run.mesh.devices.size), seconds=seconds,
+            params0=self.params0)
 
 
 def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,

@@ -37,12 +37,12 @@ import diffpen as dp
 
 from .errors import FitError, positive_int
 from .lm import fit_lm
-from .optimise import default_optimizer, fit_optax
+from .optimise import default_optimizer, fit_optax, settling
 from .problem import (RESIDUAL_FACTOR, Problem, default_bounds, residual_reached,
                       safe_bounds)
 from .progress import Progress
 
-__all__ = ["FitResult", "FitError", "fit", "default_optimizer", "Progress",
+__all__ = ["FitResult", "FitError", "fit", "result_message", "default_optimizer", "Progress",
            "default_bounds", "safe_bounds", "residual_reached", "RESIDUAL_FACTOR"]
 
 
@@ -171,16 +171,8 @@ def _result(problem: Problem, sol, seconds: float) -> FitResult:
     params = problem.params_of(jnp.asarray(theta))
     achieved, rel, reached = problem.achieved(metrics)
     values = {p: float(np.exp(t)) for p, t in zip(problem.free, theta)}
-    at_bound = [p for p, t, a, b in zip(problem.free, theta, problem.leaves.log_lo,
-                                        problem.leaves.log_hi)
-                if np.isclose(t, a, atol=1e-9) or np.isclose(t, b, atol=1e-9)]
-    if not reached and "unstable" in metrics and bool(np.any(np.asarray(metrics["unstable"]))):
-        message = (f"targets NOT reached ({message}): the rollout at the fitted values is past "
-                   "its safe step (State.aux['unstable']), so its metrics are not a result; "
-                   "use a smaller dt or tighter bounds")
-    elif not reached:
-        message = (f"targets NOT reached ({message}); closest achieved values are reported"
-                   + (f"; parameters at their bounds: {at_bound}" if at_bound else ""))
+    message = result_message(message, reached, metrics, problem.spec,
+                             at_bounds(problem.free, theta, problem.leaves))
     return FitResult(params=params, values=values, targets=problem.target_values(),
                      achieved=achieved, rel_error=rel, reached=reached,
                      converged=sol.converged, loss_history=sol.history,
@@ -188,3 +180,33 @@ def _result(problem: Problem, sol, seconds: float) -> FitResult:
                      message=message, evaluations=sol.evaluations,
                      eval_history=sol.eval_history,
                      start={p: float(v) for p, v in zip(problem.free, problem.x0)})
+
+
+def at_bounds(free, theta, leaves) -> list:
+    """The paths of ``free`` whose log value in ``theta`` (P,) lies on a bound of ``leaves``
+    (:class:`tuning.problem.FreeLeaves`)."""
+    return [p for p, t, a, b in zip(free, theta, leaves.log_lo, leaves.log_hi)
+            if np.isclose(t, a, atol=1e-9) or np.isclose(t, b, atol=1e-9)]
+
+
+def result_message(message: str, reached: bool, metrics: dict, spec: tuple,
+                   at_bound=()) -> str:
+    """What a fit did, in words: the optimiser's ``message`` when the targets are
+    ``reached``, else why not (``metrics`` at the reported point, the target ``spec``,
+    the fitted paths ``at_bound``). :func:`fit` and each row of
+    :func:`tuning.batch_fit.fit_batch` say the same."""
+    if reached:
+        return message
+    if message == "targets reached":      # the residuals met every tolerance
+        message = "every residual within its tolerance"
+    if "unstable" in metrics and bool(np.any(np.asarray(metrics["unstable"]))):
+        return (f"targets NOT reached ({message}): the rollout at the fitted values is past "
+                "its safe step (State.aux['unstable']), so its metrics are not a result; "
+                "use a smaller dt or tighter bounds")
+    if (settling(spec) and "settled" in metrics
+            and not bool(np.all(np.asarray(metrics["settled"])))):
+        return (f"targets NOT reached ({message}): the motion has not settled within the "
+                "rollout at the fitted values, so its settling_time is only the rollout's "
+                "end, not a result; use a longer rollout")
+    return (f"targets NOT reached ({message}); closest achieved values are reported"
+            + (f"; parameters at their bounds: {list(at_bound)}" if at_bound else ""))

@@ -14,9 +14,10 @@ with the same rule either way. Per iteration: the loss ``sum_j r_j^2`` of the we
 relative residuals (:func:`tuning.problem.residuals`) and its gradient (forward mode for a
 handful of parameters, :func:`diffpen.value_and_grad`), one optax update, the projection.
 The loop stops when every residual is within its tolerance at a point that is not past its
-safe step (``"unstable"`` false), when the loss is not finite, or at ``maxiter``. The best
-point is the lowest-loss one among stable points (an unstable point only while none is
-stable).
+safe step (``"unstable"`` false) and, with a ``settling_time`` target, that has settled
+(``"settled"`` true: else the time is only the rollout's end), when the loss is not finite, or
+at ``maxiter``. The best point is the lowest-loss one among stable points (an unstable point
+only while none is stable).
 """
 from __future__ import annotations
 
@@ -33,8 +34,8 @@ from .errors import FitError
 from .problem import Problem, Solution, tolerances
 from .stable import FLAG
 
-__all__ = ["default_optimizer", "OptaxLoop", "fit_optax", "RUNNING", "REACHED", "NON_FINITE",
-           "LIMIT", "MESSAGES"]
+__all__ = ["default_optimizer", "settling", "OptaxLoop", "fit_optax", "RUNNING", "REACHED",
+           "NON_FINITE", "LIMIT", "MESSAGES"]
 
 #: Status codes of the loop (``OptaxLoop`` carry ``"status"``).
 RUNNING, REACHED, NON_FINITE, LIMIT = 0, 1, 2, 3
@@ -49,6 +50,11 @@ def default_optimizer(learning_rate: float = 0.05) -> optax.GradientTransformati
     return optax.chain(optax.clip_by_global_norm(1.0), optax.adam(schedule))
 
 
+def settling(spec: tuple) -> bool:
+    """Whether the target spec has a ``settling_time`` target (``OptaxLoop(settling=...)``)."""
+    return any(s.name == "settling_time" for s in spec)
+
+
 class OptaxLoop:
     """One optax loop on log-parameters ``theta`` (any pytree of float arrays).
 
@@ -60,15 +66,19 @@ class OptaxLoop:
       project: ``theta -> theta`` onto the box (log bounds), applied after every update.
       tols: (m,) residual thresholds (:func:`tuning.problem.tolerances`).
       maxiter: iteration limit (>= 1).
+      settling: a ``settling_time`` target is among the residuals: a point whose metrics'
+        ``"settled"`` entry is false does not meet it (its time is only the rollout's end;
+        as in :func:`tuning.problem.achieved`). :func:`settling` of the target spec.
       history: keep the loss of every iteration in the carry (``c["history"]``, (maxiter,)),
         for :meth:`run`; a host driver that records the losses itself passes False, so that
         a new ``maxiter`` changes no array shape (and compiles nothing new).
     """
 
     def __init__(self, loss_fn: Callable, tx: optax.GradientTransformation,
-                 project: Callable, tols, maxiter: int, *, history: bool = True):
+                 project: Callable, tols, maxiter: int, *, settling: bool = False,
+                 history: bool = True):
         self.tx, self.tols, self.maxiter = tx, np.asarray(tols), int(maxiter)
-        self.history = bool(history)
+        self.settling, self.history = bool(settling), bool(history)
         value_and_grad = dp.value_and_grad(loss_fn, has_aux=True)
 
         def update(theta, state, *args):
@@ -102,6 +112,8 @@ class OptaxLoop:
         finite = jnp.isfinite(loss)
         bad = jnp.any(m[FLAG]) if FLAG in m else jnp.asarray(False)
         met = finite & jnp.all(jnp.abs(r) <= self.tols) & ~bad
+        if self.settling and "settled" in m:     # never settled: not a settling time
+            met = met & jnp.all(m["settled"])
         status = jnp.where(~finite, NON_FINITE, jnp.where(
             met, REACHED, jnp.where(c["it"] + 1 >= self.maxiter, LIMIT, RUNNING)))
         lower = loss < c["best_loss"]
@@ -174,7 +186,8 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         return {p: (jnp.clip(v, log_lo[idx[p]], log_hi[idx[p]]) if p in idx else v)
                 for p, v in theta_d.items()}
 
-    loop = OptaxLoop(loss_fn, tx, project, tolerances(problem.spec), maxiter, history=False)
+    loop = OptaxLoop(loss_fn, tx, project, tolerances(problem.spec), maxiter,
+                     settling=settling(problem.spec), history=False)
     theta_d = {p: jnp.log(jnp.maximum(jnp.asarray(v, float), 1e-300))
                for p, v in leaves.flat0.items()}
     theta_d.update({p: jnp.asarray(v) for p, v in zip(free, problem.theta0)})
