@@ -52,7 +52,7 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
                         maxiter: int = 50, xtol: float = 1e-8, ftol: float = 1e-12,
                         stop: Callable | None = None, lam0: float = 1e-3,
                         progress: Progress | None = None, offset: int = 0,
-                        max_step: float | None = None) -> LMResult:
+                        max_step: float | None = None, accept=None) -> LMResult:
     """Box-projected Levenberg-Marquardt with Marquardt's diagonal scaling (floored at
     :data:`SCALE_FLOOR` times its largest entry).
 
@@ -61,13 +61,17 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
         outputs are ignored). Trial points reuse it, so one compiled function serves all.
       x0, lo, hi: (p,) start and bounds.
       stop: ``stop(r) -> bool``: extra success test on the residuals.
+      accept: ``accept(extra) -> bool`` (``extra``: the outputs of ``res_and_jac`` after
+        ``r`` and ``J``, at the same point): ``stop`` counts only where it also holds (e.g.
+        a settling time that is a result: the motion settled within the rollout).
       max_step: largest change of any one entry of ``x`` in a trial step (None: no limit);
         larger entries are cut to it, and a rejected trial that was cut halves it for the
         next trial of the same iteration.
     Returns: :class:`LMResult` (``jacobian`` evaluated at ``x``).
     """
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
-    r, J = (np.asarray(a) for a in res_and_jac(jnp.asarray(x))[:2])
+    out = res_and_jac(jnp.asarray(x))
+    r, J, extra = np.asarray(out[0]), np.asarray(out[1]), out[2:]
     if not np.all(np.isfinite(r)):
         raise FitError("the residuals are not finite at the start point: the simulation "
                        "blew up or produced nan; use a smaller dt or another start.")
@@ -76,7 +80,7 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
     lam = lam0
     message, converged, it = "iteration limit reached", False, 0
     for it in range(1, maxiter + 1):
-        if stop is not None and stop(r):
+        if stop is not None and stop(r) and (accept is None or accept(extra)):
             message, converged, it = "targets reached", True, it - 1
             break
         JtJ = J.T @ J
@@ -94,7 +98,8 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
             cut = bool(np.any(np.abs(step) > radius))
             step = np.clip(step, -radius, radius)
             xn = np.clip(x + step, lo, hi)
-            rn, Jn = (np.asarray(a) for a in res_and_jac(jnp.asarray(xn))[:2])
+            out = res_and_jac(jnp.asarray(xn))
+            rn, Jn, en = np.asarray(out[0]), np.asarray(out[1]), out[2:]
             cn = float(rn @ rn) if np.all(np.isfinite(rn)) else np.inf
             if cn < cost:
                 improved = True
@@ -110,7 +115,7 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
             break
         dx = np.max(np.abs(xn - x))
         rel_drop = (cost - cn) / max(cost, 1e-300)
-        x, r, J = xn, rn, Jn
+        x, r, J, extra = xn, rn, Jn, en
         cost = float(r @ r)
         hist.append(cost)
         lam = max(lam / 3.0, 1e-12)
@@ -167,6 +172,10 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
             blocked[0] += 1
         return out
     tols = tolerances(problem.spec)
+    def settled(extra):             # a settling time counts only where the motion settled
+        m = extra[0]
+        return "settled" not in m or bool(np.all(np.asarray(m["settled"])))
+    accept = settled if any(s.name == "settling_time" for s in problem.spec) else None
     points = problem.start_points(starts)
     if search is not None:   # problem-specific start search, same compiled function
         found = search(lambda th: evaluate(jnp.asarray(th)), target_slices(problem.spec),
@@ -190,6 +199,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
             out = levenberg_marquardt(evaluate, th, log_lo, log_hi, maxiter=maxiter,
                                       max_step=MAX_LOG_STEP,
                                       stop=lambda r: bool(np.all(np.abs(r) <= tols)),
+                                      accept=accept,
                                       progress=progress, offset=used)
         except FitError:
             m0 = evaluate(jnp.asarray(th))[2]
