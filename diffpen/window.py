@@ -164,10 +164,15 @@ def _window_linear_jvp(h, primals, tangents):
     ``d mean / d d = frac`` (the mean of the ramp's slope) and
     ``d mean / d delta = r - u^3 / 3``, ``d delta / d vn = h sign(vn)``. Reverse-mode
     gradients of the quick-start rollout cost 0.97-1.01x the pointwise law of before with
-    it, 1.30-1.36x without (benchmarks/step_cost.py)."""
+    it, 1.30-1.36x without (benchmarks/step_cost.py). The rule's values come from the
+    guarded form, not the batched-only :func:`_closed_parts` (its ``custom_vmap`` inside a
+    rollout's scan made every second derivative through reverse mode crash, e.g.
+    ``jax.hessian`` of a rollout); batched forward-mode gradients cost the same (0.96x the
+    plain floor at batch 1024)."""
     d, vn = primals
     dd, dvn = tangents
-    frac, mean, u, delta, on, pos, du = _closed_parts(h)(d, vn)          # du = u / delta
+    frac, mean, u, delta, on, pos = _window_linear_parts(d, vn, h, autodiff=False)
+    du = jnp.where(pos, u / jnp.where(pos, jnp.maximum(delta, 1e-15), 1.0), 0.0)  # u / delta
     ddelta = (h * jnp.sign(vn)) * dvn
     dfrac = du * dd - jnp.where(on, du, -du) * (1.0 - u) * ddelta
     dmean = frac * dd + (u * u) * (0.5 - u * (1.0 / 3.0)) * ddelta

@@ -168,6 +168,29 @@ def test_forward_mode_can_be_differentiated_again(ball):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-7)
 
 
+def test_second_derivatives_through_reverse_mode_at_the_default_law():
+    """Regression: at the default law (the step window's closed-form derivatives) every
+    second derivative that involved reverse mode crashed inside JAX: jax.hessian,
+    jax.jacfwd(jax.grad(f)) ("AssertionError: (ShapedArray(float64[1,1]), ...)") and
+    jax.grad(jax.grad(f)) ("Linearization failed to produce known values"), while the
+    ball fixture above (smoothing 1e-3) never met that path. The rule's values no longer
+    pass through the batched-only form: all orders agree with forward-over-forward."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.102))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+
+    def z(k):
+        return sim.rollout(sim.params(k=k, c=8.0), steps=60, save_every=60).position[-1, 0, 2]
+    k = jnp.asarray(3e3)
+    want = float(jax.jacfwd(jax.jacfwd(z))(k))
+    assert want != 0.0
+    for name, f in (("grad(grad)", jax.grad(jax.grad(z))), ("jacfwd(grad)",
+                    jax.jacfwd(jax.grad(z))), ("hessian", jax.hessian(z)),
+                    ("jacrev(grad)", jax.jacrev(jax.grad(z)))):
+        assert float(f(k)) == pytest.approx(want, rel=1e-9), name
+
+
 def test_forward_mode_composes_through_jit_and_closures():
     """Forward mode failed when differentiated through jax.jit ("Linearization failed"), for
     a gradient with respect to a closed-over value, and under vmap(jit(...)) of a closure
