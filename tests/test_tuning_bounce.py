@@ -1,6 +1,8 @@
 """The bounce problem behind `diffpen fit`: the default targets are reached with the exact
 metrics, infeasible targets are refused before compiling, heights alone fit only the damping,
 unreachable targets are marked with the closest values."""
+import math
+
 import jax
 import pytest
 
@@ -112,3 +114,78 @@ def test_a_contact_time_target_is_reached_with_k_and_c_free():
     res = B.fit_bounce(ball_scene(), {"contact_durations": [0.03]})
     assert res.reached, res.message
     assert res.achieved["contact_durations"][0] == pytest.approx(0.03, rel=2e-3)
+
+
+#: first apex and contact time of diffpen's own ball (drop 1 m, dt 1e-3) at k = 2500 N/m,
+#: c = 50 N s/m (zeta 0.5): exactly reachable targets
+WELL_DAMPED = {"apex_heights": [0.007779725852059006],
+               "contact_durations": [0.08057872850017589]}
+
+
+@pytest.fixture(scope="module")
+def well_damped_fit():
+    return B.fit_bounce(ball_scene(), WELL_DAMPED)
+
+
+def test_a_start_without_a_rebound_moves_to_one(well_damped_fit):
+    """The closed-form first guess (gravity left out) for well-damped targets is k 2389,
+    c 59: the ball does not rebound there, the apex and contact time are nan with no
+    gradient, and LM stopped at its start ("no further decrease", achieved nan, NOT
+    reached). The start now lowers c until the targeted events occur, and says so."""
+    res = well_damped_fit
+    assert res.reached, res.message
+    assert res.values["contact.default.k"] == pytest.approx(2500.0, rel=1e-2)
+    assert res.values["contact.default.c"] == pytest.approx(50.0, rel=1e-2)
+    assert any("absent at k = 2389 N/m" in n and "c lowered step by step" in n
+               for n in res.notes), res.notes
+
+
+@pytest.mark.parametrize("method", ["lm", "optax"])
+def test_a_given_start_without_a_rebound_moves_to_one(method):
+    """Started at k 500, c 200 (no rebound), the fit of a lightly damped ball (targets of
+    k 2000, c 10) did not move at all: achieved nan. LM now reaches the targets; the optax
+    loop (a few iterations here) at least reports values of points that rebound."""
+    tg = {"apex_heights": [0.4169974056422985], "contact_durations": [0.07338043265937533]}
+    res = B.fit_bounce(ball_scene(), tg, k0=500.0, c0=200.0, method=method,
+                       maxiter=None if method == "lm" else 3)
+    assert any("c lowered step by step" in n for n in res.notes), res.notes
+    assert all(math.isfinite(v[0]) for v in res.achieved.values()), res.achieved
+    if method == "lm":
+        assert res.reached, res.message
+        assert res.values["contact.default.k"] == pytest.approx(2000.0, rel=1e-2)
+
+
+def test_unreachable_event_targets_keep_the_closest_values():
+    """A 1 ms contact at dt 1e-3 is out of reach (the stiffest contact the step allows lasts
+    12.5 ms); LM walked to a point whose contact never ends (residual -1 < 11.5) and reported
+    nan. The closest values found are reported now: the shortest contact."""
+    res = B.fit_bounce(ball_scene(), {"contact_durations": [0.001]})
+    assert not res.reached and "NOT reached" in res.message
+    assert 0.010 < res.achieved["contact_durations"][0] < 0.015, res.achieved
+
+
+def test_the_fit_notes_the_time_steps_own_restitution_error(well_damped_fit):
+    """w0 dt <= 0.25 was said to keep the restitution within ~0.5% of the continuous model;
+    at zeta 0.5 the step's own error is -3% already at w0 dt = 0.05. The fit says so when
+    it is above 1% at its fitted point, and not for the lightly damped default targets."""
+    assert any("restitution error at the fitted point is -2.9" in n and "centred=True" in n
+               for n in well_damped_fit.notes), well_damped_fit.notes
+    light = B.step_restitution_error(2145.4, 10.93, mass=1.0, speed=4.2, dt=1e-3)
+    assert abs(light) < 2e-3                     # the default fit's point: no note
+
+
+def test_step_restitution_error_against_closed_form_and_richardson():
+    """Gravity-free impact of the default law at w0 dt = 0.05 (k 2500, dt 1e-3): -0.07% at
+    zeta 0.1, -3% at zeta 0.5; the centred law within 0.1%. Without a closed form (the
+    same law, closed_form=None) the dt / 8 Richardson estimate agrees."""
+    import dataclasses
+    err = [B.step_restitution_error(2500.0, 2 * z * 50.0, mass=1.0, speed=4.0, dt=1e-3)
+           for z in (0.1, 0.5)]
+    assert err[0] == pytest.approx(-7e-4, abs=3e-4)
+    assert err[1] == pytest.approx(-0.0295, abs=1.5e-3)
+    centred = B.step_restitution_error(2500.0, 50.0, mass=1.0, speed=4.0, dt=1e-3,
+                                       law=dp.laws.linear(centred=True))
+    assert abs(centred) < 1e-3
+    bare = dataclasses.replace(dp.laws.linear(), closed_form=None)
+    rich = B.step_restitution_error(2500.0, 50.0, mass=1.0, speed=4.0, dt=1e-3, law=bare)
+    assert rich == pytest.approx(err[1], abs=1.5e-3)

@@ -32,6 +32,7 @@ def test_fit_defaults_json(capsys, tmp_path):
         assert key in out
     t, a = out["targets"], out["achieved"]
     assert t == {"apex_heights": [0.4], "settling_time": 2.6}
+    assert out["zeta"] == pytest.approx(out["c"] / (2 * (out["k"] * 1.0) ** 0.5), rel=1e-12)
     assert abs(a["apex_heights"][0] / t["apex_heights"][0] - 1) < 5e-3
     assert abs(a["settling_time"] / t["settling_time"] - 1) < 1e-2
 
@@ -233,3 +234,19 @@ def test_sweep_counts_unsettled_points_apart_from_unstable_ones(capsys, tmp_path
     text = capsys.readouterr().out
     assert (f"{js['unsettled']} points did not settle within 1 s: their settling_time is NaN "
             f"(besides the {js['unstable']} past the safe step)") in text
+
+
+def test_fit_gives_a_damping_ratio_only_for_laws_that_have_one(capsys):
+    """A Hunt-Crossley fit printed "(damping ratio 0.4184)" and stored zeta = c / (2 sqrt(k
+    m)), meaningless in its units (k N/m^n, c N s/m^(n+1)): JSON null, nothing printed."""
+    import argparse
+
+    from tuning.cli import fit as fitcli
+    rc, out = run_json(capsys, ["fit", "--target-contact", "0.05", "--law", "hunt_crossley",
+                                "--maxiter", "2"])
+    assert "zeta" in out and out["zeta"] is None
+    fitcli._print(argparse.Namespace(json=False), out)
+    text = capsys.readouterr().out
+    assert "fitted:" in text and "damping ratio" not in text
+    fitcli._print(argparse.Namespace(json=False), dict(out, zeta=0.25))
+    assert "(damping ratio 0.25)" in capsys.readouterr().out

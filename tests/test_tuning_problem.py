@@ -25,13 +25,36 @@ def test_target_layout_residuals_and_achieved_by_hand():
     np.testing.assert_allclose(PB.tolerances(spec), [0.02, 0.02, 1e-3], rtol=1e-15)
     assert PB.target_slices(spec) == {"a": slice(0, 2), "b": slice(2, 3)}
     metrics = {"a": np.array([3.0, np.nan, 9.0]), "b": np.float64(0.25)}
-    # sqrt(4) (3 - 2) / 2, an absent event counts as 0: sqrt(4) (0 - 4) / 4, (0.25 - 0.5) / 0.5
-    np.testing.assert_allclose(PB.residuals(metrics, tg, spec), [1.0, -2.0, -0.5], rtol=1e-15)
+    # sqrt(4) (3 - 2) / 2, an absent event counts as sqrt(4) ABSENT_ERROR, (0.25 - 0.5) / 0.5
+    np.testing.assert_allclose(PB.residuals(metrics, tg, spec),
+                               [1.0, 2.0 * PB.ABSENT_ERROR, -0.5], rtol=1e-15)
     ach, rel, ok = PB.achieved(metrics, tg, spec)
     assert ach["b"] == 0.25 and ach["a"][0] == 3.0 and math.isnan(ach["a"][1])
     assert rel == {"a": math.inf, "b": 0.5} and not ok
     close = {"a": np.array([2.01, 4.0]), "b": 0.5}
     assert PB.achieved(close, tg, spec)[2]
+
+
+def test_an_absent_event_never_scores_below_a_present_one():
+    """An absent event (nan: no rebound) counted as a value of 0, a residual of -1: a point
+    without a rebound scored below one whose apex was 2x its target or more, and it has no
+    gradient either, so fits stopped there and reported nan. It now costs more than any
+    present value a fit would keep, with no gradient of its own."""
+    import jax
+    import jax.numpy as jnp
+    tg = PB.normalise_targets({"apex_heights": [0.01], "contact_durations": [0.08]})
+    spec = PB.target_spec(tg, None, 1e-3)
+
+    def cost(apex, dur):
+        r = PB.residuals({"apex_heights": jnp.atleast_1d(apex),
+                          "contact_durations": jnp.atleast_1d(dur)}, tg, spec)
+        return float(r @ r)
+    absent = cost(np.nan, np.nan)
+    assert absent > cost(0.9, 0.5) > cost(0.03, 0.1) > 0.0      # even far off: 90x, 6x
+    assert absent == pytest.approx(2 * PB.ABSENT_ERROR ** 2)
+    g = jax.jacfwd(lambda a: PB.residuals({"apex_heights": a, "contact_durations": a}, tg,
+                                          spec))(jnp.array([jnp.nan]))
+    np.testing.assert_array_equal(g, 0.0)      # finite: no nan leaks into the Jacobian
 
 
 def test_fit_is_not_reached_when_the_rollout_was_unstable():

@@ -4,7 +4,9 @@ Targets (:data:`BOUNCE_METRICS`): apex heights, settling time, contact durations
 restitution, maximum penetration. :func:`check_bounce_targets` refuses targets no (k, c) can
 reach before anything is compiled; :func:`bounce_metrics_fn` is the traceable metrics
 function; :func:`first_guess_bounce` the closed-form start; :func:`fit_bounce` (behind
-``diffpen fit``) puts them together and runs :func:`tuning.fit.fit`.
+``diffpen fit``) puts them together and runs :func:`tuning.fit.fit`;
+:func:`step_restitution_error` is the time step's own restitution error at a (k, c), which
+the fit notes when it is large.
 """
 from __future__ import annotations
 
@@ -19,11 +21,11 @@ import diffpen as dp
 
 from .errors import FitError
 from .fit import FitResult, fit
-from .problem import normalise_targets
-from .stable import rollout_unstable, safe_contact_bounds
+from .problem import FreeLeaves, normalise_targets
+from .stable import FLAG, rollout_unstable, safe_contact_bounds
 
-__all__ = ["BOUNCE_METRICS", "check_bounce_targets", "bounce_metrics_fn", "first_guess_bounce",
-           "fit_bounce"]
+__all__ = ["BOUNCE_METRICS", "EVENT_TARGETS", "check_bounce_targets", "bounce_metrics_fn",
+           "first_guess_bounce", "fit_bounce", "step_restitution_error"]
 
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
@@ -43,6 +45,20 @@ DECAY_MARGIN = 8.0
 
 BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_durations": 2e-3,
                   "restitution": 1e-3, "max_penetration": 2e-3, "decay_time": 2e-3}
+
+#: Targets that name events of the rollout: a rebound (apex, restitution) or the end of a
+#: contact. Where the model does not have them their metric is nan, with no gradient that
+#: leads to them: :func:`fit_bounce` starts where they occur (:func:`_event_search`).
+EVENT_TARGETS = ("apex_heights", "restitution", "contact_durations")
+
+#: The event search's step: c times this (or k divided by it) per step, for at most
+#: ``EVENT_STEPS`` steps (0.7^40 ~ 6e-7: c from any start down to its lower bound).
+EVENT_STEP = 0.7
+EVENT_STEPS = 40
+
+#: :func:`fit_bounce` notes the time step's own restitution error at the fitted point
+#: (:func:`step_restitution_error`) when it is larger than this.
+STEP_ERROR_NOTE = 0.01
 
 
 def _fall_time(h0: float, v0: float, g: float) -> float:
@@ -179,8 +195,15 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     Checks the targets against the scene first (:func:`check_bounce_targets`), then compiles,
     starts from the closed-form first guess (:func:`first_guess_bounce`; with apex and
     settling-time targets, :func:`_apex_settle_search` scans k with c solved for the apex and
-    bisects the settling time along that curve), and runs :func:`fit`. Stiffness stays below
-    the accuracy limit ``w0 dt <= 0.25`` of the explicit step.
+    bisects the settling time along that curve), and runs :func:`fit`. Targets that name
+    events (:data:`EVENT_TARGETS`: a rebound, the end of a contact) start where the model has
+    them: at a start without them c is lowered (or k raised) step by step until they occur
+    (the notes say so); an absent event counts as a residual of
+    :data:`tuning.problem.ABSENT_ERROR`, so the point reported has them whenever one the fit
+    visited did. Stiffness stays below the accuracy limit ``w0 dt <= 0.25`` of the explicit
+    step; that does not bound the restitution error of a damped contact, so the time step's
+    own restitution error at the fitted point is measured (:func:`step_restitution_error`)
+    and noted when above :data:`STEP_ERROR_NOTE` (1%).
 
     Bounce heights alone fix only the damping ratio: with apex/restitution targets but no
     settling-time or contact-duration target, k is held at ``k0`` and only c is fitted (the
@@ -247,10 +270,16 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     sim = dp.compile(scene, dt, law=law, **compile_kw)
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
                             settle_tol=settle_tol, decay_cut="bound")
-    # Accuracy limit of the explicit step: w0 dt <= 0.25 keeps the contact's restitution
-    # within ~0.5% of the continuous model (docs/physics-notes.md section 4); beyond it a fit
-    # would tune the integrator's error instead of the contact. A start above it is lowered
-    # BEFORE the first guess, so c is guessed for the k actually used.
+    # Accuracy limit of the explicit step: w0 dt <= 0.25 (docs/physics-notes.md section 4);
+    # beyond it a fit would tune the integrator's error instead of the contact. It does not
+    # keep the restitution error small once the contact is damped: the error grows with
+    # c dt / m = 2 zeta w0 dt. Measured (a gravity-free impact against the closed form
+    # exp(-zeta pi / sqrt(1 - zeta^2)), semi-implicit Euler, the default law): at
+    # w0 dt = 0.05, -0.07% at zeta 0.1, -0.78% at 0.3, -2.98% at 0.5; at w0 dt = 0.25, -3.2%
+    # at zeta 0.3 and -13.3% at 0.5 (laws.linear(centred=True): within 0.01-0.9% in the same
+    # cases). So the error at the fitted point is measured after the fit
+    # (step_restitution_error) and noted above STEP_ERROR_NOTE. A start above the limit is
+    # lowered BEFORE the first guess, so c is guessed for the k actually used.
     kmax = (0.25 / dt) ** 2 * m
     k_first = 1e4 * m if k0 is None else float(k0)
     if k_first > kmax:
@@ -305,12 +334,35 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         notes[-1] += ("; along the curve where the first apex is met (Newton on c), the "
                       "settling time is matched by bisection on k")
         starts = None
+    n_starts = 3
+    need = {n: int(tg[n].size) for n in EVENT_TARGETS if n in tg}
+    if need and search is None and set(free) <= {kpath, cpath}:
+        # a start without the targeted events (no rebound; a contact that does not end) has
+        # no gradient towards them: start where they occur (c lowered step by step)
+        look = _event_search(free, {kpath: kk, cpath: cc}, need, tg, notes, kpath=kpath,
+                             cpath=cpath)
+        if method == "lm":      # with the fit's own compiled function
+            search, n_starts = look, (1 if starts is None else n_starts)
+        else:                   # optax: a forward rollout per step, then start there
+            leaves = FreeLeaves.build(params0, free, {p: bounds[p] for p in free})
+            fwd = jax.jit(lambda th: mfn(leaves.params_of(th)))
+            found = look(lambda th: (None, None, jax.device_get(fwd(jnp.asarray(th)))), None,
+                         leaves.log_lo, leaves.log_hi)
+            if found:
+                val = dict(zip(free, np.exp(found[0])))
+                kk, cc = float(val.get(kpath, kk)), float(val.get(cpath, cc))
+                params0 = sim.params(contact={mat: (kk, cc)})
     res = fit(mfn, params0, dict(targets), free=free,
               bounds={p: bounds[p] for p in free if p in bounds},
               weights=weights, rtol=tol, method=method, optimizer=optimizer,
               maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
-              label="diffpen fit", starts=starts, search=search)
+              label="diffpen fit", starts=starts, search=search, n_starts=n_starts)
     res.notes = notes + res.notes
+    note = _step_error_note(res.params.contact[mat], dt=dt, law=law, mass=m,
+                            radius=info["radius"], speed=math.sqrt(2.0 * g * info["drop"]),
+                            compile_kw=compile_kw)
+    if note:
+        res.notes.append(note)
     if "decay_time" in tg:
         # the optimiser saw a cut-short decay as its lower bound: never a reached target
         if not bool(jax.jit(lambda p: mfn(p)["decay_valid"])(res.params)):
@@ -320,6 +372,177 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                              f"{duration:g} s rollout (energy left at its end): give a "
                              f"longer duration")
     return res
+
+
+def _event_search(free, values: dict, need: dict, tg: dict, notes: list, *, kpath: str,
+                  cpath: str):
+    """Start search for targets that name events (:data:`EVENT_TARGETS`):
+    ``run(evaluate, slices, log_lo, log_hi) -> [theta]``, the ``search`` of
+    :func:`tuning.fit.fit` (``evaluate(theta) -> (r, J, metrics)``; only the metrics are
+    read, so a forward rollout will do).
+
+    At a point where a targeted event is absent (nan: the ball does not rebound, or a contact
+    does not end within the rollout) the residuals have no gradient towards it. From the
+    start (``values``: ``{kpath: k, cpath: c}``; ``free`` the fitted ones, in order), c is
+    multiplied by :data:`EVENT_STEP` step by step (k divided by it once c is at its bound
+    or not fitted) until every event ``need`` (``{metric: count}``) names occurs. When only
+    later ones are missing and the first bounce is above its target (flights too long for
+    the rollout), c is raised (k lowered) instead. Returns [] when the start has the events
+    (or no step found them), else the first point that has them; ``notes`` say which.
+    """
+    def absent(m):
+        out = []
+        for name, count in need.items():
+            v = np.atleast_1d(np.asarray(m[name], dtype=float))[:count]
+            out += [f"{name}[{i}]" for i in np.nonzero(~np.isfinite(v))[0]]
+        return out
+
+    def usable(m):     # every targeted event, in a rollout inside its safe step
+        return not absent(m) and not (FLAG in m and bool(np.any(np.asarray(m[FLAG]))))
+
+    def at(x):
+        v = dict(values)
+        v.update({p: float(math.exp(t)) for p, t in zip(free, x)})
+        return f"k = {v[kpath]:.4g} N/m, c = {v[cpath]:.4g} N s/m"
+
+    def run(evaluate, slices, lo, hi):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        x = np.clip(np.log([values[p] for p in free]), lo, hi)
+        m = evaluate(x)[2]
+        gone = absent(m)
+        if not gone:
+            return []
+        start = at(x)
+        more = True        # more rebound: less damping (or a stiffer contact)
+        first = [n for n in ("apex_heights", "restitution") if n in need]
+        if first and not any(g.endswith("[0]") for g in gone):
+            a = float(np.atleast_1d(np.asarray(m[first[0]], dtype=float))[0])
+            more = not a > float(tg[first[0]][0])
+        step = math.log(1.0 / EVENT_STEP) * (1.0 if more else -1.0)
+        moves = ([(free.index(cpath), -step, "c " + ("lowered" if more else "raised"))]
+                 if cpath in free else [])
+        if kpath in free:
+            moves.append((free.index(kpath), step, "k " + ("raised" if more else "lowered")))
+        done, steps = [], 0
+        for j, d, what in moves:
+            while steps < EVENT_STEPS:
+                new = float(np.clip(x[j] + d, lo[j], hi[j]))
+                if new == x[j]:
+                    break
+                x = x.copy()
+                x[j] = new
+                steps += 1
+                if what not in done:
+                    done.append(what)
+                if usable(evaluate(x)[2]):
+                    notes.append(f"start: {', '.join(gone)} absent at {start} (the ball does "
+                                 "not rebound, or a contact does not end, within the rollout: "
+                                 f"no gradient leads there); {' then '.join(done)} step by "
+                                 f"step (x{EVENT_STEP:g}, {steps} step"
+                                 f"{'s' if steps > 1 else ''}) to {at(x)}, where the targeted "
+                                 "events occur")
+                    return [x]
+        notes.append(f"start: {', '.join(gone)} absent at {start}; "
+                     + (f"{' then '.join(done)} step by step to {at(x)}" if done else
+                        "k and c at their bounds") +
+                     " found no point where every targeted event occurs, so the fit starts "
+                     "where it was and such events are reported as nan")
+        return []
+    return run
+
+
+def _step_error_note(contact, *, dt: float, law, mass: float, radius: float, speed: float,
+                     compile_kw: dict) -> str | None:
+    """The note :func:`fit_bounce` adds when the time step's own restitution error at the
+    fitted ``contact`` (k, c) is above :data:`STEP_ERROR_NOTE`; None otherwise (or when it
+    cannot be measured: no rebound)."""
+    try:
+        err = step_restitution_error(float(contact.k), float(contact.c), mass=mass,
+                                     radius=radius, speed=speed, dt=dt, law=law, **compile_kw)
+    except (ValueError, FloatingPointError):      # SceneError, StabilityError, NonFiniteError
+        return None
+    if err is None or not abs(err) > STEP_ERROR_NOTE:
+        return None
+    rec = dp.laws.get(law, compile_kw.get("exponent", 1.0)) if isinstance(law, str) else law
+    lag = (compile_kw.get("integrator", "semi_implicit_euler") == "semi_implicit_euler"
+           and compile_kw.get("smoothing", "auto") in ("auto", 0, 0.0))
+    centred = {"linear": "laws.linear(centred=True)",
+               "no_tension": "laws.no_tension(centred=True)",
+               "hunt_crossley": f"laws.hunt_crossley({rec.exponent:g}, centred=True)"}
+    fix = "use a smaller dt"
+    if lag and rec.centred is None and rec.name in centred:
+        fix += f" or {centred[rec.name]}"
+    return (f"the time step's own restitution error at the fitted point is {100 * err:+.3g}%: "
+            f"the fitted k, c are those of the discrete model at this dt ({dt:g} s); {fix}")
+
+
+#: Impact simulators of :func:`step_restitution_error`, by everything they are compiled from.
+_IMPACT_SIMS: dict = {}
+
+
+def _impact_restitution(k: float, c: float, h: float, *, mass: float, radius: float,
+                        speed: float, gap: float, t_contact: float, law,
+                        compile_kw: dict) -> float | None:
+    """Restitution of one gravity-free impact at ``speed`` m/s simulated at step ``h`` s
+    (the ball starts ``gap`` m above the plane): its speed after the contact over its speed
+    before; None when the contact has not ended after ``4 t_contact`` s."""
+    key = (mass, radius, speed, gap, h, law, tuple(sorted(compile_kw.items())))
+    try:
+        sim = _IMPACT_SIMS.get(key)
+    except TypeError:                  # an option that cannot key a cache: compile anew
+        key, sim = None, None
+    if sim is None:
+        from .scenes import ball_scene
+        sim = dp.compile(ball_scene(radius=radius, mass=mass, height=radius + gap,
+                                    velocity=-speed, gravity=0.0), h, law=law, **compile_kw)
+        if key is not None:
+            if len(_IMPACT_SIMS) >= 16:
+                _IMPACT_SIMS.clear()
+            _IMPACT_SIMS[key] = sim
+    # a power of two: few distinct rollout lengths, so few compiled programs
+    steps = 2 ** max(4, math.ceil(math.log2((gap / speed + 4.0 * t_contact) / h + 2.0)))
+    tr = sim.rollout(sim.params(k=k, c=c), steps, save_every=steps)
+    z, v = (float(a) for a in jax.device_get((tr.position[-1, 0, 2], tr.velocity[-1, 0, 2])))
+    return v / speed if z > radius and v > 0.0 else None
+
+
+#: :func:`diffpen.physical.restitution` as one compiled program (eagerly it is a dozen).
+_closed_form_restitution = jax.jit(dp.physical.restitution, static_argnames="law")
+
+
+def step_restitution_error(k: float, c: float, *, mass: float, speed: float, dt: float,
+                           radius: float = 0.1, law="linear", **compile_kw) -> float | None:
+    """The time step's own error in the restitution at contact ``k``, ``c``: ``e_dt / e - 1``
+    for one gravity-free impact of a sphere (``mass`` kg, ``radius`` m) at ``speed`` m/s on
+    a plane, simulated at ``dt`` s with ``law`` and ``compile_kw`` (as in
+    :func:`diffpen.compile`).
+
+    ``e`` is the continuous model's: the law's closed form
+    (:func:`diffpen.physical.restitution`, linear and no_tension without smoothing) where it
+    has one and rebounds, else the same impact at ``dt / 8`` extrapolated to ``dt -> 0``
+    (Richardson, first order: ``e_8 + (e_8 - e_dt) / 7``). One small compile and rollout
+    (two without a closed form). Returns None when the simulated ball does not rebound.
+    """
+    rec = dp.laws.get(law, compile_kw.get("exponent", 1.0)) if isinstance(law, str) else law
+    n = float(rec.exponent)
+    # the undamped contact's duration, pi sqrt(m / k) for n = 1 (Hertz-like for n > 1, at
+    # the stiffness of the deepest point): the rollouts last 4 of them (zeta up to ~0.97)
+    d_max = ((n + 1.0) * mass * speed ** 2 / (2.0 * k)) ** (1.0 / (n + 1.0))
+    t_contact = math.pi * math.sqrt(mass / (n * k * d_max ** (n - 1.0)))
+    kw = dict(mass=mass, radius=radius, speed=speed, gap=0.5 * speed * dt,
+              t_contact=t_contact, law=law, compile_kw=compile_kw)
+    e_dt = _impact_restitution(k, c, dt, **kw)
+    if e_dt is None:
+        return None
+    e = None
+    if rec.closed_form is not None and compile_kw.get("smoothing", "auto") in ("auto", 0, 0.0):
+        e = float(_closed_form_restitution(k, c, mass, law=rec))
+    if not (e is not None and e > 0.0):
+        e_8 = _impact_restitution(k, c, dt / 8.0, **kw)
+        if e_8 is None:
+            return None
+        e = e_8 + (e_8 - e_dt) / 7.0
+    return e_dt / e - 1.0
 
 
 def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):

@@ -30,8 +30,9 @@ from .errors import FitError
 from .stable import FLAG, params_unstable, safe_contact_bounds, safe_contact_limits
 
 __all__ = ["FitError", "TargetSpec", "normalise_targets", "target_spec", "tolerances",
-           "target_slices", "residuals", "achieved", "RESIDUAL_FACTOR", "residual_reached",
-           "default_bounds", "safe_bounds", "with_flag", "FreeLeaves", "Problem", "Solution"]
+           "target_slices", "ABSENT_ERROR", "residuals", "achieved", "RESIDUAL_FACTOR",
+           "residual_reached", "default_bounds", "safe_bounds", "with_flag", "FreeLeaves",
+           "Problem", "Solution"]
 
 
 # --------------------------------------------------------------------------- targets
@@ -110,9 +111,19 @@ def target_slices(spec: tuple) -> dict:
     return slices
 
 
+#: The relative error an absent event (a metric entry that is nan: a bounce, or the end of a
+#: contact, that the rollout does not have) counts as in :func:`residuals`: more than a point
+#: with the event leaves, so an optimiser never trades the event away and the lowest loss
+#: found is at a point that has it. (Counted as a value of 0, a point without a rebound
+#: scored -1 per target, below an apex 2x its target, and as it has no gradient there either,
+#: fits stopped at it and reported nan.)
+ABSENT_ERROR = 1e4
+
+
 def residuals(metrics: dict, targets: dict, spec: tuple):
     """Weighted relative residuals (m,) = ``sqrt(w) (m - t) / |t|`` per target entry
-    (traceable; dimensionless). Absent events (nan) count as a value of 0.
+    (traceable; dimensionless). An absent event (nan) counts as ``sqrt(w)``
+    :data:`ABSENT_ERROR`, with no gradient.
 
     metrics: ``{metric: scalar or (n,) array}``.  targets: ``{metric: (n,) array}``."""
     parts = []
@@ -124,9 +135,11 @@ def residuals(metrics: dict, targets: dict, spec: tuple):
         if m.shape[0] < count:
             raise FitError(f"target {name!r} has {count} entries but the metric has only "
                            f"{m.shape[0]}.")
-        m = jnp.where(jnp.isfinite(m), m, 0.0)
+        present = jnp.isfinite(m)
+        m = jnp.where(present, m, 0.0)
         tgt = jnp.asarray(targets[name], dtype=m.dtype)
-        parts.append(math.sqrt(w) * (m - tgt) / jnp.abs(tgt))
+        parts.append(math.sqrt(w) * jnp.where(present, (m - tgt) / jnp.abs(tgt),
+                                              ABSENT_ERROR))
     return jnp.concatenate(parts)
 
 

@@ -206,12 +206,17 @@ def _run(args) -> int:
             f"{args.settle_tol * 1e3:g} mm)")
     k = res.params.contact["default"].k
     c = res.params.contact["default"].c
+    # the damping ratio c / (2 sqrt(k m)) is defined for the laws k d - c vn (linear,
+    # no_tension); Hunt-Crossley's k and c have other units: null
+    rec = dp.laws.get(args.law)
+    zeta = (float(dp.physical.damping_ratio(k, c, args.mass))
+            if rec.exponent == 1.0 and rec.damping_exponent == 0.0 else None)
     out = {"scene": desc, "k": float(k), "c": float(c), "targets": res.targets,
            "achieved": res.achieved, "rel_error": res.rel_error, "reached": res.reached,
            "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds,
            "message": res.message,
            "notes": res.notes, "dt": dt, "law": args.law,
-           "zeta": float(dp.physical.damping_ratio(k, c, args.mass))}
+           "zeta": zeta}
     if args.plot:
         _plot_targets(args, scene, res, dt)
     return _print(args, out)
@@ -242,7 +247,8 @@ def _print(args, out: dict) -> int:
               f"{out['c_stderr']:.2g} N s/m   (standard errors)")
     else:
         print(f"fitted:    k = {out['k']:.6g} N/m   c = {out['c']:.6g} N s/m"
-              + (f"   (damping ratio {out['zeta']:.4g})" if "zeta" in out else ""))
+              + (f"   (damping ratio {out['zeta']:.4g})" if out.get("zeta") is not None
+                 else ""))
     if "achieved" in out:
         parts = []
         for n, v in out["achieved"].items():
