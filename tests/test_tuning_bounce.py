@@ -36,6 +36,17 @@ def test_default_fit_reaches_targets():
     assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
 
 
+def test_a_restitution_and_settling_target_fit():
+    """Regression: a restitution target with a settling time (a scene file can ask for it)
+    crashed in the start search with KeyError 'apex_heights'. The search now meets the first
+    restitution where no apex is targeted."""
+    e = math.sqrt(DEFAULT_APEX / 0.9)          # the default apex's rebound from 0.9 m
+    res = B.fit_bounce(ball_scene(), {"restitution": [e], "settling_time": DEFAULT_SETTLE},
+                       dt=1e-3)
+    assert res.reached, res.message
+    assert res.achieved["restitution"][0] == pytest.approx(e, rel=5e-3)
+
+
 @pytest.mark.parametrize("targets, words", [
     ({"apex_heights": [0.95]}, "not below the drop height"),
     ({"apex_heights": [0.3, 0.4]}, "must decrease"),

@@ -546,7 +546,8 @@ def step_restitution_error(k: float, c: float, *, mass: float, speed: float, dt:
 
 
 def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):
-    """Start search for (k, c) from a first-apex and a settling-time target.
+    """Start search for (k, c) from a first-apex (or first-restitution) and a settling-time
+    target.
 
     The settling time is piecewise continuous in (k, c): it jumps whenever a small bounce's
     apex crosses the settling band. A local method stalls at those jumps, so: on a scan over
@@ -556,7 +557,9 @@ def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):
     first, for Levenberg-Marquardt to polish.
     """
     def run(evaluate, slices, lo, hi):
-        ia = slices["apex_heights"].start
+        # the first apex, or the first restitution where no apex is targeted (the same
+        # curve: both fix the first rebound)
+        ia = slices["apex_heights" if "apex_heights" in slices else "restitution"].start
         js = slices["settling_time"].start
 
         def on_curve(lk, lc):
