@@ -248,5 +248,9 @@ def test_fit_gives_a_damping_ratio_only_for_laws_that_have_one(capsys):
     fitcli._print(argparse.Namespace(json=False), out)
     text = capsys.readouterr().out
     assert "fitted:" in text and "damping ratio" not in text
-    fitcli._print(argparse.Namespace(json=False), dict(out, zeta=0.25))
+    # and its c in its own units (F = k d - c vn d: N s/m^2), not N s/m as before
+    assert " N s/m^2" in text, text
+    assert fitcli.law_units("linear") == ("N/m", "N s/m")
+    assert fitcli.law_units("no_tension") == ("N/m", "N s/m")
+    fitcli._print(argparse.Namespace(json=False), dict(out, zeta=0.25, law="linear"))
     assert "(damping ratio 0.25)" in capsys.readouterr().out

@@ -222,6 +222,15 @@ def _run(args) -> int:
     return _print(args, out)
 
 
+def law_units(law) -> tuple[str, str]:
+    """Units of a contact law's k and c: ``F = k d^n - c vn d^m`` has k in N/m^n and c in
+    N s/m^(m+1) (N/m and N s/m for the linear laws)."""
+    import diffpen as dp
+    rec = dp.laws.get(law or "linear")
+    n, m = float(rec.exponent), float(rec.damping_exponent)
+    return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
+
+
 def _report(args, out: dict, plot_fn=None) -> int:
     if args.plot:
         if plot_fn is None:
@@ -242,11 +251,12 @@ def _print(args, out: dict) -> int:
         print("targets:   " + "   ".join(f"{n} = {fmt(v, UNITS.get(n, ''))}"
                                          for n, v in out["targets"].items()))
     kse = out.get("k_stderr")
+    ku, cu = law_units(out.get("law"))
     if kse is not None:
-        print(f"fitted:    k = {out['k']:.6g} +- {kse:.2g} N/m   c = {out['c']:.6g} +- "
-              f"{out['c_stderr']:.2g} N s/m   (standard errors)")
+        print(f"fitted:    k = {out['k']:.6g} +- {kse:.2g} {ku}   c = {out['c']:.6g} +- "
+              f"{out['c_stderr']:.2g} {cu}   (standard errors)")
     else:
-        print(f"fitted:    k = {out['k']:.6g} N/m   c = {out['c']:.6g} N s/m"
+        print(f"fitted:    k = {out['k']:.6g} {ku}   c = {out['c']:.6g} {cu}"
               + (f"   (damping ratio {out['zeta']:.4g})" if out.get("zeta") is not None
                  else ""))
     if "achieved" in out:
@@ -300,6 +310,7 @@ def _plot_targets(args, scene, res, dt) -> None:
 
 
 def _run_data(args) -> int:
+    ku, cu = law_units(args.law)
     if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
     from ..fit import RESIDUAL_FACTOR, FitError, residual_reached
@@ -337,23 +348,23 @@ def _run_data(args) -> int:
     if args.plot:
         from ..plots import trajectory_fit_figure
         trajectory_fit_figure(args.plot, t, z, res.z_fit, res.history,
-                              title=(f"k={res.k:.5g}+-{res.k_stderr:.2g} N/m, "
+                              title=(f"k={res.k:.5g}+-{res.k_stderr:.2g} {ku}, "
                                      if res.k_lower_bound is None else
-                                     f"k={res.k:.5g} N/m (held, lower bound), ")
-                                    + f"c={res.c:.5g}+-{res.c_stderr:.2g} N s/m")
+                                     f"k={res.k:.5g} {ku} (held, lower bound), ")
+                                    + f"c={res.c:.5g}+-{res.c_stderr:.2g} {cu}")
     if args.json:
         dump_json(out)
         return 0 if out["reached"] else 1
     print(f"diffpen fit: {out['scene']}")
     if res.k_lower_bound is None:
-        print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} N/m   c = {res.c:.6g} +- "
-              f"{res.c_stderr:.2g} N s/m   (standard errors, Gauss-Newton)")
+        print(f"fitted:    k = {res.k:.6g} +- {res.k_stderr:.2g} {ku}   c = {res.c:.6g} +- "
+              f"{res.c_stderr:.2g} {cu}   (standard errors, Gauss-Newton)")
     else:
-        print(f"fitted:    k = {res.k:.6g} N/m HELD (a lower bound: the record does not "
-              f"resolve the contact time)   c = {res.c:.6g} +- {res.c_stderr:.2g} N s/m   "
+        print(f"fitted:    k = {res.k:.6g} {ku} HELD (a lower bound: the record does not "
+              f"resolve the contact time)   c = {res.c:.6g} +- {res.c_stderr:.2g} {cu}   "
               "(standard error, Gauss-Newton)")
-    print(f"first guess from the record's events: k = {res.first_guess[0]:.5g} N/m, "
-          f"c = {res.first_guess[1]:.5g} N s/m")
+    print(f"first guess from the record's events: k = {res.first_guess[0]:.5g} {ku}, "
+          f"c = {res.first_guess[1]:.5g} {cu}")
     print(f"residual rms {res.rms * 1e3:.3g} mm against record noise {res.noise * 1e3:.3g} mm")
     for note in res.notes:
         print(f"note:      {note}")
