@@ -109,6 +109,15 @@ def test_random_points_and_bad_input():
     assert pts.shape == (500, 2)
     assert pts[:, 0].min() >= 1.0 and pts[:, 0].max() <= 100.0
     assert abs(np.median(np.log10(pts[:, 0])) - 1.0) < 0.15      # log-uniform
+    # regression: a signed range (a plane offset) or a lower bound of 0 gave all-NaN columns
+    # under the default log=True, with only numpy's RuntimeWarning
+    for bad in ((-0.01, 0.01), (0.0, 1.0)):
+        with pytest.raises(ValueError, match="log=False"):
+            S.random_points({"extra.plane_offset.ground": bad}, 5)
+    with pytest.raises(ValueError, match="lo < hi"):
+        S.random_points({"a": (2.0, 1.0)}, 5)
+    lin = S.random_points({"extra.plane_offset.ground": (-0.01, 0.01)}, 50, log=False)
+    assert np.all(np.isfinite(lin)) and lin.min() >= -0.01 and lin.max() <= 0.01
     with pytest.raises(ValueError, match="shape"):
         S.sweep(lambda p: {}, None, np.ones((3, 3)), NAMES)
     with pytest.raises(ValueError, match=">= 0"):

@@ -86,9 +86,11 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                       progress=progress)
     moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
              if name.startswith("extra.plane_offset.")}
-    if estimate == "fit" and moved:
-        # the first-state estimate counts flight frames against the planes: evaluated as the
-        # fitted scene file is (diffpen evaluate), with its fitted plane offsets
+    if moved:
+        # the first-state estimate counts flight frames against the planes (and with
+        # "record" takes the lag from free flight's gravity or from the frames' slope by
+        # them): evaluated as the fitted scene file is (diffpen evaluate), with its fitted
+        # plane offsets
         scene = copy.copy(sim.scene)
         scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
                         else pl for pl in sim.scene.planes]

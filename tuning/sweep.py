@@ -105,7 +105,14 @@ def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> n
     Returns (n, P)."""
     rng = np.random.default_rng(seed)
     cols = []
-    for lo, hi in bounds.values():
+    for name, (lo, hi) in bounds.items():
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"random_points: bounds of {name!r} must be finite with lo < hi, "
+                             f"got ({lo}, {hi}).")
+        if log and lo <= 0.0:
+            raise ValueError(f"random_points: bounds of {name!r} are ({lo}, {hi}); log-uniform "
+                             "points need lo > 0: pass log=False for a signed leaf (e.g. a "
+                             "plane offset) or a lower bound above 0.")
         u = rng.random(n)
         cols.append(np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))) if log
                     else lo + u * (hi - lo))
