@@ -195,3 +195,107 @@ def test_a_damping_declared_zero_is_swept_in_log_steps(tmp_path):
     np.testing.assert_allclose(axes["springs.rope.bend.c"], [0.01, 0.1, 1.0])
     with pytest.raises(FitError, match="log steps and needs LO > 0"):
         sweep_axes(sf, params, [("springs.rope.bend.c", 0.0, 1.0)], [3])
+
+
+NEAR = """
+dt = 5e-4
+[materials.board]
+k = 3000.0
+c = 25.0
+friction = 0.5
+[[boxes]]
+name = "box"
+half_extents = [0.05, 0.04, 0.03]
+mass = 2.0
+position = [0.0, 0.0, 0.032]
+velocity = [1.2, 0.3, 0.0]
+body_angular_velocity = [0.0, 0.0, 2.0]
+material = "board"
+[[planes]]
+name = "ground"
+offset = {off}
+material = "board"
+"""
+
+
+def test_a_swept_plane_offset_starts_the_records_as_evaluate_does(tmp_path):
+    """Regression: the records' start states were estimated once, against the scene file's
+    plane offset, and reused at every swept offset; a box 2 mm above its ground is in
+    contact at the file's offset and in free flight at -4 mm, which changes its start
+    velocity. Each point now equals diffpen evaluate of the scene file with that offset."""
+    from tuning.evaluate import evaluate_files
+    scene = tmp_path / "near.toml"
+    scene.write_text(NEAR.format(off=0.002))
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    rec = str(tmp_path / "near.csv")
+    write_record(rec, tf.synthetic_record(sim, sf.params(sim), 0.1, 5e-3, {"box": 0},
+                                          noise=2e-4, seed=1))
+    res, _ = sweep_scene_file(str(scene), [rec], [("extra.plane_offset.ground", -0.004,
+                                                   0.002), ("contact.board.c", 20.0, 25.0)],
+                              n=[2], chunk=4)
+    for i, (off, c) in enumerate(res.points):
+        at = tmp_path / f"at{i}.toml"
+        at.write_text(NEAR.format(off=repr(float(off))).replace("c = 25.0",
+                                                                 f"c = {float(c)!r}"))
+        ev = evaluate_files(str(at), [rec])
+        for m in ("position_error_pct", "rotation_error_deg"):
+            np.testing.assert_allclose(res.metrics[m][i], ev[m]["mean"], rtol=1e-9,
+                                       atol=1e-12, err_msg=f"{m} at offset {off}, c {c}")
+        assert res.metrics["unstable_records"][i] == ev["unstable"] == 0
+
+
+SPIN = """
+dt = {dt}
+duration = 0.05
+[materials.board]
+k = 500.0
+c = 10.0
+friction = 0.3
+[[boxes]]
+name = "box"
+half_extents = [0.1, 0.05, 0.01]
+mass = 1.0
+position = [0.0, 0.0, 0.5]
+material = "board"
+[[planes]]
+name = "ground"
+material = "board"
+"""
+
+
+def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path):
+    """Regression: one record past the safe step (a flat box spinning at 150 rad/s, past
+    the spin limit at dt 5e-4) made every point NaN and counted it unstable, whatever k.
+    Each point now equals tuning.evaluate: that record is left out of the mean and median
+    and counted per point (unstable_records); the point is a result."""
+    fine, scene = tmp_path / "fine.toml", tmp_path / "spin.toml"
+    fine.write_text(SPIN.format(dt=5e-5))
+    scene.write_text(SPIN.format(dt=5e-4))
+    sf = load_scene_file(str(fine))
+    sim = sf.compile()
+    recs = []
+    for name, w in (("slow", (0.0, 0.0, 2.0)), ("fast", (3.0, 2.0, 150.0))):
+        s = sim.state_from(body=0, position=(0.0, 0.0, 0.5), angular_velocity=w)
+        recs.append(str(tmp_path / f"{name}.csv"))
+        write_record(recs[-1], tf.synthetic_record(sim, sf.params(sim), 0.05, 5e-3,
+                                                   {"box": 0}, state=s))
+    out = str(tmp_path / "spin.npz")
+    res, _ = sweep_scene_file(str(scene), recs, [("contact.board.k", 300.0, 800.0)], n=[2],
+                              out=out, chunk=2)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    records, bodies = tf.load_records(sf, recs)
+    batch = tf.prepare(sim, records, bodies=bodies, estimate="record")
+    assert res.unstable == 0
+    for i in range(2):
+        ev = evaluate_batch(sim, tf.with_leaves(sf.params(sim), {"contact.board.k":
+                                                                 res.points[i, 0]}), batch)
+        assert ev.unstable == 1 and res.metrics["unstable_records"][i] == 1
+        for m, s in (("position_error_pct", ev.position_error_pct),
+                     ("rotation_error_deg", ev.rotation_error_deg)):
+            np.testing.assert_allclose(res.metrics[m][i], s["mean"], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(res.metrics[m.replace("pct", "median").replace(
+                "deg", "median")][i], s["median"], rtol=1e-9, atol=1e-12)
+    with open(out[:-4] + ".csv") as fh:             # the count is in the table too
+        assert "unstable_records" in fh.readline().split(",")

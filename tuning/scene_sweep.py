@@ -13,13 +13,24 @@ call, written atomically after every chunk, resumable, split over devices and pr
   plane`` (:func:`tuning.metrics.ball_metrics`: apex heights, settling time, contact
   durations, maximum penetration, restitution) over the file's duration.
 
-Points past the scene's safe step are NaN and counted (metric ``unstable``).
+Records are scored as ``diffpen evaluate`` scores them: a record whose rollout goes past the
+scene's safe step has no errors at that point and is left out of its mean and median, and
+counted (metric ``unstable_records``); a point where no record has a result is NaN and
+counted (metric ``unstable``), as every point of a bounce sweep past the safe step.
+Sweeping a plane offset (``extra.plane_offset.NAME``), each record's start state is
+estimated against the swept offset, as ``diffpen evaluate`` of the scene file with that
+offset estimates it (whether the body is in free flight depends on its distance to the
+planes): one batch of start states per distinct row of the swept offsets, prepared on the
+host before the sweep (G first-state estimates of every record for G distinct rows).
 """
 from __future__ import annotations
 
+import copy
+import dataclasses
 import hashlib
 import math
 import os
+import warnings
 from typing import Sequence
 
 import numpy as np
@@ -32,6 +43,8 @@ __all__ = ["sweep_scene_file", "sweep_axes", "RECORD_METRICS", "BOUNCE_METRICS"]
 #: what a sweep over records keeps per point
 RECORD_METRICS = ("position_error_pct", "position_error_median", "rotation_error_deg",
                   "rotation_error_median")
+#: per point, the records past the scene's safe step, left out of its means and medians
+UNSTABLE_RECORDS = "unstable_records"
 #: what a sweep without records keeps per point (the bounce of the [fit] body)
 BOUNCE_METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
                   "restitution")
@@ -90,6 +103,44 @@ def _digest(path: str) -> str:
         return hashlib.sha256(fh.read()).hexdigest()[:16]
 
 
+def _record_batches(sim, records, bodies, estimate, max_frames, names, points):
+    """``(batch, offsets)``: the records' :class:`~tuning.record_batch.Batch` and, when plane
+    offsets are swept, ``(plane names, (G, K) table of the distinct rows of the points'
+    offsets, start states with a leading axis G)``: each record's start state estimated
+    against the scene with that row's offsets, as ``diffpen evaluate`` of a scene file with
+    those offsets does (G first-state estimates of every record, on the host); else None."""
+    import jax
+    import jax.numpy as jnp
+
+    from .trajfit import prepare
+    cols = [j for j, p in enumerate(names) if p.startswith("extra.plane_offset.")]
+    kw = dict(bodies=bodies, estimate=estimate, max_frames=max_frames)
+    if not cols:
+        return prepare(sim, records, **kw), None
+    planes = [names[j].split(".", 2)[2] for j in cols]
+    table = np.unique(np.asarray(points, float)[:, cols], axis=0)
+    batches = []
+    for row in table:
+        # one scene per row, and no first-state cache shared between them: its key does
+        # not hold the planes
+        moved = dict(zip(planes, (float(v) for v in row)))
+        scene = copy.copy(sim.scene)
+        scene.planes = [dataclasses.replace(pl, offset=moved[pl.name]) if pl.name in moved
+                        else pl for pl in sim.scene.planes]
+        with warnings.catch_warnings():         # said once, by the first row's batch
+            if batches:
+                warnings.simplefilter("ignore")
+            batches.append(prepare(sim, records, scene=scene, **kw))
+    first = batches[0]
+    for b in batches[1:]:       # only the start states depend on the planes
+        if (b.lagged is None) != (first.lagged is None) or (
+                b.lagged is not None and not np.array_equal(b.lagged, first.lagged)):
+            raise FitError("the records' batches differ between the swept plane offsets "
+                           "(their unobserved bodies' lag): sweep one offset at a time.")
+    starts = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *(b.start for b in batches))
+    return first, (planes, table, starts)
+
+
 def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence | None = None,
                      *, n: Sequence[int] = (16,), out: str | None = None, resume: bool = True,
                      chunk: int = 64, estimate: str | None = None,
@@ -116,12 +167,13 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
       names kept), ``records`` (count) and ``simulator`` (the compiled
       :class:`diffpen.Simulator`).
     """
+    import jax
     import jax.numpy as jnp
 
     from .io import describe_simulator
     from .scenefile import load_scene_file
     from .sweep import grid_points, sweep
-    from .trajfit import load_records, prepare
+    from .trajfit import load_records
     sf = load_scene_file(scene_path)
     spec = sf.spec
     data = list(data) if data else list((spec.data if spec is not None else None) or [])
@@ -138,20 +190,36 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
         estimate = estimate or (spec.first_state if spec is not None else None) or "record"
         max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
             FLIGHT_FRAMES
-        batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
+        batch, offsets = _record_batches(sim, records, bodies, estimate, max_frames, names,
+                                         points)
         key.update(records=[[os.path.basename(r.path), _digest(r.path)] for r in records],
                    estimate=estimate, flight_frames=max_frames)
         kept = list(RECORD_METRICS)
 
+        def summary(v):
+            """Mean and median over the records with a result, NaN when none has one (as
+            tuning.evaluate._summary)."""
+            v = jnp.where(jnp.isfinite(v), v, jnp.nan)
+            return jnp.nanmean(v), jnp.nanmedian(v)
+
         def metrics_fn(params):
-            pos, quat, bad = simulate(sim, params, batch, with_flag=True)
-            pe, re = _errors(pos, quat, batch)
-            m = {"position_error_pct": jnp.mean(pe),
-                 "position_error_median": jnp.median(pe)}
+            b = batch
+            if offsets is not None:     # the start states estimated at these plane offsets
+                planes, table, starts = offsets
+                row = jnp.stack([params.extra["plane_offset"][pl] for pl in planes])
+                g = jnp.argmin(jnp.sum(jnp.abs(jnp.asarray(table, row.dtype) - row), axis=1))
+                b = dataclasses.replace(batch, start=jax.tree_util.tree_map(
+                    lambda a: a[g], starts))
+            pos, quat, bad = simulate(sim, params, b, with_flag=True)
+            pe, re = _errors(pos, quat, b)
+            nan = jnp.asarray(jnp.nan, pe.dtype)
+            pe = jnp.where(bad, nan, pe)        # past the safe step: no result (as evaluate)
+            m = dict(zip(("position_error_pct", "position_error_median"), summary(pe)))
             if re is not None:
-                m.update(rotation_error_deg=jnp.mean(re),
-                         rotation_error_median=jnp.median(re))
-            m["unstable"] = jnp.any(bad)
+                m.update(zip(("rotation_error_deg", "rotation_error_median"),
+                             summary(jnp.where(bad, nan, re))))
+            m[UNSTABLE_RECORDS] = jnp.sum(jnp.isnan(pe))
+            m["unstable"] = ~jnp.any(jnp.isfinite(pe))      # no record has a result
             return m
         if not batch.has_rotation:
             kept = kept[:2]
@@ -179,7 +247,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
             m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
         return m
     res = sweep(metrics_fn, params0, points, names, chunk=chunk, out=out, resume=resume,
-                key=key, keys=kept + ["unstable"], shape=shape, axes=grid_axes,
+                key=key, keys=kept + ["unstable"] + ([UNSTABLE_RECORDS] if data else []),
+                shape=shape, axes=grid_axes,
                 progress=progress, finalize=finalize)
     info = {"axes": grid_axes, "metrics": kept, "records": len(data), "simulator": sim}
     return res, info
