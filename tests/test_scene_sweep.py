@@ -264,11 +264,9 @@ material = "board"
 """
 
 
-def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path):
-    """Regression: one record past the safe step (a flat box spinning at 150 rad/s, past
-    the spin limit at dt 5e-4) made every point NaN and counted it unstable, whatever k.
-    Each point now equals tuning.evaluate: that record is left out of the mean and median
-    and counted per point (unstable_records); the point is a result."""
+def _spin_records(tmp_path):
+    """The spinning box's scene at dt 5e-4 and two records made at dt 5e-5: a slow one and
+    one spinning at 150 rad/s, past the spin limit at 5e-4 (its rollout goes unstable)."""
     fine, scene = tmp_path / "fine.toml", tmp_path / "spin.toml"
     fine.write_text(SPIN.format(dt=5e-5))
     scene.write_text(SPIN.format(dt=5e-4))
@@ -280,6 +278,15 @@ def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path)
         recs.append(str(tmp_path / f"{name}.csv"))
         write_record(recs[-1], tf.synthetic_record(sim, sf.params(sim), 0.05, 5e-3,
                                                    {"box": 0}, state=s))
+    return scene, recs
+
+
+def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path):
+    """Regression: one record past the safe step (a flat box spinning at 150 rad/s, past
+    the spin limit at dt 5e-4) made every point NaN and counted it unstable, whatever k.
+    Each point now equals tuning.evaluate: that record is left out of the mean and median
+    and counted per point (unstable_records); the point is a result."""
+    scene, recs = _spin_records(tmp_path)
     out = str(tmp_path / "spin.npz")
     res, _ = sweep_scene_file(str(scene), recs, [("contact.board.k", 300.0, 800.0)], n=[2],
                               out=out, chunk=2)
@@ -299,3 +306,15 @@ def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path)
                 "deg", "median")][i], s["median"], rtol=1e-9, atol=1e-12)
     with open(out[:-4] + ".csv") as fh:             # the count is in the table too
         assert "unstable_records" in fh.readline().split(",")
+
+
+def test_the_sweep_command_says_how_many_points_left_records_out(tmp_path, capsys):
+    """The command says when points left records out (past the safe step), in words and
+    in its JSON, instead of leaving the count to the table alone."""
+    scene, recs = _spin_records(tmp_path)
+    argv = ["sweep", str(scene), "--param", "contact.board.k", "300", "800", "--n", "2",
+            "--data", *recs]
+    assert main(argv + ["--out", str(tmp_path / "a.npz")]) == 0
+    assert "2 points left out records" in capsys.readouterr().out
+    assert main(argv + ["--out", str(tmp_path / "b.npz"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["points_with_unstable_records"] == 2

@@ -334,6 +334,9 @@ def _run_scene(args) -> int:
            if finite_.any() else None, "lowest": best, "unstable": res.unstable}
     if "settled" in res.metrics:        # the bounce: as the ball's sweep reports it
         out["unsettled"] = _unsettled(res)
+    left = np.asarray(res.metrics.get("unstable_records", np.zeros(0)))
+    if left.size:   # records past the safe step, left out of a point's errors
+        out["points_with_unstable_records"] = int(np.count_nonzero(left))
     if args.json:
         dump_json(out)
         return 0
@@ -351,6 +354,10 @@ def _run_scene(args) -> int:
     if res.unstable:
         print(f"{res.unstable} points are past the scene's safe step: their metrics are NaN "
               "(lower dt in the scene file to compute them)")
+    if out.get("points_with_unstable_records"):
+        print(f"{out['points_with_unstable_records']} points left out records whose rollouts "
+              f"went past the safe step (up to {int(left.max())} of {info['records']}; the "
+              "unstable_records column): their errors are over the other records")
     if out.get("unsettled"):
         print(f"{out['unsettled']} points did not settle within the scene's duration: their "
               "settling_time is NaN" + (f" (besides the {res.unstable} past the safe "
