@@ -196,8 +196,8 @@ def _contact_time(events: RecordEvents, n_bounces: int = 3) -> tuple[float, floa
     tell from an instantaneous bounce."""
     e = events.restitution[:n_bounces]
     tc = events.contact[:n_bounces]
-    res = (np.zeros_like(tc) if events.contact_resolution is None
-           else events.contact_resolution[:n_bounces])
+    resolution = getattr(events, "contact_resolution", None)   # None: events made by hand
+    res = np.zeros_like(tc) if resolution is None else resolution[:n_bounces]
     usable = np.isfinite(e) & np.isfinite(tc) & (e > 0.0) & (e < 1.0)
     if not usable.any():
         raise FitError("no usable bounce in the record (need 0 < restitution < 1).")
