@@ -1146,3 +1146,79 @@ def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
                                           r"'ball', which is not in \[fit\] observe \(cube\); "
                                           r"add 'ball' to observe or drop its columns"):
         tf.load_records(sf, [path])
+
+
+def test_a_fit_held_by_the_safe_step_says_so(cube, monkeypatch):
+    """Regression: a record that wants a contact k or c past what the fit's dt allows ended
+    at the safe step with only LM's word ('iteration limit reached'; a cube whose record
+    wanted k = 3e5 crept to k = 128368, 57% low) or, at the cap itself, with 'widen
+    [fit.bounds]', which does nothing. Both now say the leaf is held by the safe step and
+    that a smaller dt helps. Here: the scene's own limit on a box's damping (about 88 N s/m,
+    below the one-contact cap), and a cap lowered to 20 N s/m (the record wants 30)."""
+    import tuning.stable as st
+    fine = dp.compile(cube.scene, 2.5e-4)
+    truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
+    s = fine.state_from(body=0, position=(0, 0, 0.12), velocity=(0.3, 0, -0.5),
+                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
+    rec = tf.synthetic_record(fine, truth, 0.15, 5e-3, {"cube": 0}, state=s)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    free = [tf.Free("contact.board.c", 1.0, 1e3)]
+    res = tf.fit_records(cube, cube.params(), batch, free, maxiter=6)
+    assert res.unstable == 0 and res.values["contact.board.c"] < 100.0
+    assert res.message.startswith("held by the safe step"), res.message
+    assert "contact.board.c" in res.message and "smaller dt" in res.message
+    assert "widen" not in res.message
+    k_max, _ = st.safe_contact_bounds(cube)
+    monkeypatch.setattr(st, "safe_contact_bounds", lambda sim: (k_max, 20.0))
+    res = tf.fit_records(cube, tf.with_leaves(cube.params(), {"contact.board.c": 10.0}),
+                         batch, free, maxiter=6)
+    assert res.values["contact.board.c"] == pytest.approx(20.0, rel=1e-9)
+    assert res.message.startswith("held by the safe step"), res.message
+    assert "widen" not in res.message and "at a bound" not in res.message
+
+
+def test_multi_start_screens_past_a_horizon_that_ties(cube):
+    """Regression: every start's screen cost was 0 when the first horizon ended before the
+    first contact, so LM ran from the first starts drawn instead of the cheapest. The
+    screen now takes the next horizons while the costs are equal, and says so when they
+    never differ."""
+    truth = cube.params()                                    # c = 30 N s/m
+    s = cube.state_from(body=0, position=(0, 0, 0.2), velocity=(0.3, 0, 0.0),
+                        orientation=(1.0, 0, 0, 0), angular_velocity=(0, 0, 0))
+    rec = tf.synthetic_record(cube, truth, 0.3, 5e-3, {"cube": 0}, state=s)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    far = tf.with_leaves(truth, {"contact.board.c": 8.0})
+    free = [tf.Free("contact.board.c", 1.0, 60.0)]
+    res = tf.fit_records(cube, far, batch, free, horizons=(0.05, None), maxiter=1,
+                         starts=[{"contact.board.c": 30.0}], keep=1)
+    assert res.starts[0]["cost"] is None and res.starts[1]["cost"] is not None
+    assert res.starts[1]["screen_cost"] < res.starts[0]["screen_cost"]
+    assert "first horizon were equal" in res.message, res.message
+    flight = tf.prepare(cube, [tf.synthetic_record(cube, truth, 0.05, 5e-3, {"cube": 0},
+                                                   state=s)], estimate="record")
+    res = tf.fit_records(cube, far, flight, free, maxiter=1,
+                         starts=[{"contact.board.c": 30.0}], keep=1)
+    assert "screen costs are equal up to the whole records" in res.message, res.message
+
+
+def test_a_leaf_without_effect_on_a_noise_free_record_is_undetermined():
+    """Regression: the damping of a ball resting on the ground all along has no effect on
+    the record (only round-off in its Jacobian column), yet the fit reported it as
+    determined with a standard error of 0 (J^T J normalised by its diagonal made the
+    round-off a full direction). A column below BLIND_RATIO of the largest is now blind."""
+    r, m, k = 0.05, 1.0, 2e4
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("m", k=k, c=20.0)
+    scene.add_sphere(r, m, (0.0, 0.0, r - m * 9.81 / k), material="m")
+    scene.add_plane(material="m")
+    sim = dp.compile(scene, 1e-3)
+    rec = tf.synthetic_record(sim, sim.params(), 0.2, 5e-3, {"ball": 0})
+    batch = tf.prepare(sim, [rec], bodies={"ball": 0})
+    start = tf.with_leaves(sim.params(), {"contact.m.k": 1e4})
+    res = tf.fit_records(sim, start, batch, [tf.Free("contact.m.k", 1e3, 1e6),
+                                             tf.Free("contact.m.c", 0.1, 1e3)],
+                         horizons=(None,), maxiter=5)
+    assert res.values["contact.m.k"] == pytest.approx(k, rel=1e-6)
+    assert res.stderr["contact.m.c"] == math.inf and math.isfinite(res.stderr["contact.m.k"])
+    assert [abs(u["direction"]["contact.m.c"]) for u in res.undetermined] == [
+        pytest.approx(1.0)]

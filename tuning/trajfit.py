@@ -155,12 +155,16 @@ class TrajFitResult:
       in the rows and columns of parameters whose standard error is inf).
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
-      eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest.
+      eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest
+      (a parameter whose Jacobian column is below :data:`BLIND_RATIO` of the largest counts
+      as one the records do not depend on).
     cost_start, cost: pose loss (mean over records) at the start (the given ``params``, with
       multi-start too) and at the fitted values, both over the whole records (with a
       growing horizon too).
     horizons: the horizons (s) fitted in turn.  iterations: LM iterations in all.
-    history: cost after each iteration.  seconds: wall time.  message: LM's last word.
+    history: cost after each iteration.  seconds: wall time.  message: LM's last word;
+      first, a contact k or c held by the safe step (:data:`SAFE_MARGIN`: the records favour
+      a value the fit's dt does not allow; a smaller dt helps, wider bounds do not).
     unstable: records whose rollout at the fitted values ran past the safe step; when > 0
       ``cost`` is NaN and the message says so: the fit is not a result.
     starts: with multi-start, per start point ``{"values", "screen_cost", "cost" (None
@@ -207,6 +211,14 @@ class TrajFitResult:
 #: through an impact, its viscous friction past the explicit step's limit: 1e64 and more).
 JACOBIAN_LIMIT = 1e8
 
+#: a fitted contact k or c within this fraction of its safe-step cap, or one the records push
+#: up where this fraction more is past the scene's safe step, is held by the safe step
+SAFE_MARGIN = 1e-3
+
+#: a fitted leaf whose Jacobian column is below this fraction of the largest column's norm
+#: does not act on the records (round-off): undetermined, infinite standard error
+BLIND_RATIO = 1e-8
+
 
 def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 rot_weight: float = ROT_WEIGHT, horizons: Sequence[float | None] = (None,),
@@ -229,7 +241,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     within a factor ``spread`` of the start value, linear ones within +-1/10 of their
     bounds' width (+-0.01 when unbounded); a list gives them as ``{leaf name: value}``
     (leaves not named keep ``params``' value). All are screened by one rollout each (the
-    cost at the first horizon; past the safe step: inf), LM runs from the ``keep``
+    cost at the first horizon, or at the next ones in turn while all costs are equal, the
+    message saying so; past the safe step: inf), LM runs from the ``keep``
     cheapest, and the result is the fit of lowest final cost;
     :attr:`TrajFitResult.starts` lists every start with its costs.
     """
@@ -262,10 +275,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     # of one contact on the lightest body (tuning.stable); the flag still judges the result
     from .stable import safe_contact_bounds
     k_max, c_max = safe_contact_bounds(sim)
+    caps = []                       # each leaf's safe-step cap (inf: none)
     for i, f in enumerate(free):
         parts = f.name.split(".")
         cap = (k_max if parts[-1] == "k" else c_max) if (
             parts[0] == "contact" and parts[-1] in ("k", "c")) else math.inf
+        caps.append(cap)
         if cap < math.inf:
             if x0[i] > f.to_x(cap):
                 raise FitError(f"{f.name} starts at {f.from_x(x0[i]):.6g}, past the largest "
@@ -309,11 +324,29 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     def whole_cost(x):
         c, bad = cost_flag(jnp.asarray(x), jnp.asarray(np.inf))
         return math.inf if int(bad) or not np.isfinite(float(c)) else float(c)
+    screen_note = ""
     if len(cands) > 1:
-        h0 = jnp.asarray(np.inf if horizons[0] is None else float(horizons[0]))
-        for xc in cands:
-            c, bad = cost_flag(jnp.asarray(xc), h0)
-            screened.append(math.inf if int(bad) or not np.isfinite(float(c)) else float(c))
+        # the first horizon's costs rank the starts; where they do not tell them apart (a
+        # horizon that ends before the first contact), the next horizons in turn, up to the
+        # whole records
+        stages = [np.inf if h is None else float(h) for h in horizons]
+        stages = [h for j, h in enumerate(stages) if h not in stages[:j]]
+        if np.inf not in stages:
+            stages.append(np.inf)
+        for hz in stages:
+            screened = []
+            for xc in cands:
+                c, bad = cost_flag(jnp.asarray(xc), jnp.asarray(hz))
+                screened.append(math.inf if int(bad) or not np.isfinite(float(c))
+                                else float(c))
+            if not _screen_tied(screened):
+                break
+        if hz != stages[0]:
+            screen_note = ("; the starts' costs at the first horizon were equal: screened "
+                           + ("on the whole records" if hz == np.inf else f"up to {hz:g} s"))
+        if _screen_tied(screened) and keep < len(cands):
+            screen_note = ("; the starts' screen costs are equal up to the whole records: LM "
+                           f"ran from the first {keep} in order, not from the cheapest")
         order = [int(i) for i in np.argsort(screened, kind="stable")[:keep]]
     else:
         order = [0]
@@ -375,18 +408,46 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                    "long for their tangent dynamics: lower dt or raise the slip_speed of "
                    f"friction materials ({message})")
     values = {f.name: float(f.from_x(x[i])) for i, f in enumerate(free)}
+    # held by the safe step: a contact k / c within SAFE_MARGIN of its cap, or one the records
+    # push up (cost falls as it grows) where a step of SAFE_MARGIN up is past the scene's
+    # safe step (trial points there are rejected, so LM only creeps towards it)
+    g = J.T @ r if np.all(np.isfinite(J)) and np.all(np.isfinite(r)) else np.zeros(len(free))
+    held = []
+    if not (n_bad or diverged):
+        for i, f in enumerate(free):
+            if caps[i] == math.inf:
+                continue
+            v = values[f.name]
+            if v >= caps[i] * (1.0 - SAFE_MARGIN):
+                held.append(i)
+            elif g[i] < 0.0:
+                up = np.asarray(x, float).copy()
+                up[i] = f.to_x(v * (1.0 + SAFE_MARGIN))
+                if int(cost_flag(jnp.asarray(up), jnp.asarray(np.inf))[1]):
+                    held.append(i)
+    if held:
+        message = ("held by the safe step (the records favour a larger value than dt = "
+                   f"{sim.dt:g} s allows; the other fitted values are biased with it): "
+                   + ", ".join(f"{free[i].name} = {values[free[i].name]:.6g}" for i in held)
+                   + "; use a smaller dt (halving it allows 4x the contact k, 2x the c) or "
+                   f"more substeps in the scene file, not wider [fit.bounds] ({message})")
     near = 1e-9 * (1.0 + np.abs(np.asarray(x, float)))
     ends = [f"{f.name} = {values[f.name]:.6g} "
             f"({'lower' if abs(x[i] - lo[i]) <= near[i] else 'upper'})"
             for i, f in enumerate(free)
-            if min(abs(x[i] - lo[i]), abs(x[i] - hi[i])) <= near[i]]
+            if min(abs(x[i] - lo[i]), abs(x[i] - hi[i])) <= near[i] and i not in held]
     if ends:
         message += ("; at a bound (the records favour a value beyond it: widen [fit.bounds], "
                     f"or take the bound as the answer; a log-space leaf without bounds moves at "
                     f"most a factor {LOG_SPAN:g} from its start, the safe step caps contact k "
                     f"and c): {', '.join(ends)}")
+    message += screen_note
     m = int(np.count_nonzero(np.any(J != 0, axis=1)))
     p = len(free)
+    # a column below BLIND_RATIO of the largest is round-off (a leaf with no effect on the
+    # records, e.g. the damping of a body at rest): no direction, so no error
+    norms = np.linalg.norm(J, axis=0) if J.size else np.zeros(p)
+    J = np.where(norms <= BLIND_RATIO * max(float(norms.max(initial=0.0)), 1e-300), 0.0, J)
     JtJ = J.T @ J
     scale = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
     S = JtJ / np.outer(scale, scale)
@@ -432,6 +493,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged,
                          cost_chosen_start=cost_chosen_start)
+
+
+def _screen_tied(costs) -> bool:
+    """The screen's finite costs are all equal to rounding (they rank nothing)."""
+    c = np.asarray([v for v in costs if np.isfinite(v)], float)
+    return c.size > 1 and float(c.max() - c.min()) <= 1e-12 * float(np.abs(c).max())
 
 
 def _record_sandwich(inv, J, r, rows):
