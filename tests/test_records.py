@@ -160,6 +160,57 @@ def test_ball_height_record_reads_through_the_same_module(tmp_path):
     assert t.shape == z.shape == (40,) and z[1] == 0.999
 
 
+def _fall(z, up=0.0, duration=2.0, noise=1e-3, scale=1.0, cols="z"):
+    """A record of a body leaving height z (m) at ``up`` m/s, at 200 Hz: free fall at
+    9.81 m/s^2 with ``noise`` (m), written times ``scale`` (100: cm). Returns (text, heights)."""
+    t = np.arange(0.0, duration, 0.005)
+    h = z + up * t - 4.905 * t * t + noise * np.random.default_rng(0).standard_normal(t.shape)
+    pad = "0,0," if cols != "z" else ""
+    return (f"t,{cols}\n" + "".join(f"{a:.4f},{pad}{b * scale:.9g}\n" for a, b in zip(t, h)),
+            h)
+
+
+def test_heights_beyond_20_m_that_fall_at_g_are_metres(tmp_path):
+    """A ball dropped from 20 m or 25 m, or thrown up to 25.7 m, in metres: refused as
+    "centimetres or millimetres" (beyond 20 m) with advice the commands could not follow;
+    it falls at 9.81 m/s^2, so it is read. A 1 m drop written in cm or mm falls at 981 or
+    9810 per s^2 and is still refused, for both the t,z and the scene records."""
+    for z, up, cols in ((20.0001, 0.0, "z"), (25.0, 0.0, "z"), (1.0, 22.0, "x,y,z")):
+        text, h = _fall(z, up, duration=4.0 if up else 2.0, cols=cols)
+        path = _write(tmp_path, text)
+        got = (read_height_record(path)[1] if cols == "z"
+               else read_record(path).bodies["body"].position[:, 2])
+        np.testing.assert_allclose(got, h, atol=1e-6)
+    for scale, accel in ((100.0, r"9\d\d per s\^2 \(\d+ g"),
+                         (1000.0, r"9\d{3} per s\^2 \(\d+ g")):
+        for cols, read in (("z", read_height_record), ("x,y,z", read_record)):
+            text, _ = _fall(1.0, duration=0.4, noise=1e-3 / scale, scale=scale, cols=cols)
+            path = _write(tmp_path, text)
+            with pytest.raises(RecordError, match=r"line 2, column \d \(z\): \d+ m is beyond "
+                                                  rf"20 m and the record falls there at about "
+                                                  rf"{accel}.*look like centimetres or "
+                                                  r"millimetres.*Divide them by 100 or 1000\.$"):
+                read(path)
+
+
+def test_heights_beyond_20_m_without_a_fall_say_how_to_read_metres(tmp_path):
+    """A record beyond 20 m that shows no free fall (at rest, or a straight line) cannot be
+    told from centimetres: it is refused, and the advice for a record that really is in metres
+    names the Python reader and its check_units=False (the commands have no such option)."""
+    rest = "".join(f"{i * 0.01:.2f},{25.0 + 1e-3 * (-1) ** i}\n" for i in range(40))
+    for head, read in (("t,z", "read_height_record"), ("t,x,y,z", "read_record")):
+        text = head + "\n" + (rest if head == "t,z" else rest.replace(",", ",0,0,"))
+        path = _write(tmp_path, text)
+        with pytest.raises(RecordError, match=r"25.001 m is beyond 20 m and the record shows "
+                                              r"no free fall .*look like centimetres or "
+                                              rf"millimetres.*tuning\.records\.{read}\(path, "
+                                              r"check_units=False\) \(the diffpen commands "
+                                              r"refuse it\)"):
+            (read_height_record if head == "t,z" else read_record)(path)
+        if head == "t,z":
+            assert read_height_record(path, check_units=False)[1][1] == 24.999
+
+
 def test_builder_node_names_round_trip(tmp_path):
     """Builder nodes are named like "cloth[1,2]": the header cell is quoted and read back."""
     t = np.array([0.0, 0.01, 0.02])

@@ -110,6 +110,22 @@ def test_bounces_between_samples_split_the_flights(rate, phase):
     assert float(dp.physical.restitution(k, c, 1.0)) == pytest.approx(0.7, rel=0.01)
 
 
+def test_flights_too_short_for_the_frame_rate_name_the_rate():
+    """A 1 m drop at 10 Hz holds bounces of at most 5 samples each: it was refused as
+    holding "fewer than two flights"; the message now says the flights are too short for the
+    sample rate. A record without a second flight keeps the plain message."""
+    t = np.arange(0.0, 1.2, 0.1)                   # flights of at most 5 samples
+    z = _hard_ball(t, e=0.5) + 5e-4 * np.random.default_rng(5).standard_normal(t.shape)
+    with pytest.raises(FitError, match=r"fewer than two flights of at least 6 samples .*: 0 of "
+                                       r"its \d+ flights have that many, the longest of the "
+                                       r"others has [1-5], at 0.1 s between samples \(10 Hz\)"
+                                       r"\. Record faster"):
+        S.record_events(t, z, radius=0.1)
+    t = np.arange(0.0, 0.4, 0.01)
+    with pytest.raises(FitError, match=r"fewer than two flights: a trajectory fit needs"):
+        S.record_events(t, _hard_ball(t), radius=0.1)
+
+
 def test_noise_near_an_apex_makes_no_bounce():
     """Sharp dips at the apexes (spikes of 2 cm, far above the margin) are not bounces: a
     bounce's samples lie within a frame's travel of the floor."""

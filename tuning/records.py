@@ -53,8 +53,12 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 QUAT_TOL = 1e-3
 #: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
 MS_SPAN = 60.0
-#: a height |z| beyond this (m) looks like centimetres or millimetres
+#: a height |z| beyond this (m) looks like centimetres or millimetres, unless the record falls
+#: there at about FALL (m/s^2), within a factor FALL_FACTOR: in cm it would fall at 981, in mm
+#: at 9810
 MM_LIMIT = 20.0
+FALL = 9.81
+FALL_FACTOR = 10.0
 
 
 class RecordError(FitError):
@@ -256,6 +260,57 @@ def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) ->
                               "are seconds).")
 
 
+def _fall(t: np.ndarray, p: np.ndarray, r: int) -> float | None:
+    """Acceleration magnitude (record units/s^2) of the motion around sample ``r``, the one
+    farthest from 0 in the last column of ``p`` (T, k) (z): a parabola fitted to the run of
+    samples around it that stay beyond the middle of the record's range (a flight's top: no
+    contact with the lowest surface lies in it). None when the record does not show one: fewer
+    than 6 samples there, samples the parabola does not follow (rms misfit above a tenth of
+    their span), or an acceleration within 5 standard errors of 0 (at rest, uniform motion)."""
+    ok = np.isfinite(p).all(axis=1)
+    r = int(np.count_nonzero(ok[:r]))
+    t, p = t[ok], p[ok]
+    u = np.sign(p[r, -1]) * p[:, -1]
+    mid = 0.5 * (u.max() + u.min())
+    a, b = r, r + 1
+    while a > 0 and u[a - 1] > mid:
+        a -= 1
+    while b < len(u) and u[b] > mid:
+        b += 1
+    n = b - a
+    if n < 6:
+        return None
+    s = t[a:b] - t[a:b].mean()
+    A = np.stack([np.ones_like(s), s, s * s], axis=1)
+    coef, *_ = np.linalg.lstsq(A, p[a:b], rcond=None)
+    res = p[a:b] - A @ coef
+    span = float(np.ptp(p[a:b], axis=0).max())
+    rms = math.sqrt(float(np.mean(np.sum(res * res, axis=1))))
+    if not span > 0.0 or rms > 0.1 * span:
+        return None
+    acc = 2.0 * float(np.linalg.norm(coef[2]))
+    err = 2.0 * rms * math.sqrt(n / (n - 3) * float(np.linalg.inv(A.T @ A)[2, 2]))
+    return acc if acc > 5.0 * err else None
+
+
+def _unit_slip(path: str, line: str, col: str, value: float, what: str, fall: float | None,
+               api: str) -> RecordError:
+    """The refusal of a record beyond MM_LIMIT whose motion does not show metres."""
+    head = f"{path}, line {line}, column {col}: {value:g} m is beyond {MM_LIMIT:g} m"
+    if fall is not None and fall > FALL_FACTOR * FALL:
+        return RecordError(f"{head} and the record falls there at about {fall:.0f} per s^2 "
+                           f"({fall / FALL:.0f} g if it were metres): {what} look like "
+                           "centimetres or millimetres, but records are in metres. Divide them by "
+                           "100 or 1000.")
+    shown = "no free fall" if fall is None else f"an acceleration of only {fall:.3g} m/s^2"
+    return RecordError(f"{head} and the record shows {shown} around it to confirm metres (about "
+                       f"{FALL:g} m/s^2 in flight): {what} look like centimetres or "
+                       "millimetres, but records are in metres. Divide them by 100 or 1000; a "
+                       "record that really is in metres is read in Python with "
+                       f"tuning.records.{api}(path, check_units=False) (the diffpen commands "
+                       "refuse it).")
+
+
 # --------------------------------------------------------------------------- records
 def _parse_header(path: str, header: list[str], hline: int, body_names, scene_names=None):
     """t column index and {body: {group: [column index per component]}} from the header.
@@ -342,8 +397,10 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
     accepted). scene_names: all the scene's body names when ``body_names`` is a part of them
     (``[fit] observe``): a column of one left out is refused as not observed. max_rows,
     max_bytes: size guard, checked from the file size before anything is parsed.
-    check_units: refuse times that look like milliseconds and positions that look like
-    millimetres.
+    check_units: refuse times that look like milliseconds, and heights beyond ``MM_LIMIT``
+    (20 m) that look like centimetres or millimetres: unless the body falls there at about
+    9.81 m/s^2 (a parabola fitted to the flight around the highest sample, within a factor
+    ``FALL_FACTOR`` of ``FALL``), which shows metres.
     Raises :class:`RecordError` (file, line, column and the fix). Nothing is compiled.
     """
     path = os.fspath(path)
@@ -390,12 +447,11 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                               "at least one.")
         if check_units and np.nanmax(np.abs(p[:, 2])) > MM_LIMIT:
             r = int(np.nanargmax(np.abs(p[:, 2])))
-            j = groups["position"][2]
-            raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
-                              f"{p[r, 2]:g} m is beyond {MM_LIMIT:g} m: positions look like "
-                              "centimetres or millimetres, but they are in metres. Divide by "
-                              "100 or 1000 (or pass check_units=False if they really are "
-                              "metres).")
+            fall = _fall(t, p, r)
+            if fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR:
+                j = groups["position"][2]
+                raise _unit_slip(path, data[r][0], f"{j + 1} ({header[j]})", p[r, 2],
+                                 "positions", fall, "read_record")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 
@@ -432,10 +488,10 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     _check_times(path, t, data, it, check_units)
     if check_units and np.abs(z).max() > MM_LIMIT:
         r = int(np.argmax(np.abs(z)))
-        raise RecordError(f"{path}, line {data[r][0]}, column {iz + 1} (z): {z[r]:g} m is "
-                          f"beyond {MM_LIMIT:g} m: heights look like centimetres or "
-                          "millimetres, but z is in metres. Divide by 100 or 1000 (or pass "
-                          "check_units=False).")
+        fall = _fall(t, z[:, None], r)
+        if fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR:
+            raise _unit_slip(path, data[r][0], f"{iz + 1} (z)", z[r], "heights", fall,
+                             "read_height_record")
     return t, z
 
 

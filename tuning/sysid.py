@@ -171,6 +171,16 @@ def record_events(t, z, *, radius: float, g: float = 9.81, min_samples: int = 6)
             z0 = aa + bb * s0 - 0.5 * g * s0 * s0 + radius
             v0 = bb - g * s0
     if len(arcs) < 2:
+        runs = [b - a for a, b in zip(starts, ends)]
+        if len(runs) >= 2:
+            step = float(np.median(np.diff(t)))
+            short = max(n for n in runs if n < min_samples)
+            raise FitError(f"the record holds fewer than two flights of at least {min_samples} "
+                           f"samples (a flight's parabola needs them): {len(arcs)} of its "
+                           f"{len(runs)} flights have that many, the longest of the others has "
+                           f"{short}, at {step:.3g} s between samples ({1.0 / step:.3g} Hz). "
+                           "Record faster: a trajectory fit needs at least one complete bounce "
+                           "(landing and rebound) with that many samples in each flight.")
         raise FitError("the record holds fewer than two flights: a trajectory fit needs at "
                        "least one complete bounce (landing and rebound).")
     apex, land, take = np.array(apex), np.array(land), np.array(take)
