@@ -170,6 +170,18 @@ def test_a_record_the_fit_itself_made_starts_every_body_where_it_did(tmp_path):
                                atol=2e-5)
 
 
+def _hung_pair():
+    """(simulator, a, b): sphere b hangs from sphere a on a stretched spring (k 60 N/m), so
+    b's acceleration at the start depends on a fitted value; contact values undeclared."""
+    import diffpen as dp
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    a = s.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
+    b = s.add_sphere(0.03, 0.2, (0.0, 0.0, 0.4))
+    s.add_spring(a, b, k=60.0, c=0.1, rest_length=0.25)
+    sim = dp.compile(s, dt=1e-3)
+    return sim, a, b
+
+
 def test_the_unobserved_bodies_lag_is_taken_at_the_simulated_parameters():
     """Regression: the unobserved bodies' lag evaluated ``sim.params()``, which a scene
     without declared contact values refuses: prepare crashed, with advice it could not
@@ -194,11 +206,7 @@ def test_the_unobserved_bodies_lag_is_taken_at_the_simulated_parameters():
     start = start_states(sim, p, batch)
     assert float(start.velocity[0, b, 2]) == pytest.approx(0.5e-3 * 9.81, rel=1e-9)
     # a force that depends on a fitted value: b hangs from a on a stretched spring
-    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    a = s.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
-    b = s.add_sphere(0.03, 0.2, (0.0, 0.0, 0.4))
-    s.add_spring(a, b, k=60.0, c=0.1, rest_length=0.25)
-    sim = dp.compile(s, dt=1e-3)
+    sim, a, b = _hung_pair()
     rec = tf.synthetic_record(sim, sim.params(k=1e4, c=1.0), 0.05, 5e-3, {"a": a})
     batch = tf.prepare(sim, [rec], bodies={"a": a})
     seen = []
@@ -267,12 +275,7 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones()
     scene with bodies the record does not observe."""
     import warnings
 
-    import diffpen as dp
-    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    a = s.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
-    b = s.add_sphere(0.03, 0.2, (0.0, 0.0, 0.4))
-    s.add_spring(a, b, k=60.0, c=0.1, rest_length=0.25)
-    sim = dp.compile(s, dt=1e-3)
+    sim, a, b = _hung_pair()
     rec = tf.synthetic_record(sim, sim.params(k=1e4, c=1.0), 0.03, 5e-3, {"a": a})
     with warnings.catch_warnings():
         warnings.simplefilter("error")

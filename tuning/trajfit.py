@@ -21,7 +21,7 @@ Pipeline (each step a public function, all importable from here):
    (signed leaves such as plane offsets in linear space, positive ones in log space) with a
    forward-mode Jacobian through the rollouts, optionally over a growing horizon, and
    reports standard errors, correlations and the parameter directions the records do not
-   determine.
+   determine (:mod:`tuning.fit_errors`).
 
 This module also holds the params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`),
 :class:`Free` and :func:`load_records`. The command's file-level workflow, ``diffpen fit
@@ -46,6 +46,7 @@ from .fit import FitError, Progress
 from .lm import levenberg_marquardt
 from .params import leaf_paths
 from .first_state import first_state
+from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
 from .record_batch import Batch, prepare, prepare_buckets, simulate
 from .stable import params_unstable, unsafe_start
@@ -146,7 +147,7 @@ class TrajFitResult:
 
     params: fitted :class:`diffpen.Params`.  values: ``{name: value}`` of the fitted leaves.
     stderr: ``{name: standard error}``: the larger of Gauss-Newton's ``s^2 (J^T J)^-1`` and
-      the records-as-clusters sandwich (:func:`_record_sandwich`, which takes in what the
+      the records-as-clusters sandwich (:mod:`tuning.fit_errors`, which takes in what the
       residuals of one record share: the noise of its first frame, correlated frames; with
       few records it is itself uncertain); inf for a parameter the records do not depend
       on or that takes part in an undetermined direction (an entry above 0.1 in its unit
@@ -156,7 +157,7 @@ class TrajFitResult:
     undetermined: directions of the fitted (log/linear) parameters the records leave
       undetermined: ``[{"eigenvalue_ratio": r, "direction": {name: coeff}}]`` for the
       eigenvectors of the scaled ``J^T J`` with eigenvalue below ``1e-8`` x the largest
-      (a parameter whose Jacobian column is below :data:`BLIND_RATIO` of the largest counts
+      (a parameter whose Jacobian column is below 1e-8 of the largest counts
       as one the records do not depend on).
     cost_start, cost: pose loss (mean over records) at the start (the given ``params``, with
       multi-start too) and at the fitted values, both over the whole records (with a
@@ -214,11 +215,6 @@ JACOBIAN_LIMIT = 1e8
 #: a fitted contact k or c within this fraction of its safe-step cap, or one the records push
 #: up where this fraction more is past the scene's safe step, is held by the safe step
 SAFE_MARGIN = 1e-3
-
-#: a fitted leaf whose Jacobian column is below this fraction of the largest column's norm
-#: does not act on the records (round-off): undetermined, infinite standard error
-BLIND_RATIO = 1e-8
-
 
 def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 rot_weight: float = ROT_WEIGHT, horizons: Sequence[float | None] = (None,),
@@ -442,47 +438,13 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                     f"most a factor {LOG_SPAN:g} from its start, the safe step caps contact k "
                     f"and c): {', '.join(ends)}")
     message += screen_note
-    m = int(np.count_nonzero(np.any(J != 0, axis=1)))
-    p = len(free)
-    # a column below BLIND_RATIO of the largest is round-off (a leaf with no effect on the
-    # records, e.g. the damping of a body at rest): no direction, so no error
-    norms = np.linalg.norm(J, axis=0) if J.size else np.zeros(p)
-    J = np.where(norms <= BLIND_RATIO * max(float(norms.max(initial=0.0)), 1e-300), 0.0, J)
-    JtJ = J.T @ J
-    scale = np.sqrt(np.maximum(np.diag(JtJ), 1e-300))
-    S = JtJ / np.outer(scale, scale)
-    ev, evec = np.linalg.eigh(S)
-    loose_dirs = ev < 1e-8 * max(ev[-1], 1e-300)
-    undetermined = [{"eigenvalue_ratio": float(ev[i] / max(ev[-1], 1e-300)),
-                     "direction": {names[j]: float(evec[j, i]) for j in range(p)}}
-                    for i in range(p) if loose_dirs[i]]
-    s2 = cost / max(m - p, 1)
-    # no error for parameters the records do not depend on at all, nor for those with an
-    # entry above 0.1 in an undetermined direction's unit vector (only a combination of
-    # them is determined: pinv below keeps the determined part alone, which would give
-    # them a small error that means nothing)
-    blind = (np.diag(JtJ) <= 0.0) | np.any(np.abs(evec[:, loose_dirs]) > 0.1, axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.linalg.pinv(S, rcond=1e-12) / np.outer(scale, scale)
-        cov = inv * s2
-        rows, first = [], 0                 # each residual's record over all batches
-        for b in batches:
-            rows.append(residual_records(b, loss, sim.scene.has_rotation) + first)
-            first += b.pos.shape[0]
-        rows = np.concatenate(rows)
-        robust = _record_sandwich(inv, J, r, rows if len(rows) == len(r) else None)
-        if robust is not None:
-            # the larger of the two per parameter: the classical one treats every residual
-            # as independent noise; the sandwich takes in what a record's residuals share
-            # (its start state's noise, correlated frames), with few records noisily
-            var = np.maximum(np.diag(cov), np.diag(robust))
-            keep = np.sqrt(np.maximum(var, 0.0) / np.maximum(np.diag(cov), 1e-300))
-            cov = cov * np.outer(keep, keep)
-        se_x = np.where(blind, np.inf, np.sqrt(np.maximum(np.diag(cov), 0.0)))
-        corr = np.where(np.outer(blind, blind) | np.outer(blind, ~blind)
-                        | np.outer(~blind, blind), np.nan, cov / np.outer(se_x, se_x))
-    stderr = {f.name: float(math.inf if blind[i] else values[f.name] * se_x[i] if f.log
-                            else se_x[i]) for i, f in enumerate(free)}
+    rows, first = [], 0                     # each residual's record over all batches
+    for b in batches:
+        rows.append(residual_records(b, loss, sim.scene.has_rotation) + first)
+        first += b.pos.shape[0]
+    rows = np.concatenate(rows)
+    stderr, corr, undetermined = parameter_errors(
+        J, r, cost, free, values, rows if len(rows) == len(r) else None)
     if diverged:
         stderr = {name: math.nan for name in stderr}
         corr = np.full_like(corr, np.nan)
@@ -499,22 +461,6 @@ def _screen_tied(costs) -> bool:
     """The screen's finite costs are all equal to rounding (they rank nothing)."""
     c = np.asarray([v for v in costs if np.isfinite(v)], float)
     return c.size > 1 and float(c.max() - c.min()) <= 1e-12 * float(np.abs(c).max())
-
-
-def _record_sandwich(inv, J, r, rows):
-    """Records-as-clusters covariance ``inv B inv * R / (R - 1)`` (``inv`` = (J^T J)^-1,
-    ``B`` = sum over records of ``g g^T``, ``g = J_r^T r_r`` the record's score): what the
-    fitted values would scatter by if the records were measured again, whatever the errors
-    within one record share (the noise of its first frame, which fixes its start state;
-    correlated frames). None with fewer than two records."""
-    if rows is None:
-        return None
-    R = int(rows.max()) + 1 if rows.size else 0
-    if R < 2:
-        return None
-    g = np.zeros((R, J.shape[1]))
-    np.add.at(g, rows, J * np.asarray(r)[:, None])
-    return inv @ (g.T @ g) @ inv * (R / (R - 1.0))
 
 
 def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
