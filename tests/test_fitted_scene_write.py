@@ -153,20 +153,21 @@ def test_plastic_springs_yield_strain(tmp_path, group, values):
 
 
 # --------------------------------------------------------------------------- 3: default k, c
-def test_default_material_keeps_the_first_materials_old_k(tmp_path):
-    """Without top-level k / c the default material takes the first material's: fitting that
-    material's k must not move contact.default.k."""
-    text = (RUN + "[materials.rubber]\nk = 1e4\nc = 20.0\n" + BALLS
+def test_default_material_keeps_the_defaults(tmp_path):
+    """Without top-level k / c the default material takes the defaults (1e4 N/m, 10 N s/m),
+    not the first material's: fitting that material's k and c must not move contact.default,
+    and the written file states the defaults."""
+    text = (RUN + "[materials.rubber]\nk = 2e3\nc = 20.0\n" + BALLS
             + '[[fixed_spheres]]\ncenter = [3.0, 0.0, 0.5]\nradius = 0.2\n'
               'material = "rubber"\n[[planes]]\n')
     before, doc = _roundtrip(tmp_path, text, {"contact.rubber.k": 2e4, "contact.rubber.c": 5.0})
-    assert before["contact.default.k"] == 1e4 and before["contact.default.c"] == 20.0
-    assert (doc["k"], doc["c"]) == (1e4, 20.0)
+    assert before["contact.default.k"] == 1e4 and before["contact.default.c"] == 10.0
+    assert (doc["k"], doc["c"]) == (1e4, 10.0)
 
 
 def test_materials_without_their_own_k_keep_it(tmp_path):
-    """A material that gives only friction uses the top-level fallback; fitting another
-    material's c, or the default material's k, leaves it where it was."""
+    """A material that gives only c uses the top-level fallback (here the default 1e4 N/m);
+    fitting another material's c, or the default material's k, leaves it where it was."""
     text = (RUN + "[materials.rubber]\nc = 20.0\n[materials.board]\nk = 3e3\nfriction = 0.2\n"
             + BALLS + '[[boxes]]\nhalf_extents = [0.05, 0.05, 0.05]\nmass = 0.37\n'
               'position = [3.0, 0.0, 0.3]\nmaterial = "board"\n'
@@ -175,7 +176,7 @@ def test_materials_without_their_own_k_keep_it(tmp_path):
     before, _ = _roundtrip(tmp_path, text, {"contact.board.c": 7.0, "contact.default.k": 5e3,
                                 "extra.friction.board": 0.3,
                                 "extra.plane_offset.ground": -0.002})
-    assert before["contact.rubber.k"] == 3e3        # the fallback: the first material's k
+    assert before["contact.rubber.k"] == 1e4        # the fallback: the default k
 
 
 def test_readme_example_scene(tmp_path):

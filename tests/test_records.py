@@ -224,6 +224,20 @@ def test_builder_node_names_round_trip(tmp_path):
     np.testing.assert_array_equal(back.bodies["rope[3]"].position, p + 1)
 
 
+@pytest.mark.parametrize("cols", ["cloth[1,2].x,cloth[1,2].y,cloth[1,2].z",
+                                  "cloth[1, 2].x,cloth[1, 2].y,cloth[1, 2].z",
+                                  "cloth[1,2].x"])
+def test_unquoted_node_name_with_a_comma_says_to_quote_it(tmp_path, cols):
+    """Regression: an unquoted "cloth[1,2].x" is split at its comma by the CSV reader and was
+    refused as "column 'cloth[1' appears twice"; the message now says to quote it."""
+    path = _write(tmp_path, _rows(3, cols))
+    with pytest.raises(RecordError, match=r"line 1: header cell 'cloth\[1' looks like a node "
+                       r"name split at its comma: node names containing commas must be quoted "
+                       r'in the CSV header, e\.g\. "cloth\[1, 2\]\.x" in double quotes') as exc:
+        read_record(path)
+    assert "appears twice" not in str(exc.value)
+
+
 def test_one_named_body_keeps_its_name(tmp_path):
     """Regression: a one-body record was written t,x,y,z, dropping the body's name: read back
     it was body "body" and a scene observing two bodies refused it. A plain one-body file

@@ -233,10 +233,10 @@ def test_every_element_kind_builds_the_python_api_scene(all_file):
     sim = sf.compile()
     assert sim.integrator == "semi_implicit_euler" and sim.smoothing == 1e-4
     # and the compiled parameters equal the API scene's (a material without k and c takes
-    # those of the first material that has them, as documented)
+    # the top-level ones; this file gives none, so the documented 1e4 N/m and 10 N s/m)
     sim_api = dp.compile(api, 5e-4, smoothing=1e-4)
     pa = param_leaves(sf.params(sim))
-    pb = param_leaves(sim_api.params(contact={"default": (2e4, 15.0)}))
+    pb = param_leaves(sim_api.params(contact={"default": (1e4, 10.0)}))
     assert pa.keys() == pb.keys()
     for key in pa:
         assert float(pa[key]) == float(pb[key]), key
@@ -626,3 +626,102 @@ def test_ball_record_fit_gets_the_files_law_with_its_exponent(tmp_path, monkeypa
         scenefile.fit_file(str(path))
     law = dp.laws.get(seen["law"])
     assert (law.name, law.exponent) == ("hunt_crossley", 1.5)
+
+
+def _two_materials(first_a: bool, top: str = "") -> str:
+    a = "[materials.a]\nk = 5e3\nc = 7.0\n"
+    b = "[materials.b]\nfriction = 0.3\n"
+    return (top + (a + b if first_a else b + a)
+            + '[[spheres]]\nradius = 0.1\nmass = 1.0\nposition = [0, 0, 1]\nmaterial = "a"\n'
+            + '[[planes]]\nmaterial = "b"\n')
+
+
+@pytest.mark.parametrize("first_a", [True, False])
+def test_material_without_k_c_takes_the_top_level_or_default_not_another_materials(
+        tmp_path, first_a):
+    """Regression: a material without k / c took the first declared material's, so the
+    result depended on the order of [materials.*]; it takes the top-level k / c, else the
+    documented defaults k = 1e4 N/m, c = 10 N s/m."""
+    p = tmp_path / "m.toml"
+    p.write_text(_two_materials(first_a))
+    sf = load_scene_file(str(p))
+    assert (sf.setup.k, sf.setup.c) == (1e4, 10.0)
+    leaves = param_leaves(sf.params(sf.compile()))
+    assert (float(leaves["contact.b.k"]), float(leaves["contact.b.c"])) == (1e4, 10.0)
+    p.write_text(_two_materials(first_a, top="k = 3e3\nc = 2.0\n"))
+    sf = load_scene_file(str(p))
+    leaves = param_leaves(sf.params(sf.compile()))
+    assert (float(leaves["contact.b.k"]), float(leaves["contact.b.c"])) == (3e3, 2.0)
+
+
+@pytest.mark.parametrize("law", ['law = "linear"\n', 'law = "no_tension"\n', ""])
+def test_exponent_is_refused_outside_hunt_crossley(tmp_path, law):
+    """Regression: exponent with another law was silently ignored."""
+    p = tmp_path / "e.toml"
+    p.write_text(law + "exponent = 2.0\n" + BALL)
+    with pytest.raises(SceneFileError, match=r"e\.toml: exponent applies only to law = "
+                       r"\"hunt_crossley\", but law = '(linear|no_tension)': remove exponent, "
+                       r"or set law = \"hunt_crossley\""):
+        load_scene_file(str(p))
+    p.write_text('law = "hunt_crossley"\nexponent = 2.0\n' + BALL)
+    assert load_scene_file(str(p)).compile_options["exponent"] == 2.0
+
+
+@pytest.mark.parametrize("timing", ["dt = 1e-3\nduration = 5e-4\n", "dt = 0.01\nduration = 1e-3\n"])
+def test_duration_shorter_than_one_step_is_refused(tmp_path, timing):
+    """Regression: duration < dt silently ran one step."""
+    p = tmp_path / "d.toml"
+    p.write_text(timing + BALL)
+    with pytest.raises(SceneFileError, match=r"d\.toml: duration = [0-9.e-]+ s is shorter than "
+                       r"one step \(dt = [0-9.e-]+ s\).*give duration >= "):
+        load_scene_file(str(p))
+    p.write_text(timing.split("\n")[0] + "\nduration = 0.01\n" + BALL)
+    assert load_scene_file(str(p)).setup.steps >= 1
+
+
+_ROPE = '[[ropes]]\nn = 5\nstart = [0, 2, 1]\nend = [1, 2, 1]\nmass = 1.0\nk = 100.0\n'
+_TWO = ('[[spheres]]\nname = "a"\nradius = 0.1\nmass = 1.0\nposition = [0, 0, 1]\n'
+        '[[spheres]]\nname = "b"\nradius = 0.1\nmass = 1.0\nposition = [1, 0, 1]\n')
+_SPHERE = '[[spheres]]\nradius = 0.1\nmass = 1.0\nposition = [0, 0, 1]\n'
+
+
+@pytest.mark.parametrize("text, words, fixed", [
+    ('[spring_groups."rope.stretch"]\nk = 1.0\n' + _ROPE,
+     r"ropes\[0\] group 'rope\.stretch' already exists in this scene: give this entry another "
+     r"name \(e\.g\. name = \"rope2\"; .*or rename the \[spring_groups\.\"rope\.stretch\"\] table",
+     '[spring_groups."rope.stretch"]\nk = 1.0\n' + _ROPE + 'name = "rope2"\n'),
+    (_SPHERE.replace("[0, 0, 1]", "[0, 0, 0]") + "[[planes]]\n",
+     r"planes\[0\] .*overlap .*; or set allow_overlap = true in this entry \(or at the top "
+     r"level for the whole file\)",
+     _SPHERE.replace("[0, 0, 1]", "[0, 0, 0]") + "[[planes]]\nallow_overlap = true\n"),
+    (_TWO + '[[springs]]\na = "a"\nb = "b"\n',
+     r"springs\[0\] spring group 'default' is new: give k = \.\.\. \(N/m\) in this entry, or "
+     r"declare it in a \[spring_groups\.default\] table with k \(N/m\) and c \(N s/m\)",
+     _TWO + '[[springs]]\na = "a"\nb = "b"\nk = 10.0\n'),
+    (_SPHERE + "velocity = [1, 0, 0]\npinned = true\n",
+     r"spheres\[0\] a pinned body cannot have an initial velocity: drop velocity from this "
+     r"entry, or set pinned = false",
+     _SPHERE + "velocity = [1, 0, 0]\npinned = false\n"),
+    ("[[cloths]]\nnx = 3\nny = 3\nspacing = 0.1\nmass = 1.0\nstructural = false\n",
+     r"cloths\[0\] cloth structural springs are required: give structural = k or \[k, c\] "
+     r"\(N/m, N s/m\) in this entry, not false",
+     "[[cloths]]\nnx = 3\nny = 3\nspacing = 0.1\nmass = 1.0\nstructural = [100.0, 0.1]\n"),
+    (_ROPE + "pinned = [[0, 0]]\n",
+     r"ropes\[0\]\.pinned\[0\] must be a node index \(a whole number\), got an array \[0, 0\]; "
+     r"e\.g\. pinned = \[0, -1\]",
+     _ROPE + "pinned = [0, -1]\n"),
+], ids=["D3a-group-prefix", "D3b-allow-overlap", "D3c-spring-group", "D3d-pinned-velocity",
+        "D3e-structural", "D3f-rope-pinned"])
+def test_library_errors_give_the_files_spelling_of_the_fix(tmp_path, text, words, fixed):
+    """Regression: the loader passed on the library's Python advice (group= prefix,
+    allow_overlap=True, scene.add_spring_group(...), pinned=True, structural=(k, c),
+    pinned = 10 for an array); the message now names the file's keys, and following it loads."""
+    p = tmp_path / "a.toml"
+    p.write_text("dt = 1e-3\nduration = 0.01\n" + text)
+    with pytest.raises(SceneFileError, match=words) as exc:
+        load_scene_file(str(p))
+    msg = str(exc.value)
+    for python in ("=True", "group=", "scene.", "=(", "k=", "pinned = 10"):
+        assert python not in msg
+    p.write_text("dt = 1e-3\nduration = 0.01\n" + fixed)
+    assert load_scene_file(str(p)).scene.n_bodies >= 1

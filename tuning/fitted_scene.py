@@ -5,9 +5,9 @@ Where a leaf goes (dotted params paths, see :mod:`tuning.scenefile`):
 
 * ``contact.M.k`` / ``contact.M.c`` / ``extra.friction.M`` / ``extra.slip_speed.M``:
   ``[materials.M]`` k / c / friction / slip_speed (the table is added when the material took
-  the top-level k, c). When the file has no top-level ``k`` / ``c``, the loader takes them
-  from the first material that gives its own; they are then written explicitly with their old
-  values, so that fitting that material moves no other material (``contact.default``, ...);
+  the top-level k, c). When the file has no top-level ``k`` / ``c``, the loader uses the
+  defaults k = 1e4 N/m and c = 10 N s/m; they are then written explicitly with those values,
+  so that the written file reads back the same whatever those defaults become;
 * ``extra.plane_offset.NAME``: the ``offset`` of the ``[[planes]]`` entry named NAME;
 * ``springs.G.k`` / ``.c``: wherever spring group G is declared, in the loader's order: a
   ``[spring_groups.G]`` table, else the builder that makes it (a rope's ``k`` / ``c`` for
@@ -254,7 +254,7 @@ def _place(doc: dict, path: str, value: float, sf) -> None:
     if parts[0] == "contact" and len(parts) >= 3 and parts[-1] in ("k", "c"):
         field = parts[-1]
         for top, old in (("k", sf.setup.k), ("c", sf.setup.c)):
-            if top not in doc:      # else the first material's own k / c moves the others
+            if top not in doc:      # the loader's defaults, written explicitly
                 doc[top] = float(old)
         _material(doc, path, ".".join(parts[1:-1]))[field] = value
         return

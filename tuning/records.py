@@ -315,6 +315,11 @@ def _unit_slip(path: str, line: str, col: str, value: float, what: str, fall: fl
 def _parse_header(path: str, header: list[str], hline: int, body_names, scene_names=None):
     """t column index and {body: {group: [column index per component]}} from the header.
     Column letters are read in any case (``T,X,Y,Z``); body names keep theirs."""
+    split = next((h for h in header if h.count("[") != h.count("]")), None)
+    if split is not None:
+        raise RecordError(f"{path}, line {hline}: header cell {_q(split)} looks like a node name "
+                          "split at its comma: node names containing commas must be quoted in "
+                          'the CSV header, e.g. "cloth[1, 2].x" in double quotes.')
     header = [f"{h.rpartition('.')[0]}.{h.rpartition('.')[2].lower()}" if "." in h
               else h.lower() for h in header]
     if len(set(header)) != len(header):

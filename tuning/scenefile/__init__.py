@@ -6,17 +6,17 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     description = "..."             # one line for printouts
     gravity = [0.0, 0.0, -9.81]     # m/s^2
     dt = 1e-3                       # s
-    duration = 3.0                  # s, default rollout length
+    duration = 3.0                  # s, default rollout length (>= dt)
     law = "linear"                  # "linear", "no_tension", "hunt_crossley"
-    exponent = 1.5                  # Hunt-Crossley exponent (>= 1)
+    exponent = 1.5                  # Hunt-Crossley exponent (>= 1); law = "hunt_crossley" only
     integrator = "semi_implicit_euler"   # any of diffpen.integrators.INTEGRATORS
     smoothing = "auto"              # contact smoothing width, m (>= 0) or "auto"
     substeps = 1                    # int >= 1 or "auto"
     plastic_smoothing = 1e-3        # strain width of the plastic yield onset
     broadphase = { kind = "grid" }  # or { kind = "aabb", max_pairs = 4096 }; also margin,
                                     # cell_size, max_per_cell, bounds = [[x0,y0,z0],[x1,y1,z1]]
-    k = 1e4                         # default contact k (N/m) and c (N s/m) of materials
-    c = 10.0                        # that do not give their own
+    k = 1e4                         # contact k (N/m) and c (N s/m) of every material that
+    c = 10.0                        #   does not give its own (defaults 1e4 and 10.0)
     allow_overlap = false           # bodies may start overlapping (also per body, plane and
                                     #   fixed sphere), where the library checks overlaps
 

@@ -27,17 +27,32 @@ def _kc_opt(w: Where, v):
     return V.number(w, v, low=0.0, unit="N/m (or [k, c], or false to leave the springs out)")
 
 
+_GRID_EXAMPLE = {1: "[0, -1]", 2: "[[0, 0], [-1, 0]]", 3: "[[0, 0, 0], [-1, 0, 0]]"}
+
+
 def _int_grid(w: Where, v, dims: int) -> list:
+    """Node indices of a builder's ``pinned``: integers (dims 1) or ``dims``-integer arrays."""
+    example = f"{V._leaf(w)} = {_GRID_EXAMPLE[dims]}"
     if not isinstance(v, list):
-        raise w.error(f"must be an array of node indices, got {V._kind(v)} {V._show(v)}.")
+        raise w.error(f"must be an array of node indices, got {V._kind(v)} {V._show(v)}; "
+                      f"e.g. {example}.")
+
+    def index(wi, x):
+        if isinstance(x, bool) or not isinstance(x, int):
+            what = "a node index" if dims == 1 else "a grid index"
+            raise wi.error(f"must be {what} (a whole number), got {V._kind(x)} {V._show(x)}; "
+                           f"e.g. {example}.")
+        return x
+
     out = []
     for i, p in enumerate(v):
         if dims == 1:
-            out.append(V.integer(w / i, p))
+            out.append(index(w / i, p))
         else:
             if not isinstance(p, list) or len(p) != dims:
-                raise (w / i).error(f"must be {dims} integer grid indices, got {V._show(p)}.")
-            out.append(tuple(V.integer(w / i / j, x) for j, x in enumerate(p)))
+                raise (w / i).error(f"must be {dims} integer grid indices, got {V._show(p)}; "
+                                    f"e.g. {example}.")
+            out.append(tuple(index(w / i / j, x) for j, x in enumerate(p)))
     return out
 
 

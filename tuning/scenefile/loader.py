@@ -3,6 +3,7 @@ settings, broad phase), which calls the element, size and ``[fit]`` readers."""
 from __future__ import annotations
 
 import os
+import re
 import tomllib
 
 import diffpen as dp
@@ -10,11 +11,12 @@ import diffpen as dp
 from .. import validate as V
 from ..scenes import SceneSetup
 from ..validate import SceneFileError, Where
+from .advice import file_advice
 from .elements import _ElementTables
 from .fitspec import _FitTable
 from .record import SceneFile
-from .schema import (MAX_BODIES, MAX_COORD, MAX_DENSE_PAIRS, MAX_STEPS, MAX_TRAJECTORY_BYTES,
-                     TOP, _NAME, _takes)
+from .schema import (DEFAULT_C, DEFAULT_K, MAX_BODIES, MAX_COORD, MAX_DENSE_PAIRS, MAX_STEPS,
+                     MAX_TRAJECTORY_BYTES, TOP, _NAME, _takes)
 from .sizes import _SizeGuards
 
 
@@ -63,7 +65,8 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
         except dp.SceneError as exc:
             if isinstance(exc, SceneFileError):
                 raise
-            raise w.error(str(exc)) from None
+            table = re.split(r"[.\[]", w.key, maxsplit=1)[0]
+            raise w.error(file_advice(str(exc), table, self.doc)) from None
 
     def name(self, w: Where, v, taken: dict) -> str:
         V.string(w, v)
@@ -93,8 +96,16 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
                             low_open=True, unit="s")
         gravity = V.vector(self.w("gravity"), doc.get("gravity", [0.0, 0.0, -9.81]),
                            unit="m/s^2")
+        if duration < dt * (1.0 - 1e-9):
+            raise self.w("duration").error(
+                f"= {duration:g} s is shorter than one step (dt = {dt:g} s): the rollout "
+                f"runs round(duration / dt) steps; give duration >= {dt:g} s or a smaller dt.")
         law = V.choice(self.w("law"), doc.get("law", "linear"), sorted(dp.laws.CONTACT_LAWS))
         opts = {"law": law}
+        if "exponent" in doc and law != "hunt_crossley":
+            raise self.w("exponent").error(
+                f"applies only to law = \"hunt_crossley\", but law = {law!r}: remove "
+                "exponent, or set law = \"hunt_crossley\".")
         if "exponent" in doc:
             opts["exponent"] = V.number(self.w("exponent"), doc["exponent"], low=1.0)
         if "integrator" in doc:
@@ -135,10 +146,10 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
         self.colliders()
         self.springs()
         self.drag()
-        mats = [m for m in scene.materials.values() if m.k is not None]
-        k = k if k is not None else (mats[0].k if mats else 1e4)
-        cs = [m.c for m in scene.materials.values() if m.c is not None]
-        c = c if c is not None else (cs[0] if cs else 10.0)
+        # a material without its own k / c takes the top-level k / c, else the documented
+        # defaults (never another material's)
+        k = DEFAULT_K if k is None else k
+        c = DEFAULT_C if c is None else c
         desc = doc.get("description", os.path.basename(self.path))
         V.string(self.w("description"), desc)
         fit_raw = doc.get("fit")

@@ -11,6 +11,9 @@ MAX_STEPS = 10_000_000
 MAX_BODIES = 200_000
 MAX_DENSE_PAIRS = 500_000          # contact pairs evaluated every step without a broad phase
 MAX_TRAJECTORY_BYTES = 8 * 2**30   # a rollout saving every step
+#: contact k (N/m) and c (N s/m) of materials that give neither their own nor a top-level one
+DEFAULT_K = 1e4
+DEFAULT_C = 10.0
 #: positions, centres and anchor points must lie within this distance of the origin, m
 MAX_COORD = 1e6
 
