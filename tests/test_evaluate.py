@@ -124,10 +124,18 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
         os.makedirs(tmp_path / sub, exist_ok=True)
         same.append(str(tmp_path / sub / "toss.csv"))
         shutil.copy(paths[i], same[-1])
+    # regression: with a third record named 001_toss.csv, the second's numbered name
+    # 001_toss.png was that record's own: one picture overwrote the other
+    same.append(str(tmp_path / "001_toss.csv"))
+    shutil.copy(paths[0], same[-1])
     plots = tmp_path / "same"
     assert main(["evaluate", scene, "--data", *same, "--json", "--plot", str(plots)]) == 0
     listed = json.loads(capsys.readouterr().out)["plots"]
-    assert len(set(listed)) == 2 and all(os.path.exists(p) for p in listed)
+    assert len(set(listed)) == 3 and all(os.path.exists(p) for p in listed)
+    assert sorted(os.listdir(plots)) == sorted([os.path.basename(p) for p in listed]
+                                               + ["plots.json"])
+    assert ev._plot_names(["a/x.csv", "b/X.csv", "001_x.csv", "001_x.csv"]) == [
+        "x.png", "001_X.png", "002_001_x.png", "003_001_x.png"]      # no two alike, any case
 
 
 TWO = """
@@ -229,3 +237,45 @@ def test_cli_evaluate_plot_folder_holds_this_runs_plots_only(setup, tmp_path, ca
     assert sorted(os.listdir(plots)) == ["mine.png", "plots.json", "toss_0.png"]
     assert outside.exists()
     assert json.loads((plots / "plots.json").read_text())["files"] == ["toss_0.png"]
+
+
+def test_cli_evaluate_refuses_a_plot_path_that_is_a_folder_before_rolling_out(
+        setup, tmp_path, capsys, monkeypatch):
+    """--plot DIR where DIR/NAME.png (a record's picture) is a folder: the records were
+    compiled and rolled out, then saving failed ("Is a directory"), the JSON lost and the
+    index listing the picture. Now refused with status 2 before anything is compiled."""
+    pytest.importorskip("matplotlib")
+    scene, paths, *_ = setup
+
+    def boom(*a, **k):
+        raise AssertionError("rolled out before checking the pictures' paths")
+    monkeypatch.setattr(ev, "evaluator", boom)
+    (tmp_path / "plots" / "toss_1.png").mkdir(parents=True)
+    capsys.readouterr()
+    assert main(["evaluate", scene, "--data", *paths, "--plot", str(tmp_path / "plots")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'plots' / 'toss_1.png'} is a folder" in err
+    assert "move or remove it, or choose another --plot folder" in err
+    assert sorted(os.listdir(tmp_path / "plots")) == ["toss_1.png"]     # nothing written
+
+
+def test_cli_evaluate_refuses_a_plot_folder_another_run_is_writing(
+        setup, tmp_path, capsys, monkeypatch):
+    """Two runs with --plot into one folder mixed their pictures and index (the index
+    naming one scene, a picture drawn by the other). A run holds a lock on DIR/plots.json;
+    a second run is refused with status 2 before anything is compiled."""
+    pytest.importorskip("matplotlib")
+    from tuning.io import OutputLock
+    scene, paths, *_ = setup
+
+    def boom(*a, **k):
+        raise AssertionError("rolled out into a folder another run is writing")
+    monkeypatch.setattr(ev, "evaluator", boom)
+    plots = tmp_path / "plots"
+    plots.mkdir()
+    capsys.readouterr()
+    with OutputLock(str(plots / "plots.json")):              # the first run, still drawing
+        assert main(["evaluate", scene, "--data", *paths, "--plot", str(plots)]) == 2
+    err = capsys.readouterr().err
+    assert "being written by another process" in err and "Traceback" not in err
+    assert os.listdir(plots) == []

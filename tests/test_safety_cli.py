@@ -221,6 +221,28 @@ def test_cli_sweep_keys_nan_for_unsettled_and_locks(capsys, tmp_path):
     with OutputLock(out):
         assert main(other) == 2
     assert "being written by another process" in capsys.readouterr().err
+    # a corrupt member (its key intact): a raw BadZipFile traceback, exit 1; now exit 2
+    import zipfile
+    with zipfile.ZipFile(out) as z:
+        info = z.getinfo("metric:apex_heights.npy")
+    data = bytearray(open(out, "rb").read())
+    data[info.header_offset + 30 + len(info.filename) + info.compress_size // 2] ^= 0xFF
+    open(out, "wb").write(bytes(data))
+    rc, err = err_of(capsys, argv)
+    assert rc == 2 and "sw.npz cannot be read" in err and "--fresh" in err, err
+    assert "Traceback" not in err
+
+
+def test_a_table_path_that_is_a_folder_says_to_move_it_or_change_out(capsys, no_compile,
+                                                                     tmp_path):
+    """--out h.npz beside a folder h.csv was refused with "give a file name inside it, e.g.
+    h.csv/result.npz": the table's name follows from --out and cannot be given."""
+    (tmp_path / "h.csv").mkdir()
+    rc, err = err_of(capsys, ["sweep", "--n", "4", "--out", str(tmp_path / "h.npz")])
+    assert rc == 2, err
+    assert "is a directory: its name follows from --out, so move or remove that folder, or " \
+           "choose another --out" in err
+    assert "file name inside it" not in err
 
 
 def test_a_sweep_never_writes_over_its_inputs(capsys, no_compile, tmp_path):

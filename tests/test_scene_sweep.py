@@ -318,3 +318,30 @@ def test_the_sweep_command_says_how_many_points_left_records_out(tmp_path, capsy
     assert "2 points left out records" in capsys.readouterr().out
     assert main(argv + ["--out", str(tmp_path / "b.npz"), "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["points_with_unstable_records"] == 2
+
+
+def test_points_with_unstable_records_leave_out_the_points_where_all_were(tmp_path, capsys,
+                                                                          monkeypatch):
+    """Points where every record went past the safe step (NaN, counted as unstable points)
+    were counted again as points that "left out records ... their errors are over the other
+    records", though they have no errors. Only points with some but not all records left
+    out are counted there, in words and in the JSON."""
+    import tuning.scene_sweep as SS
+    from tuning.sweep import SweepResult
+    left = np.array([0, 1, 2, 2])                # of 2 records; the last two: all left out
+    res = SweepResult(["contact.board.k"], np.array([[1e3], [2e3], [3e3], [4e3]]),
+                      {"position_error_pct": np.array([1.0, 2.0, np.nan, np.nan]),
+                       "unstable_records": left, "unstable": left == 2},
+                      np.ones(4, bool), (4,), unstable=2)
+    info = {"axes": {"contact.board.k": res.points[:, 0]},
+            "metrics": ["position_error_pct"], "records": 2}
+    monkeypatch.setattr(SS, "sweep_scene_file", lambda *a, **k: (res, info))
+    argv = ["sweep", str(tmp_path / "s.toml"), "--out", str(tmp_path / "s.npz")]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    assert "2 points are past the scene's safe step" in text
+    assert "1 points left out records whose rollouts went past the safe step (up to 1 of " \
+           "2;" in text
+    assert main(argv + ["--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert got["points_with_unstable_records"] == 1 and got["unstable"] == 2

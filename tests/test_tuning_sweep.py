@@ -232,3 +232,51 @@ def test_a_csv_that_is_not_the_sweeps_table_is_refused(tmp_path):
         toy_sweep(out, resume=False)
     assert (tmp_path / "s.csv").read_text() == "t,z\n0.0,1.0\n"
     assert table.startswith("contact.default.k,") and table.splitlines()[0].endswith(",done")
+
+
+def test_an_out_that_is_not_npz_is_refused(tmp_path):
+    """sweep(out="res.csv") wrote its .npz to res.csv, then its table over it: the results
+    were lost and load_sweep/resume failed. Refused before anything is written."""
+    for bad in ("res.csv", "res", "res.npz.bak"):
+        with pytest.raises(S.SweepError, match=r"must end in \.npz.*give NAME\.npz"):
+            toy_sweep(str(tmp_path / bad))
+    assert os.listdir(tmp_path) == []
+    assert toy_sweep(str(tmp_path / "res.NPZ")).done.all()          # any case
+
+
+def _corrupt_member(path, member):
+    import zipfile
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(member)
+    data = bytearray(open(path, "rb").read())
+    data[info.header_offset + 30 + len(info.filename) + info.compress_size // 2] ^= 0xFF
+    open(path, "wb").write(bytes(data))
+
+
+def test_an_unreadable_sweep_file_is_refused_clearly_and_fresh_overwrites_it(tmp_path):
+    """A sweep .npz with a corrupt member raised a raw BadZipFile; a truncated one beside
+    its own table was refused as if the table were another file's ("not the table"), also
+    with resume=False, which could never overwrite it. Both now: "cannot be read", and
+    resume=False (--fresh) overwrites the file and its table."""
+    out = str(tmp_path / "s.npz")
+    toy_sweep(out)
+    _corrupt_member(out, "metric:twice.npy")                 # its key is intact
+    with pytest.raises(S.SweepError, match=r"s\.npz cannot be read \(BadZipFile.*resume="
+                                           r"False \(diffpen sweep --fresh\)"):
+        toy_sweep(out)
+    with open(out, "rb") as fh:
+        data = fh.read()
+    with open(out, "wb") as fh:                             # truncated
+        fh.write(data[:300])
+    with pytest.raises(S.SweepError, match=r"cannot be read.*--fresh"):
+        toy_sweep(out)
+    res = toy_sweep(out, resume=False)
+    assert res.evaluated == 8 and S.load_sweep(out).done.all()
+    assert open(str(tmp_path / "s.csv")).readline().startswith("contact.default.k,")
+    # an unreadable file does not make any .csv beside it its table
+    with open(out, "wb") as fh:
+        fh.write(data[:300])
+    (tmp_path / "s.csv").write_text("t,z\n0.0,1.0\n")
+    with pytest.raises(S.SweepError, match="not the table"):
+        toy_sweep(out, resume=False)
+    assert (tmp_path / "s.csv").read_text() == "t,z\n0.0,1.0\n"

@@ -195,20 +195,26 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     (its parameter values as written) on the records. Returns the JSON-ready summary
     (``position_error_pct``, ``rotation_error_deg``, ``records``, ``seconds`` of the
     rollouts after compilation, ``compile_seconds``); with ``plot`` (a folder, checked
-    before anything is compiled) also draws the first ``n_plot`` records to
-    ``plot/NAME.png`` and lists them in ``plot/plots.json`` with the scene and the records
-    (:data:`PLOT_INDEX`); the PNGs an earlier run's index lists that this run does not
-    redraw are removed (no other file in the folder is touched). ``estimate`` /
+    before anything is compiled, and so is every picture's path) also draws the first
+    ``n_plot`` records to ``plot/NAME.png`` (for a record ``NAME.csv``; ``NNN_NAME.png``
+    when that name is not unique, :func:`_plot_names`) and lists them in
+    ``plot/plots.json`` with the scene and the records (:data:`PLOT_INDEX`); the PNGs an
+    earlier run's index lists that this run does not redraw are removed (no other file in
+    the folder is touched). One run per folder: the run holds
+    :class:`tuning.io.OutputLock` on ``plot/plots.json`` from the checks to its end, and a
+    second run into the folder is refused at once (:class:`tuning.io.OutputError`).
+    ``estimate`` /
     ``max_frames``: the first-state estimate and its frame cap
     (:func:`tuning.first_state.first_state`); None: the scene file's ``[fit] first_state`` /
     ``flight_frames``, else ``"record"`` / ``FLIGHT_FRAMES`` (20)."""
     import os
 
     from .scenefile import load_scene_file
-    from .trajfit import check_stable, load_records, prepare
+    from .trajfit import load_records
     sf = load_scene_file(scene_path)
     records, bodies = load_records(sf, list(data) if data else list(
         (sf.spec.data if sf.spec is not None else None) or []))
+    lock = None
     if plot is not None:            # checked before anything is compiled or rolled out
         if os.path.exists(plot) and not os.path.isdir(plot):
             raise FitError(f"--plot {plot} is a file: --plot names a folder for the "
@@ -227,6 +233,56 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
                            "path.")
         from .plots import require_matplotlib
         require_matplotlib()
+        from .io import OutputLock, clean_orphans
+        # one run per folder: a second run's pictures and index would mix with this one's
+        index = os.path.join(plot, PLOT_INDEX)
+        lock = OutputLock(index, what="--plot folder's index").acquire()
+        clean_orphans(index)            # a killed run's half-written index
+    try:
+        files = None
+        if plot is not None:        # each record's picture: a file name no other one has
+            shown = range(min(n_plot, len(records)))
+            files = _plot_names([records[r].path for r in shown])
+            for r, f in zip(shown, files):
+                p = os.path.join(plot, f)
+                if os.path.isdir(p) or (os.path.exists(p) and not os.access(p, os.W_OK)):
+                    raise FitError(
+                        f"--plot {plot}: {p} is "
+                        + ("a folder" if os.path.isdir(p) else "not writable")
+                        + f"; the plot of {records[r].path} is written there: move or "
+                        "remove it, or choose another --plot folder.")
+        return _evaluate(sf, scene_path, records, bodies, estimate, max_frames, plot, files)
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _plot_names(paths) -> list:
+    """The file names ``evaluate --plot`` draws the records ``paths`` to, one per record and
+    all different (compared without case): ``NAME.png`` for a record ``.../NAME.csv``;
+    ``NNN_NAME.png`` (``NNN`` its position) when two records share a name or a name is
+    already taken, then ``NNN_NAME_2.png``, ... until free."""
+    import os
+    names = [os.path.splitext(os.path.basename(str(p)))[0] for p in paths]
+    taken, files = set(), []
+    for r, name in enumerate(names):
+        stem = name if names.count(name) == 1 else f"{r:03d}_{name}"
+        if stem.lower() + ".png" in taken:
+            stem = f"{r:03d}_{name}"
+        f, k = stem + ".png", 2
+        while f.lower() in taken:
+            f, k = f"{stem}_{k}.png", k + 1
+        taken.add(f.lower())
+        files.append(f)
+    return files
+
+
+def _evaluate(sf, scene_path, records, bodies, estimate, max_frames, plot, files) -> dict:
+    """The body of :func:`evaluate_files` once its outputs are checked (and the ``--plot``
+    folder locked): compile, roll out, summarise, draw ``files`` into ``plot``."""
+    import os
+
+    from .trajfit import check_stable, prepare
     spec = sf.spec
     estimate = estimate or (spec.first_state if spec is not None else None) or "record"
     max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
@@ -244,10 +300,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     out.update({"scene": scene_path, "estimate": estimate, "compile_seconds": compile_s,
                 "bodies": bodies})
     if plot is not None:
-        shown = range(min(n_plot, len(records)))
-        names = [os.path.splitext(os.path.basename(records[r].path))[0] for r in shown]
-        files = [f"{r:03d}_{name}.png" if names.count(name) > 1    # same file name in two
-                 else f"{name}.png" for r, name in zip(shown, names)]   # folders: one each
+        shown = range(len(files))
         # an earlier run's plots that this one does not redraw would look current: the
         # index lists every file a run wrote (first with the earlier ones, so that a run
         # stopped half way leaves none unlisted), and those it listed are removed after

@@ -55,17 +55,25 @@ def version() -> str:
 
 
 # --------------------------------------------------------------------------- paths
-def check_output(path, *, what: str = "output", ext: str | None = None) -> str:
+def check_output(path, *, what: str = "output", ext: str | None = None,
+                 derived_from: str | None = None) -> str:
     """Check that ``path`` can be written as a file; return it as an absolute path.
 
     Raises :class:`OutputError` naming ``what`` (e.g. ``"--out"``; ``ext``: the file type its
     example name suggests, default by ``what``) when the path is empty, is
     a directory, its parent folder does not exist or is not a folder, or either cannot be
-    written. Nothing is created.
+    written. Nothing is created. ``derived_from``: the option or argument the path's name
+    follows from (e.g. ``"--out"`` for the ``.csv`` table beside ``--out NAME.npz``): its
+    name cannot be given, so a directory or a read-only file there is to be moved or
+    removed, or that option changed.
     """
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise OutputError(f"{what} must be a file path, got {path!r}.")
     p = os.path.abspath(os.fspath(path))
+    if derived_from and os.path.isdir(p):
+        raise OutputError(f"{what} {path} is a directory: its name follows from "
+                          f"{derived_from}, so move or remove that folder, or choose another "
+                          f"{derived_from}.")
     if os.path.isdir(p) or str(path).endswith(os.sep):
         raise OutputError(f"{what} {path} is a directory: give a file name inside it, e.g. "
                           f"{os.path.join(str(path), 'result' + (ext or _ext(what)))}.")
@@ -79,7 +87,9 @@ def check_output(path, *, what: str = "output", ext: str | None = None) -> str:
         raise OutputError(f"{what} {path}: the folder {folder} is not writable; choose "
                           "another path.")
     if os.path.exists(p) and not os.access(p, os.W_OK):
-        raise OutputError(f"{what} {path} exists and is not writable; choose another path.")
+        raise OutputError(f"{what} {path} exists and is not writable; " + (
+            f"make it writable, move it, or choose another {derived_from}." if derived_from
+            else "choose another path."))
     return p
 
 

@@ -274,28 +274,72 @@ def _save(out: str, res: SweepResult) -> None:
     atomic_write(csv_path, write_csv)
 
 
-def _read_key(path: str):
-    """The key stored in a sweep file, or None (no key, or not a sweep file)."""
+class _Unreadable(Exception):
+    """A file at a sweep's ``out`` that is a zip archive (or empty) but cannot be read
+    through: truncated, corrupt. Its message says why."""
+
+
+#: how a zip archive (an .npz) starts: a first member, or the end record of an empty one
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+
+def _read_head(path: str) -> tuple:
+    """``(key, names)`` of the sweep file at ``path``; ``(None, None)`` for a readable file
+    that is not one (not an .npz, or an .npz without a key: foreign). Raises
+    :class:`_Unreadable` for an empty file or an .npz that cannot be read (truncated,
+    corrupt)."""
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+    except OSError as exc:
+        raise _Unreadable(exc.strerror or str(exc)) from None
+    if not magic:
+        raise _Unreadable("it is empty")
+    if magic not in _ZIP_MAGIC:
+        return None, None                       # not an .npz: another program's file
     try:
         with np.load(path, allow_pickle=False) as f:
-            return json.loads(str(f["key"])) if "key" in f.files else None
-    except Exception:  # noqa: BLE001 - unreadable or foreign: no key
-        return None
-
-
-def _own_table(csv_path: str, out: str) -> bool:
-    """Whether ``csv_path`` is the table :func:`_save` wrote beside the sweep file ``out``:
-    ``out`` is a sweep file and the table's header is its swept names ... ``done``."""
-    try:
-        with np.load(out, allow_pickle=False) as f:
             if "key" not in f.files:
-                return False
+                return None, None
+            key = json.loads(str(f["key"]))
             names = [str(n) for n in f["names"]]
+    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, numpy and json errors alike
+        raise _Unreadable(f"{type(exc).__name__}: {exc}") from None
+    return (key, names) if isinstance(key, dict) else (None, None)
+
+
+def _read_key(path: str):
+    """The key stored in a sweep file, or None (a readable file that is not a sweep file).
+    Raises :class:`_Unreadable` for a file that cannot be read (truncated, corrupt)."""
+    return _read_head(path)[0]
+
+
+def _own_table(csv_path: str, out: str, names=None) -> bool:
+    """Whether ``csv_path`` is the table :func:`_save` wrote beside the sweep file ``out``:
+    its header is the swept names ... ``done``. The names are those stored in ``out``; when
+    ``out`` cannot be read (truncated, corrupt: it can only be overwritten), ``names`` (this
+    run's swept names), so that ``resume=False`` replaces both files. False when ``out`` is
+    missing or not a sweep file, or the table is not text."""
+    if not os.path.exists(out):
+        return False
+    try:
+        _, names = _read_head(out)
+    except _Unreadable:
+        names = None if names is None else [str(n) for n in names]
+    if names is None:
+        return False
+    try:
         with open(csv_path, "rb") as fh:
             header = fh.readline(1 << 16).decode().strip().split(",")
-    except Exception:  # noqa: BLE001 - no sweep file, or a table that is not text
+    except Exception:  # noqa: BLE001 - a table that cannot be read or is not text
         return False
     return len(header) > len(names) and header[:len(names)] == names and header[-1] == "done"
+
+
+def _unreadable(out: str, csv_path: str, why) -> str:
+    return (f"{out} cannot be read ({why}): a truncated or corrupt sweep file, so it cannot "
+            f"be resumed. Overwrite it and its table {os.path.basename(csv_path)} with "
+            "resume=False (diffpen sweep --fresh), or choose another output path.")
 
 
 def load_sweep(path: str) -> SweepResult:
@@ -328,13 +372,15 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       params0: :class:`diffpen.Params` giving the leaves that are not swept.
       points: (N, P) parameter values, SI units.  names: (P,) leaf paths.
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
-      out: ``.npz`` path; results (and a ``.csv`` beside it) are written atomically after
+      out: ``NAME.npz`` path (any other name raises :class:`SweepError`: the table is
+        written to ``NAME.csv`` beside it); results and table are written atomically after
         every chunk. The paths are checked before anything is computed (a ``.csv`` there
         that is not the table of the sweep in ``out`` is refused, never overwritten), and an
         exclusive lock (``.<name>.lock`` beside it) keeps a second writer out.
       resume: continue a sweep found at ``out`` when its key equals this sweep's (see
         :func:`sweep_key`); a file with another key raises :class:`SweepError` naming what
-        differs. ``resume=False`` overwrites ``out``.
+        differs, and so does one that cannot be read (truncated, corrupt).
+        ``resume=False`` overwrites ``out`` (an unreadable one and its table too).
       key: what determines ``metrics_fn`` beyond the swept leaves (scene, law, integrator,
         dt, duration, metric settings...): stored in the file and compared on resume
         (:func:`tuning.io.describe_simulator` builds most of it). With ``out`` and no key,
@@ -377,13 +423,17 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
     if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
         raise ValueError(f"chunk must be an int >= 1, got {chunk!r}.")
     n = points.shape[0]
-    if out and key is None:     # the key must say what computes the metrics: derive it
+    # the key must say what computes the metrics: derive it for a file (a rerun resumes only
+    # the same work) and for a cluster (every process must compute the same function)
+    if key is None and (out or distributed.process_count() > 1):
         fn = metrics_fn if metrics_fn is not None else getattr(evaluate, "metrics_fn", None)
         if fn is None:
-            raise SweepError("a sweep written to out= needs key= (what determines the "
-                             "metrics: scene, law, dt, duration...) when it is given only "
-                             "a prebuilt evaluate=: without one, a rerun with other physics "
-                             "would resume into the same file.")
+            why = ("a rerun with other physics would resume into the same file" if out else
+                   "processes computing other physics would mix their rows unnoticed")
+            raise SweepError(f"a sweep {'written to out=' if out else 'on several processes'} "
+                             "needs key= (what determines the metrics: scene, law, dt, "
+                             "duration...) when it is given only a prebuilt evaluate=: "
+                             f"without one, {why}.")
         p0 = params0 if metrics_fn is not None else getattr(evaluate, "params0", params0)
         key = {"metrics_fn": function_key(fn, p0)}
         if finalize is not None:    # rows post-processed another way are other results
@@ -410,24 +460,37 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
             def prepare():
                 nonlocal lock
                 check_output(out, what="sweep output")
-                check_output(csv_path, what="sweep table")
+                if os.path.splitext(out)[1].lower() != ".npz":   # its table would be itself
+                    raise SweepError(
+                        f"out={out} must end in .npz: the results are written to NAME.npz "
+                        "and their table to NAME.csv beside it; give NAME.npz (e.g. "
+                        f"{os.path.splitext(out)[0]}.npz).")
+                check_output(csv_path, what="sweep table", derived_from="out")
                 lock = OutputLock(out, what="sweep output").acquire()
                 clean_orphans(out)
                 clean_orphans(csv_path)
-                if os.path.exists(csv_path) and not _own_table(csv_path, out):
+                if os.path.exists(csv_path) and not _own_table(csv_path, out, names):
                     raise SweepError(
                         f"{csv_path} exists and is not the table of a sweep in {out}: the "
                         "sweep writes its table there, which would overwrite it. Move it, or "
                         "choose another output path (diffpen sweep --out).")
                 if not (os.path.exists(out) and resume):
                     return None
-                diff = key_differences(_read_key(out), full_key)
+                try:
+                    old = _read_key(out)
+                except _Unreadable as exc:
+                    raise SweepError(_unreadable(out, csv_path, exc)) from None
+                diff = key_differences(old, full_key)
                 if diff:
                     raise SweepError(
                         f"{out} holds another sweep's results, so it cannot be resumed: "
                         + "; ".join(diff) + ". Overwrite it with resume=False (diffpen sweep "
                         "--fresh) or choose another output path.")
-                return load_sweep(out)
+                try:                    # its key is intact; a member may still be corrupt
+                    return load_sweep(out)
+                except Exception as exc:  # noqa: BLE001 - zipfile, zlib and numpy errors
+                    raise SweepError(_unreadable(out, csv_path,
+                                                 f"{type(exc).__name__}: {exc}")) from None
             res = distributed.from_process_zero(prepare)
             if res is not None:
                 res.shape, res.axes = shape, axes

@@ -15,9 +15,11 @@ def add_arguments(p) -> None:
                    help="records to evaluate on (default: the scene file's [fit] data)")
     add_start_state_arguments(p)
     p.add_argument("--plot", metavar="DIR", help="draw simulated against measured "
-                   "trajectories of the first 4 records into DIR, one PNG each, listed with "
-                   "the scene in DIR/plots.json (the PNGs an earlier run listed there that "
-                   "this run does not redraw are removed; needs matplotlib)")
+                   "trajectories of the first 4 records into DIR, one PNG each (NAME.png for "
+                   "NAME.csv, NNN_NAME.png when names repeat), listed with the scene in "
+                   "DIR/plots.json (the PNGs an earlier run listed there that this run does "
+                   "not redraw are removed; one run per DIR at a time: a second is refused; "
+                   "needs matplotlib)")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 

@@ -32,7 +32,11 @@ def add_arguments(p) -> None:
                    "range; repeat for more axes (log-spaced for positive leaves, linear for "
                    "offsets)")
     p.add_argument("--data", nargs="+", metavar="FILE.csv", help="with SCENE.toml: records "
-                   "to evaluate every point on (default: the scene file's [fit] data)")
+                   "to evaluate every point on (default: the scene file's [fit] data); a "
+                   "record whose rollout goes past the safe step is left out of that point's "
+                   "errors (the unstable_records column; JSON points_with_unstable_records: "
+                   "the points where some but not all records were left out; where all "
+                   "were, the point is NaN and counted in unstable)")
     add_start_state_arguments(p, "with SCENE.toml --data: ")
     p.add_argument("--k", type=positive("--k"), nargs=2, default=None,
                    metavar=("KMIN", "KMAX"), help="stiffness range, N/m (default 1e3 1e5)")
@@ -257,7 +261,12 @@ def _is_writer() -> bool:
 
 
 def _run_scene(args) -> int:
-    """``diffpen sweep SCENE.toml``: :func:`tuning.scene_sweep.sweep_scene_file`."""
+    """``diffpen sweep SCENE.toml``: :func:`tuning.scene_sweep.sweep_scene_file`.
+
+    Against records, ``unstable`` (JSON) counts the points where every record's rollout went
+    past the safe step (their metrics are NaN), and ``points_with_unstable_records`` the
+    points where some but not all were (left out of that point's errors, which are over the
+    other records; per point in the ``unstable_records`` column)."""
     if not args.scene.lower().endswith(".toml"):
         raise CLIError(f"{args.scene}: give a scene file (.toml)")
     ball_only = [f"--{n.replace('_', '-')}" for n in BALL_DEFAULTS if getattr(args, n)
@@ -335,8 +344,14 @@ def _run_scene(args) -> int:
     if "settled" in res.metrics:        # the bounce: as the ball's sweep reports it
         out["unsettled"] = _unsettled(res)
     left = np.asarray(res.metrics.get("unstable_records", np.zeros(0)))
-    if left.size:   # records past the safe step, left out of a point's errors
-        out["points_with_unstable_records"] = int(np.count_nonzero(left))
+    partial = np.zeros(0, bool)
+    if left.size:   # records past the safe step, left out of a point's errors: the points
+        # that still have a result (all records left out: counted in res.unstable)
+        left = left.reshape(left.shape[0], -1)[:, 0]
+        flagged = np.asarray(res.metrics.get("unstable", np.zeros(left.shape[0], bool)),
+                             bool).reshape(left.shape[0], -1).any(axis=1)
+        partial = res.done & ~flagged & (left > 0) & (left < info["records"])
+        out["points_with_unstable_records"] = int(np.count_nonzero(partial))
     if args.json:
         dump_json(out)
         return 0
@@ -356,8 +371,9 @@ def _run_scene(args) -> int:
               "(lower dt in the scene file to compute them)")
     if out.get("points_with_unstable_records"):
         print(f"{out['points_with_unstable_records']} points left out records whose rollouts "
-              f"went past the safe step (up to {int(left.max())} of {info['records']}; the "
-              "unstable_records column): their errors are over the other records")
+              f"went past the safe step (up to {int(left[partial].max())} of "
+              f"{info['records']}; the unstable_records column): their errors are over the "
+              "other records")
     if out.get("unsettled"):
         print(f"{out['unsettled']} points did not settle within the scene's duration: their "
               "settling_time is NaN" + (f" (besides the {res.unstable} past the safe "
@@ -386,7 +402,7 @@ def _check_outputs(args, files: bool | None = None) -> None:
     if writer:
         from ..io import check_distinct, check_plot
         table = args.out[:-4] + ".csv"
-        check_output(table, what="--out's table")
+        check_output(table, what="--out's table", derived_from="--out")
         if args.plot:
             check_plot(args.plot, what="--plot")
         scene = getattr(args, "scene", None)
