@@ -176,6 +176,12 @@ def check_rollout_options(steps, save_every, substeps, checkpoint) -> None:
             or steps % save_every):
         raise SceneError(f"save_every must be a positive int dividing steps={steps}, got "
                          f"{save_every!r}.")
+    if isinstance(substeps, str) and substeps == "auto":
+        raise SceneError(
+            "rollout(substeps=...) takes a positive int or None (the compiled count); "
+            "'auto' is an option of compile: dp.compile(scene, dt, substeps=\"auto\") picks "
+            "the smallest sufficient count from each rollout's concrete k and c. Under jit "
+            "give the count: sim.rollout(params, steps, substeps=n).")
     if substeps is not None and (not isinstance(substeps, (int, np.integer))
                                  or isinstance(substeps, bool) or substeps < 1):
         raise SceneError(f"substeps must be a positive int or None, got {substeps!r}.")

@@ -434,6 +434,36 @@ def test_implicit_flag_stays_clear(ball_scene):
 
 
 
+def test_traced_implicit_precision_flag_agrees_with_the_up_front_refusal():
+    """float32 implicit_euler: the precision refusal (static deflection below the dtype's
+    resolution, or (w h)^2 eps past IMPLICIT_PRECISION) ran on concrete values only, so under
+    jit / vmap / grad a 0.1 g ball at k = 1e7 N/m ran unflagged (d z / dk -87 against m g / k^2
+    ~ 1e-17) and a sweep counted 0 unstable points. The rollout's flag now says the same as
+    the up-front check, point by point; float64 keeps it clear."""
+    from tuning.scenes import ball_scene
+    resting = dp.compile(ball_scene(mass=1e-4, height=0.3), 1e-3, integrator="implicit_euler",
+                         dtype=jnp.float32)
+    free = dp.Scene()                       # no gravity: only the (w h)^2 eps limit applies
+    free.add_sphere(0.01, 1e-4, (0.0, 0.0, 0.05))
+    free.add_plane()
+    swamped = dp.compile(free, 1e-2, integrator="implicit_euler", dtype=jnp.float32)
+    ks = np.array([1e3, 1e5, 3e5, 1e7, 1e9])
+    for sim in (resting, swamped):
+        want = []
+        for k in ks:
+            try:                            # the up-front check of an eager rollout
+                stability.gate(sim, sim.params(k=float(k), c=0.0))
+                want.append(False)
+            except dp.StabilityError:
+                want.append(True)
+        assert any(want) and not all(want)
+        flag = jax.jit(jax.vmap(lambda k, sim=sim: sim.rollout(
+            sim.params(k=k, c=0.0), 2, save_every=2).aux["unstable"][-1]))
+        np.testing.assert_array_equal(np.asarray(flag(jnp.asarray(ks, jnp.float32))), want)
+    sim64 = dp.compile(free, 1e-2, integrator="implicit_euler", dtype=jnp.float64)
+    assert not bool(stability.unsafe(sim64.analysis, sim64.params(k=1e9, c=0.0)))
+
+
 def _box_on_board(law, k, c, friction=0.18):
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_material("board", k=k, c=c, friction=friction, slip_speed=0.01)

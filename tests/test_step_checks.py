@@ -80,3 +80,11 @@ def test_simulate_refuses_with_the_librarys_estimate(capsys, monkeypatch):
     assert f"--steps {steps} keeps {steps} states of 1 bodies: about 960000 B" in err
     assert "lower --steps" in err
     assert "save_every" not in err and "Traceback" not in err
+
+
+def test_rollout_substeps_auto_points_to_compile(sim):
+    """sim.rollout(substeps="auto") said only "must be a positive int or None"; 'auto' is an
+    option of dp.compile, and the message now says so."""
+    with pytest.raises(dp.SceneError) as e:
+        sim.rollout(sim.params(k=1e4, c=20.0), 10, substeps="auto")
+    assert 'dp.compile(scene, dt, substeps="auto")' in str(e.value)

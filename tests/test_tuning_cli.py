@@ -134,6 +134,36 @@ def test_fit_data_csv(capsys, tmp_path):
     assert rc == 0
     assert out["k"] == pytest.approx(1e4, rel=0.02) and out["c"] == pytest.approx(20, rel=0.02)
     assert out["k_stderr"] > 0 and out["c_stderr"] > 0
+    # the README's JSON keys for --data include zeta = c / (2 sqrt(k m)) (m = 1 kg here)
+    assert out["zeta"] == pytest.approx(out["c"] / (2 * out["k"] ** 0.5), rel=1e-12)
+
+
+def _fake_record_fit(monkeypatch, k=1e4, c=20.0):
+    """Replace the --data fit by a fixed result (k N/m, c N s/m) so the output is checked
+    without fitting."""
+    from types import SimpleNamespace
+
+    import tuning.sysid as sysid
+    res = SimpleNamespace(k=k, c=c, k_stderr=1.0, c_stderr=0.1, k_lower_bound=None,
+                          first_guess=(k, c), rms=1e-3, noise=1e-3, dt=1e-4, dt_error=0.0,
+                          iterations=3, seconds=0.1, message="converged", notes=[],
+                          horizons=[1.0], z_fit=None, history=None)
+    monkeypatch.setattr(sysid, "fit_trajectory", lambda *a, **kw: res)
+
+
+def test_fit_data_gives_the_damping_ratio_in_json_and_text(capsys, monkeypatch):
+    """`fit --data` had no zeta in its JSON and printed no damping ratio; the README lists
+    zeta for every fit (null for hunt_crossley)."""
+    _fake_record_fit(monkeypatch, k=1e4, c=20.0)
+    data = os.path.join(os.path.dirname(__file__), "..", "examples", "record.csv")
+    rc, out = run_json(capsys, ["fit", "--data", data, "--mass", "0.5"])
+    assert out["zeta"] == pytest.approx(20.0 / (2 * (1e4 * 0.5) ** 0.5), rel=1e-12)
+    main(["fit", "--data", data, "--mass", "0.5"])
+    assert f"damping ratio {out['zeta']:.4g}" in capsys.readouterr().out
+    rc, out = run_json(capsys, ["fit", "--data", data, "--law", "hunt_crossley"])
+    assert "zeta" in out and out["zeta"] is None
+    main(["fit", "--data", data, "--law", "hunt_crossley"])
+    assert "damping ratio" not in capsys.readouterr().out
 
 
 def test_an_interrupted_command_says_so_without_a_traceback(monkeypatch, capsys):

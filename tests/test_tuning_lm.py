@@ -102,3 +102,48 @@ def test_progress_ends_at_the_iterations_run():
     assert out.message == "no further decrease (local minimum)"
     assert bar.counts[-1] == 7 + out.iterations
     assert len(out.cost_history) == out.iterations + 1
+
+
+def test_the_cost_tolerance_follows_the_residuals_precision():
+    """Regression: ftol = 1e-12 is far below float32's resolution of a relative cost change
+    (~1e-7), so a float32 fit went on past a decrease of 2.5e-7 and ended with 12 trial
+    rollouts that rounding could not tell apart ("no further decrease"). The tolerance is
+    now max(ftol, FTOL_EPS x eps of the residuals' dtype); float64 keeps 1e-12."""
+    from tuning.lm import FTOL_EPS, precision_ftol
+    assert precision_ftol(1e-12, np.float64) == 1e-12
+    assert precision_ftol(1e-12, np.float32) == pytest.approx(FTOL_EPS * 1.1920929e-7)
+    assert precision_ftol(1e-3, np.float32) == 1e-3
+
+    def problem(dtype, calls):
+        def rj(x):          # cost (x - 1)^2 + 1e6: the fit moves it by 2.5e-7 relative
+            calls.append(1)
+            x = np.asarray(x, dtype)
+            return np.array([x[0] - 1.0, 1000.0], dtype), np.array([[1.0], [0.0]], dtype)
+        return rj
+    calls = []
+    out = levenberg_marquardt(problem(np.float32, calls), [1.5], [0.0], [3.0])
+    assert out.message == "step below tolerance" and out.iterations == 1 and len(calls) == 2
+    calls = []
+    out = levenberg_marquardt(problem(np.float64, calls), [1.5], [0.0], [3.0])
+    assert out.message == "step below tolerance" and out.iterations == 2
+    assert out.x[0] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_float32_record_fit_warns_to_enable_float64(ball_scene):
+    """A cube record fit in float32 stopped 15% above the float64 cost (noisy float32
+    Jacobians) with nothing said; a record fit in float32 now warns and names the switch."""
+    import warnings
+
+    import jax.numpy as jnp
+
+    import diffpen as dp
+    from tuning.trajfit import fit_records
+    sim = dp.compile(ball_scene, 1e-3, dtype=jnp.float32)
+    with pytest.warns(UserWarning, match=r"less reliable in float32.*jax_enable_x64"), \
+            pytest.raises(FitError, match="nothing to fit"):
+        fit_records(sim, sim.params(k=1e4, c=20.0), None, [])
+    sim64 = dp.compile(ball_scene, 1e-3, dtype=jnp.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(FitError, match="nothing to fit"):
+            fit_records(sim64, sim64.params(k=1e4, c=20.0), None, [])

@@ -95,3 +95,22 @@ def test_safe_contact_bounds_are_in_the_contact_laws_units():
     assert bool(params_unstable(sim, sim.params(k=1.0, c=1.05 * c_max)))
     # linear laws keep their numbers
     assert safe_contact_bounds(ball_sim(law="no_tension")) == lin
+
+
+def test_implicit_float32_bounds_stop_at_the_precision_limit():
+    """implicit_euler had (inf, inf) contact bounds, so a float32 fit walked into stiffnesses
+    its dtype cannot resolve (wrong gradients, no flag). The k bound is now the precision
+    limit of diffpen.stability (1% inside): just inside it the parameters are clear, just
+    past it flagged (a sweep marks such points unstable). float64 keeps (inf, inf)."""
+    from tuning.scenes import ball_scene
+    scene = ball_scene(mass=1e-4, height=0.3)
+    sim = dp.compile(scene, 1e-3, integrator="implicit_euler", dtype=jnp.float32)
+    k_max, c_max = safe_contact_bounds(sim)
+    eps = float(jnp.finfo(jnp.float32).eps)
+    # the ball's static deflection m g / k at half its resolution of positions, eps x 0.1 m
+    assert k_max == pytest.approx(0.99 * 1e-4 * 9.81 / (0.5 * eps * 0.1), rel=1e-9)
+    assert math.isinf(c_max)
+    assert not bool(params_unstable(sim, sim.params(k=0.98 * k_max, c=0.1)))
+    assert bool(params_unstable(sim, sim.params(k=1.02 * k_max, c=0.1)))
+    sim64 = dp.compile(scene, 1e-3, integrator="implicit_euler", dtype=jnp.float64)
+    assert safe_contact_bounds(sim64) == (math.inf, math.inf)

@@ -24,7 +24,8 @@ from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
 from .stable import FLAG, unsafe_start
 
-__all__ = ["LMResult", "levenberg_marquardt", "fit_lm", "SCALE_FLOOR", "MAX_LOG_STEP"]
+__all__ = ["LMResult", "levenberg_marquardt", "fit_lm", "SCALE_FLOOR", "MAX_LOG_STEP",
+           "FTOL_EPS", "precision_ftol"]
 
 #: Marquardt's scaling ``diag(J^T J)`` is floored at this fraction of its largest entry. The
 #: step in each parameter is about the one that parameter would need alone, so a parameter the
@@ -34,6 +35,24 @@ SCALE_FLOOR = 1e-6
 #: :func:`fit_lm`'s largest change of one log-parameter in a trial step (a factor e^2 = 7.4);
 #: a rejected trial that hit it halves it for the next trial of the same iteration.
 MAX_LOG_STEP = 2.0
+#: the relative cost decrease that stops :func:`levenberg_marquardt` is at least this many
+#: machine epsilons of the residuals' dtype: a smaller decrease is rounding (float32 residuals
+#: resolve a relative cost change of ~1e-7, far above the default ftol 1e-12), and steps taken
+#: on it follow the noise of the float32 Jacobian rather than the records.
+FTOL_EPS = 10.0
+
+
+def precision_ftol(ftol: float, dtype) -> float:
+    """The stopping tolerance on the relative cost decrease actually used for residuals of
+    ``dtype``: ``max(ftol, FTOL_EPS x eps)`` (eps the dtype's machine epsilon; float64 for a
+    non-float dtype). Dimensionless. float64 keeps any ``ftol`` above 2.2e-15 (the default
+    1e-12 unchanged); float32 gets at least 1.19e-6. ``ftol <= 0`` (the cost test switched
+    off) stays 0."""
+    if not ftol > 0.0:
+        return 0.0
+    dt = np.dtype(dtype)
+    eps = float(np.finfo(dt if np.issubdtype(dt, np.floating) else np.float64).eps)
+    return max(float(ftol), FTOL_EPS * eps)
 
 
 @dataclasses.dataclass
@@ -67,11 +86,16 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
       max_step: largest change of any one entry of ``x`` in a trial step (None: no limit);
         larger entries are cut to it, and a rejected trial that was cut halves it for the
         next trial of the same iteration.
+      xtol: a step whose largest entry is below this (with ``lam < 1``) stops the fit.
+      ftol: a relative cost decrease below this stops the fit; raised to
+        :func:`precision_ftol` of the residuals' dtype (float32: 1.19e-6), so "step below
+        tolerance" never rests on rounding; 0 switches the test off.
     Returns: :class:`LMResult` (``jacobian`` evaluated at ``x``).
     """
     x = np.clip(np.asarray(x0, dtype=float), lo, hi)
     out = res_and_jac(jnp.asarray(x))
     r, J, extra = np.asarray(out[0]), np.asarray(out[1]), out[2:]
+    ftol = precision_ftol(ftol, r.dtype)
     if not np.all(np.isfinite(r)):
         raise FitError("the residuals are not finite at the start point: the simulation "
                        "blew up or produced nan; use a smaller dt or another start.")

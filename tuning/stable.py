@@ -19,12 +19,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffpen import stability as _dp_stability
+from diffpen.stability.bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION
 
 from .errors import FitError
 
 __all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
            "unsafe_start",
-           "safe_contact_limits", "safe_contact_bounds"]
+           "safe_contact_limits", "safe_contact_bounds", "implicit_contact_limits"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
 FLAG = _dp_stability.FLAG
@@ -84,17 +85,52 @@ def safe_contact_limits(h: float, mass: float) -> tuple[float, float]:
             0.99 * _dp_stability.SAFE_CH * m / h)
 
 
+def implicit_contact_limits(sim, mass: float | None = None) -> tuple[float, float]:
+    """Upper bounds (k_max N/m, c_max N s/m) of one linear contact that an implicit
+    integrator of ``sim`` resolves in its float dtype, with a 1% margin: the precision limits
+    of :mod:`diffpen.stability` (``IMPLICIT_PRECISION``, ``RESTING_RESOLUTION``), i.e.
+    ``(k / m) h^2 eps <= IMPLICIT_PRECISION`` at the inner step ``h`` (s) and, under gravity
+    ``g`` (m/s^2), a static deflection ``m g / k >= RESTING_RESOLUTION eps d`` (``d`` the
+    body's reference size in m, ``eps`` the dtype's machine epsilon). ``mass`` (kg) is the
+    body's (then ``d`` is the largest reference size of the movable bodies); by default every
+    movable body is checked and the tightest bound kept. Damping has no precision limit
+    (``c_max`` inf); both are inf in float64."""
+    an = sim.analysis
+    dtype = np.dtype(an.dtype)
+    if dtype.itemsize >= 8:
+        return math.inf, math.inf
+    eps = float(np.finfo(dtype).eps)
+    free = ~np.asarray(an.pinned, bool)
+    if not free.any():
+        free = np.ones_like(free)
+    masses = np.asarray(an.mass, float)[free]
+    sizes = np.asarray(an.d_ref, float)[free]
+    if mass is not None:
+        masses, sizes = np.array([float(mass)]), np.array([float(np.max(sizes))])
+    h = an.inner_dt
+    k_max = float(np.min(masses)) * IMPLICIT_PRECISION / (eps * h * h)
+    if an.gravity > 0.0:
+        k_max = min(k_max, float(np.min(
+            masses * an.gravity / (RESTING_RESOLUTION * eps * sizes))))
+    return 0.99 * k_max, math.inf
+
+
 def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
     """:func:`safe_contact_limits` at the inner step of ``sim`` for a body of ``mass`` kg
     (default: the lightest movable body), in the units of the simulator's contact law: a law
     whose stiffness grows with depth (Hunt-Crossley, ``k`` N/m^n, ``c`` N s/m^(n+1)) has the
     limits divided by its stiffness and damping at the deepest reference depth of the
-    analysis (``ContactLaw.stiffness``, as :mod:`diffpen.stability` counts it);
-    ``(inf, inf)`` for integrators without a step limit (implicit)."""
+    analysis (``ContactLaw.stiffness``, as :mod:`diffpen.stability` counts it). Integrators
+    without a step limit (implicit) get :func:`implicit_contact_limits` instead: the
+    stiffness their float dtype resolves (``(inf, inf)`` in float64)."""
     an = sim.analysis
     if not an.integrator.explicit:
-        return math.inf, math.inf
-    k_max, c_max = safe_contact_limits(an.inner_dt, _light_mass(sim) if mass is None else mass)
+        k_max, c_max = implicit_contact_limits(sim, mass)
+        if math.isinf(k_max):
+            return math.inf, math.inf
+    else:
+        k_max, c_max = safe_contact_limits(an.inner_dt,
+                                           _light_mass(sim) if mass is None else mass)
     if an.contact_scale is not None:
         free = ~np.asarray(an.pinned)
         d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0

@@ -34,6 +34,7 @@ import dataclasses
 import math
 import re
 import time
+import warnings
 from typing import Sequence
 
 import jax
@@ -244,6 +245,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
+    if np.dtype(sim.dtype).itemsize < 8:
+        warnings.warn(f"record fits are less reliable in {np.dtype(sim.dtype).name} (its "
+                      "Jacobians are noisy: a fit can stop at a worse point): enable float64 "
+                      "with jax.config.update('jax_enable_x64', True) before building the "
+                      "simulator (the diffpen command always runs float64).", stacklevel=2)
     free = [f.resolved() for f in free]
     if not free:
         raise FitError("nothing to fit: name at least one params leaf in [fit].")

@@ -34,18 +34,21 @@ Traced stability: the same rows and limits are also evaluated inside the traced 
 (:func:`unsafe`, with ``jax.numpy``), so a rollout under ``jax.jit``, ``jax.vmap`` or
 ``jax.grad`` (where the up-front check cannot see the parameter values) records in
 ``State.aux["unstable"]`` (``FLAG``) whether its step is past the safe step for the
-parameter values it was given. The flag is sticky and saved in ``Trajectory.aux``.
+parameter values it was given; for implicit integrators (no step limit) it records instead
+whether the float dtype cannot resolve the step (:func:`precision_unsafe`, the traced form of
+the float32 refusal). The flag is sticky and saved in ``Trajectory.aux``.
 
 Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps),
 :mod:`.bounds` (the terms' :class:`Bound` rows summed into rates, numpy and traced),
 :mod:`.gating` (the up-front gate, its cache and the :class:`StabilityReport`).
 """
-from .bounds import FLAG, Analysis, Bound, Rates, rates, scene_rates, unsafe
+from .bounds import (FLAG, Analysis, Bound, Rates, precision_unsafe, rates, scene_rates,
+                     unsafe)
 from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report
 from .modes import (SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt,
                     stable_dt)
 
 __all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH",
            "SAFE_CH", "SAFE_STABLE", "Bound", "Analysis", "Rates", "rates", "scene_rates",
-           "unsafe", "FLAG", "StabilityReport", "report", "gate", "GateCache",
-           "MAX_AUTO_SUBSTEPS"]
+           "unsafe", "precision_unsafe", "FLAG", "StabilityReport", "report", "gate",
+           "GateCache", "MAX_AUTO_SUBSTEPS"]

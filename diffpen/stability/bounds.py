@@ -13,11 +13,26 @@ from ..integrators import Integrator
 from ..params import _known_value
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, _spectral_radius_2x2
 
-__all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "FLAG"]
+__all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "precision_unsafe",
+           "FLAG", "IMPLICIT_PRECISION", "RESTING_RESOLUTION"]
 
 #: ``State.aux`` key of the traced stability flag: a bool scalar, True once a rollout ran a
-#: step past the safe step for its parameter values (sticky).
+#: step past the safe step for its parameter values, or an implicit step its float dtype
+#: cannot resolve (:func:`precision_unsafe`) (sticky).
 FLAG = "unstable"
+
+#: implicit_euler in a float dtype of machine epsilon eps needs (w h)^2 eps <= this: past it the
+#: identity in (I - h A_v - h^2 A_x) is lost to rounding and a free body's matrix is singular.
+IMPLICIT_PRECISION = 0.1
+
+#: implicit_euler in a float dtype of machine epsilon eps needs a body's static deflection
+#: under gravity, g / K (K its stiffness over mass, 1/s^2), to be at least this fraction of the
+#: resolution of its positions, eps x its size: below it the body rests on a contact (or
+#: hangs on a spring) within a rounding of its position, and the step's linearisation, which
+#: differentiates the forces, gives NaN gradients (float32, k 1e9 N/m on 0.1 g) or finite,
+#: wrong ones (float32, 0.1 g at rest: d z / dk -42.9 at k 5e5 N/m, +17.9 at 1e6, where
+#: m g / k^2 ~ 1e-15, at deflections of 2.7-16.5% of that resolution; right from 27%).
+RESTING_RESOLUTION = 0.5
 
 
 def _value(x):
@@ -271,13 +286,15 @@ def unsafe(an: Analysis, params, h=None):
     SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
     from the integrator's closed form when it has one (then it agrees with the up-front check
     to rounding), else from the spectral radius of its amplification matrix at
-    ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Always False for methods without a step limit.
+    ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Methods without a step limit
+    (implicit) have no such test: for them it is :func:`precision_unsafe` (True when the
+    dtype cannot resolve the step; always False in float64).
     """
     import jax
     import jax.numpy as jnp
     rec = an.integrator
     if not rec.explicit:
-        return jnp.zeros((), bool)
+        return precision_unsafe(an, params, h)
     h = an.inner_dt if h is None else h
     params = jax.lax.stop_gradient(params)
     r = rates(an, params, xp=jnp)
@@ -315,4 +332,37 @@ def unsafe(an: Analysis, params, h=None):
         bad = bad | jnp.any(~jnp.isfinite(a))
     for a in nonneg:
         bad = bad | jnp.any(jnp.asarray(a) < 0.0)
+    return bad
+
+
+def precision_unsafe(an: Analysis, params, h=None):
+    """Traced precision flag of an implicit integrator: a bool scalar, True when an inner
+    step of ``h`` s (default the simulator's) cannot be resolved in the simulator's float
+    dtype for ``params`` (tracers welcome: jit, vmap, grad). The traced form of the up-front
+    refusal (:func:`diffpen.stability.gating._implicit_precision`), on the same rows
+    (:func:`rates`) and the same limits:
+
+    * ``(w h)^2 eps > IMPLICIT_PRECISION`` (w^2 = K, the largest stiffness row in 1/s^2, eps
+      the dtype's machine epsilon): the identity in the step's matrix is lost to rounding;
+    * a free body with a stiffness row K_i > 0 whose static deflection under gravity,
+      ``g / K_i`` (m), is below ``RESTING_RESOLUTION x eps x d_ref_i`` (its resolution of
+      positions): the step's linearisation gives wrong or NaN gradients.
+
+    Always False in a dtype of 8 bytes or more (float64), as the up-front check."""
+    import jax
+    import jax.numpy as jnp
+    dtype = np.dtype(an.dtype)
+    if dtype.itemsize >= 8:
+        return jnp.zeros((), bool)
+    h = an.inner_dt if h is None else h
+    eps = float(np.finfo(dtype).eps)
+    r = rates(an, jax.lax.stop_gradient(params), xp=jnp)
+    K_row = r.K_row
+    K = jnp.max(K_row, initial=0.0)
+    bad = K * (h * h * eps) > IMPLICIT_PRECISION
+    if an.gravity > 0.0:
+        free = ~np.asarray(an.pinned, bool)
+        # g / K_i < RESTING_RESOLUTION eps d_ref_i, multiplied out (K_i = 0 never flags)
+        res = jnp.asarray(RESTING_RESOLUTION * eps * np.asarray(an.d_ref, float), K_row.dtype)
+        bad = bad | jnp.any(free & (K_row > 0.0) & (an.gravity < res * K_row))
     return bad

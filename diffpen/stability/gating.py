@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..errors import SceneError, StabilityError
-from .bounds import Analysis, rates
+from .bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION, Analysis, rates
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, safe_dt, stable_dt
 
 __all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
@@ -198,26 +198,13 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     return n
 
 
-#: implicit_euler in a float dtype of machine epsilon eps needs (w h)^2 eps <= this: past it the
-#: identity in (I - h A_v - h^2 A_x) is lost to rounding and a free body's matrix is singular.
-IMPLICIT_PRECISION = 0.1
-
-
-#: implicit_euler in a float dtype of machine epsilon eps needs a body's static deflection
-#: under gravity, g / K (K its stiffness over mass, 1/s^2), to be at least this fraction of the
-#: resolution of its positions, eps x its size: below it the body rests on a contact (or
-#: hangs on a spring) within a rounding of its position, and the step's linearisation, which
-#: differentiates the forces, gives NaN gradients (float32, k 1e9 N/m on 0.1 g) or finite,
-#: wrong ones (float32, 0.1 g at rest: d z / dk -42.9 at k 5e5 N/m, +17.9 at 1e6, where
-#: m g / k^2 ~ 1e-15, at deflections of 2.7-16.5% of that resolution; right from 27%).
-RESTING_RESOLUTION = 0.5
-
-
 def _implicit_precision(an: Analysis, params, substeps: int) -> None:
     """Raise StabilityError when implicit_euler's linear system cannot be resolved in the
     simulator's dtype (float32 with a very stiff, light body and a large step), or a body's
     static deflection under gravity is below the dtype's resolution of its positions (see
-    :data:`RESTING_RESOLUTION`)."""
+    :data:`RESTING_RESOLUTION`). The traced form of this check, for rollouts under jit, vmap
+    and grad, is :func:`diffpen.stability.bounds.precision_unsafe` (it sets the rollout's
+    ``State.aux["unstable"]`` flag)."""
     r = rates(an, params)
     if r is None:
         return

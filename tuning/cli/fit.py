@@ -185,8 +185,6 @@ def _run(args) -> int:
     setup_jax()
     import optax
 
-    import diffpen as dp
-
     from ..bounce import fit_bounce
     from ..scenes import ball_scene
     targets = _targets(args)
@@ -206,11 +204,7 @@ def _run(args) -> int:
             f"{args.settle_tol * 1e3:g} mm)")
     k = res.params.contact["default"].k
     c = res.params.contact["default"].c
-    # the damping ratio c / (2 sqrt(k m)) is defined for the laws k d - c vn (linear,
-    # no_tension); Hunt-Crossley's k and c have other units: null
-    rec = dp.laws.get(args.law)
-    zeta = (float(dp.physical.damping_ratio(k, c, args.mass))
-            if rec.exponent == 1.0 and rec.damping_exponent == 0.0 else None)
+    zeta = damping_ratio_or_none(args.law, k, c, args.mass)
     out = {"scene": desc, "k": float(k), "c": float(c), "targets": res.targets,
            "achieved": res.achieved, "rel_error": res.rel_error, "reached": res.reached,
            "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds,
@@ -220,6 +214,18 @@ def _run(args) -> int:
     if args.plot:
         _plot_targets(args, scene, res, dt)
     return _print(args, out)
+
+
+def damping_ratio_or_none(law, k, c, mass) -> float | None:
+    """The damping ratio ``c / (2 sqrt(k m))`` (dimensionless) of a ball of ``mass`` (kg) on
+    contact stiffness ``k`` (N/m) and damping ``c`` (N s/m), or None for a law whose force is
+    not ``k d - c vn`` (Hunt-Crossley: k and c have other units and the ratio is not
+    defined)."""
+    import diffpen as dp
+    rec = dp.laws.get(law or "linear")
+    if rec.exponent != 1.0 or rec.damping_exponent != 0.0:
+        return None
+    return float(dp.physical.damping_ratio(k, c, mass))
 
 
 def law_units(law) -> tuple[str, str]:
@@ -332,7 +338,9 @@ def _run_data(args) -> int:
     out = {"scene": f"ball r={args.radius:g} m, m={args.mass:g} kg fitted to {args.data} "
                     f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, {args.law} "
                     "law)",
-           "k": res.k, "c": res.c, "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
+           "k": res.k, "c": res.c,
+           "zeta": damping_ratio_or_none(args.law, res.k, res.c, args.mass),
+           "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
            "k_lower_bound": res.k_lower_bound, "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
            "first_guess": list(res.first_guess), "rms": res.rms, "noise": res.noise,
            "dt": res.dt, "iterations": res.iterations, "seconds": res.seconds,
@@ -363,6 +371,8 @@ def _run_data(args) -> int:
         print(f"fitted:    k = {res.k:.6g} {ku} HELD (a lower bound: the record does not "
               f"resolve the contact time)   c = {res.c:.6g} +- {res.c_stderr:.2g} {cu}   "
               "(standard error, Gauss-Newton)")
+    if out["zeta"] is not None:
+        print(f"damping ratio {out['zeta']:.4g}")
     print(f"first guess from the record's events: k = {res.first_guess[0]:.5g} {ku}, "
           f"c = {res.first_guess[1]:.5g} {cu}")
     print(f"residual rms {res.rms * 1e3:.3g} mm against record noise {res.noise * 1e3:.3g} mm")
