@@ -28,7 +28,28 @@ def build(sim, n: int):
         inner = build_step(method, _accel_at(sim, h), h, inv_mass=inv_mass)
     if sim._aux_updates:
         inner = _with_aux_updates(inner, sim._aux_updates)
-    return substepped(inner, n)
+    step = substepped(inner, n)
+    if np.any(sim.pinned):
+        step = _holding_pins(step, np.asarray(sim.pinned, bool))
+    return step
+
+
+def _holding_pins(step, pinned):
+    """``step`` started with the velocity (and spin) of the ``pinned`` bodies ((n,) bool) set
+    to zero. A pinned body takes no force (inverse mass 0), so this keeps it in place however
+    its state was given: a concrete start state with a pin moving is refused up front, but one
+    built under jit or vmap cannot be checked (its values are tracers). One select over
+    (n, 3) per step, only in scenes with pinned bodies."""
+    import jax.numpy as jnp
+    held = pinned[:, None]
+
+    def stepped(params, state):
+        state = state._replace(velocity=jnp.where(held, 0.0, state.velocity))
+        if state.angular_velocity is not None:
+            state = state._replace(
+                angular_velocity=jnp.where(held, 0.0, state.angular_velocity))
+        return step(params, state)
+    return stepped
 
 
 def _accel_at(sim, h: float):
