@@ -284,3 +284,15 @@ def test_fit_gives_a_damping_ratio_only_for_laws_that_have_one(capsys):
     assert fitcli.law_units("no_tension") == ("N/m", "N s/m")
     fitcli._print(argparse.Namespace(json=False), dict(out, zeta=0.25, law="linear"))
     assert "(damping ratio 0.25)" in capsys.readouterr().out
+
+
+def test_simulate_past_the_safe_step_gives_advice_this_command_can_follow(capsys):
+    """diffpen simulate has --dt but no substeps or integrator flag: the advice names --dt
+    and, for a scene file, its keys (it named compile(substeps=...) and integrator='...')."""
+    assert main(["simulate", "ball", "--dt", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert "Use --dt 0.005 or smaller" in err and "compile with" not in err
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")
+    assert main(["simulate", scene, "--dt", "0.05"]) == 2
+    err = capsys.readouterr().err
+    assert 'set substeps = 10 (or "auto") or integrator = "implicit_euler"' in err, err

@@ -32,6 +32,32 @@ def run(args) -> int:
         return fail("simulate", str(msg))
 
 
+def _stability_advice(message: str, args) -> str:
+    """The library's StabilityError ``message`` with its advice in this command's options:
+    ``--dt`` here, the substeps and the integrator in a scene file (the command has no flags
+    for them)."""
+    from ..scenefile import is_scene_path
+    head, sep, tail = message.partition(" Use dt <= ")
+    if not sep:
+        return message
+    dt = tail.split(" s,", 1)[0]
+    if is_scene_path(args.scene):
+        n = _substeps(tail)
+        sub = f'substeps = {n} (or "auto")' if n else 'substeps = "auto"'
+        more = f'or set {sub} or integrator = "implicit_euler" at the top of {args.scene}'
+    else:
+        more = ("or write the scene as a scene file, which can set substeps and "
+                "integrator = \"implicit_euler\"")
+    return f"{head} Use --dt {dt} or smaller, {more}."
+
+
+def _substeps(text: str) -> int | None:
+    """The substep count a StabilityError's advice names (``substeps=N``), else None."""
+    import re
+    m = re.search(r"substeps=(\d+)", text)
+    return int(m.group(1)) if m else None
+
+
 def _load(args):
     from ..scenefile import is_scene_path, load_scene_file
     if is_scene_path(args.scene):             # ball.TOML is a file, not the built-in "ball"
@@ -103,7 +129,10 @@ def _run(args) -> int:
     ks = {v[0] for v in contact.values()}
     cs = {v[1] for v in contact.values()}
     s0 = sim.init_state()
-    traj = sim.rollout(params, steps, s0)
+    try:
+        traj = sim.rollout(params, steps, s0)
+    except dp.StabilityError as exc:
+        raise CLIError(_stability_advice(str(exc), args)) from None
     out = {"scene": args.scene, "description": setup.description, "dt": dt, "steps": steps,
            "duration": steps * dt, "law": sim.law,
            "k": ks.pop() if len(ks) == 1 else None, "c": cs.pop() if len(cs) == 1 else None,
