@@ -14,7 +14,30 @@ from tuning import plots
 #: this folder (examples/): the README's pictures are in its images/
 HERE = pathlib.Path(__file__).resolve().parent
 
-__all__ = ["example_parser", "example_pyplot", "save_figure", "save_strip", "save_gif"]
+__all__ = ["example_parser", "example_pyplot", "save_figure", "save_strip", "save_gif",
+           "picture_path", "positive_int"]
+
+
+def picture_path(text: str) -> str:
+    """argparse type of ``--out``: a figure name matplotlib can write (:func:`tuning.io.
+    check_plot`), checked before the example computes anything."""
+    from tuning.io import OutputError, check_plot
+    try:
+        check_plot(text, what="--out")
+    except OutputError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return v
 
 
 def example_parser(description: str, default_out: str, *,
@@ -29,7 +52,7 @@ def example_parser(description: str, default_out: str, *,
     ap.add_argument("--quick", action="store_true", help=quick_help)
     if default_out.startswith("examples/"):
         default_out = str(HERE / default_out[len("examples/"):])
-    ap.add_argument("--out", default=default_out,
+    ap.add_argument("--out", default=default_out, type=picture_path,
                     help="the picture (default: %(default)s)")
     ap.add_argument("--gif", action="store_true", help=gif_help)
     return ap

@@ -17,13 +17,13 @@ import numpy as np
 
 import diffpen as dp
 from diffpen.builders import PAPER_CHAIN, paper_chain, paper_chain_equilibrium
-from _common import example_parser, example_pyplot, save_figure, save_gif
+from _common import example_parser, example_pyplot, positive_int, save_figure, save_gif
 
 
 def main(argv=None) -> int:
     ap = example_parser(" ".join(__doc__.split("\n\n")[0].split()), "examples/images/paper_chain.png",
                         quick_help="accepted for uniformity; the demo is already quick")
-    ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--steps", type=positive_int, default=2000)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
 

@@ -65,3 +65,22 @@ def test_simulate_refuses_k_and_c_without_contact_materials(scene, flags, capsys
     assert main(["simulate", scene, "--steps", "5", *flags]) == 2
     assert f"{flags[0]} set contact materials, but {scene} has no contact materials" in \
         capsys.readouterr().err
+
+
+def test_examples_refuse_a_bad_picture_name_and_step_count_before_running(capsys):
+    """An example's --out with a type matplotlib cannot write failed with a traceback only
+    after the whole simulation; a --steps of 0 failed with a SceneError traceback. Both are
+    argparse errors (status 2) now, before anything is computed."""
+    import runpy
+    import sys
+    sys.path.insert(0, str(EXAMPLES))
+    try:
+        for name, argv in (("rope_swing", ["--out", "a.txt"]), ("paper_chain", ["--steps", "0"])):
+            mod = runpy.run_path(str(EXAMPLES / f"{name}.py"), run_name="example")
+            with pytest.raises(SystemExit) as exc:
+                mod["main"](argv)
+            assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert "a figure's name must end in one of" in err and "integer >= 1" in err
+    finally:
+        sys.path.remove(str(EXAMPLES))
