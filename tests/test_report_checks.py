@@ -95,3 +95,11 @@ def test_bounds_of_a_leaf_that_is_not_fitted_are_refused():
     with pytest.raises(FitError, match="not fitted"):
         FreeLeaves.build(p0, ["contact.default.k"], {"contact.default.c": (1.0, 100.0)})
     FreeLeaves.build(p0, ["contact.default.k"], {"contact.default.k": (1e3, 1e5)})
+
+
+def test_too_few_bounces_blames_the_damping_only_when_the_ball_is_damped():
+    """At k 1e18 N/m (damping ratio 1e-8) the reference cannot resolve the 3e-9 s contact;
+    the refusal said "lower the damping c", which cannot help. It names k there now."""
+    assert "lower the damping c" in A._too_few_bounces(A.BallSpec(c=400.0))
+    stiff = A._too_few_bounces(A.BallSpec(k=1e18, c=20.0))
+    assert "lower k" in stiff and "damping c" not in stiff and "3.14e-09 s" in stiff

@@ -50,6 +50,18 @@ def _landing_time(ref: BallReference, n: int) -> float:
     return ref.contacts[n][0] if len(ref.contacts) > n else math.inf
 
 
+def _too_few_bounces(spec: BallSpec) -> str:
+    """What to change when the reference ball bounces too few times: the damping when it is
+    damped (damping ratio > 0.1), else k: a ball damped a little (restitution ~ exp(-pi zeta)
+    > 0.7) bounces often, and its reference fails because the integration cannot resolve a
+    contact that short (k 1e18 N/m on 1 kg: 3e-9 s)."""
+    zeta = spec.c / (2.0 * math.sqrt(spec.k * spec.mass))
+    if zeta > 0.1:
+        return f"lower the damping c (damping ratio {zeta:.3g})"
+    return (f"its contact lasts only {math.pi * math.sqrt(spec.mass / spec.k):.3g} s (damping "
+            f"ratio {zeta:.3g}), too short for the reference integration to resolve: lower k")
+
+
 def horizon(spec: BallSpec, longest: float = 60.0) -> float:
     """The simulated time (s) the ball's report needs: past the landing after its
     ``n_apex``-th apex (an apex counts once its flight has ended) and 10% past its settling
@@ -61,7 +73,7 @@ def horizon(spec: BallSpec, longest: float = 60.0) -> float:
     if len(ref.apexes) < spec.n_apex or not landing < longest:
         raise ValueError(f"the ball (k {spec.k:g} N/m, c {spec.c:g} N s/m, {spec.mass:g} kg, "
                          f"dropped from {spec.height:g} m) does not bounce {spec.n_apex} "
-                         f"times within {longest:g} s: lower the damping c")
+                         f"times within {longest:g} s: {_too_few_bounces(spec)}")
     need = [3.0, landing + 0.05]
     ts = ref.settling_time(spec.settle_frac)
     if math.isfinite(ts) and ts < longest:
