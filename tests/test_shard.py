@@ -138,8 +138,24 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     except ValueError as exc:
         differ = str(exc)
     # process 1 given other work than process 0, each with the programs compiled above: the
-    # sweep's chunk, an out= on one process only, a batched fit's targets, a sharded batch
+    # sweep's chunk, an out= on one process only, a batched fit's targets, a sharded batch;
+    # and other functions on process 1 only (61 steps instead of 60, another optimiser): a
+    # sweep's metrics function, a sharded function, a batched fit's metrics and optimiser
     other, mismatch = jax.process_index(), {}
+
+    def final61(p):
+        s = sim.rollout(p, steps=61, save_every=61)
+        return {"z": s.position[-1, 0, 2], "v": s.velocity[-1, 0, 2]}
+    import optax
+    rows3 = [{"z": 0.08 + 0.004 * i} for i in range(3)]
+    starts3 = [{"contact.default.k": 3e3 * (i + 1)} for i in range(3)]
+    ev61 = sw.make_evaluator(final61, p0, names) if other else ev
+    heights61 = sharded_map(lambda k, c: sim.rollout(sim.params(k=k, c=c), 61, save_every=61)
+                            .position[-1, 0, 2]) if other else heights_run
+    fit61 = BatchFitter(lambda p: {"z": final61(p)["z"]}, p0, maxiter=4) if other else fitter
+    from tuning.optimise import default_optimizer
+    fit_opt = BatchFitter(lambda p: {"z": final(p)["z"]}, p0, maxiter=4,     # a custom one
+                          optimizer=optax.sgd(0.05) if other else default_optimizer(0.05))
     for name, call in (
             ("chunk", lambda: sw.sweep(final, p0, pts, names, chunk=4 + other,
                                        progress=False, evaluate=ev)),
@@ -151,7 +167,14 @@ CLUSTER_SCRIPT = textwrap.dedent("""
                                    starts=[{"contact.default.k": 3e3 * (i + 1)}
                                            for i in range(3)])),
             ("map", lambda: heights_run(jnp.geomspace(1e3, 1e5, 6) * (1 + other),
-                                        jnp.full(6, 20.0)))):
+                                        jnp.full(6, 20.0))),
+            ("sweep_fn", lambda: sw.sweep(final61 if other else final, p0, pts, names, chunk=4,
+                                          progress=False, evaluate=ev61)),
+            ("map_fn", lambda: heights61(jnp.geomspace(1e3, 1e5, 6), jnp.full(6, 20.0))),
+            ("fit_fn", lambda: fit61(rows3, starts=starts3)),
+            ("fit_optimizer", lambda: fit_opt(rows3, starts=starts3))):
+        if name == "fit_optimizer" and n_proc == 1:     # (not compiled alone: only compared)
+            continue
         try:
             call()
             mismatch[name] = None
@@ -183,7 +206,9 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
     results bit for bit;
     only process 0 writes the sweep file, and a rerun resumes from it on both. Processes
     given other work (a sweep's chunk, an out= on one only, a batched fit's targets, a
-    sharded batch) all stop with the same error."""
+    sharded batch) all stop with the same error, and so do processes given functions that
+    compute something else (a sweep's metrics function, a sharded function, a batched fit's
+    metrics function or optimiser: their rows were mixed unnoticed)."""
     from device_subprocess import run_cluster
     import os
     os.environ["CLUSTER_TMP"] = str(tmp_path)
@@ -194,7 +219,8 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         del os.environ["CLUSTER_TMP"]
     assert alone["processes"] == 1 and alone["devices"] == 1 and not alone["joined"]
     assert alone["differ"] is None
-    assert alone["mismatch"] == {"chunk": None, "out": None, "fit": None, "map": None}
+    assert alone["mismatch"] == {"chunk": None, "out": None, "fit": None, "map": None,
+                                 "sweep_fn": None, "map_fn": None, "fit_fn": None}
     assert alone["evaluated"] == [9, 0]
     for i, r in enumerate(procs):
         assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
@@ -205,9 +231,16 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         assert "processes [1] were given a different sweep" in r["differ"]
         # other work on process 1: the same error on both, before rows of one process's work
         # were returned as the other's (or the cluster hung)
+        # a function computing something else on process 1 (processes mixed their rows)
         for name, words in (("chunk", "different chunk"), ("out", "different out"),
                             ("fit", "different batched fit (targets, starts and settings)"),
-                            ("map", "different sharded_map batch")):
+                            ("map", "different sharded_map batch"),
+                            ("sweep_fn", "different sweep (key and points)"),
+                            ("map_fn", "different sharded_map function (compared by its jaxpr"),
+                            ("fit_fn", "different batched fit program (the metrics function, "
+                                       "the optimiser and the fit loop, compared by their "
+                                       "jaxpr)"),
+                            ("fit_optimizer", "different batched fit program (the metrics")):
             assert "processes [1] were given a " + words in (r["mismatch"][name] or ""), name
         assert r["mismatch"] == procs[0]["mismatch"]
         for key in ("z", "v", "again_z", "heights", "scene_apex"):
@@ -240,6 +273,8 @@ def test_cluster_arguments_are_checked_before_anything_runs(capsys):
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         distributed.join("localhost:1234", 2, 5)
     assert distributed.join("localhost:1234", 1, 0) is False     # one process: nothing to join
+    # a process silent this long stops the others: min(timeout, 10 s), at least 2 s
+    assert [distributed.heartbeat_seconds(t) for t in (300, 10, 3, 1)] == [10, 10, 3, 2]
     with pytest.raises(ValueError, match="timeout_s must be a number of seconds >= 1"):
         distributed.join("localhost:1234", 2, 0, timeout_s=0)
     with pytest.raises(SystemExit):

@@ -19,7 +19,8 @@ batch axis is split over a 1-D device ``Mesh`` with ``NamedSharding(mesh, P("bat
 the results equal the single-device run. A batch that is not a multiple of the device count is
 padded by repeating its last row; the padding never reaches the result. Over several processes
 (:mod:`tuning.distributed`) every process calls with the same rows and gets every row back;
-processes given different targets, starts or settings stop at once with the same error.
+processes given different targets, starts or settings, or a different metrics function or
+optimiser (compared by the jaxpr of one row's fit), stop at once with the same error.
 """
 from __future__ import annotations
 
@@ -192,7 +193,9 @@ class BatchFitter:
     def _work(self, tg: dict, spec: tuple, x0: np.ndarray) -> bytes:
         """A digest of one call's work: the targets, starts, target settings, fitted leaves
         and their bounds, the frozen leaves, the iteration limit, the default optimiser's step
-        and the devices (several processes must all pass the same)."""
+        and the devices (several processes must all pass the same). What the fit computes
+        (the metrics function, the optimiser, the loss and the loop) is compared by the batch
+        program before it first runs: the digest of its jaxpr (:func:`tuning.shard.sharded_map`)."""
         frozen = sorted(P.flatten(self.params0).items())
         h = hashlib.sha256(repr((spec, self.free, self.maxiter, self._learning_rate,
                                  [d.id for d in self.mesh.devices.flat],
@@ -227,7 +230,8 @@ class BatchFitter:
                     "history": c["history"], "status": c["status"],
                     "iterations": loop.iterations(c)}
 
-        run = sharded_map(one, self.mesh)
+        run = sharded_map(one, self.mesh, what="batched fit program (the metrics function, "
+                          "the optimiser and the fit loop, compared by their jaxpr)")
         self._programs[spec] = run
         return run
 

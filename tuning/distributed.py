@@ -11,9 +11,18 @@ of them and hands every process the whole result, and only process 0 writes file
 processes and this process's index), or, given none, detects a cluster launcher that JAX
 knows (SLURM's ``srun`` with more than one task, Open MPI's ``mpirun`` with more than one
 rank) and lets ``jax.distributed.initialize()`` read the rest from the environment.
+
+Once joined, every process checks that all were started alike: the same number of local
+devices, and (explicit coordinator) the same number of processes and coordinator; otherwise
+each stops with the same ``ValueError`` naming what differs. A process that stops (killed,
+crashed) or stays silent for :func:`heartbeat_seconds` (``min(timeout_s, 10)`` s) stops every
+other process: each writes one line on standard error saying so and exits with status 2
+(when process 0, the coordinator, stops, JAX itself aborts the others at once).
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import pickle
 import sys
@@ -22,7 +31,13 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["join", "check", "detect", "parse_coordinator", "is_writer", "process_count",
-           "from_process_zero", "check_same"]
+           "from_process_zero", "check_same", "check_local_devices", "jaxpr_digest",
+           "heartbeat_seconds"]
+
+# seconds a process may stay silent before the others take it for stopped (at most timeout_s)
+HEARTBEAT_S = 10
+# exit status of a process stopped because another process of the cluster stopped
+STOPPED_STATUS = 2
 
 
 def parse_coordinator(text: str) -> tuple[str, int]:
@@ -94,6 +109,13 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
     Before it waits, it writes one line on standard error: which process waits, for how long
     and on which coordinator (a process that is never joined by the others, e.g. because
     process 0 stopped or was given another number of processes, says why it is waiting).
+
+    Once joined, it raises the same ``ValueError`` on every process when the processes have
+    different numbers of local devices, or were given different ``num_processes`` or
+    ``coordinator``. Afterwards, a process that stops (killed, crashed) or stays silent for
+    :func:`heartbeat_seconds` (``min(timeout_s, 10)`` s) makes every other process write one
+    line on standard error and exit with status 2; at the end, a finishing process waits up to
+    ``max(timeout_s, 300)`` s for the others to finish too.
     """
     import jax
     given = check(coordinator, num_processes, process_id)
@@ -108,16 +130,198 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
         _say_waiting(f"process {int(process_id)} of {int(num_processes)}", timeout_s,
                      f"the coordinator {coordinator} (every process needs the same coordinator "
                      f"and number of processes, and its own id in 0..{int(num_processes) - 1})")
-        jax.distributed.initialize(coordinator, int(num_processes), int(process_id),
-                                   initialization_timeout=int(timeout_s))
+        _initialize(timeout_s, coordinator, int(num_processes), int(process_id))
+        _check_joined(timeout_s, coordinator, int(num_processes))
         return True
     launcher = detect()
     if launcher is None:
         return False
     name = {"slurm": "SLURM", "ompi": "Open MPI"}.get(launcher, launcher)
     _say_waiting("this process", timeout_s, f"the coordinator that the {name} launch names")
-    jax.distributed.initialize(initialization_timeout=int(timeout_s))
+    _initialize(timeout_s)
+    _check_joined(timeout_s)
     return True
+
+
+def heartbeat_seconds(timeout_s) -> int:
+    """Seconds a process of a cluster may stay silent before the others take it for stopped:
+    ``min(timeout_s, HEARTBEAT_S)`` (10 s by default), at least 2."""
+    return max(2, min(int(timeout_s), HEARTBEAT_S))
+
+
+def _initialize(timeout_s, *args) -> None:
+    """``jax.distributed.initialize(*args)`` waiting ``timeout_s`` s for the others, then the
+    watch of :func:`_watch_cluster`. JAX's own heartbeat check is set to twice
+    :func:`heartbeat_seconds` (JAX's default is 100 s: the survivors of a killed process
+    hung that long), so that it only backs up the watch. A finishing process waits up to
+    ``max(timeout_s, 300)`` s for the others to finish too (JAX aborts every process when that
+    wait runs out, so it must cover process 0 writing its files after the others ended)."""
+    import jax
+    silent = heartbeat_seconds(timeout_s)
+    jax.distributed.initialize(*args, initialization_timeout=int(timeout_s),
+                               heartbeat_timeout_seconds=2 * silent,
+                               shutdown_timeout_seconds=max(int(timeout_s), 300))
+    _watch_cluster(silent)
+
+
+_WATCH_KEY = "diffpen/alive/"
+_WATCH_PERIOD_S = 1.0
+
+
+def _watch_cluster(silent_s: int) -> None:
+    """Watch the other processes from a background thread, so that a process that stops
+    (killed, crashed, frozen) stops the others promptly and clearly.
+
+    Every second each process writes a counter in the cluster's key-value store and reads the
+    others'. A process whose counter has not moved for ``silent_s`` s, or a coordinator
+    (process 0) that cannot be reached for ``silent_s`` s, makes this process write one line
+    on standard error and exit with status 2 (:data:`STOPPED_STATUS`) at once: the others can
+    no longer answer a collective, and JAX would otherwise abort it (SIGABRT) only after its
+    heartbeat time (even when this process has already ended and waits in JAX's shutdown for
+    the others). A process that ends says so first (``atexit``), so that the others do not
+    take it for stopped while they finish."""
+    import atexit
+    import threading
+    import time
+
+    import jax
+    from jax._src import distributed as jax_distributed
+    client = jax_distributed.global_state.client
+    me, n = jax.process_index(), jax.process_count()
+    ended = threading.Event()       # this process ended (atexit): no more counting
+    lock = threading.Lock()
+
+    def watch() -> None:
+        count, failing = 0, None
+        start = time.monotonic()
+        seen = {i: (None, start) for i in range(n) if i != me}    # counter, when it moved
+        while True:
+            time.sleep(_WATCH_PERIOD_S)
+            if jax_distributed.global_state.client is not client:
+                return                            # JAX shut the cluster down
+            count += 1
+            try:
+                with lock:
+                    if not ended.is_set():
+                        client.key_value_set(f"{_WATCH_KEY}{me}", str(count),
+                                             allow_overwrite=True)
+                values = dict(client.key_value_dir_get(_WATCH_KEY))
+                failing = None
+            except Exception as exc:              # the coordinator is gone or unreachable
+                if jax_distributed.global_state.client is not client:
+                    return
+                failing = time.monotonic() if failing is None else failing
+                if time.monotonic() - failing >= silent_s:
+                    line = (str(exc).strip().splitlines() or [""])[0][:200]
+                    _stop(me, f"the coordinator (process 0) has not answered for {silent_s} s "
+                              f"({line})")
+                continue
+            now = time.monotonic()
+            for i in list(seen):
+                value = values.get(f"{_WATCH_KEY}{i}")
+                if value == "exit":               # ended normally: no longer watched
+                    del seen[i]
+                elif value != seen[i][0]:
+                    seen[i] = (value, now)
+                elif now - seen[i][1] >= silent_s:
+                    _stop(me, f"process {i} of {n} has not answered for {silent_s} s (it "
+                              f"was killed, crashed or froze)")
+
+    def at_exit() -> None:
+        """Runs before JAX's shutdown (``atexit``: last in, first out), which waits for every
+        process: the others stop watching this one, and this one goes on watching them (a
+        process that stopped would make JAX's shutdown wait, then abort)."""
+        if lock.acquire(timeout=5.0):
+            try:
+                ended.set()
+                client.key_value_set(f"{_WATCH_KEY}{me}", "exit", allow_overwrite=True)
+            except Exception:
+                pass
+            finally:
+                lock.release()
+
+    threading.Thread(target=watch, name="diffpen-cluster-watch", daemon=True).start()
+    atexit.register(at_exit)
+
+
+def _stop(me: int, why: str) -> None:
+    """One line on standard error, then exit with :data:`STOPPED_STATUS` at once (no cleanup:
+    the main thread may be waiting on the stopped process inside a collective)."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.write(f"a process of the cluster stopped: {why}; process {me} stops too "
+                         f"(exit status {STOPPED_STATUS}): see the standard error of the "
+                         "stopped process for why.\n")
+        sys.stderr.flush()
+    finally:
+        os._exit(STOPPED_STATUS)
+
+
+def check_local_devices() -> None:
+    """Raise the same ``ValueError`` on every process unless every process of the cluster has
+    the same number of local devices (the sharded programs and the collectives split every
+    batch evenly over the processes). No communication: ``jax.devices()`` lists the devices
+    of every process on each."""
+    import jax
+    counts: dict = {}
+    for d in jax.devices():
+        counts[d.process_index] = counts.get(d.process_index, 0) + 1
+    if len(set(counts.values())) > 1:
+        have = ", ".join(f"process {i} has {n}" for i, n in sorted(counts.items()))
+        raise ValueError(
+            f"every process of a cluster must have the same number of local devices, but "
+            f"{have} ({sum(counts.values())} devices in all): give every process the same "
+            f"devices (on CPU the same XLA_FLAGS=--xla_force_host_platform_device_count=N on "
+            f"every process; on GPUs the same number of visible devices, e.g. "
+            f"CUDA_VISIBLE_DEVICES).")
+
+
+def _check_joined(timeout_s, coordinator: str | None = None,
+                  num_processes: int | None = None) -> None:
+    """After ``jax.distributed.initialize``: the same ``ValueError`` on every process unless
+    all have the same number of local devices and were given the same number of processes
+    and coordinator (a process 0 given fewer processes than the others forms a smaller
+    cluster that the others join unawares). The arguments travel through the cluster's
+    key-value store, which needs no devices."""
+    import jax
+    check_local_devices()
+    if coordinator is None:        # a launcher's environment: the same for every process
+        return
+    from jax._src import distributed as jax_distributed
+    client = jax_distributed.global_state.client
+    mine = json.dumps({"num_processes": num_processes, "coordinator": coordinator})
+    client.key_value_set(f"diffpen/join/{jax.process_index()}", mine)
+    every = [json.loads(client.blocking_key_value_get(f"diffpen/join/{i}",
+                                                      int(timeout_s) * 1000))
+             for i in range(jax.process_count())]
+    differ = []
+    for field, what in (("num_processes", "numbers of processes (num_processes, "
+                                          "--num-processes)"),
+                        ("coordinator", "coordinators (coordinator, --coordinator)")):
+        values = [e[field] for e in every]
+        if len(set(values)) > 1:
+            differ.append(f"{what}: " + ", ".join(
+                f"{v!r} on process {i}" for i, v in enumerate(values)))
+    if differ:
+        raise ValueError(
+            f"the {jax.process_count()} processes that joined the cluster were given "
+            f"different {'; and '.join(differ)}: give every process the same coordinator and "
+            f"number of processes (and its own id).")
+
+
+def jaxpr_digest(closed) -> bytes:
+    """SHA-256 of what a traced function computes: ``closed`` is a ``jax.core.ClosedJaxpr``
+    (``jax.make_jaxpr(f)(*args)`` or ``jax.jit(f).trace(*args).jaxpr``). Its printed form
+    (the operations, shapes, dtypes, literals such as dt and step counts, the names of
+    custom derivative rules) and every constant it closes over (dtype, shape, bytes) are
+    hashed, so two processes given functions that compute differently get different
+    digests; Python code that traces to the same operations gets the same one."""
+    h = hashlib.sha256(str(closed.jaxpr).encode())
+    for c in closed.consts:
+        a = np.asarray(c)
+        h.update(str((a.dtype, a.shape)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.digest()
 
 
 def _say_waiting(who: str, timeout_s, where: str) -> None:
@@ -155,6 +359,7 @@ def from_process_zero(fn: Callable):
     every process (none waits for the others forever). Alone: just ``fn()``."""
     if process_count() == 1:
         return fn()
+    check_local_devices()
     data = b""
     if is_writer():
         try:
@@ -175,8 +380,7 @@ def check_same(what: str, data: bytes) -> None:
     ``data`` (e.g. a digest of the work each was given): a cluster must run one program."""
     if process_count() == 1:
         return
-    import hashlib
-
+    check_local_devices()
     from jax.experimental import multihost_utils
     digest = np.frombuffer(hashlib.sha256(data).digest(), np.uint8)
     every = np.asarray(multihost_utils.process_allgather(digest))

@@ -8,8 +8,9 @@ it is exactly ``jax.jit(jax.vmap(fn))``.
 Several processes (hosts): every process calls :func:`tuning.distributed.join` (or
 ``jax.distributed.initialize``) before anything else (see the README, "Beyond one machine");
 ``jax.devices()`` then lists the devices of all processes and the same code shards over them.
-Every process must run the same program with the same batch (a call whose batch differs
-between processes stops with the same error on all of them); each gets the whole result back
+Every process must have the same number of local devices and run the same function on the same
+batch (a call whose batch or function differs between processes stops with the same error on
+all of them; functions are compared by their jaxpr); each gets the whole result back
 as ordinary arrays on its own first device (the program gathers the rows of every device), so
 the results are identical on every process and readable anywhere.
 """
@@ -23,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from .distributed import check_same
+from .distributed import check_same, jaxpr_digest
 
 __all__ = ["batch_mesh", "sharded_map", "pad_to_multiple"]
 
@@ -74,7 +75,9 @@ def _digest(tree) -> bytes:
     return h.digest()
 
 
-def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False) -> Callable:
+def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False,
+                what: str = "sharded_map function (compared by its jaxpr: what it computes "
+                            "and the arrays it closes over)") -> Callable:
     """``jax.vmap(fn)`` over the leading axis of every argument, sharded over ``mesh``.
 
     Args:
@@ -82,13 +85,20 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False
       mesh: a 1-D mesh with axis ``"batch"`` (default: :func:`batch_mesh`).
       batched: ``fn`` already maps over the leading axis of every argument and output (rows
         independent); it is sharded as it is, not wrapped in ``jax.vmap``.
+      what: what ``fn`` is, in words, for the error raised when processes pass different
+        functions ("processes [1] were given a different WHAT from process 0").
     Returns:
       ``run(*batched_args)``: same outputs as ``jax.vmap(fn)(*batched_args)``. A batch that is
       not a multiple of the device count is padded (by repeating its last row) and the padding
       is dropped from the outputs. The jitted program is built once per mesh, shapes and
       dtypes, so repeated calls with new values do not recompile. Over several processes
-      every process passes the same batch and gets the same, whole result (a batch that
-      differs between processes raises the same ``ValueError`` on all of them).
+      every process passes the same batch and gets the same, whole result. A batch that
+      differs between processes raises the same ``ValueError`` on all of them, and so does a
+      function that computes something else: before anything runs, the processes compare
+      :func:`tuning.distributed.jaxpr_digest` of the traced program (traced once per layout:
+      its operations, literals such as dt and step counts, and the arrays it closes over), so
+      processes given different functions (another scene, dt, duration or metric) do not mix
+      their rows.
     """
     mesh = batch_mesh() if mesh is None else mesh
     n_dev = mesh.devices.size
@@ -101,6 +111,19 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False
     program = jax.jit(fn if batched else jax.vmap(fn), in_shardings=spec,
                       out_shardings=NamedSharding(mesh, P()) if multi else spec)
 
+    digests: dict = {}       # argument layout -> digest of the program traced for it
+
+    def _check_function(placed) -> None:
+        """Every process runs the same program: compared on every call (a process that
+        skipped the comparison would leave the others waiting in it), traced and digested
+        once per argument layout (the trace is the one the call then compiles: ``jit``
+        caches it)."""
+        leaves, tree = jax.tree_util.tree_flatten(placed)
+        layout = (tree, tuple((a.shape, a.dtype.str) for a in leaves))
+        if layout not in digests:
+            digests[layout] = jaxpr_digest(program.trace(*placed).jaxpr)
+        check_same(what, digests[layout])
+
     def run(*args):
         if multi:     # every process holds the whole batch; each device takes its rows
             host = jax.tree_util.tree_map(_host, args)
@@ -110,6 +133,8 @@ def sharded_map(fn: Callable, mesh: Mesh | None = None, *, batched: bool = False
             padded, n = pad_to_multiple(host, n_dev)
             placed = jax.tree_util.tree_map(
                 lambda a: jax.make_array_from_callback(a.shape, spec, lambda i: a[i]), padded)
+            if every:
+                _check_function(placed)
             out = program(*placed)
             # replicated: this process's first copy is the whole result
             return jax.tree_util.tree_map(lambda a: a.addressable_data(0)[:n], out)

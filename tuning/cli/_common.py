@@ -47,7 +47,8 @@ def add_cluster_arguments(p) -> None:
     g.add_argument("--process-id", type=int, metavar="I", help="this process, 0..N-1")
     g.add_argument("--cluster-timeout", type=count("--cluster-timeout"), default=300,
                    metavar="S", help="seconds to wait for every process to join before "
-                   "failing (default 300)")
+                   "failing (default 300); a process that stops or stays silent for "
+                   "min(S, 10) s stops the others (exit status 2)")
 
 
 def in_cluster(args) -> bool:

@@ -1,0 +1,78 @@
+"""Clusters that must not run: processes with different local device counts or given different
+numbers of processes, and a process that stops mid-run. Every process stops at once with a
+clear error (none mixes rows, fails with a reshape error or waits for minutes)."""
+import json
+import subprocess
+import sys
+import textwrap
+import time
+
+from device_subprocess import _env, free_port
+
+# joins (no diffpen, no compilation: the test stays short), then one collective
+SCRIPT = textwrap.dedent("""
+    import json, os, signal, sys
+    from tuning import distributed
+    pid = int(os.environ["CLUSTER_ID"])
+    try:
+        distributed.join(os.environ["CLUSTER_COORDINATOR"], int(os.environ["CLUSTER_PROCESSES"]),
+                         pid, timeout_s=int(os.environ["CLUSTER_TIMEOUT"]))
+        if os.environ.get("CLUSTER_DIES") == str(pid):
+            os.kill(os.getpid(), signal.SIGKILL)        # a process killed mid-run
+        distributed.check_same("x", b"the same")
+        print(json.dumps({"error": None}), flush=True)
+    except ValueError as exc:
+        print(json.dumps({"error": str(exc)}), flush=True)
+""")
+
+
+def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
+    """Three 2-process clusters started together: (devices) process 0 with 2 local devices and
+    process 1 with 1 (every collective failed with "cannot reshape array of size 3 into shape
+    (2,2)"); (nproc) process 0 given 2 processes and process 1 given 3 (the two ran as a
+    2-process cluster unnoticed); (dies) process 1 killed after joining (process 0 hung about
+    100 s, then JAX aborted it, SIGABRT). The first two raise the same error on both
+    processes; in the third, process 0 says that a process of the cluster stopped and exits
+    with status 2 within the 3 s of silence its --cluster-timeout of 3 s allows."""
+    runs = {"devices": ([2, 1], [2, 2], 30, None), "nproc": ([1, 1], [2, 3], 30, None),
+            "dies": ([1, 1], [2, 2], 3, "1")}
+    procs, start = {}, time.monotonic()
+    for name, (devices, counts, timeout, dies) in runs.items():
+        coordinator = f"localhost:{free_port()}"
+        procs[name] = [subprocess.Popen(
+            [sys.executable, "-c", SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            text=True, env=_env(devices[i], CLUSTER_COORDINATOR=coordinator,
+                                CLUSTER_PROCESSES=str(counts[i]), CLUSTER_ID=str(i),
+                                CLUSTER_TIMEOUT=str(timeout), CLUSTER_DIES=dies or ""))
+            for i in range(2)]
+    outs, ended = {}, {}
+    try:
+        for name, ps in procs.items():
+            outs[name] = [p.communicate(timeout=max(1.0, 60 - (time.monotonic() - start)))
+                          for p in ps]
+            ended[name] = time.monotonic() - start
+    finally:
+        for ps in procs.values():
+            for p in ps:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+    errors = {"devices": "every process of a cluster must have the same number of local "
+                         "devices, but process 0 has 2, process 1 has 1 (3 devices in all): "
+                         "give every process the same devices (on CPU the same "
+                         "XLA_FLAGS=--xla_force_host_platform_device_count=N",
+              "nproc": "the 2 processes that joined the cluster were given different numbers "
+                       "of processes (num_processes, --num-processes): 2 on process 0, 3 on "
+                       "process 1: give every process the same coordinator and number of "
+                       "processes"}
+    for name, words in errors.items():
+        for i, (p, (out, err)) in enumerate(zip(procs[name], outs[name])):
+            assert p.returncode == 0, (name, i, err[-2000:])
+            last = [line for line in out.splitlines() if line.startswith("{")][-1]
+            assert words in json.loads(last)["error"], (name, i, out)
+    (p0, p1), ((out, err), _) = procs["dies"], outs["dies"]
+    assert p1.returncode == -9
+    assert p0.returncode == 2, err[-3000:]
+    assert "a process of the cluster stopped: process 1 of 2 has not answered for 3 s (it " \
+           "was killed, crashed or froze); process 0 stops too (exit status 2)" in err, err
+    assert ended["dies"] < 40           # JAX's default: about 100 s, then SIGABRT
