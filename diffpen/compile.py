@@ -341,7 +341,8 @@ class Simulator:
         params are cast to the simulator's dtype, but no stability gate runs and
         ``State.aux["unstable"]`` is not set (:meth:`rollout` does both)."""
         _checks.check_step(self, params, state)
-        return self._step_jit(jax.tree_util.tree_map(self._cast, params), state)
+        return self._step_jit(jax.tree_util.tree_map(self._cast, params),
+                              _stepping.hold_pins(self, state))
 
     def step_function(self, substeps: int | None = None):
         """The pure (unjitted) step ``step(params, state) -> state`` over ``dt`` in
@@ -378,6 +379,7 @@ class Simulator:
         old = state.aux.get(_stability.FLAG)
         flag = flag if old is None else (jnp.asarray(old, bool) | flag)
         state = state._replace(aux={**state.aux, _stability.FLAG: flag})
+        state = _stepping.hold_pins(self, state)    # pins stay put whatever state says
         view = None
         if self.columns:                    # step in columns, save rows (diffpen.layout)
             state, view = _layout.columns_state(state), _layout.rows_state

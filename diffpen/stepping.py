@@ -11,7 +11,7 @@ import numpy as np
 
 from .integrators import build_step, substepped
 
-__all__ = ["build"]
+__all__ = ["build", "hold_pins"]
 
 
 def build(sim, n: int):
@@ -28,28 +28,25 @@ def build(sim, n: int):
         inner = build_step(method, _accel_at(sim, h), h, inv_mass=inv_mass)
     if sim._aux_updates:
         inner = _with_aux_updates(inner, sim._aux_updates)
-    step = substepped(inner, n)
-    if np.any(sim.pinned):
-        step = _holding_pins(step, np.asarray(sim.pinned, bool))
-    return step
+    return substepped(inner, n)
 
 
-def _holding_pins(step, pinned):
-    """``step`` started with the velocity (and spin) of the ``pinned`` bodies ((n,) bool) set
-    to zero. A pinned body takes no force (inverse mass 0), so this keeps it in place however
-    its state was given: a concrete start state with a pin moving is refused up front, but one
-    built under jit or vmap cannot be checked (its values are tracers). One select over
-    (n, 3) per step, only in scenes with pinned bodies."""
+def hold_pins(sim, state):
+    """``state`` with the velocity (and spin) of ``sim``'s pinned bodies set to zero; the state
+    itself when the scene has none. A pinned body takes no force (inverse mass 0), so once
+    its velocity is zero it stays in place: :meth:`~diffpen.Simulator.rollout` and
+    :meth:`~diffpen.Simulator.step` apply this to the state they start from. A concrete start
+    state with a pin moving is refused up front; one built under jit or vmap cannot be
+    checked (its values are tracers), and this keeps its pins in place. The step itself is
+    left as it is (no select per step)."""
+    if not np.any(sim.pinned):
+        return state
     import jax.numpy as jnp
-    held = pinned[:, None]
-
-    def stepped(params, state):
-        state = state._replace(velocity=jnp.where(held, 0.0, state.velocity))
-        if state.angular_velocity is not None:
-            state = state._replace(
-                angular_velocity=jnp.where(held, 0.0, state.angular_velocity))
-        return step(params, state)
-    return stepped
+    held = np.asarray(sim.pinned, bool)[:, None]
+    state = state._replace(velocity=jnp.where(held, 0.0, state.velocity))
+    if state.angular_velocity is not None:
+        state = state._replace(angular_velocity=jnp.where(held, 0.0, state.angular_velocity))
+    return state
 
 
 def _accel_at(sim, h: float):
