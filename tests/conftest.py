@@ -24,6 +24,32 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 
+def pytest_configure(config):
+    """The controller of a pytest-xdist run makes a compilation cache its workers share
+    (they inherit its environment), so a program two workers compile (a session fixture's
+    simulator, a module's rollout) is compiled once; fresh for every session, removed at its
+    end (:func:`pytest_unconfigure`). DIFFPEN_TEST_CACHE=0 turns it off."""
+    if hasattr(config, "workerinput") or os.environ.get("DIFFPEN_TEST_CACHE") == "0":
+        return
+    if getattr(config.option, "numprocesses", None):
+        import tempfile
+        os.environ["DIFFPEN_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="diffpen-test-cache-")
+        config._diffpen_cache = os.environ["DIFFPEN_TEST_CACHE_DIR"]
+
+
+def pytest_unconfigure(config):
+    path = getattr(config, "_diffpen_cache", None)
+    if path is not None:
+        import shutil
+        shutil.rmtree(path, ignore_errors=True)
+
+
+if os.environ.get("DIFFPEN_TEST_CACHE_DIR") and os.environ.get("PYTEST_XDIST_WORKER"):
+    jax.config.update("jax_compilation_cache_dir", os.environ["DIFFPEN_TEST_CACHE_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+
+
 @pytest.fixture(scope="session")
 def ball_scene():
     """The quick-start ball: radius 0.1 m, 1 kg, centre at 1 m above the ground plane."""
