@@ -200,3 +200,27 @@ def test_step_restitution_error_against_closed_form_and_richardson():
     bare = dataclasses.replace(dp.laws.linear(), closed_form=None)
     rich = B.step_restitution_error(2500.0, 50.0, mass=1.0, speed=4.0, dt=1e-3, law=bare)
     assert rich == pytest.approx(err[1], abs=1.5e-3)
+
+
+def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch):
+    """fit_bounce(maxiter=0) ran the default limit (0 is falsy); a settle_tol of NaN made a
+    bouncing ball "settled" at t = 0 and one <= 0 ran a whole fit to a refusal advising a
+    longer rollout; method="adam" was refused only after compiling and rolling out;
+    bounce_metrics_fn with n_apex 0, a body or plane not in the scene failed with a bare
+    jnp.stack / IndexError when first traced. All are FitErrors naming the argument now,
+    before anything compiles."""
+    scene = ball_scene()
+    monkeypatch.setattr(dp, "compile", lambda *a, **k: pytest.fail("compiled"))
+    target = {"apex_heights": [0.55]}
+    for kw, say in (({"maxiter": 0}, "maxiter"), ({"method": "adam"}, "unknown method"),
+                    ({"settle_tol": float("nan")}, "settle_tol"),
+                    ({"settle_tol": -1e-3}, "settle_tol"), ({"settle_tol": 0.0}, "settle_tol"),
+                    ({"plane": 2}, "plane 2 is not in the scene")):
+        with pytest.raises(FitError, match=say):
+            B.fit_bounce(scene, target, **kw)
+    monkeypatch.undo()
+    sim = dp.compile(scene, 1e-3)
+    for kw, say in (({"n_apex": 0}, "n_apex"), ({"body": 3}, "body 3 is not in the scene"),
+                    ({"plane": 2}, "plane 2"), ({"settle_tol": float("nan")}, "settle_tol")):
+        with pytest.raises(FitError, match=say):
+            B.bounce_metrics_fn(sim, 10, **kw)

@@ -19,7 +19,7 @@ import numpy as np
 
 import diffpen as dp
 
-from .errors import FitError
+from .errors import FitError, positive_int
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
 from .stable import FLAG, rollout_unstable, safe_contact_bounds
@@ -66,6 +66,17 @@ def _fall_time(h0: float, v0: float, g: float) -> float:
     return (v0 + math.sqrt(v0 * v0 + 2.0 * g * h0)) / g
 
 
+def _check_settle_tol(settle_tol) -> float:
+    """The settling band (m): a finite number > 0, else :class:`FitError` (a NaN band made
+    every state "settled" at t = 0, a band <= 0 none ever)."""
+    if isinstance(settle_tol, bool) or not isinstance(settle_tol, (int, float, np.floating,
+                                                                  np.integer)) \
+            or not (math.isfinite(settle_tol) and settle_tol > 0.0):
+        raise FitError(f"settle_tol (the settling band, m) must be a finite number > 0, got "
+                       f"{settle_tol!r}; e.g. 1e-3.")
+    return float(settle_tol)
+
+
 def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane: int = 0,
                          settle_tol: float = 1e-3) -> dict:
     """Validate bounce targets against the scene BEFORE anything is compiled.
@@ -83,6 +94,8 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
         raise FitError("a bounce fit needs a plane for the body to bounce on.")
     if not 0 <= body < scene.n_bodies:
         raise FitError(f"body {body} is not in the scene ({scene.n_bodies} bodies).")
+    _check_plane(scene, plane)
+    _check_settle_tol(settle_tol)
     b = scene.bodies[body]
     pl = scene.planes[plane]
     n = np.asarray(pl.normal)
@@ -129,6 +142,14 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
             "h0": h0, "v0": v0, "material": pl.material}
 
 
+def _check_plane(scene: dp.Scene, plane) -> None:
+    """``plane``: an index into ``scene.planes``, else :class:`FitError`."""
+    if isinstance(plane, bool) or not isinstance(plane, (int, np.integer)) \
+            or not 0 <= plane < len(scene.planes):
+        raise FitError(f"plane {plane!r} is not in the scene: give an index 0..."
+                       f"{len(scene.planes) - 1} of its {len(scene.planes)} plane(s).")
+
+
 def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex: int = 3,
                       settle_tol: float = 1e-3, save_every: int = 1,
                       decay_cut: str = "nan") -> Callable:
@@ -145,6 +166,17 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     sweeps return NaN for it.
     """
     from .metrics import ball_metrics
+    # checked here, not when the function is first traced (an empty jnp.stack, an index
+    # error)
+    if isinstance(body, bool) or not isinstance(body, (int, np.integer)) \
+            or not 0 <= body < sim.n_bodies:
+        raise FitError(f"body {body!r} is not in the scene: give an index 0..."
+                       f"{sim.n_bodies - 1} of its {sim.n_bodies} bodies.")
+    if not sim.scene.planes:
+        raise FitError("bounce metrics need a plane for the body to bounce on.")
+    _check_plane(sim.scene, plane)
+    positive_int("n_apex", n_apex, "how many bounces are reported")
+    _check_settle_tol(settle_tol)
     t_end = steps * sim.dt
 
     def metrics_fn(params):
@@ -226,6 +258,10 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
     """
+    if method not in ("lm", "optax"):       # before anything is compiled or run
+        raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
+    if maxiter is not None:
+        positive_int("maxiter", maxiter, "the iteration limit")
     info = check_bounce_targets(scene, targets, body=body, plane=plane, settle_tol=settle_tol)
     tg = {k: np.atleast_1d(np.asarray(v, float)) for k, v in targets.items()}
     notes = []
@@ -355,7 +391,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     res = fit(mfn, params0, dict(targets), free=free,
               bounds={p: bounds[p] for p in free if p in bounds},
               weights=weights, rtol=tol, method=method, optimizer=optimizer,
-              maxiter=maxiter or (40 if method == "lm" else 400), progress=progress,
+              maxiter=(40 if method == "lm" else 400) if maxiter is None else maxiter, progress=progress,
               label="diffpen fit", starts=starts, search=search, n_starts=n_starts)
     res.notes = notes + res.notes
     note = _step_error_note(res.params.contact[mat], dt=dt, law=law, mass=m,

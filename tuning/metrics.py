@@ -397,6 +397,13 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     """
     if decay_cut not in ("nan", "bound"):
         raise ValueError(f"decay_cut must be 'nan' or 'bound', got {decay_cut!r}.")
+    if not (isinstance(settle_tol, (int, float, np.integer, np.floating))
+            and np.isfinite(settle_tol) and settle_tol > 0.0):  # NaN: all "settled" at t = 0
+        raise ValueError(f"settle_tol (the settling band, m) must be a finite number > 0, "
+                         f"got {settle_tol!r}.")
+    if isinstance(n_apex, bool) or not isinstance(n_apex, (int, np.integer)) or n_apex < 1:
+        raise ValueError(f"n_apex must be a positive integer (bounces reported), got "
+                         f"{n_apex!r}.")
     scene = sim.scene
     pl = scene.planes[plane]
     radius = float(sim.radius[body])
