@@ -2,6 +2,7 @@
 atomic."""
 import os
 
+import jax
 import numpy as np
 import pytest
 
@@ -280,3 +281,20 @@ def test_an_unreadable_sweep_file_is_refused_clearly_and_fresh_overwrites_it(tmp
     with pytest.raises(S.SweepError, match="not the table"):
         toy_sweep(out, resume=False)
     assert (tmp_path / "s.csv").read_text() == "t,z\n0.0,1.0\n"
+
+
+def test_a_float64_batch_sets_float32_params_in_their_own_dtype():
+    """A float32 simulator's sweep (x64 on) set the float64 points into its float32 params,
+    so what the metrics computed from k (the settling time's resting height) came out
+    float64, not bit for bit the single float32 rollout's."""
+    import jax.numpy as jnp
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3, dtype=jnp.float32)
+    p0 = sim.params(k=1e4, c=10.0)
+    ev = S.make_evaluator(lambda p: {"kc": p.contact["default"][0] * p.contact["default"][1]},
+                          p0, ["contact.default.k", "contact.default.c"],
+                          batch_map=lambda f: jax.jit(jax.vmap(f)))
+    out = ev(jnp.asarray([[1e4 + 0.1, 10.0]], jnp.float64))
+    assert out["kc"].dtype == jnp.float32

@@ -83,6 +83,21 @@ def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> Non
     plt.close(fig)
 
 
+def cell_edges(x, log: bool) -> np.ndarray:
+    """(n + 1,) edges of the cells around the (n,) increasing grid points ``x``: midway
+    between neighbours (in log x when ``log``), the ends as far out as the first and last
+    halves; one point gets a cell of a factor 2 (log) or +-0.5 around it."""
+    x = np.asarray(x, float)
+    y = np.log(x) if log else x
+    if y.size == 1:
+        half = np.log(2.0) / 2 if log else 0.5
+        e = np.array([y[0] - half, y[0] + half])
+    else:
+        mid = 0.5 * (y[1:] + y[:-1])
+        e = np.concatenate([[2 * y[0] - mid[0]], mid, [2 * y[-1] - mid[-1]]])
+    return np.exp(e) if log else e
+
+
 def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
             point: tuple | None = None, title: str = "",
             labels: tuple = ("k (N/m)", "c (N s/m)"), log: tuple = (True, True)) -> None:
@@ -96,9 +111,15 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
     plt = require_matplotlib()
     fig, ax = plt.subplots(figsize=(6.5, 5))
     v = np.ma.masked_invalid(np.asarray(values, float).T)
-    mesh = ax.pcolormesh(k, c, v, shading="nearest", cmap="viridis")
+    # cell edges midway between the points on each axis's own scale (geometric midpoints on a
+    # log axis): matplotlib's "nearest" shading takes arithmetic midpoints, which on log axes
+    # gave the cells unequal widths and the first a negative edge
+    mesh = ax.pcolormesh(cell_edges(k, log[0]), cell_edges(c, log[1]), v, shading="flat",
+                         cmap="viridis")
     fig.colorbar(mesh, ax=ax, label=metric)
-    if target is not None and np.nanmin(values) < target < np.nanmax(values):
+    finite = np.isfinite(np.asarray(values, float))
+    if target is not None and finite.any() \
+            and np.nanmin(values) < target < np.nanmax(values):
         cs = ax.contour(k, c, v, levels=[target], colors="w", linewidths=1.5)
         ax.clabel(cs, fmt={target: f"target {target:.3g}"}, fontsize=8)
     if point is not None:

@@ -211,6 +211,7 @@ def _run(args) -> int:
                  "restitution": "first restitution"}[args.metric]
         heatmap(args.plot, ks, cs, grid, metric=label, target=args.target,
                 title=f"{label}: {nk}x{nc} sweep, {args.duration:g} s ball, dt={args.dt:g} s")
+    drawn = _target_drawn(args, grid)
     finite_ = np.isfinite(grid)
     unsettled = _unsettled(res)
     out = {"points": int(points.shape[0]), "grid": [nk, nc], "evaluated": res.evaluated,
@@ -219,6 +220,8 @@ def _run(args) -> int:
            "metric": args.metric,
            "range": [float(np.nanmin(grid)), float(np.nanmax(grid))] if finite_.any() else None,
            "w0_dt_max": w_max, "unstable": res.unstable, "unsettled": unsettled}
+    if drawn is not None:
+        out["target_drawn"] = drawn
     if args.json:
         dump_json(out)
         return 0
@@ -258,6 +261,26 @@ def _unsettled(res) -> int:
 def _is_writer() -> bool:
     from ..distributed import is_writer
     return is_writer()
+
+
+def _target_drawn(args, values) -> bool | None:
+    """Whether ``--target``'s contour is drawn on ``--plot`` (None without ``--target``): only
+    a level strictly inside the finite values' range has one. When it is not, one line on
+    standard error says so (the plot alone would not)."""
+    if args.target is None or not args.plot:
+        return None
+    import sys
+
+    import numpy as np
+    v = np.asarray(values, float)
+    ok = bool(np.isfinite(v).any()) and float(np.nanmin(v)) < args.target < float(np.nanmax(v))
+    if not ok:
+        span = (f"{np.nanmin(v):.4g} .. {np.nanmax(v):.4g}" if np.isfinite(v).any()
+                else "no finite values")
+        sys.stderr.write(f"diffpen sweep: --target {args.target:g} is outside the grid's "
+                         f"{args.metric} ({span}): no contour on {args.plot}; widen the grid "
+                         "or give a level inside that range\n")
+    return ok
 
 
 def _run_scene(args) -> int:
