@@ -353,6 +353,9 @@ class ContactLaw:
       clamp: 0 for the linear laws (``k d - c vn``), n for Hunt-Crossley (``(k - c vn) d^n``).
       With ``exponent`` and ``pulls`` it states the law's physics for code that writes it out
       independently (the event-located references of :mod:`tuning.reports.reference`).
+    takes_exponent: True when :func:`get` builds the law for a given ``exponent``
+      (``hunt_crossley``); the others have n = 1 fixed, and an exponent given for them is an
+      error of the caller's (a scene file refuses it).
 
     A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
     """
@@ -367,6 +370,7 @@ class ContactLaw:
     centred: Callable | None = None
     pulls: bool = False
     damping_exponent: float = 0.0
+    takes_exponent: bool = False
 
     def __call__(self, d, vn, k, c, width: float = 0.0):
         return self.force(d, vn, k, c, width)
@@ -447,7 +451,7 @@ def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:
         return n * k * d_ref ** (n - 1.0), c * d_ref ** n
     return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
                       stiffness, n, None, _hunt_crossley_centred(n) if centred else None,
-                      damping_exponent=n)
+                      damping_exponent=n, takes_exponent=True)
 
 
 #: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: the records (Hunt-Crossley

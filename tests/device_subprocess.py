@@ -28,6 +28,15 @@ def run_on_devices(script: str, devices: int = 4, timeout: float = 300) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def kill_left(procs) -> None:
+    """Kill and reap every process of ``procs`` (a list of Popen) still running: a cluster
+    test never leaves a process behind, whatever failed."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def free_port() -> int:
     """A TCP port on localhost that nothing listens on now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -56,10 +65,7 @@ def run_cluster(script: str, processes: int = 2, devices: int = 2, timeout: floa
         for p in procs:
             outs.append(p.communicate(timeout=max(1.0, deadline - time.monotonic())))
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        kill_left(procs)
     for i, (p, (out, err)) in enumerate(zip(procs, outs)):
         assert p.returncode == 0, f"process {i} failed:\n{err[-3000:]}"
     return [json.loads(out.strip().splitlines()[-1]) for out, _ in outs]

@@ -7,7 +7,7 @@ import sys
 import textwrap
 import time
 
-from device_subprocess import _env, free_port
+from device_subprocess import _env, free_port, kill_left
 
 # joins (no diffpen, no compilation: the test stays short), then one collective
 SCRIPT = textwrap.dedent("""
@@ -52,11 +52,7 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
                           for p in ps]
             ended[name] = time.monotonic() - start
     finally:
-        for ps in procs.values():
-            for p in ps:
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
+        kill_left([p for ps in procs.values() for p in ps])
     errors = {"devices": "every process of a cluster must have the same number of local "
                          "devices, but process 0 has 2, process 1 has 1 (3 devices in all): "
                          "give every process the same devices (on CPU the same "

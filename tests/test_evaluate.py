@@ -186,6 +186,13 @@ def test_plots_show_every_observed_body(tmp_path, monkeypatch):
         assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
 
 
+def _no_rollout(monkeypatch, why: str) -> None:
+    """Make any rollout of the evaluation fail the test: the refusal must come first."""
+    def boom(*a, **k):
+        raise AssertionError(why)
+    monkeypatch.setattr(ev, "evaluator", boom)
+
+
 def test_cli_evaluate_refuses_a_plot_folder_it_cannot_write_before_rolling_out(
         setup, tmp_path, capsys, monkeypatch):
     """--plot DIR, an existing folder that takes no files: the records were rolled out, then
@@ -193,9 +200,7 @@ def test_cli_evaluate_refuses_a_plot_folder_it_cannot_write_before_rolling_out(
     past the safe step). Now refused with status 2 before anything is compiled."""
     scene, paths, *_ = setup
 
-    def boom(*a, **k):
-        raise AssertionError("rolled out before checking --plot")
-    monkeypatch.setattr(ev, "evaluator", boom)
+    _no_rollout(monkeypatch, "rolled out before checking --plot")
     folder = tmp_path / "plots"
     folder.mkdir()
     real = os.access
@@ -247,9 +252,7 @@ def test_cli_evaluate_refuses_a_plot_path_that_is_a_folder_before_rolling_out(
     pytest.importorskip("matplotlib")
     scene, paths, *_ = setup
 
-    def boom(*a, **k):
-        raise AssertionError("rolled out before checking the pictures' paths")
-    monkeypatch.setattr(ev, "evaluator", boom)
+    _no_rollout(monkeypatch, "rolled out before checking the pictures' paths")
     (tmp_path / "plots" / "toss_1.png").mkdir(parents=True)
     capsys.readouterr()
     assert main(["evaluate", scene, "--data", *paths, "--plot", str(tmp_path / "plots")]) == 2
@@ -268,9 +271,7 @@ def test_cli_evaluate_refuses_a_plot_folder_another_run_is_writing(
     from tuning.io import OutputLock
     scene, paths, *_ = setup
 
-    def boom(*a, **k):
-        raise AssertionError("rolled out into a folder another run is writing")
-    monkeypatch.setattr(ev, "evaluator", boom)
+    _no_rollout(monkeypatch, "rolled out into a folder another run is writing")
     plots = tmp_path / "plots"
     plots.mkdir()
     capsys.readouterr()

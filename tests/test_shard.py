@@ -310,7 +310,7 @@ def test_cluster_sweep_prints_only_its_json_on_standard_output(tmp_path):
     import subprocess
     import sys
 
-    from device_subprocess import _env, free_port
+    from device_subprocess import _env, free_port, kill_left
     coordinator = f"localhost:{free_port()}"
     args = ["sweep", "--n", "2", "--duration", "0.4", "--dt", "2e-3", "--json",
             "--out", str(tmp_path / "s.npz"), "--coordinator", coordinator,
@@ -321,9 +321,7 @@ def test_cluster_sweep_prints_only_its_json_on_standard_output(tmp_path):
     try:
         outs = [p.communicate(timeout=120) for p in procs]
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
+        kill_left(procs)
     assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
     summary = json.loads(outs[0][0])
     assert summary["points"] == 4
@@ -341,7 +339,7 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
     import subprocess
     import sys
 
-    from device_subprocess import _env, free_port
+    from device_subprocess import _env, free_port, kill_left
     (tmp_path / "a").mkdir()
     scene = tmp_path / "ball.toml"
     scene.write_text("dt = 2e-3\nduration = 0.4\n[[spheres]]\nradius = 0.1\nmass = 1.0\n"
@@ -364,11 +362,7 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
     try:
         outs = {name: [p.communicate(timeout=90) for p in ps] for name, ps in procs.items()}
     finally:
-        for ps in procs.values():
-            for p in ps:
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
+        kill_left([p for ps in procs.values() for p in ps])
     errors = {"chunk": "processes [1] were given a different chunk (points per call, "
                        "diffpen sweep --chunk) from process 0",
               "out": f"--out {tmp_path / 'missing' / 's.npz'}: the folder"}

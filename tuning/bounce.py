@@ -5,8 +5,8 @@ restitution, maximum penetration. :func:`check_bounce_targets` refuses targets n
 reach before anything is compiled; :func:`bounce_metrics_fn` is the traceable metrics
 function; :func:`first_guess_bounce` the closed-form start; :func:`fit_bounce` (behind
 ``diffpen fit``) puts them together and runs :func:`tuning.fit.fit`;
-:func:`step_restitution_error` is the time step's own restitution error at a (k, c), which
-the fit notes when it is large.
+:func:`step_restitution_error` (from :mod:`tuning.step_error`) is the time step's own
+restitution error at a (k, c), which the fit notes when it is large.
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from .errors import FitError, positive_int
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
 from .stable import FLAG, rollout_unstable, safe_contact_bounds
+from .step_error import step_error_note, step_restitution_error
 
 __all__ = ["BOUNCE_METRICS", "EVENT_TARGETS", "check_bounce_targets", "bounce_metrics_fn",
            "first_guess_bounce", "fit_bounce", "step_restitution_error"]
@@ -55,10 +56,6 @@ EVENT_TARGETS = ("apex_heights", "restitution", "contact_durations")
 #: ``EVENT_STEPS`` steps (0.7^40 ~ 6e-7: c from any start down to its lower bound).
 EVENT_STEP = 0.7
 EVENT_STEPS = 40
-
-#: :func:`fit_bounce` notes the time step's own restitution error at the fitted point
-#: (:func:`step_restitution_error`) when it is larger than this.
-STEP_ERROR_NOTE = 0.01
 
 
 def _fall_time(h0: float, v0: float, g: float) -> float:
@@ -235,7 +232,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     visited did. Stiffness stays below the accuracy limit ``w0 dt <= 0.25`` of the explicit
     step; that does not bound the restitution error of a damped contact, so the time step's
     own restitution error at the fitted point is measured (:func:`step_restitution_error`)
-    and noted when above :data:`STEP_ERROR_NOTE` (1%).
+    and noted when above :data:`tuning.step_error.STEP_ERROR_NOTE` (1%).
 
     Bounce heights alone fix only the damping ratio: with apex/restitution targets but no
     settling-time or contact-duration target, k is held at ``k0`` and only c is fitted (the
@@ -314,7 +311,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     # w0 dt = 0.05, -0.07% at zeta 0.1, -0.78% at 0.3, -2.98% at 0.5; at w0 dt = 0.25, -3.2%
     # at zeta 0.3 and -13.3% at 0.5 (laws.linear(centred=True): within 0.01-0.9% in the same
     # cases). So the error at the fitted point is measured after the fit
-    # (step_restitution_error) and noted above STEP_ERROR_NOTE. A start above the limit is
+    # (step_restitution_error) and noted above step_error.STEP_ERROR_NOTE. A start above the limit is
     # lowered BEFORE the first guess, so c is guessed for the k actually used.
     kmax = (0.25 / dt) ** 2 * m
     k_first = 1e4 * m if k0 is None else float(k0)
@@ -394,7 +391,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
               maxiter=(40 if method == "lm" else 400) if maxiter is None else maxiter, progress=progress,
               label="diffpen fit", starts=starts, search=search, n_starts=n_starts)
     res.notes = notes + res.notes
-    note = _step_error_note(res.params.contact[mat], dt=dt, law=law, mass=m,
+    note = step_error_note(res.params.contact[mat], dt=dt, law=law, mass=m,
                             radius=info["radius"], speed=math.sqrt(2.0 * g * info["drop"]),
                             compile_kw=compile_kw)
     if note:
@@ -485,100 +482,6 @@ def _event_search(free, values: dict, need: dict, tg: dict, notes: list, *, kpat
                      "where it was and such events are reported as nan")
         return []
     return run
-
-
-def _step_error_note(contact, *, dt: float, law, mass: float, radius: float, speed: float,
-                     compile_kw: dict) -> str | None:
-    """The note :func:`fit_bounce` adds when the time step's own restitution error at the
-    fitted ``contact`` (k, c) is above :data:`STEP_ERROR_NOTE`; None otherwise (or when it
-    cannot be measured: no rebound)."""
-    try:
-        err = step_restitution_error(float(contact.k), float(contact.c), mass=mass,
-                                     radius=radius, speed=speed, dt=dt, law=law, **compile_kw)
-    except (ValueError, FloatingPointError):      # SceneError, StabilityError, NonFiniteError
-        return None
-    if err is None or not abs(err) > STEP_ERROR_NOTE:
-        return None
-    rec = dp.laws.get(law, compile_kw.get("exponent", 1.0)) if isinstance(law, str) else law
-    lag = (compile_kw.get("integrator", "semi_implicit_euler") == "semi_implicit_euler"
-           and compile_kw.get("smoothing", "auto") in ("auto", 0, 0.0))
-    centred = {"linear": "laws.linear(centred=True)",
-               "no_tension": "laws.no_tension(centred=True)",
-               "hunt_crossley": f"laws.hunt_crossley({rec.exponent:g}, centred=True)"}
-    fix = "use a smaller dt"
-    if lag and rec.centred is None and rec.name in centred:
-        fix += f" or {centred[rec.name]}"
-    return (f"the time step's own restitution error at the fitted point is {100 * err:+.3g}%: "
-            f"the fitted k, c are those of the discrete model at this dt ({dt:g} s); {fix}")
-
-
-#: Impact simulators of :func:`step_restitution_error`, by everything they are compiled from.
-_IMPACT_SIMS: dict = {}
-
-
-def _impact_restitution(k: float, c: float, h: float, *, mass: float, radius: float,
-                        speed: float, gap: float, t_contact: float, law,
-                        compile_kw: dict) -> float | None:
-    """Restitution of one gravity-free impact at ``speed`` m/s simulated at step ``h`` s
-    (the ball starts ``gap`` m above the plane): its speed after the contact over its speed
-    before; None when the contact has not ended after ``4 t_contact`` s."""
-    key = (mass, radius, speed, gap, h, law, tuple(sorted(compile_kw.items())))
-    try:
-        sim = _IMPACT_SIMS.get(key)
-    except TypeError:                  # an option that cannot key a cache: compile anew
-        key, sim = None, None
-    if sim is None:
-        from .scenes import ball_scene
-        sim = dp.compile(ball_scene(radius=radius, mass=mass, height=radius + gap,
-                                    velocity=-speed, gravity=0.0), h, law=law, **compile_kw)
-        if key is not None:
-            if len(_IMPACT_SIMS) >= 16:
-                _IMPACT_SIMS.clear()
-            _IMPACT_SIMS[key] = sim
-    # a power of two: few distinct rollout lengths, so few compiled programs
-    steps = 2 ** max(4, math.ceil(math.log2((gap / speed + 4.0 * t_contact) / h + 2.0)))
-    tr = sim.rollout(sim.params(k=k, c=c), steps, save_every=steps)
-    z, v = (float(a) for a in jax.device_get((tr.position[-1, 0, 2], tr.velocity[-1, 0, 2])))
-    return v / speed if z > radius and v > 0.0 else None
-
-
-#: :func:`diffpen.physical.restitution` as one compiled program (eagerly it is a dozen).
-_closed_form_restitution = jax.jit(dp.physical.restitution, static_argnames="law")
-
-
-def step_restitution_error(k: float, c: float, *, mass: float, speed: float, dt: float,
-                           radius: float = 0.1, law="linear", **compile_kw) -> float | None:
-    """The time step's own error in the restitution at contact ``k``, ``c``: ``e_dt / e - 1``
-    for one gravity-free impact of a sphere (``mass`` kg, ``radius`` m) at ``speed`` m/s on
-    a plane, simulated at ``dt`` s with ``law`` and ``compile_kw`` (as in
-    :func:`diffpen.compile`).
-
-    ``e`` is the continuous model's: the law's closed form
-    (:func:`diffpen.physical.restitution`, linear and no_tension without smoothing) where it
-    has one and rebounds, else the same impact at ``dt / 8`` extrapolated to ``dt -> 0``
-    (Richardson, first order: ``e_8 + (e_8 - e_dt) / 7``). One small compile and rollout
-    (two without a closed form). Returns None when the simulated ball does not rebound.
-    """
-    rec = dp.laws.get(law, compile_kw.get("exponent", 1.0)) if isinstance(law, str) else law
-    n = float(rec.exponent)
-    # the undamped contact's duration, pi sqrt(m / k) for n = 1 (Hertz-like for n > 1, at
-    # the stiffness of the deepest point): the rollouts last 4 of them (zeta up to ~0.97)
-    d_max = ((n + 1.0) * mass * speed ** 2 / (2.0 * k)) ** (1.0 / (n + 1.0))
-    t_contact = math.pi * math.sqrt(mass / (n * k * d_max ** (n - 1.0)))
-    kw = dict(mass=mass, radius=radius, speed=speed, gap=0.5 * speed * dt,
-              t_contact=t_contact, law=law, compile_kw=compile_kw)
-    e_dt = _impact_restitution(k, c, dt, **kw)
-    if e_dt is None:
-        return None
-    e = None
-    if rec.closed_form is not None and compile_kw.get("smoothing", "auto") in ("auto", 0, 0.0):
-        e = float(_closed_form_restitution(k, c, mass, law=rec))
-    if not (e is not None and e > 0.0):
-        e_8 = _impact_restitution(k, c, dt / 8.0, **kw)
-        if e_8 is None:
-            return None
-        e = e_8 + (e_8 - e_dt) / 7.0
-    return e_dt / e - 1.0
 
 
 def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):

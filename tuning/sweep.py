@@ -158,13 +158,7 @@ def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
     ``params0`` (the operations, the scene's constants, dt and step counts as literals) and of
     the arrays it closes over. A sweep written to ``out`` without ``key=`` stores it, so that
     a rerun with another scene, dt, duration or metric is refused, not mixed in."""
-    closed = jax.make_jaxpr(metrics_fn)(params0)
-    h = hashlib.sha256(str(closed.jaxpr).encode())
-    for c in closed.consts:
-        a = np.asarray(c)
-        h.update(str((a.dtype, a.shape)).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()
+    return distributed.jaxpr_digest(jax.make_jaxpr(metrics_fn)(params0)).hex()
 
 
 def _data(v) -> bool:

@@ -102,10 +102,12 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
                 f"runs round(duration / dt) steps; give duration >= {dt:g} s or a smaller dt.")
         law = V.choice(self.w("law"), doc.get("law", "linear"), sorted(dp.laws.CONTACT_LAWS))
         opts = {"law": law}
-        if "exponent" in doc and law != "hunt_crossley":
+        takes = [n for n, rec in sorted(dp.laws.CONTACT_LAWS.items()) if rec.takes_exponent]
+        if "exponent" in doc and law not in takes:
+            names = " or ".join(f'"{n}"' for n in takes)
             raise self.w("exponent").error(
-                f"applies only to law = \"hunt_crossley\", but law = {law!r}: remove "
-                "exponent, or set law = \"hunt_crossley\".")
+                f"applies only to law = {names}, but law = {law!r}: remove exponent, or set "
+                f"law = {names}.")
         if "exponent" in doc:
             opts["exponent"] = V.number(self.w("exponent"), doc["exponent"], low=1.0)
         if "integrator" in doc:
