@@ -83,13 +83,8 @@ def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
         z, v = s.position[-1, 0, 2], s.velocity[-1, 0, 2] - 0.5 * 9.81 * 1e-3
         a = z + v * v / (2 * 9.81) - case.radius
         return a, a
-    # The value comes with the derivatives, from one compiled program. XLA's fusion pass
-    # alone takes ~10 s of this program's ~25 s compile (the law's unrolled Newton steps and
-    # quadrature, differentiated), so it is compiled without it: fusion only groups the same
-    # operations into kernels (the value and derivatives are bit for bit those of the fused
-    # program, measured)
-    prog = jax.jit(jax.jacfwd(apex1, (0, 1), has_aux=True)).lower(case.k, case.c)
-    (dk, dc), val = prog.compile({"xla_disable_hlo_passes": "fusion"})(case.k, case.c)
+    # the value comes with the derivatives, from one compiled program
+    (dk, dc), val = jax.jit(jax.jacfwd(apex1, (0, 1), has_aux=True))(case.k, case.c)
     val, dk, dc = float(val), float(dk), float(dc)
     ref = event_reference(case)
     assert _err(val, ref["value"][0]) < 1e-4
