@@ -10,12 +10,14 @@ import time
 
 
 def _env(devices: int, **extra) -> dict:
-    """The test process's environment with ``devices`` forced CPU devices; the XLA backend
-    optimisation level the test process compiles at (tests/conftest.py: -O0 unless
-    DIFFPEN_TEST_XLA_OPT=1) is passed on, since the subprocesses' time is their compiles."""
+    """The test process's environment with ``devices`` forced CPU devices; the compile-time
+    options the test process compiles with (tests/conftest.py: LLVM -O0 and XLA's classic
+    emitters unless DIFFPEN_TEST_XLA_OPT=1) are passed on, since the subprocesses' time is
+    their compiles."""
     flags = [f"--xla_force_host_platform_device_count={devices}"]
     flags += [f for f in os.environ.get("XLA_FLAGS", "").split()
-              if f.startswith("--xla_backend_optimization_level=")]
+              if f.startswith(("--xla_backend_optimization_level=",
+                               "--xla_cpu_use_fusion_emitters="))]
     return dict(os.environ, XLA_FLAGS=" ".join(flags), JAX_PLATFORMS="cpu", **extra)
 
 

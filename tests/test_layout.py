@@ -115,20 +115,30 @@ def test_a_batched_rollout_loop_is_one_kernel():
     assert "xla_cpu_small_call" in text
 
 
-def test_xla_flags_set_at_import_respect_the_callers(tmp_path):
+def test_xla_flags_set_at_import_respect_the_callers(monkeypatch):
     import subprocess
     import sys
-    code = "import os, diffpen; print(os.environ.get('XLA_FLAGS', ''))"
-
-    def flags(**env):
-        base = {k: v for k, v in os.environ.items()
-                if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
-        return subprocess.run([sys.executable, "-c", code], env=dict(base, **env),
-                              capture_output=True, text=True, check=True).stdout.strip()
     import os
-    mine = flags()
+    # a fresh process importing diffpen gets the option
+    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
+    mine = subprocess.run([sys.executable, "-c",
+                           "import os, diffpen; print(os.environ.get('XLA_FLAGS', ''))"],
+                          env=base, capture_output=True, text=True, check=True).stdout.strip()
     assert (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
             f"{dp.SMALL_LOOP_BYTES}") in mine
+
+    # the callers' own settings: what import runs (diffpen._configure_xla_cpu), in this
+    # process with its backend taken as not started
+    monkeypatch.setattr(dp, "_backend_started", lambda: False)
+
+    def flags(**env):
+        for k in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS"):
+            monkeypatch.delenv(k, raising=False)
+        for k, v in env.items():
+            monkeypatch.setenv(k, v)
+        dp._configure_xla_cpu()
+        return os.environ.get("XLA_FLAGS", "").strip()
+    assert flags() == mine
     # the caller's own backend options are kept, ours added to them (they were dropped)
     theirs = flags(XLA_FLAGS="--xla_backend_extra_options=foo=1")
     assert (f"--xla_backend_extra_options=foo=1,xla_cpu_small_while_loop_byte_threshold="
