@@ -40,6 +40,29 @@ def find(sim, state):
     return _FINDERS[sim](state)
 
 
+_FORCES = {}
+
+
+def traced_forces(sim, params, state, h=None):
+    """``sim.forces`` called inside one jitted program per sim (and ``h``): the same forces,
+    without the host-side overflow report a concrete call adds (it compiles the search
+    once more; test_forces_warn_when_their_search_overflows checks that report)."""
+    if (sim, h) not in _FORCES:
+        _FORCES[sim, h] = jax.jit(lambda p, s: sim.forces(p, s, h=h))
+    return _FORCES[sim, h](params, state)
+
+
+_PROBES = {}
+
+
+def search_and_forces(sim, params, state):
+    """``(find(sim, state), sim.forces(params, state))`` from one jitted program per sim."""
+    if sim not in _PROBES:
+        _PROBES[sim] = jax.jit(lambda p, s: (bp.find_pairs(sim.broadphase, sim.context, s),
+                                             sim.forces(p, s)))
+    return _PROBES[sim](params, state)
+
+
 def pair_set(pairs):
     # to numpy first: iterating a jax array compiles an unstack per shape
     i, j, valid = (np.asarray(a) for a in (pairs.i, pairs.j, pairs.valid))
@@ -78,14 +101,14 @@ def test_broadphase_finds_the_brute_force_pairs_and_forces(random_sims, seed, st
     state, ref_state = sim.init_state(), ref.init_state()
     if seed == 1:
         state, ref_state = moved(state), moved(ref_state)
-    pairs = find(sim, state)
+    params = dict(contact={"default": (1e4, 10.0), "soft": (5e3, 5.0)})
+    # the search and the forces in one compiled program per strategy (both seeds)
+    pairs, (f1, t1) = search_and_forces(sim, sim.params(**params), state)
     want = bp.brute_force_pairs(sim.context, state)
     assert pair_set(pairs) == want and int(pairs.count) == len(want)
     assert not bool(pairs.overflow)
     # exact narrow phase on the found pairs: contacts (d > 0) exist and forces agree
-    params = dict(contact={"default": (1e4, 10.0), "soft": (5e3, 5.0)})
-    f0, t0 = ref.forces(ref.params(**params), ref_state)
-    f1, t1 = sim.forces(sim.params(**params), state)
+    f0, t0 = traced_forces(ref, ref.params(**params), ref_state)
     assert np.abs(np.asarray(f0)).max() > 1.0
     np.testing.assert_allclose(np.asarray(f1), np.asarray(f0), rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(np.asarray(t1), np.asarray(t0), rtol=1e-10, atol=1e-9)
@@ -154,10 +177,13 @@ def test_forces_warn_when_their_search_overflows(crowded):
     p = crowded.params(k=1e4, c=20.0)
     with pytest.warns(bp.BroadPhaseOverflowWarning, match="some contacts were not evaluated"):
         crowded.forces(p, state)
-    roomy = dp.compile(crowded.scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=8))
+    # the same simulator on the column spread out (nothing overlaps): its search has room
+    # for every pair, and the same compiled forces and report are silent
+    far = state._replace(position=state.position * 10.0)
+    assert not bool(find(crowded, far).overflow)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        roomy.forces(p, state)                    # room for every pair: silent
+        crowded.forces(p, far)                    # room for every pair: silent
 
 
 def test_full_cell_is_reported_as_overflow():
@@ -165,10 +191,12 @@ def test_full_cell_is_reported_as_overflow():
     for i in range(5):                                    # five spheres in one cell
         scene.add_sphere(0.1, 1.0, (0.01 * i, 0.0, 0.0))
     scene.add_sphere(0.1, 1.0, (3.0, 0.0, 0.0))
+    # the start state's flag: the search of the initial state, run when the simulator is
+    # compiled (find_pairs itself, as find() below; one compiled search less)
     sim = dp.compile(scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=4))
-    pairs = find(sim, sim.init_state())
-    assert bool(pairs.overflow)
+    assert float(sim.init_state().aux[bp.OVERFLOW]) == 1.0
     ok = dp.compile(scene, dt=1e-3, broadphase=bp.Grid(max_per_cell=5))
+    assert float(ok.init_state().aux[bp.OVERFLOW]) == 0.0
     pairs = find(ok, ok.init_state())
     assert not bool(pairs.overflow) and len(pair_set(pairs)) == 10
 
@@ -266,46 +294,42 @@ def _count_eqns(jaxpr, keep):
     return n
 
 
-def _step_jaxpr(sim):
-    return jax.make_jaxpr(sim.step)(sim.params(k=1e4, c=20.0), sim.init_state()).jaxpr
+def _step_jaxpr(sim, substeps=None):
+    step = sim.step if substeps is None else sim.step_function(substeps)
+    return jax.make_jaxpr(step)(sim.params(k=1e4, c=20.0), sim.init_state()).jaxpr
 
 
-def _searches_per_step(sim):
-    """How many pair searches one ``sim.step`` traces: equations under the search's named
-    scope in the step's jaxpr over those of one search traced alone."""
+def _searches_per_step(sim, substeps=None, jaxpr=None):
+    """How many pair searches one ``sim.step`` (or the step of ``substeps`` inner steps, or
+    the given ``jaxpr``) traces: equations under the search's named scope in the step's
+    jaxpr over those of one search traced alone."""
     def scoped(eqn):
         return bp.SEARCH_SCOPE in str(eqn.source_info.name_stack)
     one = _count_eqns(jax.make_jaxpr(lambda s: bp.find_pairs(sim.broadphase, sim.context, s))(
         sim.init_state()).jaxpr, scoped)
     assert one > 0
-    return _count_eqns(_step_jaxpr(sim), scoped) / one
+    return _count_eqns(_step_jaxpr(sim, substeps) if jaxpr is None else jaxpr, scoped) / one
 
 
 
 
-@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
-def test_default_step_searches_pairs_once(pile, strategy):
+@pytest.mark.parametrize("strategy", ["aabb", "grid"])
+def test_default_step_searches_pairs_once(random_sims, strategy):
     """Semi-implicit Euler evaluates forces once per step, so one step runs one pair search:
-    the force term and the overflow flag share it."""
-    sim = dp.compile(pile, dt=1e-3, broadphase=strategy)
-    if isinstance(strategy, bp.Grid):           # the grid search sorts the bodies once
+    the force term and the overflow flag share it. (The random scene's simulators: spheres,
+    particles and boxes.)"""
+    sim = random_sims[1][strategy]
+    assert sim.integrator == "semi_implicit_euler" and sim.broadphase is STRATEGIES[
+        ["aabb", "grid"].index(strategy)]
+    if strategy == "grid":                      # the grid search sorts the bodies once
         assert _count_eqns(_step_jaxpr(sim), lambda e: e.primitive.name == "sort") == 1
     assert _searches_per_step(sim) == 1.0
-    sub = dp.compile(pile, dt=1e-3, broadphase=strategy, substeps=3)
-    assert _searches_per_step(sub) == 1.0       # once per inner step (the scan's body)
+    # with substeps=3 (the step dp.compile(..., substeps=3) jits: the same simulator's
+    # step_function(3), without compiling a second simulator)
+    assert _searches_per_step(sim, substeps=3) == 1.0   # once per inner step (scan's body)
 
 
-_COLUMN_GRIDS = {}
-COLUMN_RUN = dict(steps=60, save_every=20)      # one rollout program per simulator
-
-
-def column_grid(column, integrator):
-    """The column under ``integrator`` with a grid that never overflows on it (compiled once
-    per integrator; the tests below share its rollout program)."""
-    if integrator not in _COLUMN_GRIDS:
-        _COLUMN_GRIDS[integrator] = dp.compile(column, dt=1e-3, integrator=integrator,
-                                               broadphase=bp.Grid(max_pairs=40, margin=1e-3))
-    return _COLUMN_GRIDS[integrator]
+COLUMN_RUN = dict(steps=60, save_every=20)
 
 
 @pytest.mark.parametrize("integrator, evaluations",
@@ -315,17 +339,23 @@ def test_multi_evaluation_integrators_search_per_evaluation_and_match_all_pairs(
     """Integrators with several force evaluations per step search once per evaluation (none
     extra for the flag) and give the all-pairs result. (The margin covers the smoothing
     ramp, which acts up to ``smoothing / 2`` before the spheres touch.)"""
-    sim = column_grid(column, integrator)
+    sim = dp.compile(column, dt=1e-3, integrator=integrator,
+                     broadphase=bp.Grid(max_pairs=40, margin=1e-3))
     ref = dp.compile(column, dt=1e-3, integrator=integrator)
+    p = sim.params(k=1e4, c=20.0)
     if evaluations is not None:
-        assert _searches_per_step(sim) == evaluations
-    t = sim.rollout(sim.params(k=1e4, c=20.0), **COLUMN_RUN)
+        # the searches in the step the rollout scans (sim.step's step function; this trace
+        # is the one the rollout below compiles, not a second one)
+        run = jax.make_jaxpr(lambda p: sim.rollout(p, **COLUMN_RUN))(p).jaxpr
+        assert _count_eqns(run, lambda e: e.primitive.name == "scan") >= 1
+        assert _searches_per_step(sim, jaxpr=run) == evaluations
+    t = sim.rollout(p, **COLUMN_RUN)
     t_ref = ref.rollout(ref.params(k=1e4, c=20.0), **COLUMN_RUN)
     np.testing.assert_allclose(np.asarray(t.position), np.asarray(t_ref.position), atol=1e-12)
     np.testing.assert_array_equal(np.asarray(t.aux[bp.OVERFLOW]), 0.0)
 
 
-def test_overflow_flag_comes_from_the_step_search_and_vmaps(column, crowded):
+def test_overflow_flag_comes_from_the_step_search_and_vmaps(crowded):
     """A step records the overflow of the state it starts from; under vmap each candidate
     keeps its own flag."""
     sim = crowded
@@ -339,34 +369,52 @@ def test_overflow_flag_comes_from_the_step_search_and_vmaps(column, crowded):
     assert not bool(find(sim, far).overflow)
     assert float(sim.step(p, far).aux[bp.OVERFLOW]) == 0.0
 
-    def final(k, s):
-        return sim.step(sim.params(k=k, c=20.0), s)
-    both = jax.vmap(final, in_axes=(0, None))(jnp.asarray([1e4, 2e4]), cleared)
-    np.testing.assert_array_equal(np.asarray(both.aux[bp.OVERFLOW]), 1.0)
-    # vmap over k of a grid rollout against one rollout per k (the loop reuses the rollout
-    # program of the verlet column above)
-    ref = column_grid(column, "verlet")
-    ks = jnp.asarray([5e3, 1e4, 2e4])
-    xs = jax.vmap(lambda k: ref.rollout(ref.params(k=k, c=20.0), **COLUMN_RUN,
-                                        check_finite=False).position[-1])(ks)
-    for k, x in zip(np.asarray(ks), np.asarray(xs)):
-        x1 = ref.rollout(ref.params(k=float(k), c=20.0), **COLUMN_RUN).position[-1]
-        np.testing.assert_allclose(x, np.asarray(x1), atol=1e-12)
+    # vmap over (k, start state) of a grid rollout: the crowded start's flag set, the far
+    # one's clear, in the same batch; and the batch equals one rollout per candidate (the
+    # loop reuses the rollout program of test_overflow_is_reported_never_silent)
+    ks = jnp.asarray([1e4, 2e4])
+    starts = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), cleared, far)
+
+    def run(k, s, check_finite=False):
+        return sim.rollout(sim.params(k=k, c=20.0), 20, s, save_every=10,
+                           check_finite=check_finite)
+    both = jax.vmap(run)(ks, starts)
+    np.testing.assert_array_equal(np.asarray(both.aux[bp.OVERFLOW]), [[1.0, 1.0], [0.0, 0.0]])
+    with pytest.warns(bp.BroadPhaseOverflowWarning, match="max_pairs"):
+        one = run(float(ks[0]), cleared, True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", bp.BroadPhaseOverflowWarning)
+        other = run(float(ks[1]), far, True)
+    for i, t in enumerate((one, other)):
+        np.testing.assert_array_equal(np.asarray(t.aux[bp.OVERFLOW]), [1.0 - i] * 2)
+        np.testing.assert_allclose(np.asarray(both.position[i]), np.asarray(t.position),
+                                   atol=1e-12)
+    # the crowded candidate's contacts act: its k changes its run (the far one falls free)
+    with pytest.warns(bp.BroadPhaseOverflowWarning):
+        stiffer = run(float(ks[1]), cleared)
+    assert np.abs(np.asarray(one.position) - np.asarray(stiffer.position)).max() > 1e-9
 
 
-@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
-def test_pairs_inside_the_smoothing_ramp_are_found(strategy):
-    """Two spheres 3 mm apart with a 1 cm smoothing width already push each other (the ramp
-    starts at a gap of width / 2): with margin 0 the broad phase must still find them."""
+@pytest.fixture(scope="module")
+def ramp_pair():
+    """Two spheres 3 mm apart with a 1 cm smoothing width, and their all-pairs forces
+    (shared by both strategies)."""
     scene = dp.Scene()
     scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     scene.add_sphere(0.1, 1.0, (0.203, 0.0, 0.0), (-0.1, 0.0, 0.0))
-    forces = []
-    for b in (None, strategy):
-        sim = dp.compile(scene, dt=1e-3, smoothing=1e-2, broadphase=b)
-        forces.append(np.asarray(sim.forces(sim.params(k=1e4, c=10.0), sim.init_state())[0]))
-    assert abs(forces[0][0, 0]) > 1e-3                   # the ramp pushes at this gap
-    np.testing.assert_allclose(forces[1], forces[0], rtol=1e-12, atol=0)
+    ref = dp.compile(scene, dt=1e-3, smoothing=1e-2)
+    return scene, np.asarray(traced_forces(ref, ref.params(k=1e4, c=10.0), ref.init_state())[0])
+
+
+@pytest.mark.parametrize("strategy", STRATEGIES, ids=["aabb", "grid"])
+def test_pairs_inside_the_smoothing_ramp_are_found(ramp_pair, strategy):
+    """Two spheres 3 mm apart with a 1 cm smoothing width already push each other (the ramp
+    starts at a gap of width / 2): with margin 0 the broad phase must still find them."""
+    scene, want = ramp_pair
+    sim = dp.compile(scene, dt=1e-3, smoothing=1e-2, broadphase=strategy)
+    got = np.asarray(traced_forces(sim, sim.params(k=1e4, c=10.0), sim.init_state())[0])
+    assert abs(want[0, 0]) > 1e-3                        # the ramp pushes at this gap
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
 
 
 def test_fast_and_oblique_approaches_equal_all_pairs():
@@ -394,8 +442,8 @@ def test_fast_and_oblique_approaches_equal_all_pairs():
     forces = {}
     for name, b in (("all", None), ("aabb", bp.AABB()), ("grid", bp.Grid())):
         sim = dp.compile(s, 1e-2, broadphase=b)
-        forces[name] = np.asarray(sim.forces(sim.params(k=1e2, c=0.0), sim.init_state(),
-                                             h=1e-2)[0])
+        forces[name] = np.asarray(traced_forces(sim, sim.params(k=1e2, c=0.0),
+                                                sim.init_state(), h=1e-2)[0])
     assert np.abs(forces["all"]).max() > 1e-3
     for name in ("aabb", "grid"):
         np.testing.assert_allclose(forces[name], forces["all"], rtol=1e-12)
@@ -411,9 +459,12 @@ def test_a_spinning_box_reaches_a_sphere_its_centre_speed_does_not():
     runs = {}
     for name, b in (("all", None), ("aabb", bp.AABB()), ("grid", bp.Grid())):
         sim = dp.compile(s, 1e-3, broadphase=b)
-        p = sim.params(k=1e4, c=5.0)
-        f = np.asarray(sim.forces(p, sim.init_state(), h=1e-3)[0][ball])
-        runs[name] = (f, np.asarray(sim.rollout(p, 20).velocity))
+        v = np.asarray(sim.rollout(sim.params(k=1e4, c=5.0), 20).velocity)
+        # the force on the ball at the start state, as the first step applies it (the
+        # step-averaged force, sim.forces(..., h=dt); the ball starts at rest, no gravity):
+        # m v1 / dt, to a few roundings (no second compiled program for sim.forces: its
+        # broad-phase path is checked in test_broadphase_finds_the_brute_force_pairs_and_forces)
+        runs[name] = (v[0, ball] * 0.1 / 1e-3, v)
     assert runs["all"][0][0] > 1.0
     for name in ("aabb", "grid"):
         np.testing.assert_allclose(runs[name][0], runs["all"][0], rtol=1e-12)
