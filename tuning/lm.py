@@ -179,8 +179,9 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         return problem.evaluate(theta)
 
     def rj(theta):
-        r, m = residual(theta)
-        J = jax.jacfwd(lambda th: residual(th)[0])(theta)
+        # residuals, metrics and Jacobian from one forward-mode pass (one trace)
+        J, (r, m) = jax.jacfwd(lambda th: (lambda rm: (rm[0], rm))(residual(th)),
+                               has_aux=True)(theta)
         if FLAG in m:   # past the safe step: nan residuals, so LM rejects the point
             r = jnp.where(jnp.any(m[FLAG]), jnp.nan, r)
         return r, J, m

@@ -460,8 +460,10 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
 
     @jax.jit
     def rj(theta, w):
-        r = residuals(theta, w)
-        return r, jax.jacfwd(residuals)(theta, w)
+        # residuals and Jacobian from one forward-mode pass (one traced rollout)
+        J, r = jax.jacfwd(lambda th: (lambda rr: (rr, rr))(residuals(th, w)),
+                          has_aux=True)(theta)
+        return r, J
 
     # Horizons: through the end of each flight (the next landing), then the whole record.
     ends = [x for x in ev.landing[1:] if np.isfinite(x)] if grow else []

@@ -303,8 +303,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
 
     @jax.jit
     def res_jac_flag(x, horizon):
-        r, bad = resid_flag(x, horizon)
-        return r, jax.jacfwd(lambda xx: resid_flag(xx, horizon)[0])(x), bad
+        # residuals, flag and Jacobian from one forward-mode pass (one traced rollout)
+        def with_aux(xx):
+            r, bad = resid_flag(xx, horizon)
+            return r, (r, bad)
+        J, (r, bad) = jax.jacfwd(with_aux, has_aux=True)(x)
+        return r, J, bad
 
     def res_jac(x, horizon):
         # a point past the safe step is no fit: its residuals are nan, so LM rejects the
@@ -324,7 +328,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         return jnp.sum(r * r), bad
 
     def whole_cost(x):
-        c, bad = cost_flag(jnp.asarray(x), jnp.asarray(np.inf))
+        if len(cands) > 1:          # the screen compiled the cost alone
+            c, bad = cost_flag(jnp.asarray(x), jnp.asarray(np.inf))
+        else:                       # one start: no second program for one or two costs
+            r, _, bad = res_jac_flag(jnp.asarray(x), jnp.asarray(np.inf))
+            c = jnp.sum(r * r)
         return math.inf if int(bad) or not np.isfinite(float(c)) else float(c)
     screen_note = ""
     if len(cands) > 1:
