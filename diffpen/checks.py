@@ -8,7 +8,7 @@ of what a rollout returns:
   state (type, shapes, dtypes, finite values), substeps and checkpoint; :func:`check_step`:
   ``sim.step``'s params and state, the same way;
 * :func:`check_finite_trajectory`: a concrete trajectory that became NaN/inf, with the first
-  step and body.
+  step and body (from :func:`last_state_finite`, which the rollout's program computes).
 
 Each failure raises :class:`diffpen.SceneError` (or :class:`diffpen.NonFiniteError`) saying
 what to change.
@@ -29,7 +29,7 @@ from .errors import NonFiniteError, PerformanceWarning, SceneError
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
-           "check_finite_trajectory", "check_pairs", "check_step", "estimate", "memory_bytes",
+           "check_finite_trajectory", "last_state_finite", "check_pairs", "check_step", "estimate", "memory_bytes",
            "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS", "MAX_PAIRS"]
 
 #: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
@@ -193,35 +193,52 @@ def check_rollout_options(steps, save_every, substeps, checkpoint) -> None:
                          f"{checkpoint!r}.")
 
 
-@jax.jit
-def _last_state_finite(fields):
+def _checked_fields(traj) -> list:
+    """The arrays :func:`check_finite_trajectory` checks: the saved states' positions,
+    velocities, orientations and angular velocities (a fast spin turns the last two NaN
+    first), or, for an ``observe`` rollout, the observed pytree's float leaves."""
+    if traj.position is None:
+        return [a for a in jax.tree_util.tree_leaves(traj.observed)
+                if jnp.issubdtype(a.dtype, jnp.inexact)]
+    return [f for f in (traj.position, traj.velocity, traj.orientation,
+                        traj.angular_velocity) if f is not None]
+
+
+def last_state_finite(traj) -> jax.Array:
+    """() bool: every checked field of the last saved state is finite. Traceable: the
+    rollout computes it inside its own program (one reduction after the loop), so checking
+    a trajectory compiles nothing and moves nothing to the host. NaN/inf positions persist
+    (``x += h v``), so a finite last state means a finite run."""
+    fields = _checked_fields(traj)
+    if not fields:
+        return jnp.asarray(True)
     return jnp.all(jnp.stack([jnp.isfinite(f[-1]).all() for f in fields]))
 
 
-def check_finite_trajectory(traj, save_every: int, dt: float) -> None:
+def check_finite_trajectory(traj, save_every: int, dt: float, finite=None) -> None:
     """Raise NonFiniteError when a concrete trajectory became NaN/inf (traced ones pass):
     with whole states, naming the first step and body; with ``observe`` output only, saying
-    so. NaN/inf positions persist (``x += h v``), so a finite last state means a finite run;
-    the full scan for the first bad step runs only on failure."""
+    so. ``finite``: :func:`last_state_finite` of ``traj`` as the rollout's program computed
+    it (None: computed here, on the host); the full scan for the first bad step runs only
+    on failure."""
     from .params import _is_concrete
-    if traj.position is None:
-        leaves = jax.tree_util.tree_leaves(traj.observed)
-        if leaves and all(map(_is_concrete, leaves)) and not all(
-                bool(jnp.isfinite(a[-1]).all()) for a in leaves
-                if jnp.issubdtype(a.dtype, jnp.inexact)):
-            raise NonFiniteError(
-                "the observed state became NaN/inf: the time step is probably past the "
-                "stability limit for these k and c. Use a smaller dt, more substeps, or "
-                "a stiffer-stable integrator (roll out without observe= to locate the "
-                "step and body).")
-        return
-    # orientations and angular velocities too: a fast spin turns them NaN first
-    fields = [f for f in (traj.position, traj.velocity, traj.orientation,
-                          traj.angular_velocity) if f is not None]
+    fields = _checked_fields(traj)
     # every field concrete: under vmap over a start spin alone, a box's positions (which do not
     # depend on it) come back concrete while its angular velocities are tracers
-    if not all(map(_is_concrete, fields)) or bool(_last_state_finite(fields)):
+    if not fields or not all(map(_is_concrete, fields)):
         return
+    if finite is not None and _is_concrete(finite):
+        ok = bool(finite)
+    else:
+        ok = all(bool(np.isfinite(np.asarray(f[-1])).all()) for f in fields)
+    if ok:
+        return
+    if traj.position is None:
+        raise NonFiniteError(
+            "the observed state became NaN/inf: the time step is probably past the "
+            "stability limit for these k and c. Use a smaller dt, more substeps, or "
+            "a stiffer-stable integrator (roll out without observe= to locate the "
+            "step and body).")
     bad = np.zeros(np.shape(traj.position)[:-1], dtype=bool)
     for f in fields:
         bad |= ~np.isfinite(np.asarray(f)).all(axis=-1)

@@ -383,10 +383,12 @@ class Simulator:
         view = None
         if self.columns:                    # step in columns, save rows (diffpen.layout)
             state, view = _layout.columns_state(state), _layout.rows_state
-        return _rollout.rollout(self.step_function(substeps), params, state, steps=steps,
+        traj = _rollout.rollout(self.step_function(substeps), params, state, steps=steps,
                                 save_every=save_every, dt=self.dt, checkpoint=checkpoint,
                                 unroll=self.unroll, observe=observe, dtype=self.dtype,
                                 view=view)
+        # the finite check's flag, from this program (unused outputs are dropped by XLA)
+        return traj, _checks.last_state_finite(traj)
 
     def rollout_cache_size(self) -> int:
         """How many times this simulator's rollout has been traced (once per static
@@ -458,11 +460,12 @@ class Simulator:
             if self._tunnel_table is not None and all(map(_is_concrete, (state.position,
                                                                          state.velocity))):
                 _motion.check_tunnelling(self, params, state)
-        traj = self._rollout_jit(params, state, steps=int(steps), save_every=int(save_every),
-                                 checkpoint=None if checkpoint is None else int(checkpoint),
-                                 substeps=int(n), observe=observe)
+        traj, finite = self._rollout_jit(
+            params, state, steps=int(steps), save_every=int(save_every),
+            checkpoint=None if checkpoint is None else int(checkpoint), substeps=int(n),
+            observe=observe)
         if check_finite:
-            _checks.check_finite_trajectory(traj, save_every, self.dt)
+            _checks.check_finite_trajectory(traj, save_every, self.dt, finite)
         if _is_concrete(traj.time if observe is not None else traj.position):
             for term in self._reporting:        # host-side, e.g. the broad phase's overflow
                 term.report(traj)

@@ -517,6 +517,33 @@ def test_non_finite_rollout_is_reported_not_returned():
     with pytest.raises(dp.NonFiniteError, match="body 1") as info:
         sim.rollout(sim.params(), steps=400, check_stability=False)
     assert 0 < info.value.step < 400 and info.value.body == 1
+    # observed output only: the same check, without a step to name
+    with pytest.raises(dp.NonFiniteError, match="observed state became NaN/inf"):
+        sim.rollout(sim.params(), steps=400, check_stability=False, save_every=100,
+                    observe=_first_x)
+    # the check computed on the host (no flag from the rollout's program) says the same
+    traj = sim.rollout(sim.params(), steps=400, check_stability=False, check_finite=False)
+    with pytest.raises(dp.NonFiniteError, match="body 1"):
+        dp.checks.check_finite_trajectory(traj, 1, sim.dt)
+
+
+def _first_x(state):
+    return state.position[:, 0]
+
+
+def test_a_checked_rollout_compiles_one_program(caplog):
+    """The finite check's flag comes out of the rollout's own program: a first rollout
+    compiles that program and nothing else (a separate jitted check compiled once more per
+    trajectory shape, ~110 programs in the test suite)."""
+    sim = dp.compile(drop_scene(z0=0.5), 1e-3)
+    p = sim.params(k=1e4, c=20.0)
+    for kw in ({}, {"save_every": 10}, {"save_every": 10, "observe": _first_x}):
+        caplog.clear()
+        with jax.log_compiles(), caplog.at_level("WARNING"):
+            sim.rollout(p, 30, **kw)
+        compiled = [r.getMessage().split(" with ")[0] for r in caplog.records
+                    if r.getMessage().startswith("Compiling ")]
+        assert compiled == ["Compiling jit(_rollout_impl)"], (kw, compiled)
 
 
 def test_checkpointed_rollout_gives_the_same_values_and_gradients(smooth_ball):
