@@ -29,8 +29,9 @@ from .errors import NonFiniteError, PerformanceWarning, SceneError
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
-           "check_finite_trajectory", "last_state_finite", "check_pairs", "check_step", "estimate", "memory_bytes",
-           "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS", "MAX_PAIRS"]
+           "check_finite_trajectory", "last_state_finite", "check_pairs", "check_step",
+           "estimate", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
+           "MAX_PAIRS"]
 
 #: most sphere-sphere pairs compiled without a broad phase (the pair list is built and
 #: evaluated every step: 5e6 pairs already take seconds per step)

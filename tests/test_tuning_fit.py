@@ -265,3 +265,23 @@ def test_an_unsettled_settling_time_is_not_reached_and_the_message_says_why():
         else:       # LM did not stop as if the targets were met (it did, at iteration 0)
             assert "within its tolerance" not in res.message, res.message
             assert res.iterations >= 1
+
+
+def test_residuals_and_jacobian_trace_once_and_equal_separate_passes():
+    """tuning.lm.residuals_and_jacobian: the residuals, forward-mode Jacobian and the
+    function's other output from one trace of the function (record fits, LM and sysid all
+    take theirs from it), equal to a value pass and a separate jax.jacfwd."""
+    from tuning.lm import residuals_and_jacobian
+    traces = []
+
+    def fn(x):
+        traces.append(1)
+        r = jnp.stack([jnp.sin(x[0]) * x[1], x[0] ** 2 - jnp.exp(x[1]), x[0] * x[1]])
+        return r, {"flag": r[0] > 0}
+    x = jnp.asarray([0.3, -1.2])
+    r, J, aux = jax.jit(lambda x: residuals_and_jacobian(fn, x))(x)
+    assert len(traces) == 1
+    np.testing.assert_allclose(np.asarray(r), np.asarray(fn(x)[0]), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(jax.jacfwd(lambda x: fn(x)[0])(x)),
+                               rtol=1e-15)
+    assert bool(aux["flag"]) == bool(fn(x)[1]["flag"])

@@ -4,7 +4,8 @@
 residuals and their Jacobian (jitted by the caller, so every trial point reuses one compiled
 function), with Marquardt's diagonal scaling (each entry floored at :data:`SCALE_FLOOR`
 times the largest), an optional limit on the change of any one parameter per trial step and
-a projection onto box bounds after every step. :func:`fit_lm` runs it on a
+a projection onto box bounds after every step; :func:`residuals_and_jacobian` gives the
+residuals and their forward-mode Jacobian from one trace. :func:`fit_lm` runs it on a
 :class:`tuning.problem.Problem` (behind :func:`tuning.fit.fit` with ``method="lm"``: a
 forward-mode Jacobian, several starts and an optional problem-specific start search sharing
 one compiled function);
@@ -24,8 +25,8 @@ from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
 from .stable import FLAG, unsafe_start
 
-__all__ = ["LMResult", "levenberg_marquardt", "fit_lm", "SCALE_FLOOR", "MAX_LOG_STEP",
-           "FTOL_EPS", "precision_ftol"]
+__all__ = ["LMResult", "levenberg_marquardt", "residuals_and_jacobian", "fit_lm",
+           "SCALE_FLOOR", "MAX_LOG_STEP", "FTOL_EPS", "precision_ftol"]
 
 #: Marquardt's scaling ``diag(J^T J)`` is floored at this fraction of its largest entry. The
 #: step in each parameter is about the one that parameter would need alone, so a parameter the
@@ -65,6 +66,18 @@ class LMResult:
     iterations: int
     converged: bool
     message: str
+
+
+def residuals_and_jacobian(fn: Callable, x):
+    """``(r, J, aux)`` for ``fn(x) -> (r, aux)``: residuals (m,), their Jacobian (m, n) by
+    forward mode (one tangent per parameter, few parameters) and ``fn``'s other output, all
+    from one forward-mode pass, so ``fn`` (a rollout) is traced once, not once for the
+    values and once more for the Jacobian. Pure: call it inside the caller's ``jax.jit``."""
+    def with_values(xx):
+        r, aux = fn(xx)
+        return r, (r, aux)
+    J, (r, aux) = jax.jacfwd(with_values, has_aux=True)(x)
+    return r, J, aux
 
 
 def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
@@ -179,9 +192,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         return problem.evaluate(theta)
 
     def rj(theta):
-        # residuals, metrics and Jacobian from one forward-mode pass (one trace)
-        J, (r, m) = jax.jacfwd(lambda th: (lambda rm: (rm[0], rm))(residual(th)),
-                               has_aux=True)(theta)
+        r, J, m = residuals_and_jacobian(residual, theta)
         if FLAG in m:   # past the safe step: nan residuals, so LM rejects the point
             r = jnp.where(jnp.any(m[FLAG]), jnp.nan, r)
         return r, J, m

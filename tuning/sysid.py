@@ -46,7 +46,7 @@ import numpy as np
 import diffpen as dp
 
 from .fit import FitError, Progress
-from .lm import levenberg_marquardt
+from .lm import levenberg_marquardt, residuals_and_jacobian
 from .stable import safe_contact_bounds
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
@@ -460,9 +460,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
 
     @jax.jit
     def rj(theta, w):
-        # residuals and Jacobian from one forward-mode pass (one traced rollout)
-        J, r = jax.jacfwd(lambda th: (lambda rr: (rr, rr))(residuals(th, w)),
-                          has_aux=True)(theta)
+        r, J, _ = residuals_and_jacobian(lambda th: (residuals(th, w), None), theta)
         return r, J
 
     # Horizons: through the end of each flight (the next landing), then the whole record.

@@ -44,7 +44,7 @@ import numpy as np
 import diffpen as dp
 
 from .fit import FitError, Progress
-from .lm import levenberg_marquardt
+from .lm import levenberg_marquardt, residuals_and_jacobian
 from .params import leaf_paths
 from .first_state import first_state
 from .fit_errors import parameter_errors
@@ -303,12 +303,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
 
     @jax.jit
     def res_jac_flag(x, horizon):
-        # residuals, flag and Jacobian from one forward-mode pass (one traced rollout)
-        def with_aux(xx):
-            r, bad = resid_flag(xx, horizon)
-            return r, (r, bad)
-        J, (r, bad) = jax.jacfwd(with_aux, has_aux=True)(x)
-        return r, J, bad
+        return residuals_and_jacobian(lambda xx: resid_flag(xx, horizon), x)
 
     def res_jac(x, horizon):
         # a point past the safe step is no fit: its residuals are nan, so LM rejects the
