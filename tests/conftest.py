@@ -15,6 +15,12 @@ The suite uses no persistent compilation cache: serialising and writing every ex
 costs more than the few programs two pytest-xdist workers have in common (measured on
 test_trajfit.py under two workers, runs interleaved: 121 and 115 s of CPU with a shared
 cache, 95 and 79 s without; the whole suite 716 -> 489 s of CPU).
+The diffpen commands the tests run in-process are kept off their own cache too
+(``DIFFPEN_CACHE=0``, below): otherwise the first of them in a worker switched the persistent
+cache on in ~/.cache/diffpen for every later test of that worker. Four files that run those
+commands (test_trajfit, test_evaluate, test_cli_contract, test_scene_sweep; two workers, two
+interleaved rounds) took 113 / 104 s without it and 113 / 99 s with it starting empty, as on
+CI: the same within noise, so the choice rests on not writing to the user's home.
 
 Session-scoped fixtures hold the simulators several test files share, so each compiles (and
 each of its jitted programs traces) once per test session.
@@ -38,6 +44,12 @@ def _fast_compile_flags(flags: str) -> str:
         tokens.append("--xla_cpu_use_fusion_emitters=false")
     return " ".join(tokens)
 
+
+# The diffpen commands the tests run in-process (``tuning.cli.main``) would otherwise turn on
+# their persistent compilation cache (tuning/cli/_common.py: setup_jax) for the rest of the
+# worker, writing every later executable of the session to ~/.cache/diffpen; subprocesses
+# inherit the setting too.
+os.environ["DIFFPEN_CACHE"] = "0"
 
 if os.environ.get("DIFFPEN_TEST_XLA_OPT") != "1":
     # before JAX starts its CPU backend (importing jax does not start it)

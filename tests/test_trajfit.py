@@ -1222,3 +1222,19 @@ def test_a_leaf_without_effect_on_a_noise_free_record_is_undetermined():
     assert res.stderr["contact.m.c"] == math.inf and math.isfinite(res.stderr["contact.m.k"])
     assert [abs(u["direction"]["contact.m.c"]) for u in res.undetermined] == [
         pytest.approx(1.0)]
+
+
+def test_commands_run_in_the_test_session_leave_the_compilation_cache_off():
+    """Regression: the first in-process ``diffpen`` command (``tuning.cli.main``) turned on
+    its persistent compilation cache in ~/.cache/diffpen for the rest of the pytest worker
+    (every later test program was written there); tests/conftest.py sets DIFFPEN_CACHE=0 for
+    the whole session, and ``setup_jax`` honours it."""
+    import os
+
+    import jax
+
+    from tuning.cli._common import setup_jax
+    assert os.environ.get("DIFFPEN_CACHE") == "0"
+    before = jax.config.jax_compilation_cache_dir
+    setup_jax()
+    assert jax.config.jax_compilation_cache_dir == before
