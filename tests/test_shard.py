@@ -302,40 +302,18 @@ def test_cluster_launchers_are_detected(monkeypatch):
     assert distributed.detect() == "ompi"
 
 
-def test_cluster_sweep_prints_only_its_json_on_standard_output(tmp_path):
-    """``diffpen sweep --json`` on 2 processes: process 0's standard output is one JSON
-    object (the cluster transport's "[Gloo] Rank 0 is connected" line came first, so
-    ``json.load`` failed); process 1 prints nothing there."""
-    import json
-    import subprocess
-    import sys
-
-    from device_subprocess import _env, free_port, kill_left
-    coordinator = f"localhost:{free_port()}"
-    args = ["sweep", "--n", "2", "--duration", "0.4", "--dt", "2e-3", "--json",
-            "--out", str(tmp_path / "s.npz"), "--coordinator", coordinator,
-            "--num-processes", "2"]
-    procs = [subprocess.Popen([sys.executable, "-m", "tuning.cli", *args, "--process-id",
-                               str(i)], env=_env(1), stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for i in range(2)]
-    try:
-        outs = [p.communicate(timeout=120) for p in procs]
-    finally:
-        kill_left(procs)
-    assert [p.returncode for p in procs] == [0, 0], outs[0][1][-2000:] + outs[1][1][-2000:]
-    summary = json.loads(outs[0][0])
-    assert summary["points"] == 4
-    assert outs[1][0].strip() == ""
-
-
 def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
-    """Two 2-process ``diffpen sweep`` clusters, started together, that cannot run: a scene
+    """Two 2-process ``diffpen sweep`` clusters that cannot run, started together: a scene
     file's sweep given another --chunk on process 1 (process 0 wrote rows of other points
     and process 1 hung), and a sweep whose process 0 cannot write its --out (process 0 stopped
     before joining and process 1 waited, silent, for 300 s). Every process stops at once with
     the same error, each first says on standard error what it waits for, and the scene
     file's sweep imports diffpen before joining (JAX's backend started first and diffpen
-    warned that batched rollouts run slower)."""
+    warned that batched rollouts run slower). A third cluster, started with them, runs
+    ``diffpen sweep --json``: process 0's standard output is one JSON object (the cluster
+    transport's "[Gloo] Rank 0 is connected" line came first, so ``json.load`` failed) and
+    process 1 prints nothing there."""
+    import json
     import subprocess
     import sys
 
@@ -350,7 +328,8 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
     ball = ["--n", "2", "--duration", "0.4", "--dt", "2e-3", "--json"]
     runs = {"chunk": [chunk + ["--chunk", "4"], chunk + ["--chunk", "2"]],
             "out": [ball + ["--out", str(tmp_path / "missing" / "s.npz")],
-                    ball + ["--out", str(tmp_path / "s.npz")]]}
+                    ball + ["--out", str(tmp_path / "s.npz")]],
+            "json": [ball + ["--out", str(tmp_path / "j.npz")]] * 2}
     procs = {}
     for name, argvs in runs.items():
         coordinator = f"localhost:{free_port()}"
@@ -366,6 +345,9 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
     errors = {"chunk": "processes [1] were given a different chunk (points per call, "
                        "diffpen sweep --chunk) from process 0",
               "out": f"--out {tmp_path / 'missing' / 's.npz'}: the folder"}
+    (j0, j1), ((out0, err0), (out1, err1)) = procs.pop("json"), outs.pop("json")
+    assert [j0.returncode, j1.returncode] == [0, 0], err0[-2000:] + err1[-2000:]
+    assert json.loads(out0)["points"] == 4 and out1.strip() == ""
     for name, ps in procs.items():
         for i, (p, (out, err)) in enumerate(zip(ps, outs[name])):
             assert p.returncode == 2 and out.strip() == "", (name, i, err[-2000:])
