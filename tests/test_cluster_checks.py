@@ -19,6 +19,8 @@ SCRIPT = textwrap.dedent("""
                          pid, timeout_s=int(os.environ["CLUSTER_TIMEOUT"]))
         if os.environ.get("CLUSTER_DIES") == str(pid):
             os.kill(os.getpid(), signal.SIGKILL)        # a process killed mid-run
+        if os.environ.get("CLUSTER_RAISES") == str(pid):
+            raise RuntimeError("a bug on this process")  # uncaught: ends on an error
         distributed.check_same("x", b"the same")
         print(json.dumps({"error": None}), flush=True)
     except ValueError as exc:
@@ -33,9 +35,12 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
     2-process cluster unnoticed); (dies) process 1 killed after joining (process 0 hung about
     100 s, then JAX aborted it, SIGABRT). The first two raise the same error on both
     processes; in the third, process 0 says that a process of the cluster stopped and exits
-    with status 2 within the 3 s of silence its --cluster-timeout of 3 s allows."""
+    with status 2 within the 3 s of silence its --cluster-timeout of 3 s allows. In a fourth,
+    process 1 ends on an uncaught exception after joining while process 0 waits in a
+    collective for it (process 0 waited until JAX's 300 s shutdown wait ran out): process 0
+    stops at once, naming process 1's error, whatever its --cluster-timeout (30 s here)."""
     runs = {"devices": ([2, 1], [2, 2], 30, None), "nproc": ([1, 1], [2, 3], 30, None),
-            "dies": ([1, 1], [2, 2], 3, "1")}
+            "dies": ([1, 1], [2, 2], 3, "1"), "raises": ([1, 1], [2, 2], 30, None)}
     procs, start = {}, time.monotonic()
     for name, (devices, counts, timeout, dies) in runs.items():
         coordinator = f"localhost:{free_port()}"
@@ -43,7 +48,8 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
             [sys.executable, "-c", SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True, env=_env(devices[i], CLUSTER_COORDINATOR=coordinator,
                                 CLUSTER_PROCESSES=str(counts[i]), CLUSTER_ID=str(i),
-                                CLUSTER_TIMEOUT=str(timeout), CLUSTER_DIES=dies or ""))
+                                CLUSTER_TIMEOUT=str(timeout), CLUSTER_DIES=dies or "",
+                                CLUSTER_RAISES="1" if name == "raises" else ""))
             for i in range(2)]
     outs, ended = {}, {}
     try:
@@ -72,3 +78,9 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
     assert "a process of the cluster stopped: process 1 of 2 has not answered for 3 s (it " \
            "was killed, crashed or froze); process 0 stops too (exit status 2)" in err, err
     assert ended["dies"] < 40           # JAX's default: about 100 s, then SIGABRT
+    (p0, p1), ((out, err), (_, err1)) = procs["raises"], outs["raises"]
+    assert p1.returncode == 1 and "RuntimeError: a bug on this process" in err1, err1[-2000:]
+    assert p0.returncode == 2, err[-3000:]
+    assert "a process of the cluster stopped: process 1 of 2 ended on an error (RuntimeError: " \
+           "a bug on this process); process 0 stops too (exit status 2)" in err, err[-3000:]
+    assert ended["raises"] < 40         # well under the 30 s timeout's 300 s shutdown wait

@@ -69,7 +69,12 @@ def main(argv=None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args._run(args) or 0)
+        status = int(args._run(args) or 0)
+        if status != 0:
+            # in a cluster, the others stop at once instead of waiting for this process
+            from ..distributed import mark_failed
+            mark_failed(f"diffpen {argv[0]} exited with status {status}", status)
+        return status
     except KeyboardInterrupt:
         # long runs write their results atomically as they go: nothing half-written is
         # left, and a sweep resumes where it stopped
