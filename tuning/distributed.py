@@ -266,6 +266,10 @@ def _watch_cluster(silent_s: int) -> None:
             finally:
                 lock.release()
         if _failure:            # ended on an error: no shutdown wait for the others
+            if me == 0:
+                # the coordinator leaving first would make JAX abort the others (SIGABRT)
+                # before they print their own line: wait, briefly, for them to end
+                _wait_for_the_others(client, me, n, _FAILED_GRACE_S + 3.0)
             sys.stdout.flush()
             sys.stderr.flush()
             os._exit(_failure[0][1])
@@ -281,6 +285,23 @@ def _watch_cluster(silent_s: int) -> None:
     _watching.append(True)
     threading.Thread(target=watch, name="diffpen-cluster-watch", daemon=True).start()
     atexit.register(at_exit)
+
+
+def _wait_for_the_others(client, me: int, n: int, limit_s: float) -> None:
+    """Wait up to ``limit_s`` s until every other process has said that it ended (normally
+    or on an error) in the watch's key-value entries; a process stopped by the watch says
+    nothing, so the wait then runs to its limit."""
+    import time
+    end = time.monotonic() + limit_s
+    while time.monotonic() < end:
+        try:
+            values = dict(client.key_value_dir_get(_WATCH_KEY))
+        except Exception:
+            return
+        if all(str(values.get(f"{_WATCH_KEY}{i}", "")).startswith(("exit", "failed"))
+               for i in range(n) if i != me):
+            return
+        time.sleep(0.1)
 
 
 def _stop(me: int, why: str) -> None:
