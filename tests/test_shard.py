@@ -282,6 +282,21 @@ def test_cluster_arguments_are_checked_before_anything_runs(capsys):
     assert "--cluster-timeout must be an integer >= 1" in capsys.readouterr().err
 
 
+def test_a_command_ending_on_an_error_in_a_cluster_says_so(monkeypatch, capsys):
+    """A ``diffpen`` command that returns a non-zero status in a cluster marks its process
+    failed (so that the others stop at once instead of waiting in a collective for it), with
+    the command's status as its exit status; outside a cluster nothing is marked."""
+    from tuning import distributed
+    from tuning.cli import main
+    argv = ["sweep", "--n", "2", "--coordinator", "localhost:1234"]    # exits with status 2
+    monkeypatch.setattr(distributed, "_failure", [])
+    assert main(argv) == 2 and distributed._failure == []              # not in a cluster
+    monkeypatch.setattr(distributed, "_watching", [True])             # as once joined
+    assert main(argv) == 2
+    assert distributed._failure == [("diffpen sweep exited with status 2", 2)]
+    capsys.readouterr()
+
+
 def test_cluster_launchers_are_detected(monkeypatch):
     from tuning import distributed
     for var in ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_NTASKS", "SLURM_PROCID",
