@@ -19,8 +19,8 @@ def init_state(sim) -> State:
     ctx = sim.context
     q, w = sim._rigid.init(b) if sim._rigid is not None else (None, None)
     aux = {k: ctx.const(v) for k, v in ctx.aux_init.items()}
-    aux[_stability.FLAG] = jnp.zeros((), bool)
-    return State(time=jnp.zeros((), sim.dtype),
+    aux[_stability.FLAG] = jax.device_put(np.zeros((), bool))
+    return State(time=jax.device_put(np.zeros((), sim.dtype)),
                  position=ctx.const([x.position for x in b]),
                  velocity=ctx.const([x.velocity for x in b]),
                  orientation=q, angular_velocity=w, aux=aux)
@@ -93,23 +93,37 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
         for j, i in enumerate(idx):
             check_start_pose(sim.scene, int(i), pos[j], None if quat is None else quat[j])
     s = sim.init_state() if state is None else state
+    # concrete values are updated on the host (numpy) and placed once: eager JAX updates
+    # compile a handful of small programs for every new shape; traced ones stay in JAX
+    given = (position, velocity, orientation, angular_velocity)
+    xp = jnp if any(isinstance(v, jax.core.Tracer) for v in
+                    (*given, *jax.tree_util.tree_leaves(s))) else np
 
     def rows(v, width):
-        return jnp.broadcast_to(jnp.asarray(v, sim.dtype), (len(idx), width))
+        return xp.broadcast_to(xp.asarray(v, sim.dtype), (len(idx), width))
+
+    def put(a, v):
+        if xp is jnp:
+            return a.at[idx].set(v)
+        a = np.array(a)
+        a[idx] = v
+        return a
     upd = {}
     if position is not None:
-        upd["position"] = s.position.at[idx].set(rows(position, 3))
+        upd["position"] = put(s.position, rows(position, 3))
     if velocity is not None:
-        upd["velocity"] = s.velocity.at[idx].set(rows(velocity, 3))
+        upd["velocity"] = put(s.velocity, rows(velocity, 3))
     q = s.orientation
     if orientation is not None:
         qn = rows(orientation, 4)
-        q = q.at[idx].set(qn / jnp.linalg.norm(qn, axis=-1, keepdims=True))
+        q = put(q, qn / xp.linalg.norm(qn, axis=-1, keepdims=True))
         upd["orientation"] = q
     if angular_velocity is not None:
         w = rows(angular_velocity, 3)
         if frame == "body":
             from .rigid import quat_to_matrix
-            w = jnp.einsum("bij,bj->bi", quat_to_matrix(q[idx]), w)
-        upd["angular_velocity"] = s.angular_velocity.at[idx].set(w)
+            w = xp.einsum("bij,bj->bi", quat_to_matrix(xp.asarray(q)[idx], xp=xp), w)
+        upd["angular_velocity"] = put(s.angular_velocity, w)
+    if xp is np:
+        upd = {k: jax.device_put(v) for k, v in upd.items()}
     return s._replace(**upd)

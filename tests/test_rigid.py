@@ -140,12 +140,21 @@ def _two_boxes(c=0.0, gravity=(0.0, 0.0, 0.0)):
     return scene, (qa, qb)
 
 
+@pytest.fixture(scope="module")
+def anchored_pair():
+    """The two boxes of ``_two_boxes`` compiled once; each test gives the spring's damping c
+    as a parameter (``spring_c``: the same spring as one added with that c)."""
+    scene, quats = _two_boxes(0.0)
+    return dp.compile(scene, dt=1e-3), quats
+
+
 @pytest.mark.parametrize("c", [0.0, 3.0])
-def test_off_centre_anchored_spring_force_and_torque_match_hand_computation(c):
-    scene, (qa, qb) = _two_boxes(c)
-    sim = dp.compile(scene, dt=1e-3)
+def test_off_centre_anchored_spring_force_and_torque_match_hand_computation(anchored_pair, c):
+    sim, (qa, qb) = anchored_pair
     assert sim.terms == ("anchored_springs",)
-    f, tau = sim.forces(sim.params(), sim.init_state())
+    params = sim.params(spring_c=c)
+    assert float(params.springs["default"].c) == c
+    f, tau = sim.forces(params, sim.init_state())
     # by hand: world anchors, their velocities v + w x r, Hooke + dashpot along the axis
     ra, rb = rot_np(qa) @ [0.5, 0.0, 0.1], rot_np(qb) @ [0.3, -0.1, -0.2]
     pa, pb = np.array([0.0, 0.0, 0.0]) + ra, np.array([0.2, 0.4, 2.0]) + rb
@@ -172,10 +181,11 @@ def test_anchored_spring_pair_conserves_energy_and_angular_momentum():
     inertia = np.array([inertia_diagonal(b) for b in scene.bodies])
     anchors = np.array([[0.5, 0.0, 0.1], [0.3, -0.1, -0.2]])
     energy, mom = [], []
-    for t in range(traj.time.shape[0]):
-        x, v = np.asarray(traj.position[t]), np.asarray(traj.velocity[t])
-        w = np.asarray(traj.angular_velocity[t])
-        rot = [rot_np(q) for q in np.asarray(traj.orientation[t])]
+    pos, vel, omega, quat = (np.asarray(a) for a in (traj.position, traj.velocity,
+                                                     traj.angular_velocity, traj.orientation))
+    for t in range(pos.shape[0]):
+        x, v, w = pos[t], vel[t], omega[t]
+        rot = [rot_np(q) for q in quat[t]]
         e = 0.5 * np.sum(m * np.sum(v * v, axis=1))
         ang = np.sum(m[:, None] * np.cross(x, v), axis=0)
         for i in range(2):
@@ -264,10 +274,11 @@ def test_sphere_box_geometry_matches_closest_point_by_sampling():
             p = np.insert(face, axis, s, axis=1)
             pts.append(p * half)
     surface = xb + np.concatenate(pts) @ rot.T
+    # one compiled program for the 20 points (op by op, each call ran ~30 small programs)
+    sphere_box = jax.jit(lambda xs, xb, rot, half: geometry.sphere_box(xs, 0.05, xb, rot, half))
     for _ in range(20):
         xs = xb + rng.normal(size=3) * 0.4
-        d, n, p = geometry.sphere_box(jnp.asarray(xs), 0.05, jnp.asarray(xb),
-                                      jnp.asarray(rot), jnp.asarray(half))
+        d, n, p = sphere_box(xs, xb, rot, half)
         dist = np.linalg.norm(surface - xs, axis=1).min()
         inside = np.all(np.abs(rot.T @ (xs - xb)) < half)
         np.testing.assert_allclose(float(d), 0.05 + dist if inside else 0.05 - dist,
@@ -386,15 +397,16 @@ def test_implicit_euler_on_spring_joined_boxes_converges_at_first_order():
     errors against rk4 at a 20x smaller step halve with dt (backward Euler is first order)."""
     scene, _ = _two_boxes(c=3.0)
     t_end = 0.5
-    ref = dp.compile(scene, dt=1e-4, integrator="rk4").rollout(
-        dp.compile(scene, dt=1e-4).params(), steps=5000, save_every=5000)
+    rk4 = dp.compile(scene, dt=1e-4, integrator="rk4")
+    ref = rk4.rollout(rk4.params(), steps=5000, save_every=5000)
+    xr, qr = np.asarray(ref.position[-1]), np.asarray(ref.orientation[-1])
     errs = []
     for dt in (2e-3, 1e-3):
         sim = dp.compile(scene, dt=dt, integrator="implicit_euler")
         n = int(round(t_end / dt))
         tr = sim.rollout(sim.params(), steps=n, save_every=n)
-        q, qr = np.asarray(tr.orientation[-1]), np.asarray(ref.orientation[-1])
-        errs.append(max(np.abs(np.asarray(tr.position[-1] - ref.position[-1])).max(),
+        q = np.asarray(tr.orientation[-1])
+        errs.append(max(np.abs(np.asarray(tr.position[-1]) - xr).max(),
                         np.abs(np.abs(np.sum(q * qr, axis=-1)) - 1.0).max() ** 0.5))
     assert errs[0] < 2e-2
     assert 1.6 < errs[0] / errs[1] < 2.4
@@ -607,9 +619,44 @@ def test_a_pinned_body_given_a_velocity_under_vmap_stays_in_place():
     v = jnp.array([[[0.2, 0, 0], [0, 0.3, 0]], [[0.0, 0, 0], [0, 0, 0]]])
     w = jnp.array([[[0.0, 0, 2.0]], [[0.0, 0, 0]]])
     end = jax.vmap(run)(v, w)
+    # to numpy once: indexing jax arrays compiles a program per index
+    end = jax.tree_util.tree_map(np.asarray, end)
+    start = jax.tree_util.tree_map(np.asarray, start)
     for row in range(2):
         np.testing.assert_array_equal(end.position[row, bx], start.position[bx])
         np.testing.assert_array_equal(end.position[row, pin], start.position[pin])
         np.testing.assert_array_equal(end.orientation[row, bx], start.orientation[bx])
     # the free sphere moved the same in both rows: the pins' given motion did not reach it
     np.testing.assert_allclose(end.position[0, bob], end.position[1, bob], rtol=0, atol=1e-12)
+
+
+def test_building_and_placing_a_start_state_compiles_nothing(caplog):
+    """``dp.compile``, ``init_state`` and ``state_from`` with concrete values work on the
+    host: ``jnp.asarray`` of a host array and eager JAX updates compiled a small program for
+    every new shape (9 for one ``state_from``, 2 each for building and for ``init_state``),
+    about 30 ms each, at every start of a command or a script. Traced values (jit) still take
+    the JAX path, with the same result."""
+    import logging
+    scene = dp.Scene()
+    for i in range(10):                  # body counts no other test builds: fresh shapes
+        scene.add_sphere(0.05, 1.0, (0.2 * i, 0.0, 0.5))
+    boxes = [scene.add_box((0.1, 0.05, 0.02), 1.0, (0.0, y, 0.5)) for y in (1.0, 2.0)]
+    scene.add_plane()
+    pose = dict(velocity=(0.0, 0.0, -1.0), orientation=[(1, 0, 0, 0), (0.9, 0.1, 0.0, 0.0)],
+                angular_velocity=[(0.0, 0.0, 0.0), (1.0, 2.0, 3.0)])
+    where = np.array([(0.6, 1.1, 0.7), (0.0, 2.0, 0.4)])
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        sim = dp.compile(scene, dt=1e-3)
+        start = sim.init_state()
+        placed = sim.state_from(start, body=boxes, position=where, **pose)
+        placed = sim.state_from(placed, body=3, velocity=(1.0, 0.0, 0.0))
+    compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
+    assert compiled == [], compiled
+    traced = jax.jit(lambda pos: sim.state_from(
+        sim.state_from(start, body=boxes, position=pos, **pose), body=3,
+        velocity=(1.0, 0.0, 0.0)))(where)
+    for name in ("position", "velocity", "orientation", "angular_velocity"):
+        np.testing.assert_allclose(np.asarray(getattr(placed, name)),
+                                   np.asarray(getattr(traced, name)), rtol=1e-14, atol=1e-15)
+    assert float(np.linalg.norm(np.asarray(placed.orientation)[boxes[1]])) == pytest.approx(1.0)
+    assert np.asarray(placed.velocity)[3].tolist() == [1.0, 0.0, 0.0]

@@ -209,8 +209,9 @@ class CompileContext:
         return len(self.mass)
 
     def const(self, a):
-        """A static numpy array as a constant of the simulator's float dtype."""
-        return jnp.asarray(np.asarray(a, dtype=float), dtype=self.dtype)
+        """A static numpy array as a constant of the simulator's float dtype (placed with
+        ``jax.device_put``: ``jnp.asarray`` of a host array compiles a program per shape)."""
+        return jax.device_put(np.asarray(np.asarray(a, dtype=float), dtype=self.dtype))
 
     def contact_force(self, d, vn, k, c, h=None, inv_mass=None, accel=0.0):
         """Normal force (N) of contacts at depth ``d`` (m), separating speed ``vn`` (m/s):
