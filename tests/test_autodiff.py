@@ -34,15 +34,19 @@ def test_forward_matches_reverse_and_finite_differences(ball):
     _, loss, _ = ball
     k, c = jnp.asarray(3e3), jnp.asarray(8.0)
     v_f, g_f = jax.jit(dp.value_and_grad(loss, (0, 1), mode="forward"))(k, c)
-    v_r, g_r = jax.jit(dp.value_and_grad(loss, (0, 1), mode="reverse"))(k, c)
+    reverse = jax.jit(dp.value_and_grad(loss, (0, 1), mode="reverse"))
+    v_r, g_r = reverse(k, c)
     assert float(v_f) == pytest.approx(float(v_r), rel=1e-14)
     np.testing.assert_allclose(np.array(g_f), np.array(g_r), rtol=1e-9)
+
+    def value(*args):           # the loss, from the compiled program above
+        return float(reverse(*args)[0])
     for i, (h, x) in enumerate([(1e-2, k), (1e-5, c)]):
         args_p = [k, c]
         args_m = [k, c]
         args_p[i] = x + h
         args_m[i] = x - h
-        fd = (float(loss(*args_p)) - float(loss(*args_m))) / (2 * h)
+        fd = (value(*args_p) - value(*args_m)) / (2 * h)
         assert float(g_f[i]) == pytest.approx(fd, rel=1e-5)
 
 
@@ -52,7 +56,7 @@ def test_forward_mode_pytree_params_jit_vs_eager(ball):
     vg = dp.value_and_grad(loss_params, mode="forward")
     v_e, g_e = vg(p)
     v_j, g_j = jax.jit(vg)(p)
-    v_r, g_r = jax.value_and_grad(loss_params)(p)
+    v_r, g_r = jax.jit(jax.value_and_grad(loss_params))(p)
     assert float(v_e) == float(v_j)
     for a, b, r in zip(jax.tree_util.tree_leaves(g_e), jax.tree_util.tree_leaves(g_j),
                        jax.tree_util.tree_leaves(g_r)):
@@ -67,15 +71,16 @@ def test_vmap_rule_equals_loop(ball):
     cs = jnp.asarray([4.0, 8.0, 12.0])
     vg = dp.value_and_grad(loss, (0, 1), mode="forward")
     v_b, (gk_b, gc_b) = jax.jit(jax.vmap(vg))(ks, cs)
+    one = jax.jit(vg)           # one example at a time: one compiled program for the loop
     for i in range(3):
-        v, (gk, gc) = vg(ks[i], cs[i])
+        v, (gk, gc) = one(ks[i], cs[i])
         assert float(v_b[i]) == pytest.approx(float(v), rel=1e-13)
         assert float(gk_b[i]) == pytest.approx(float(gk), rel=1e-10)
         assert float(gc_b[i]) == pytest.approx(float(gc), rel=1e-10)
     # one differentiated argument unbatched, the other batched: per-row gradients
     v_m, (gk_m, gc_m) = jax.vmap(vg, in_axes=(None, 0))(ks[1], cs)
     for i in range(3):
-        _, (gk, gc) = vg(ks[1], cs[i])
+        _, (gk, gc) = one(ks[1], cs[i])
         assert float(gk_m[i]) == pytest.approx(float(gk), rel=1e-10)
         assert float(gc_m[i]) == pytest.approx(float(gc), rel=1e-10)
 
@@ -87,7 +92,7 @@ def test_matches_jax_value_and_grad_conventions():
     x, s = jnp.linspace(0.0, 1.0, 5), jnp.asarray(0.7)
     for argnums in (0, (0,), (0, 2)):
         ours = dp.value_and_grad(f, argnums, mode="forward")(p, x, s)
-        ref = jax.value_and_grad(f, argnums)(p, x, s)
+        ref = jax.jit(jax.value_and_grad(f, argnums))(p, x, s)
         assert jax.tree_util.tree_structure(ours) == jax.tree_util.tree_structure(ref)
         for a, b in zip(jax.tree_util.tree_leaves(ours), jax.tree_util.tree_leaves(ref)):
             np.testing.assert_allclose(a, b, rtol=1e-13)
@@ -95,7 +100,7 @@ def test_matches_jax_value_and_grad_conventions():
     def g(p, x, s):
         return f(p, x, s), {"twice": 2 * x}
     grad, aux = dp.grad(g, 0, mode="forward", has_aux=True)(p, x, s)
-    ref_grad, ref_aux = jax.grad(g, 0, has_aux=True)(p, x, s)
+    ref_grad, ref_aux = jax.jit(jax.grad(g, 0, has_aux=True))(p, x, s)
     np.testing.assert_allclose(grad["a"], ref_grad["a"], rtol=1e-13)
     np.testing.assert_allclose(grad["b"], ref_grad["b"], rtol=1e-13)
     np.testing.assert_allclose(aux["twice"], ref_aux["twice"])
@@ -111,7 +116,7 @@ def test_auto_mode_threshold():
         return jnp.sum(jnp.cos(x) * jnp.arange(x.size))
     for n in (3, 40):            # both sides of the threshold give the reverse-mode answer
         x = jnp.linspace(0.1, 1.0, n)
-        np.testing.assert_allclose(dp.grad(f)(x), jax.grad(f)(x), rtol=1e-13)
+        np.testing.assert_allclose(dp.grad(f)(x), jax.jit(jax.grad(f))(x), rtol=1e-13)
     # forward mode pushes an n x n basis of tangents through the program; reverse mode none
     fwd = str(jax.make_jaxpr(dp.grad(f))(jnp.ones(3)))
     rev = str(jax.make_jaxpr(dp.grad(f))(jnp.ones(40)))
@@ -162,10 +167,17 @@ def test_forward_mode_can_be_differentiated_again(ball):
     those of jax.grad."""
     _, loss, _ = ball
     k, c = jnp.asarray(3e3), jnp.asarray(8.0)
-    want = jax.jacfwd(jax.grad(loss, (0, 1)), (0, 1))(k, c)
-    for outer in (jax.jacfwd, jax.jacrev):
-        got = outer(dp.grad(loss, (0, 1), mode="forward"), (0, 1))(k, c)
-        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-7)
+
+    @jax.jit
+    def second_derivatives(k, c):       # one compiled program for the three of them
+        want = jax.jacfwd(jax.grad(loss, (0, 1)), (0, 1))(k, c)
+        fwd = jax.jacfwd(dp.grad(loss, (0, 1), mode="forward"), (0, 1))(k, c)
+        rev = jax.jacrev(dp.grad(loss, (0, 1), mode="forward"), (0, 1))(k, c)
+        return want, {"jacfwd": fwd, "jacrev": rev}
+    want, outer = second_derivatives(k, c)
+    for name, got in outer.items():
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-7,
+                                   err_msg=name)
 
 
 def test_second_derivatives_through_reverse_mode_at_the_default_law():
@@ -183,12 +195,19 @@ def test_second_derivatives_through_reverse_mode_at_the_default_law():
     def z(k):
         return sim.rollout(sim.params(k=k, c=8.0), steps=60, save_every=60).position[-1, 0, 2]
     k = jnp.asarray(3e3)
-    want = float(jax.jacfwd(jax.jacfwd(z))(k))
+
+    @jax.jit
+    def second_derivatives(k):          # one compiled program for all orders
+        return jax.jacfwd(jax.jacfwd(z))(k), {
+            "grad(grad)": jax.grad(jax.grad(z))(k),
+            "jacfwd(grad)": jax.jacfwd(jax.grad(z))(k),
+            "hessian": jax.hessian(z)(k),
+            "jacrev(grad)": jax.jacrev(jax.grad(z))(k)}
+    want, got = second_derivatives(k)
+    want = float(want)
     assert want != 0.0
-    for name, f in (("grad(grad)", jax.grad(jax.grad(z))), ("jacfwd(grad)",
-                    jax.jacfwd(jax.grad(z))), ("hessian", jax.hessian(z)),
-                    ("jacrev(grad)", jax.jacrev(jax.grad(z)))):
-        assert float(f(k)) == pytest.approx(want, rel=1e-9), name
+    for name, value in got.items():
+        assert float(value) == pytest.approx(want, rel=1e-9), name
 
 
 def test_forward_mode_composes_through_jit_and_closures():
@@ -199,13 +218,13 @@ def test_forward_mode_composes_through_jit_and_closures():
         return jnp.sum(jnp.sin(p * s) * p)
     p, ss = jnp.array([0.3, 0.7]), jnp.array([1.0, 2.0])
     fg = dp.grad(loss, mode="forward")
-    want = jax.grad(lambda q: jnp.sum(jax.grad(loss)(q) ** 2))(p)
+    want = jax.jit(jax.grad(lambda q: jnp.sum(jax.grad(loss)(q) ** 2)))(p)
     got = jax.grad(jax.jit(lambda q: jnp.sum(fg(q) ** 2)))(p)
     np.testing.assert_allclose(got, want, rtol=1e-12)
-    want = jax.grad(lambda s: jnp.sum(jax.grad(lambda q: loss(q, s))(p)))(1.0)
+    want = jax.jit(jax.grad(lambda s: jnp.sum(jax.grad(lambda q: loss(q, s))(p))))(1.0)
     got = jax.grad(lambda s: jnp.sum(dp.grad(lambda q: loss(q, s), mode="forward")(p)))(1.0)
     np.testing.assert_allclose(got, want, rtol=1e-12)
-    want = jax.vmap(lambda s: jax.grad(lambda q: loss(q, s))(p))(ss)
+    want = jax.jit(jax.vmap(lambda s: jax.grad(lambda q: loss(q, s))(p)))(ss)
     got = jax.vmap(jax.jit(lambda s: dp.grad(lambda q: loss(q, s), mode="forward")(p)))(ss)
     np.testing.assert_allclose(got, want, rtol=1e-12)
 

@@ -312,7 +312,7 @@ def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
     scene.add_sphere(0.1, m1, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
     scene.add_sphere(0.1, m2, (0.2 + 2.4 * tc / 20, 0.0, 0.0))
     sim = dp.compile(scene, tc / 20, law=centred)
-    v = sim.rollout(sim.params(k=k, c=c), 60, save_every=60).velocity[-1]
+    v = np.asarray(sim.rollout(sim.params(k=k, c=c), 60, save_every=60).velocity)[-1]
     assert abs(float(v[1, 0] - v[0, 0]) / e_closed - 1.0) < 2e-3
     z = []
     for kind in ("plane", "fixed"):
@@ -397,7 +397,7 @@ def test_restitution_does_not_depend_on_the_stiffness_scale():
         scene.add_sphere(0.1, m1, (0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
         scene.add_sphere(0.1, m2, (0.2 + 0.5 * dt, 0.0, 0.0))
         sim = dp.compile(scene, dt)
-        v = sim.rollout(sim.params(k=k, c=c), 600, save_every=600).velocity[-1]
+        v = np.asarray(sim.rollout(sim.params(k=k, c=c), 600, save_every=600).velocity)[-1]
         es.append(float((v[1, 0] - v[0, 0]) / 1.0))
     e_closed = float(dp.physical.restitution(1e4, 2.0 * 0.2 * np.sqrt(1e4 * mu), mu))
     assert abs(es[1] / es[0] - 1.0) < 1e-6

@@ -40,13 +40,14 @@ def test_free_fall_matches_closed_form():
     traj = sim.rollout(sim.params(), steps=1000)
     n = np.arange(1, 1001)
     t = n * h
-    z = np.asarray(traj.position[:, 0, 2])
+    position = np.asarray(traj.position)
+    z = position[:, 0, 2]
     # Symplectic Euler is exact for the discrete recursion ...
     np.testing.assert_allclose(z, 10.0 + 2.0 * t - G * h * h * n * (n + 1) / 2, rtol=1e-12)
     # ... and first-order close to the continuous closed form (gap g h t / 2).
     cont = 10.0 + 2.0 * t - 0.5 * G * t * t
     assert np.max(np.abs(z - cont)) <= 0.5 * G * h * t[-1] * (1 + 1e-9)
-    np.testing.assert_allclose(traj.position[:, 0, 0], 1.0 * t, rtol=1e-12)
+    np.testing.assert_allclose(position[:, 0, 0], 1.0 * t, rtol=1e-12)
     np.testing.assert_allclose(traj.time, t, rtol=1e-12)
 
 
@@ -58,8 +59,8 @@ def _crossings(t, x):
 
 def test_undamped_spring_period_and_bounded_energy(spring_sim):
     traj = spring_sim.rollout(spring_sim.params(), steps=4000)
-    x = np.asarray(traj.position[:, 0, 0]) - 1.0
-    v = np.asarray(traj.velocity[:, 0, 0])
+    x = np.asarray(traj.position)[:, 0, 0] - 1.0
+    v = np.asarray(traj.velocity)[:, 0, 0]
     t = np.asarray(traj.time)
     w0 = math.sqrt(50.0 / 2.0)
     period = np.diff(_crossings(t, x)).mean()
@@ -75,7 +76,7 @@ def test_damped_spring_decay_matches_closed_form(spring_sim):
     m, k, c = 2.0, 50.0, 1.0
     traj = spring_sim.rollout(spring_sim.params(spring_c=c), steps=3000)
     t = np.asarray(traj.time)
-    x = np.asarray(traj.position[:, 0, 0]) - 1.0
+    x = np.asarray(traj.position)[:, 0, 0] - 1.0
     w0 = math.sqrt(k / m)
     z = c / (2 * math.sqrt(k * m))
     wd = w0 * math.sqrt(1 - z * z)
@@ -130,7 +131,7 @@ def test_contact_time_matches_closed_form(impact_sims):
     c = 2 * zeta * math.sqrt(k * m)
     sim = impact_sims["linear"]
     traj = sim.rollout(sim.params(k=k, c=c), steps=5000)
-    gap = np.asarray(traj.position[:, 0, 2]) - 0.1
+    gap = np.asarray(traj.position)[:, 0, 2] - 0.1
     t = np.asarray(traj.time)
     inside = np.nonzero(gap < 0)[0]
     i0, i1 = inside[0], inside[-1]
@@ -143,7 +144,7 @@ def test_resting_penetration_is_mg_over_k(ball_sim):
     k, m = 1e4, 1.0
     traj = ball_sim.rollout(ball_sim.params(k=k, c=2 * math.sqrt(k * m)), steps=3000,
                             save_every=3000)
-    z = float(traj.position[-1, 0, 2])
+    z = float(np.asarray(traj.position)[-1, 0, 2])
     assert 0.1 - z == pytest.approx(m * G / k, rel=1e-6)
 
 
@@ -152,13 +153,18 @@ def test_resting_penetration_is_mg_over_k(ball_sim):
 def test_physical_parameterisation_round_trip(law):
     m = 0.7
     e, tc = jnp.array([0.2, 0.5, 0.9]), jnp.array([0.01, 0.02, 0.005])
-    k, c = physical.kc_from_restitution(e, tc, m, law)
-    np.testing.assert_allclose(physical.restitution(k, c, m, law), e, rtol=1e-9)
-    np.testing.assert_allclose(physical.contact_time(k, c, m, law), tc, rtol=1e-9)
-    # differentiable: d k / d e vs central differences
     f = lambda ee: physical.kc_from_restitution(ee, 0.01, m, law)[1]
-    g = jax.grad(f)(0.5)
-    fd = (f(0.5 + 1e-6) - f(0.5 - 1e-6)) / 2e-6
+
+    @jax.jit
+    def conversions(e, tc):     # one compiled program for all the conversions below
+        k, c = physical.kc_from_restitution(e, tc, m, law)
+        back = physical.restitution(k, c, m, law), physical.contact_time(k, c, m, law)
+        return back, (jax.grad(f)(0.5), f(0.5 + 1e-6), f(0.5 - 1e-6))
+    (back_e, back_tc), (g, f_up, f_down) = conversions(e, tc)
+    np.testing.assert_allclose(back_e, e, rtol=1e-9)
+    np.testing.assert_allclose(back_tc, tc, rtol=1e-9)
+    # differentiable: d k / d e vs central differences
+    fd = (f_up - f_down) / 2e-6
     assert float(g) == pytest.approx(float(fd), rel=1e-6)
 
 
@@ -170,21 +176,31 @@ def test_overdamped_no_tension_still_lets_go(impact_sims):
     k, m = 1e4, 1.0
     zetas = np.array([1.0, 1.5])
     cs = 2 * zetas * math.sqrt(k * m)
-    e = np.asarray(physical.restitution(k, cs, m, "no_tension"))
+    e_lo, tc = jnp.array([0.1, 0.02, 0.135, 0.1354]), jnp.array([0.01, 0.02, 0.005, 0.01])
+
+    def e_nt(c):
+        return physical.restitution(k, c, m, "no_tension")
+
+    @jax.jit
+    def closed_forms(cs, e_lo, tc):     # one compiled program for the closed forms below
+        kk, cc = physical.kc_from_restitution(e_lo, tc, m, "no_tension")
+        back = (physical.restitution(kk, cc, m, "no_tension"),
+                physical.contact_time(kk, cc, m, "no_tension"))
+        smooth = jax.grad(e_nt)(200.0), e_nt(200.0 + 1e-4), e_nt(200.0 - 1e-4)
+        linear = physical.contact_time(k, 300.0, m), physical.restitution(k, 300.0, m)
+        return e_nt(cs), back, smooth, linear
+    e, (back_e, back_tc), (g, e_up, e_down), (t_lin, e_lin) = jax.tree_util.tree_map(
+        np.asarray, closed_forms(cs, e_lo, tc))
     assert e[0] == pytest.approx(math.exp(-2.0), rel=1e-12)
     np.testing.assert_allclose(_restitution(impact_sims["no_tension"], k, cs), e, rtol=5e-3)
-    e_lo, tc = jnp.array([0.1, 0.02, 0.135, 0.1354]), jnp.array([0.01, 0.02, 0.005, 0.01])
-    kk, cc = physical.kc_from_restitution(e_lo, tc, m, "no_tension")
-    np.testing.assert_allclose(physical.restitution(kk, cc, m, "no_tension"), e_lo, rtol=1e-9)
-    np.testing.assert_allclose(physical.contact_time(kk, cc, m, "no_tension"), tc, rtol=1e-9)
+    np.testing.assert_allclose(back_e, e_lo, rtol=1e-9)
+    np.testing.assert_allclose(back_tc, tc, rtol=1e-9)
     # smooth through zeta = 1 (the series there meets both closed forms)
-    g = jax.grad(lambda c: physical.restitution(k, c, m, "no_tension"))
-    fd = (physical.restitution(k, 200.0 + 1e-4, m, "no_tension")
-          - physical.restitution(k, 200.0 - 1e-4, m, "no_tension")) / 2e-4
-    assert float(g(200.0)) == pytest.approx(float(fd), rel=1e-6)
+    fd = (e_up - e_down) / 2e-4
+    assert float(g) == pytest.approx(float(fd), rel=1e-6)
     # the linear law's overdamped contact never lets go
-    assert float(physical.contact_time(k, 300.0, m)) == math.inf
-    assert float(physical.restitution(k, 300.0, m)) == 0.0
+    assert float(t_lin) == math.inf
+    assert float(e_lin) == 0.0
 
 
 @pytest.mark.parametrize("call, words", [
@@ -207,11 +223,13 @@ def test_elastic_limits_of_the_conversions():
     assert float(c) == 0.0 and float(k) == pytest.approx((math.pi / 0.01) ** 2)
     assert float(physical.hunt_crossley_a_from_restitution(1.0, 2.0)) == 0.0
     # its slope there is -3 / (2 v_in), not 0 (a fit starting at e = 1 got no gradient)
-    g = jax.grad(lambda e: physical.hunt_crossley_a_from_restitution(e, 2.0))
+    g = jax.jit(jax.grad(lambda e: physical.hunt_crossley_a_from_restitution(e, 2.0)))
     assert float(g(1.0)) == pytest.approx(-0.75, rel=1e-9)
+    # e -> a -> e, one compiled program for every e
+    round_trip = jax.jit(lambda e: physical.hunt_crossley_restitution(
+        physical.hunt_crossley_a_from_restitution(e, 2.0) * 2.0))
     for e in (0.9989, 0.9991, 0.99999):        # both sides of the series' switch
-        a = physical.hunt_crossley_a_from_restitution(e, 2.0)
-        assert float(physical.hunt_crossley_restitution(a * 2.0)) == pytest.approx(e, rel=1e-10)
+        assert float(round_trip(e)) == pytest.approx(e, rel=1e-10), e
 
 
 def test_time_constant_round_trip():
@@ -241,20 +259,26 @@ def smooth_ball():
 
 
 def _apex_after_first_bounce(sim, k, c):
+    """The apex and, beside it, the final (z, v)."""
     # 0.4 m of fall takes 0.286 s; the contact ~0.03 s; then flight: at t = 0.4 s the ball
     # is rising, and the exact free-flight apex is z + v^2 / (2 g).
     traj = sim.rollout(sim.params(k=k, c=c), steps=4000, save_every=4000)
     z, v = traj.position[-1, 0, 2], traj.velocity[-1, 0, 2]
-    return z + v * v / (2 * G)
+    return z + v * v / (2 * G), (z, v)
 
 
 def test_gradient_of_apex_matches_finite_differences(smooth_ball):
     k, c = 1e4, 20.0
-    traj = smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=4000, save_every=4000)
-    assert float(traj.velocity[-1, 0, 2]) > 0.0 and float(traj.position[-1, 0, 2]) > 0.1
-    gk, gc = jax.grad(lambda k, c: _apex_after_first_bounce(smooth_ball, k, c), (0, 1))(k, c)
-    fk = _central(lambda x: _apex_after_first_bounce(smooth_ball, x, c), k, 1e-5)
-    fc = _central(lambda x: _apex_after_first_bounce(smooth_ball, k, x), c, 1e-5)
+    # one compiled program: its values serve the central differences too
+    value_and_grad = jax.jit(jax.value_and_grad(
+        lambda k, c: _apex_after_first_bounce(smooth_ball, k, c), (0, 1), has_aux=True))
+    (_, (z, v)), (gk, gc) = value_and_grad(k, c)
+    assert float(v) > 0.0 and float(z) > 0.1
+
+    def value(k, c):
+        return float(value_and_grad(k, c)[0][0])
+    fk = _central(lambda x: value(x, c), k, 1e-5)
+    fc = _central(lambda x: value(k, x), c, 1e-5)
     assert float(gk) == pytest.approx(float(fk), rel=1e-4)
     assert float(gc) == pytest.approx(float(fc), rel=1e-4)
     assert float(gc) < 0.0          # more damping, lower bounce
@@ -265,22 +289,28 @@ def test_gradient_of_final_state_matches_finite_differences(smooth_ball):
         return smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=3000,
                                    save_every=3000).position[-1, 0, 2]
     k, c = 1e4, 50.0
-    gk, gc = jax.grad(final_z, (0, 1))(k, c)
-    assert float(gk) == pytest.approx(float(_central(lambda x: final_z(x, c), k, 1e-5)),
-                                      rel=1e-4)
-    assert float(gc) == pytest.approx(float(_central(lambda x: final_z(k, x), c, 1e-5)),
-                                      rel=1e-4)
+    # one compiled program: its values serve the central differences too
+    value_and_grad = jax.jit(jax.value_and_grad(final_z, (0, 1)))
+    gk, gc = value_and_grad(k, c)[1]
+
+    def value(k, c):
+        return float(value_and_grad(k, c)[0])
+    assert float(gk) == pytest.approx(_central(lambda x: value(x, c), k, 1e-5), rel=1e-4)
+    assert float(gc) == pytest.approx(_central(lambda x: value(k, x), c, 1e-5), rel=1e-4)
 
 
 def test_spring_gradients_match_finite_differences(spring_sim):
     def final_x(k, c):
         p = spring_sim.params(spring_k=k, spring_c=c)
         return spring_sim.rollout(p, steps=500, save_every=500).position[-1, 0, 0]
-    gk, gc = jax.grad(final_x, (0, 1))(50.0, 1.0)
-    assert float(gk) == pytest.approx(float(_central(lambda x: final_x(x, 1.0), 50.0, 1e-6)),
-                                      rel=1e-6)
-    assert float(gc) == pytest.approx(float(_central(lambda x: final_x(50.0, x), 1.0, 1e-6)),
-                                      rel=1e-6)
+    # one compiled program: its values serve the central differences too
+    value_and_grad = jax.jit(jax.value_and_grad(final_x, (0, 1)))
+    gk, gc = value_and_grad(50.0, 1.0)[1]
+
+    def value(k, c):
+        return float(value_and_grad(k, c)[0])
+    assert float(gk) == pytest.approx(_central(lambda x: value(x, 1.0), 50.0, 1e-6), rel=1e-6)
+    assert float(gc) == pytest.approx(_central(lambda x: value(50.0, x), 1.0, 1e-6), rel=1e-6)
 
 
 # --------------------------------------------------------------------------- transforms
@@ -347,8 +377,9 @@ def test_float32_works_alongside_float64():
     sim = dp.compile(drop_scene(), dt=1e-3, dtype=jnp.float32)
     traj = sim.rollout(sim.params(k=1e4, c=20.0), steps=1000, save_every=10)
     assert traj.position.dtype == jnp.float32
-    g = jax.grad(lambda k: sim.rollout(sim.params(k=k, c=20.0), steps=1000,
-                                       save_every=1000).position[-1, 0, 2])(jnp.float32(1e4))
+    g = jax.jit(jax.grad(lambda k: sim.rollout(sim.params(k=k, c=20.0), steps=1000,
+                                               save_every=1000).position[-1, 0, 2]))(
+        jnp.float32(1e4))
     # the continuous (event-located) derivative is +2.44e-5 m per N/m
     assert g.dtype == jnp.float32 and np.isfinite(g) and g > 0.0
 
@@ -551,8 +582,9 @@ def test_checkpointed_rollout_gives_the_same_values_and_gradients(smooth_ball):
         traj = smooth_ball.rollout(smooth_ball.params(k=k, c=c), steps=400, save_every=4,
                                    checkpoint=ck)
         return jnp.sum(traj.position[:, 0, 2] ** 2)
-    plain = jax.value_and_grad(loss, (0, 1))(1e4, 20.0, None)
-    ckpt = jax.value_and_grad(loss, (0, 1))(1e4, 20.0, 20)
+    value_and_grad = jax.jit(jax.value_and_grad(loss, (0, 1)), static_argnums=2)
+    plain = value_and_grad(1e4, 20.0, None)
+    ckpt = value_and_grad(1e4, 20.0, 20)
     np.testing.assert_allclose(ckpt[0], plain[0], rtol=1e-12)
     np.testing.assert_allclose(ckpt[1], plain[1], rtol=1e-9)
     with pytest.raises(dp.SceneError, match="checkpoint"):
@@ -608,8 +640,8 @@ def test_observe_saves_only_what_is_asked(ball_sim):
         traj = ball_sim.rollout(ball_sim.params(k=k, c=20.0), steps=200, observe=observe)
         z = traj.position[:, :, 2] if observe is None else traj.observed
         return jnp.sum(z ** 2)
-    np.testing.assert_allclose(jax.grad(loss)(1e4, _height), jax.grad(loss)(1e4, None),
-                               rtol=1e-12)
+    grad = jax.jit(jax.grad(loss), static_argnums=1)
+    np.testing.assert_allclose(grad(1e4, _height), grad(1e4, None), rtol=1e-12)
     with pytest.raises(ValueError, match="observe"):
         obs.final
 
@@ -624,6 +656,7 @@ def test_simulator_is_frozen_and_forces_compile_once(ball_sim, caplog):
     ball_sim.forces(ball_sim.params(k=1e4, c=1.0), state)      # compiled here at most
     pressed = state._replace(position=state.position - 0.95)      # 5 cm into the ground
     params = ball_sim.params(k=2e4, c=3.0)
+    caplog.clear()
     with jax.log_compiles(), caplog.at_level("WARNING"):
         f, _ = ball_sim.forces(params, pressed)
     assert not [r for r in caplog.records if "Compiling" in r.getMessage()]

@@ -116,9 +116,19 @@ def test_records_of_the_same_model_evaluate_to_zero(setup):
 
 
 def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
+    """diffpen evaluate --json --plot DIR: the errors' mean and median, one entry per record,
+    PNG pictures; a missing record is a clear error (status 2); records of one file name in
+    different folders get a picture each, under names no other record has.
+
+    The plot folder holds this run's plots only: a second run into a --plot folder left the
+    first run's pictures of other records (or another scene) beside its own, looking
+    current. Each run lists its plots with the scene in DIR/plots.json, and the next run
+    removes those listed that it does not redraw (and no file the index does not list)."""
+    pytest.importorskip("matplotlib")
     scene, paths, *_ = setup
+    plots = tmp_path / "plots"
     capsys.readouterr()
-    rc = main(["evaluate", scene, "--data", *paths, "--json", "--plot", str(tmp_path)])
+    rc = main(["evaluate", scene, "--data", *paths, "--json", "--plot", str(plots)])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     assert set(out["position_error_pct"]) == {"mean", "median"}
@@ -129,6 +139,21 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
     for p in out["plots"]:
         with open(p, "rb") as fh:
             assert fh.read(8) == b"\x89PNG\r\n\x1a\n"
+    # the folder: this run's plots and their index
+    assert sorted(os.listdir(plots)) == ["plots.json", "toss_0.png", "toss_1.png"]
+    index = json.loads((plots / "plots.json").read_text())
+    assert index == {"scene": os.path.abspath(scene), "files": ["toss_0.png", "toss_1.png"],
+                     "records": [os.path.abspath(p) for p in paths]}
+    (plots / "mine.png").write_bytes(b"not listed")          # never touched
+    outside = tmp_path / "outside.png"
+    outside.write_bytes(b"not in the folder")
+    index["files"].append("../outside.png")                  # only plain names are removed
+    (plots / "plots.json").write_text(json.dumps(index))
+    assert main(["evaluate", scene, "--data", paths[0], "--json", "--plot", str(plots)]) == 0
+    assert json.loads(capsys.readouterr().out)["plots"] == [str(plots / "toss_0.png")]
+    assert sorted(os.listdir(plots)) == ["mine.png", "plots.json", "toss_0.png"]
+    assert outside.exists()
+    assert json.loads((plots / "plots.json").read_text())["files"] == ["toss_0.png"]
     # bad input: a clear error, exit status 2
     assert main(["evaluate", scene, "--data", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
@@ -230,33 +255,6 @@ def test_cli_evaluate_refuses_a_plot_folder_it_cannot_write_before_rolling_out(
     err = capsys.readouterr().err
     assert f"--plot {folder}: the folder {folder} is not writable" in err
     assert "Traceback" not in err
-
-
-def test_cli_evaluate_plot_folder_holds_this_runs_plots_only(setup, tmp_path, capsys):
-    """A second run into a --plot folder left the first run's pictures of other records (or
-    another scene) beside its own, looking current. Each run lists its plots with the scene
-    in DIR/plots.json, and the next run removes those listed that it does not redraw (and no
-    file the index does not list)."""
-    pytest.importorskip("matplotlib")
-    scene, paths, *_ = setup
-    plots = tmp_path / "plots"
-    capsys.readouterr()
-    assert main(["evaluate", scene, "--data", *paths, "--json", "--plot", str(plots)]) == 0
-    capsys.readouterr()
-    assert sorted(os.listdir(plots)) == ["plots.json", "toss_0.png", "toss_1.png"]
-    index = json.loads((plots / "plots.json").read_text())
-    assert index == {"scene": os.path.abspath(scene), "files": ["toss_0.png", "toss_1.png"],
-                     "records": [os.path.abspath(p) for p in paths]}
-    (plots / "mine.png").write_bytes(b"not listed")          # never touched
-    outside = tmp_path / "outside.png"
-    outside.write_bytes(b"not in the folder")
-    index["files"].append("../outside.png")                  # only plain names are removed
-    (plots / "plots.json").write_text(json.dumps(index))
-    assert main(["evaluate", scene, "--data", paths[0], "--json", "--plot", str(plots)]) == 0
-    assert json.loads(capsys.readouterr().out)["plots"] == [str(plots / "toss_0.png")]
-    assert sorted(os.listdir(plots)) == ["mine.png", "plots.json", "toss_0.png"]
-    assert outside.exists()
-    assert json.loads((plots / "plots.json").read_text())["files"] == ["toss_0.png"]
 
 
 def test_cli_evaluate_refuses_a_plot_path_that_is_a_folder_before_rolling_out(

@@ -1,5 +1,7 @@
 """Gradients through contact events against the continuous system: an event-located DOP853
 reference (tuning.reports.reference), derivatives by central differences of it."""
+import functools
+
 import jax
 import numpy as np
 import pytest
@@ -11,14 +13,29 @@ pytest.importorskip("scipy")
 
 QUICK = EVENT_CASES[0]._replace(T=2.2)       # quick-start ball, three bounces
 HEAVY = EVENT_CASES[2]._replace(T=2.2)       # 2 kg ball, no_tension, k 5e4, c 60
+#: relative steps of the landscape's central differences, each with its tolerance
+LANDSCAPE_STEPS = ((1e-2, 0.05), (1e-4, 1e-3), (1e-6, 1e-3))
+
+#: the continuous reference of a case, computed once per module (a DOP853 solve per case)
+reference = functools.lru_cache(maxsize=None)(event_reference)
 
 
 @pytest.fixture(scope="module", params=[QUICK, HEAVY], ids=["linear", "no_tension"])
 def at_default_dt(request):
+    """The case, its jax derivatives at (k, c), the metrics at k +- s k and at c +- s c for
+    each landscape step s (``{s: (f(k + h), f(k - h), f(c + h), f(c - h))}``), and the
+    continuous reference. One compiled program gives the derivatives and, beside them, the
+    values at every point."""
     case = request.param
     f, _ = event_metrics_fn(case, 1e-3)
-    jac = jax.jit(jax.jacfwd(f, (0, 1)))
-    return case, f, [np.asarray(a) for a in jac(case.k, case.c)], event_reference(case)
+    jac = jax.jit(jax.jacfwd(lambda k, c: (lambda y: (y, y))(f(k, c)), (0, 1), has_aux=True))
+
+    def value(k, c):
+        return np.asarray(jac(k, c)[1])
+    k, c = case.k, case.c
+    landscape = {s: (value(k + s * k, c), value(k - s * k, c),
+                     value(k, c + s * c), value(k, c - s * c)) for s, _ in LANDSCAPE_STEPS}
+    return case, landscape, [np.asarray(a) for a in jac(k, c)[0]], reference(case)
 
 
 def _err(got, want):
@@ -53,7 +70,7 @@ def test_centred_damping_values_within_half_a_percent(case):
     # the values come with the derivatives, from one compiled program
     (dk, dc), val = jax.tree_util.tree_map(np.asarray, jax.jit(jax.jacfwd(
         lambda k, c: (lambda y: (y, y))(f(k, c)), (0, 1), has_aux=True))(case.k, case.c))
-    ref = event_reference(case)
+    ref = reference(case)
     idx = {m: i for i, m in enumerate(EVENT_METRICS)}
     assert np.all(_err(val[:3], ref["value"][:3]) < 0.005)
     assert _err(dc[idx["duration1"]], ref["dc"][idx["duration1"]]) < 0.02
@@ -86,7 +103,7 @@ def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
     # the value comes with the derivatives, from one compiled program
     (dk, dc), val = jax.jit(jax.jacfwd(apex1, (0, 1), has_aux=True))(case.k, case.c)
     val, dk, dc = float(val), float(dk), float(dc)
-    ref = event_reference(case)
+    ref = reference(case)
     assert _err(val, ref["value"][0]) < 1e-4
     assert _err(dk, ref["dk"][0]) < 1e-4 and _err(dc, ref["dc"][0]) < 1e-4
 
@@ -96,11 +113,12 @@ def test_the_landscape_has_no_jumps(at_default_dt):
     within 0.1% at relative steps 1e-4 ... 1e-6, and within 5% at 1e-2 (measured: <= 4.5%;
     what is left there is a smooth ripple of the derivative with the contact's phase in
     the step, of a few % over +-1% of k). Before, the apexes jumped every ~0.1% of k."""
-    case, f, (dk, dc), _ = at_default_dt
-    for s, tol in ((1e-2, 0.05), (1e-4, 1e-3), (1e-6, 1e-3)):
+    case, landscape, (dk, dc), _ = at_default_dt
+    for s, tol in LANDSCAPE_STEPS:
         hk, hc = s * case.k, s * case.c
-        fk = (np.asarray(f(case.k + hk, case.c)) - np.asarray(f(case.k - hk, case.c))) / (2 * hk)
-        fc = (np.asarray(f(case.k, case.c + hc)) - np.asarray(f(case.k, case.c - hc))) / (2 * hc)
+        k_up, k_down, c_up, c_down = landscape[s]
+        fk = (k_up - k_down) / (2 * hk)
+        fc = (c_up - c_down) / (2 * hc)
         assert np.all(_err(fk[:3], dk[:3]) <= tol), s
         assert np.all(_err(fc[:3], dc[:3]) <= tol), s
 
@@ -111,7 +129,7 @@ def test_gradient_converges_to_the_continuous_one():
     case = EVENT_CASES[3]._replace(T=2.0)
     f, _ = event_metrics_fn(case, 2.5e-4)
     dk, dc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(case.k, case.c))
-    ref = event_reference(case)
+    ref = reference(case)
     assert np.all(_err(dk[:2], ref["dk"][:2]) < 2e-3)
     assert np.all(_err(dc[:2], ref["dc"][:2]) < 2e-3)
     # reverse mode too (it was NaN for a fractional exponent: the window's masked branch)

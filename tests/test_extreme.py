@@ -86,7 +86,28 @@ def test_matrix_lists_every_case_and_counts_outcomes():
     assert summary == {"cases": 2, "ok": 1, "refused": 1, "refused->remedy ok": 1}
 
 
-def test_spheres_closing_too_fast_for_their_contact_warn():
+#: one rollout length for every run of the two-sphere simulator below (one compiled program)
+PAIR_STEPS = 600
+
+
+@pytest.fixture(scope="module")
+def pair_sim():
+    """Two free 1 kg spheres of radius 0.1 m without gravity at dt = 1e-3 s, compiled once:
+    each case sets its own start positions and velocities with ``state_from`` (the warning
+    reads the start state a rollout is given; the same numbers as a scene built with them)."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_sphere(0.1, 1.0, (-0.5, 0.0, 0.0))
+    s.add_sphere(0.1, 1.0, (0.5, 0.0, 0.0))
+    return dp.compile(s, dt=1e-3)
+
+
+def _pair_start(sim, position, velocity):
+    """``sim``'s start state with the two spheres at ``position`` moving at ``velocity``
+    (both (2, 3))."""
+    return sim.state_from(body=[0, 1], position=position, velocity=velocity)
+
+
+def test_spheres_closing_too_fast_for_their_contact_warn(pair_sim):
     """Two 1 kg spheres of radius 0.1 m at k 1e4 N/m closing at 100 m/s passed through each
     other (and a ball through a fixed sphere) with no word: the contact stores at most
     k (r_a + r_b)^2 / 2 = 200 J before the centres meet, the pair brings 2500 J. At 10 m/s
@@ -95,26 +116,24 @@ def test_spheres_closing_too_fast_for_their_contact_warn():
 
     import numpy as np
 
+    sim = pair_sim
+    params = sim.params(k=1e4, c=0.0)
+
     def pair(v):
-        s = dp.Scene(gravity=(0.0, 0.0, 0.0))
-        s.add_sphere(0.1, 1.0, (-0.5, 0.0, 0.0), velocity=(v / 2, 0.0, 0.0))
-        s.add_sphere(0.1, 1.0, (0.5, 0.0, 0.0), velocity=(-v / 2, 0.0, 0.0))
-        return dp.compile(s, dt=1e-3)
-    sim = pair(100.0)
+        return _pair_start(sim, [(-0.5, 0.0, 0.0), (0.5, 0.0, 0.0)],
+                           [(v / 2, 0.0, 0.0), (-v / 2, 0.0, 0.0)])
     with pytest.warns(dp.ContactWarning, match=r"sphere 0 and sphere 1 would meet at 100 m/s.*"
                       r"stores at most 200 J.*bring 2.5e\+03 J.*Raise k above 1.25e\+05"):
-        traj = sim.rollout(sim.params(k=1e4, c=0.0), 600)
+        traj = sim.rollout(params, PAIR_STEPS, pair(100.0))
     assert float(traj.position[-1, 0, 0]) > float(traj.position[-1, 1, 0])   # passed through
-    slow = pair(10.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        traj = slow.rollout(slow.params(k=1e4, c=0.0), 600)
+        traj = sim.rollout(params, PAIR_STEPS, pair(10.0))
     assert float(traj.position[-1, 0, 0]) < float(traj.position[-1, 1, 0])   # bounced
     # moving apart: nothing to warn about, however fast
-    apart = pair(-100.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        apart.rollout(apart.params(k=1e4, c=0.0), 10)
+        sim.rollout(params, PAIR_STEPS, pair(-100.0))
     s = dp.Scene(gravity=(0.0, 0.0, 0.0))
     s.add_sphere(0.1, 1.0, (-1.0, 0.0, 0.0), velocity=(100.0, 0.0, 0.0))
     s.add_fixed_sphere((0.0, 0.0, 0.0), 0.1)
@@ -124,25 +143,25 @@ def test_spheres_closing_too_fast_for_their_contact_warn():
     assert np.isfinite(float(traj.position[-1, 0, 0]))
 
 
-def test_the_impact_warning_takes_the_paths_and_covers_particles():
+def test_the_impact_warning_takes_the_paths_and_covers_particles(pair_sim):
     """Spheres whose paths pass 1 m apart (they never touch) or graze (0.19 m apart, 9.75 J
     at touch against 20 J) were warned about from their closing speed along the line of
     centres; a particle fired through a fixed sphere (200 J against 5 J) was not."""
     import warnings
 
+    sim = pair_sim
+    params = sim.params(k=1e3, c=0.0)
+
     def pair(b):
-        s = dp.Scene(gravity=(0.0, 0.0, 0.0))
-        s.add_sphere(0.1, 1.0, (-1.0, 0.0, 0.0), velocity=(10.0, 0.0, 0.0))
-        s.add_sphere(0.1, 1.0, (1.0, b, 0.0), velocity=(-10.0, 0.0, 0.0))
-        return dp.compile(s, dt=1e-3)
+        return _pair_start(sim, [(-1.0, 0.0, 0.0), (1.0, b, 0.0)],
+                           [(10.0, 0.0, 0.0), (-10.0, 0.0, 0.0)])
     for b in (1.0, 0.19):
-        sim = pair(b)
         with warnings.catch_warnings():
             warnings.simplefilter("error")
-            sim.rollout(sim.params(k=1e3, c=0.0), 10)
-    sim = pair(0.05)                    # 0.5 mu (20 sqrt(1 - 0.25^2))^2 = 93.75 J > 20 J
+            sim.rollout(params, PAIR_STEPS, pair(b))
+    # 0.5 mu (20 sqrt(1 - 0.25^2))^2 = 93.75 J > 20 J
     with pytest.warns(dp.ContactWarning, match=r"would meet at 19.4 m/s.*bring 93.7"):
-        sim.rollout(sim.params(k=1e3, c=0.0), 10)
+        sim.rollout(params, PAIR_STEPS, pair(0.05))
     s = dp.Scene(gravity=(0.0, 0.0, 0.0))
     s.add_particle(1.0, (1.0, 0.0, 0.0), velocity=(-20.0, 0.0, 0.0))
     s.add_fixed_sphere((0.0, 0.0, 0.0), 0.1)

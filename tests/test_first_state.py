@@ -3,7 +3,6 @@ that accelerate at row 0: the rate and angular acceleration of a body on springs
 integrator's velocity lag applied to velocity columns and to the bodies a record does not
 observe, on records the simulator made itself."""
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -51,6 +50,20 @@ def _scene(tmp_path, text):
     return load_scene_file(str(path))
 
 
+@pytest.fixture(scope="module")
+def rope(tmp_path_factory):
+    """(scene file, semi-implicit Euler simulator, rk4 simulator at 25 us) of ROPE, compiled
+    once for the tests that read it (shared: a Simulator is frozen)."""
+    sf = _scene(tmp_path_factory.mktemp("rope"), ROPE)
+    return sf, sf.compile(), sf.compile(integrator="rk4", dt=2.5e-5)
+
+
+def _start_states(sim, batch):
+    """:func:`start_states` of ``batch`` as one compiled function of the parameters (op by op
+    it compiled each of its operations)."""
+    return jax.jit(lambda params: start_states(sim, params, batch))
+
+
 def _stepped_from(sim, params):
     """The state a semi-implicit Euler record starts its rollout from: the scene's rates
     less the lag (tuning.synthetic.synthetic_record), what the fit's start must find."""
@@ -79,16 +92,14 @@ def test_spin_of_a_body_on_springs_takes_its_angular_acceleration(tmp_path):
     assert np.linalg.norm(w - np.asarray(true.angular_velocity)[0]) < 1.5, w
 
 
-def test_velocity_columns_take_the_integrators_lag(tmp_path):
+def test_velocity_columns_take_the_integrators_lag(rope):
     """Regression: velocity columns were taken as the state's velocity while velocities
     estimated from the frames took the lag ``v - h a / 2``: exact columns of a rope
     recorded by rk4 (the path's own rate) started semi-implicit Euler 5 mm/s off and
     moved a fit's k by -1.4% and c by -3.2% (-0.1%, +0.5% without the columns). Now both
     take it: the start with the columns is the one without them, and the state the
     rk4 path's rate less ``h a / 2``, ``a`` the acceleration at row 0."""
-    sf = _scene(tmp_path, ROPE)
-    sim = sf.compile()
-    ref = sf.compile(integrator="rk4", dt=2.5e-5)
+    sf, sim, ref = rope
     ids = {f"rope[{i}]": sf.names[f"rope[{i}]"] for i in (1, 2, 3)}
     rec = tf.synthetic_record(ref, ref.params(), 0.05, 5e-3, ids)
     bare = Record(rec.path, rec.t, {n: BodyRecord(b.position) for n, b in rec.bodies.items()})
@@ -104,29 +115,27 @@ def test_velocity_columns_take_the_integrators_lag(tmp_path):
     np.testing.assert_allclose(np.asarray(without.start.velocity)[0], want, atol=4e-3)
 
 
-def test_unobserved_bodies_take_the_lag_too(tmp_path):
+def test_unobserved_bodies_take_the_lag_too(rope):
     """Regression: the bodies a record does not observe start from the scene file's
     velocities, which took no lag while the observed ones did: the cloth of
     tests/test_trajfit.py observed at 4 of its 25 nodes, from a noise-free rk4 record
     without velocity columns, fitted c 7.5% low (+1.0% now). Now the scene file's
     velocities take ``- h a / 2`` at the start too: a rope observed at one node starts
     every free node at its rk4 rate less the lag."""
-    sf = _scene(tmp_path, ROPE)
-    sim = sf.compile()
-    ref = sf.compile(integrator="rk4", dt=2.5e-5)
+    sf, sim, ref = rope
     ids = {"rope[3]": sf.names["rope[3]"]}
     rec = tf.synthetic_record(ref, ref.params(), 0.05, 5e-3, ids)
-    start = start_states(sim, sf.params(sim), tf.prepare(sim, [rec], bodies=ids,
-                                                         estimate="record"))
+    start = _start_states(sim, tf.prepare(sim, [rec], bodies=ids,
+                                          estimate="record"))(sf.params(sim))
     s0 = ref.init_state()
     a, _ = ref.acceleration(ref.params(), s0)
     want = np.asarray(s0.velocity) - 0.5 * sim.dt * np.asarray(a)
     np.testing.assert_allclose(np.asarray(start.velocity)[0], want, atol=2e-4)
-    assert float(jnp.max(jnp.abs(start.velocity[0, 0]))) == 0.0          # pinned
+    assert np.max(np.abs(np.asarray(start.velocity)[0, 0])) == 0.0          # pinned
     # verlet and rk4 step from the path's own rate: nothing moves
     verlet = sf.compile(integrator="verlet")
-    plain = start_states(verlet, sf.params(verlet),
-                         tf.prepare(verlet, [rec], bodies=ids, estimate="record"))
+    plain = _start_states(verlet, tf.prepare(verlet, [rec], bodies=ids,
+                                             estimate="record"))(sf.params(verlet))
     np.testing.assert_allclose(np.asarray(plain.velocity)[0], np.asarray(s0.velocity),
                                atol=1e-12)
 
@@ -153,36 +162,39 @@ def test_the_lag_matches_the_simulators_own_steps(tmp_path):
                                    np.asarray(s0.angular_velocity)[0], atol=0.1)
 
 
-def test_a_record_the_fit_itself_made_starts_every_body_where_it_did(tmp_path):
+def test_a_record_the_fit_itself_made_starts_every_body_where_it_did(rope):
     """Regression: a record made by semi-implicit Euler started its rollout from the scene's
     velocities as the step's own, while the fit read them as rates and took the lag from
     the bodies it does not observe: a noise-free rope observed at its tip started its other
     nodes 4.9 mm/s off and fitted c 35% high. The record now steps from the scene's rates
     less the lag, and the fit's start is that state."""
-    sf = _scene(tmp_path, ROPE)
-    sim = sf.compile()
+    sf, sim, _ = rope
     ids = {"rope[3]": sf.names["rope[3]"]}
     rec = tf.synthetic_record(sim, sf.params(sim), 0.1, 5e-3, ids)
-    start = start_states(sim, sf.params(sim), tf.prepare(sim, [rec], bodies=ids,
-                                                         estimate="record"))
+    start = _start_states(sim, tf.prepare(sim, [rec], bodies=ids,
+                                          estimate="record"))(sf.params(sim))
     true = _stepped_from(sim, sf.params(sim))
     np.testing.assert_allclose(np.asarray(start.velocity)[0], np.asarray(true.velocity),
                                atol=2e-5)
 
 
-def _hung_pair():
-    """(simulator, a, b): sphere b hangs from sphere a on a stretched spring (k 60 N/m), so
-    b's acceleration at the start depends on a fitted value; contact values undeclared."""
+@pytest.fixture(scope="module")
+def hung_pair():
+    """(simulator, a, b, record): sphere b hangs from sphere a on a stretched spring (k 60
+    N/m), so b's acceleration at the start depends on a fitted value; contact values
+    undeclared. The record (0.05 s, 5 ms frames) observes a only, made at k = 1e4, c = 1 for
+    the contacts. Shared: never mutate them."""
     import diffpen as dp
     s = dp.Scene(gravity=(0.0, 0.0, -9.81))
     a = s.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
     b = s.add_sphere(0.03, 0.2, (0.0, 0.0, 0.4))
     s.add_spring(a, b, k=60.0, c=0.1, rest_length=0.25)
     sim = dp.compile(s, dt=1e-3)
-    return sim, a, b
+    rec = tf.synthetic_record(sim, sim.params(k=1e4, c=1.0), 0.05, 5e-3, {"a": a})
+    return sim, a, b, rec
 
 
-def test_the_unobserved_bodies_lag_is_taken_at_the_simulated_parameters():
+def test_the_unobserved_bodies_lag_is_taken_at_the_simulated_parameters(hung_pair):
     """Regression: the unobserved bodies' lag evaluated ``sim.params()``, which a scene
     without declared contact values refuses: prepare crashed, with advice it could not
     follow. Then it was taken once, at the parameters given to prepare: a fit kept the lag
@@ -203,18 +215,20 @@ def test_the_unobserved_bodies_lag_is_taken_at_the_simulated_parameters():
     with pytest.raises(FitError, match=r"lag_start\(\.\.\., params=\.\.\.\)"):
         lag_start(sim, sim.init_state(), [a], 5e-4)
     batch = tf.prepare(sim, [rec], bodies={"ball": a})
-    start = start_states(sim, p, batch)
-    assert float(start.velocity[0, b, 2]) == pytest.approx(0.5e-3 * 9.81, rel=1e-9)
+    start = _start_states(sim, batch)(p)
+    assert float(np.asarray(start.velocity)[0, b, 2]) == pytest.approx(0.5e-3 * 9.81,
+                                                                       rel=1e-9)
     # a force that depends on a fitted value: b hangs from a on a stretched spring
-    sim, a, b = _hung_pair()
-    rec = tf.synthetic_record(sim, sim.params(k=1e4, c=1.0), 0.05, 5e-3, {"a": a})
+    sim, a, b, rec = hung_pair
     batch = tf.prepare(sim, [rec], bodies={"a": a})
     seen = []
+    first = jax.tree_util.tree_map(lambda x: np.asarray(x)[0], batch.start)
+    lagged = jax.jit(lambda p: lag_start(sim, first, [a], 5e-4, p).velocity[b, 2])
+    starts = _start_states(sim, batch)          # both k: one program each
     for k in (60.0, 150.0):
         p = sim.params(k=1e4, c=1.0, spring_k=k)
-        first = jax.tree_util.tree_map(lambda x: x[0], batch.start)
-        want = lag_start(sim, first, [a], 5e-4, p).velocity[b, 2]
-        got = start_states(sim, p, batch).velocity[0, b, 2]
+        want = lagged(p)
+        got = np.asarray(starts(p).velocity)[0, b, 2]
         assert float(got) == pytest.approx(float(want), rel=1e-9), k
         seen.append(float(got))
     assert abs(seen[1] - seen[0]) > 1e-3        # the lag moved with k (was the start's)
@@ -266,7 +280,7 @@ def test_a_missing_sample_in_the_flight_is_skipped_not_its_end(tmp_path):
             assert flight_frames(scene, 0, low_p, q, 0.005) == n_low     # the same contact
 
 
-def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones():
+def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones(hung_pair):
     """Regression: a 2 x 2 x 2 jelly observed at 4 nodes, recorded dropping from 0.25 m
     while its scene file put it at 0.15 m: the 4 unobserved nodes started at the scene
     file's height, their edges to the observed ones stretched 100%, and evaluate at the
@@ -275,8 +289,7 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones()
     scene with bodies the record does not observe."""
     import warnings
 
-    sim, a, b = _hung_pair()
-    rec = tf.synthetic_record(sim, sim.params(k=1e4, c=1.0), 0.03, 5e-3, {"a": a})
+    sim, a, b, rec = hung_pair
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tf.prepare(sim, [rec], bodies={"a": a})              # where the scene puts it

@@ -44,7 +44,7 @@ def chain_scene(n=4, k=400.0, c=1.0, m=0.2):
 def spring_error(integrator, dt, T=1.0):
     sim = dp.compile(spring_scene(), dt, integrator=integrator)
     traj = sim.rollout(sim.params(), int(round(T / dt)))
-    x = np.asarray(traj.position[:, 0, 2]) - 1.0
+    x = np.asarray(traj.position)[:, 0, 2] - 1.0
     return np.max(np.abs(x - damped_closed_form(np.asarray(traj.time))))
 
 
@@ -95,16 +95,26 @@ def _chain_rollout(sim, solver, k, c, steps=100):
     return jax.lax.scan(body, sim.init_state(), None, length=steps)[1]
 
 
+def _chain_loss(pos):
+    """The last particle's final z + 0.3 x."""
+    return pos[-1, -1, 2] + 0.3 * pos[-1, -1, 0]
+
+
 @pytest.fixture(scope="module")
 def chain_runs(chain):
-    """Jitted chain rollouts per solver, compiled once for the tests below."""
-    return {solver: jax.jit(lambda k, c, solver=solver: _chain_rollout(chain, solver, k, c))
-            for solver in ("dense", "cg")}
+    """Per solver, one jitted program, compiled once for the tests below: ``run(k, c) ->
+    ((loss, positions), (d loss / dk, d loss / dc))`` (reverse mode through the solves;
+    positions (steps, n, 3) as :func:`_chain_rollout` gives them)."""
+    def loss(k, c, solver):
+        pos = _chain_rollout(chain, solver, k, c)
+        return _chain_loss(pos), pos
+    return {solver: jax.jit(lambda k, c, solver=solver: jax.value_and_grad(
+        loss, (0, 1), has_aux=True)(k, c, solver)) for solver in ("dense", "cg")}
 
 
 def test_implicit_dense_and_cg_agree(chain, chain_runs):
-    dense = chain_runs["dense"](400.0, 1.0)
-    cg = chain_runs["cg"](400.0, 1.0)
+    dense = np.asarray(chain_runs["dense"](400.0, 1.0)[0][1])
+    cg = np.asarray(chain_runs["cg"](400.0, 1.0)[0][1])
     np.testing.assert_allclose(cg, dense, rtol=0, atol=1e-9)
     # and the simulator's own implicit step is the dense one for this small scene
     np.testing.assert_allclose(chain.rollout(chain.params(), 100).position, dense, atol=1e-12)
@@ -114,11 +124,10 @@ def test_implicit_dense_and_cg_agree(chain, chain_runs):
 def test_implicit_euler_gradients_match_finite_differences(chain_runs, solver):
     run = chain_runs[solver]
 
-    def loss(k, c):
-        pos = run(k, c)
-        return pos[-1, -1, 2] + 0.3 * pos[-1, -1, 0]
+    def loss(k, c):             # the value: no second compile for the differences
+        return float(run(k, c)[0][0])
     k0, c0 = 400.0, 1.0
-    gk, gc = jax.jit(jax.grad(loss, (0, 1)))(k0, c0)
+    gk, gc = run(k0, c0)[1]
     hk, hc = 1e-4 * k0, 1e-4 * c0
     fk = (loss(k0 + hk, c0) - loss(k0 - hk, c0)) / (2 * hk)
     fc = (loss(k0, c0 + hc) - loss(k0, c0 - hc)) / (2 * hc)

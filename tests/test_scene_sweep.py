@@ -12,7 +12,7 @@ import pytest
 from tuning import trajfit as tf
 from tuning.cli import main
 from tuning.errors import FitError
-from tuning.evaluate import evaluate_batch
+from tuning.evaluate import evaluate_batch, evaluator
 from tuning.metrics import ball_metrics
 from tuning.records import write_record
 from tuning.scene_sweep import sweep_scene_file
@@ -76,9 +76,10 @@ def test_record_sweep_equals_the_evaluation_and_resumes(box_files):
     sim = sf.compile()
     records, bodies = tf.load_records(sf, [rec])
     batch = tf.prepare(sim, records, bodies=bodies, estimate="record")
+    fn = evaluator(sim, batch)                  # one compile for the three points
     for i in (0, 4, 8):
         p = tf.with_leaves(sf.params(sim), dict(zip(res.names, res.points[i])))
-        ev = evaluate_batch(sim, p, batch)
+        ev = evaluate_batch(sim, p, batch, fn=fn)
         np.testing.assert_allclose(res.metrics["position_error_pct"][i],
                                    ev.position_error_pct["mean"], rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(res.metrics["rotation_error_deg"][i],
@@ -133,10 +134,11 @@ def test_bounce_sweep_equals_the_metrics(tmp_path):
     res, info = sweep_scene_file(str(scene), (), axes, n=[2], chunk=4)
     sf = load_scene_file(str(scene))
     sim = sf.compile()
+    metrics = jax.jit(lambda tr, q: ball_metrics(sim, tr, q, n_apex=3))    # one compile
     for i in (0, 3):
         p = tf.with_leaves(sf.params(sim), dict(zip(res.names, res.points[i])))
         traj = sim.rollout(p, sf.setup.steps)
-        m = jax.jit(lambda tr, q: ball_metrics(sim, tr, q, n_apex=3))(traj, p)
+        m = metrics(traj, p)
         np.testing.assert_allclose(res.metrics["apex_heights"][i], m.apex_heights,
                                    rtol=1e-9)
         np.testing.assert_allclose(res.metrics["contact_durations"][i], m.contact_durations,
@@ -264,9 +266,12 @@ material = "board"
 """
 
 
-def _spin_records(tmp_path):
+@pytest.fixture(scope="module")
+def spin_records(tmp_path_factory):
     """The spinning box's scene at dt 5e-4 and two records made at dt 5e-5: a slow one and
-    one spinning at 150 rad/s, past the spin limit at 5e-4 (its rollout goes unstable)."""
+    one spinning at 150 rad/s, past the spin limit at 5e-4 (its rollout goes unstable).
+    Shared: the tests read the files and write only under their own tmp_path."""
+    tmp_path = tmp_path_factory.mktemp("spin")
     fine, scene = tmp_path / "fine.toml", tmp_path / "spin.toml"
     fine.write_text(SPIN.format(dt=5e-5))
     scene.write_text(SPIN.format(dt=5e-4))
@@ -281,12 +286,13 @@ def _spin_records(tmp_path):
     return scene, recs
 
 
-def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path):
+def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path,
+                                                                       spin_records):
     """Regression: one record past the safe step (a flat box spinning at 150 rad/s, past
     the spin limit at dt 5e-4) made every point NaN and counted it unstable, whatever k.
     Each point now equals tuning.evaluate: that record is left out of the mean and median
     and counted per point (unstable_records); the point is a result."""
-    scene, recs = _spin_records(tmp_path)
+    scene, recs = spin_records
     out = str(tmp_path / "spin.npz")
     res, _ = sweep_scene_file(str(scene), recs, [("contact.board.k", 300.0, 800.0)], n=[2],
                               out=out, chunk=2)
@@ -295,9 +301,11 @@ def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path)
     records, bodies = tf.load_records(sf, recs)
     batch = tf.prepare(sim, records, bodies=bodies, estimate="record")
     assert res.unstable == 0
+    fn = evaluator(sim, batch)                  # one compile for both points
     for i in range(2):
         ev = evaluate_batch(sim, tf.with_leaves(sf.params(sim), {"contact.board.k":
-                                                                 res.points[i, 0]}), batch)
+                                                                 res.points[i, 0]}), batch,
+                            fn=fn)
         assert ev.unstable == 1 and res.metrics["unstable_records"][i] == 1
         for m, s in (("position_error_pct", ev.position_error_pct),
                      ("rotation_error_deg", ev.rotation_error_deg)):
@@ -308,10 +316,11 @@ def test_an_unstable_record_is_left_out_of_each_point_as_evaluate_does(tmp_path)
         assert "unstable_records" in fh.readline().split(",")
 
 
-def test_the_sweep_command_says_how_many_points_left_records_out(tmp_path, capsys):
+def test_the_sweep_command_says_how_many_points_left_records_out(tmp_path, capsys,
+                                                                 spin_records):
     """The command says when points left records out (past the safe step), in words and
     in its JSON, instead of leaving the count to the table alone."""
-    scene, recs = _spin_records(tmp_path)
+    scene, recs = spin_records
     argv = ["sweep", str(scene), "--param", "contact.board.k", "300", "800", "--n", "2",
             "--data", *recs]
     assert main(argv + ["--out", str(tmp_path / "a.npz")]) == 0

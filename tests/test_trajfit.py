@@ -89,8 +89,8 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, case):
     assert out["undetermined"] == []
     # the written scene holds the fitted values
     sf = load_scene_file(str(out_toml))
-    leaves = tf.leaf_names(sf.params(sf.compile()))
     got = sf.params(sf.compile())
+    leaves = tf.leaf_names(got)
     for name in truth:
         assert float(tf.get_leaf(got, name)) == pytest.approx(out["fitted"][name], rel=1e-12)
     assert set(truth) <= set(leaves)
@@ -214,7 +214,7 @@ def test_unequal_lengths_are_masked(cube, caplog):
     p2 = tf.with_leaves(params, {"contact.board.c": 20.0})
 
     def residuals(b):        # jitted: one compile per batch instead of one per eager op
-        return jax.jit(lambda p: tf.pose_residuals(*tf.simulate(cube, p, b), b))(p2)
+        return np.asarray(jax.jit(lambda p: tf.pose_residuals(*tf.simulate(cube, p, b), b))(p2))
     r_both = residuals(both)
     # called eagerly, the same batch again reuses its compiled rollout (simulate's observe
     # function is one object per set of bodies, and the rollout program is keyed by it)
@@ -224,16 +224,16 @@ def test_unequal_lengths_are_masked(cube, caplog):
         again = tf.simulate(cube, p2, both)[0]
     assert not [r for r in caplog.records if r.getMessage().startswith("Compiling")]
     np.testing.assert_array_equal(np.asarray(again), np.asarray(first))
-    cost_alone = [float(jnp.sum(residuals(b) ** 2)) for b in alone]
+    cost_alone = [float(np.sum(residuals(b) ** 2)) for b in alone]
     # each record weighs 1/R in the batch: the batch cost is the mean of the costs alone
-    assert float(jnp.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
+    assert float(np.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
     assert both.pos_mask[1, len(short.t):].sum() == 0
     # buckets of similar length give the same loss as one padded batch
     buckets = tf.prepare_buckets(cube, [long, short], buckets=2, estimate="record")
     assert [len(b.paths) for b in buckets] == [1, 1] and buckets[0].steps < both.steps
-    r_buckets = jnp.concatenate([residuals(b) for b in buckets])
-    assert float(jnp.sum(r_buckets ** 2)) == pytest.approx(float(jnp.sum(r_both ** 2)),
-                                                           rel=1e-10)
+    r_buckets = np.concatenate([residuals(b) for b in buckets])
+    assert float(np.sum(r_buckets ** 2)) == pytest.approx(float(np.sum(r_both ** 2)),
+                                                          rel=1e-10)
 
 
 def test_plane_offset_is_a_differentiable_parameter(cube):
@@ -458,7 +458,23 @@ def test_past_the_safe_step_is_marked_not_reported(cube):
         tf.fit_records(cube, bad, batch, [tf.Free("contact.board.c", 1.0, 1e3)], maxiter=1)
 
 
-def test_record_fit_never_steps_past_the_safe_step(cube):
+@pytest.fixture(scope="module")
+def damping_past_the_safe_step(cube):
+    """(batch, fit): a record of the cube whose damping (150 N s/m, made at a quarter of the
+    step) is past its safe step at dt = 1 ms, and the fit of c to it from the cube's own
+    c = 30 (6 iterations). Shared: never mutate them."""
+    fine = dp.compile(cube.scene, 2.5e-4)
+    truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
+    s = fine.state_from(body=0, position=(0, 0, 0.12), velocity=(0.3, 0, -0.5),
+                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
+    rec = tf.synthetic_record(fine, truth, 0.15, 5e-3, {"cube": 0}, state=s)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    res = tf.fit_records(cube, cube.params(), batch, [tf.Free("contact.board.c", 1.0, 1e3)],
+                         maxiter=6)
+    return batch, res
+
+
+def test_record_fit_never_steps_past_the_safe_step(cube, damping_past_the_safe_step):
     """Regression: Levenberg-Marquardt accepted trial points past the safe step when the
     bounds' caps (one contact on the lightest body, tuning.stable) were looser than the
     scene's own limit (a box: four corners and rotation). Here the record's damping (150
@@ -466,17 +482,10 @@ def test_record_fit_never_steps_past_the_safe_step(cube):
     88 N s/m) though under the cap (366): the fit ran to c = 104 and ended 'NOT a result';
     now every accepted point is stable and the fit ends at the limit (88.3)."""
     from tuning.stable import safe_contact_bounds
-    fine = dp.compile(cube.scene, 2.5e-4)
-    truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
-    s = fine.state_from(body=0, position=(0, 0, 0.12), velocity=(0.3, 0, -0.5),
-                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
-    rec = tf.synthetic_record(fine, truth, 0.15, 5e-3, {"cube": 0}, state=s)
-    batch = tf.prepare(cube, [rec], estimate="record")
+    _, res = damping_past_the_safe_step
     assert not cube.stability(cube.params()).margin < 1.0
     assert cube.stability(tf.with_leaves(cube.params(), {"contact.board.c": 150.0})).margin < 1
     assert 150.0 < safe_contact_bounds(cube)[1]
-    res = tf.fit_records(cube, cube.params(), batch, [tf.Free("contact.board.c", 1.0, 1e3)],
-                         maxiter=6)
     assert res.unstable == 0 and np.isfinite(res.cost), res.message
     c = res.values["contact.board.c"]
     assert 30.0 < c and cube.stability(tf.with_leaves(cube.params(),
@@ -816,9 +825,11 @@ def test_first_states_are_computed_once_per_fit(tmp_path, monkeypatch):
 
 
 # --------------------------------------------------------------------------- CLI probes
-@pytest.fixture
-def drag_record(tmp_path):
-    return _record_file(tmp_path, DRAG, {"extra.drag.air": 0.08}, ["p"], "p",
+@pytest.fixture(scope="module")
+def drag_record(tmp_path_factory):
+    """(scene, record) of a particle with air drag 0.08 (rk4, 0.3 s). Shared: the tests
+    read both files and write only under their own tmp_path."""
+    return _record_file(tmp_path_factory.mktemp("drag"), DRAG, {"extra.drag.air": 0.08}, ["p"], "p",
                         integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.3, noise=0.0,
                         seed=1)
 
@@ -1148,7 +1159,7 @@ def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
         tf.load_records(sf, [path])
 
 
-def test_a_fit_held_by_the_safe_step_says_so(cube, monkeypatch):
+def test_a_fit_held_by_the_safe_step_says_so(cube, damping_past_the_safe_step, monkeypatch):
     """Regression: a record that wants a contact k or c past what the fit's dt allows ended
     at the safe step with only LM's word ('iteration limit reached'; a cube whose record
     wanted k = 3e5 crept to k = 128368, 57% low) or, at the cap itself, with 'widen
@@ -1156,14 +1167,8 @@ def test_a_fit_held_by_the_safe_step_says_so(cube, monkeypatch):
     that a smaller dt helps. Here: the scene's own limit on a box's damping (about 88 N s/m,
     below the one-contact cap), and a cap lowered to 20 N s/m (the record wants 30)."""
     import tuning.stable as st
-    fine = dp.compile(cube.scene, 2.5e-4)
-    truth = tf.with_leaves(fine.params(), {"contact.board.c": 150.0})
-    s = fine.state_from(body=0, position=(0, 0, 0.12), velocity=(0.3, 0, -0.5),
-                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
-    rec = tf.synthetic_record(fine, truth, 0.15, 5e-3, {"cube": 0}, state=s)
-    batch = tf.prepare(cube, [rec], estimate="record")
+    batch, res = damping_past_the_safe_step
     free = [tf.Free("contact.board.c", 1.0, 1e3)]
-    res = tf.fit_records(cube, cube.params(), batch, free, maxiter=6)
     assert res.unstable == 0 and res.values["contact.board.c"] < 100.0
     assert res.message.startswith("held by the safe step"), res.message
     assert "contact.board.c" in res.message and "smaller dt" in res.message

@@ -19,19 +19,20 @@ def ball_scene(drop=1.0):
     return scene
 
 
-def test_default_fit_reaches_targets():
+def test_default_fit_reaches_targets(ball_sim):
     targets = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
     res = B.fit_bounce(ball_scene(), targets, dt=1e-3)
     assert res.reached, res.message
     assert abs(res.achieved["apex_heights"][0] / DEFAULT_APEX - 1) < 5e-3
     assert abs(res.achieved["settling_time"] / DEFAULT_SETTLE - 1) < 1e-2
     # the achieved values are the exact metrics of an independent rollout at the fitted params
+    # (the same ball compiled apart from the fit: conftest's ball_sim)
     from tuning.metrics import ball_metrics
-    sim = dp.compile(ball_scene(), 1e-3)
+    sim = ball_sim
     s0 = sim.init_state()
-    tr = sim.rollout(res.params, 4000, s0)
-    # jitted: one compile instead of one per eager operation (2.9 s -> 0.4 s)
-    m = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, n_apex=1, state0=s0))(tr, res.params)
+    # rollout and metrics jitted together: one compile instead of one per eager operation
+    m = jax.jit(lambda p: ball_metrics(sim, sim.rollout(p, 4000, s0), p, n_apex=1,
+                                       state0=s0))(res.params)
     assert float(m.apex_heights[0]) == pytest.approx(res.achieved["apex_heights"][0], rel=1e-9)
     assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
 
@@ -106,13 +107,15 @@ def test_a_settling_target_needs_a_rollout_longer_than_itself():
     assert not ok and rel["settling_time"] == float("inf")
 
 
+#: first apex and decay time of the drop-1 m ball at k = 3000 N/m, c = 12 N s/m (dt 1e-3,
+#: a 3 s rollout): exactly reachable targets
+DECAY_TARGETS = {"apex_heights": [0.4284646456586247], "decay_time": 0.915615899941455}
+
+
 def test_a_decay_time_target_fits_k_too():
     """Apex and decay-time targets held k at its start (as heights alone do) and missed a
     reachable decay time; the decay time depends on k, so both are fitted."""
-    sim = dp.compile(ball_scene(), 1e-3)
-    m = jax.jit(B.bounce_metrics_fn(sim, 3000, n_apex=1))(sim.params(k=3000.0, c=12.0))
-    tg = {"apex_heights": [float(m["apex_heights"][0])], "decay_time": float(m["decay_time"])}
-    res = B.fit_bounce(ball_scene(), tg, duration=3.0)
+    res = B.fit_bounce(ball_scene(), DECAY_TARGETS, duration=3.0)
     assert res.reached, res.message
     assert not any("k is held" in n for n in res.notes)
 
@@ -202,7 +205,7 @@ def test_step_restitution_error_against_closed_form_and_richardson():
     assert rich == pytest.approx(err[1], abs=1.5e-3)
 
 
-def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch):
+def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch, ball_sim):
     """fit_bounce(maxiter=0) ran the default limit (0 is falsy); a settle_tol of NaN made a
     bouncing ball "settled" at t = 0 and one <= 0 ran a whole fit to a refusal advising a
     longer rollout; method="adam" was refused only after compiling and rolling out;
@@ -219,7 +222,7 @@ def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch):
         with pytest.raises(FitError, match=say):
             B.fit_bounce(scene, target, **kw)
     monkeypatch.undo()
-    sim = dp.compile(scene, 1e-3)
+    sim = ball_sim                      # the same ball, compiled
     for kw, say in (({"n_apex": 0}, "n_apex"), ({"body": 3}, "body 3 is not in the scene"),
                     ({"plane": 2}, "plane 2"), ({"settle_tol": float("nan")}, "settle_tol")):
         with pytest.raises(FitError, match=say):

@@ -1,7 +1,9 @@
 """tuning.fit.fit: both methods reach an apex target, the loop compiles once, frozen
 parameters stay put, bad arguments are refused, the safe step bounds the fit and a point past
 it is never reached. (The bounce problem itself: test_tuning_bounce.py.)"""
+import io
 import logging
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -30,20 +32,66 @@ def short_problem():
     return sim, mfn
 
 
+class _Terminal(io.StringIO):
+    """stderr as a terminal: it keeps what is written and says it is a tty."""
+
+    def isatty(self):
+        return True
+
+
+def _fit_on_a_terminal(mfn, p0, targets, **kw):
+    """``F.fit(mfn, p0, targets, **kw)`` with stderr a terminal: (result, what it drew)."""
+    err, saved = _Terminal(), sys.stderr
+    sys.stderr = err
+    try:
+        res = F.fit(mfn, p0, targets, **kw)
+    finally:
+        sys.stderr = saved
+    return res, err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def optax_apex_fit(short_problem):
+    """The optax fit of the apex target (default optimizer, 300 iterations at most) on a
+    terminal with ``progress=None`` (what the diffpen command passes: a bar on a terminal):
+    (result, what the bar drew). Shared, never mutated."""
+    sim, mfn = short_problem
+    return _fit_on_a_terminal(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
+                              free=["contact.default.c"], method="optax", maxiter=300,
+                              progress=None, sim=sim)
+
+
+@pytest.fixture(scope="module")
+def lm_apex_fit(short_problem):
+    """The LM fit of the apex target (20 iterations at most) with its progress bar on a
+    terminal: (result, what the bar drew). Shared, never mutated."""
+    sim, mfn = short_problem
+    return _fit_on_a_terminal(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
+                              free=["contact.default.c"], method="lm", maxiter=20,
+                              progress=True, sim=sim)
+
+
 def _compiles(caplog, name=""):
     return sum(r.getMessage().startswith(f"Compiling jit({name}") for r in caplog.records)
 
 
-def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog):
+def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog, monkeypatch):
+    """The optax loop compiles its iteration function once per fit; the frozen stiffness
+    stays at its start. These fits run on a terminal without ``progress``: by default the
+    library prints nothing (printing belongs to the CLI)."""
     sim, mfn = short_problem
     p0 = sim.params(k=1e4, c=10.0)
     counts, traces = [], []
     for maxiter in (3, 12):
         caplog.clear()
+        err = _Terminal()
+        monkeypatch.setattr(sys, "stderr", err)
         with caplog.at_level(logging.WARNING), jax.log_compiles():
             res = F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"],
                         method="optax", optimizer=optax.adam(0.05), maxiter=maxiter,
                         rtol=1e-9)
+        monkeypatch.undo()
+        assert err.getvalue() == "", err.getvalue()       # progress not asked: no bar
         counts.append((_compiles(caplog), _compiles(caplog, "step)")))
         traces.append(res.traces)
         assert res.iterations == maxiter
@@ -60,26 +108,22 @@ def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog):
     assert res.loss_history[-1] < res.loss_history[0]
 
 
-def test_lm_reaches_apex_in_few_iterations(short_problem):
-    sim, mfn = short_problem
-    res = F.fit(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
-                free=["contact.default.c"], method="lm", maxiter=20)
+def test_lm_reaches_apex_in_few_iterations(lm_apex_fit):
+    res, _ = lm_apex_fit
     assert res.reached and res.iterations <= 8
     assert res.achieved["apex_heights"][0] == pytest.approx(0.2, rel=1e-3)
     assert res.traces == 1                 # residual and Jacobian: one forward-mode trace
 
 
-def test_optax_reaches_apex(short_problem):
-    sim, mfn = short_problem
-    res = F.fit(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
-                free=["contact.default.c"], method="optax", maxiter=300)
+def test_optax_reaches_apex(optax_apex_fit):
+    res, _ = optax_apex_fit
     assert res.reached, res.message
     assert res.achieved["apex_heights"][0] == pytest.approx(0.2, rel=1e-3)
     assert res.iterations > 8            # first order: more iterations than LM's <= 8 above
 
 
-def test_bad_fit_arguments():
-    sim = dp.compile(ball_scene(), 1e-3)
+def test_bad_fit_arguments(ball_sim):
+    sim = ball_sim                      # the drop-1 m ball at dt 1e-3 s (conftest)
     mfn = B.bounce_metrics_fn(sim, 10)
     p0 = sim.params(k=1e4, c=10.0)
     with pytest.raises(F.FitError, match="unknown parameter"):
@@ -92,13 +136,13 @@ def test_bad_fit_arguments():
         F.fit(mfn, sim.params(k=1e4, c=0.0), {"apex_heights": [0.2]})
 
 
-def test_fit_with_sim_stays_inside_the_safe_step():
+def test_fit_with_sim_stays_inside_the_safe_step(ball_sim):
     """Regression: fit() had no stability bounds, so a target that pulls k past the safe step
     was met and returned as reached. Given the simulator, k is capped at the safe step and the
     result is not reached (values never past the cap); batch fits share the bounds."""
     from tuning import batch_fit as BF
     from tuning.stable import contact_unstable, safe_contact_bounds
-    sim = dp.compile(ball_scene(), 1e-3)
+    sim = ball_sim                      # the drop-1 m ball at dt 1e-3 s (conftest)
     k_max, c_max = safe_contact_bounds(sim)
     p0 = sim.params(k=1e4, c=10.0)
     mfn = lambda p: {"stiffness": p.contact["default"].k}    # no rollout: fast
@@ -150,51 +194,38 @@ def test_a_fit_that_meets_its_targets_only_past_the_safe_step_is_not_reached():
               progress=False)
 
 
-def test_library_fit_prints_nothing_unless_asked(short_problem, monkeypatch):
+def test_library_fit_prints_nothing_unless_asked(optax_apex_fit):
     """Printing belongs to the CLI: on a terminal, fit draws its progress bar only when asked
-    (progress=None or True, what the diffpen command passes); by default it writes nothing."""
-    import io
-    import sys
-
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
-    sim, mfn = short_problem
-    p0 = sim.params(k=1e4, c=10.0)
-    for progress, drawn in ((False, False), (None, True)):
-        err = Terminal()
-        monkeypatch.setattr(sys, "stderr", err)
-        kw = {} if progress is False else {"progress": progress}
-        F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"], method="optax",
-              optimizer=optax.adam(0.05), maxiter=3, rtol=1e-9, **kw)
-        assert bool(err.getvalue()) == drawn
+    (progress=None or True, what the diffpen command passes); by default it writes nothing
+    (the default is checked on the fits of test_optax_loop_compiles_once_and_frozen_params_stay,
+    progress=True in test_iterations_history_and_progress_bar_agree)."""
+    _, drawn = optax_apex_fit                  # progress=None on a terminal: a bar
+    assert drawn and "/300 " in drawn, drawn
 
 
-def test_optax_starts_from_the_cheapest_given_start():
+#: the first apex of the short problem (drop 0.6 m, dt 1e-3 s, 900 steps) at k 1e4 N/m,
+#: c 8 N s/m: a target met exactly at c = 8
+APEX_AT_C8 = 0.3843990090648111
+
+
+def test_optax_starts_from_the_cheapest_given_start(short_problem):
     """fit(method="optax", starts=[...]) checked the extra starts, then ignored them: the
     loop now runs from the start of lowest cost."""
-    import diffpen as dp
-    from tuning.fit import fit
-    from tuning.bounce import bounce_metrics_fn
-    s = dp.Scene()
-    s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
-    s.add_plane()
-    sim = dp.compile(s, 2e-3)
-    mfn = bounce_metrics_fn(sim, 600, n_apex=1)
-    target = {"apex_heights": [float(jax.jit(mfn)(sim.params(k=1e4, c=8.0))["apex_heights"][0])]}
+    sim, mfn = short_problem
+    target = {"apex_heights": [APEX_AT_C8]}
     p0 = sim.params(k=1e4, c=60.0)
-    far = fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1)
-    near = fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1,
-               starts=[{"contact.default.c": 8.1}, {"contact.default.c": 30.0}])
+    far = F.fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1)
+    near = F.fit(mfn, p0, target, free=["contact.default.c"], method="optax", maxiter=1,
+                 starts=[{"contact.default.c": 8.1}, {"contact.default.c": 30.0}])
     assert near.start["contact.default.c"] == pytest.approx(8.1)
     assert near.rel_error["apex_heights"] < far.rel_error["apex_heights"]
 
 
-def test_fit_refuses_bad_iteration_and_start_counts_and_duplicate_free():
+def test_fit_refuses_bad_iteration_and_start_counts_and_duplicate_free(ball_sim):
     """Regression: maxiter <= 0 gave a misleading optax error ("the first iteration already
     failed") and an LM result at the start; n_starts = 0 was blamed on the safe step; a
     parameter named twice in free was fitted as two."""
-    sim = dp.compile(ball_scene(), 1e-3)
+    sim = ball_sim                      # the drop-1 m ball at dt 1e-3 s (conftest)
     mfn = B.bounce_metrics_fn(sim, 10)
     p0 = sim.params(k=1e4, c=10.0)
     tg, free = {"apex_heights": [0.2]}, ["contact.default.c"]
@@ -210,35 +241,36 @@ def test_fit_refuses_bad_iteration_and_start_counts_and_duplicate_free():
                                  "contact.default.c"], method="lm")
 
 
-def test_iterations_history_and_progress_bar_agree(short_problem, monkeypatch):
+def test_iterations_history_and_progress_bar_agree(short_problem, optax_apex_fit,
+                                                   lm_apex_fit):
     """Regression: an optax fit that reached its targets said iterations=39 while its bar
     ended at 40/300 and its history had 40 entries (at the limit: maxiter entries, maxiter
     iterations); an LM iteration that found no decrease was counted but not drawn. Now optax
     has one history entry per iteration, LM one more (the start), and the bar ends at the
-    iterations reported."""
-    import io
+    iterations reported. (The optax fit to its target with a 300-iteration bar and the LM fit
+    of 20 iterations at most are the shared fits of the two apex tests above.)"""
     import re
-    import sys
 
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
     sim, mfn = short_problem
     p0 = sim.params(k=1e4, c=10.0)
     free = ["contact.default.c"]
-    cases = [("optax", {"apex_heights": [0.2]}, {}, 0),
+    cases = [("optax", {"apex_heights": [0.2]}, {"maxiter": 300}, 0),
              ("optax", {"apex_heights": [0.2]}, {"maxiter": 5, "rtol": 1e-9}, 0),
              ("lm", {"apex_heights": [0.2]}, {"maxiter": 20}, 1),
              ("lm", {"apex_heights": [0.55]}, {"maxiter": 10, "starts": [
                  {"contact.default.c": 5.0}, {"contact.default.c": 50.0}]}, None)]
-    for method, targets, kw, extra in cases:
-        err = Terminal()
-        monkeypatch.setattr(sys, "stderr", err)
-        res = F.fit(mfn, p0, targets, free=free, method=method, progress=True, sim=sim, **kw)
-        done, total = (int(v) for v in re.findall(r"(\d+)/(\d+) ", err.getvalue())[-1])
-        assert done == res.iterations, (method, kw, err.getvalue()[-200:])
+    shared = {0: optax_apex_fit, 2: lm_apex_fit}
+    for i, (method, targets, kw, extra) in enumerate(cases):
+        if i in shared:
+            res, drawn = shared[i]
+        else:
+            res, drawn = _fit_on_a_terminal(mfn, p0, targets, free=free, method=method,
+                                            progress=True, sim=sim, **kw)
+        done, total = (int(v) for v in re.findall(r"(\d+)/(\d+) ", drawn)[-1])
+        assert done == res.iterations, (method, kw, drawn[-200:])
+        assert total == kw["maxiter"] * (3 if "starts" in kw else 1), (method, kw, total)
         if extra is not None:
-            assert len(res.loss_history) == res.iterations + extra
+            assert len(res.loss_history) == res.iterations + extra, (method, kw)
         if kw.get("maxiter") == 5:
             assert res.iterations == total == 5 and not res.converged
         if "starts" in kw:          # every run may take maxiter iterations
@@ -281,7 +313,10 @@ def test_residuals_and_jacobian_trace_once_and_equal_separate_passes():
     x = jnp.asarray([0.3, -1.2])
     r, J, aux = jax.jit(lambda x: residuals_and_jacobian(fn, x))(x)
     assert len(traces) == 1
-    np.testing.assert_allclose(np.asarray(r), np.asarray(fn(x)[0]), rtol=1e-15)
-    np.testing.assert_allclose(np.asarray(J), np.asarray(jax.jacfwd(lambda x: fn(x)[0])(x)),
-                               rtol=1e-15)
-    assert bool(aux["flag"]) == bool(fn(x)[1]["flag"])
+    # the separate passes: a value pass and jax.jacfwd (jitted together: one compile, not one
+    # per eager operation)
+    (r_value, aux_value), J_fwd = jax.jit(
+        lambda x: (fn(x), jax.jacfwd(lambda x: fn(x)[0])(x)))(x)
+    np.testing.assert_allclose(np.asarray(r), np.asarray(r_value), rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(J_fwd), rtol=1e-15)
+    assert bool(aux["flag"]) == bool(aux_value["flag"])

@@ -107,7 +107,7 @@ def chain(*, seed: int = 0, dt: float = 0.1, duration: float = 200.0, k: float =
 
     def metrics(sim, traj, params):
         import numpy as np
-        final = np.asarray(traj.position[-1])
+        final = np.asarray(traj.position)[-1]
         eq = paper_chain_equilibrium()
         return {"final_positions": final.tolist(), "equilibrium": eq.tolist(),
                 "max_error_vs_equilibrium": float(np.abs(final - eq).max())}
@@ -135,7 +135,7 @@ def cloth(*, n: int = 9, size: float = 0.4, mass: float = 0.25, structural: floa
 
     def metrics(sim, traj, params):
         import numpy as np
-        x, v = np.asarray(traj.position[-1]), np.asarray(traj.velocity[-1])
+        x, v = np.asarray(traj.position)[-1], np.asarray(traj.velocity)[-1]
         return {"centre_sag": float(-x[centre, 2]),
                 "max_speed": float(np.linalg.norm(v, axis=-1).max())}
     return SceneSetup(scene=scene, dt=dt, steps=max(1, int(round(duration / dt))), k=k, c=c,

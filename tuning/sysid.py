@@ -564,6 +564,6 @@ def synthetic_record(k: float, c: float, *, radius: float = 0.1, mass: float = 1
     n = int(round(duration * rate))
     traj = sim.rollout(sim.params(k=k, c=c), n * every, sim.init_state(), save_every=every)
     t = np.concatenate([[0.0], np.asarray(traj.time)])[:n]
-    zc = np.concatenate([[drop], np.asarray(traj.position[:, 0, 2])])[:n]
+    zc = np.concatenate([[drop], np.asarray(traj.position)[:, 0, 2]])[:n]
     rng = np.random.default_rng(seed)
     return t, zc + noise * rng.standard_normal(zc.shape)

@@ -152,7 +152,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                                 "note": type(e).__name__})
                     continue
                 t = np.asarray(traj.time)
-                z, v = (np.asarray(traj.position[:, 0, 2]), np.asarray(traj.velocity[:, 0, 2]))
+                z, v = (np.asarray(traj.position)[:, 0, 2], np.asarray(traj.velocity)[:, 0, 2])
                 errs = _ball_errors(spec, ref, t, z, v)
                 wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
                 pts.append({"dt": dt, "error": errs["apex_rel_error"], "time": wall,
@@ -175,8 +175,8 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 say("width", w, out["widths"][-1])
                 continue
             errs = _ball_errors(spec, ref, np.asarray(traj.time),
-                                np.asarray(traj.position[:, 0, 2]),
-                                np.asarray(traj.velocity[:, 0, 2]))
+                                np.asarray(traj.position)[:, 0, 2],
+                                np.asarray(traj.velocity)[:, 0, 2])
             out["widths"].append({"width": w, "dt": width_dt, "error": errs["apex_rel_error"],
                                   "settling_error": errs["settling_error"]})
             say("width", w, out["widths"][-1])
@@ -194,8 +194,8 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 say("default", dtype, out["default"][-1])
                 continue
             errs = _ball_errors(spec, ref, np.asarray(traj.time, float),
-                                np.asarray(traj.position[:, 0, 2], float),
-                                np.asarray(traj.velocity[:, 0, 2], float))
+                                np.asarray(traj.position, float)[:, 0, 2],
+                                np.asarray(traj.velocity, float)[:, 0, 2])
             wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
             out["default"].append({"dtype": dtype, "dt": 1e-3, "smoothing": sim.smoothing,
                                    "steps": steps, "error": errs["apex_rel_error"],
@@ -215,7 +215,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 params = sim.params()
                 steps = int(round(T / dt))
                 traj = sim.rollout(params, steps)
-                x = np.asarray(traj.position[:, 0, 2]) - 1.0
+                x = np.asarray(traj.position)[:, 0, 2] - 1.0
                 err = float(np.max(np.abs(x - spring_closed_form(np.asarray(traj.time), k=k,
                                                                  c=c, m=m, x0=x0)))) / x0
                 wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
@@ -244,7 +244,7 @@ def accuracy(*, ball: BallSpec | None = None, integrators=INTEGRATORS, n_dt: int
                 tt = np.asarray(traj.time)
                 if dt not in refs:
                     refs[dt] = chain_reference(tt, x0=x0, m=m, k=k, c=c, rest=L)
-                tip = np.asarray(traj.position[:, -1])
+                tip = np.asarray(traj.position)[:, -1]
                 err = float(np.max(np.linalg.norm(tip - refs[dt][:, -1], axis=-1))) / (n * L)
                 wall = median_time(lambda: sim.rollout(params, steps).position, repeats=repeats)
                 pts.append({"dt": dt, "error": err, "time": wall})
