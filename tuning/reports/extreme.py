@@ -69,7 +69,9 @@ def _energy(sim, k, sk, position, velocity):
     g = np.asarray(sim.scene.gravity)
     e -= np.sum(m * (x @ g), axis=-1)
     d = r - x[..., 2]                                        # plane z = 0, normal +z
-    e += np.sum(np.asarray(sim.contact_law.energy(d, k, sim.smoothing)), axis=-1)
+    # one compiled program per shape (eagerly, each of the law's operations compiled its own)
+    energy = jax.jit(sim.contact_law.energy, static_argnums=2)
+    e += np.sum(np.asarray(energy(d, k, sim.smoothing)), axis=-1)
     for s in sim.scene.springs:
         xb = x[:, s.b] if s.b is not None else np.asarray(s.anchor)[None]
         ext = np.linalg.norm(x[:, s.a] - xb, axis=-1) - s.rest_length
