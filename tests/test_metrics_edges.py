@@ -103,6 +103,9 @@ def test_a_decay_fit_moves_from_a_slow_start_and_never_reaches_a_cut_decay():
     cut = B.fit_bounce(ball(0.5), {"decay_time": target}, k0=1e4, c0=20.0, dt=2e-3,
                        duration=1.5 * target, maxiter=3)
     assert not cut.reached and "cut short" in cut.message
+    # FitResult.metrics: every metric at the fitted point, from the fit's own evaluation
+    assert bool(res.metrics["decay_valid"]) and not bool(cut.metrics["decay_valid"])
+    assert float(res.metrics["decay_time"]) == res.achieved["decay_time"]
 
 
 def test_a_ball_thrown_down_has_its_impact_speed_in_the_drop_height(plain):

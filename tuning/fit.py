@@ -67,6 +67,8 @@ class FitResult:
     evaluations: compiled-function calls (iterations, LM trial points and start search).
     eval_history: (evaluations,) loss at every evaluated point, in order.
     message: what happened, in words.  stderr: ``{path: standard error}`` or None.
+    metrics: every entry ``metrics_fn`` returns, at the fitted point (numpy arrays: those
+      the targets do not name too, e.g. ``decay_valid``), from the fit's own last evaluation.
     """
     params: dp.Params
     values: dict
@@ -85,6 +87,7 @@ class FitResult:
     evaluations: int = 0
     eval_history: np.ndarray | None = None
     notes: list = dataclasses.field(default_factory=list)
+    metrics: dict | None = None
 
 
 # --------------------------------------------------------------------------- fit
@@ -179,7 +182,8 @@ def _result(problem: Problem, sol, seconds: float) -> FitResult:
                      iterations=int(sol.iterations), seconds=seconds, traces=sol.traces,
                      message=message, evaluations=sol.evaluations,
                      eval_history=sol.eval_history,
-                     start={p: float(v) for p, v in zip(problem.free, problem.x0)})
+                     start={p: float(v) for p, v in zip(problem.free, problem.x0)},
+                     metrics={k: np.asarray(v) for k, v in metrics.items()})
 
 
 def at_bounds(free, theta, leaves) -> list:
