@@ -20,7 +20,7 @@ def init_state(sim) -> State:
     q, w = sim._rigid.init(b) if sim._rigid is not None else (None, None)
     aux = {k: ctx.const(v) for k, v in ctx.aux_init.items()}
     aux[_stability.FLAG] = jax.device_put(np.zeros((), bool))
-    return State(time=jax.device_put(np.zeros((), sim.dtype)),
+    return State(time=ctx.const(0.0),
                  position=ctx.const([x.position for x in b]),
                  velocity=ctx.const([x.velocity for x in b]),
                  orientation=q, angular_velocity=w, aux=aux)

@@ -203,8 +203,9 @@ def test_library_fit_prints_nothing_unless_asked(optax_apex_fit):
     assert drawn and "/300 " in drawn, drawn
 
 
-#: the first apex of the short problem (drop 0.6 m, dt 1e-3 s, 900 steps) at k 1e4 N/m,
-#: c 8 N s/m: a target met exactly at c = 8
+#: a first-apex target of the short problem met near c = 8 N s/m at k 1e4 N/m (its apex
+#: there, computed once: the test only needs the target to lie much nearer the start at
+#: c = 8.1 than the starts at 30 and 60)
 APEX_AT_C8 = 0.3843990090648111
 
 
