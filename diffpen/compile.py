@@ -96,8 +96,10 @@ class Simulator:
             raise SceneError("the scene has no bodies: add one with scene.add_sphere(...) or "
                              "scene.add_particle(...).")
         _checks.check_pairs(scene, broadphase)
+        builders = _assembly.builders(terms)
         dt, method, contact_law, width = _checks.compile_arguments(
-            scene, dt, integrator, law, exponent, smoothing, unroll, substeps)
+            scene, dt, integrator, law, exponent, smoothing, unroll, substeps,
+            builtin_terms=all(b in _terms.BUILTIN for b in builders))
         exponent = float(contact_law.exponent)
 
 
@@ -129,7 +131,6 @@ class Simulator:
         self.pinned = np.array([b.pinned for b in bodies])
         collide = np.array([b.collide for b in bodies])
 
-        builders = _assembly.builders(terms)
         ctx = CompileContext(
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
             mass=self.mass, radius=self.radius, pinned=self.pinned, collide=collide,
@@ -490,8 +491,15 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
       integrator: a name in ``diffpen.integrators.INTEGRATORS`` or an
         :class:`diffpen.integrators.Integrator` record (e.g. one made outside the package:
         rollouts and the stability analysis use its own step factory and amplification).
-      law: contact law: a :class:`diffpen.laws.ContactLaw` record or a name, ``"linear"``
-        (default; may pull at separation), ``"no_tension"`` or ``"hunt_crossley"``.
+      law: contact law: a :class:`diffpen.laws.ContactLaw` record (used as given) or a name,
+        ``"linear"`` (default; may pull at separation), ``"no_tension"`` or
+        ``"hunt_crossley"``. A name takes the law's centred damping (``centred=True``: the
+        damper at the step window's centre speed, not semi-implicit Euler's half-step-old
+        velocity) on a scene where no body can feel more than one contact and nothing else
+        (one sphere or particle on one plane or fixed sphere, or two free spheres; no
+        springs, drag or added terms: :func:`diffpen.checks.one_contact_per_body`), and
+        the plain step average elsewhere (exact rest on several contacts);
+        ``Simulator.contact_law`` is the record used.
       smoothing: width (m) of the C1 penetration ramp; 0 = exact ``max(d, 0)``; ``"auto"``
         (default) = 0: the step applies each contact's force averaged over the step
         (``diffpen.laws``), continuous through contact start and end, so no band is needed.

@@ -33,9 +33,10 @@ the window's closed forms and their derivatives are :mod:`diffpen.window`
 the linear laws; for Hunt-Crossley with ``n != 1`` the window's mean of ``d^n`` differs from
 ``d^n`` by ``O((vn h / d)^2)``.
 
-**Damping at the window's centre** (``ContactLaw.centred``; opt in with
-``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)``
-or ``get(name, centred=True)``). Semi-implicit Euler's velocity is the mean over the step
+**Damping at the window's centre** (``ContactLaw.centred``; ``linear(centred=True)``,
+``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)`` or ``get(name,
+centred=True)``; ``diffpen.compile`` takes it for a law named by a string on scenes of one
+contact, :func:`diffpen.checks.one_contact_per_body`). Semi-implicit Euler's velocity is the mean over the step
 that ended, half a step behind the position the force is evaluated at, and a damper fed with
 it dissipates too much (apexes 0.3-0.9% low at dt 1e-3 on the quick-start ball). A centred
 record evaluates the law's velocity dependence at the centre speed
@@ -47,12 +48,13 @@ where the impact falls in the step) and d duration1 / dc is 0.4% off the continu
 derivative (37% without). Cost (``benchmarks/step_cost.py``, float32): batch-1 rollouts
 1.11-1.13x the plain step average, gradients 1.04-1.14x, batched (vmap 1024) 0.85-0.96x.
 
-Why it is not the default: each contact estimates the centre speed from its own force and
-gravity only (``g_n``), which is exact for a body on one contact but not for a body resting
+Why it is not the default everywhere: each contact estimates the centre speed from its own
+force and gravity only (``g_n``), which is exact for a body on one contact but not for a body resting
 on several (the other contacts' forces are missing from its acceleration). At rest the
 damper then sees a speed ``(h / 2) (F / m_eff + g_n)`` that is not 0, and the resting depth
 is off by O(c h / m): two stacked 1 kg balls at c 20 N s/m, h 1 ms rest 0.5% (the plane's
-contact) and 2% (the pair's) too deep. The plain step average rests exactly at ``m g / k``.
+contact) and 2% (the pair's) too deep. The plain step average rests exactly at ``m g / k``,
+so a named law keeps it wherever a body can feel more than one force besides gravity.
 Box corners, sphere-box and box-fixed-sphere pairs take the plain step average either way,
 and so do integrators whose velocity does not lag (verlet, rk4, implicit Euler) and smoothed
 laws (``smoothing > 0``).

@@ -157,9 +157,10 @@ def test_floor_and_numpy_baselines_compute_the_same_physics():
     z = np.asarray(spec["forward"](*spec["args"]))
     zf = np.asarray(spec["floor"](*spec["args"]))
     zn = spec["numpy"]()
-    # the floor has a pointwise hard contact, diffpen the step-averaged one: they differ by
-    # up to 2.2e-4 m after the impacts (0.2 mm; the forward cost is what is compared)
-    np.testing.assert_allclose(zf, z, atol=5e-4)
+    # the floor has a pointwise hard contact, diffpen the step-averaged one with centred
+    # damping: they differ by up to 5.9e-4 m after the impacts (0.6 mm; the forward cost is
+    # what is compared)
+    np.testing.assert_allclose(zf, z, atol=1e-3)
     np.testing.assert_allclose(zn, zf, rtol=1e-12)
     # the stepping workloads (and the natural user code) end where the recorded ones do
     np.testing.assert_allclose(np.asarray(spec["stepping"](*spec["args"]))[-1, 0, 2], z[-1],

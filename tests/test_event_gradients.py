@@ -14,7 +14,7 @@ pytest.importorskip("scipy")
 QUICK = EVENT_CASES[0]._replace(T=2.2)       # quick-start ball, three bounces
 HEAVY = EVENT_CASES[2]._replace(T=2.2)       # 2 kg ball, no_tension, k 5e4, c 60
 #: relative steps of the landscape's central differences, each with its tolerance
-LANDSCAPE_STEPS = ((1e-2, 0.05), (1e-4, 1e-3), (1e-6, 1e-3))
+LANDSCAPE_STEPS = ((1e-2, 0.15), (1e-4, 1e-3), (1e-6, 1e-3))
 
 #: the continuous reference of a case, computed once per module (a DOP853 solve per case)
 reference = functools.lru_cache(maxsize=None)(event_reference)
@@ -35,7 +35,8 @@ def at_default_dt(request):
     k, c = case.k, case.c
     landscape = {s: (value(k + s * k, c), value(k - s * k, c),
                      value(k, c + s * c), value(k, c - s * c)) for s, _ in LANDSCAPE_STEPS}
-    return case, landscape, [np.asarray(a) for a in jac(k, c)[0]], reference(case)
+    derivs, at = jac(k, c)
+    return case, landscape, [np.asarray(a) for a in derivs], reference(case), np.asarray(at)
 
 
 def _err(got, want):
@@ -43,19 +44,38 @@ def _err(got, want):
 
 
 def test_event_gradients_match_the_continuous_derivative_at_the_default_dt(at_default_dt):
-    """dt = 1e-3, default smoothing: d apex / dk, dc and d duration / dk, d penetration / dk
-    within 2.5% of the continuous derivative (measured: <= 2.2%; before, d apex1 / dk had
-    the wrong sign: -1.01e-5 against +1.61e-5 on the quick-start ball)."""
-    case, _, (dk, dc), ref = at_default_dt
+    """dt = 1e-3, default smoothing, the law as named (centred damping on this one-contact
+    ball): d apex1 / dk, dc within 2.5%, d duration / dk and d penetration / dk within 2.5%
+    (6% for no_tension's durations) of the continuous derivative, every apex derivative of
+    the right sign (before, d apex1 / dk had the wrong sign: -1.01e-5 against +1.61e-5 on
+    the quick-start ball). The derivatives of apexes 2-3 ripple with where the impacts fall
+    in the step (docs/gradients.txt, "Impact phase in the step": up to 11% / 13% over six
+    phases with either damping), so they are held to 15% here (measured at this phase: the
+    quick-start ball 2.9% / 6.3% on dk; the plain average was 2.2% / 0.1% at this phase
+    and up to 9.4% over phases)."""
+    case, _, (dk, dc), ref, _ = at_default_dt
     idx = {m: i for i, m in enumerate(EVENT_METRICS)}
     apex = [idx["apex1"], idx["apex2"], idx["apex3"]]
     dur = [idx["duration1"], idx["duration2"], idx["duration3"]]
-    assert np.all(_err(dk[apex], ref["dk"][apex]) < 0.025)
-    assert np.all(_err(dc[apex], ref["dc"][apex]) < 0.035)
+    assert _err(dk[0], ref["dk"][0]) < 0.025 and _err(dc[0], ref["dc"][0]) < 0.025
+    assert np.all(_err(dk[apex], ref["dk"][apex]) < 0.15)
+    assert np.all(_err(dc[apex], ref["dc"][apex]) < 0.15)
     assert np.all(_err(dk[dur], ref["dk"][dur]) < 0.025 if case.law == "linear" else 0.06)
     i = idx["penetration"]
     assert _err(dk[i], ref["dk"][i]) < 0.01 and _err(dc[i], ref["dc"][i]) < 0.07
     assert np.all(np.sign(dk[apex]) == np.sign(ref["dk"][apex]))
+
+
+def test_a_named_law_on_one_contact_gives_apexes_within_half_a_percent(at_default_dt):
+    """Regression: ``dp.compile(ball, 1e-3)`` with the law named (the default "linear", or
+    "no_tension") took the plain step average, whose damper acts on semi-implicit Euler's
+    half-step-old velocity: apexes 1-3 of the quick-start ball -0.29/-0.59/-0.91% and of the
+    2 kg no_tension ball -0.35/-0.70/-1.05% off the continuous ones at dt 1e-3. On a scene
+    of one contact a named law now takes the centred damping (exact there): within 0.5%
+    (measured +0.03/+0.05/+0.06% and +0.03/+0.07/+0.09%), and so are the durations."""
+    case, _, _, ref, value = at_default_dt
+    assert np.all(_err(value[:3], ref["value"][:3]) < 0.005), value[:3] / ref["value"][:3]
+    assert np.all(_err(value[3:6], ref["value"][3:6]) < 0.005)
 
 
 @pytest.mark.parametrize("case", [QUICK, HEAVY], ids=["linear", "no_tension"])
@@ -110,10 +130,11 @@ def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
 
 def test_the_landscape_has_no_jumps(at_default_dt):
     """The library's own central differences of the apexes agree with its jax derivative
-    within 0.1% at relative steps 1e-4 ... 1e-6, and within 5% at 1e-2 (measured: <= 4.5%;
-    what is left there is a smooth ripple of the derivative with the contact's phase in
-    the step, of a few % over +-1% of k). Before, the apexes jumped every ~0.1% of k."""
-    case, landscape, (dk, dc), _ = at_default_dt
+    within 0.1% at relative steps 1e-4 ... 1e-6, and within 15% at 1e-2 (measured: <= 6%;
+    what is left there is the smooth ripple of the apex 2-3 derivatives with the contact's
+    phase in the step, up to 11-13% over phases, which +-1% of k averages out). Before, the
+    apexes jumped every ~0.1% of k."""
+    case, landscape, (dk, dc), _, _ = at_default_dt
     for s, tol in LANDSCAPE_STEPS:
         hk, hc = s * case.k, s * case.c
         k_up, k_down, c_up, c_down = landscape[s]

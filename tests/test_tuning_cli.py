@@ -74,8 +74,9 @@ def test_simulate_ball_json_and_out(capsys, tmp_path):
         assert key in out
     with np.load(path) as f:
         assert f["position"].shape == (1501, 1, 3) and f["time"].shape == (1501,)
-    # continuous (event-located reference): 0.46785; step-averaged contact at dt 1e-3: 0.4665
-    assert out["apex_heights"][0] == pytest.approx(0.4665, rel=1e-3)
+    # continuous (event-located reference): 0.46785; the plain step average at dt 1e-3 gave
+    # 0.4665 (-0.29%), the centred damping this one-contact ball compiles with 0.4680
+    assert out["apex_heights"][0] == pytest.approx(0.46785, rel=1e-3)
     assert out["settling_time"] is None      # 1.5 s is too short to settle: null, not a number
 
 

@@ -391,7 +391,9 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
               maxiter=(40 if method == "lm" else 400) if maxiter is None else maxiter, progress=progress,
               label="diffpen fit", starts=starts, search=search, n_starts=n_starts)
     res.notes = notes + res.notes
-    note = step_error_note(res.params.contact[mat], dt=dt, law=law, mass=m,
+    # the law record the fit's simulator resolved (a name takes centred damping on a scene
+    # of one contact: diffpen.checks.one_contact_per_body), so the impact is the same model
+    note = step_error_note(res.params.contact[mat], dt=dt, law=sim.contact_law, mass=m,
                             radius=info["radius"], speed=math.sqrt(2.0 * g * info["drop"]),
                             compile_kw=compile_kw)
     if note:

@@ -177,12 +177,13 @@ EVENT_METRICS = ("apex1", "apex2", "apex3", "duration1", "duration2", "duration3
 
 
 def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_implicit_euler",
-                     smoothing="auto", dtype=None, centred: bool = False):
+                     smoothing="auto", dtype=None, centred: bool | None = None):
     """``f(k, c) -> (7,)`` the metrics :data:`EVENT_METRICS` of ``case`` simulated at ``dt``
     (s): apex heights of the lowest point (m), contact durations (s) and the largest
     penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable.
-    ``centred``: the law's record with its damping at the step window's centre speed
-    (``diffpen.laws``, e.g. ``linear(centred=True)``)."""
+    ``centred``: True / False the law's record with / without its damping at the step
+    window's centre speed (``diffpen.laws``, e.g. ``linear(centred=True)``); None (default)
+    the law's name, as ``diffpen.compile`` resolves it for this one-contact ball (centred)."""
     import jax
     import jax.numpy as jnp
 
@@ -190,7 +191,7 @@ def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_i
 
     from ..metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
-    law = laws.get(case.law, case.exponent, centred=centred)
+    law = case.law if centred is None else laws.get(case.law, case.exponent, centred=centred)
     sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
                      integrator=integrator, dtype=dtype or jnp.float64)
     steps = int(round(case.T / dt))
@@ -218,8 +219,8 @@ def event_reference(case: GradientCase, rel_step: float = 1e-5) -> dict:
 
 
 def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_implicit_euler",),
-                        smoothing="auto", fd_steps=(), progress: Callable | None = None
-                        ) -> list[dict]:
+                        smoothing="auto", fd_steps=(), progress: Callable | None = None,
+                        centred: bool | None = None) -> list[dict]:
     """jax derivatives of the event metrics w.r.t. k and c against the continuous system's.
 
     One row per (case, integrator, dt, metric, parameter): ``grad`` (jax.jacfwd of the
@@ -227,7 +228,8 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
     reference), ``rel_error`` = |grad - reference| / |reference|, ``value`` and
     ``value_reference`` (the metric itself), and, for each relative step in ``fd_steps``, the
     library's own central difference (``fd``) and its relative gap to ``grad``
-    (``fd_gap``; item 4 of the gradient issue: the landscape has no jumps).
+    (``fd_gap``; item 4 of the gradient issue: the landscape has no jumps). ``centred``:
+    the law's record as :func:`event_metrics_fn` takes it (None: the name, as compiled).
     """
     import jax
     say = progress or (lambda *_: None)
@@ -236,7 +238,8 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
         ref = event_reference(case)
         for integ in integrators:
             for dt in dts:
-                f, _ = event_metrics_fn(case, dt, integrator=integ, smoothing=smoothing)
+                f, _ = event_metrics_fn(case, dt, integrator=integ, smoothing=smoothing,
+                                        centred=centred)
                 val = np.asarray(f(case.k, case.c))
                 jk, jc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(case.k, case.c))
                 fds = {}
@@ -268,7 +271,7 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
 
 
 def event_phase_errors(case: GradientCase, dt: float = 1e-3, phases: int = 6, *,
-                       centred: bool = False) -> dict:
+                       centred: bool | None = None) -> dict:
     """Errors of the event metrics against the continuous system over where the impacts fall
     in the step: ``case`` dropped from ``drop + j v dt / phases`` (j = 0 .. phases - 1; v the
     first impact speed, so the impacts move through one step), the reference recomputed for
