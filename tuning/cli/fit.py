@@ -199,9 +199,11 @@ def _run(args) -> int:
                      k0=args.k0, c0=args.c0, method=method, optimizer=opt,
                      maxiter=args.maxiter, progress=False if args.json else None)
     seconds = time.perf_counter() - t0
+    from diffpen.checks import one_contact_per_body
+    centred = ", damping at the step's centre" if one_contact_per_body(scene) else ""
     desc = (f"ball r={args.radius:g} m, m={args.mass:g} kg, centre dropped from "
-            f"z={args.drop:g} m onto the plane z=0 (dt={dt:g} s, {args.law} law, settling band "
-            f"{args.settle_tol * 1e3:g} mm)")
+            f"z={args.drop:g} m onto the plane z=0 (dt={dt:g} s, {args.law} law{centred}, "
+            f"settling band {args.settle_tol * 1e3:g} mm)")
     k = res.params.contact["default"].k
     c = res.params.contact["default"].c
     zeta = damping_ratio_or_none(args.law, k, c, args.mass)

@@ -163,7 +163,8 @@ def _run(args) -> int:
         kc = f"k={out['k']:g} N/m, c={out['c']:g} N s/m"
     else:
         kc = ""
-    print(f"  {steps} steps of dt={dt:g} s ({steps * dt:g} s), {sim.law} law"
+    centred = ", damping at the step's centre" if sim.contact_law.centred is not None else ""
+    print(f"  {steps} steps of dt={dt:g} s ({steps * dt:g} s), {sim.law} law{centred}"
           + (f", {kc}" if kc else ""))
     skip = {"scene", "description", "dt", "steps", "duration", "law", "k", "c", "n_bodies",
             "out", "materials"}
