@@ -1159,6 +1159,34 @@ def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
         tf.load_records(sf, [path])
 
 
+def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
+                                                                  damping_past_the_safe_step,
+                                                                  caplog, monkeypatch):
+    """Regression: every fit_records call built its residual and Jacobian program anew (a
+    closure over the call's params and records) and compiled it again, 3-7 s for one cube
+    record, so a script fitting record after record, or from start after start, paid it at
+    every call. The programs now take the params and the records' arrays as arguments: a fit
+    of another record of the same layout (here the damping fixture's: 0.15 s at 5 ms, the
+    cube, c free), from another start, compiles nothing, and gives what a program compiled
+    afresh gives."""
+    import collections
+    s = cube.state_from(body=0, position=(0.0, 0.0, 0.08), velocity=(-0.2, 0.1, -0.4),
+                        orientation=(0.9, 0.1, 0.3, 0.2), angular_velocity=(-1.0, 2.0, 0.5))
+    rec = tf.synthetic_record(cube, cube.params(), 0.15, 5e-3, {"cube": 0}, state=s,
+                              noise=1e-4)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    start = tf.with_leaves(cube.params(), {"contact.board.c": 12.0})
+    free = [tf.Free("contact.board.c", 1.0, 1e3)]
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        again = tf.fit_records(cube, start, batch, free, maxiter=3)
+    compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
+    assert compiled == [], compiled
+    monkeypatch.setattr(tf, "_PROGRAMS", collections.OrderedDict())      # compiled afresh
+    fresh = tf.fit_records(cube, start, batch, free, maxiter=3)
+    assert again.values == fresh.values and again.cost == fresh.cost
+    assert again.cost_start == fresh.cost_start and again.iterations == fresh.iterations
+
+
 def test_a_fit_held_by_the_safe_step_says_so(cube, damping_past_the_safe_step, monkeypatch):
     """Regression: a record that wants a contact k or c past what the fit's dt allows ended
     at the safe step with only LM's word ('iteration limit reached'; a cube whose record

@@ -27,7 +27,8 @@ from .first_state import FLIGHT_FRAMES, first_state
 from .fit import FitError
 from .pose import body_size
 
-__all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start"]
+__all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",
+           "layout_of", "with_arrays"]
 
 
 @dataclasses.dataclass
@@ -48,6 +49,8 @@ class Batch:
     lag: the integrator's velocity lag, s (0: none).  lagged: (R, n_bodies) bool, the bodies a
     record does not observe: :func:`simulate` moves their start velocities by ``-lag`` times
     their accelerations at the parameters it rolls out (None: no such body).
+    rotation: whether any orientation is measured (None: read from ``quat_mask``; set by
+    :func:`layout_of`, whose batches hold no arrays).
     """
     start: dp.State
     steps: int
@@ -68,10 +71,39 @@ class Batch:
     n_records: int = 0
     lag: float = 0.0
     lagged: np.ndarray | None = None
+    rotation: bool | None = None
 
     @property
     def has_rotation(self) -> bool:
+        if self.rotation is not None:
+            return self.rotation
         return bool(self.quat_mask.any())
+
+
+#: The :class:`Batch` fields :func:`simulate` and :func:`tuning.pose.pose_residuals` read as
+#: arrays: a compiled program takes them as arguments (:func:`layout_of`).
+ARRAY_FIELDS = ("start", "index", "frac", "pos", "pos_mask", "quat", "quat_mask", "weight",
+                "size", "time", "lagged")
+
+
+def layout_of(batch: Batch) -> tuple[tuple, Batch, dict]:
+    """``(key, layout, arrays)``: what a program compiled for ``batch`` fixes and what it
+    takes as arguments. ``layout`` is ``batch`` without its arrays (``ARRAY_FIELDS`` None,
+    ``rotation`` set); ``key`` (hashable) holds everything static that :func:`simulate` and
+    :func:`tuning.pose.pose_residuals` read (rollout length and saves, observed bodies,
+    record count of the loss, lag, rotation, whether some body's velocity is lagged); array
+    shapes are the compiled program's own business. :func:`with_arrays` puts them back."""
+    arrays = {f: getattr(batch, f) for f in ARRAY_FIELDS if getattr(batch, f) is not None}
+    layout = dataclasses.replace(batch, **{f: None for f in ARRAY_FIELDS},
+                                 rotation=batch.has_rotation)
+    key = (batch.steps, batch.save_every, tuple(int(i) for i in np.asarray(batch.bodies)),
+           batch.n_records, float(batch.lag), batch.has_rotation, batch.lagged is None)
+    return key, layout, arrays
+
+
+def with_arrays(layout: Batch, arrays: dict) -> Batch:
+    """The batch of :func:`layout_of`'s ``layout`` with ``arrays`` (traced ones too)."""
+    return dataclasses.replace(layout, **arrays)
 
 
 #: Observed bodies whose first pose lies farther than this (m; or 10% of the smallest observed

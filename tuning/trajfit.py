@@ -30,6 +30,7 @@ simulator are :func:`tuning.synthetic.synthetic_record` (both importable from he
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import re
@@ -291,19 +292,20 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
             hi[i] = min(hi[i], float(f.to_x(cap)))
 
     batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
+    # the compiled residuals take the params and the records' arrays as arguments: a later
+    # fit of the same layout (simulator, leaves, loss, batch shapes) compiles nothing
+    programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay)
+    # Python numbers among the leaves (with_leaves(params, {name: 12.0})) as arrays of the
+    # simulator's dtype: a weakly typed leaf would compile the programs once more
+    params_in = jax.tree_util.tree_map(
+        lambda a: np.asarray(a, sim.dtype) if isinstance(a, (float, int)) and not
+        isinstance(a, bool) else a, params)
 
-    def resid_flag(x, horizon):
-        p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
-                                 for i, f in enumerate(free)})
-        out = [simulate(sim, p, b, with_flag=True) for b in batches]
-        r = jnp.concatenate([pose_residuals(o[0], o[1], b, rot_weight=rot_weight,
-                                            horizon=horizon, loss=loss, decay=decay)
-                             for o, b in zip(out, batches)])
-        return r, sum(jnp.count_nonzero(o[2]) for o in out)   # records past the safe step
-
-    @jax.jit
     def res_jac_flag(x, horizon):
-        return residuals_and_jacobian(lambda xx: resid_flag(xx, horizon), x)
+        return programs[0](params_in, arrays, x, horizon)
+
+    def cost_flag(x, horizon):
+        return programs[1](params_in, arrays, x, horizon)
 
     def res_jac(x, horizon):
         # a point past the safe step is no fit: its residuals are nan, so LM rejects the
@@ -316,11 +318,6 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                                                           spread)
     keep = max(1, min(int(keep), len(cands)))
     screened = []
-
-    @jax.jit
-    def cost_flag(x, horizon):
-        r, bad = resid_flag(x, horizon)
-        return jnp.sum(r * r), bad
 
     def whole_cost(x):
         if len(cands) > 1:          # the screen compiled the cost alone
@@ -464,6 +461,52 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged,
                          cost_chosen_start=cost_chosen_start)
+
+
+#: compiled record-fit programs by (simulator, layout), most recent last (a few: each holds
+#: its simulator and its executables)
+_PROGRAMS: "collections.OrderedDict" = collections.OrderedDict()
+_PROGRAMS_KEPT = 8
+
+
+def _programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay):
+    """``((res_jac_flag, cost_flag), arrays)``: the jitted ``(params, arrays, x, horizon) ->
+    (r, J, n_unstable)`` and ``-> (cost, n_unstable)`` of :func:`fit_records` for this
+    simulator, these leaves and loss settings and these batches' layout
+    (:func:`tuning.record_batch.layout_of`), reused by later fits of the same layout, and
+    this fit's arrays. ``n_unstable``: records whose rollout went past the safe step."""
+    from .record_batch import layout_of, with_arrays
+    split = [layout_of(b) for b in batches]
+    arrays = [a for _, _, a in split]
+    key = (sim, tuple((f.name, f.log) for f in free), float(rot_weight), loss,
+           None if decay is None else float(decay), tuple(k for k, _, _ in split))
+    if key in _PROGRAMS:
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key], arrays
+    layouts = [lay for _, lay, _ in split]
+
+    def resid_flag(params, arrays, x, horizon):
+        p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
+                                 for i, f in enumerate(free)})
+        bs = [with_arrays(lay, a) for lay, a in zip(layouts, arrays)]
+        out = [simulate(sim, p, b, with_flag=True) for b in bs]
+        r = jnp.concatenate([pose_residuals(o[0], o[1], b, rot_weight=rot_weight,
+                                            horizon=horizon, loss=loss, decay=decay)
+                             for o, b in zip(out, bs)])
+        return r, sum(jnp.count_nonzero(o[2]) for o in out)   # records past the safe step
+
+    @jax.jit
+    def res_jac_flag(params, arrays, x, horizon):
+        return residuals_and_jacobian(lambda xx: resid_flag(params, arrays, xx, horizon), x)
+
+    @jax.jit
+    def cost_flag(params, arrays, x, horizon):
+        r, bad = resid_flag(params, arrays, x, horizon)
+        return jnp.sum(r * r), bad
+    _PROGRAMS[key] = (res_jac_flag, cost_flag)
+    while len(_PROGRAMS) > _PROGRAMS_KEPT:
+        _PROGRAMS.popitem(last=False)
+    return _PROGRAMS[key], arrays
 
 
 def _screen_tied(costs) -> bool:
