@@ -75,6 +75,28 @@ def test_errors_of_known_offsets():
     assert float(re[0]) == pytest.approx(10.0)
 
 
+def test_a_batch_of_a_layout_evaluated_before_compiles_nothing(setup, caplog):
+    """Regression: evaluator(sim, batch) closed over the batch's arrays, so every batch (the
+    held-out split, a record alone, the evaluation after a fitted plane offset) compiled
+    its program anew. The program takes the arrays as arguments now: the same two records
+    in the other order (another batch of the same layout) compile nothing and give each
+    record's own errors."""
+    import logging
+
+    import jax
+    scene, paths, sf, sim, params = setup
+    recs, bodies = tf.load_records(sf, paths)
+    ab = ev.evaluate_batch(sim, params, tf.prepare(sim, recs, bodies=bodies, estimate="record"))
+    ba = tf.prepare(sim, recs[::-1], bodies=bodies, estimate="record")
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        out = ev.evaluate_batch(sim, params, ba)
+    compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
+    assert compiled == [], compiled
+    assert [r["path"] for r in out.records] == paths[::-1]
+    for mine, theirs in zip(out.records, ab.records[::-1]):
+        assert mine == theirs
+
+
 def test_records_of_the_same_model_evaluate_to_zero(setup):
     """A record made by the same simulator and parameters, started from its row 0 with its
     velocity columns, is reproduced exactly; other parameters are not."""

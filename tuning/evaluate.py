@@ -16,6 +16,7 @@ dispatch.
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import time
@@ -28,6 +29,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .first_state import FLIGHT_FRAMES
+from .record_batch import typed_params
 from .trajfit import Batch, rotation_angle, simulate
 
 __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
@@ -79,18 +81,63 @@ def _errors(pos, quat, batch: Batch):
     return pe, re
 
 
+#: compiled evaluation programs by (simulator, batch layout), most recent last
+_PROGRAMS: "collections.OrderedDict" = collections.OrderedDict()
+_PROGRAMS_KEPT = 8
+
+
+class _Bound:
+    """An evaluation program with one batch's arrays bound, a function of ``params`` as a
+    jitted one is: ``f(params)``, ``f.lower(params).compile()(params)``."""
+
+    def __init__(self, program, arrays, dtype):
+        self._program, self._arrays, self._dtype = program, arrays, dtype
+
+    def __call__(self, params):
+        return self._program(typed_params(params, self._dtype), self._arrays)
+
+    def lower(self, params):
+        return _Lowered(self._program.lower(typed_params(params, self._dtype), self._arrays),
+                        self._arrays, self._dtype)
+
+
+class _Lowered:
+    """:meth:`_Bound.lower`'s result: ``compile()`` gives the executable as a function of
+    ``params`` (shared with the program's cache: no compile when cached)."""
+
+    def __init__(self, lowered, arrays, dtype):
+        self._lowered, self._arrays, self._dtype = lowered, arrays, dtype
+
+    def compile(self):
+        exe, arrays, dtype = self._lowered.compile(), self._arrays, self._dtype
+        return lambda params: exe(typed_params(params, dtype), arrays)
+
+
 def evaluator(sim: dp.Simulator, batch: Batch):
-    """A jitted ``f(params) -> (pos, quat, pos_err (R,), rot_err (R,) or None)`` for the
-    batch (compiled on the first call; new parameter values never recompile)."""
+    """A compiled ``f(params) -> (pos, quat, pos_err (R,), rot_err (R,) or None)`` for the
+    batch (compiled on the first call; new parameter values never recompile, and neither
+    does another batch of the same layout on the same simulator,
+    :func:`tuning.record_batch.layout_of`: the program takes the batch's arrays as
+    arguments). ``f.lower(params).compile()`` compiles it ahead of a call."""
+    from .record_batch import layout_of, with_arrays
+    key, layout, arrays = layout_of(batch)
+    if (sim, key) in _PROGRAMS:
+        _PROGRAMS.move_to_end((sim, key))
+        return _Bound(_PROGRAMS[(sim, key)], arrays, sim.dtype)
+
     @jax.jit
-    def f(params):
-        pos, quat, bad = simulate(sim, params, batch, with_flag=True)
-        pe, re = _errors(pos, quat, batch)
+    def f(params, arrays):
+        b = with_arrays(layout, arrays)
+        pos, quat, bad = simulate(sim, params, b, with_flag=True)
+        pe, re = _errors(pos, quat, b)
         nan = jnp.asarray(jnp.nan, pe.dtype)
         pe = jnp.where(bad, nan, pe)            # past the safe step: never a result
         re = None if re is None else jnp.where(bad, nan, re)
         return pos, quat, pe, re
-    return f
+    _PROGRAMS[(sim, key)] = f
+    while len(_PROGRAMS) > _PROGRAMS_KEPT:
+        _PROGRAMS.popitem(last=False)
+    return _Bound(f, arrays, sim.dtype)
 
 
 def _summary(v) -> dict:

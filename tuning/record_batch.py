@@ -28,7 +28,7 @@ from .fit import FitError
 from .pose import body_size
 
 __all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",
-           "layout_of", "with_arrays"]
+           "layout_of", "with_arrays", "typed_params"]
 
 
 @dataclasses.dataclass
@@ -99,6 +99,15 @@ def layout_of(batch: Batch) -> tuple[tuple, Batch, dict]:
     key = (batch.steps, batch.save_every, tuple(int(i) for i in np.asarray(batch.bodies)),
            batch.n_records, float(batch.lag), batch.has_rotation, batch.lagged is None)
     return key, layout, arrays
+
+
+def typed_params(params, dtype):
+    """``params`` with its Python-number leaves (``with_leaves(params, {name: 12.0})``) as
+    arrays of ``dtype``: a program compiled for :func:`layout_of`'s arguments takes the params
+    as an argument, and a weakly typed leaf would compile it once more."""
+    return jax.tree_util.tree_map(
+        lambda a: np.asarray(a, dtype) if isinstance(a, (float, int)) and not
+        isinstance(a, bool) else a, params)
 
 
 def with_arrays(layout: Batch, arrays: dict) -> Batch:

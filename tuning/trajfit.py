@@ -50,7 +50,7 @@ from .params import leaf_paths
 from .first_state import first_state
 from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
-from .record_batch import Batch, prepare, prepare_buckets, simulate
+from .record_batch import Batch, prepare, prepare_buckets, simulate, typed_params
 from .stable import params_unstable, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
@@ -295,11 +295,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     # the compiled residuals take the params and the records' arrays as arguments: a later
     # fit of the same layout (simulator, leaves, loss, batch shapes) compiles nothing
     programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay)
-    # Python numbers among the leaves (with_leaves(params, {name: 12.0})) as arrays of the
-    # simulator's dtype: a weakly typed leaf would compile the programs once more
-    params_in = jax.tree_util.tree_map(
-        lambda a: np.asarray(a, sim.dtype) if isinstance(a, (float, int)) and not
-        isinstance(a, bool) else a, params)
+    params_in = typed_params(params, sim.dtype)
 
     def res_jac_flag(x, horizon):
         return programs[0](params_in, arrays, x, horizon)
