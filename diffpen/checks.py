@@ -154,9 +154,11 @@ def compile_arguments(scene, dt, integrator, law, exponent, smoothing, unroll, s
                       builtin_terms: bool = True):
     """``diffpen.compile``'s arguments checked and normalised: ``(dt s, the Integrator record,
     the ContactLaw record, smoothing width m)``. A law named by a string resolves to its
-    centred record where :func:`one_contact_per_body` holds, else to its plain record. ``smoothing="auto"`` is 0, the exact ramp:
-    the integrators apply each contact's force averaged over the step (``diffpen.laws``),
-    continuous through contact start and end, so no band is needed. Raises SceneError."""
+    centred record where :func:`one_contact_per_body` holds (``builtin_terms``: the scene
+    is compiled with ``diffpen.terms.BUILTIN``'s builders only), else to its plain record.
+    ``smoothing="auto"`` is 0, the exact ramp: the integrators apply each contact's force
+    averaged over the step (``diffpen.laws``), continuous through contact start and end, so
+    no band is needed. Raises SceneError."""
     from . import laws
     from .integrators import resolve
     try:

@@ -36,21 +36,23 @@ the linear laws; for Hunt-Crossley with ``n != 1`` the window's mean of ``d^n`` 
 **Damping at the window's centre** (``ContactLaw.centred``; ``linear(centred=True)``,
 ``no_tension(centred=True)``, ``hunt_crossley(n, centred=True)`` or ``get(name,
 centred=True)``; ``diffpen.compile`` takes it for a law named by a string on scenes of one
-contact, :func:`diffpen.checks.one_contact_per_body`). Semi-implicit Euler's velocity is the mean over the step
-that ended, half a step behind the position the force is evaluated at, and a damper fed with
-it dissipates too much (apexes 0.3-0.9% low at dt 1e-3 on the quick-start ball). A centred
+contact, :func:`diffpen.checks.one_contact_per_body`). Semi-implicit Euler's velocity is the
+mean over the step that ended, half a step behind the position the force is evaluated at,
+and a damper fed with it dissipates too much (apexes 0.3-0.9% low at dt 1e-3 on the
+quick-start ball with the plain step average). A centred
 record evaluates the law's velocity dependence at the centre speed
 ``vc = vn + (h / 2) (F / m_eff + g_n)`` and solves for ``F`` (one division per contact by a
 denominator >= 1; the window is still taken along ``d - vn s``, so the force stays
 continuous). At dt 1e-3 the apexes are then within 0.5% (quick-start ball
 +0.04/+0.08/+0.13% against -0.29/-0.59/-0.91%; 0.3 kg ball <= 0.47% against -1.21%, over
 where the impact falls in the step) and d duration1 / dc is 0.4% off the continuous
-derivative (37% without). Cost (``benchmarks/step_cost.py``, float32): batch-1 rollouts
-1.11-1.13x the plain step average, gradients 1.04-1.14x, batched (vmap 1024) 0.85-0.96x.
+derivative (37% without). Cost against the plain step average (one process, float32,
+``benchmarks/step_cost.py``): batch-1 rollouts 1.07-1.21x, forward-mode gradients
+1.06-1.07x, reverse-mode 1.18-1.25x, batched (vmap 1024) 0.99-1.16x.
 
 Why it is not the default everywhere: each contact estimates the centre speed from its own
-force and gravity only (``g_n``), which is exact for a body on one contact but not for a body resting
-on several (the other contacts' forces are missing from its acceleration). At rest the
+force and gravity only (``g_n``), which is exact for a body on one contact but not for a
+body resting on several (the other contacts' forces are missing from its acceleration). At rest the
 damper then sees a speed ``(h / 2) (F / m_eff + g_n)`` that is not 0, and the resting depth
 is off by O(c h / m): two stacked 1 kg balls at c 20 N s/m, h 1 ms rest 0.5% (the plane's
 contact) and 2% (the pair's) too deep. The plain step average rests exactly at ``m g / k``,
