@@ -142,7 +142,7 @@ def one_contact_per_body(scene, builtin_terms: bool = True) -> bool:
     if not builtin_terms:
         return False
     colliding = [b for b in scene.bodies if b.collide]
-    if any(b.half_extents is not None for b in colliding):
+    if any(b.kind == "box" for b in colliding):
         return False
     if scene.springs or scene.anchored_springs or scene.drags or scene.plastic_springs:
         return False

@@ -1169,7 +1169,7 @@ def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
     of another record of the same layout (here the damping fixture's: 0.15 s at 5 ms, the
     cube, c free), from another start, compiles nothing, and gives what a program compiled
     afresh gives."""
-    import collections
+    from tuning.record_batch import ProgramCache
     s = cube.state_from(body=0, position=(0.0, 0.0, 0.08), velocity=(-0.2, 0.1, -0.4),
                         orientation=(0.9, 0.1, 0.3, 0.2), angular_velocity=(-1.0, 2.0, 0.5))
     rec = tf.synthetic_record(cube, cube.params(), 0.15, 5e-3, {"cube": 0}, state=s,
@@ -1184,7 +1184,7 @@ def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
         again = tf.fit_records(cube, start, batch, free, maxiter=3)
     compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
     assert compiled == [], compiled
-    monkeypatch.setattr(tf, "_PROGRAMS", collections.OrderedDict())      # compiled afresh
+    monkeypatch.setattr(tf, "_PROGRAMS", ProgramCache())      # compiled afresh
     fresh = tf.fit_records(cube, start, batch, free, maxiter=3)
     assert again.values == fresh.values and again.cost == fresh.cost
     assert again.cost_start == fresh.cost_start and again.iterations == fresh.iterations

@@ -16,7 +16,6 @@ dispatch.
 """
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
 import time
@@ -29,7 +28,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .first_state import FLIGHT_FRAMES
-from .record_batch import typed_params
+from .record_batch import ProgramCache, layout_of, typed_params, with_arrays
 from .trajfit import Batch, rotation_angle, simulate
 
 __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
@@ -81,9 +80,8 @@ def _errors(pos, quat, batch: Batch):
     return pe, re
 
 
-#: compiled evaluation programs by (simulator, batch layout), most recent last
-_PROGRAMS: "collections.OrderedDict" = collections.OrderedDict()
-_PROGRAMS_KEPT = 8
+#: compiled evaluation programs by (simulator, batch layout)
+_PROGRAMS = ProgramCache()
 
 
 class _Bound:
@@ -119,25 +117,20 @@ def evaluator(sim: dp.Simulator, batch: Batch):
     does another batch of the same layout on the same simulator,
     :func:`tuning.record_batch.layout_of`: the program takes the batch's arrays as
     arguments). ``f.lower(params).compile()`` compiles it ahead of a call."""
-    from .record_batch import layout_of, with_arrays
     key, layout, arrays = layout_of(batch)
-    if (sim, key) in _PROGRAMS:
-        _PROGRAMS.move_to_end((sim, key))
-        return _Bound(_PROGRAMS[(sim, key)], arrays, sim.dtype)
 
-    @jax.jit
-    def f(params, arrays):
-        b = with_arrays(layout, arrays)
-        pos, quat, bad = simulate(sim, params, b, with_flag=True)
-        pe, re = _errors(pos, quat, b)
-        nan = jnp.asarray(jnp.nan, pe.dtype)
-        pe = jnp.where(bad, nan, pe)            # past the safe step: never a result
-        re = None if re is None else jnp.where(bad, nan, re)
-        return pos, quat, pe, re
-    _PROGRAMS[(sim, key)] = f
-    while len(_PROGRAMS) > _PROGRAMS_KEPT:
-        _PROGRAMS.popitem(last=False)
-    return _Bound(f, arrays, sim.dtype)
+    def build():
+        @jax.jit
+        def f(params, arrays):
+            b = with_arrays(layout, arrays)
+            pos, quat, bad = simulate(sim, params, b, with_flag=True)
+            pe, re = _errors(pos, quat, b)
+            nan = jnp.asarray(jnp.nan, pe.dtype)
+            pe = jnp.where(bad, nan, pe)            # past the safe step: never a result
+            re = None if re is None else jnp.where(bad, nan, re)
+            return pos, quat, pe, re
+        return f
+    return _Bound(_PROGRAMS.get((sim, key), build), arrays, sim.dtype)
 
 
 def _summary(v) -> dict:

@@ -10,6 +10,7 @@ the frames do not fall on steps).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import math
@@ -21,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
+from diffpen.params import cast as _cast
 from diffpen.integrators import implicit_euler, kick_then_drift
 
 from .first_state import FLIGHT_FRAMES, first_state
@@ -28,7 +30,7 @@ from .fit import FitError
 from .pose import body_size
 
 __all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",
-           "layout_of", "with_arrays", "typed_params"]
+           "layout_of", "with_arrays", "typed_params", "ProgramCache"]
 
 
 @dataclasses.dataclass
@@ -102,12 +104,30 @@ def layout_of(batch: Batch) -> tuple[tuple, Batch, dict]:
 
 
 def typed_params(params, dtype):
-    """``params`` with its Python-number leaves (``with_leaves(params, {name: 12.0})``) as
-    arrays of ``dtype``: a program compiled for :func:`layout_of`'s arguments takes the params
-    as an argument, and a weakly typed leaf would compile it once more."""
-    return jax.tree_util.tree_map(
-        lambda a: np.asarray(a, dtype) if isinstance(a, (float, int)) and not
-        isinstance(a, bool) else a, params)
+    """``params`` with every leaf of ``dtype`` (``diffpen.params.cast``, as a rollout casts
+    them): a program compiled for :func:`layout_of`'s arguments takes the params as an
+    argument, and a Python-number leaf (``with_leaves(params, {name: 12.0})``, weakly typed)
+    would compile it once more."""
+    return jax.tree_util.tree_map(lambda v: _cast(dtype, v), params)
+
+
+class ProgramCache:
+    """The last ``keep`` compiled programs over batch layouts, by key (a key holds its
+    simulator, so a program outlives no more than ``keep`` others): :meth:`get` returns the
+    cached one or builds it."""
+
+    def __init__(self, keep: int = 8):
+        self.keep = int(keep)
+        self._programs: collections.OrderedDict = collections.OrderedDict()
+
+    def get(self, key, build):
+        if key in self._programs:
+            self._programs.move_to_end(key)
+            return self._programs[key]
+        program = self._programs[key] = build()
+        while len(self._programs) > self.keep:
+            self._programs.popitem(last=False)
+        return program
 
 
 def with_arrays(layout: Batch, arrays: dict) -> Batch:

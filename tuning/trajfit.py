@@ -23,17 +23,16 @@ Pipeline (each step a public function, all importable from here):
    reports standard errors, correlations and the parameter directions the records do not
    determine (:mod:`tuning.fit_errors`).
 
-This module also holds the params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`),
-:class:`Free` and :func:`load_records`. The command's file-level workflow, ``diffpen fit
+The params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`), :class:`Free` and
+:func:`free_from_spec` live in :mod:`tuning.free_leaves` (importable from here); this module
+also holds :func:`load_records`. The command's file-level workflow, ``diffpen fit
 SCENE.toml --data FILES``, is :func:`tuning.scene_fit.fit_files`; records made by a
 simulator are :func:`tuning.synthetic.synthetic_record` (both importable from here too).
 """
 from __future__ import annotations
 
-import collections
 import dataclasses
 import math
-import re
 import time
 import warnings
 from typing import Sequence
@@ -46,16 +45,18 @@ import diffpen as dp
 
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt, residuals_and_jacobian
-from .params import leaf_paths
 from .first_state import first_state
+from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names, with_leaves
 from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
-from .record_batch import Batch, prepare, prepare_buckets, simulate, typed_params
+from .record_batch import (Batch, ProgramCache, layout_of, prepare, prepare_buckets, simulate,
+                           typed_params, with_arrays)
 from .stable import params_unstable, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
-           "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN", "AUTO_HORIZON"]
+           "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN", "AUTO_HORIZON",
+           "free_from_spec"]
 
 #: a record fit whose scene file gives no ``[fit] horizon`` first fits these fractions of its
 #: longest record, then the whole records (oscillating and tumbling records have local
@@ -65,82 +66,6 @@ AUTO_HORIZON = (0.125, 0.25, 0.5)
 #: how far (a factor) a log-space leaf may move from its start value in a record fit where
 #: its bounds allow more (``[fit.bounds]`` closer in win)
 LOG_SPAN = 1e6
-
-# --------------------------------------------------------------------------- params leaves
-#: ``{"contact.board.k": key path, ...}`` of a params pytree (see :mod:`tuning.params`)
-leaf_names = leaf_paths
-
-
-def _normalise(name: str) -> str:
-    """``contact['board'].k`` (a ``jax.tree_util.keystr``) or ``contact.board.k`` -> dotted."""
-    s = re.sub(r"\[['\"]?([^\]'\"]+)['\"]?\]", r".\1", name.strip())
-    return s.lstrip(".")
-
-
-def get_leaf(params, name: str):
-    """The value of the leaf ``name`` (dotted or ``keystr`` form) of ``params``."""
-    names = leaf_names(params)
-    key = _normalise(name)
-    if key not in names:
-        raise FitError(f"parameter {name!r} is not a leaf of this scene's params; leaves: "
-                       f"{sorted(names)}.")
-    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        if path == names[key]:
-            return leaf
-    raise AssertionError(key)
-
-
-def with_leaves(params, values: dict):
-    """``params`` with the leaves named in ``values`` (``{name: value}``) replaced; values
-    may be tracers (used inside jit / grad / jacfwd)."""
-    names = leaf_names(params)
-    want = {names[_normalise(n)]: v for n, v in values.items()}
-    flat, tree = jax.tree_util.tree_flatten_with_path(params)
-    return jax.tree_util.tree_unflatten(tree, [want.get(p, leaf) for p, leaf in flat])
-
-
-@dataclasses.dataclass(frozen=True)
-class Free:
-    """One fitted leaf of the params.
-
-    name: dotted leaf name (``contact.board.k``, ``extra.friction.board``,
-      ``extra.plane_offset.ground``, ``springs.rope.c``, ...).
-    lo, hi: bounds in the leaf's unit.
-    log: fit in log space (positive leaves: stiffness, damping, friction) or linear space
-      (signed leaves: offsets). Default: log unless ``lo`` <= 0 or the name is an offset.
-    """
-    name: str
-    lo: float = -math.inf
-    hi: float = math.inf
-    log: bool | None = None
-
-    def resolved(self) -> "Free":
-        name = _normalise(self.name)
-        log = self.log
-        if log is None:
-            log = not ("offset" in name or self.lo < 0.0)
-        lo, hi = float(self.lo), float(self.hi)
-        if log and lo == -math.inf:
-            lo = 0.0
-        if log and lo < 0.0:
-            raise FitError(f"{name}: a log-space parameter needs lo >= 0, got {lo}; give "
-                           "log=false for a signed parameter.")
-        if not lo < hi:
-            raise FitError(f"{name}: bounds must satisfy lo < hi, got [{lo}, {hi}].")
-        return Free(name, lo, hi, bool(log))
-
-    def to_x(self, v):
-        return np.log(v) if self.log else v
-
-    def from_x(self, x):
-        return jnp.exp(x) if self.log else x
-
-    def x_bounds(self):
-        if self.log:
-            return (math.log(self.lo) if self.lo > 0 else -np.inf,
-                    math.log(self.hi) if self.hi < math.inf else np.inf)
-        return self.lo, self.hi
-
 
 # --------------------------------------------------------------------------- fit
 @dataclasses.dataclass
@@ -459,10 +384,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          cost_chosen_start=cost_chosen_start)
 
 
-#: compiled record-fit programs by (simulator, layout), most recent last (a few: each holds
-#: its simulator and its executables)
-_PROGRAMS: "collections.OrderedDict" = collections.OrderedDict()
-_PROGRAMS_KEPT = 8
+#: compiled record-fit programs by (simulator, leaves, loss settings, batch layouts)
+_PROGRAMS = ProgramCache()
 
 
 def _programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay):
@@ -471,16 +394,16 @@ def _programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay):
     simulator, these leaves and loss settings and these batches' layout
     (:func:`tuning.record_batch.layout_of`), reused by later fits of the same layout, and
     this fit's arrays. ``n_unstable``: records whose rollout went past the safe step."""
-    from .record_batch import layout_of, with_arrays
     split = [layout_of(b) for b in batches]
-    arrays = [a for _, _, a in split]
     key = (sim, tuple((f.name, f.log) for f in free), float(rot_weight), loss,
            None if decay is None else float(decay), tuple(k for k, _, _ in split))
-    if key in _PROGRAMS:
-        _PROGRAMS.move_to_end(key)
-        return _PROGRAMS[key], arrays
     layouts = [lay for _, lay, _ in split]
+    return _PROGRAMS.get(key, lambda: _build_programs(sim, free, layouts, rot_weight, loss,
+                                                       decay)), [a for _, _, a in split]
 
+
+def _build_programs(sim, free, layouts, rot_weight, loss, decay):
+    """:func:`_programs`' pair, compiled on first use."""
     def resid_flag(params, arrays, x, horizon):
         p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
                                  for i, f in enumerate(free)})
@@ -499,10 +422,7 @@ def _programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay):
     def cost_flag(params, arrays, x, horizon):
         r, bad = resid_flag(params, arrays, x, horizon)
         return jnp.sum(r * r), bad
-    _PROGRAMS[key] = (res_jac_flag, cost_flag)
-    while len(_PROGRAMS) > _PROGRAMS_KEPT:
-        _PROGRAMS.popitem(last=False)
-    return _PROGRAMS[key], arrays
+    return res_jac_flag, cost_flag
 
 
 def _screen_tied(costs) -> bool:
@@ -601,12 +521,6 @@ def check_stable(sim: dp.Simulator, params) -> None:
             f"{rep.limiting or 'the springs and contacts'}): lower dt in the scene file or "
             "start from softer k / smaller c.", stable_dt=rep.safe_dt,
             substeps=rep.substeps_needed)
-
-
-def free_from_spec(spec) -> list:
-    """:class:`Free` leaves from a scene file's ``[fit]`` (params, bounds, space)."""
-    return [Free(p, *spec.bounds.get(p, (-math.inf, math.inf)),
-                 log=spec.space.get(p, "log") == "log") for p in spec.free]
 
 
 def __getattr__(name):
