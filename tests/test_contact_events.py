@@ -8,6 +8,7 @@ import pytest
 
 import diffpen as dp
 from diffpen import laws
+from diffpen.window import window_moments
 
 LAWS = ["linear", "no_tension", "hunt_crossley"]
 
@@ -138,6 +139,45 @@ def test_step_average_matches_its_definition(law):
                                rtol=5e-6 if law == "hunt_crossley" else 1e-13)  # d^n: curved
 
 
+@pytest.mark.parametrize("n", [1.0, 1.5])
+def test_window_moments_match_their_definition(n):
+    """``window_moments``: the hat-weighted means of ``max(d - vn s, 0)^n`` and of
+    ``s max(d - vn s, 0)^n`` over ``[-h, h]`` against trapezoids between their breaks
+    (window crossing at either end, inside, apart, a still contact); the first the same as
+    ``window_mean``'s; exactly 0 apart, ``-vn h^2 / 6`` for n = 1 inside; finite
+    derivatives at the window's edges."""
+    h = 1e-3
+    cases = [(d, vn) for vn in (-3.0, -0.2, 0.4, 5.0)
+             for d in (-4e-3, -1e-4, 0.0, 1e-4, 2.5e-3, 6e-3, 2e-2)] + [(1e-3, 0.0)]
+    dd, vv = (np.array(x) for x in zip(*cases))
+    both = jax.jit(jax.vmap(lambda d, v: (window_moments(d, v, h, n),
+                                          laws.window_mean(d, v, h, n)[1])))
+    (mean, moment), direct = (np.asarray(a) if not isinstance(a, tuple) else
+                              tuple(np.asarray(b) for b in a) for a in both(dd, vv))
+    want = {0: [], 1: []}
+    for d, vn in cases:
+        breaks = sorted({-h, 0.0, h} | ({d / vn} if vn and -h < d / vn < h else set()))
+        for power in (0, 1):
+            total = 0.0
+            for a, b in zip(breaks, breaks[1:]):
+                ss = np.linspace(a, b, 20001)
+                f = ss ** power * np.maximum(d - vn * ss, 0.0) ** n * (1.0 - np.abs(ss) / h)
+                total += float(np.sum(0.5 * (f[1:] + f[:-1]) * np.diff(ss)))
+            want[power].append(total / h)
+    scale = 2e-2 ** n
+    np.testing.assert_allclose(mean, want[0], atol=1e-8 * scale, rtol=1e-6)
+    np.testing.assert_allclose(mean, direct, atol=1e-12 * scale, rtol=1e-9)
+    np.testing.assert_allclose(moment, want[1], atol=1e-8 * scale * h, rtol=1e-6)
+    apart = (dd + np.abs(vv) * h <= 0.0)
+    assert np.all(moment[apart] == 0.0) and np.all(mean[apart] == 0.0)
+    if n == 1.0:
+        inside = dd - np.abs(vv) * h >= 0.0
+        np.testing.assert_allclose(moment[inside], -vv[inside] * h * h / 6.0, rtol=1e-12)
+    grads = jax.jit(jax.vmap(jax.grad(lambda d, v: sum(window_moments(d, v, h, n)),
+                                      (0, 1))))(dd, vv)
+    assert all(np.isfinite(np.asarray(g)).all() for g in grads)
+
+
 def test_batched_linear_window_equals_the_unbatched_one():
     """Under vmap the closed-form window takes its division without the selects around it
     (a custom_vmap rule, faster batched stepping): the same numbers as one call per element,
@@ -229,7 +269,10 @@ def test_centred_damping_is_the_average_at_the_centre_speed(law):
     """Centred records: the step average with the damping at the centre speed
     ``vc = vn + lag (F / m + g_n)`` of the force ``F`` itself (semi-implicit Euler's velocity
     lags by h / 2): ``F = k mean - c frac vc`` (linear; no_tension while approaching) and
-    ``F = max(k - c vc, 0) mean`` (Hunt-Crossley), the window from ``vn``. Exactly 0 apart,
+    ``F0 = max(k - c vc, 0) mean`` solved for, then the window along ``d - vc s`` and the speed
+    ``vc + a s`` inside it, ``max(k mean - c (vc mean + a m1), 0)`` (Hunt-Crossley, ``a``
+    the separating acceleration, ``m1`` the window's first moment); the window of the
+    linear laws from ``vn``. Exactly 0 apart,
     the plain average for ``lag = 0`` and for the default records, continuous through
     contact start."""
     rec = {"linear": laws.linear, "no_tension": laws.no_tension,
@@ -249,8 +292,18 @@ def test_centred_damping_is_the_average_at_the_centre_speed(law):
         f = rec.centred_force(d, vn, k, c, h, lag, 1.0 / m, g)
         vc = vn + lag * (f / m + g)
         frac, mean = laws.window_mean(d, vn, h, rec.exponent)
+        assert_first_pass = jnp.zeros_like(f)
         if law == "hunt_crossley":
-            want = jnp.maximum(k - c * vc, 0.0) * mean
+            pw = mean                                       # the window along d - vn s
+            f0 = jnp.maximum(k - c * (vn + lag * g), 0.0) * pw / (1.0 + c * lag / m * pw)
+        if law == "hunt_crossley":
+            # the damping at the centre speed solved for (the first pass), then the window
+            # along the centre's motion d - vc s with the speed vc + a s inside it
+            a = f0 / m + g
+            vc = vn + lag * a
+            assert_first_pass = jnp.maximum(k - c * vc, 0.0) * pw - f0
+            mean_c, m1 = window_moments(d, vc, h, rec.exponent)
+            want = jnp.maximum(k * mean_c - c * (vc * mean_c + a * m1), 0.0)
         else:
             want = k * mean - c * frac * vc
             if law == "no_tension":
@@ -260,9 +313,11 @@ def test_centred_damping_is_the_average_at_the_centre_speed(law):
         plains = [r.centred_force(d, vn, k, c, h, lg, 1.0 / m, g)
                   for r, lg in ((rec, 0.0), (plain, lag))]
         across = rec.centred_force(sides, -0.2, k, c, h, lag, 1.0 / m, g)
-        return f, want, slope, plains, rec.averaged(d, vn, k, c, h), across
-    f, want, slope, plains, averaged, across = evaluate(d, vn, sides)
+        return (f, want, slope, plains, rec.averaged(d, vn, k, c, h), across,
+                assert_first_pass)
+    f, want, slope, plains, averaged, across, first = evaluate(d, vn, sides)
     np.testing.assert_allclose(f, want, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(first, 0.0, atol=1e-9)      # f0 solves F = max(k - c vc) mean
     assert float(f[0]) == 0.0 and float(slope) == 0.0
     for got in plains:
         np.testing.assert_allclose(got, averaged, rtol=1e-14)
@@ -723,3 +778,23 @@ def test_friction_at_a_touching_start_takes_the_contact_side_of_the_tie():
     above = (float(fh) - float(f0)) / h
     assert abs(above) > 1.0                    # the derivative the tie decides is not small
     assert float(grad) == pytest.approx(above, rel=1e-5)
+
+
+def test_half_integer_powers_equal_pow_with_finite_derivatives():
+    """The window's powers (``diffpen.window._power``: integer power times ``sqrt`` for
+    half-integer exponents, several times cheaper than ``pow``) equal ``x ** p`` with the
+    same first and second derivatives, finite at ``x = 0`` for ``p >= 2`` (where the
+    product rule would have given 0 / 0)."""
+    from diffpen.window import _power
+    x = np.array([0.0, 1e-9, 3e-4, 0.2, 2.0])
+    for p in (0.5, 1.0, 1.5, 1.7, 2.0, 2.5, 3.5, 4.5):
+        got = jax.jit(jax.vmap(lambda v: (_power(v, p), jax.grad(_power)(v, p),
+                                          jax.grad(jax.grad(_power))(v, p))))(x)
+        want = jax.jit(jax.vmap(lambda v: (v ** p, jax.grad(lambda u: u ** p)(v),
+                                           jax.grad(jax.grad(lambda u: u ** p))(v))))(x)
+        keep = x > 0 if p < 2.0 else np.ones_like(x, bool)   # pow's own 0 * inf at 0
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(np.asarray(g)[keep], np.asarray(w)[keep], rtol=1e-13,
+                                       atol=0)
+        if p >= 2.0:
+            assert all(np.isfinite(np.asarray(g)).all() for g in got)
