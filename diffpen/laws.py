@@ -325,8 +325,6 @@ def _linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     return (k * mean - cf * (vn + lag * accel)) / (1.0 + cf * (lag * inv_mass))
 
 
- 
- # --------------------------------------------------------------------------- centred damping
 _HALVINGS = 10
 
 
@@ -515,7 +513,8 @@ class ContactLaw:
       inverse mass along the normal; ``accel`` m/s^2: the other separating acceleration,
       gravity). None (the default records): the damping at the given ``vn``. Opt in with
       ``linear(centred=True)``, ``no_tension(centred=True)``, ``hunt_crossley(n,
-      centred=True)``.
+      centred=True)``; ``linear(exact=True)`` and ``no_tension(exact=True)`` put the exact
+      one-contact step (:func:`exact_step_factors`) in this field.
 
     pulls: True when the force may be negative (pull) while in contact (``linear``); False
       when it is clamped at 0 (``no_tension``, ``hunt_crossley``).

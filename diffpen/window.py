@@ -35,10 +35,10 @@ __all__ = ["window_mean", "window_moments"]
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _power(x, p: float):
     """``x ** p`` for ``x >= 0`` and a static exponent ``p``: for integer and half-integer
-    ``p >= 1`` (Hertz's 1.5 and the window's 3.5 ...) as an integer power times
-    ``sqrt(x)`` (``p = 0.5``: ``sqrt(x)``), which XLA evaluates several times faster than the general ``pow`` (an exp
-    and a log); the general ``pow`` otherwise. Derivative ``p x^(p - 1)`` (a rule of its own:
-    the product's ``x^k / (2 sqrt(x))`` would be 0 / 0 at ``x = 0``)."""
+    ``p >= 1`` (Hertz's 1.5 and the window's 3.5 ...) as an integer power times ``sqrt(x)``
+    (``p = 0.5``: ``sqrt(x)``), which XLA evaluates several times faster than the general
+    ``pow`` (an exp and a log); the general ``pow`` otherwise. Derivative ``p x^(p - 1)`` (a
+    rule of its own: the product's ``x^k / (2 sqrt(x))`` would be 0 / 0 at ``x = 0``)."""
     twice = 2.0 * p
     if p == 0.5:
         return jnp.sqrt(x)
@@ -262,7 +262,6 @@ def window_mean(d, vn, h, exponent: float = 1.0):
     mean_lo = jnp.where(lower, _power(jnp.where(lower, b, 1.0), n + 2.0), 0.0) * q * inv2
     mean = jnp.where(inside, mean_in, jnp.where(upper, mean_up, mean_lo))
     return frac, mean
-
 
 
 def window_moments(d, vn, h, exponent: float = 1.0):
