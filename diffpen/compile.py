@@ -376,6 +376,9 @@ class Simulator:
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
+        # per-contact step constants of the law (ContactLaw.step_factors), once, outside
+        # the loop (a rematerialised step would recompute them and their derivatives)
+        params = self.context.with_step_factors(params, self.dt / substeps)
         flag = flag | _motion.spin_unsafe(self, state, self.dt / substeps)
         old = state.aux.get(_stability.FLAG)
         flag = flag if old is None else (jnp.asarray(old, bool) | flag)

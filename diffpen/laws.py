@@ -76,12 +76,14 @@ the largest penetration exact to 0.00-0.04%, and with check_stability=False a ba
 bounded far past the explicit step limit (k 1e8 at dt 1e-3). The factors depend on ``k``,
 ``c``, the mass and the step only, in arithmetic and square roots (XLA's ``exp`` and
 ``sin`` differ in their last bits between batch layouts; sharded fits must equal
-single-device ones bit for bit). Cost against the centred record (one process, float32,
-3000 steps): batch-1 rollout 0.88x and 1024 batched 0.92x (XLA computes the factors once,
-outside the loop), but forward-mode gradients 1.59x and reverse mode 5.6x: a rematerialised
-step recomputes the factors and their derivatives at every step. So they are not what a
-named law takes; computing the factors once per rollout, outside the scan, would remove
-that cost.
+single-device ones bit for bit). A rollout computes them once per contact, before its loop
+(``ContactLaw.step_factors``, passed in ``Params.extra``; computed inside the step, a
+rematerialised reverse-mode step recomputed them and their derivatives at every step,
+5.6x). Cost against the centred record (one process, float32, 3000 steps): batch-1 rollout
+0.89x, 1024 batched 1.00x, reverse-mode gradient 0.96x, forward-mode 1.25x. They are not
+what a named law takes: the derivatives of apexes 2-3 ripple with the impact phase as much
+as with the centred record (quick-start ball 6-8% against 10-12%, the 0.3 kg ball's apex 2
+39% against 25%, over four phases), and forward-mode gradients cost more.
 
 Why it is not the default everywhere: each contact estimates the centre speed from its own
 force and gravity only (``g_n``), which is exact for a body on one contact but not for a
@@ -402,17 +404,19 @@ def exact_step_factors(k, c, inv_mass, h):
     return jnp.where(over, r_real, r_complex), q
 
 
-def _exact_terms(k, c, h, inv_mass, accel):
+def _exact_terms(k, c, h, inv_mass, accel, factors=None):
     """``(R k, Q c, load)`` of :func:`exact_step_factors`, ``load = -(1 - R) accel / inv_mass``
     the resting depth's share (``R k d_e = -R accel / inv_mass`` moved to where ``k d``
-    balances the load: at rest the force is the load ``-accel / inv_mass`` exactly)."""
-    r, q = exact_step_factors(k, c, inv_mass, h)
+    balances the load: at rest the force is the load ``-accel / inv_mass`` exactly).
+    ``factors``: ``(R, Q)`` computed beforehand (a rollout computes them once, outside its
+    loop), or None to compute them here."""
+    r, q = exact_step_factors(k, c, inv_mass, h) if factors is None else factors
     heavy = inv_mass > 0.0
     weight = jnp.where(heavy, -accel / jnp.where(heavy, inv_mass, 1.0), 0.0)
     return r * k, q * c, (1.0 - r) * weight
 
 
-def _linear_exact(d, vn, k, c, h, lag, inv_mass, accel):
+def _linear_exact(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """Step average of the linear law, exact for one contact of a kick-then-drift step:
     ``F = R k mean + (W (1 - R) - Q c vn) frac`` (:func:`exact_step_factors`; ``W =
     -accel / inv_mass`` the contact's load, the window from ``vn``). Deep in contact the step
@@ -420,17 +424,17 @@ def _linear_exact(d, vn, k, c, h, lag, inv_mass, accel):
     and ``c h / m`` (semi-implicit Euler's velocity lags the position by ``lag = h / 2``,
     which the factors take in); at rest the force is the load exactly. Contact start and
     end keep the window's continuity."""
-    rk, qc, load = _exact_terms(k, c, h, inv_mass, accel)
+    rk, qc, load = _exact_terms(k, c, h, inv_mass, accel, factors)
     frac, mean = window_mean(d, vn, h)
     return rk * mean + (load - qc * vn) * frac
 
 
-def _no_tension_exact(d, vn, k, c, h, lag, inv_mass, accel):
+def _no_tension_exact(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """The no_tension step average (:func:`_no_tension_averaged`: the clamp offset and the
     window of ``d - t`` from ``vn``) with the exact factors of :func:`_linear_exact`:
     ``max(R k mean - Q c frac min(vn, 0) + (1 - R) W frac, 0)``, ``t = max(Q c vn, 0) /
     (R k)`` (the linear law's form while approaching; continuous at ``vn = 0``)."""
-    rk, qc, load = _exact_terms(k, c, h, inv_mass, accel)
+    rk, qc, load = _exact_terms(k, c, h, inv_mass, accel, factors)
     kp = rk > 0.0
     t = jnp.maximum(qc * vn, 0.0) / jnp.where(kp, rk, 1.0)
     frac, mean = window_mean(d - t, vn, h)
@@ -525,6 +529,10 @@ class ContactLaw:
     takes_exponent: True when :func:`get` builds the law for a given ``exponent``
       (``hunt_crossley``); the others have n = 1 fixed, and an exponent given for them is an
       error of the caller's (a scene file refuses it).
+    step_factors: ``step_factors(k, c, inv_mass, h) -> factors``, what ``centred`` takes as
+      its ``factors=`` keyword when given (:func:`exact_step_factors` for the exact
+      records): per-contact constants of the rollout, which a rollout computes once, before
+      its loop, instead of at every (rematerialised) step. None: ``centred`` needs none.
 
     A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
     """
@@ -540,6 +548,7 @@ class ContactLaw:
     pulls: bool = False
     damping_exponent: float = 0.0
     takes_exponent: bool = False
+    step_factors: Callable | None = None
 
     def __call__(self, d, vn, k, c, width: float = 0.0):
         return self.force(d, vn, k, c, width)
@@ -552,7 +561,7 @@ class ContactLaw:
             return self.force(d, vn, k, c, width)
         return self.averaged(d, vn, k, c, h)
 
-    def centred_force(self, d, vn, k, c, h, lag, inv_mass, accel=0.0):
+    def centred_force(self, d, vn, k, c, h, lag, inv_mass, accel=0.0, factors=None):
         """The step average (``h`` s) with the damping at the window centre's speed (see
         ``centred``); the plain step average when ``lag`` is 0 or the record has no
         ``centred``.
@@ -566,6 +575,8 @@ class ContactLaw:
             return self.force(d, vn, k, c)
         if self.centred is None or not lag:
             return self.averaged(d, vn, k, c, h)
+        if factors is not None:        # the record's step_factors, computed beforehand
+            return self.centred(d, vn, k, c, h, lag, inv_mass, accel, factors=factors)
         return self.centred(d, vn, k, c, h, lag, inv_mass, accel)
 
 
@@ -588,7 +599,8 @@ def linear(centred: bool = False, exact: bool = False) -> ContactLaw:
     spring exactly (:func:`exact_step_factors`; module docstring)."""
     one = _linear_exact if exact else _linear_centred if centred else None
     return ContactLaw("linear", linear_contact, _linear_averaged, _linear_energy, _linear_rest,
-                      _linear_stiffness, 1.0, "linear", one, pulls=True)
+                      _linear_stiffness, 1.0, "linear", one, pulls=True,
+                      step_factors=exact_step_factors if exact else None)
 
 
 def no_tension(centred: bool = False, exact: bool = False) -> ContactLaw:
@@ -597,7 +609,8 @@ def no_tension(centred: bool = False, exact: bool = False) -> ContactLaw:
     record that steps the damped spring exactly while it pushes (module docstring)."""
     one = _no_tension_exact if exact else _no_tension_centred if centred else None
     return ContactLaw("no_tension", no_tension_contact, _no_tension_averaged, _linear_energy,
-                      _linear_rest, _linear_stiffness, 1.0, "no_tension", one)
+                      _linear_rest, _linear_stiffness, 1.0, "no_tension", one,
+                      step_factors=exact_step_factors if exact else None)
 
 
 def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:

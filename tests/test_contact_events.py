@@ -873,3 +873,34 @@ def test_exact_step_factors_against_the_roots():
     r32 = laws.exact_step_factors(jnp.float32(1e4), jnp.float32(20.0), jnp.float32(1.0), 1e-5)
     r64 = laws.exact_step_factors(1e4, 20.0, 1.0, 1e-5)
     np.testing.assert_allclose(np.asarray(r32, float), np.asarray(r64), rtol=1e-6)
+
+
+def test_a_rollout_computes_the_exact_factors_once_outside_its_loop(monkeypatch):
+    """Regression: the exact records' step constants (``exact_step_factors``) were computed
+    inside the step, so a reverse-mode gradient (each step rematerialised) recomputed them
+    and their derivatives at every step: 5.6x the centred record's time, against 0.96x now.
+    A rollout now computes them once, before its loop (``Params.extra``), and the step reads
+    them; ``sim.step`` alone still computes its own. Both give the same states."""
+    calls = []
+    real = laws.exact_step_factors
+    law = laws.linear(exact=True)          # its step_factors field: the rollout's one call
+
+    def counted(*args):
+        calls.append(1)
+        return real(*args)
+    monkeypatch.setattr(laws, "exact_step_factors", counted)   # what the step would call
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    s.add_plane()
+    sim = dp.compile(s, 1e-3, law=law, dtype=jnp.float64)
+    p = sim.params(k=1e4, c=20.0)
+    jax.make_jaxpr(jax.grad(lambda k: sim.rollout(sim.params(k=k, c=20.0), 50,
+                                                  save_every=50).position[-1, 0, 2]))(1e4)
+    assert calls == []                  # none from the step
+    state = sim.init_state()
+    for _ in range(300):
+        state = sim.step(p, state)
+    assert calls                        # the step alone computes them
+    traj = sim.rollout(p, 300, save_every=300)
+    np.testing.assert_allclose(np.asarray(traj.position[-1]), np.asarray(state.position),
+                               rtol=0, atol=1e-13)

@@ -19,6 +19,14 @@ __all__ = ["Term", "TermBuilder", "CompileContext", "with_bound", "declared", "m
            "gather", "scatter", "static_dot", "static_scale", "plane_offsets",
            "plane_offset_extra"]
 
+#: The ``Params.extra`` entries a rollout adds for its loop, ``{site: step constants}`` under
+#: ``"_step_factors h"`` (h the inner step, s; :meth:`CompileContext.with_step_factors`):
+#: never part of the params a user builds.
+STEP_FACTORS = "_step_factors"
+
+
+def _factors_key(h) -> str:
+    return f"{STEP_FACTORS} {float(h)!r}"
 _EMPTY: Mapping = types.MappingProxyType({})
 
 
@@ -203,6 +211,11 @@ class CompileContext:
     #: that ended), 0 for the others. Contacts that know their effective mass then apply
     #: their damping at the window centre's speed (``ContactLaw.centred_force``).
     velocity_lag: float = 0.0
+    #: Contacts whose law takes per-contact step constants (``ContactLaw.step_factors``):
+    #: ``[(material indices, inverse masses)]``, registered by the contact terms
+    #: (:meth:`factor_site`); a rollout computes their constants once, before its loop
+    #: (:meth:`with_step_factors`).
+    factor_sites: list = dataclasses.field(default_factory=list)
 
     @property
     def n(self) -> int:
@@ -213,7 +226,37 @@ class CompileContext:
         ``jax.device_put``: ``jnp.asarray`` of a host array compiles a program per shape)."""
         return jax.device_put(np.asarray(np.asarray(a, dtype=float), dtype=self.dtype))
 
-    def contact_force(self, d, vn, k, c, h=None, inv_mass=None, accel=0.0):
+    def factor_site(self, mat: np.ndarray, inv_mass) -> int | None:
+        """Register contacts of material indices ``mat`` and effective inverse masses
+        ``inv_mass`` whose law takes step constants (``ContactLaw.step_factors``, used where
+        the centred record is); returns the key :meth:`step_factors` reads, or None."""
+        if (getattr(self.law, "step_factors", None) is None or self.velocity_lag == 0.0
+                or self.width != 0.0 or getattr(self.law, "centred", None) is None):
+            return None
+        self.factor_sites.append((np.asarray(mat), inv_mass))
+        return len(self.factor_sites) - 1
+
+    def with_step_factors(self, params: Params, h: float) -> Params:
+        """``params`` with the step constants of every registered site for the inner step
+        ``h`` (s) in ``Params.extra[STEP_FACTORS]``: what a rollout passes its loop, so
+        they are computed (and differentiated) once per rollout, not at every step."""
+        if not self.factor_sites:
+            return params
+        table = {}
+        for key, (mat, inv_mass) in enumerate(self.factor_sites):
+            k, c = self.contact_kc(params, mat)
+            table[key] = self.law.step_factors(k, c, inv_mass, h)
+        return params._replace(extra={**params.extra, _factors_key(h): table})
+
+    def step_factors(self, params: Params, key: int | None, h):
+        """The constants :meth:`with_step_factors` put in ``params`` for site ``key`` and this
+        inner step ``h``, or None (computed where they are used)."""
+        if key is None or h is None:
+            return None
+        table = params.extra.get(_factors_key(h))
+        return None if table is None else table[key]
+
+    def contact_force(self, d, vn, k, c, h=None, inv_mass=None, accel=0.0, factors=None):
         """Normal force (N) of contacts at depth ``d`` (m), separating speed ``vn`` (m/s):
         the law's step average over an inner step ``h`` (s), or its pointwise force for
         ``h=None`` (``diffpen.laws.ContactLaw.step_force``). With ``inv_mass`` (the
@@ -223,7 +266,8 @@ class CompileContext:
         if (h is None or inv_mass is None or self.velocity_lag == 0.0 or self.width != 0.0
                 or getattr(self.law, "centred", None) is None):
             return self.law.step_force(d, vn, k, c, self.width, h)
-        return self.law.centred_force(d, vn, k, c, h, self.velocity_lag * h, inv_mass, accel)
+        return self.law.centred_force(d, vn, k, c, h, self.velocity_lag * h, inv_mass, accel,
+                                      factors)
 
     def normal_gravity(self, normal: np.ndarray, bodies: np.ndarray):
         """Gravity's separating acceleration ``n . g`` (m/s^2) of contacts of free bodies

@@ -47,18 +47,20 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     inv_m = _uniform(ctx, ctx.inv_mass(bi))
     g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
     g_vec = ctx.const(ctx.scene.gravity)
+    site = ctx.factor_site(mi, inv_m)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
+        fac = ctx.step_factors(params, site, h)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         if normal is not None:          # the normal is a constant: leave out its zeros
             off = args[0] if offset_fn is None else offset_fn(params)
             d = radii - (static_dot(normal, x) - off)
-            f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane)
+            f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane, fac)
             return scatter(static_scale(f, normal, as_columns=True), bi, n), None
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
         f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
-                              geometry.dot(nrm, g_vec))
+                              geometry.dot(nrm, g_vec), fac)
         return scatter(f[:, None] * nrm, bi, n), None
     return Term(name, force, step_aware=True, extra=extra, checks=checks,
                 columns=normal is not None)
@@ -98,14 +100,15 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
     pin_a, pin_b = ctx.pinned[ia], ctx.pinned[ib]
     g_side = ctx.const(np.where(pin_b & ~pin_a, 1.0, np.where(pin_a & ~pin_b, -1.0, 0.0)))
     g_vec = ctx.const(ctx.scene.gravity)
+    site = ctx.factor_site(mi, inv_m)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         xa, xb = state.position[ia], state.position[ib]
         d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
         vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
-        f = ctx.contact_force(d, vn, k, c, h, inv_m,
-                              g_side * geometry.dot(nrm, g_vec))[:, None] * nrm
+        f = ctx.contact_force(d, vn, k, c, h, inv_m, g_side * geometry.dot(nrm, g_vec),
+                              ctx.step_factors(params, site, h))[:, None] * nrm
         return scatter(f, ia, n) - scatter(f, ib, n), None
     return Term("contact_sphere_sphere", force, step_aware=True)
 
