@@ -27,6 +27,8 @@ STEP_FACTORS = "_step_factors"
 
 def _factors_key(h) -> str:
     return f"{STEP_FACTORS} {float(h)!r}"
+
+
 _EMPTY: Mapping = types.MappingProxyType({})
 
 
@@ -238,8 +240,9 @@ class CompileContext:
 
     def with_step_factors(self, params: Params, h: float) -> Params:
         """``params`` with the step constants of every registered site for the inner step
-        ``h`` (s) in ``Params.extra[STEP_FACTORS]``: what a rollout passes its loop, so
-        they are computed (and differentiated) once per rollout, not at every step."""
+        ``h`` (s) in ``Params.extra`` (key ``"_step_factors h"``): what a rollout passes
+        its loop, so they are computed (and differentiated) once per rollout, not at every
+        step."""
         if not self.factor_sites:
             return params
         table = {}
