@@ -204,13 +204,15 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     # contact point lies on the normal through its centre: effective inverse mass 1 / m)
     normals_np = np.array([scene.planes[r[1]].normal for r in rows], dtype=float)
     inv_m, g_n = ctx.const(ctx.inv_mass(bi)), ctx.const(ctx.normal_gravity(normals_np, bi))
+    site = ctx.factor_site(mi, inv_m)       # a law's per-contact step constants, if any
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
         w = gather(state.angular_velocity, bi, n)
         d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
-        fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h, inv_m, g_n)
+        fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h, inv_m, g_n,
+                               ctx.step_factors(params, site, h))
         r = -radii[:, None] * normals                    # centre to contact point
         f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
                                      _row_mu(params, rough, fi, fn[0]), slip)
