@@ -888,7 +888,8 @@ def test_a_rollout_computes_the_exact_factors_once_outside_its_loop(monkeypatch)
     def counted(*args):
         calls.append(1)
         return real(*args)
-    monkeypatch.setattr(laws, "exact_step_factors", counted)   # what the step would call
+    from diffpen import one_contact
+    monkeypatch.setattr(one_contact, "exact_step_factors", counted)   # what a step calls
     s = dp.Scene()
     s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
     s.add_plane()
