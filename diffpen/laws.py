@@ -38,7 +38,9 @@ the linear laws; for Hunt-Crossley with ``n != 1`` the window's mean of ``d^n`` 
 centred=True)``; the exact records ``linear(exact=True)``, ``no_tension(exact=True)``;
 ``diffpen.compile`` takes the centred record for a law named by a string on scenes of one
 contact): the damping at the step window's centre speed, and the step that reproduces a
-damped spring exactly, are :mod:`diffpen.one_contact` (why, figures, costs).
+damped spring exactly, are :mod:`diffpen.one_contact` (why, figures, costs). The linear law's
+event-exact record ``linear(events=True)`` (opt-in) is exact through contact start and end
+too: :mod:`diffpen.event_step`.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from typing import Callable
 
 import jax.numpy as jnp
 
+from .event_step import event_step_factors, linear_events
 from .one_contact import (exact_step_factors, hunt_crossley_centred, linear_centred,
                           linear_exact, no_tension_centred, no_tension_exact)
 from .window import window_mean
@@ -366,15 +369,20 @@ def _linear_stiffness(k, c, d_ref=None):
     return k, c
 
 
-def linear(centred: bool = False, exact: bool = False) -> ContactLaw:
+def linear(centred: bool = False, exact: bool = False, events: bool = False) -> ContactLaw:
     """``F = k d - c vn`` in contact (may pull at the end of contact); closed forms
     ``t_c = pi / w_d``, ``e = exp(-pi zeta / sqrt(1 - zeta^2))``. ``centred``: damping at
     the step window's centre speed; ``exact``: a one-contact record that steps the damped
-    spring exactly (:func:`exact_step_factors`; module docstring)."""
-    one = linear_exact if exact else linear_centred if centred else None
+    spring exactly (:func:`exact_step_factors`; module docstring); ``events``: a one-contact
+    record exact through contact start and end too (:mod:`diffpen.event_step`)."""
+    if events and (centred or exact):
+        raise ValueError("linear(): choose one of centred=True, exact=True, events=True")
+    one = (linear_events if events else linear_exact if exact
+           else linear_centred if centred else None)
     return ContactLaw("linear", linear_contact, _linear_averaged, _linear_energy, _linear_rest,
                       _linear_stiffness, 1.0, "linear", one, pulls=True,
-                      step_factors=exact_step_factors if exact else None)
+                      step_factors=(exact_step_factors if exact else event_step_factors
+                                    if events else None))
 
 
 def no_tension(centred: bool = False, exact: bool = False) -> ContactLaw:

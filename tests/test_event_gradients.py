@@ -257,3 +257,34 @@ def test_lm_fit_from_the_generic_start_without_the_scan():
     assert res.reached and res.iterations <= 6
     assert res.values["contact.default.k"] == pytest.approx(2.2e3, rel=0.02)
     assert res.values["contact.default.c"] == pytest.approx(11.0, rel=0.02)
+
+
+def test_event_exact_record_derivatives_equal_the_continuous_ones():
+    """``linear(events=True)`` (diffpen.event_step) on the 0.3 kg ball (k 3e4, c 15, w h
+    0.32: about ten steps per contact) at dt = 1e-3: apexes 1-3 and contact durations 1-3,
+    their values and their derivatives w.r.t. k and c within 0.05% of the continuous system's
+    (measured: under 2e-6 at six impact phases; at this phase the exact record is 37% off on
+    d apex 3 / dc and 52% on d duration 2 / dc; over eight phases the exact record up to 87%
+    and 246%, the centred record 161% and 573%)."""
+    import jax.numpy as jnp
+
+    import diffpen as dp
+    from diffpen import laws
+    from tuning.metrics import ball_metrics
+    from tuning.scenes import ball_scene
+    case = EVENT_CASES[1]._replace(T=2.2)
+    sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
+                     law=laws.linear(events=True), dtype=jnp.float64)
+    steps = int(round(case.T / 1e-3))
+
+    def f(k, c):
+        p = sim.params(k=k, c=c)
+        bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
+        y = jnp.concatenate([bm.apex_heights, bm.contact_durations])
+        return y, y
+    (dk, dc), val = jax.tree_util.tree_map(
+        np.asarray, jax.jit(jax.jacfwd(f, (0, 1), has_aux=True))(case.k, case.c))
+    ref = reference(case)
+    assert np.all(_err(val, ref["value"][:6]) < 5e-4), val / ref["value"][:6] - 1
+    assert np.all(_err(dk, ref["dk"][:6]) < 5e-4), dk / ref["dk"][:6] - 1
+    assert np.all(_err(dc, ref["dc"][:6]) < 5e-4), dc / ref["dc"][:6] - 1

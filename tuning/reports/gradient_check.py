@@ -177,13 +177,14 @@ EVENT_METRICS = ("apex1", "apex2", "apex3", "duration1", "duration2", "duration3
 
 
 def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_implicit_euler",
-                     smoothing="auto", dtype=None, centred: bool | None = None):
+                     smoothing="auto", dtype=None, centred: bool | None = None, record=None):
     """``f(k, c) -> (7,)`` the metrics :data:`EVENT_METRICS` of ``case`` simulated at ``dt``
     (s): apex heights of the lowest point (m), contact durations (s) and the largest
     penetration (m), from :func:`tuning.metrics.ball_metrics`. Jitted; differentiable.
     ``centred``: True / False the law's record with / without its damping at the step
     window's centre speed (``diffpen.laws``, e.g. ``linear(centred=True)``); None (default)
-    the law's name, as ``diffpen.compile`` resolves it for this one-contact ball (centred)."""
+    the law's name, as ``diffpen.compile`` resolves it for this one-contact ball (centred).
+    ``record``: a ``diffpen.laws.ContactLaw`` to use instead (e.g. ``linear(events=True)``)."""
     import jax
     import jax.numpy as jnp
 
@@ -191,7 +192,8 @@ def event_metrics_fn(case: GradientCase, dt: float, *, integrator: str = "semi_i
 
     from ..metrics import ball_metrics
     scene = ball_scene(mass=case.mass, radius=case.radius, height=case.drop)
-    law = case.law if centred is None else laws.get(case.law, case.exponent, centred=centred)
+    law = (record if record is not None else case.law if centred is None
+           else laws.get(case.law, case.exponent, centred=centred))
     sim = dp.compile(scene, dt, law=law, exponent=case.exponent, smoothing=smoothing,
                      integrator=integrator, dtype=dtype or jnp.float64)
     steps = int(round(case.T / dt))
@@ -271,21 +273,22 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
 
 
 def event_phase_errors(case: GradientCase, dt: float = 1e-3, phases: int = 6, *,
-                       centred: bool | None = None) -> dict:
+                       centred: bool | None = None, record=None) -> dict:
     """Errors of the event metrics against the continuous system over where the impacts fall
     in the step: ``case`` dropped from ``drop + j v dt / phases`` (j = 0 .. phases - 1; v the
     first impact speed, so the impacts move through one step), the reference recomputed for
     each drop. Returns ``{"value", "dk", "dc"}``, each a (phases, 7) array in
     :data:`EVENT_METRICS` order: signed ``value / reference - 1`` and
     ``|jax / continuous - 1|`` of the derivatives. (The gradient table evaluates one phase;
-    at dt 1e-3 the apex 2-3 derivatives ripple with it.)"""
+    at dt 1e-3 the apex 2-3 derivatives ripple with it.) ``centred``, ``record``: as
+    :func:`event_metrics_fn` takes them."""
     import jax
     v = np.sqrt(2.0 * G * (case.drop - case.radius))
     out = {"value": [], "dk": [], "dc": []}
     for j in range(phases):
         cj = case._replace(drop=case.drop + j * v * dt / phases)
         ref = event_reference(cj)
-        f, _ = event_metrics_fn(cj, dt, centred=centred)
+        f, _ = event_metrics_fn(cj, dt, centred=centred, record=record)
         val = np.asarray(f(cj.k, cj.c))
         jk, jc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(cj.k, cj.c))
         out["value"].append(val / ref["value"] - 1.0)

@@ -1,0 +1,193 @@
+"""The event-exact one-contact step of the linear law: the force with which a kick-then-drift
+step (semi-implicit Euler) lands on the continuous motion's position at the next step time,
+also when a contact starts or ends inside the step.
+
+Semi-implicit Euler's positions are exact samples ``X_n`` of a continuous motion exactly when
+every step's force is ``F_n = m (a - (X_{n+1} - 2 X_n + X_{n-1}) / h^2)`` (``a`` the other
+acceleration along the normal): the force is the motion's second difference. Its velocity is
+the secant ``(X_n - X_{n-1}) / h``, so the state ``(d_n, vn_n)`` holds the last two samples,
+``d_{n-1} = d_n + h vn_n``, and those fix the continuous motion through them (a two-point
+problem). :func:`linear_events` rebuilds that motion, follows it to ``t_{n+1}`` and returns
+the force above. Along the normal the motion is a gravity parabola while apart and a damped
+spring under its load while in contact (``d'' = a - w0^2 d - b d'``, ``w0^2 = k / m``,
+``b = c / m``); by the signs of ``d_{n-1}`` and ``d_n``:
+
+* apart over the last step: the parabola through both samples; where it reaches ``d = 0``
+  before ``t_{n+1}`` (a quadratic), the spring from the crossing on;
+* in contact over the last step: the spring's motion through both samples; where it leaves
+  before ``t_{n+1}`` (the exit time by Newton's method), the parabola from the exit on;
+* entered or left during the last step: the crossing time and speed solve the two samples'
+  equations (Newton's method on two unknowns, from the straight line through the samples).
+
+The spring's motion over a time ``tau`` is the exponential of its 3x3 augmented matrix,
+computed in arithmetic only (Taylor series at ``tau / 16``, then four squarings; XLA's
+``exp``/``sin`` differ in their last bits between batch layouts, and sharded fits must equal
+single-device ones bit for bit). Inside contact the result equals the exact record's
+(:func:`diffpen.one_contact.linear_exact`); where a contact starts or ends it is the continuous
+motion too, so the step's positions, and their derivatives with respect to ``k``, ``c`` and the
+state, are those of the continuous system with its contact events located exactly: apex
+heights, contact times and their derivatives at any impact phase, to rounding (the prototype
+in :mod:`tuning.reports.two_point` integrated the force along the same path by quadrature, at
+~50x the cost).
+
+Assumes what the one-contact records assume (one contact per body, the load constant over a
+step, semi-implicit Euler's lag ``h / 2``), and at most one contact start and one end within
+two steps (a contact shorter than about two steps is approximate; the explicit stability
+limit keeps ``w0 h < 2``, a contact of at least ``pi / w0 > 1.57 h``).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["spring_flow", "event_step_factors", "linear_events"]
+
+_TERMS = 10         # Taylor terms of exp(A tau / 16): |w0 tau| <= 4 gives 0.25^11 / 11! ~ 6e-15
+_SQUARINGS = 4
+_NEWTON = 4
+
+
+def spring_flow(tau, w2, b):
+    """The damped spring's motion over a time ``tau`` s (either sign), ``d'' = a - w2 d - b
+    d'``: ``(m11, m12, m21, m22, q1, q2)`` with ``d(tau) = m11 d0 + m12 u0 + a q1`` and
+    ``d'(tau) = m21 d0 + m22 u0 + a q2`` from ``(d0, u0)`` (m, m/s; ``w2`` 1/s^2, ``b`` 1/s;
+    the load ``a`` m/s^2 enters linearly). Elementwise over broadcast arrays."""
+    t = tau * (1.0 / 2 ** _SQUARINGS)
+    t, w2, b = jnp.broadcast_arrays(t, w2, b)
+    one, zero = jnp.ones_like(t), jnp.zeros_like(t)
+
+    def taylor(i, m):                       # P <- I + (A t / j) P, augmented column with it
+        m11, m12, m21, m22, q1, q2 = m
+        s = t / (_TERMS - i).astype(t.dtype)
+        return (1.0 + s * m21, s * m22,
+                -s * (w2 * m11 + b * m21), 1.0 - s * (w2 * m12 + b * m22),
+                s * q2, s * (1.0 - w2 * q1 - b * q2))
+
+    def square(_, m):                       # (M, q) <- (M M, M q + q)
+        m11, m12, m21, m22, q1, q2 = m
+        return (m11 * m11 + m12 * m21, m11 * m12 + m12 * m22,
+                m21 * m11 + m22 * m21, m21 * m12 + m22 * m22,
+                m11 * q1 + m12 * q2 + q1, m21 * q1 + m22 * q2 + q2)
+    m = jax.lax.fori_loop(0, _TERMS, taylor, (one, zero, zero, one, zero, zero))
+    return jax.lax.fori_loop(0, _SQUARINGS, square, m)
+
+
+def _safe(x, ok):
+    return jnp.where(ok, x, 1.0)
+
+
+def _along(p, x0, u0, a):
+    """Depth and rate after a :func:`spring_flow` ``p`` from ``(x0, u0)`` under the load ``a``."""
+    return p[0] * x0 + p[1] * u0 + a * p[4], p[2] * x0 + p[3] * u0 + a * p[5]
+
+
+def _newton(update, init):
+    return jax.lax.fori_loop(0, _NEWTON, lambda _, z: update(*z), init)
+
+
+def event_step_factors(k, c, inv_mass, h):
+    """The spring's motion a step back and a step ahead, ``(spring_flow(-h), spring_flow(h))``
+    for ``w2 = k inv_mass``, ``b = c inv_mass``: per-contact constants of a rollout, which it
+    computes once, before its loop (``ContactLaw.step_factors``)."""
+    heavy = inv_mass > 0.0
+    im = _safe(inv_mass, heavy)
+    return spring_flow(-h, k * im, c * im), spring_flow(h, k * im, c * im)
+
+
+def _stay(x, xp, a, flows):
+    """In contact over the last step: the spring's motion through both samples, followed for
+    ``h`` (``flows`` :func:`event_step_factors`); its depth there (m) and its rate at ``t``
+    (m/s)."""
+    back, ahead = flows
+    un = (xp - back[0] * x - a * back[4]) / back[1]
+    return _along(ahead, x, un, a)[0], un
+
+
+def _crossing(x, u, w2, b, a, h, flows):
+    """The continuous motion's depth at ``t + h`` (m) through the samples ``x`` at ``t`` and
+    ``xp = x - h u`` at ``t - h`` (``u`` the secant rate of penetration, m/s; ``a`` the other
+    acceleration into contact, m/s^2), every case (module docstring)."""
+    xp = x - h * u
+    # apart over the last step: the parabola through both samples (U its rate at t), then
+    # the spring from the crossing s1 later
+    U = u + 0.5 * a * h
+    x_free = x + h * u + a * h * h
+    xn = jnp.minimum(x, 0.0)
+    disc = U * U - 2.0 * a * xn
+    pos = disc > 0.0            # (a square root's derivative stays finite where unused)
+    den = U + jnp.where(pos, jnp.sqrt(_safe(disc, pos)), 0.0)
+    s1 = jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
+    x_enter = _along(spring_flow(h - s1, w2, b), 0.0, U + a * s1, a)[0]
+    x_i = jnp.where(x_free <= 0.0, x_free, x_enter)
+    # in contact over the last step: the spring's motion (rate un at t); where it leaves
+    # before t + h (s2 later, Newton's method), the parabola from there
+    x_stay, un = _stay(x, xp, a, flows)
+
+    def exit_time(s2):
+        f, df = _along(spring_flow(s2, w2, b), x, un, a)
+        return (jnp.clip(s2 - f / _safe(df, df < 0.0), 0.0, h),)
+    s2, = _newton(exit_time, (jnp.clip(h * x / _safe(x - x_stay, x - x_stay > 0.0), 0.0, h),))
+    ue = _along(spring_flow(s2, w2, b), x, un, a)[1]
+    x_ii = jnp.where(x_stay >= 0.0, x_stay, ue * (h - s2) + 0.5 * a * (h - s2) ** 2)
+
+    def solve(res, s, v):       # Newton's method on (s, v) for res(s, v) = 0 (2 x 2)
+        r1, r2, j11, j12, j21, j22 = res(s, v)
+        det = j11 * j22 - j12 * j21
+        det = _safe(det, det != 0.0)
+        return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+
+    def entered(s3, v3):        # s3 since the crossing, v3 the rate at the crossing
+        g = h - s3
+        p = spring_flow(s3, w2, b)
+        d3, u3 = _along(p, 0.0, v3, a)
+        return (-v3 * g + 0.5 * a * g * g - xp, d3 - x, v3 - a * g, -g, u3, p[1])
+    s3, v3 = _newton(lambda s, v: solve(entered, s, v),
+                     (jnp.clip(h * x / _safe(x - xp, x - xp > 0.0), 0.0, h), u))
+    x_iii = _along(spring_flow(s3 + h, w2, b), 0.0, v3, a)[0]
+
+    def left(s4, v4):           # s4 since the exit, v4 the rate at the exit
+        p = spring_flow(s4 - h, w2, b)
+        d4, u4 = _along(p, 0.0, v4, a)
+        return (v4 * s4 + 0.5 * a * s4 * s4 - x, d4 - xp, v4 + a * s4, s4, u4, p[1])
+    s4, v4 = _newton(lambda s, v: solve(left, s, v),
+                     (jnp.clip(-h * x / _safe(xp - x, xp - x > 0.0), 0.0, h), u))
+    x_iv = x + h * (v4 + a * s4) + 0.5 * a * h * h
+    was_in, now_in = xp > 0.0, x > 0.0
+    return jnp.where(was_in, jnp.where(now_in, x_ii, x_iv), jnp.where(now_in, x_iii, x_i))
+
+
+def _next_depth(x, u, w2, b, a, h, flows):
+    """``_crossing``, with the common cases first: apart over both steps and the next (the
+    parabola; also returns True there: no force) and in contact over both and the next (the
+    spring alone). One rollout (no batch) then runs the crossing's Newton solves only in the
+    steps that need them; under ``jax.vmap`` every case is computed."""
+    xp = x - h * u
+    x_free = x + h * u + a * h * h
+    apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
+
+    def not_apart(_):
+        stay = _stay(x, xp, a, flows)[0]
+        simple = jnp.all((x > 0.0) & (xp > 0.0) & (stay >= 0.0))
+        return jax.lax.cond(simple, lambda _: stay,
+                            lambda _: _crossing(x, u, w2, b, a, h, flows), None)
+    nxt = jax.lax.cond(jnp.all(apart), lambda _: x_free, not_apart, None)
+    return nxt, apart
+
+
+def linear_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
+    """The linear law's event-exact one-contact force (N): ``m (a - (X_{n+1} - d_n - h
+    u_n) / h^2)``, ``X_{n+1}`` the continuous motion's depth at the next step time through
+    the last two positions (module docstring); exactly 0 while the body stays apart. ``d``
+    m, ``vn`` m/s separating, ``k`` N/m, ``c`` N s/m, ``h`` s, ``inv_mass`` 1/kg (the
+    contact's effective inverse mass), ``accel`` m/s^2 (the other separating acceleration);
+    elementwise. ``lag`` is semi-implicit Euler's ``h / 2`` (the records are used only
+    there); ``factors``: :func:`event_step_factors` computed beforehand (a rollout computes
+    them once, outside its loop), or None to compute them here."""
+    heavy = inv_mass > 0.0
+    im = _safe(inv_mass, heavy)
+    w2, b, a, u = k * im, c * im, -accel, -vn
+    flows = event_step_factors(k, c, inv_mass, h) if factors is None else factors
+    nxt, apart = _next_depth(d, u, w2, b, a, h, flows)
+    force = (a - (nxt - d - h * u) / (h * h)) / im
+    pointwise = jnp.where(d > 0.0, k * d - c * vn, 0.0)
+    return jnp.where(heavy, jnp.where(apart, 0.0, force), pointwise)
