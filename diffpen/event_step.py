@@ -47,7 +47,8 @@ import jax.numpy as jnp
 
 __all__ = ["spring_flow", "event_step_factors", "linear_events"]
 
-_TERMS = 10         # Taylor terms of exp(A tau / 16): |w0 tau| <= 4 gives 0.25^11 / 11! ~ 6e-15
+_TERMS = 10     # Taylor terms of exp(A tau / 16); |w0 tau|, |b tau| <= 4 (tau <= 2 h inside the
+#                explicit limits w0 h < 2, b h < 2) give 0.25^11 / 11! ~ 6e-15
 _SQUARINGS = 4
 _NEWTON = 4
 
@@ -165,8 +166,8 @@ def _crossing(x, u, w2, b, a, h, flows):
 def _next_depth(x, u, w2, b, a, h, flows):
     """``_crossing``, with the common cases first: apart over both steps and the next (the
     parabola; also returns True there: no force) and in contact over both and the next (the
-    spring alone). One rollout (no batch) then runs the crossing's Newton solves only in the
-    steps that need them; under ``jax.vmap`` every case is computed."""
+    spring alone). One rollout (no batch) then runs the crossing's Newton solve only in the
+    steps that need it; under ``jax.vmap`` every case is computed."""
     xp = x - h * u
     x_free = x + h * u + a * h * h
     apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
