@@ -1,6 +1,6 @@
-"""The event-exact one-contact step of the linear law: the force with which a kick-then-drift
-step (semi-implicit Euler) lands on the continuous motion's position at the next step time,
-also when a contact starts or ends inside the step.
+"""The event-exact one-contact step of the linear and no_tension laws: the force with which a
+kick-then-drift step (semi-implicit Euler) lands on the continuous motion's position at the
+next step time, also when a contact starts or ends inside the step.
 
 Semi-implicit Euler's positions are exact samples ``X_n`` of a continuous motion exactly when
 every step's force is ``F_n = m (a - (X_{n+1} - 2 X_n + X_{n-1}) / h^2)`` (``a`` the other
@@ -19,6 +19,11 @@ spring under its load while in contact (``d'' = a - w0^2 d - b d'``, ``w0^2 = k 
 * entered or left during the last step: the crossing time and speed solve the two samples'
   equations (Newton's method on two unknowns, from the straight line through the samples).
 
+no_tension (:func:`no_tension_events`) ends contact where the force ``k d + c d'`` reaches 0
+(the release, inside the surface), after which the body flies free: the spring through both
+samples where it pushes at both, else the parabola where the body is out of contact at both,
+else the crossing or the release within the last step, by the same solve.
+
 The spring's motion over a time ``tau`` is the exponential of its 3x3 augmented matrix,
 computed in arithmetic only (Taylor series at ``tau / 16``, then four squarings; XLA's
 ``exp``/``sin`` differ in their last bits between batch layouts, and sharded fits must equal
@@ -36,16 +41,17 @@ two steps (a contact shorter than about two steps is approximate; the explicit s
 limit keeps ``w0 h < 2``, a contact of at least ``pi / w0 > 1.57 h``).
 
 Cost against the default (centred) record on the quick-start ball (float32, one rollout):
-1.75-1.83x forward, 1.47-1.51x forward-mode gradient: only the steps next to a crossing run
-the Newton solve (``lax.cond``). Under ``jax.vmap`` every case runs in every step (~130x at
-1024 balls), which is why it is opt-in (README, "Event-exact contact").
+linear 1.75-1.83x forward, 1.47-1.51x forward-mode gradient; no_tension 1.67-1.74x and
+1.54-1.64x: only the steps next to a crossing run the Newton solve (``lax.cond``). Under
+``jax.vmap`` every case runs in every step (~100-130x at 1024 balls), which is why it is
+opt-in (README, "Event-exact contact").
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
-__all__ = ["spring_flow", "event_step_factors", "linear_events"]
+__all__ = ["spring_flow", "event_step_factors", "linear_events", "no_tension_events"]
 
 _TERMS = 10     # Taylor terms of exp(A tau / 16); |w0 tau|, |b tau| <= 4 (tau <= 2 h inside the
 #                explicit limits w0 h < 2, b h < 2) give 0.25^11 / 11! ~ 6e-15
@@ -198,3 +204,98 @@ def linear_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     force = (a - (nxt - d - h * u) / (h * h)) / im
     pointwise = jnp.where(d > 0.0, k * d - c * vn, 0.0)
     return jnp.where(heavy, jnp.where(apart, 0.0, force), pointwise)
+
+
+def _no_tension_crossing(x, u, w2, b, a, h, flows):
+    """:func:`_crossing` for the no_tension law: contact is where ``x > 0`` and the force
+    ``w2 x + b u`` (per unit mass) pushes; it starts at ``x = 0`` and ends where the force
+    reaches 0 (the release, ``x_r = -b v / w2`` for a release rate ``v``), after which the
+    body flies free, still inside the surface for a while. By the two samples: the spring
+    through both where it pushes at both, else the parabola through both where the body is
+    out of contact at both, else entered (``xp <= 0 < x``) or released during the last step
+    (the spring to the release, then the parabola: Newton's method on the release time and
+    rate)."""
+    xp = x - h * u
+    U = u + 0.5 * a * h                        # the parabola's rate at t
+    x_free = x + h * u + a * h * h
+    x_stay, un = _stay(x, xp, a, flows)
+    back = flows[0]
+    up = back[2] * x + back[3] * un + a * back[5]     # the spring's rate at t - h
+
+    def pushes(d, r):
+        return (d > 0.0) & (w2 * d + b * r > 0.0)
+    spring = pushes(x, un) & pushes(xp, up)
+    free = ~spring & ~pushes(x, U) & ~pushes(xp, U - a * h)
+    entered = ~spring & ~free & (xp <= 0.0)
+    released = ~spring & ~free & ~entered
+    xn = jnp.minimum(x, 0.0)
+    disc = U * U - 2.0 * a * xn
+    pos = disc > 0.0
+    den = U + jnp.where(pos, jnp.sqrt(_safe(disc, pos)), 0.0)
+    s1 = jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
+    inv_w2 = 1.0 / _safe(w2, w2 > 0.0)
+    f_now, f_prev = w2 * x + b * un, w2 * xp + b * up
+    f_next = w2 * x_stay + b * _along(flows[1], x, un, a)[1]
+    s0 = jnp.where(spring, h * f_now / _safe(f_now - f_next, f_now - f_next > 0.0),
+                   jnp.where(entered, h * x / _safe(x - xp, x - xp > 0.0),
+                             -h * f_now / _safe(f_prev - f_now, f_prev - f_now > 0.0)))
+    x0 = jnp.where(spring, x, 0.0)
+
+    def iterate(s, v):
+        xr = -b * v * inv_w2                     # the release depth of a release rate v
+        p = spring_flow(jnp.where(released, s - h, s), w2, b)
+        start = jnp.where(spring, x, jnp.where(entered, 0.0, xr))
+        d, r = _along(p, start, v, a)
+        acc = a - w2 * d - b * r
+        g = h - s
+        r1 = jnp.where(spring, w2 * d + b * r,
+                       jnp.where(entered, -v * g + 0.5 * a * g * g - xp,
+                                 xr + v * s + 0.5 * a * s * s - x))
+        r2 = jnp.where(spring, 0.0, d - jnp.where(entered, x, xp))
+        j11 = jnp.where(spring, w2 * r + b * acc,
+                        jnp.where(entered, v - a * g, v + a * s))
+        j12 = jnp.where(spring, 0.0, jnp.where(entered, -g, s - b * inv_w2))
+        j21 = jnp.where(spring, 0.0, r)
+        j22 = jnp.where(spring, 1.0, jnp.where(entered, p[1], p[1] - b * inv_w2 * p[0]))
+        det = j11 * j22 - j12 * j21
+        det = _safe(det, det != 0.0)
+        return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+    s, v = _newton(iterate, (jnp.clip(s0, 0.0, h), jnp.where(spring, un, u)))
+    tau = jnp.where(spring, s, jnp.where(entered, s + h, h - s1))
+    d, r = _along(spring_flow(tau, w2, b), x0, jnp.where(spring | entered, v, U + a * s1), a)
+    x_apart = jnp.where((x > 0.0) | (x_free <= 0.0), x_free, d)
+    x_spring = jnp.where(f_next > 0.0, x_stay, d + r * (h - s) + 0.5 * a * (h - s) ** 2)
+    x_released = x + h * (v + a * s) + 0.5 * a * h * h
+    nxt = jnp.where(spring, x_spring, jnp.where(free, x_apart,
+                                                 jnp.where(entered, d, x_released)))
+    return nxt, free & ((x > 0.0) | (x_free <= 0.0))
+
+
+def no_tension_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
+    """:func:`linear_events` for the no_tension law (``F = max(k d - c vn, 0)`` in contact):
+    the force whose step lands on the continuous motion through contact start, release and
+    the free flight after it (:func:`_no_tension_crossing`); exactly 0 while the body flies
+    free."""
+    heavy = inv_mass > 0.0
+    im = _safe(inv_mass, heavy)
+    w2, b, a, u = k * im, c * im, -accel, -vn
+    flows = event_step_factors(k, c, inv_mass, h) if factors is None else factors
+    xp = d - h * u
+    x_free = d + h * u + a * h * h
+    apart = (x_free <= 0.0) & (d <= 0.0) & (xp <= 0.0)
+
+    def general(_):
+        return _no_tension_crossing(d, u, w2, b, a, h, flows)
+
+    def not_apart(_):               # pushing at t - h, t and t + h: the spring alone
+        stay, un = _stay(d, xp, a, flows)
+        back, ahead = flows
+        up = back[2] * d + back[3] * un + a * back[5]
+        un1 = _along(ahead, d, un, a)[1]
+        simple = jnp.all((xp > 0.0) & (d > 0.0) & (stay > 0.0) & (w2 * xp + b * up > 0.0)
+                         & (w2 * d + b * un > 0.0) & (w2 * stay + b * un1 > 0.0))
+        return jax.lax.cond(simple, lambda _: (stay, jnp.zeros_like(apart)), general, None)
+    nxt, free = jax.lax.cond(jnp.all(apart), lambda _: (x_free, apart), not_apart, None)
+    force = (a - (nxt - d - h * u) / (h * h)) / im
+    pointwise = jnp.maximum(jnp.where(d > 0.0, k * d - c * vn, 0.0), 0.0)
+    return jnp.where(heavy, jnp.where(free, 0.0, force), pointwise)

@@ -38,9 +38,9 @@ the linear laws; for Hunt-Crossley with ``n != 1`` the window's mean of ``d^n`` 
 centred=True)``; the exact records ``linear(exact=True)``, ``no_tension(exact=True)``;
 ``diffpen.compile`` takes the centred record for a law named by a string on scenes of one
 contact): the damping at the step window's centre speed, and the step that reproduces a
-damped spring exactly, are :mod:`diffpen.one_contact` (why, figures, costs). The linear law's
-event-exact record ``linear(events=True)`` (opt-in) is exact through contact start and end
-too: :mod:`diffpen.event_step`.
+damped spring exactly, are :mod:`diffpen.one_contact` (why, figures, costs). The event-exact
+records ``linear(events=True)`` and ``no_tension(events=True)`` (opt-in) are exact through
+contact start and end too: :mod:`diffpen.event_step`.
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ from typing import Callable
 
 import jax.numpy as jnp
 
-from .event_step import event_step_factors, linear_events
+from .event_step import event_step_factors, linear_events, no_tension_events
 from .one_contact import (exact_step_factors, hunt_crossley_centred, linear_centred,
                           linear_exact, no_tension_centred, no_tension_exact)
 from .window import window_mean
@@ -385,14 +385,20 @@ def linear(centred: bool = False, exact: bool = False, events: bool = False) -> 
                                     if events else None))
 
 
-def no_tension(centred: bool = False, exact: bool = False) -> ContactLaw:
+def no_tension(centred: bool = False, exact: bool = False, events: bool = False) -> ContactLaw:
     """``F = max(k d - c vn, 0)`` in contact (never pulls); Schwager & Poschel's closed
     forms. ``centred``: damping at the step window's centre speed; ``exact``: a one-contact
-    record that steps the damped spring exactly while it pushes (module docstring)."""
-    one = no_tension_exact if exact else no_tension_centred if centred else None
+    record that steps the damped spring exactly while it pushes (module docstring);
+    ``events``: a one-contact record exact through contact start and release too
+    (:mod:`diffpen.event_step`)."""
+    if events and (centred or exact):
+        raise ValueError("no_tension(): choose one of centred=True, exact=True, events=True")
+    one = (no_tension_events if events else no_tension_exact if exact
+           else no_tension_centred if centred else None)
     return ContactLaw("no_tension", no_tension_contact, _no_tension_averaged, _linear_energy,
                       _linear_rest, _linear_stiffness, 1.0, "no_tension", one,
-                      step_factors=exact_step_factors if exact else None)
+                      step_factors=(exact_step_factors if exact else event_step_factors
+                                    if events else None))
 
 
 def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:

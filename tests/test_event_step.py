@@ -30,13 +30,16 @@ def test_spring_flow_is_the_matrix_exponential(w2, b):
 
 
 def test_only_one_one_contact_record_at_a_time():
-    with pytest.raises(ValueError, match="choose one"):
-        laws.linear(exact=True, events=True)
+    for law in (laws.linear, laws.no_tension):
+        with pytest.raises(ValueError, match="choose one"):
+            law(exact=True, events=True)
 
 
-def _continuous(z0, v0, k, c, m, r, times):
-    """Heights at ``times`` of a ball (linear law, may pull) started at (z0, v0): free flight
-    and contact solved piece by piece with DOP853, the crossings located as events."""
+def _continuous(z0, v0, k, c, m, r, times, law="linear"):
+    """Heights at ``times`` of a ball started at (z0, v0): free flight and contact solved
+    piece by piece with DOP853, the contact's start (the surface reached from outside) and
+    end (the surface reached from inside for the linear law, which may pull; the force
+    reaching 0 for no_tension, which then flies free inside the surface) located as events."""
     def free(t, y):
         return [y[1], -G]
 
@@ -46,11 +49,17 @@ def _continuous(z0, v0, k, c, m, r, times):
     def touch(t, y):
         return y[0] - r
     touch.terminal = True
+    touch.direction = -1.0
+
+    def release(t, y):
+        return y[0] - r if law == "linear" else k * (r - y[0]) - c * y[1]
+    release.terminal = True
+    release.direction = 1.0 if law == "linear" else -1.0
     t, y, out, inside = 0.0, [z0, v0], [], False
     while t < times[-1]:
-        touch.direction = 1.0 if inside else -1.0
         sol = solve_ivp(contact if inside else free, (t, times[-1]), y, method="DOP853",
-                        rtol=1e-13, atol=1e-15, events=touch, dense_output=True)
+                        rtol=1e-13, atol=1e-15, events=release if inside else touch,
+                        dense_output=True)
         end = sol.t_events[0][0] if sol.t_events[0].size else times[-1]
         sel = (times >= t) & (times <= end)
         out.append(sol.sol(times[sel])[0])
@@ -61,25 +70,28 @@ def _continuous(z0, v0, k, c, m, r, times):
     return np.concatenate(out)
 
 
-def test_positions_are_samples_of_the_continuous_motion_through_contact_start_and_end():
-    """The 0.3 kg ball (k 3e4, c 15, w h 0.32) dropped onto the plane at dt = 1e-3: with
-    ``linear(events=True)`` the positions of a rollout (semi-implicit Euler: its velocity is
-    the secant of the last step, so the continuous motion starts at ``v0 - g h / 2``) are the
-    continuous motion's at every step time, before, through and after the contact, within
-    1e-10 m; the exact record (exact only inside contact) is 1e-6 m off or more after the
-    bounce. The batched rollout equals the single ones."""
-    m, r, k, c, h, steps = 0.3, 0.1, 3e4, 15.0, 1e-3, 400
+@pytest.mark.parametrize("law, c", [(laws.linear, 15.0), (laws.no_tension, 60.0)],
+                         ids=["linear", "no_tension"])
+def test_positions_are_samples_of_the_continuous_motion_through_contact_start_and_end(law, c):
+    """The 0.3 kg ball (k 3e4, c 15 linear / 60 no_tension, w h 0.32) dropped onto the plane
+    at dt = 1e-3: with ``events=True`` the positions of a rollout (semi-implicit Euler: its
+    velocity is the secant of the last step, so the continuous motion starts at
+    ``v0 - g h / 2``) are the continuous motion's at every step time, before, through and
+    after the contact (for no_tension also through the release and the free flight inside
+    the surface after it), within 1e-10 m; the exact record (exact only inside contact) is
+    1e-6 m off or more after the bounce. The batched rollout equals the single ones."""
+    m, r, k, h, steps = 0.3, 0.1, 3e4, 1e-3, 400
     scene = dp.Scene()
     scene.add_sphere(radius=r, mass=m, position=(0.0, 0.0, 0.25))
     scene.add_plane()
     times = np.arange(steps + 1) * h
-    want = _continuous(0.25, -G * h / 2, k, c, m, r, times)
+    want = _continuous(0.25, -G * h / 2, k, c, m, r, times, law().name)
 
     def heights(sim, k_):
         return sim.rollout(sim.params(k=k_, c=c), steps,
                            observe=lambda s: s.position[0, 2]).observed
-    events = dp.compile(scene, h, law=laws.linear(events=True), dtype=jnp.float64)
-    exact = dp.compile(scene, h, law=laws.linear(exact=True), dtype=jnp.float64)
+    events = dp.compile(scene, h, law=law(events=True), dtype=jnp.float64)
+    exact = dp.compile(scene, h, law=law(exact=True), dtype=jnp.float64)
     got = np.asarray(jax.jit(lambda k_: heights(events, k_))(k))
     assert np.min(got) < r - 1e-3                       # the ball did bounce
     np.testing.assert_allclose(got, want[1:], atol=1e-10, rtol=0)   # states after each step
@@ -139,3 +151,19 @@ def test_a_rollout_computes_the_spring_flows_once_outside_its_loop(monkeypatch):
     traj = sim.rollout(p, 300, save_every=300)
     np.testing.assert_allclose(np.asarray(traj.position[-1]), np.asarray(state.position),
                                rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("c", [30.0, 150.0])
+def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(c):
+    """The same pair with ``no_tension(events=True)``: the release (the force reaching 0
+    before the surfaces part) is located within the step, and the restitution is
+    Schwager & Poschel's closed form (``dp.physical.restitution``) within 1e-12 (the exact
+    record: 3.7e-6 at c 30, 2.7e-3 at c 150)."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
+    scene.add_sphere(radius=0.1, mass=3.0, position=(0.2031, 0.0, 0.0),
+                     velocity=(-0.5, 0.0, 0.0))
+    sim = dp.compile(scene, 1e-3, law=laws.no_tension(events=True), dtype=jnp.float64)
+    v = np.asarray(sim.rollout(sim.params(k=3e4, c=c), 300, save_every=300).velocity[-1, :, 0])
+    e = float(dp.physical.restitution(3e4, c, 0.75, law="no_tension"))
+    assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 1e-12
