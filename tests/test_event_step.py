@@ -167,3 +167,21 @@ def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(c
     v = np.asarray(sim.rollout(sim.params(k=3e4, c=c), 300, save_every=300).velocity[-1, :, 0])
     e = float(dp.physical.restitution(3e4, c, 0.75, law="no_tension"))
     assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 1e-12
+
+
+def test_reverse_mode_equals_forward_mode_through_a_bounce():
+    """Reverse-mode (``jax.grad``, the rollout's steps rematerialised, the Newton solve and
+    ``lax.cond`` inside) and forward-mode (``jax.jacfwd``) gradients of a loss over a
+    bouncing no_tension ball's heights agree to 1e-10 (measured 2e-14, linear too)."""
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=0.3, position=(0.0, 0.0, 0.25))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3, law=laws.no_tension(events=True), dtype=jnp.float64)
+
+    def loss(k, c):
+        z = sim.rollout(sim.params(k=k, c=c), 400, observe=lambda s: s.position[0, 2]).observed
+        return jnp.sum(z ** 2)
+    rev = np.asarray(jax.jit(jax.grad(loss, (0, 1)))(3e4, 60.0))
+    fwd = np.asarray(jax.jit(jax.jacfwd(loss, (0, 1)))(3e4, 60.0))
+    assert np.all(np.isfinite(rev)) and np.all(np.abs(fwd) > 0)
+    np.testing.assert_allclose(rev, fwd, rtol=1e-10)
