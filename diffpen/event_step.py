@@ -97,6 +97,24 @@ def _newton(update, init):
     return jax.lax.fori_loop(0, _NEWTON, lambda _, z: update(*z), init)
 
 
+def _newton_update(s, v, r1, r2, j11, j12, j21, j22, h):
+    """One Newton step on ``(s, v)`` for the residuals ``(r1, r2)`` and their Jacobian, ``s``
+    kept inside ``[0, h]``."""
+    det = j11 * j22 - j12 * j21
+    det = _safe(det, det != 0.0)
+    return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+
+
+def _entry_time(x, U, a, h):
+    """Time (s, in ``[0, h]``) until the parabola ``x + U s + a s^2 / 2`` from ``x <= 0``
+    reaches the surface (``h`` where it does not within the step)."""
+    xn = jnp.minimum(x, 0.0)
+    disc = U * U - 2.0 * a * xn
+    pos = disc > 0.0            # (a square root's derivative stays finite where unused)
+    den = U + jnp.where(pos, jnp.sqrt(_safe(disc, pos)), 0.0)
+    return jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
+
+
 def event_step_factors(k, c, inv_mass, h):
     """The spring's motion a step back and a step ahead, ``(spring_flow(-h), spring_flow(h))``
     for ``w2 = k inv_mass``, ``b = c inv_mass``: per-contact constants of a rollout, which it
@@ -128,11 +146,7 @@ def _crossing(x, u, w2, b, a, h, flows):
     # the spring from the crossing s1 later
     U = u + 0.5 * a * h
     x_free = x + h * u + a * h * h
-    xn = jnp.minimum(x, 0.0)
-    disc = U * U - 2.0 * a * xn
-    pos = disc > 0.0            # (a square root's derivative stays finite where unused)
-    den = U + jnp.where(pos, jnp.sqrt(_safe(disc, pos)), 0.0)
-    s1 = jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
+    s1 = _entry_time(x, U, a, h)
     # in contact over the last step: the spring's motion (rate un at t), leaving s later
     x_stay, un = _stay(x, xp, a, flows)
     # Newton's method on (s, v): in contact over the last step, s the exit time (v = un);
@@ -155,9 +169,7 @@ def _crossing(x, u, w2, b, a, h, flows):
         j11 = jnp.where(stayed, r, jnp.where(entered, v - a * g, v + a * s))
         j12 = jnp.where(stayed, 0.0, jnp.where(entered, -g, s))
         j21, j22 = jnp.where(stayed, 0.0, r), jnp.where(stayed, 1.0, p[1])
-        det = j11 * j22 - j12 * j21
-        det = _safe(det, det != 0.0)
-        return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+        return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
     s, v = _newton(iterate, (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)))
     # the last flow: apart, from the crossing s1 to t + h; stayed, to the exit s (its rate);
     # entered, from the crossing to t + h
@@ -187,6 +199,18 @@ def _next_depth(x, u, w2, b, a, h, flows):
     return nxt, apart
 
 
+def _events_force(next_depth, d, vn, k, c, h, inv_mass, accel, factors, pointwise):
+    """``m (a - (X_{n+1} - d - h u) / h^2)`` for ``next_depth(x, u, w2, b, a, h, flows) ->
+    (X_{n+1}, free)``; exactly 0 where ``free``; ``pointwise`` where ``inv_mass`` is 0."""
+    heavy = inv_mass > 0.0
+    im = _safe(inv_mass, heavy)
+    w2, b, a, u = k * im, c * im, -accel, -vn
+    flows = event_step_factors(k, c, inv_mass, h) if factors is None else factors
+    nxt, free = next_depth(d, u, w2, b, a, h, flows)
+    force = (a - (nxt - d - h * u) / (h * h)) / im
+    return jnp.where(heavy, jnp.where(free, 0.0, force), pointwise)
+
+
 def linear_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """The linear law's event-exact one-contact force (N): ``m (a - (X_{n+1} - d_n - h
     u_n) / h^2)``, ``X_{n+1}`` the continuous motion's depth at the next step time through
@@ -196,14 +220,8 @@ def linear_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     elementwise. ``lag`` is semi-implicit Euler's ``h / 2`` (the records are used only
     there); ``factors``: :func:`event_step_factors` computed beforehand (a rollout computes
     them once, outside its loop), or None to compute them here."""
-    heavy = inv_mass > 0.0
-    im = _safe(inv_mass, heavy)
-    w2, b, a, u = k * im, c * im, -accel, -vn
-    flows = event_step_factors(k, c, inv_mass, h) if factors is None else factors
-    nxt, apart = _next_depth(d, u, w2, b, a, h, flows)
-    force = (a - (nxt - d - h * u) / (h * h)) / im
-    pointwise = jnp.where(d > 0.0, k * d - c * vn, 0.0)
-    return jnp.where(heavy, jnp.where(apart, 0.0, force), pointwise)
+    return _events_force(_next_depth, d, vn, k, c, h, inv_mass, accel, factors,
+                         jnp.where(d > 0.0, k * d - c * vn, 0.0))
 
 
 def _no_tension_crossing(x, u, w2, b, a, h, flows):
@@ -228,11 +246,7 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
     free = ~spring & ~pushes(x, U) & ~pushes(xp, U - a * h)
     entered = ~spring & ~free & (xp <= 0.0)
     released = ~spring & ~free & ~entered
-    xn = jnp.minimum(x, 0.0)
-    disc = U * U - 2.0 * a * xn
-    pos = disc > 0.0
-    den = U + jnp.where(pos, jnp.sqrt(_safe(disc, pos)), 0.0)
-    s1 = jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
+    s1 = _entry_time(x, U, a, h)
     inv_w2 = 1.0 / _safe(w2, w2 > 0.0)
     f_now, f_prev = w2 * x + b * un, w2 * xp + b * up
     f_next = w2 * x_stay + b * _along(flows[1], x, un, a)[1]
@@ -257,9 +271,7 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
         j12 = jnp.where(spring, 0.0, jnp.where(entered, -g, s - b * inv_w2))
         j21 = jnp.where(spring, 0.0, r)
         j22 = jnp.where(spring, 1.0, jnp.where(entered, p[1], p[1] - b * inv_w2 * p[0]))
-        det = j11 * j22 - j12 * j21
-        det = _safe(det, det != 0.0)
-        return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+        return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
     s, v = _newton(iterate, (jnp.clip(s0, 0.0, h), jnp.where(spring, un, u)))
     tau = jnp.where(spring, s, jnp.where(entered, s + h, h - s1))
     d, r = _along(spring_flow(tau, w2, b), x0, jnp.where(spring | entered, v, U + a * s1), a)
@@ -271,31 +283,31 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
     return nxt, free & ((x > 0.0) | (x_free <= 0.0))
 
 
+def _no_tension_next(x, u, w2, b, a, h, flows):
+    """:func:`_no_tension_crossing`, with the common cases first (as :func:`_next_depth`):
+    apart over both steps and the next, and pushing at ``t - h``, ``t`` and ``t + h``."""
+    xp = x - h * u
+    x_free = x + h * u + a * h * h
+    apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
+
+    def general(_):
+        return _no_tension_crossing(x, u, w2, b, a, h, flows)
+
+    def not_apart(_):
+        stay, un = _stay(x, xp, a, flows)
+        back, ahead = flows
+        up = back[2] * x + back[3] * un + a * back[5]
+        un1 = _along(ahead, x, un, a)[1]
+        simple = jnp.all((xp > 0.0) & (x > 0.0) & (stay > 0.0) & (w2 * xp + b * up > 0.0)
+                         & (w2 * x + b * un > 0.0) & (w2 * stay + b * un1 > 0.0))
+        return jax.lax.cond(simple, lambda _: (stay, jnp.zeros_like(apart)), general, None)
+    return jax.lax.cond(jnp.all(apart), lambda _: (x_free, apart), not_apart, None)
+
+
 def no_tension_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """:func:`linear_events` for the no_tension law (``F = max(k d - c vn, 0)`` in contact):
     the force whose step lands on the continuous motion through contact start, release and
     the free flight after it (:func:`_no_tension_crossing`); exactly 0 while the body flies
     free."""
-    heavy = inv_mass > 0.0
-    im = _safe(inv_mass, heavy)
-    w2, b, a, u = k * im, c * im, -accel, -vn
-    flows = event_step_factors(k, c, inv_mass, h) if factors is None else factors
-    xp = d - h * u
-    x_free = d + h * u + a * h * h
-    apart = (x_free <= 0.0) & (d <= 0.0) & (xp <= 0.0)
-
-    def general(_):
-        return _no_tension_crossing(d, u, w2, b, a, h, flows)
-
-    def not_apart(_):               # pushing at t - h, t and t + h: the spring alone
-        stay, un = _stay(d, xp, a, flows)
-        back, ahead = flows
-        up = back[2] * d + back[3] * un + a * back[5]
-        un1 = _along(ahead, d, un, a)[1]
-        simple = jnp.all((xp > 0.0) & (d > 0.0) & (stay > 0.0) & (w2 * xp + b * up > 0.0)
-                         & (w2 * d + b * un > 0.0) & (w2 * stay + b * un1 > 0.0))
-        return jax.lax.cond(simple, lambda _: (stay, jnp.zeros_like(apart)), general, None)
-    nxt, free = jax.lax.cond(jnp.all(apart), lambda _: (x_free, apart), not_apart, None)
-    force = (a - (nxt - d - h * u) / (h * h)) / im
-    pointwise = jnp.maximum(jnp.where(d > 0.0, k * d - c * vn, 0.0), 0.0)
-    return jnp.where(heavy, jnp.where(free, 0.0, force), pointwise)
+    return _events_force(_no_tension_next, d, vn, k, c, h, inv_mass, accel, factors,
+                         jnp.maximum(jnp.where(d > 0.0, k * d - c * vn, 0.0), 0.0))
