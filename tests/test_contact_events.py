@@ -875,21 +875,28 @@ def test_exact_step_factors_against_the_roots():
     np.testing.assert_allclose(np.asarray(r32, float), np.asarray(r64), rtol=1e-6)
 
 
-def test_a_rollout_computes_the_exact_factors_once_outside_its_loop(monkeypatch):
+@pytest.mark.parametrize("record, module, name", [
+    ("exact", "one_contact", "exact_step_factors"),
+    ("events", "event_step", "event_step_factors")], ids=["exact", "events"])
+def test_a_rollout_computes_the_exact_factors_once_outside_its_loop(monkeypatch, record,
+                                                                    module, name):
     """Regression: the exact records' step constants (``exact_step_factors``) were computed
     inside the step, so a reverse-mode gradient (each step rematerialised) recomputed them
     and their derivatives at every step: 5.6x the centred record's time, against 0.96x now.
     A rollout now computes them once, before its loop (``Params.extra``), and the step reads
-    them; ``sim.step`` alone still computes its own. Both give the same states."""
+    them; ``sim.step`` alone still computes its own. Both give the same states. The same for
+    the event-exact record's one-step-back and one-step-ahead spring flows
+    (``event_step_factors``)."""
+    import importlib
     calls = []
-    real = laws.exact_step_factors
-    law = laws.linear(exact=True)          # its step_factors field: the rollout's one call
+    mod = importlib.import_module(f"diffpen.{module}")
+    real = getattr(mod, name)
+    law = laws.linear(**{record: True})    # its step_factors field: the rollout's one call
 
     def counted(*args):
         calls.append(1)
         return real(*args)
-    from diffpen import one_contact
-    monkeypatch.setattr(one_contact, "exact_step_factors", counted)   # what a step calls
+    monkeypatch.setattr(mod, name, counted)     # what a step calls
     s = dp.Scene()
     s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
     s.add_plane()

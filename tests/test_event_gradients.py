@@ -98,30 +98,24 @@ def test_centred_damping_values_within_half_a_percent(case):
     assert _err(dk[0], ref["dk"][0]) < 0.01 and _err(dc[0], ref["dc"][0]) < 0.01
 
 
+def _record_derivatives(case, law):
+    """Values and derivatives w.r.t. k and c of ``case``'s apexes 1-3 and contact durations
+    1-3 with the contact record ``law`` at dt = 1e-3 (float64, :func:`event_metrics_fn`)."""
+    f, _ = event_metrics_fn(case, 1e-3, record=law)
+    jac = jax.jit(jax.jacfwd(lambda k, c: (lambda y: (y, y))(f(k, c)), (0, 1), has_aux=True))
+    (dk, dc), val = jax.tree_util.tree_map(np.asarray, jac(case.k, case.c))
+    return val[:6], dk[:6], dc[:6]
+
+
 def test_exact_record_derivatives_match_the_continuous_ones():
     """``linear(exact=True)`` on the quick-start ball at dt = 1e-3: d apex1 / dk, dc and d
     duration / dk, dc of contacts 1-3 within 2% of the continuous system's (the event-located
     reference; measured <= 0.8% on apex 1, <= 0.2% on the durations except d duration2-3 /
     dc, up to 6.7% over impact phases), contact durations within 0.01% (the centred record
     0.04% short)."""
-    import jax.numpy as jnp
-
-    import diffpen as dp
     from diffpen import laws
-    from tuning.metrics import ball_metrics
-    from tuning.scenes import ball_scene
     case = QUICK
-    sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
-                     law=laws.linear(exact=True), dtype=jnp.float64)
-    steps = int(round(case.T / 1e-3))
-
-    def f(k, c):
-        p = sim.params(k=k, c=c)
-        bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
-        y = jnp.concatenate([bm.apex_heights, bm.contact_durations])
-        return y, y
-    (dk, dc), val = jax.tree_util.tree_map(
-        np.asarray, jax.jit(jax.jacfwd(f, (0, 1), has_aux=True))(case.k, case.c))
+    val, dk, dc = _record_derivatives(case, laws.linear(exact=True))
     ref = reference(case)
     assert _err(dk[0], ref["dk"][0]) < 0.02 and _err(dc[0], ref["dc"][0]) < 0.02
     assert np.all(_err(dk[3:6], ref["dk"][3:6]) < 0.02)
@@ -270,23 +264,8 @@ def test_event_exact_record_derivatives_equal_the_continuous_ones(case):
     d apex 3 / dc and 52% on d duration 2 / dc; over eight phases the exact record up to 87%
     and 246%, the centred record 161% and 573%; no_tension: under 2e-6, the exact record up
     to 8.8% on d duration 3 / dc at this phase)."""
-    import jax.numpy as jnp
-
-    import diffpen as dp
     from diffpen import laws
-    from tuning.metrics import ball_metrics
-    from tuning.scenes import ball_scene
-    sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
-                     law=getattr(laws, case.law)(events=True), dtype=jnp.float64)
-    steps = int(round(case.T / 1e-3))
-
-    def f(k, c):
-        p = sim.params(k=k, c=c)
-        bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
-        y = jnp.concatenate([bm.apex_heights, bm.contact_durations])
-        return y, y
-    (dk, dc), val = jax.tree_util.tree_map(
-        np.asarray, jax.jit(jax.jacfwd(f, (0, 1), has_aux=True))(case.k, case.c))
+    val, dk, dc = _record_derivatives(case, getattr(laws, case.law)(events=True))
     ref = reference(case)
     assert np.all(_err(val, ref["value"][:6]) < 5e-4), val / ref["value"][:6] - 1
     assert np.all(_err(dk, ref["dk"][:6]) < 5e-4), dk / ref["dk"][:6] - 1

@@ -121,38 +121,6 @@ def test_two_free_spheres_bounce_apart_at_the_closed_form_restitution():
     assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 1e-12
 
 
-def test_a_rollout_computes_the_spring_flows_once_outside_its_loop(monkeypatch):
-    """The record's one-step-back and one-step-ahead spring flows are constants of a
-    rollout (``ContactLaw.step_factors``): a rollout computes them before its loop and the
-    step reads them (a rematerialised reverse-mode step would otherwise recompute both
-    flows and their derivatives at every step); ``sim.step`` alone computes its own. Both
-    give the same states."""
-    from diffpen import event_step
-    calls = []
-    real = event_step.event_step_factors
-    law = laws.linear(events=True)          # its step_factors field: the rollout's one call
-
-    def counted(*args):
-        calls.append(1)
-        return real(*args)
-    monkeypatch.setattr(event_step, "event_step_factors", counted)   # what a step calls
-    s = dp.Scene()
-    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
-    s.add_plane()
-    sim = dp.compile(s, 1e-3, law=law, dtype=jnp.float64)
-    p = sim.params(k=1e4, c=20.0)
-    jax.make_jaxpr(jax.grad(lambda k: sim.rollout(sim.params(k=k, c=20.0), 50,
-                                                  save_every=50).position[-1, 0, 2]))(1e4)
-    assert calls == []                  # none from the step
-    state = sim.init_state()
-    for _ in range(300):
-        state = sim.step(p, state)
-    assert calls                        # the step alone computes them
-    traj = sim.rollout(p, 300, save_every=300)
-    np.testing.assert_allclose(np.asarray(traj.position[-1]), np.asarray(state.position),
-                               rtol=0, atol=1e-13)
-
-
 @pytest.mark.parametrize("c", [30.0, 150.0])
 def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(c):
     """The same pair with ``no_tension(events=True)``: the release (the force reaching 0
