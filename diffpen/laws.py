@@ -39,8 +39,9 @@ centred=True)``; the exact records ``linear(exact=True)``, ``no_tension(exact=Tr
 ``diffpen.compile`` takes the centred record for a law named by a string on scenes of one
 contact): the damping at the step window's centre speed, and the step that reproduces a
 damped spring exactly, are :mod:`diffpen.one_contact` (why, figures, costs). The event-exact
-records ``linear(events=True)`` and ``no_tension(events=True)`` (opt-in) are exact through
-contact start and end too: :mod:`diffpen.event_step`.
+records ``linear(events=True)``, ``no_tension(events=True)`` and ``hunt_crossley(n,
+events=True)`` (opt-in) are exact through contact start and end too (Hunt-Crossley to its
+Runge-Kutta flow's error): :mod:`diffpen.event_step`.
 """
 from __future__ import annotations
 
@@ -50,7 +51,8 @@ from typing import Callable
 
 import jax.numpy as jnp
 
-from .event_step import event_step_factors, linear_events, no_tension_events
+from .event_step import (event_step_factors, hunt_crossley_events, linear_events,
+                         no_tension_events)
 from .one_contact import (exact_step_factors, hunt_crossley_centred, linear_centred,
                           linear_exact, no_tension_centred, no_tension_exact)
 from .window import window_mean
@@ -401,9 +403,12 @@ def no_tension(centred: bool = False, exact: bool = False, events: bool = False)
                                     if events else None))
 
 
-def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:
+def hunt_crossley(exponent: float = 1.0, centred: bool = False,
+                  events: bool = False) -> ContactLaw:
     """``F = max(k - c vn, 0) d^n`` (Hunt-Crossley; ``n = 1.5`` is Hertz), ``n >= 1``.
-    ``centred``: damping at the step window's centre speed (module docstring)."""
+    ``centred``: damping at the step window's centre speed (module docstring); ``events``: a
+    one-contact record exact through contact start and end to its Runge-Kutta flow's error
+    (:func:`diffpen.event_step.hunt_crossley_events`)."""
     n = float(exponent)
     if not (math.isfinite(n) and n >= 1.0):
         raise ValueError(f"Hunt-Crossley exponent must be a finite number >= 1, got "
@@ -421,8 +426,12 @@ def hunt_crossley(exponent: float = 1.0, centred: bool = False) -> ContactLaw:
     def stiffness(k, c, d_ref):
         # dF/dd = n k d^(n-1), dF/dvn = c d^n: largest at the deepest depth considered
         return n * k * d_ref ** (n - 1.0), c * d_ref ** n
+    if events and centred:
+        raise ValueError("hunt_crossley(): choose one of centred=True, events=True")
+    one = (hunt_crossley_events(n) if events else hunt_crossley_centred(n) if centred
+           else None)
     return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
-                      stiffness, n, None, hunt_crossley_centred(n) if centred else None,
+                      stiffness, n, None, one,
                       damping_exponent=n, takes_exponent=True)
 
 
@@ -436,17 +445,19 @@ CONTACT_LAWS = {
 }
 
 
-def get(law, exponent: float = 1.0, centred: bool = False) -> ContactLaw:
+def get(law, exponent: float = 1.0, centred: bool = False, events: bool = False) -> ContactLaw:
     """The :class:`ContactLaw` for ``law``: a record (returned as is) or a name in
     :data:`CONTACT_LAWS` (``exponent`` goes to ``hunt_crossley``; ``centred`` builds the
-    name's record with its damping at the step window's centre). Raises ValueError naming
-    the choices otherwise."""
+    name's record with its damping at the step window's centre, ``events`` its event-exact
+    one-contact record, :mod:`diffpen.event_step`). Raises ValueError naming the choices
+    otherwise."""
     if isinstance(law, ContactLaw):
         return law
     if isinstance(law, str) and law in CONTACT_LAWS:
         if law == "hunt_crossley":
-            return hunt_crossley(exponent, centred)
-        return {"linear": linear, "no_tension": no_tension}[law](True) if centred \
-            else CONTACT_LAWS[law]
+            return hunt_crossley(exponent, centred, events)
+        if centred or events:
+            return {"linear": linear, "no_tension": no_tension}[law](centred, events=events)
+        return CONTACT_LAWS[law]
     raise ValueError(f"unknown contact law {law!r}; choose one of {sorted(CONTACT_LAWS)} or "
                      "pass a diffpen.laws.ContactLaw record.")

@@ -59,9 +59,9 @@ rematerialised reverse-mode step recomputed them and their derivatives at every 
 what a named law takes: the derivatives of apexes 2-3 ripple with the impact phase as much
 as with the centred record (quick-start ball 6-8% against 10-12%, the 0.3 kg ball's apex 2
 39% against 25%, over four phases), and forward-mode gradients cost more.
-``linear(events=True)`` and ``no_tension(events=True)`` (:mod:`diffpen.event_step`) also
-make the steps where a contact starts or ends exact, and with them the derivatives of apexes
-and contact times.
+``linear(events=True)``, ``no_tension(events=True)`` and ``hunt_crossley(n, events=True)``
+(:mod:`diffpen.event_step`) also make the steps where a contact starts or ends exact, and
+with them the derivatives of apexes and contact times.
 
 Why it is not the default everywhere: each contact estimates the centre speed from its own
 force and gravity only (``g_n``), which is exact for a body on one contact but not for a
