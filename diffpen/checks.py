@@ -187,6 +187,7 @@ def compile_arguments(scene, dt, integrator, law, exponent, smoothing, unroll, s
         if not math.isfinite(width) or width < 0.0:
             raise SceneError(f"smoothing width must be >= 0 metres (0 = exact max(d, 0)), "
                              f"got {smoothing!r}.")
+    _check_one_contact_record(scene, method, contact_law, width, builtin_terms)
     if (not isinstance(unroll, (int, np.integer)) or isinstance(unroll, bool)
             or unroll < 1):
         raise SceneError(f"unroll must be a positive integer, got {unroll!r}.")
@@ -194,6 +195,32 @@ def compile_arguments(scene, dt, integrator, law, exponent, smoothing, unroll, s
                                or isinstance(substeps, bool) or substeps < 1):
         raise SceneError(f"substeps must be a positive int or 'auto', got {substeps!r}.")
     return dt, method, contact_law, width
+
+
+def _check_one_contact_record(scene, method, contact_law, width, builtin_terms) -> None:
+    """A one-contact record (``ContactLaw.one_contact``: ``linear(exact=True)``,
+    ``events=True``) is a step of semi-implicit Euler for a body on one contact with the
+    exact ramp; anywhere else the integrators would take the plain step average in its
+    place, which is not what was asked for. Raises SceneError saying what to change."""
+    need = getattr(contact_law, "one_contact", None)
+    if need is None:
+        return
+    from .integrators import kick_then_drift
+    what = f"diffpen.laws.{contact_law.name}({need}=True)"
+    if not kick_then_drift(method):
+        raise SceneError(f"{what} is a step of semi-implicit Euler (its velocity lags the "
+                         f"position by h / 2), not of {method.name!r}; compile with "
+                         f"integrator='semi_implicit_euler', or give law={contact_law.name!r}.")
+    if width != 0.0:
+        raise SceneError(f"{what} steps the exact contact (smoothing 0), not a smoothed band "
+                         f"of {width:g} m; leave smoothing='auto' (or 0), or give "
+                         f"law={contact_law.name!r}.")
+    if not one_contact_per_body(scene, builtin_terms):
+        raise SceneError(f"{what} rebuilds each contact's motion from that contact and "
+                         "gravity alone, so it needs a scene where no body can feel more than "
+                         "one force besides gravity (spheres or particles, one pair that can "
+                         "touch, no box, spring, drag or custom term); this scene has more. "
+                         f"Give law={contact_law.name!r} (its records fit any scene).")
 
 
 def check_rollout_options(steps, save_every, substeps, checkpoint) -> None:

@@ -312,6 +312,11 @@ class ContactLaw:
       its ``factors=`` keyword when given (:func:`exact_step_factors` for the exact
       records): per-contact constants of the rollout, which a rollout computes once, before
       its loop, instead of at every (rematerialised) step. None: ``centred`` needs none.
+    one_contact: ``"exact"`` or ``"events"`` for the records whose ``centred`` is a
+      one-contact step (``linear(exact=True)``, ``events=True``): valid only for semi-implicit
+      Euler, the exact ramp (smoothing 0) and a scene where no body feels more than one force
+      besides gravity, which ``diffpen.compile`` checks (a SceneError elsewhere, instead of
+      the plain step average in its place). None: any scene.
 
     A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
     """
@@ -328,6 +333,7 @@ class ContactLaw:
     damping_exponent: float = 0.0
     takes_exponent: bool = False
     step_factors: Callable | None = None
+    one_contact: str | None = None
 
     def __call__(self, d, vn, k, c, width: float = 0.0):
         return self.force(d, vn, k, c, width)
@@ -384,7 +390,8 @@ def linear(centred: bool = False, exact: bool = False, events: bool = False) -> 
     return ContactLaw("linear", linear_contact, _linear_averaged, _linear_energy, _linear_rest,
                       _linear_stiffness, 1.0, "linear", one, pulls=True,
                       step_factors=(exact_step_factors if exact else event_step_factors
-                                    if events else None))
+                                    if events else None),
+                      one_contact="events" if events else "exact" if exact else None)
 
 
 def no_tension(centred: bool = False, exact: bool = False, events: bool = False) -> ContactLaw:
@@ -400,7 +407,8 @@ def no_tension(centred: bool = False, exact: bool = False, events: bool = False)
     return ContactLaw("no_tension", no_tension_contact, _no_tension_averaged, _linear_energy,
                       _linear_rest, _linear_stiffness, 1.0, "no_tension", one,
                       step_factors=(exact_step_factors if exact else event_step_factors
-                                    if events else None))
+                                    if events else None),
+                      one_contact="events" if events else "exact" if exact else None)
 
 
 def hunt_crossley(exponent: float = 1.0, centred: bool = False,
@@ -432,7 +440,8 @@ def hunt_crossley(exponent: float = 1.0, centred: bool = False,
            else None)
     return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
                       stiffness, n, None, one,
-                      damping_exponent=n, takes_exponent=True)
+                      damping_exponent=n, takes_exponent=True,
+                      one_contact="events" if events else None)
 
 
 #: Contact laws by name, for ``diffpen.compile(..., law=NAME)``: the records (Hunt-Crossley

@@ -45,6 +45,33 @@ def test_only_one_one_contact_record_at_a_time():
     assert laws.get("hunt_crossley", 1.5).centred is None
 
 
+def test_one_contact_records_refuse_what_they_do_not_step():
+    """Regression: an exact or event-exact record given with another integrator, a smoothing
+    band, or a scene where a body can feel two forces (a stack, a box) compiled and silently
+    took the plain step average (or, for the stack, rebuilt each contact's motion as if it
+    were the body's only one). Now ``diffpen.compile`` refuses it, saying what to change."""
+    ball = dp.Scene()
+    ball.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    ball.add_plane()
+    stack = dp.Scene()
+    stack.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1))
+    stack.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    stack.add_plane()
+    box = dp.Scene()
+    box.add_box((0.05, 0.05, 0.05), 0.4, (0.0, 0.0, 0.3))
+    box.add_plane()
+    for law in (laws.linear(events=True), laws.no_tension(exact=True),
+                laws.hunt_crossley(1.5, events=True)):
+        with pytest.raises(dp.SceneError, match="integrator='semi_implicit_euler'"):
+            dp.compile(ball, 1e-3, law=law, integrator="rk4")
+        with pytest.raises(dp.SceneError, match="smoothing='auto'"):
+            dp.compile(ball, 1e-3, law=law, smoothing=1e-3)
+        for scene in (stack, box):
+            with pytest.raises(dp.SceneError, match="more than one force"):
+                dp.compile(scene, 1e-3, law=law)
+    dp.compile(stack, 1e-3, law="linear")        # the named law fits any scene
+
+
 def _continuous(z0, v0, k, c, m, r, times, law="linear", n=1.0):
     """Heights at ``times`` of a ball started at (z0, v0): free flight and contact solved
     piece by piece with DOP853, the contact's start (the surface reached from outside) and
