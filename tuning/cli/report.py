@@ -242,13 +242,18 @@ def _gradients(args) -> int:
     from tuning.reports.gradient_check import EVENT_CASES, event_gradient_rows, event_gradient_table
     ev_dts = (1e-3,) if args.quick else (1e-3, 1e-4)
     events = event_gradient_rows(EVENT_CASES, ev_dts)
+    exact = event_gradient_rows(EVENT_CASES, ev_dts, events=True)
     if args.json:
-        dump_json({"rows": rows, "events": events})
+        dump_json({"rows": rows, "events": events, "event_exact": exact})
         return 0
     print("event metrics (apex heights, contact durations, max penetration) against the "
           "continuous derivatives (event-located DOP853 reference), semi-implicit Euler, "
           "default smoothing:")
     print(event_gradient_table(events))
+    print()
+    print("the same with each law's event-exact record (diffpen.laws.get(law, events=True)), "
+          "the default record's figures as 'before':")
+    print(event_gradient_table(exact, before=events))
     print()
     print("ball dropped from {:g} m, k = {:g} N/m, c = {:g} N s/m; apex = first rebound apex, "
           "z_T = height at 2 s".format(spec.height, spec.k, spec.c))

@@ -222,7 +222,7 @@ def event_reference(case: GradientCase, rel_step: float = 1e-5) -> dict:
 
 def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_implicit_euler",),
                         smoothing="auto", fd_steps=(), progress: Callable | None = None,
-                        centred: bool | None = None) -> list[dict]:
+                        centred: bool | None = None, events: bool = False) -> list[dict]:
     """jax derivatives of the event metrics w.r.t. k and c against the continuous system's.
 
     One row per (case, integrator, dt, metric, parameter): ``grad`` (jax.jacfwd of the
@@ -231,8 +231,11 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
     ``value_reference`` (the metric itself), and, for each relative step in ``fd_steps``, the
     library's own central difference (``fd``) and its relative gap to ``grad``
     (``fd_gap``; item 4 of the gradient issue: the landscape has no jumps). ``centred``:
-    the law's record as :func:`event_metrics_fn` takes it (None: the name, as compiled).
+    the law's record as :func:`event_metrics_fn` takes it (None: the name, as compiled);
+    ``events``: each case's law's event-exact record instead (``diffpen.laws.get(law,
+    exponent, events=True)``; semi-implicit Euler only).
     """
+    from diffpen import laws
     import jax
     say = progress or (lambda *_: None)
     rows = []
@@ -240,8 +243,9 @@ def event_gradient_rows(cases=EVENT_CASES, dts=(1e-3,), *, integrators=("semi_im
         ref = event_reference(case)
         for integ in integrators:
             for dt in dts:
+                record = laws.get(case.law, case.exponent, events=True) if events else None
                 f, _ = event_metrics_fn(case, dt, integrator=integ, smoothing=smoothing,
-                                        centred=centred)
+                                        centred=centred, record=record)
                 val = np.asarray(f(case.k, case.c))
                 jk, jc = (np.asarray(a) for a in jax.jit(jax.jacfwd(f, (0, 1)))(case.k, case.c))
                 fds = {}
