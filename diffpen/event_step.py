@@ -39,10 +39,12 @@ phases, ``event_phase_errors``): apexes 1-3 within 3.4e-6, derivatives of apexes
 durations within 0.16% (the centred record: up to 4% / 6%); n = 1 (k 3e4, c 3e3) within
 1.7e-4; positions through a bounce 8e-8 m off the continuous motion (centred 6.5e-5 m). The
 clamp ``max(., 0)`` acting inside contact (separating faster than ``k / c``) is not located,
-only followed by the flow. Cost against the centred record (float32, 3000 steps, one
-process): a bouncing Hertz ball 1.5x forward, 0.85x forward-mode gradient; a ball resting in
-contact, where every step shoots, 10x / 14x; 1024 batched balls ~150x; compile 1.1 s
-forward, 4.0 s forward-mode, 24 s reverse-mode (XLA's default options).
+only followed by the flow. The cases that need Newton's method share one solve and all cases
+one last flow (with separate solves: reverse-mode compile 24 s, 1024 batched ~150x). Cost
+against the centred record (float32, 3000 steps, one process, three runs): a bouncing Hertz
+ball 1.0-1.5x forward, 0.7-1.05x forward-mode gradient; a ball resting in contact, where
+every step shoots, 9-10x; 1024 batched balls ~95x; compile 1.0 s forward, 2.8 s
+forward-mode, 14 s reverse-mode (XLA's default options).
 
 The spring's motion over a time ``tau`` is the exponential of its 3x3 augmented matrix,
 computed in arithmetic only (Taylor series at ``tau / 16``, then four squarings; XLA's
@@ -362,15 +364,15 @@ def _hc_accel(x, r, kr, cr, a, n):
     return a - jnp.where(pos, jnp.maximum(p * (kr + cr * r), 0.0), 0.0)
 
 
-def _hc_flow(x, r, tau, kr, cr, a, n, grade=0, substeps=_RK_SUBSTEPS):
+def _hc_flow(x, r, tau, kr, cr, a, n, to_end):
     """Depth and rate after ``tau`` s (either sign) of the Hunt-Crossley motion from ``(x,
-    r)``: classical Runge-Kutta in ``substeps`` steps (exact for the free parabola). ``grade``
-    +1: the steps grow as ``(j / S)^2`` from the start (a flow from a contact start, where
-    ``x^n`` is not smooth), -1: they shrink towards the end (a flow to a contact end), 0:
-    equal."""
+    r)``: classical Runge-Kutta in ``_RK_SUBSTEPS`` steps (exact for the free parabola),
+    graded as ``(j / S)^2`` away from the flow's start, or, where ``to_end`` (a bool, or an
+    array of them), towards its end: the end where a contact starts or ends, where ``x^n``
+    is not smooth."""
     def t_of(j):
-        q = j / substeps
-        return tau * (q * q if grade == 1 else 1.0 - (1.0 - q) ** 2 if grade == -1 else q)
+        q = j / _RK_SUBSTEPS
+        return tau * jnp.where(to_end, 1.0 - (1.0 - q) ** 2, q * q)
 
     def rk4(j, z):
         x, r = z
@@ -384,17 +386,17 @@ def _hc_flow(x, r, tau, kr, cr, a, n, grade=0, substeps=_RK_SUBSTEPS):
         a4 = _hc_accel(x4, r4, kr, cr, a, n)
         return (x + (s / 6.0) * (r + 2.0 * r2 + 2.0 * r3 + r4),
                 r + (s / 6.0) * (a1 + 2.0 * a2 + 2.0 * a3 + a4))
-    return jax.lax.fori_loop(0, substeps, rk4, (x, r))
+    return jax.lax.fori_loop(0, _RK_SUBSTEPS, rk4, (x, r))
 
 
 def _hc_next(n):
     """``next_depth`` (as :func:`_next_depth`) of the Hunt-Crossley law of exponent ``n``."""
-    def flow(x, r, tau, kr, cr, a, grade=0):
-        return _hc_flow(x, r, tau, kr, cr, a, n, grade)
+    def flow(x, r, tau, kr, cr, a, to_end):
+        return _hc_flow(x, r, tau, kr, cr, a, n, to_end)
 
-    def flow_dv(x, r, tau, kr, cr, a, grade=0):
+    def flow_dv(x, r, tau, kr, cr, a, to_end):
         """flow's depth and rate, and the depth's derivative w.r.t. the starting rate"""
-        (y, ry), (dy, _) = jax.jvp(lambda v: flow(x, v, tau, kr, cr, a, grade), (r,),
+        (y, ry), (dy, _) = jax.jvp(lambda v: flow(x, v, tau, kr, cr, a, to_end), (r,),
                                    (jnp.ones_like(r),))
         return y, ry, dy
 
@@ -403,50 +405,50 @@ def _hc_next(n):
         ``t - h``: Newton's method from ``u + h acc / 2`` with its first slope kept (the
         slope changes by O(h^2) over the iterations)."""
         r = u + 0.5 * h * _hc_accel(x, u, kr, cr, a, n)
-        y, _, dy = flow_dv(x, r, -h, kr, cr, a, -1)
+        y, _, dy = flow_dv(x, r, -h, kr, cr, a, True)
         dy = _safe(dy, dy != 0.0)
         r = r - (y - xp) / dy
 
         def chord(_, r):
-            return r - (flow(x, r, -h, kr, cr, a, -1)[0] - xp) / dy
+            return r - (flow(x, r, -h, kr, cr, a, True)[0] - xp) / dy
         return jax.lax.fori_loop(0, _SHOOTING - 1, chord, r)
 
     def general(x, u, kr, cr, a, h, un, x_stay):
         """Every case (as :func:`_crossing`), given the contact motion's rate ``un`` at ``t``
-        through both samples and its depth ``x_stay`` at ``t + h``."""
+        through both samples and its depth ``x_stay`` at ``t + h``: the cases that need
+        Newton's method share one solve, and all cases one last flow."""
         xp, _, _, left, entered, stayed, U, x_free, s1 = _cases(x, u, a, h)
-        # apart over the last step: the parabola through both samples, the contact flow from
-        # its crossing s1 later
-        x_i = jnp.where(x_free <= 0.0, x_free, flow(jnp.zeros_like(x), U + a * s1, h - s1,
-                                                    kr, cr, a, 1)[0])
-        # in contact over the last step: where the motion through both samples leaves before
-        # t + h, the exit time s_e (Newton's method), then the parabola
-        def exit_time(_, s):
-            y, ry = flow(x, un, s, kr, cr, a, -1)
-            return jnp.clip(s - y / _safe(ry, ry != 0.0), 0.0, h)
-        s_e = jax.lax.fori_loop(0, _NEWTON, exit_time,
-                                jnp.clip(h * x / _safe(x - x_stay, x - x_stay > 0.0), 0.0, h))
-        _, r_e = flow(x, un, s_e, kr, cr, a, -1)
-        x_ii = jnp.where(x_stay >= 0.0, x_stay, r_e * (h - s_e) + 0.5 * a * (h - s_e) ** 2)
+        # Newton's method on (s, v): in contact over the last step, s the exit time (v = un;
+        # the flow from x towards the exit); entered during it, s the time since the
+        # crossing and v the rate there (the parabola back to xp, the flow from the crossing
+        # on to x); left during it, s the time since the exit and v the exit rate (the
+        # parabola on to x, the flow from the exit back to xp)
+        x0 = jnp.where(stayed, x, 0.0)
 
-        # entered during the last step: s the time since the crossing, v the rate there (the
-        # parabola back to xp, the contact flow on to x); left during it: s the time since
-        # the exit, v the exit rate (the parabola on to x, the contact flow back to xp)
         def iterate(_, z):
             s, v = z
             g = h - s
-            y, ry, dy = flow_dv(jnp.zeros_like(x), v, jnp.where(left, -g, s), kr, cr, a, 1)
-            r1 = jnp.where(entered, -v * g + 0.5 * a * g * g - xp, v * s + 0.5 * a * s * s - x)
-            r2 = y - jnp.where(entered, x, xp)
-            j11 = jnp.where(entered, v - a * g, v + a * s)
-            j12 = jnp.where(entered, -g, s)
-            return _newton_update(s, v, r1, r2, j11, j12, ry, dy, h)
-        s0 = jnp.where(entered, h * x / _safe(x - xp, x - xp > 0.0),
-                       -h * x / _safe(xp - x, xp - x > 0.0))
-        s, v = jax.lax.fori_loop(0, _NEWTON, iterate, (jnp.clip(s0, 0.0, h), u))
-        x_iii = flow(jnp.zeros_like(x), v, s + h, kr, cr, a, 1)[0]
+            y, ry, dy = flow_dv(x0, v, jnp.where(left, -g, s), kr, cr, a, stayed)
+            r1 = jnp.where(stayed, y, jnp.where(entered, -v * g + 0.5 * a * g * g - xp,
+                                                 v * s + 0.5 * a * s * s - x))
+            r2 = jnp.where(stayed, v - un, y - jnp.where(entered, x, xp))
+            j11 = jnp.where(stayed, ry, jnp.where(entered, v - a * g, v + a * s))
+            j12 = jnp.where(stayed, dy, jnp.where(entered, -g, s))
+            j21, j22 = jnp.where(stayed, 0.0, ry), jnp.where(stayed, 1.0, dy)
+            return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
+        s0 = jnp.where(stayed, h * x / _safe(x - x_stay, x - x_stay > 0.0),
+                       jnp.where(entered, h * x / _safe(x - xp, x - xp > 0.0),
+                                 -h * x / _safe(xp - x, xp - x > 0.0)))
+        s, v = jax.lax.fori_loop(0, _NEWTON, iterate,
+                                 (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)))
+        # the last flow: apart, from the parabola's crossing s1 to t + h; stayed, to the exit
+        # s (its rate there); entered, from the crossing to t + h
+        d, r = flow(x0, jnp.where(stayed | entered, v, U + a * s1),
+                    jnp.where(stayed, s, jnp.where(entered, s + h, h - s1)), kr, cr, a, stayed)
+        x_i = jnp.where(x_free <= 0.0, x_free, d)
+        x_ii = jnp.where(x_stay >= 0.0, x_stay, r * (h - s) + 0.5 * a * (h - s) ** 2)
         x_iv = x + h * (v + a * s) + 0.5 * a * h * h
-        return jnp.where(stayed, x_ii, jnp.where(entered, x_iii, jnp.where(left, x_iv, x_i)))
+        return jnp.where(stayed, x_ii, jnp.where(entered, d, jnp.where(left, x_iv, x_i)))
 
     def next_depth(x, u, kr, cr, a, h, _factors):
         xp = x - h * u
@@ -455,7 +457,7 @@ def _hc_next(n):
 
         def not_apart(_):
             un = shoot(x, xp, u, kr, cr, a, h)
-            x_stay = flow(x, un, h, kr, cr, a, -1)[0]
+            x_stay = flow(x, un, h, kr, cr, a, True)[0]
             simple = jnp.all((x > 0.0) & (xp > 0.0) & (x_stay >= 0.0))
             return jax.lax.cond(simple, lambda _: x_stay,
                                 lambda _: general(x, u, kr, cr, a, h, un, x_stay), None)
