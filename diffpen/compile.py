@@ -172,7 +172,8 @@ class Simulator:
             pinned=self.pinned.copy(), d_ref=np.maximum(self.radius.astype(float), 1e-3),
             bounds=tuple(b for t in self._terms for b in t.bound),
             contact_scale=contact_law.stiffness, dtype=self.dtype,
-            gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))))
+            gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
+            contact_wh=contact_law.safe_wh or _stability.SAFE_WH)
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())

@@ -264,6 +264,13 @@ def _hunt_crossley_averaged(exponent: float):
 
 
 # --------------------------------------------------------------------------- records
+#: ``ContactLaw.safe_wh`` of the event-exact linear and no_tension records (their steps follow
+#: the continuous motion through contact start and end, so the energy a held force injects
+#: there, what :data:`diffpen.stability.SAFE_WH` bounds, is not made; measured exact up to w h
+#: 1.26, with a contact of at least ``pi / (w h) > 2.5`` steps)
+EVENTS_SAFE_WH = 1.0
+
+
 @dataclasses.dataclass(frozen=True)
 class ContactLaw:
     """Everything about one contact law (a penalty force along the contact normal).
@@ -317,6 +324,13 @@ class ContactLaw:
       Euler, the exact ramp (smoothing 0) and a scene where no body feels more than one force
       besides gravity, which ``diffpen.compile`` checks (a SceneError elsewhere, instead of
       the plain step average in its place). None: any scene.
+    safe_wh: the largest ``w h`` (``w^2`` the contact's stiffness over its mass, ``h`` the
+      inner step) an explicit step is allowed with this law's contacts, or None for
+      :data:`diffpen.stability.SAFE_WH` (0.5: where a contact starts or ends inside a step,
+      a force held over the step injects energy ~ ``(w h)^2 / 4``). The event-exact linear
+      and no_tension records follow the continuous motion through those steps: 1.0 (their
+      apexes and contact times exact to 1e-5 at ``w h`` 0.95, restitution to 1e-15 up to
+      1.26).
 
     A record is callable as its pointwise force: ``law(d, vn, k, c, width)``.
     """
@@ -334,6 +348,7 @@ class ContactLaw:
     takes_exponent: bool = False
     step_factors: Callable | None = None
     one_contact: str | None = None
+    safe_wh: float | None = None
 
     def __call__(self, d, vn, k, c, width: float = 0.0):
         return self.force(d, vn, k, c, width)
@@ -391,7 +406,8 @@ def linear(centred: bool = False, exact: bool = False, events: bool = False) -> 
                       _linear_stiffness, 1.0, "linear", one, pulls=True,
                       step_factors=(exact_step_factors if exact else event_step_factors
                                     if events else None),
-                      one_contact="events" if events else "exact" if exact else None)
+                      one_contact="events" if events else "exact" if exact else None,
+                      safe_wh=EVENTS_SAFE_WH if events else None)
 
 
 def no_tension(centred: bool = False, exact: bool = False, events: bool = False) -> ContactLaw:
@@ -408,7 +424,8 @@ def no_tension(centred: bool = False, exact: bool = False, events: bool = False)
                       _linear_rest, _linear_stiffness, 1.0, "no_tension", one,
                       step_factors=(exact_step_factors if exact else event_step_factors
                                     if events else None),
-                      one_contact="events" if events else "exact" if exact else None)
+                      one_contact="events" if events else "exact" if exact else None,
+                      safe_wh=EVENTS_SAFE_WH if events else None)
 
 
 def hunt_crossley(exponent: float = 1.0, centred: bool = False,

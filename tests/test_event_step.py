@@ -145,6 +145,35 @@ def test_positions_are_samples_of_the_continuous_motion_through_contact_start_an
                                    atol=1e-12)
 
 
+def test_event_exact_records_take_steps_up_to_w_h_one():
+    """The safe step's contact limit ``w h <= 0.5`` bounds the energy a force held over a
+    step injects where a contact starts or ends inside it; the linear and no_tension
+    event-exact records follow the continuous motion through those steps, so they are held to
+    ``w h <= 1.0`` (``ContactLaw.safe_wh``) instead. The 0.3 kg ball (k 3e4, w h 0.95 at
+    dt 3e-3): its event-exact rollout runs and is the continuous motion within 1e-10 m at
+    every step time through the bounce; the default record is refused at that step, and so is
+    the event-exact record past w h 1.0 (k 4e4)."""
+    m, r, h, k, c, steps = 0.3, 0.1, 3e-3, 3e4, 15.0, 120
+    scene = dp.Scene()
+    scene.add_sphere(radius=r, mass=m, position=(0.0, 0.0, 0.25))
+    scene.add_plane()
+    want = _continuous(0.25, -G * h / 2, k, c, m, r, np.arange(steps + 1) * h)[1:]
+    sim = dp.compile(scene, h, law=laws.linear(events=True), dtype=jnp.float64)
+    assert sim.analysis.contact_wh == 1.0
+    got = np.asarray(sim.rollout(sim.params(k=k, c=c), steps,
+                                 observe=lambda s: s.position[0, 2]).observed)
+    assert np.min(got) < r - 4e-3                       # the ball did bounce
+    np.testing.assert_allclose(got, want, atol=1e-10, rtol=0)
+    with pytest.raises(dp.StabilityError, match="w h <= 1"):
+        sim.rollout(sim.params(k=4e4, c=c), 10)
+    plain = dp.compile(scene, h, law="linear", dtype=jnp.float64)
+    assert plain.analysis.contact_wh == 0.5
+    with pytest.raises(dp.StabilityError, match="w h <= 0.5"):
+        plain.rollout(plain.params(k=k, c=c), 10)
+    assert laws.no_tension(events=True).safe_wh == 1.0
+    assert laws.hunt_crossley(1.5, events=True).safe_wh is None
+
+
 def test_hunt_crossley_positions_follow_the_continuous_motion():
     """A Hertz ball (1 kg, hunt_crossley n 1.5, k 1e6 N/m^1.5, c 3e4) dropped onto the plane
     at dt = 1e-3 with ``hunt_crossley(1.5, events=True)``: the positions are the continuous

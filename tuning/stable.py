@@ -75,14 +75,16 @@ def rollout_unstable(sim, traj, params):
     return params_unstable(sim, params)
 
 
-def safe_contact_limits(h: float, mass: float) -> tuple[float, float]:
+def safe_contact_limits(h: float, mass: float,
+                        wh: float | None = None) -> tuple[float, float]:
     """Upper bounds (k_max N/m, c_max N s/m) of one contact on a body of ``mass`` kg that keep
     an explicit inner step of ``h`` s inside the safe step of :mod:`diffpen.stability`, with a
-    1% margin: ``sqrt(k / m) h <= SAFE_WH`` and ``c h / m <= SAFE_CH`` (these also keep the
-    step linearly stable: ``k h^2 + 2 c h < 4 m``)."""
+    1% margin: ``sqrt(k / m) h <= wh`` (default ``SAFE_WH``; a simulator's own is its
+    ``analysis.contact_wh``) and ``c h / m <= SAFE_CH`` (these also keep the step linearly
+    stable: ``k h^2 + 2 c h < 4 m``)."""
     h, m = float(h), float(mass)
-    return (0.99 * (_dp_stability.SAFE_WH / h) ** 2 * m,
-            0.99 * _dp_stability.SAFE_CH * m / h)
+    wh = _dp_stability.SAFE_WH if wh is None else float(wh)
+    return (0.99 * (wh / h) ** 2 * m, 0.99 * _dp_stability.SAFE_CH * m / h)
 
 
 def implicit_contact_limits(sim, mass: float | None = None) -> tuple[float, float]:
@@ -130,7 +132,8 @@ def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
             return math.inf, math.inf
     else:
         k_max, c_max = safe_contact_limits(an.inner_dt,
-                                           _light_mass(sim) if mass is None else mass)
+                                           _light_mass(sim) if mass is None else mass,
+                                           an.contact_wh)
     if an.contact_scale is not None:
         free = ~np.asarray(an.pinned)
         d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0

@@ -105,6 +105,8 @@ class Analysis(NamedTuple):
     contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
       and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
     dtype: the simulator's float dtype.  gravity: |g| of the scene, m/s^2.
+    contact_wh: the contact springs' safe ``w h`` (``SAFE_WH``, or the contact law's own,
+      ``diffpen.laws.ContactLaw.safe_wh``).
     """
     integrator: Integrator
     dt: float
@@ -116,6 +118,7 @@ class Analysis(NamedTuple):
     contact_scale: Callable | None
     dtype: Any
     gravity: float = 0.0
+    contact_wh: float = SAFE_WH
 
     @property
     def inner_dt(self) -> float:
@@ -283,7 +286,7 @@ def unsafe(an: Analysis, params, h=None):
 
     The same rows as the up-front check (:func:`rates` with ``jax.numpy``) and the same
     limits: ``h > min(SAFE_STABLE x stable_dt, SAFE_STABLE x the undamped limit,
-    SAFE_WH / w_c, SAFE_CH / C_c)``, the stability limit
+    contact_wh / w_c, SAFE_CH / C_c)``, the stability limit
     from the integrator's closed form when it has one (then it agrees with the up-front check
     to rounding), else from the spectral radius of its amplification matrix at
     ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Methods without a step limit
@@ -318,7 +321,7 @@ def unsafe(an: Analysis, params, h=None):
         bad = jnp.any(rho > 1.0 + margin)
     wc = jnp.sqrt(Kc)
     tie = 1.0 + SAFE_TIE
-    bad = bad | ((Kc > 0.0) & (SAFE_WH * tie / jnp.where(Kc > 0.0, wc, 1.0) < h))
+    bad = bad | ((Kc > 0.0) & (an.contact_wh * tie / jnp.where(Kc > 0.0, wc, 1.0) < h))
     bad = bad | ((Cc > 0.0) & (SAFE_CH * tie / jnp.where(Cc > 0.0, Cc, 1.0) < h))
     # a NaN or negative stiffness, damping or friction reads as no limit above (every
     # comparison with NaN is False; a negative value never reaches one): flag it too, and a

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import SceneError, StabilityError
 from .bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION, Analysis, rates
-from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, safe_dt, stable_dt
+from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, safe_dt, stable_dt
 
 __all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
 
@@ -28,9 +28,10 @@ class StabilityReport(NamedTuple):
     margin: stable_dt / inner_dt (> 1 stable; < 1 unstable).
     stable: margin > 1.
     safe_dt: largest inner step the rollout accepts, s: ``min(SAFE_STABLE x stable_dt,
-      SAFE_STABLE x the undamped limit at w_max, SAFE_WH / w_max_contact, SAFE_CH /
+      SAFE_STABLE x the undamped limit at w_max, contact_wh / w_max_contact, SAFE_CH /
       C_contact)`` for
-      explicit integrators (inf for implicit ones); see ``SAFE_WH``.
+      explicit integrators (inf for implicit ones); see ``SAFE_WH`` (``contact_wh``: it, or
+      the contact law's own, :class:`diffpen.stability.bounds.Analysis`).
     safe_margin: safe_dt / inner_dt; rollout raises StabilityError when it is < 1.
     safe: safe_margin >= 1 (a step equal to the safe step is accepted).
     substeps_needed: smallest substep count whose inner step is within safe_dt.
@@ -129,7 +130,7 @@ def report(sim, params, *, substeps: int | None = None,
     h = an.dt / substeps
     margin = math.inf if math.isinf(sdt) else sdt / h
     safe = safe_dt(rec, float(np.max(Kc, initial=0.0)), float(np.max(Cc, initial=0.0)), sdt,
-                   K)
+                   K, an.contact_wh)
     safe_margin = math.inf if math.isinf(safe) else safe / h
     body = int(np.argmax(K_row)) if K > 0.0 else None
     return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
@@ -282,7 +283,7 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
                f"stable but within {1.0 - SAFE_STABLE:.0%} of its stability limit, where "
                "oscillations grow without bound (or, damped, stop decaying) as the limit nears"
                if h > SAFE_STABLE * rep.stable_dt * (1.0 + SAFE_TIE) else
-               f"stable but past its safe step for contact (needs w h <= {SAFE_WH} and "
+               f"stable but past its safe step for contact (needs w h <= {an.contact_wh:g} and "
                f"c h / m <= {SAFE_CH}; here w h = {rep.omega_max * h:.3g}, c h / m = "
                f"{rep.damping_rate * h:.3g}, bounds from the stiffest and most damped contact:"
                " contact energy errors of several % or more)")

@@ -118,19 +118,21 @@ SAFE_CH = 1.0
 SAFE_STABLE = 0.9
 
 
-def safe_dt(integrator, Kc: float, Cc: float, stable: float, K: float = 0.0) -> float:
+def safe_dt(integrator, Kc: float, Cc: float, stable: float, K: float = 0.0,
+            wh: float = SAFE_WH) -> float:
     """Largest inner step (s) the rollout accepts (a step equal to it is accepted): the
     stability limit ``stable`` (s), tightened for explicit integrators to ``SAFE_STABLE`` of
-    it and of the undamped limit of the stiffest mode ``K`` (1/s^2), ``sqrt(Kc) h <= SAFE_WH``
-    and ``Cc h <= SAFE_CH`` where Kc (1/s^2), Cc (1/s) bound the contact springs alone
-    (springs that never switch off need no more than that)."""
+    it and of the undamped limit of the stiffest mode ``K`` (1/s^2), ``sqrt(Kc) h <= wh``
+    (``SAFE_WH``, or the contact law's own) and ``Cc h <= SAFE_CH`` where Kc (1/s^2), Cc
+    (1/s) bound the contact springs alone (springs that never switch off need no more than
+    that)."""
     if not resolve(integrator).explicit:
         return stable
     cands = [SAFE_STABLE * stable]
     if K > 0.0:
         cands.append(SAFE_STABLE * mode_stable_dt(integrator, K, 0.0))
     if Kc > 0.0:
-        cands.append(SAFE_WH / math.sqrt(Kc))
+        cands.append(wh / math.sqrt(Kc))
     if Cc > 0.0:
         cands.append(SAFE_CH / Cc)
     return min(cands)
