@@ -53,9 +53,8 @@ single-device ones bit for bit). Inside contact the result equals the exact reco
 (:func:`diffpen.one_contact.linear_exact`); where a contact starts or ends it is the continuous
 motion too, so the step's positions, and their derivatives with respect to ``k``, ``c`` and the
 state, are those of the continuous system with its contact events located exactly: apex
-heights, contact times and their derivatives at any impact phase, to rounding (the prototype
-in :mod:`tuning.reports.two_point` integrated the force along the same path by quadrature, at
-~50x the cost).
+heights, contact times and their derivatives at any impact phase, to rounding (an earlier
+prototype integrated the force along the same path by quadrature, at ~50x the cost).
 
 Assumes what the one-contact records assume (one contact per body, the load constant over a
 step, semi-implicit Euler's lag ``h / 2``), and at most one contact start and one end within

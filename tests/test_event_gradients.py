@@ -123,36 +123,6 @@ def test_exact_record_derivatives_match_the_continuous_ones():
     assert np.all(_err(val[3:6], ref["value"][3:6]) < 1e-4)
 
 
-@pytest.mark.slow
-def test_two_point_window_prototype_is_exact_on_the_stiff_ball():
-    """tuning.reports.two_point.two_point_window_law (prototype: the step window along the true
-    path through the last two positions) on the 0.3 kg ball (k 3e4, c 15, w h 0.32) at
-    dt = 1e-3: first apex, its d/dk and d/dc within 0.01% of the continuous system (measured < 0.001% on apexes 1-3 and durations at three impact
-    phases; the straight window 2.4% / 1.3% on apex 1 and 73% / 79% on apex 3)."""
-    import jax.numpy as jnp
-
-    import diffpen as dp
-    from tuning.scenes import ball_scene
-    from tuning.reports.two_point import two_point_window_law
-    case = EVENT_CASES[1]._replace(T=0.9)
-    sim = dp.compile(ball_scene(mass=case.mass, radius=case.radius, height=case.drop), 1e-3,
-                     law=two_point_window_law(case.mass), dtype=jnp.float64)
-
-    def apex1(k, c):
-        # 0.5 s: the first contact is over; in free flight semi-implicit Euler's positions lie
-        # on the exact parabola and the velocity at t_n is v_n - g h / 2
-        s = sim.rollout(sim.params(k=k, c=c), 500, save_every=500)
-        z, v = s.position[-1, 0, 2], s.velocity[-1, 0, 2] - 0.5 * 9.81 * 1e-3
-        a = z + v * v / (2 * 9.81) - case.radius
-        return a, a
-    # the value comes with the derivatives, from one compiled program
-    (dk, dc), val = jax.jit(jax.jacfwd(apex1, (0, 1), has_aux=True))(case.k, case.c)
-    val, dk, dc = float(val), float(dk), float(dc)
-    ref = reference(case)
-    assert _err(val, ref["value"][0]) < 1e-4
-    assert _err(dk, ref["dk"][0]) < 1e-4 and _err(dc, ref["dc"][0]) < 1e-4
-
-
 def test_the_landscape_has_no_jumps(at_default_dt):
     """The library's own central differences of the apexes agree with its jax derivative
     within 0.1% at relative steps 1e-4 ... 1e-6, and within 15% at 1e-2 (measured: <= 6%;

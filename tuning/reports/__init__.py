@@ -10,8 +10,6 @@
   (``diffpen report gradients``), and through contact events against the event-located ball;
 * :mod:`tuning.reports.box_gradients`: a box landing on a corner, derivatives w.r.t. k, c
   and mu against :class:`~tuning.reports.reference.BoxCornerReference`;
-* :mod:`tuning.reports.two_point`: the prototype contact law whose step window follows the
-  true two-point path (exact event terms, ~50x the default law's cost);
 * :mod:`tuning.reports.bench`: speed against baselines measured in the same process
   (``diffpen bench``): its cases and how they are run; :mod:`tuning.reports.floors`, the
   hand-written baselines; :mod:`tuning.reports.timing`, medians of calls taken in turns.
