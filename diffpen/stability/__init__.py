@@ -29,8 +29,9 @@ tightened to ``w_c h <= SAFE_WH = 0.5`` and ``C_c h <= SAFE_CH = 1`` for the con
 contact that switches on or off between steps injects energy ~ (w h)^2 / 4 (see SAFE_WH).
 A contact law may carry its own contact limit (``ContactLaw.safe_wh``, in the simulator's
 ``analysis.contact_wh``): the event-exact linear and no_tension records, which follow the
-continuous motion through those steps, are held to ``w_c h <= 1.0``. Past it, ``Simulator.rollout`` raises StabilityError naming the safe step and the substeps
-that reach it; ``substeps="auto"`` picks that count instead.
+continuous motion through those steps, are held to ``w_c h <= 1.0``. Past it,
+``Simulator.rollout`` raises StabilityError naming the safe step and the substeps that reach
+it; ``substeps="auto"`` picks that count instead.
 
 Traced stability: the same rows and limits are also evaluated inside the traced rollout
 (:func:`unsafe`, with ``jax.numpy``), so a rollout under ``jax.jit``, ``jax.vmap`` or
