@@ -42,6 +42,7 @@ from . import motion as _motion
 from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
+from .stability import depth as _depth
 from . import start_state as _start_state
 from . import stepping as _stepping
 from . import terms as _terms
@@ -97,9 +98,10 @@ class Simulator:
                              "scene.add_particle(...).")
         _checks.check_pairs(scene, broadphase)
         builders = _assembly.builders(terms)
+        builtin_terms = all(b in _terms.BUILTIN for b in builders)
         dt, method, contact_law, width = _checks.compile_arguments(
             scene, dt, integrator, law, exponent, smoothing, unroll, substeps,
-            builtin_terms=all(b in _terms.BUILTIN for b in builders))
+            builtin_terms=builtin_terms)
         exponent = float(contact_law.exponent)
 
 
@@ -173,7 +175,9 @@ class Simulator:
             bounds=tuple(b for t in self._terms for b in t.bound),
             contact_scale=contact_law.stiffness, dtype=self.dtype,
             gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
-            contact_wh=contact_law.safe_wh or _stability.SAFE_WH)
+            contact_wh=contact_law.safe_wh or _stability.SAFE_WH,
+            depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
+                scene, contact_law, builtin_terms, self._rigid is not None) else None))
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
@@ -356,15 +360,18 @@ class Simulator:
             self._steps[n] = _stepping.build(self, n)
         return self._steps[n]
 
-    def stability(self, params: Params):
+    def stability(self, params: Params, state: State | None = None):
         """Largest stable step of this integrator for ``params`` and the current margin.
 
         Returns a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
         stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
         Params must be concrete (not jit tracers): inside jit the rollout's
-        ``State.aux["unstable"]`` flag says the same.
+        ``State.aux["unstable"]`` flag says the same. ``state``: the start state a rollout
+        would take (default the scene's), whose energy bounds the depth of a contact law
+        that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
         """
-        rep = _stability.report(self.analysis, params)
+        rep = _stability.report(self.analysis, params, energy=self._start_energy(
+            self._init if state is None else state))
         if rep is None:
             raise SceneError("sim.stability(params) needs concrete parameter values, not "
                              "jit tracers.")
@@ -372,11 +379,12 @@ class Simulator:
 
     # ------------------------------------------------------------------ rollout
     def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, substeps=1,
-                      observe=None):
+                      observe=None, energy=None):
         self._rollout_traces[0] += 1           # runs only when JAX traces a new program
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
-        flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps)
+        # (energy: the start energy the up-front gate counted, diffpen.stability.depth)
+        flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps, energy=energy)
         # per-contact step constants of the law (ContactLaw.step_factors), once, outside
         # the loop (a rematerialised step would recompute them and their derivatives)
         params = self.context.with_step_factors(params, self.dt / substeps)
@@ -404,6 +412,16 @@ class Simulator:
         function's own dispatch cache counts host and device arrays of the same shape apart,
         without compiling anything."""
         return self._rollout_traces[0]
+
+    def _start_energy(self, state):
+        """The start energy (J) bounding the contacts' reference depth for a rollout from
+        ``state`` (:mod:`diffpen.stability.depth`), or None: the scene does not qualify, the
+        state is traced (under jit or vmap) or a body starts in contact."""
+        if self.analysis.depth_exponent is None or not all(
+                map(_is_concrete, (state.position, state.velocity))):
+            return None
+        return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
+                                   state.position, state.velocity)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,
@@ -454,9 +472,10 @@ class Simulator:
         _checks.warn_batched_recording(params, state, steps, given, observe)
         if state is None:
             state = self._init
+        energy = self._start_energy(state)
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
-                            cache=self.gate_cache)                # host-side only
+                            cache=self.gate_cache, energy=energy)  # host-side only
         if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
             # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
             # more substeps, a fixed count is refused (traced params never raise)
@@ -468,7 +487,7 @@ class Simulator:
         traj, finite = self._rollout_jit(
             params, state, steps=int(steps), save_every=int(save_every),
             checkpoint=None if checkpoint is None else int(checkpoint), substeps=int(n),
-            observe=observe)
+            observe=observe, energy=None if energy is None else jnp.asarray(energy, self.dtype))
         if check_finite:
             _checks.check_finite_trajectory(traj, save_every, self.dt, finite)
         if _is_concrete(traj.time if observe is not None else traj.position):

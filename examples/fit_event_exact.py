@@ -62,9 +62,9 @@ def fit_case(case, k0, c0):
             bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
             return {"apex_heights": bm.apex_heights, "contact_durations": bm.contact_durations}
         t0 = time.perf_counter()
-        # sim= caps k and c at the safe step, which takes Hunt-Crossley's stiffness at a
-        # penetration of the full radius (k <= 5.2e5 N/m^1.5 here, seven times this ball's
-        # deepest, 1.4 cm): the Hertz ball's fit goes without it
+        # sim= caps k and c at the safe step, whose bounds for a fit take Hunt-Crossley's
+        # stiffness at a penetration of the full radius (k <= 5.2e5 N/m^1.5 here; this ball
+        # sinks 1.4 cm): the Hertz ball's fit goes without them
         hertz = case.exponent != 1.0
         res = fit(metrics, sim.params(k=k0, c=c0), targets, method="lm", rtol=1e-6,
                   maxiter=40, sim=None if hertz else sim)

@@ -589,3 +589,48 @@ def test_implicit_euler_refuses_a_resting_depth_its_dtype_cannot_resolve():
         with pytest.raises(dp.StabilityError, match="wrong or NaN gradients"):
             light.rollout(light.params(k=k, c=0.4 * np.sqrt(k * 1e-4)), 10)
     light.rollout(light.params(k=1e4, c=0.4), 10)
+
+
+def _hertz_ball(**plane):
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    s.add_plane(**plane)
+    return s
+
+
+def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
+    """Regression: the safe step took Hunt-Crossley's stiffness at a penetration of the full
+    radius, so the Hertz ball (1 kg, n 1.5, k 1e6 N/m^1.5, c 3e4, dropped from 1 m: 1.4 cm
+    deep at most) was refused at dt 1 ms (w h 0.69 counted, 0.42 real). Where the scene lets
+    energy bound the depth (diffpen.stability.depth), a rollout counts the depth at which the
+    contact would store twice the start's energy (1.9 cm here: w h 0.45): the drop runs,
+    with the traced flag clear; from 30 m, or at k 1e7, it is still refused, and the traced
+    flag (parameters under jit) says the same. A vmapped start state, a body starting in
+    contact, a named (fittable) floor or a linear law keep the radius."""
+    sim = dp.compile(_hertz_ball(), 1e-3, law="hunt_crossley", exponent=1.5)
+    assert sim.analysis.depth_exponent == 1.5
+    p = sim.params(k=1e6, c=3e4)
+    traj = sim.rollout(p, 600, save_every=600)          # through the first bounce
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+    assert float(traj.position[-1, 0, 2]) > 0.3           # it bounced back up
+    assert sim.stability(p).safe
+    high = sim.state_from(body=[0], position=[[0.0, 0.0, 30.0]])
+    with pytest.raises(dp.StabilityError, match="past its safe step"):
+        sim.rollout(p, 10, state=high)
+    assert not sim.stability(p, high).safe
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(sim.params(k=1e7, c=3e4), 10)
+
+    def flag(k):
+        return jax.jit(lambda k: sim.rollout(sim.params(k=k, c=3e4), 2, save_every=2)
+                       .aux[stability.FLAG][-1])(k)
+    assert not bool(flag(1e6)) and bool(flag(1e7))
+    with pytest.raises(dp.StabilityError):              # a traced start: the radius again
+        jax.vmap(lambda z: sim.rollout(p, 2, state=sim.state_from(
+            body=[0], position=jnp.stack([0.0, 0.0, z])[None])).position[-1, 0, 2])(
+            jnp.array([1.0, 1.1]))
+    resting = sim.state_from(body=[0], position=[[0.0, 0.0, 0.099]])
+    assert sim._start_energy(resting) is None
+    named = dp.compile(_hertz_ball(name="ground"), 1e-3, law="hunt_crossley", exponent=1.5)
+    assert named.analysis.depth_exponent is None
+    assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None

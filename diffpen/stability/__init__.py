@@ -41,9 +41,15 @@ parameter values it was given; for implicit integrators (no step limit) it recor
 whether the float dtype cannot resolve the step (:func:`precision_unsafe`, the traced form of
 the float32 refusal). The flag is sticky and saved in ``Trajectory.aux``.
 
+A contact law that stiffens with depth (Hunt-Crossley) is counted at a reference depth: each
+body's radius, or, where the scene lets the start state's energy bound it, the depth at which
+the contact would store twice that energy (:mod:`.depth`; a rollout hands the same energy to
+the up-front gate and to the traced flag).
+
 Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps),
 :mod:`.bounds` (the terms' :class:`Bound` rows summed into rates, numpy and traced),
-:mod:`.gating` (the up-front gate, its cache and the :class:`StabilityReport`).
+:mod:`.gating` (the up-front gate, its cache and the :class:`StabilityReport`), :mod:`.depth`
+(the reference depth from the start energy).
 """
 from .bounds import (FLAG, Analysis, Bound, Rates, precision_unsafe, rates, scene_rates,
                      unsafe)

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..integrators import Integrator
 from ..params import _known_value
+from .depth import energy_depth
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "precision_unsafe",
@@ -107,6 +108,8 @@ class Analysis(NamedTuple):
     dtype: the simulator's float dtype.  gravity: |g| of the scene, m/s^2.
     contact_wh: the contact springs' safe ``w h`` (``SAFE_WH``, or the contact law's own,
       ``diffpen.laws.ContactLaw.safe_wh``).
+    depth_exponent: the contact law's n where the start energy may bound the reference depth
+      (:func:`diffpen.stability.depth.qualifies`), else None.
     """
     integrator: Integrator
     dt: float
@@ -119,6 +122,7 @@ class Analysis(NamedTuple):
     dtype: Any
     gravity: float = 0.0
     contact_wh: float = SAFE_WH
+    depth_exponent: float | None = None
 
     @property
     def inner_dt(self) -> float:
@@ -174,13 +178,16 @@ def _at(xp, arr, idx, vals, op):
     return ref.add(vals) if op == "add" else ref.max(vals)
 
 
-def rates(an: Analysis, params, *, xp=np, packed: bool = False) -> Rates | None:
+def rates(an: Analysis, params, *, xp=np, packed: bool = False,
+          energy=None) -> Rates | None:
     """Sum the terms' bounds for ``params``: :class:`Rates`, or None when some parameter is
     an abstract tracer (numpy evaluation).
 
     ``xp=jax.numpy`` evaluates the same rows on traced values (inside jit, vmap, grad);
     ``packed=True`` counts every candidate sphere neighbour (at most 12) instead of one.
-    Pinned bodies have rows 0.
+    ``energy``: the rollout's start energy (J, :func:`diffpen.stability.depth.start_energy`)
+    where the analysis lets it bound the contacts' reference depth (``depth_exponent``), or
+    None (the bodies' radii). Pinned bodies have rows 0.
     """
     n = len(an.mass)
     zeros = (lambda: np.zeros(n)) if xp is np else (lambda: xp.zeros(n, an.dtype))
@@ -201,7 +208,11 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False) -> Rates | None:
         if block.param == "contact" and an.contact_scale is not None:
             # the law's stiffness and damping at the reference depth, for every contact
             # block (rigid corners too: a Hunt-Crossley k is N/m^n, its c N s/m^(n+1))
-            kk, cc = an.contact_scale(kk, cc, cast(an.d_ref[block.body]))
+            depth = cast(an.d_ref[block.body])
+            if energy is not None and an.depth_exponent is not None:
+                depth = xp.minimum(depth, energy_depth(an.depth_exponent, kv[block.key],
+                                                       energy, xp))
+            kk, cc = an.contact_scale(kk, cc, depth)
         if block.combine == "contact":
             contacts.append((block, kk, cc))
             continue
@@ -280,7 +291,7 @@ def scene_rates(sim, params, *, packed: bool = False):
     return None if r is None else (r.K_row, r.C_row, r.source, r.Kc, r.Cc)
 
 
-def unsafe(an: Analysis, params, h=None):
+def unsafe(an: Analysis, params, h=None, energy=None):
     """Traced stability flag: a bool scalar, True when an inner step of ``h`` s (default the
     simulator's) is past the safe step for ``params`` (tracers welcome: jit, vmap, grad).
 
@@ -291,7 +302,8 @@ def unsafe(an: Analysis, params, h=None):
     to rounding), else from the spectral radius of its amplification matrix at
     ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Methods without a step limit
     (implicit) have no such test: for them it is :func:`precision_unsafe` (True when the
-    dtype cannot resolve the step; always False in float64).
+    dtype cannot resolve the step; always False in float64). ``energy``: as :func:`rates`
+    takes it (the value the up-front gate was given).
     """
     import jax
     import jax.numpy as jnp
@@ -300,7 +312,7 @@ def unsafe(an: Analysis, params, h=None):
         return precision_unsafe(an, params, h)
     h = an.inner_dt if h is None else h
     params = jax.lax.stop_gradient(params)
-    r = rates(an, params, xp=jnp)
+    r = rates(an, params, xp=jnp, energy=energy)
     K, C = jnp.max(r.K_row, initial=0.0), jnp.max(r.C_row, initial=0.0)
     Kc, Cc = jnp.max(r.Kc, initial=0.0), jnp.max(r.Cc, initial=0.0)
     if rec.stable_dt is not None:

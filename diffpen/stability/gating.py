@@ -97,16 +97,17 @@ def _analysis(sim) -> Analysis:
 
 
 def report(sim, params, *, substeps: int | None = None,
-           packed: bool = True) -> StabilityReport | None:
+           packed: bool = True, energy: float | None = None) -> StabilityReport | None:
     """Stability report of ``sim`` (a Simulator or its :class:`Analysis`) for ``params``
     (None when params are abstract tracers).
 
     ``substeps`` defaults to the simulator's (1 for ``"auto"``). ``packed=False`` skips the
-    packed-spheres bound (``packed_dt`` is then ``stable_dt``).
+    packed-spheres bound (``packed_dt`` is then ``stable_dt``). ``energy``: a start state's
+    energy bounding the contacts' reference depth (:mod:`diffpen.stability.depth`), or None.
     """
     an = _analysis(sim)
     with np.errstate(invalid="ignore"):      # NaN values are refused just below
-        r = rates(an, params)
+        r = rates(an, params, energy=energy)
     if r is None:
         return None
     K_row, C_row, source, Kc, Cc = r.K_row, r.C_row, r.source, r.Kc, r.Cc
@@ -122,7 +123,7 @@ def report(sim, params, *, substeps: int | None = None,
     sdt = stable_dt(rec, K, C)
     pdt = sdt
     if packed and any(b.packed is not None for b in an.bounds):
-        pk = rates(an, params, packed=True)
+        pk = rates(an, params, packed=True, energy=energy)
         pdt = stable_dt(rec, float(np.max(pk.K_row, initial=0.0)),
                         float(np.max(pk.C_row, initial=0.0)))
     if substeps is None:
@@ -166,7 +167,7 @@ class GateCache:
 
 
 def gate(sim, params, *, check: bool = True, substeps: int | None = None,
-         cache: GateCache | None = None) -> int:
+         cache: GateCache | None = None, energy: float | None = None) -> int:
     """The up-front check ``Simulator.rollout`` runs before tracing. Returns the substep
     count to use: ``substeps`` when given, the pick of ``substeps="auto"``, else the
     simulator's own count.
@@ -176,7 +177,7 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     (jit-traced) parameters nothing is checked here (the traced flag :func:`unsafe` records
     it in the rollout instead) and ``"auto"`` raises a SceneError: under tracing the count
     must be given (``rollout(..., substeps=N)``). ``cache`` memoises verdicts per set of
-    concrete scalar values.
+    concrete scalar values. ``energy``: as :func:`report` takes it.
     """
     an = _analysis(sim)
     auto = an.substeps == "auto" and substeps is None
@@ -188,12 +189,12 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     if not (check or auto):
         return fixed
     key = _scalar_key(params)
-    key = None if key is None else (fixed, key)
+    key = None if key is None else (fixed, energy, key)
     if cache is not None:
         hit = cache.get(key)
         if hit is not None:
             return hit
-    n = _gate(an, params, auto, fixed)
+    n = _gate(an, params, auto, fixed, energy)
     if cache is not None:
         cache.put(key, n)
     return n
@@ -248,8 +249,8 @@ def _scalar_key(params):
         return None
 
 
-def _gate(an: Analysis, params, auto: bool, fixed: int | None) -> int:
-    rep = report(an, params, packed=False, substeps=fixed)
+def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None) -> int:
+    rep = report(an, params, packed=False, substeps=fixed, energy=energy)
     if rep is None:
         if not auto:
             return fixed
