@@ -131,7 +131,7 @@ class Simulator:
         self.mass = np.array([b.mass for b in bodies])
         self.radius = np.array([b.radius for b in bodies])
         self.pinned = np.array([b.pinned for b in bodies])
-        collide = np.array([b.collide for b in bodies])
+        collide = self._collide = np.array([b.collide for b in bodies])
 
         ctx = CompileContext(
             scene=scene, dtype=self.dtype, law=contact_law, width=width,
@@ -421,7 +421,7 @@ class Simulator:
                 map(_is_concrete, (state.position, state.velocity))):
             return None
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
-                                   state.position, state.velocity)
+                                   self._collide, state.position, state.velocity)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,

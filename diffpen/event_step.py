@@ -464,18 +464,16 @@ def _hc_next(n):
     return next_depth
 
 
-def hunt_crossley_events(exponent: float):
+def hunt_crossley_events(exponent: float, force):
     """Hunt-Crossley's event-exact one-contact record for the exponent ``n`` (``F = max(d^n
     (k - c vn), 0)``): ``events(d, vn, k, c, h, lag, inv_mass, accel, factors=None)`` with
     :func:`linear_events`' arguments and units (``k`` N/m^n, ``c`` N s/m^(n+1)), the force
     (N) whose step lands on the continuous motion's depth at the next step time (module
-    docstring, "Hunt-Crossley"); exactly 0 while the body stays apart."""
-    n = float(exponent)
-    nxt = _hc_next(n)
+    docstring, "Hunt-Crossley"); exactly 0 while the body stays apart. ``force(d, vn, k,
+    c)``: the law's pointwise force, what a contact without inertia (``inv_mass`` 0) takes."""
+    nxt = _hc_next(float(exponent))
 
     def events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
-        r = jnp.maximum(d, 0.0)
-        pointwise = jnp.maximum(_power(r, n) * (k - c * vn), 0.0)
-        return _events_force(nxt, d, vn, k, c, h, inv_mass, accel, None, pointwise,
+        return _events_force(nxt, d, vn, k, c, h, inv_mass, accel, None, force(d, vn, k, c),
                              flows=False)
     return events

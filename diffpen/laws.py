@@ -453,7 +453,7 @@ def hunt_crossley(exponent: float = 1.0, centred: bool = False,
         return n * k * d_ref ** (n - 1.0), c * d_ref ** n
     if events and centred:
         raise ValueError("hunt_crossley(): choose one of centred=True, events=True")
-    one = (hunt_crossley_events(n) if events else hunt_crossley_centred(n) if centred
+    one = (hunt_crossley_events(n, force) if events else hunt_crossley_centred(n) if centred
            else None)
     return ContactLaw("hunt_crossley", force, _hunt_crossley_averaged(n), energy, rest,
                       stiffness, n, None, one,

@@ -50,18 +50,19 @@ def qualifies(scene, law, builtin_terms: bool, rotation: bool) -> bool:
         for p in scene.planes)
 
 
-def start_energy(scene, mass, radius, pinned, position, velocity) -> float | None:
+def start_energy(scene, mass, radius, pinned, collide, position,
+                 velocity) -> float | None:
     """Kinetic and potential energy (J) of a concrete start state (``position``,
-    ``velocity`` (n, 3)), potential measured from the lowest floor; None when a body starts
-    in contact (with a plane, a fixed sphere or another colliding body) or a value is not
-    finite. Assumes :func:`qualifies`."""
+    ``velocity`` (n, 3)), potential measured from the lowest floor; None when a colliding body
+    (``collide`` (n,) bool, fixed per simulator) starts in contact (with a plane, a fixed
+    sphere or another colliding body) or a value is not finite. Assumes :func:`qualifies`."""
     x = np.asarray(position, float)
     v = np.asarray(velocity, float)
     m = np.where(np.asarray(pinned, bool), 0.0, np.asarray(mass, float))
     r = np.asarray(radius, float)
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
         return None
-    collide = np.array([b.collide for b in scene.bodies])
+    collide = np.asarray(collide, bool)
     for p in scene.planes:
         gap = x @ np.asarray(p.normal, float) - float(p.offset) - r
         if np.any(collide & (gap <= 0.0)):
