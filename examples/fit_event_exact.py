@@ -18,8 +18,9 @@ The same for a Hertz ball (1 kg, Hunt-Crossley n = 1.5, k = 1e6 N/m^1.5, c = 3e4
 from k = 3e5, c = 1e4, with ``dp.laws.hunt_crossley(1.5, events=True)`` (its contact motion a
 graded Runge-Kutta flow): the default record stops at k 986980, c 29644 (1.3% and 1.2% off,
 targets missed by 1.7e-4, 5 iterations), the event-exact record recovers k 999999.997,
-c 30000.06 in 4 iterations, every target within 8.3e-7. (Without the simulator's safe-step
-bounds: they take Hunt-Crossley's stiffness at a penetration of the full radius.)
+c 30000.06 in 4 iterations, every target within 8.3e-7. Both fits are bounded inside the
+safe step (``sim=``) for rollouts from the drop (``state=``), whose energy bounds the Hertz
+contact's depth: k <= 1.26e6 N/m^1.5 (5.2e5 at the full radius).
 
 Needs scipy for the reference (``pip install -e '.[report]'``).
 Run: python examples/fit_event_exact.py
@@ -62,12 +63,11 @@ def fit_case(case, k0, c0):
             bm = ball_metrics(sim, sim.rollout(p, steps, check_stability=False), p, n_apex=3)
             return {"apex_heights": bm.apex_heights, "contact_durations": bm.contact_durations}
         t0 = time.perf_counter()
-        # sim= caps k and c at the safe step, whose bounds for a fit take Hunt-Crossley's
-        # stiffness at a penetration of the full radius (k <= 5.2e5 N/m^1.5 here; this ball
-        # sinks 1.4 cm): the Hertz ball's fit goes without them
-        hertz = case.exponent != 1.0
+        # sim= caps k and c at the safe step; state= (the rollouts' start) lets the drop's
+        # energy bound Hunt-Crossley's depth there: the Hertz ball sinks 1.4 cm, and at the
+        # full radius k would be capped at 5.2e5 N/m^1.5 (1.26e6 from the drop's energy)
         res = fit(metrics, sim.params(k=k0, c=c0), targets, method="lm", rtol=1e-6,
-                  maxiter=40, sim=None if hertz else sim)
+                  maxiter=40, sim=sim, state=sim.init_state())
         worst = max(float(np.max(v)) for v in res.rel_error.values())
         print(f"  {name:19s} k = {res.values['contact.default.k']:12.3f}, "
               f"c = {res.values['contact.default.c']:10.4f}, {res.iterations} iterations, "

@@ -97,6 +97,45 @@ def test_safe_contact_bounds_are_in_the_contact_laws_units():
     assert safe_contact_bounds(ball_sim(law="no_tension")) == lin
 
 
+def test_fit_bounds_count_the_start_energys_depth_as_the_rollout_does():
+    """The fit bounds and the flag they add took a Hunt-Crossley stiffness at the full radius
+    whatever the start, so a Hertz ball (1 kg, k 1e6 N/m^1.5, dropped from 1 m: it sinks
+    1.4 cm) could not be fitted inside them (k <= 5.2e5) though its rollout runs safely at
+    dt 1 ms. Given the rollouts' start state, the bounds count the depth at which the contact
+    stores twice its energy, as the rollout's own traced flag does: k_max is where that flag
+    turns, and the damping cap holds down to the fit's lowest k. Without a state: the radius."""
+    from tuning.problem import FreeLeaves, with_flag
+    from tuning.scenes import ball_scene
+    sim = dp.compile(ball_scene(mass=1.0, radius=0.1, height=1.0), 1e-3,
+                     law=dp.laws.hunt_crossley(1.5))
+    start = sim.init_state()
+    k_rad, c_rad = safe_contact_bounds(sim)
+    k_max, c_max = safe_contact_bounds(sim, state=start)
+    assert k_rad < 6e5 and 1.2e6 < k_max < 1.3e6 and c_max == c_rad
+
+    def rollout_flag(k, c):
+        traj = sim.rollout(sim.params(k=k, c=c), 4, start, check_stability=False)
+        return bool(rollout_unstable(sim, traj, None))
+    for k, bad in ((0.99 * k_max, False), (1.02 * k_max, True)):
+        assert rollout_flag(k, 10.0) is bad
+        assert bool(params_unstable(sim, sim.params(k=k, c=10.0), start)) is bad
+    assert bool(params_unstable(sim, sim.params(k=0.99 * k_max, c=10.0)))   # at the radius
+    # damping: its depth is the one of the smallest k the box lets the fit reach
+    _, c_cap = safe_contact_bounds(sim, state=start, k_min=1e5)
+    assert c_cap > 3.0 * c_rad
+    assert rollout_flag(1e5, 0.99 * c_cap) is False and rollout_flag(1e5, 1.02 * c_cap) is True
+    params0 = sim.params(k=3e5, c=1e4)
+    free = ["contact.default.k", "contact.default.c"]
+    box = {"contact.default.k": (1e5, 1e7), "contact.default.c": (1e2, 1e6)}
+    leaves = FreeLeaves.build(params0, free, box, sim, state=start)
+    assert leaves.hi.tolist() == pytest.approx([k_max, c_cap], rel=1e-12)
+    assert FreeLeaves.build(params0, free, box, sim).hi.tolist() == pytest.approx(
+        [k_rad, c_rad], rel=1e-12)
+    flagged = with_flag(lambda p: {"k": p.contact["default"].k}, sim, start)
+    assert not bool(flagged(sim.params(k=1e6, c=1e4))["unstable"])
+    assert bool(with_flag(lambda p: {}, sim)(sim.params(k=1e6, c=1e4))["unstable"])
+
+
 def test_implicit_float32_bounds_stop_at_the_precision_limit():
     """implicit_euler had (inf, inf) contact bounds, so a float32 fit walked into stiffnesses
     its dtype cannot resolve (wrong gradients, no flag). The k bound is now the precision

@@ -96,7 +96,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         method: str = "optax", optimizer: optax.GradientTransformation | None = None,
         maxiter: int = 300, progress: bool | None = False, label: str = "fit",
         starts: list | None = None, n_starts: int = 3,
-        search: Callable | None = None, sim=None) -> FitResult:
+        search: Callable | None = None, sim=None, state=None) -> FitResult:
     """Fit the ``free`` leaves of ``params0`` so that ``metrics_fn(params)`` meets ``targets``.
 
     Args:
@@ -128,6 +128,12 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         then bounded inside its safe step (:func:`safe_bounds`), and when ``metrics_fn`` has
         no ``"unstable"`` entry the fit adds :func:`tuning.stable.params_unstable`; a point
         past the safe step is never returned as reached.
+      state: with ``sim``, the concrete start state of ``metrics_fn``'s rollouts (e.g.
+        ``sim.init_state()``), so that a Hunt-Crossley contact's safe step counts its
+        stiffness at the depth that state's energy allows, as the rollout does
+        (:mod:`diffpen.stability.depth`), in the bounds and the added flag alike; default
+        None: at the bodies' radii (conservative for any start; a Hertz ball's fit may then
+        be bounded below the stiffness its rollout runs at).
     Returns:
       :class:`FitResult`.
     """
@@ -142,7 +148,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
             raise FitError(f"free names {twice} more than once; name each fitted parameter "
                            f"once.")
     problem = Problem.build(metrics_fn, params0, targets, free=free, bounds=bounds,
-                            weights=weights, rtol=rtol, sim=sim)
+                            weights=weights, rtol=rtol, sim=sim, state=state)
     bar = Progress(maxiter, label, progress)
     t_start = time.perf_counter()
     if method == "lm":

@@ -205,20 +205,30 @@ def default_bounds(path: str, value: float, dt: float | None = None,
     return lo, hi
 
 
-def safe_bounds(free, x0, bounds: dict | None, sim=None) -> tuple[np.ndarray, np.ndarray]:
+def safe_bounds(free, x0, bounds: dict | None, sim=None, *, state=None,
+                values: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Box bounds (lo, hi) (n,) in SI units for the ``free`` leaves with start values ``x0``:
     ``bounds[path]`` or :func:`default_bounds`, and, when the simulator ``sim`` is given, every
     contact k and c capped at :func:`tuning.stable.safe_contact_bounds` of ``sim`` (the safe
     explicit step of its lightest movable body), so an optimiser cannot walk past the safe step.
-    Raises :class:`FitError` when a given lower bound is already past it."""
+    ``state``: the concrete start state of the fitted rollouts, whose energy may bound a
+    Hunt-Crossley contact's reference depth (``safe_contact_bounds``); a contact's damping cap
+    then holds down to the lower bound of its fitted k (or its value in ``values``, ``{path:
+    value}`` of the frozen leaves). Raises :class:`FitError` when a given lower bound is
+    already past it."""
     bounds = bounds or {}
     lo = np.array([bounds.get(p, default_bounds(p, v))[0] for p, v in zip(free, x0)], float)
     hi = np.array([bounds.get(p, default_bounds(p, v))[1] for p, v in zip(free, x0)], float)
     if sim is not None:
-        k_max, c_max = safe_contact_bounds(sim)
+        values = values or {}
         for i, p in enumerate(free):
-            cap = (k_max if p.endswith(".k") else c_max) if p.startswith("contact.") else None
-            if cap is not None and hi[i] > cap:
+            if not (p.startswith("contact.") and p.endswith((".k", ".c"))):
+                continue
+            kp = p[:-2] + ".k"
+            k_min = lo[free.index(kp)] if kp in free else values.get(kp)
+            k_max, c_max = safe_contact_bounds(sim, state=state, k_min=k_min)
+            cap = k_max if p.endswith(".k") else c_max
+            if hi[i] > cap:
                 if lo[i] >= cap:
                     raise FitError(f"the lower bound {lo[i]:g} of {p!r} is past the safe step "
                                    f"of this simulator ({cap:g} at dt={float(sim.dt):g} s); "
@@ -227,16 +237,16 @@ def safe_bounds(free, x0, bounds: dict | None, sim=None) -> tuple[np.ndarray, np
     return lo, hi
 
 
-def with_flag(metrics_fn: Callable, sim) -> Callable:
+def with_flag(metrics_fn: Callable, sim, state=None) -> Callable:
     """``metrics_fn`` with the stability flag ``"unstable"`` added
-    (:func:`tuning.stable.params_unstable` of ``sim``) when it returns none; ``metrics_fn``
-    itself when ``sim`` is None."""
+    (:func:`tuning.stable.params_unstable` of ``sim``, for rollouts from ``state`` when
+    given) when it returns none; ``metrics_fn`` itself when ``sim`` is None."""
     if sim is None:
         return metrics_fn
 
     def fn(params):
         m = metrics_fn(params)
-        return m if FLAG in m else {**m, FLAG: params_unstable(sim, params)}
+        return m if FLAG in m else {**m, FLAG: params_unstable(sim, params, state)}
     return fn
 
 
@@ -259,11 +269,12 @@ class FreeLeaves:
 
     @classmethod
     def build(cls, params0, free=None, bounds: dict | None = None, sim=None, *,
-              positive_start: bool = False) -> "FreeLeaves":
+              positive_start: bool = False, state=None) -> "FreeLeaves":
         """Check ``free`` (default every contact k and c) and ``bounds`` (``{path: (lo,
         hi)}`` SI units, default :func:`default_bounds`) against ``params0`` and bound the
         leaves with :func:`safe_bounds` (inside the safe step of ``sim`` when given);
-        ``positive_start``: the start values of ``params0`` must be > 0 too.
+        ``positive_start``: the start values of ``params0`` must be > 0 too; ``state``: the
+        fitted rollouts' start state, as :func:`safe_bounds` takes it.
         Raises :class:`FitError` naming what to change."""
         flat0 = P.flatten(params0)
         free = list(P.default_free(params0) if free is None else free)
@@ -285,7 +296,7 @@ class FreeLeaves:
             bad = [p for p, v in zip(free, x0) if v <= 0.0]
             raise FitError(f"fitted parameters need a positive start value (fitting is in log "
                            f"space); got {dict(zip(bad, x0[x0 <= 0.0]))}.")
-        lo, hi = safe_bounds(free, x0, bounds, sim)
+        lo, hi = safe_bounds(free, x0, bounds, sim, state=state, values=flat0)
         if np.any(~(lo > 0.0)) or np.any(hi <= lo):
             box = {p: (float(a), float(b)) for p, a, b in zip(free, lo, hi)}
             raise FitError(f"bounds must satisfy 0 < lo < hi (fitting is in log space); got "
@@ -350,14 +361,15 @@ class Problem:
     @classmethod
     def build(cls, metrics_fn: Callable, params0, targets: dict, *, free=None,
               bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
-              sim=None) -> "Problem":
+              sim=None, state=None) -> "Problem":
         """Check everything and build the problem (arguments as in :func:`tuning.fit.fit`).
         Raises :class:`FitError` before anything is traced."""
         scalar = frozenset(k for k, v in targets.items() if np.ndim(v) == 0)
         targets = normalise_targets(targets)
         spec = target_spec(targets, weights, rtol)
-        leaves = FreeLeaves.build(params0, free, dict(bounds or {}), sim, positive_start=True)
-        return cls(with_flag(metrics_fn, sim), leaves, np.clip(leaves.x0, leaves.lo, leaves.hi),
+        leaves = FreeLeaves.build(params0, free, dict(bounds or {}), sim, positive_start=True,
+                                  state=state)
+        return cls(with_flag(metrics_fn, sim, state), leaves, np.clip(leaves.x0, leaves.lo, leaves.hi),
                    targets, spec, scalar, {k: jnp.asarray(v) for k, v in targets.items()})
 
     @property

@@ -20,11 +20,12 @@ import numpy as np
 
 from diffpen import stability as _dp_stability
 from diffpen.stability.bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION
+from diffpen.stability.depth import energy_depth
 
 from .errors import FitError
 
 __all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
-           "unsafe_start",
+           "unsafe_start", "start_energy",
            "safe_contact_limits", "safe_contact_bounds", "implicit_contact_limits"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
@@ -38,12 +39,28 @@ def _light_mass(sim) -> float:
     return float(m.min()) if m.size else float(np.asarray(an.mass).min())
 
 
-def params_unstable(sim, params):
+def start_energy(sim, state) -> float | None:
+    """The energy (J) with which a rollout of ``sim`` from ``state`` bounds the reference
+    depth of a contact that stiffens with depth (:mod:`diffpen.stability.depth`, as
+    ``sim.rollout(params, steps, state)`` counts it), or None: no state given, the law's
+    stiffness does not grow with depth, the scene does not qualify, the state is traced or a
+    body starts in contact (then the bodies' radii bound the depth)."""
+    if state is None:
+        return None
+    return sim._start_energy(state)
+
+
+def params_unstable(sim, params, state=None):
     """Traceable bool: an inner step of ``sim`` is past its safe step for ``params``
     (:func:`diffpen.stability.unsafe` on the simulator's own stability analysis: every term's
     bound, the integrator's limit, the contact limits ``SAFE_WH`` / ``SAFE_CH``), or some
     contact k or c is not finite. Always False for integrators without a step limit (besides
     the non-finite test). Parameters may be tracers (jit, vmap, grad).
+
+    ``state``: the concrete start state of the rollouts judged (e.g. ``sim.init_state()``):
+    a Hunt-Crossley contact's stiffness is then counted at the depth where it would store
+    twice that state's energy, as a rollout from it counts it (:func:`start_energy`);
+    default None: at the bodies' radii (conservative for any start).
 
     A scalar for scalar contact values; contact k or c given as (N,) arrays (N points, e.g. a
     sweep's) give (N,) flags, one per point."""
@@ -52,8 +69,8 @@ def params_unstable(sim, params):
             contact={n: type(cp)(*(0 if jnp.ndim(x) else None for x in cp))
                      for n, cp in params.contact.items()},
             springs=None, extra=None)
-        return jax.vmap(lambda p: params_unstable(sim, p), in_axes=(axes,))(params)
-    bad = _dp_stability.unsafe(sim.analysis, params)
+        return jax.vmap(lambda p: params_unstable(sim, p, state), in_axes=(axes,))(params)
+    bad = _dp_stability.unsafe(sim.analysis, params, energy=start_energy(sim, state))
     for cp in params.contact.values():
         bad = bad | ~jnp.all(jnp.isfinite(jnp.asarray(cp.k))) | ~jnp.all(
             jnp.isfinite(jnp.asarray(cp.c)))
@@ -117,14 +134,24 @@ def implicit_contact_limits(sim, mass: float | None = None) -> tuple[float, floa
     return 0.99 * k_max, math.inf
 
 
-def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
+def safe_contact_bounds(sim, mass: float | None = None, *, state=None,
+                        k_min: float | None = None) -> tuple[float, float]:
     """:func:`safe_contact_limits` at the inner step of ``sim`` for a body of ``mass`` kg
     (default: the lightest movable body), in the units of the simulator's contact law: a law
     whose stiffness grows with depth (Hunt-Crossley, ``k`` N/m^n, ``c`` N s/m^(n+1)) has the
     limits divided by its stiffness and damping at the deepest reference depth of the
     analysis (``ContactLaw.stiffness``, as :mod:`diffpen.stability` counts it). Integrators
     without a step limit (implicit) get :func:`implicit_contact_limits` instead: the
-    stiffness their float dtype resolves (``(inf, inf)`` in float64)."""
+    stiffness their float dtype resolves (``(inf, inf)`` in float64).
+
+    ``state``: the concrete start state of the rollouts bounded (e.g. ``sim.init_state()``).
+    Where its energy bounds the depth (:func:`start_energy`) the reference depth is the one
+    at which a contact of stiffness ``k`` stores twice that energy (never deeper than the
+    radius), as a rollout from ``state`` counts it: ``k_max`` is then the largest ``k``
+    whose stiffness at its own depth is inside the step (found by bisection; the stiffness
+    grows with ``k``), and ``c_max`` takes the depth of ``k_min`` (N/m^n; the smallest
+    stiffness the bound must hold for: the softest contact sinks deepest; default: the
+    radius). Default None: the radii (conservative for any start)."""
     an = sim.analysis
     if not an.integrator.explicit:
         k_max, c_max = implicit_contact_limits(sim, mass)
@@ -137,9 +164,38 @@ def safe_contact_bounds(sim, mass: float | None = None) -> tuple[float, float]:
     if an.contact_scale is not None:
         free = ~np.asarray(an.pinned)
         d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0
-        fk, fc = (float(x) for x in an.contact_scale(1.0, 1.0, d))
-        k_max, c_max = k_max / fk, c_max / fc
+        energy = start_energy(sim, state) if an.integrator.explicit else None
+        if energy is None or an.depth_exponent is None:
+            fk, fc = (float(x) for x in an.contact_scale(1.0, 1.0, d))
+            return k_max / fk, c_max / fc
+        fc = (_scales(an, float(k_min), d, energy)[1] if k_min and k_min > 0.0
+              else float(an.contact_scale(1.0, 1.0, d)[1]))
+        return _depth_k_max(an, k_max, d, energy), c_max / fc
     return k_max, c_max
+
+
+def _scales(an, k: float, d_ref: float, energy: float) -> tuple[float, float]:
+    """The law's (stiffness, damping) factors of a contact of stiffness ``k`` at its
+    reference depth: the start energy's depth, never deeper than ``d_ref``."""
+    d = min(d_ref, float(energy_depth(an.depth_exponent, np.float64(k), energy)))
+    return tuple(float(x) for x in an.contact_scale(1.0, 1.0, d))
+
+
+def _depth_k_max(an, limit: float, d_ref: float, energy: float) -> float:
+    """The largest ``k`` whose stiffness at its own reference depth (:func:`_scales`) is at
+    most ``limit`` (N/m): bisection on log k (the stiffness grows with k)."""
+    def fits(k):
+        return k * _scales(an, k, d_ref, energy)[0] <= limit
+    lo = limit / float(an.contact_scale(1.0, 1.0, d_ref)[0])     # the radius' bound holds
+    if not fits(lo):
+        return lo
+    hi = lo
+    while fits(hi) and hi < 1e30:
+        lo, hi = hi, hi * 10.0
+    for _ in range(80):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if fits(mid) else (lo, mid)
+    return lo
 
 
 def unsafe_start(start, dt: float | None = None) -> FitError:
