@@ -150,6 +150,9 @@ class Simulator:
         self.context = ctx
         self.broadphase = broadphase
         self._rigid = rigid.RigidDynamics(ctx) if scene.has_rotation else None
+        # (n, 3) body-frame principal moments, kg m^2 (0: no rotation), for the start energy
+        self._moments = np.array([rigid.inertia_diagonal(b) if b.rigid else np.zeros(3)
+                                  for b in bodies]).reshape(-1, 3)
         self._terms: tuple[Term, ...] = _assembly.build_terms(builders, ctx)
         self.terms = tuple(t.name for t in self._terms)
         self._searching = tuple(t for t in self._terms if t.search is not None)
@@ -177,7 +180,7 @@ class Simulator:
             gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
             contact_wh=contact_law.safe_wh or _stability.SAFE_WH,
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
-                scene, contact_law, builtin_terms, self._rigid is not None) else None))
+                scene, contact_law, builtin_terms) else None))
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
@@ -417,11 +420,17 @@ class Simulator:
         """The start energy (J) bounding the contacts' reference depth for a rollout from
         ``state`` (:mod:`diffpen.stability.depth`), or None: the scene does not qualify, the
         state is traced (under jit or vmap) or a body starts in contact."""
-        if self.analysis.depth_exponent is None or not all(
-                map(_is_concrete, (state.position, state.velocity))):
+        rotating = self._rigid is not None
+        parts = (state.position, state.velocity) + (
+            (state.orientation, state.angular_velocity) if rotating else ())
+        if self.analysis.depth_exponent is None or not all(map(_is_concrete, parts)):
             return None
+        spin = {}
+        if rotating:
+            spin = dict(orientation=state.orientation,
+                        angular_velocity=state.angular_velocity, inertia=self._moments)
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
-                                   self._collide, state.position, state.velocity)
+                                   self._collide, state.position, state.velocity, **spin)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,

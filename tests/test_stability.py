@@ -506,16 +506,16 @@ def test_rigid_contact_bounds_take_the_laws_stiffness_at_the_reference_depth():
     r_lin = lin.stability(lin.params())
     for n in (1.0, 1.5):
         hc = _box_on_board(dp.laws.hunt_crossley(n), k, c, friction=0.0)
-        r = hc.stability(hc.params())
+        r = stability.report(hc.analysis, hc.params())      # no start energy: the radius
         # the same rows with (n k d^(n-1), c d^n) in place of (k, c)
         assert r.damping_rate == pytest.approx(r_lin.damping_rate * d ** n, rel=1e-9)
         assert r.omega_max ** 2 == pytest.approx(r_lin.omega_max ** 2 * n * d ** (n - 1.0),
                                                  rel=1e-9)
     # Hertz, with friction, at 0.9 of its new safe c (before: refused from 1/36 of it)
     hc = _box_on_board(dp.laws.hunt_crossley(1.5), k, c)
-    c_safe = c / hc.stability(hc.params()).safe_margin
+    c_safe = c / stability.report(hc.analysis, hc.params()).safe_margin
     sim = _box_on_board(dp.laws.hunt_crossley(1.5), k, 0.9 * c_safe)
-    assert sim.stability(sim.params()).safe
+    assert stability.report(sim.analysis, sim.params()).safe
     traj = sim.rollout(sim.params(), 1500)               # 1.27 s: lands, bounces, rocks
     z = np.asarray(traj.position[:, 0, 2])
     speed = np.abs(np.asarray(traj.velocity[:, 0]))
@@ -634,3 +634,48 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
     named = dp.compile(_hertz_ball(name="ground"), 1e-3, law="hunt_crossley", exponent=1.5)
     assert named.analysis.depth_exponent is None
     assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None
+
+
+def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
+    """Regression: rotating bodies kept the radius as Hunt-Crossley's reference depth (for the
+    cube, its 9.1 cm half-diagonal). The start energy now bounds their depth too, with the
+    rotation's kinetic energy and the potential a box can release by sinking face down
+    (its half-diagonal less its half-width) counted: a spinning Hertz cube thrown at the
+    board (k 1.5e6 N/m^1.5, a step the radius refuses, w h 1.5x its safe limit) counts its
+    depth at 7 mm, runs inside the safe step with the traced flag clear, and its corners reach
+    less deep than counted. A box whose corner starts on the plane keeps the radius (its
+    bounding sphere may touch the plane while its corners are clear: that start counts)."""
+    from diffpen.geometry import box_corners
+    from diffpen.stability.depth import energy_depth
+    from tuning.pose import rotmat
+    half = 0.0524
+    scene = dp.Scene()
+    scene.add_box((half,) * 3, 0.37, (0.0, 0.0, 0.25), (0.5, 0.0, -1.0),
+                  orientation=(0.9, 0.3, 0.2, 0.1), angular_velocity=(3.0, -5.0, 2.0),
+                  inertia=(8.1e-4,) * 3)
+    scene.add_plane()
+    sim = dp.compile(scene, 1.0 / 148 / 8, law=dp.laws.hunt_crossley(1.5))
+    start = sim.init_state()
+    energy = sim._start_energy(start)
+    w = np.asarray(start.angular_velocity[0])
+    r = float(np.hypot(half, np.hypot(half, half)))
+    want = (0.5 * 0.37 * 1.25 + 0.5 * 8.1e-4 * w @ w
+            + 0.37 * 9.81 * (0.25 + r - half))
+    assert energy == pytest.approx(want, rel=1e-12)
+    p = sim.params(k=1.5e6, c=1e3)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    assert sim.stability(p).safe                                    # at the counted depth
+    traj = sim.rollout(p, 600, observe=lambda s: s)               # lands, bounces, tumbles
+    assert not bool(traj.aux[stability.FLAG][-1])
+    counted = float(energy_depth(1.5, 1.5e6, energy))
+    seen = traj.observed
+    lowest = min(float(seen.position[i, 0, 2]) + float(np.min(
+        (box_corners((half,) * 3) @ rotmat(np.asarray(seen.orientation[i, 0])).T)[:, 2]))
+        for i in range(600))
+    assert 0.0 < -lowest < counted < 0.01                   # it sank, less than counted
+    on = sim.state_from(body=[0], position=[[0.0, 0.0, half + 0.01]],
+                        orientation=[[1.0, 0.0, 0.0, 0.0]])
+    assert sim._start_energy(on) is not None                 # flat, 1 cm clear: counts
+    touching = sim.state_from(body=[0], position=[[0.0, 0.0, half]],
+                              orientation=[[1.0, 0.0, 0.0, 0.0]])
+    assert sim._start_energy(touching) is None

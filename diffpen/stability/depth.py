@@ -8,11 +8,15 @@ k 1e6 N/m^1.5) sinks 1.4 cm, not 10, and its stiffness there is 2.7x smaller: th
 refuses a step of 1 ms that this ball takes safely.
 
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
-contacts and drag can give energy back (no springs, no custom terms), gravity's potential is
-bounded below (no gravity, or every plane a horizontal floor, unnamed: a fixed offset), no
-rotation, and no body starting in contact. Then no contact ever stores more than the start's
-kinetic and potential energy ``E0`` (potential measured from the lowest floor), and a contact
-of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The bound takes twice ``E0``
+contacts, friction and drag can give energy back (no springs, no custom terms), gravity's
+potential is bounded below (no gravity, or every plane a horizontal floor, unnamed: a fixed
+offset), and no body starting in contact (a box: none of its corners on or below a plane).
+Then no contact ever stores more than the start's kinetic energy (rotation included) and
+potential energy ``E0``, and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
+E0``. The potential is counted from where a body's centre could get at the deepest
+penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
+the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
+extents)`` below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
 (:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several %
 per contact event by the safe step), and never more than the radius. Where any condition fails
 the radius stays.
@@ -25,18 +29,20 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry import box_corners
+
 __all__ = ["ENERGY_MARGIN", "qualifies", "start_energy", "energy_depth"]
 
 #: the energy a contact may store, in units of the start's kinetic and potential energy
 ENERGY_MARGIN = 2.0
 
 
-def qualifies(scene, law, builtin_terms: bool, rotation: bool) -> bool:
+def qualifies(scene, law, builtin_terms: bool) -> bool:
     """Whether ``scene`` compiled with ``law`` (a ``diffpen.laws.ContactLaw``) lets the start
     energy bound its contacts' depth (module docstring); static, at compile time."""
     if float(law.exponent) == 1.0 and float(law.damping_exponent) == 0.0:
         return False                    # the stiffness does not depend on depth
-    if not builtin_terms or rotation:
+    if not builtin_terms:
         return False
     if scene.springs or scene.anchored_springs or scene.plastic_springs:
         return False
@@ -50,21 +56,52 @@ def qualifies(scene, law, builtin_terms: bool, rotation: bool) -> bool:
         for p in scene.planes)
 
 
-def start_energy(scene, mass, radius, pinned, collide, position,
-                 velocity) -> float | None:
-    """Kinetic and potential energy (J) of a concrete start state (``position``,
-    ``velocity`` (n, 3)), potential measured from the lowest floor; None when a colliding body
-    (``collide`` (n,) bool, fixed per simulator) starts in contact (with a plane, a fixed
-    sphere or another colliding body) or a value is not finite. Assumes :func:`qualifies`."""
+def _rotation(q):
+    """(n, 4) unit quaternions (w, x, y, z) -> (n, 3, 3) rotation matrices, body to world."""
+    w, x, y, z = (q[:, i] for i in range(4))
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)],
+        axis=1)
+
+
+def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
+                 orientation=None, angular_velocity=None, inertia=None) -> float | None:
+    """Kinetic (rotation included) and potential energy (J) of a concrete start state
+    (``position``, ``velocity`` (n, 3)), potential counted as the module docstring says;
+    None when a colliding body (``collide`` (n,) bool, fixed per simulator) starts in contact
+    (with a plane: a box by its corners, other bodies by their ``radius``; with a fixed sphere
+    or another colliding body: by ``radius``, a box's bounding sphere) or a value is not
+    finite. Rotating scenes also give ``orientation`` (n, 4) (w, x, y, z), ``angular_velocity``
+    (n, 3) world frame, rad/s, and ``inertia`` (n, 3) body-frame principal moments, kg m^2 (0
+    for bodies that do not rotate). Assumes :func:`qualifies`."""
     x = np.asarray(position, float)
     v = np.asarray(velocity, float)
     m = np.where(np.asarray(pinned, bool), 0.0, np.asarray(mass, float))
     r = np.asarray(radius, float)
+    rot = None
+    if orientation is not None:
+        q = np.asarray(orientation, float)
+        w = np.asarray(angular_velocity, float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(w))):
+            return None
+        rot = _rotation(q / np.linalg.norm(q, axis=1, keepdims=True))
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
         return None
     collide = np.asarray(collide, bool)
+    boxes = np.array([i for i, b in enumerate(scene.bodies)
+                      if b.half_extents is not None and rot is not None], dtype=int)
+    # (boxes, 8, 3) corners from the centres, world frame
+    corners = (np.einsum("bij,bkj->bki", rot[boxes], np.stack(
+        [box_corners(scene.bodies[i].half_extents) for i in boxes]))
+        if boxes.size else np.zeros((0, 8, 3)))
+    # how far below its centre a body reaches towards a plane: a box by its lowest corner
     for p in scene.planes:
-        gap = x @ np.asarray(p.normal, float) - float(p.offset) - r
+        nrm = np.asarray(p.normal, float)
+        reach = r.copy()
+        reach[boxes] = np.max(-(corners @ nrm), axis=1)
+        gap = x @ nrm - float(p.offset) - reach
         if np.any(collide & (gap <= 0.0)):
             return None
     for fs in scene.fixed_spheres:
@@ -82,11 +119,18 @@ def start_energy(scene, mass, radius, pinned, collide, position,
         if np.any(overlap):
             return None
     energy = 0.5 * float(np.sum(m * np.sum(v * v, axis=1)))
+    if rot is not None:
+        spin = np.einsum("nji,nj->ni", rot, np.asarray(angular_velocity, float))   # body frame
+        moments = np.where(np.asarray(pinned, bool)[:, None], 0.0, np.asarray(inertia, float))
+        energy += 0.5 * float(np.sum(moments * spin * spin))
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn > 0.0:
         floor = min(float(p.offset) for p in scene.planes)
-        energy += gn * float(np.sum(m * (x @ (-g / gn) - floor)))
+        # a box can sink its centre below the floor by its half-diagonal less its support
+        sink = np.zeros(len(x))
+        sink[boxes] = r[boxes] - np.array([min(scene.bodies[i].half_extents) for i in boxes])
+        energy += gn * float(np.sum(m * (x @ (-g / gn) - floor + sink)))
     return energy if np.isfinite(energy) else None
 
 
