@@ -369,8 +369,9 @@ class Problem:
         spec = target_spec(targets, weights, rtol)
         leaves = FreeLeaves.build(params0, free, dict(bounds or {}), sim, positive_start=True,
                                   state=state)
-        return cls(with_flag(metrics_fn, sim, state), leaves, np.clip(leaves.x0, leaves.lo, leaves.hi),
-                   targets, spec, scalar, {k: jnp.asarray(v) for k, v in targets.items()})
+        return cls(with_flag(metrics_fn, sim, state), leaves,
+                   np.clip(leaves.x0, leaves.lo, leaves.hi), targets, spec, scalar,
+                   {k: jnp.asarray(v) for k, v in targets.items()})
 
     @property
     def free(self) -> tuple:
