@@ -22,11 +22,20 @@ import diffpen as dp
 from .errors import FitError, positive_int
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
-from .stable import FLAG, rollout_unstable, safe_contact_bounds
+from .stable import (FLAG, contact_scales, law_c, law_k, rollout_unstable,
+                     safe_contact_bounds)
 from .step_error import step_error_note, step_restitution_error
 
 __all__ = ["BOUNCE_METRICS", "EVENT_TARGETS", "check_bounce_targets", "bounce_metrics_fn",
-           "first_guess_bounce", "fit_bounce", "step_restitution_error"]
+           "first_guess_bounce", "fit_bounce", "step_restitution_error", "law_units"]
+
+
+def law_units(law) -> tuple[str, str]:
+    """Units of a contact law's k and c: ``F = k d^n - c vn d^m`` has k in N/m^n and c in
+    N s/m^(m+1) (N/m and N s/m for the linear laws)."""
+    rec = dp.laws.get(law or "linear")
+    n, m = float(rec.exponent), float(rec.damping_exponent)
+    return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
 
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
@@ -313,15 +322,26 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     # cases). So the error at the fitted point is measured after the fit
     # (step_restitution_error) and noted above step_error.STEP_ERROR_NOTE. A start above the limit is
     # lowered BEFORE the first guess, so c is guessed for the k actually used.
-    kmax = (0.25 / dt) ** 2 * m
-    k_first = 1e4 * m if k0 is None else float(k0)
+    # A law whose stiffness grows with depth (Hunt-Crossley: k N/m^n, c N s/m^(n+1)) takes
+    # these limits and the linear closed forms at its stiffness and damping at the depth the
+    # drop's energy allows (tuning.stable.law_k / law_c, as the safe step counts them).
+    start = sim.init_state()
+    ku = law_units(sim.contact_law)[0]
+
+    def linear_k(k):                # the law's k -> its stiffness there, N/m
+        return k * contact_scales(sim, k, state=start)[0]
+    kmax = law_k(sim, (0.25 / dt) ** 2 * m, state=start)
+    k_first = law_k(sim, 1e4 * m, state=start) if k0 is None else float(k0)
     if k_first > kmax:
-        notes.append(f"start k {k_first:.4g} N/m lowered to {kmax:.4g} N/m, the accuracy "
+        notes.append(f"start k {k_first:.4g} {ku} lowered to {kmax:.4g} {ku}, the accuracy "
                      f"limit w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer "
                      "contact)")
         k_first = kmax
         k0 = kmax if k0 is not None else None
-    kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=k_first)
+    k_lin = linear_k(k_first)
+    kk_lin, cc_lin, zeta = first_guess_bounce(info, tg, law=law, k0=k_lin)
+    kk = k_first if kk_lin == k_lin else law_k(sim, kk_lin, state=start)
+    cc = law_c(sim, cc_lin, kk, state=start)
     heights_only = (("apex_heights" in tg or "restitution" in tg)
                     and not ({"settling_time", "contact_durations", "max_penetration",
                               "decay_time"} & set(tg)))
@@ -331,29 +351,33 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         if heights_only:
             free = [cpath]
             notes.append(f"bounce heights alone fix only the damping ratio (zeta ~ "
-                         f"{zeta:.3g}); k is held at {kk:.4g} N/m and only c is fitted. Give a "
-                         "settling-time, decay-time or contact-duration target to fit k as well.")
+                         f"{zeta:.3g}); k is held at {kk:.4g} {ku} and only c is fitted. Give "
+                         "a settling-time, decay-time or contact-duration target to fit k as "
+                         "well.")
     starts = None
     if (first_guess and k0 is None and zeta is not None and "settling_time" in tg
             and "contact_durations" not in tg and kpath in free):
         # k is set by the settling time: start LM from the best points of a 1-D scan over k
         # at the damping ratio the apex implies (ranked with the fit's own compiled function).
         ks = np.geomspace(1e-3 * kmax, kmax, 32)
-        starts = [{kpath: float(k), cpath: float(2.0 * zeta * math.sqrt(k * m))}
+        starts = [{kpath: float(k), cpath: law_c(sim, 2.0 * zeta * math.sqrt(linear_k(k) * m),
+                                                  float(k), state=start)}
                   for k in ks if cpath in free]
         notes.append(f"start: damping ratio {zeta:.4g} from the first apex; k from the best "
-                     f"of a 32-point scan over {ks[0]:.3g}..{ks[-1]:.3g} N/m (w0 dt <= 0.25)")
+                     f"of a 32-point scan over {ks[0]:.3g}..{ks[-1]:.3g} {ku} (w0 dt <= 0.25)")
     if c0 is not None:
         cc = c0
     if k0 is not None:
         kk = k0
     if kk > kmax:
-        notes.append(f"start k {kk:.4g} N/m lowered to {kmax:.4g} N/m, the accuracy limit "
+        notes.append(f"start k {kk:.4g} {ku} lowered to {kmax:.4g} {ku}, the accuracy limit "
                      f"w0 dt <= 0.25 at dt = {dt:g} s (use a smaller dt for stiffer contact)")
         kk = kmax
     params0 = sim.params(contact={mat: (kk, cc)})
-    c_safe = safe_contact_bounds(sim, m)[1]          # c dt / m < 1: inside the safe step
-    bounds = {kpath: (min(1e-3 * kmax, kk), kmax), cpath: (min(1e-6, 1e-3 * c_safe), c_safe)}
+    k_low = min(1e-3 * kmax, kk)
+    # c dt / m < 1: inside the safe step (its damping at the depth of the softest k allowed)
+    c_safe = safe_contact_bounds(sim, m, state=start, k_min=k_low)[1]
+    bounds = {kpath: (k_low, kmax), cpath: (min(1e-6, 1e-3 * c_safe), c_safe)}
     tol = dict(BOUNCE_METRICS)
     if rtol is not None:
         tol.update(rtol if isinstance(rtol, dict) else {k: rtol for k in tol})

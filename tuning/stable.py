@@ -25,7 +25,7 @@ from diffpen.stability.depth import energy_depth
 from .errors import FitError
 
 __all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
-           "unsafe_start", "start_energy",
+           "unsafe_start", "start_energy", "contact_scales", "law_k", "law_c",
            "safe_contact_limits", "safe_contact_bounds", "implicit_contact_limits"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
@@ -162,40 +162,66 @@ def safe_contact_bounds(sim, mass: float | None = None, *, state=None,
                                            _light_mass(sim) if mass is None else mass,
                                            an.contact_wh)
     if an.contact_scale is not None:
-        free = ~np.asarray(an.pinned)
-        d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0
-        energy = start_energy(sim, state) if an.integrator.explicit else None
-        if energy is None or an.depth_exponent is None:
-            fk, fc = (float(x) for x in an.contact_scale(1.0, 1.0, d))
-            return k_max / fk, c_max / fc
-        fc = (_scales(an, float(k_min), d, energy)[1] if k_min and k_min > 0.0
-              else float(an.contact_scale(1.0, 1.0, d)[1]))
-        return _depth_k_max(an, k_max, d, energy), c_max / fc
+        if not an.integrator.explicit:
+            state = None
+        c_scale = contact_scales(sim, k_min, state=state)[1] if k_min and k_min > 0.0 else (
+            contact_scales(sim, 0.0)[1])
+        return law_k(sim, k_max, state=state), c_max / c_scale
     return k_max, c_max
 
 
-def _scales(an, k: float, d_ref: float, energy: float) -> tuple[float, float]:
-    """The law's (stiffness, damping) factors of a contact of stiffness ``k`` at its
-    reference depth: the start energy's depth, never deeper than ``d_ref``."""
-    d = min(d_ref, float(energy_depth(an.depth_exponent, np.float64(k), energy)))
+def _reference(sim, state) -> tuple[float, float | None]:
+    """``(d_ref, energy)``: the deepest reference depth of the movable bodies (m) and the
+    start energy of ``state`` (J; None: the depth is ``d_ref``)."""
+    an = sim.analysis
+    free = ~np.asarray(an.pinned)
+    d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0
+    energy = start_energy(sim, state) if an.depth_exponent is not None else None
+    return d, energy
+
+
+def contact_scales(sim, k: float, *, state=None) -> tuple[float, float]:
+    """The factors ``(stiffness / k, damping / c)`` of ``sim``'s contact law for a contact of
+    stiffness ``k`` (the law's units) at its reference depth, as the safe step counts them
+    (``ContactLaw.stiffness``): 1 and 1 for the linear laws; for Hunt-Crossley
+    ``(n d^(n-1), d^n)`` at the depth ``d`` where the contact would store twice the energy of
+    ``state`` (:func:`start_energy`; never deeper than the bodies' largest radius, which is
+    the depth without a state or for ``k`` 0)."""
+    an = sim.analysis
+    d, energy = _reference(sim, state)
+    if energy is not None and k > 0.0:
+        d = min(d, float(energy_depth(an.depth_exponent, np.float64(k), energy)))
     return tuple(float(x) for x in an.contact_scale(1.0, 1.0, d))
 
 
-def _depth_k_max(an, limit: float, d_ref: float, energy: float) -> float:
-    """The largest ``k`` whose stiffness at its own reference depth (:func:`_scales`) is at
-    most ``limit`` (N/m): bisection on log k (the stiffness grows with k)."""
+def law_k(sim, stiffness: float, *, state=None) -> float:
+    """The largest stiffness ``k`` in the units of ``sim``'s contact law (Hunt-Crossley
+    N/m^n) whose stiffness at its reference depth (:func:`contact_scales`) is at most
+    ``stiffness`` N/m: ``stiffness`` itself for the linear laws; at the radius a division;
+    with a ``state`` whose energy bounds the depth, bisection on log k (the stiffness grows
+    with k)."""
+    k_rad = stiffness / contact_scales(sim, 0.0)[0]       # at the radius: the bound holds
+    if _reference(sim, state)[1] is None:
+        return k_rad
+
     def fits(k):
-        return k * _scales(an, k, d_ref, energy)[0] <= limit
-    lo = limit / float(an.contact_scale(1.0, 1.0, d_ref)[0])     # the radius' bound holds
-    if not fits(lo):
-        return lo
-    hi = lo
+        return k * contact_scales(sim, k, state=state)[0] <= stiffness
+    if not fits(k_rad):
+        return k_rad
+    lo = hi = k_rad
     while fits(hi) and hi < 1e30:
         lo, hi = hi, hi * 10.0
     for _ in range(80):
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if fits(mid) else (lo, mid)
     return lo
+
+
+def law_c(sim, damping: float, k: float, *, state=None) -> float:
+    """The damping ``c`` in the units of ``sim``'s contact law (Hunt-Crossley N s/m^(n+1))
+    that damps a contact of stiffness ``k`` (its units) by ``damping`` N s/m at its
+    reference depth (:func:`contact_scales`)."""
+    return damping / contact_scales(sim, k, state=state)[1]
 
 
 def unsafe_start(start, dt: float | None = None) -> FitError:

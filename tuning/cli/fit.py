@@ -11,6 +11,7 @@ import math
 import sys
 import time
 
+from ..bounce import law_units  # noqa: F401  (the units this command prints)
 from ._common import (CLIError, add_start_state_arguments, count, dump_json, fail, fmt,
                       law_name, positive, setup_jax)
 
@@ -238,15 +239,6 @@ def damping_ratio_or_none(law, k, c, mass) -> float | None:
     if rec.exponent != 1.0 or rec.damping_exponent != 0.0:
         return None
     return float(dp.physical.damping_ratio(k, c, mass))
-
-
-def law_units(law) -> tuple[str, str]:
-    """Units of a contact law's k and c: ``F = k d^n - c vn d^m`` has k in N/m^n and c in
-    N s/m^(m+1) (N/m and N s/m for the linear laws)."""
-    import diffpen as dp
-    rec = dp.laws.get(law or "linear")
-    n, m = float(rec.exponent), float(rec.damping_exponent)
-    return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
 
 
 def _report(args, out: dict, plot_fn=None) -> int:
