@@ -175,3 +175,19 @@ def test_a_held_k_is_capped_to_keep_the_fit_fast(hard_1khz, monkeypatch):
     assert res.k == pytest.approx((0.25 * 2e4 / (t[-1] - t[0])) ** 2)
     assert res.k < res.k_lower_bound and res.k_stderr == np.inf
     assert any("to keep the model within" in n for n in res.notes), res.notes
+
+
+def test_a_hertz_record_is_fitted_in_the_laws_units():
+    """Regression: the record fit (``diffpen fit --data --law hunt_crossley``) started from
+    the linear closed forms in N/m and N s/m and used them as a Hunt-Crossley k (N/m^n) and
+    c (N s/m^(n+1)), bounding c within 1e3 of that start: a Hertz ball's record (1 kg, n 1.5,
+    k 1e6, c 3e4, 0.1 mm noise) ended at k 5.1e5, c 1.5e4 (c at its bound), the iteration
+    limit reached. The start now takes the law's stiffness and damping at the depth the
+    record's start energy allows (tuning.stable.law_k, law_c), and the fit recovers both
+    within 0.5%."""
+    import diffpen as dp
+    law = dp.laws.hunt_crossley(1.5)
+    t, z = S.synthetic_record(1e6, 3e4, law=law, duration=1.5, noise=1e-4, seed=5)
+    res = S.fit_trajectory(t, z, radius=0.1, mass=1.0, law=law)
+    assert res.k == pytest.approx(1e6, rel=5e-3) and res.c == pytest.approx(3e4, rel=5e-3)
+    assert any("N/m^1.5" in n and "N s/m^2.5" in n for n in res.notes), res.notes

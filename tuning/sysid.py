@@ -47,7 +47,8 @@ import diffpen as dp
 
 from .fit import FitError, Progress
 from .lm import levenberg_marquardt, residuals_and_jacobian
-from .stable import safe_contact_bounds
+from .bounce import law_units
+from .stable import contact_scales, law_c, law_k, safe_contact_bounds
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
            "fit_trajectory", "TrajectoryFit", "synthetic_record", "RecordEvents"]
@@ -301,7 +302,9 @@ def choose_dt(t, *, radius, mass, z0, v0, k, c, g=9.81, law="linear", noise=1e-3
     Returns ``(dt, discretisation_rms, warning or None)``.
     """
     t = np.asarray(t, float)
-    w0 = math.sqrt(k / mass)
+    # w0 of the law's stiffness at the depth the start's energy allows (k itself if linear)
+    pre = _ball_sim(radius, mass, z0, v0, g, 1e-3, law)
+    w0 = math.sqrt(k * contact_scales(pre, k, state=pre.init_state())[0] / mass)
     if dt is None:
         step = float(np.median(np.diff(t)))
         dt = step / max(1, math.ceil(step * w0 / w0dt))
@@ -406,30 +409,42 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         raise FitError(f"the record's first flight is not a fall under gravity g = {g} m/s^2 "
                        f"from above the ground (its parabola starts at {ev.z0:.4g} m): check "
                        "the units (t in seconds, z in metres) and --radius.")
-    kg, cg = first_guess(ev, mass, law=law)
+    kg_lin, cg_lin = first_guess(ev, mass, law=law)
+    # a law whose stiffness grows with depth (Hunt-Crossley: k N/m^n, c N s/m^(n+1)) takes
+    # the closed forms' N/m and N s/m at the depth the record's start energy allows, as
+    # its safe step counts it (tuning.stable.law_k, law_c); the linear laws keep them
+    pre = _ball_sim(radius, mass, ev.z0, ev.v0, g, 1e-3, law)
+    start = pre.init_state()
+    ku, cu = law_units(pre.contact_law)
+    kg = law_k(pre, kg_lin, state=start)
+    cg = law_c(pre, cg_lin, kg, state=start)
     e_ev, tc_ev, resolved = _contact_time(ev)
     k_start = kg if k0 is None else float(k0)
     c_start = cg if c0 is None else float(c0)
     if resolved:
         notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
                      f"{np.median(ev.restitution[:3]):.4g}, contact time "
-                     f"{np.median(ev.contact[:3]) * 1e3:.4g} ms -> k={kg:.5g} N/m, "
-                     f"c={cg:.5g} N s/m")
+                     f"{np.median(ev.contact[:3]) * 1e3:.4g} ms -> k={kg:.5g} {ku}, "
+                     f"c={cg:.5g} {cu}")
     else:
         notes.append(f"first guess from {len(ev.restitution)} bounces: restitution "
                      f"{e_ev:.4g}, contact time not resolved (measured "
                      f"{np.median(ev.contact[:3]) * 1e3:.3g} ms, not above {tc_ev * 1e3:.3g} "
                      f"ms = {RESOLVED:g} standard errors of the flights' timing) -> "
-                     f"k={kg:.5g} N/m, c={cg:.5g} N s/m at a {tc_ev * 1e3:.3g} ms contact")
+                     f"k={kg:.5g} {ku}, c={cg:.5g} {cu} at a {tc_ev * 1e3:.3g} ms contact")
         # the stiffest contact simulated within about HELD_STEPS steps over the record
-        k_cap = mass * (0.25 * HELD_STEPS / max(float(t[-1] - t[0]), 1e-9)) ** 2
+        k_cap_lin = mass * (0.25 * HELD_STEPS / max(float(t[-1] - t[0]), 1e-9)) ** 2
+        k_cap = law_k(pre, k_cap_lin, state=start)
         if k0 is None and kg > k_cap:
-            k_start, c_start = k_cap, (cg * math.sqrt(k_cap / kg) if c0 is None else c_start)
-            notes.append(f"k is held at {k_cap:.5g} N/m, below the record's bound {kg:.5g} "
-                         f"N/m, to keep the model within about {HELD_STEPS:.0e} steps: its "
-                         f"contacts last {tc_ev * math.sqrt(kg / k_cap) * 1e3:.3g} ms, longer "
-                         f"than the record allows (pass --k0 {kg:.3g} to hold the bound; "
-                         "slower)")
+            k_start = k_cap
+            if c0 is None:
+                c_start = law_c(pre, cg_lin * math.sqrt(k_cap_lin / kg_lin), k_cap,
+                                state=start)
+            notes.append(f"k is held at {k_cap:.5g} {ku}, below the record's bound {kg:.5g} "
+                         f"{ku}, to keep the model within about {HELD_STEPS:.0e} steps: its "
+                         f"contacts last {tc_ev * math.sqrt(kg_lin / k_cap_lin) * 1e3:.3g} ms, "
+                         f"longer than the record allows (pass --k0 {kg:.3g} to hold the "
+                         "bound; slower)")
     noise = max(ev.noise, 1e-6)
     dt, dt_err, warn = choose_dt(t, radius=radius, mass=mass, z0=ev.z0, v0=ev.v0, k=k_start,
                                  c=c_start, g=g, law=law, noise=noise, dt=dt,
@@ -478,9 +493,9 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     log_k = float(x[0])
     if f0:
         notes.append(f"k is a LOWER BOUND, not determined by the record: any contact of "
-                     f"k >= {kg:.5g} N/m (the contact time at the record's timing "
+                     f"k >= {kg:.5g} {ku} (the contact time at the record's timing "
                      f"resolution) explains it as well. k is held at {math.exp(log_k):.5g} "
-                     "N/m (its standard error is undetermined: inf); c and the start state "
+                     f"{ku} (its standard error is undetermined: inf); c and the start state "
                      "are fitted (c sets the restitution at that k)")
     x, lo, hi = x[f0:], lo[f0:], hi[f0:]
     hist, its, converged, message = [], 0, False, ""
@@ -534,12 +549,12 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
                      "tighter, more reliable errors")
     if f0:
         notes.append(f"standard errors: k undetermined (held); c: noise part "
-                     f"{c * se_stat[1]:.3g} N s/m, dt part (shift to dt -> 0, Richardson) "
-                     f"{c * abs(shift[1]):.3g} N s/m")
+                     f"{c * se_stat[1]:.3g} {cu}, dt part (shift to dt -> 0, Richardson) "
+                     f"{c * abs(shift[1]):.3g} {cu}")
     else:
-        notes.append(f"standard errors: noise part k {k * se_stat[0]:.3g} N/m, c "
-                     f"{c * se_stat[1]:.3g} N s/m; dt part (shift to dt -> 0, Richardson) k "
-                     f"{k * abs(shift[0]):.3g} N/m, c {c * abs(shift[1]):.3g} N s/m")
+        notes.append(f"standard errors: noise part k {k * se_stat[0]:.3g} {ku}, c "
+                     f"{c * se_stat[1]:.3g} {cu}; dt part (shift to dt -> 0, Richardson) k "
+                     f"{k * abs(shift[0]):.3g} {ku}, c {c * abs(shift[1]):.3g} {cu}")
     return TrajectoryFit(
         k=k, c=c, k_stderr=k * float(se_log[0]), c_stderr=c * float(se_log[1]),
         first_guess=(kg, cg), rms=float(np.sqrt(np.mean(r * r))), noise=noise, dt=dt,
