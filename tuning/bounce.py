@@ -338,10 +338,14 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                      "contact)")
         k_first = kmax
         k0 = kmax if k0 is not None else None
-    k_lin = linear_k(k_first)
-    kk_lin, cc_lin, zeta = first_guess_bounce(info, tg, law=law, k0=k_lin)
-    kk = k_first if kk_lin == k_lin else law_k(sim, kk_lin, state=start)
-    cc = law_c(sim, cc_lin, kk, state=start)
+    if dp.laws.get(law).closed_form is not None:     # the law's own closed forms: its units
+        kk, cc, zeta = first_guess_bounce(info, tg, law=law, k0=k_first)
+    else:                                            # the linear ones: N/m, N s/m
+        k_lin = linear_k(k_first)
+        kk_lin, cc_lin, zeta = first_guess_bounce(info, tg, law=law, k0=k_lin)
+        # (without a contact-duration target the guess keeps k0 as given)
+        kk = k_first if kk_lin == k_lin else law_k(sim, kk_lin, state=start)
+        cc = law_c(sim, cc_lin, kk, state=start)
     heights_only = (("apex_heights" in tg or "restitution" in tg)
                     and not ({"settling_time", "contact_durations", "max_penetration",
                               "decay_time"} & set(tg)))

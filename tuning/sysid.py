@@ -416,8 +416,11 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     pre = _ball_sim(radius, mass, ev.z0, ev.v0, g, 1e-3, law)
     start = pre.init_state()
     ku, cu = law_units(pre.contact_law)
-    kg = law_k(pre, kg_lin, state=start)
-    cg = law_c(pre, cg_lin, kg, state=start)
+    kg, cg = kg_lin, cg_lin
+    convert = dp.laws.get(law).closed_form is None     # the linear closed forms: N/m, N s/m
+    if convert:
+        kg = law_k(pre, kg_lin, state=start)
+        cg = law_c(pre, cg_lin, kg, state=start)
     e_ev, tc_ev, resolved = _contact_time(ev)
     k_start = kg if k0 is None else float(k0)
     c_start = cg if c0 is None else float(c0)
@@ -434,12 +437,13 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
                      f"k={kg:.5g} {ku}, c={cg:.5g} {cu} at a {tc_ev * 1e3:.3g} ms contact")
         # the stiffest contact simulated within about HELD_STEPS steps over the record
         k_cap_lin = mass * (0.25 * HELD_STEPS / max(float(t[-1] - t[0]), 1e-9)) ** 2
-        k_cap = law_k(pre, k_cap_lin, state=start)
+        k_cap = law_k(pre, k_cap_lin, state=start) if convert else k_cap_lin
         if k0 is None and kg > k_cap:
             k_start = k_cap
             if c0 is None:
-                c_start = law_c(pre, cg_lin * math.sqrt(k_cap_lin / kg_lin), k_cap,
-                                state=start)
+                c_start = cg_lin * math.sqrt(k_cap_lin / kg_lin)
+                if convert:
+                    c_start = law_c(pre, c_start, k_cap, state=start)
             notes.append(f"k is held at {k_cap:.5g} {ku}, below the record's bound {kg:.5g} "
                          f"{ku}, to keep the model within about {HELD_STEPS:.0e} steps: its "
                          f"contacts last {tc_ev * math.sqrt(kg_lin / k_cap_lin) * 1e3:.3g} ms, "
