@@ -131,6 +131,11 @@ def test_fit_bounds_count_the_start_energys_depth_as_the_rollout_does():
     assert leaves.hi.tolist() == pytest.approx([k_max, c_cap], rel=1e-12)
     assert FreeLeaves.build(params0, free, box, sim).hi.tolist() == pytest.approx(
         [k_rad, c_rad], rel=1e-12)
+    from tuning.batch_fit import BatchFitter
+    rows = BatchFitter(lambda p: {"k": p.contact["default"].k}, params0, free=free,
+                       bounds=box, sim=sim, state=start)
+    assert rows.hi.tolist() == pytest.approx([k_max, c_cap], rel=1e-12)
+    assert not bool(rows.metrics_fn(sim.params(k=1e6, c=1e4))["unstable"])
     flagged = with_flag(lambda p: {"k": p.contact["default"].k}, sim, start)
     assert not bool(flagged(sim.params(k=1e6, c=1e4))["unstable"])
     assert bool(with_flag(lambda p: {}, sim)(sim.params(k=1e6, c=1e4))["unstable"])

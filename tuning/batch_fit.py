@@ -143,20 +143,24 @@ class BatchFitter:
         all devices).
       sim: the simulator behind ``metrics_fn`` (optional): contact k and c bounded inside its
         safe step and the stability flag added, as in :func:`tuning.fit.fit`.
+      state: with ``sim``, the concrete start state of every row's rollouts, as in
+        :func:`tuning.fit.fit` (a Hunt-Crossley contact's safe step at the depth its energy
+        allows; default None: the bodies' radii).
     """
 
     def __init__(self, metrics_fn: Callable, params0: dp.Params, *, free=None,
                  bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
                  optimizer: optax.GradientTransformation | None = None,
-                 learning_rate: float = 0.05, maxiter: int = 200, mesh=None, sim=None):
+                 learning_rate: float = 0.05, maxiter: int = 200, mesh=None, sim=None,
+                 state=None):
         lr = float(learning_rate)
         if not (math.isfinite(lr) and lr > 0.0):
             raise FitError(f"learning_rate must be a positive number (a relative step, e.g. "
                            f"0.05), got {learning_rate!r}.")
         positive_int("maxiter", maxiter, "iterations per row")
-        leaves = FreeLeaves.build(params0, free, bounds, sim)
+        leaves = FreeLeaves.build(params0, free, bounds, sim, state=state)
         # a point past the safe step is never reached (tuning.stable)
-        self.metrics_fn = with_flag(metrics_fn, sim)
+        self.metrics_fn = with_flag(metrics_fn, sim, state)
         self.params0, self.free = params0, list(leaves.free)
         self.x0, self.lo, self.hi = leaves.x0, leaves.lo, leaves.hi
         self.weights, self.rtol = weights, rtol
@@ -303,7 +307,7 @@ def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
     ``fit_batch(metrics_fn, params0, targets, starts, **options)`` is
     ``BatchFitter(metrics_fn, params0, **options)(targets, starts)``; see :class:`BatchFitter`
     for the options (``free``, ``bounds``, ``weights``, ``rtol``, ``optimizer``,
-    ``learning_rate``, ``maxiter``, ``mesh``, ``sim``). Build a :class:`BatchFitter` once to run
+    ``learning_rate``, ``maxiter``, ``mesh``, ``sim``, ``state``). Build a :class:`BatchFitter` once to run
     several batches of the same layout without recompiling.
 
     Args:
