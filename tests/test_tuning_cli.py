@@ -287,6 +287,28 @@ def test_fit_gives_a_damping_ratio_only_for_laws_that_have_one(capsys):
     assert "(damping ratio 0.25)" in capsys.readouterr().out
 
 
+def test_fit_takes_hunt_crossleys_exponent(capsys):
+    """`diffpen fit --law hunt_crossley` had no way to say n: Hertz balls (n 1.5) could not be
+    fitted from the command line. --exponent N: the Hertz ball's continuous bounces (apexes
+    1-3 and the first contact's duration of the event-located reference) at dt 5e-4 are
+    reached, k and c within 1.5% of the truth (1e6 N/m^1.5, 3e4 N s/m^2.5), printed in
+    their units; with another law it is refused before anything runs."""
+    import argparse
+
+    from tuning.cli import fit as fitcli
+    rc, out = run_json(capsys, ["fit", "--law", "hunt_crossley", "--exponent", "1.5",
+                                "--dt", "5e-4", "--target-apex", "0.76342843", "0.65556042",
+                                "0.5688891", "--target-contact", "0.00972831"])
+    assert rc == 0 and out["reached"] and out["exponent"] == 1.5
+    assert out["k"] == pytest.approx(1e6, rel=0.015) and out["c"] == pytest.approx(
+        3e4, rel=0.015)
+    assert "(n = 1.5)" in out["scene"]
+    fitcli._print(argparse.Namespace(json=False), out)
+    assert "N/m^1.5" in capsys.readouterr().out
+    assert main(["fit", "--law", "linear", "--exponent", "1.5"]) == 2
+    assert "give --law hunt_crossley" in capsys.readouterr().err
+
+
 def test_simulate_past_the_safe_step_gives_advice_this_command_can_follow(capsys):
     """diffpen simulate has --dt but no substeps or integrator flag: the advice names --dt
     and, for a scene file, its keys (it named compile(substeps=...) and integrator='...')."""

@@ -30,10 +30,11 @@ __all__ = ["BOUNCE_METRICS", "EVENT_TARGETS", "check_bounce_targets", "bounce_me
            "first_guess_bounce", "fit_bounce", "step_restitution_error", "law_units"]
 
 
-def law_units(law) -> tuple[str, str]:
-    """Units of a contact law's k and c: ``F = k d^n - c vn d^m`` has k in N/m^n and c in
-    N s/m^(m+1) (N/m and N s/m for the linear laws)."""
-    rec = dp.laws.get(law or "linear")
+def law_units(law, exponent: float = 1.0) -> tuple[str, str]:
+    """Units of a contact law's k and c (``law`` a record or a name, ``exponent`` for
+    ``"hunt_crossley"``): ``F = k d^n - c vn d^m`` has k in N/m^n and c in N s/m^(m+1) (N/m
+    and N s/m for the linear laws)."""
+    rec = dp.laws.get(law or "linear", exponent)
     n, m = float(rec.exponent), float(rec.damping_exponent)
     return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
 

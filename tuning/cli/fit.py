@@ -72,6 +72,9 @@ def add_arguments(p) -> None:
                    "targets; chosen from the data with --data)")
     p.add_argument("--law", type=law_name,
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default linear)")
+    p.add_argument("--exponent", type=positive("--exponent"), metavar="N",
+                   help="with --law hunt_crossley: the exponent n of F = max(k - c vn, 0) d^n "
+                        "(1.5: Hertz; default 1); k is then in N/m^n and c in N s/m^(n+1)")
     p.add_argument("--events", action="store_true", default=None,
                    help="fit the built-in ball with the law's event-exact record "
                         "(diffpen.laws.get(LAW, events=True): its steps land on the "
@@ -83,8 +86,10 @@ def add_arguments(p) -> None:
     p.add_argument("--lr", type=positive("--lr"), default=DEFAULT_LR,
                    help="learning rate on log-parameters for adam/sgd (default 0.05)")
     p.add_argument("--maxiter", type=count("--maxiter"), help="iteration limit")
-    p.add_argument("--k0", type=positive("--k0"), help="start stiffness, N/m")
-    p.add_argument("--c0", type=positive("--c0"), help="start damping, N s/m")
+    p.add_argument("--k0", type=positive("--k0"),
+                   help="start stiffness, N/m (Hunt-Crossley: N/m^n)")
+    p.add_argument("--c0", type=positive("--c0"),
+                   help="start damping, N s/m (Hunt-Crossley: N s/m^(n+1))")
     p.add_argument("--plot", metavar="FILE.png", help="the built-in ball's fits only: its "
                    "trajectory against the targets and the loss curve (needs matplotlib); for "
                    "scene files use diffpen evaluate ... --plot DIR")
@@ -127,7 +132,8 @@ def _check_plot(args) -> None:
 #: The built-in ball's flags and their defaults: a scene file has its own values.
 BALL_FLAGS = {"radius": 0.1, "mass": 1.0, "drop": 1.0, "settle_tol": 1e-3, "law": "linear",
               "dt": None, "k0": None, "c0": None, "target_apex": None,
-              "target_settle": None, "target_contact": None, "events": False}
+              "target_settle": None, "target_contact": None, "events": False,
+              "exponent": 1.0}
 
 
 def _refuse_ball_flags(args, why: str) -> None:
@@ -150,7 +156,7 @@ def _refuse_data_flags(args) -> None:
     if given:
         raise CLIError(f"--data {args.data[0]} does not read {' '.join(given)}: a t,z record "
                        "is fitted by Levenberg-Marquardt from its own start height (it reads "
-                       "--radius, --mass, --law, --dt, --k0, --c0 and --maxiter); drop them")
+                       "--radius, --mass, --law, --exponent, --dt, --k0, --c0 and --maxiter); drop them")
 
 
 def _run(args) -> int:
@@ -164,6 +170,11 @@ def _run(args) -> int:
     for name, default in BALL_FLAGS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)
+    if args.exponent != 1.0 and args.law != "hunt_crossley":
+        raise CLIError(f"--exponent sets Hunt-Crossley's exponent: give --law hunt_crossley "
+                       f"with it (got --law {args.law})")
+    if args.exponent < 1.0:
+        raise CLIError(f"--exponent must be >= 1 (Hertz: 1.5), got {args.exponent:g}")
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
@@ -204,7 +215,7 @@ def _run(args) -> int:
         opt = (optax.adam(args.lr) if args.method == "adam" else optax.sgd(args.lr))
     t0 = time.perf_counter()
     import diffpen as dp
-    law = dp.laws.get(args.law, events=True) if args.events else args.law
+    law = _law(args)
     res = fit_bounce(scene, targets, dt=dt, law=law, settle_tol=args.settle_tol,
                      k0=args.k0, c0=args.c0, method=method, optimizer=opt,
                      maxiter=args.maxiter, progress=False if args.json else None)
@@ -213,20 +224,38 @@ def _run(args) -> int:
     centred = (", event-exact steps" if args.events else ", damping at the step's centre"
                if one_contact_per_body(scene) else "")
     desc = (f"ball r={args.radius:g} m, m={args.mass:g} kg, centre dropped from "
-            f"z={args.drop:g} m onto the plane z=0 (dt={dt:g} s, {args.law} law{centred}, "
+            f"z={args.drop:g} m onto the plane z=0 (dt={dt:g} s, {_law_label(args)}{centred}, "
             f"settling band {args.settle_tol * 1e3:g} mm)")
     k = res.params.contact["default"].k
     c = res.params.contact["default"].c
-    zeta = damping_ratio_or_none(args.law, k, c, args.mass)
+    zeta = damping_ratio_or_none(_law(args), k, c, args.mass)
     out = {"scene": desc, "k": float(k), "c": float(c), "targets": res.targets,
            "achieved": res.achieved, "rel_error": res.rel_error, "reached": res.reached,
            "iterations": res.iterations, "evaluations": res.evaluations, "seconds": seconds,
            "message": res.message,
-           "notes": res.notes, "dt": dt, "law": args.law, "events": bool(args.events),
-           "zeta": zeta}
+           "notes": res.notes, "dt": dt, "law": args.law, "exponent": args.exponent,
+           "events": bool(args.events), "zeta": zeta}
     if args.plot:
         _plot_targets(args, scene, res, dt)
     return _print(args, out)
+
+
+def _law(args):
+    """The contact law of the built-in ball's fits: the ``--law`` name, or where ``--events``
+    or ``--exponent`` asks for another record, that record (with ``--exponent`` alone the
+    centred one, which the name resolves to on the ball's one contact:
+    ``diffpen.checks.compile_arguments``)."""
+    import diffpen as dp
+    if args.events or args.exponent != 1.0:
+        return dp.laws.get(args.law, args.exponent, centred=not args.events,
+                           events=bool(args.events))
+    return args.law
+
+
+def _law_label(args) -> str:
+    """``"linear law"``, ``"hunt_crossley law (n = 1.5)"``, ... for the output's scene line."""
+    return f"{args.law} law" + (f" (n = {args.exponent:g})" if args.law == "hunt_crossley"
+                                else "")
 
 
 def damping_ratio_or_none(law, k, c, mass) -> float | None:
@@ -261,7 +290,7 @@ def _print(args, out: dict) -> int:
         print("targets:   " + "   ".join(f"{n} = {fmt(v, UNITS.get(n, ''))}"
                                          for n, v in out["targets"].items()))
     kse = out.get("k_stderr")
-    ku, cu = law_units(out.get("law"))
+    ku, cu = law_units(out.get("law"), out.get("exponent", 1.0))
     if kse is not None:
         print(f"fitted:    k = {out['k']:.6g} +- {kse:.2g} {ku}   c = {out['c']:.6g} +- "
               f"{out['c_stderr']:.2g} {cu}   (standard errors)")
@@ -300,7 +329,7 @@ def _plot_targets(args, scene, res, dt) -> None:
 
     from ..metrics import resting_height
     from ..plots import fit_figure
-    sim = dp.compile(scene, dt, law=args.law)
+    sim = dp.compile(scene, dt, law=_law(args))
     dur = res.targets.get("settling_time", 3.0)
     steps = int(math.ceil(1.3 * dur / dt))
     s0 = sim.init_state()
@@ -309,18 +338,19 @@ def _plot_targets(args, scene, res, dt) -> None:
     z = np.concatenate([[args.drop], np.asarray(traj.position[:, 0, 2])])
     k = float(res.params.contact["default"].k)
     rest = float(resting_height(jnp.asarray(k), args.mass, 9.81, args.radius, law=args.law,
-                                width=sim.smoothing))
+                                exponent=args.exponent, width=sim.smoothing))
+    ku, cu = law_units(args.law, args.exponent)
     fit_figure(args.plot, t, z, targets=res.targets, achieved=res.achieved,
                loss_history=(res.eval_history if res.eval_history is not None
                              and len(res.eval_history) else res.loss_history),
                evaluations=res.eval_history is not None and len(res.eval_history) > 0,
                radius=args.radius, settle_tol=args.settle_tol,
-               rest=rest, title=f"k={k:.4g} N/m, c={float(res.params.contact['default'].c):.4g}"
-                                " N s/m")
+               rest=rest, title=f"k={k:.4g} {ku}, "
+                                f"c={float(res.params.contact['default'].c):.4g} {cu}")
 
 
 def _run_data(args) -> int:
-    ku, cu = law_units(args.law)
+    ku, cu = law_units(args.law, args.exponent)
     if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
     from ..fit import RESIDUAL_FACTOR, FitError, residual_reached
@@ -329,7 +359,7 @@ def _run_data(args) -> int:
     setup_jax()
     from diffpen import SceneError
     try:
-        res = fit_trajectory(t, z, radius=args.radius, mass=args.mass, law=args.law,
+        res = fit_trajectory(t, z, radius=args.radius, mass=args.mass, law=_law(args),
                              dt=args.dt, k0=args.k0, c0=args.c0, maxiter=args.maxiter or 15,
                              progress=False if args.json else None)
     except (FitError, SceneError) as exc:    # a valid file the ball model cannot explain
@@ -340,16 +370,16 @@ def _run_data(args) -> int:
             print(f"status:    RECORD NOT EXPLAINED -- {msg}")
         return 1
     out = {"scene": f"ball r={args.radius:g} m, m={args.mass:g} kg fitted to {args.data} "
-                    f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, {args.law} "
-                    "law)",
+                    f"({len(t)} samples, {t[-1] - t[0]:.3g} s; dt={res.dt:.3g} s, "
+                    f"{_law_label(args)})",
            "k": res.k, "c": res.c,
-           "zeta": damping_ratio_or_none(args.law, res.k, res.c, args.mass),
+           "zeta": damping_ratio_or_none(_law(args), res.k, res.c, args.mass),
            "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
            "k_lower_bound": res.k_lower_bound, "targets": {"data": args.data}, "achieved": {"rms_residual": res.rms},
            "first_guess": list(res.first_guess), "rms": res.rms, "noise": res.noise,
            "dt": res.dt, "iterations": res.iterations, "seconds": res.seconds,
            "message": res.message, "notes": res.notes, "law": args.law,
-           "reached": residual_reached(res.rms, res.noise, res.dt_error),
+           "exponent": args.exponent, "reached": residual_reached(res.rms, res.noise, res.dt_error),
            "residual_limit": RESIDUAL_FACTOR * math.hypot(res.noise, res.dt_error)}
     if not out["reached"]:
         out["message"] = (f"the model does NOT explain the record: residual rms "
