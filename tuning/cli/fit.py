@@ -214,7 +214,6 @@ def _run(args) -> int:
         method = "optax"
         opt = (optax.adam(args.lr) if args.method == "adam" else optax.sgd(args.lr))
     t0 = time.perf_counter()
-    import diffpen as dp
     law = _law(args)
     res = fit_bounce(scene, targets, dt=dt, law=law, settle_tol=args.settle_tol,
                      k0=args.k0, c0=args.c0, method=method, optimizer=opt,
