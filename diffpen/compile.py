@@ -373,7 +373,7 @@ class Simulator:
         would take (default the scene's), whose energy bounds the depth of a contact law
         that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
         """
-        rep = _stability.report(self.analysis, params, energy=self._start_energy(
+        rep = _stability.report(self.analysis, params, energy=self.start_energy(
             self._init if state is None else state))
         if rep is None:
             raise SceneError("sim.stability(params) needs concrete parameter values, not "
@@ -416,10 +416,13 @@ class Simulator:
         without compiling anything."""
         return self._rollout_traces[0]
 
-    def _start_energy(self, state):
-        """The start energy (J) bounding the contacts' reference depth for a rollout from
-        ``state`` (:mod:`diffpen.stability.depth`), or None: the scene does not qualify, the
-        state is traced (under jit or vmap) or a body starts in contact."""
+    def start_energy(self, state) -> float | None:
+        """The energy (J) with which a rollout from ``state`` bounds the reference depth of a
+        contact law that stiffens with depth (:mod:`diffpen.stability.depth`: kinetic,
+        rotation included, and potential), as the up-front check and the traced flag count
+        it; None where the radii bound it instead: the law's stiffness does not grow with
+        depth, the scene does not qualify, the state is traced (under jit or vmap) or a body
+        starts in contact."""
         rotating = self._rigid is not None
         parts = (state.position, state.velocity) + (
             (state.orientation, state.angular_velocity) if rotating else ())
@@ -481,7 +484,7 @@ class Simulator:
         _checks.warn_batched_recording(params, state, steps, given, observe)
         if state is None:
             state = self._init
-        energy = self._start_energy(state)
+        energy = self.start_energy(state)
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
                             cache=self.gate_cache, energy=energy)  # host-side only

@@ -630,7 +630,7 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
             body=[0], position=jnp.stack([0.0, 0.0, z])[None])).position[-1, 0, 2])(
             jnp.array([1.0, 1.1]))
     resting = sim.state_from(body=[0], position=[[0.0, 0.0, 0.099]])
-    assert sim._start_energy(resting) is None
+    assert sim.start_energy(resting) is None
     named = dp.compile(_hertz_ball(name="ground"), 1e-3, law="hunt_crossley", exponent=1.5)
     assert named.analysis.depth_exponent is None
     assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None
@@ -656,7 +656,7 @@ def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     scene.add_plane()
     sim = dp.compile(scene, 1.0 / 148 / 8, law=dp.laws.hunt_crossley(1.5))
     start = sim.init_state()
-    energy = sim._start_energy(start)
+    energy = sim.start_energy(start)
     w = np.asarray(start.angular_velocity[0])
     r = float(np.hypot(half, np.hypot(half, half)))
     want = (0.5 * 0.37 * 1.25 + 0.5 * 8.1e-4 * w @ w
@@ -675,7 +675,7 @@ def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     assert 0.0 < -lowest < counted < 0.01                   # it sank, less than counted
     on = sim.state_from(body=[0], position=[[0.0, 0.0, half + 0.01]],
                         orientation=[[1.0, 0.0, 0.0, 0.0]])
-    assert sim._start_energy(on) is not None                 # flat, 1 cm clear: counts
+    assert sim.start_energy(on) is not None                 # flat, 1 cm clear: counts
     touching = sim.state_from(body=[0], position=[[0.0, 0.0, half]],
                               orientation=[[1.0, 0.0, 0.0, 0.0]])
-    assert sim._start_energy(touching) is None
+    assert sim.start_energy(touching) is None

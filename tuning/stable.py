@@ -47,7 +47,7 @@ def start_energy(sim, state) -> float | None:
     body starts in contact (then the bodies' radii bound the depth)."""
     if state is None:
         return None
-    return sim._start_energy(state)
+    return sim.start_energy(state)
 
 
 def params_unstable(sim, params, state=None):
@@ -180,6 +180,15 @@ def _reference(sim, state) -> tuple[float, float | None]:
     return d, energy
 
 
+def _scales_at(an, k: float, d_ref: float, energy: float | None) -> tuple[float, float]:
+    """:func:`contact_scales` given the reference radius ``d_ref`` (m) and the start energy
+    (J, or None)."""
+    d = d_ref
+    if energy is not None and k > 0.0:
+        d = min(d, float(energy_depth(an.depth_exponent, np.float64(k), energy)))
+    return tuple(float(x) for x in an.contact_scale(1.0, 1.0, d))
+
+
 def contact_scales(sim, k: float, *, state=None) -> tuple[float, float]:
     """The factors ``(stiffness / k, damping / c)`` of ``sim``'s contact law for a contact of
     stiffness ``k`` (the law's units) at its reference depth, as the safe step counts them
@@ -187,11 +196,7 @@ def contact_scales(sim, k: float, *, state=None) -> tuple[float, float]:
     ``(n d^(n-1), d^n)`` at the depth ``d`` where the contact would store twice the energy of
     ``state`` (:func:`start_energy`; never deeper than the bodies' largest radius, which is
     the depth without a state or for ``k`` 0)."""
-    an = sim.analysis
-    d, energy = _reference(sim, state)
-    if energy is not None and k > 0.0:
-        d = min(d, float(energy_depth(an.depth_exponent, np.float64(k), energy)))
-    return tuple(float(x) for x in an.contact_scale(1.0, 1.0, d))
+    return _scales_at(sim.analysis, k, *_reference(sim, state))
 
 
 def law_k(sim, stiffness: float, *, state=None) -> float:
@@ -200,12 +205,14 @@ def law_k(sim, stiffness: float, *, state=None) -> float:
     ``stiffness`` N/m: ``stiffness`` itself for the linear laws; at the radius a division;
     with a ``state`` whose energy bounds the depth, bisection on log k (the stiffness grows
     with k)."""
-    k_rad = stiffness / contact_scales(sim, 0.0)[0]       # at the radius: the bound holds
-    if _reference(sim, state)[1] is None:
+    an = sim.analysis
+    d_ref, energy = _reference(sim, state)              # the start energy, once
+    k_rad = stiffness / _scales_at(an, 0.0, d_ref, None)[0]   # at the radius: the bound holds
+    if energy is None:
         return k_rad
 
     def fits(k):
-        return k * contact_scales(sim, k, state=state)[0] <= stiffness
+        return k * _scales_at(an, k, d_ref, energy)[0] <= stiffness
     if not fits(k_rad):
         return k_rad
     lo = hi = k_rad

@@ -56,16 +56,6 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
         for p in scene.planes)
 
 
-def _rotation(q):
-    """(n, 4) unit quaternions (w, x, y, z) -> (n, 3, 3) rotation matrices, body to world."""
-    w, x, y, z = (q[:, i] for i in range(4))
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)],
-        axis=1)
-
-
 def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
                  orientation=None, angular_velocity=None, inertia=None) -> float | None:
     """Kinetic (rotation included) and potential energy (J) of a concrete start state
@@ -86,7 +76,9 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
         w = np.asarray(angular_velocity, float)
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(w))):
             return None
-        rot = _rotation(q / np.linalg.norm(q, axis=1, keepdims=True))
+        # imported here: diffpen.rigid imports the terms, which import this package
+        from ..rigid import quat_to_matrix
+        rot = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True), xp=np)
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
         return None
     collide = np.asarray(collide, bool)

@@ -170,7 +170,7 @@ def _run(args) -> int:
     for name, default in BALL_FLAGS.items():
         if getattr(args, name) is None:
             setattr(args, name, default)
-    if args.exponent != 1.0 and args.law != "hunt_crossley":
+    if args.exponent != 1.0 and not _takes_exponent(args.law):
         raise CLIError(f"--exponent sets Hunt-Crossley's exponent: give --law hunt_crossley "
                        f"with it (got --law {args.law})")
     if args.exponent < 1.0:
@@ -251,9 +251,16 @@ def _law(args):
     return args.law
 
 
+def _takes_exponent(name: str) -> bool:
+    """Whether the contact law ``name`` is built for a given exponent (its record says so:
+    ``ContactLaw.takes_exponent``)."""
+    import diffpen as dp
+    return dp.laws.get(name).takes_exponent
+
+
 def _law_label(args) -> str:
     """``"linear law"``, ``"hunt_crossley law (n = 1.5)"``, ... for the output's scene line."""
-    return f"{args.law} law" + (f" (n = {args.exponent:g})" if args.law == "hunt_crossley"
+    return f"{args.law} law" + (f" (n = {args.exponent:g})" if _takes_exponent(args.law)
                                 else "")
 
 
