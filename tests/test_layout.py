@@ -115,15 +115,33 @@ def test_a_batched_rollout_loop_is_one_kernel():
     assert "xla_cpu_small_call" in text
 
 
-def test_xla_flags_set_at_import_respect_the_callers(monkeypatch):
+def _fresh_python(code):
+    """``(stdout, stderr)`` of a new Python process (every warning shown) running ``code``
+    without the caller's XLA_FLAGS or DIFFPEN_KEEP_XLA_FLAGS."""
+    import os
     import subprocess
     import sys
+    base = {k: v for k, v in os.environ.items()
+            if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
+    done = subprocess.run([sys.executable, "-W", "always", "-c", code], env=base,
+                          capture_output=True, text=True, check=True)
+    return done.stdout, done.stderr
+
+
+@pytest.fixture(scope="module")
+def imported_first():
+    """A fresh process that imports diffpen before any JAX computation, then runs one, and
+    prints XLA_FLAGS: ``(stdout, stderr)``. Both tests below read it (one process start,
+    ~2 s of CPU, instead of one each): the flags diffpen set at import, and no warning."""
+    return _fresh_python("import os, diffpen, jax.numpy as jnp; "
+                         "jnp.ones(3).block_until_ready(); "
+                         "print(os.environ.get('XLA_FLAGS', ''))")
+
+
+def test_xla_flags_set_at_import_respect_the_callers(monkeypatch, imported_first):
     import os
     # a fresh process importing diffpen gets the option
-    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
-    mine = subprocess.run([sys.executable, "-c",
-                           "import os, diffpen; print(os.environ.get('XLA_FLAGS', ''))"],
-                          env=base, capture_output=True, text=True, check=True).stdout.strip()
+    mine = imported_first[0].strip()
     assert (f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold="
             f"{dp.SMALL_LOOP_BYTES}") in mine
 
@@ -150,23 +168,16 @@ def test_xla_flags_set_at_import_respect_the_callers(monkeypatch):
         "--xla_dump_hlo_pass_re=x"
 
 
-def test_importing_diffpen_after_jax_started_warns():
+def test_importing_diffpen_after_jax_started_warns(imported_first):
     """Regression: after any JAX computation the backend has read XLA_FLAGS, so the options
     diffpen sets at import (one-kernel rollout loops) silently did not apply (a batch of 4096
     balls ran 2.9x slower, XLA_FLAGS still showing them). Now a PerformanceWarning says to
-    import diffpen first; importing it first warns nothing."""
-    import os
-    import subprocess
-    import sys
-    base = {k: v for k, v in os.environ.items()
-            if k not in ("XLA_FLAGS", "DIFFPEN_KEEP_XLA_FLAGS")}
-
-    def run(code):
-        return subprocess.run([sys.executable, "-W", "always", "-c", code], env=base,
-                              capture_output=True, text=True, check=True).stderr
-    late = run("import jax.numpy as jnp; jnp.ones(3).block_until_ready(); import diffpen")
+    import diffpen first; importing it first warns nothing (the ``imported_first`` process:
+    diffpen, then a JAX computation)."""
+    late = _fresh_python("import jax.numpy as jnp; jnp.ones(3).block_until_ready(); "
+                         "import diffpen")[1]
     assert "PerformanceWarning" in late and "Import diffpen before any JAX" in late
-    assert "PerformanceWarning" not in run("import diffpen, jax.numpy as jnp; jnp.ones(3)")
+    assert "PerformanceWarning" not in imported_first[1]
 
 
 def test_columns_rollouts_save_columns_and_turn_them_into_rows_once():

@@ -621,9 +621,9 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
     with pytest.raises(dp.StabilityError):
         sim.rollout(sim.params(k=1e7, c=3e4), 10)
 
-    def flag(k):
-        return jax.jit(lambda k: sim.rollout(sim.params(k=k, c=3e4), 2, save_every=2)
-                       .aux[stability.FLAG][-1])(k)
+    # one jitted function for both values (a new jit per call compiled the same program twice)
+    flag = jax.jit(lambda k: sim.rollout(sim.params(k=k, c=3e4), 2, save_every=2)
+                   .aux[stability.FLAG][-1])
     assert not bool(flag(1e6)) and bool(flag(1e7))
     with pytest.raises(dp.StabilityError):              # a traced start: the radius again
         jax.vmap(lambda z: sim.rollout(p, 2, state=sim.state_from(
@@ -668,9 +668,10 @@ def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     traj = sim.rollout(p, 600, observe=lambda s: s)               # lands, bounces, tumbles
     assert not bool(traj.aux[stability.FLAG][-1])
     counted = float(energy_depth(1.5, 1.5e6, energy))
-    seen = traj.observed
+    # to numpy once: indexing a jax array dispatches (and first compiles) a program per call
+    seen = jax.tree_util.tree_map(np.asarray, traj.observed)
     lowest = min(float(seen.position[i, 0, 2]) + float(np.min(
-        (box_corners((half,) * 3) @ rotmat(np.asarray(seen.orientation[i, 0])).T)[:, 2]))
+        (box_corners((half,) * 3) @ rotmat(seen.orientation[i, 0]).T)[:, 2]))
         for i in range(600))
     assert 0.0 < -lowest < counted < 0.01                   # it sank, less than counted
     on = sim.state_from(body=[0], position=[[0.0, 0.0, half + 0.01]],

@@ -60,24 +60,37 @@ def _fit_cli(capsys, argv):
     return json.loads(capsys.readouterr().out)
 
 
+#: the rope's spring values in the record of ``rope_record``
+ROPE_TRUTH = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
+
+
+@pytest.fixture(scope="module")
+def rope_record(tmp_path_factory):
+    """The path of a record of the ROPE scene's nodes 1-3 at ROPE_TRUTH, made by rk4 at 0.25
+    ms: 0.6 s at 5 ms, 0.1 mm of noise. Shared: the tests read it, or copy it beside their
+    own scene file."""
+    return _record_file(tmp_path_factory.mktemp("rope"), ROPE.format(k=200.0, c=0.3),
+                        ROPE_TRUTH, ["rope[1]", "rope[2]", "rope[3]"], "rope",
+                        integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4,
+                        seed=1)[1]
+
+
 @pytest.mark.parametrize("case", ["rope", "box_springs"])
-def test_record_fit_recovers_parameters(tmp_path, capsys, case):
+def test_record_fit_recovers_parameters(tmp_path, capsys, request, case):
     """diffpen fit SCENE.toml --data REC.csv recovers spring k and c within 2% from a record
     made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise; the box's
     c within 3%: the fit integrator's own step error moves it by +1.25% on the noise-free
     record (+0.6% at half the step), this record's noise by another +1.1%."""
     if case == "rope":
-        truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
-        text = ROPE.format(k=200.0, c=0.3)
-        bodies = ["rope[1]", "rope[2]", "rope[3]"]
-        noise = 1e-4
+        truth = ROPE_TRUTH
+        scene = tmp_path / "rope.toml"
+        scene.write_text(ROPE.format(k=200.0, c=0.3))
+        scene, rec = str(scene), request.getfixturevalue("rope_record")
     else:
         truth = {"springs.hang.k": 400.0, "springs.hang.c": 2.0}
-        text = BOX.format(k=250.0, c=1.0)
-        bodies = ["box"]
-        noise = 2e-4
-    scene, rec = _record_file(tmp_path, text, truth, bodies, case, integrator="rk4",
-                              dt=2.5e-4, every=5e-3, duration=0.6, noise=noise, seed=1)
+        scene, rec = _record_file(tmp_path, BOX.format(k=250.0, c=1.0), truth, ["box"], case,
+                                  integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6,
+                                  noise=2e-4, seed=1)
     out_toml = tmp_path / "fitted.toml"
     out = _fit_cli(capsys, ["fit", scene, "--data", rec, "--out", str(out_toml)])
     for name, v in truth.items():
@@ -102,28 +115,29 @@ def test_standard_errors_take_in_the_records_start_state_noise(tmp_path):
     of the rope example the truth lay 13-41 reported errors away. They now take the larger of
     that and the records-as-clusters sandwich. Here four rope records, exact but for 0.5 mm /
     5 mm/s of noise on their first frame (pose and velocity columns), same integrator and
-    step as the fit: the truth is within 3 reported errors (before: 6.0 for k)."""
+    step as the fit: the truth is within 3 reported errors (before: 6.0 for k). The records
+    start the rope's free nodes at 0, 0.5, -1 and 0.8 m/s in y (one simulator, its start
+    state's velocities set: the state a scene file with that rope velocity starts from)."""
     from tuning.scene_fit import fit_files
-    text = ROPE.replace("n = 4", "n = 4\nvelocity = [0.0, {vy}, 0.0]").format(
-        k=200.0, c=0.3, vy="{vy}") + 'observe = ["rope[1]", "rope[2]", "rope[3]"]\n'
+    text = ROPE.format(k=200.0, c=0.3) + 'observe = ["rope[1]", "rope[2]", "rope[3]"]\n'
     truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
+    scene = tmp_path / "rope.toml"
+    scene.write_text(text)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    params = tf.with_leaves(sf.params(sim), truth)
+    ids = {b: sf.names[b] for b in sf.spec.observe}
+    free = [i for i, b in enumerate(sim.scene.bodies) if not b.pinned]
     paths = []
     for i, vy in enumerate((0.0, 0.5, -1.0, 0.8)):
-        scene = tmp_path / f"s{i}.toml"
-        scene.write_text(text.format(vy=vy))
-        sf = load_scene_file(str(scene))
-        sim = sf.compile()
-        params = tf.with_leaves(sf.params(sim), truth)
-        ids = {b: sf.names[b] for b in sf.spec.observe}
-        rec = tf.synthetic_record(sim, params, 0.4, 5e-3, ids)
-        noisy = tf.synthetic_record(sim, params, 0.4, 5e-3, ids, noise=5e-4, seed=i)
+        s = sim.state_from(body=free, velocity=np.tile([0.0, vy, 0.0], (len(free), 1)))
+        rec = tf.synthetic_record(sim, params, 0.4, 5e-3, ids, state=s)
+        noisy = tf.synthetic_record(sim, params, 0.4, 5e-3, ids, state=s, noise=5e-4, seed=i)
         for name in rec.bodies:
             rec.bodies[name].position[0] = noisy.bodies[name].position[0]
             rec.bodies[name].velocity[0] = noisy.bodies[name].velocity[0]
         paths.append(str(tmp_path / f"s{i}.csv"))
         write_record(paths[-1], rec)
-    scene = tmp_path / "rope.toml"
-    scene.write_text(text.format(vy=0.0))
     out = fit_files(str(scene), paths)
     for name, v in truth.items():
         z = (out["fitted"][name] - v) / out["stderr"][name]
@@ -413,17 +427,17 @@ def test_parameters_of_an_undetermined_direction_get_no_standard_error():
     assert np.all(np.isnan(res.correlation))
 
 
-def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys):
+def test_records_named_in_the_scene_file_and_horizons(tmp_path, capsys, rope_record):
     """[fit] data = [...] in a scene file of a rope is fitted like --data records, here over
     a growing horizon; the file's [fit] first_state and flight_frames are used, its horizon
     gives way to --horizon."""
-    truth = {"springs.rope.stretch.k": 300.0, "springs.rope.stretch.c": 0.5}
-    scene, rec = _record_file(tmp_path, ROPE.format(k=250.0, c=0.4), truth,
-                              ["rope[1]", "rope[2]", "rope[3]"], "rope", integrator="rk4",
-                              dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4, seed=1)
-    with open(scene, "a") as fh:
-        fh.write('data = ["rope.csv"]\nfirst_state = "record"\nflight_frames = 4\n'
-                 'horizon = [0.3]\n')
+    import shutil
+    truth = ROPE_TRUTH
+    shutil.copy(rope_record, tmp_path / "rope.csv")         # named relative to the scene
+    scene = str(tmp_path / "rope.toml")
+    with open(scene, "w") as fh:
+        fh.write(ROPE.format(k=250.0, c=0.4) + 'data = ["rope.csv"]\nfirst_state = "record"\n'
+                 'flight_frames = 4\nhorizon = [0.3]\n')
     spec = load_scene_file(scene).spec
     assert (spec.first_state, spec.flight_frames, spec.horizon) == ("record", 4, [0.3])
     out = _fit_cli(capsys, ["fit", scene, "--horizon", "0.2"])
@@ -492,10 +506,67 @@ def test_record_fit_never_steps_past_the_safe_step(cube, damping_past_the_safe_s
                                                       {"contact.board.c": c})).margin >= 1.0
 
 
+def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
+                                                                  damping_past_the_safe_step,
+                                                                  caplog, monkeypatch):
+    """Regression: every fit_records call built its residual and Jacobian program anew (a
+    closure over the call's params and records) and compiled it again, 3-7 s for one cube
+    record, so a script fitting record after record, or from start after start, paid it at
+    every call. The programs now take the params and the records' arrays as arguments: a fit
+    of another record of the same layout (here the damping fixture's: 0.15 s at 5 ms, the
+    cube, c free), from another start, compiles nothing, and gives what a program compiled
+    afresh gives."""
+    from tuning.record_batch import ProgramCache
+    s = cube.state_from(body=0, position=(0.0, 0.0, 0.08), velocity=(-0.2, 0.1, -0.4),
+                        orientation=(0.9, 0.1, 0.3, 0.2), angular_velocity=(-1.0, 2.0, 0.5))
+    rec = tf.synthetic_record(cube, cube.params(), 0.15, 5e-3, {"cube": 0}, state=s,
+                              noise=1e-4)
+    batch = tf.prepare(cube, [rec], estimate="record")
+    start = tf.with_leaves(cube.params(), {"contact.board.c": 12.0})
+    free = [tf.Free("contact.board.c", 1.0, 1e3)]
+    # the fixture's layout fitted here once more (its programs may have left the cache of
+    # the last few layouts since the fixture ran; placed next to the fixture's first user,
+    # this test seldom compiles them again)
+    tf.fit_records(cube, cube.params(), damping_past_the_safe_step[0], free, maxiter=1)
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        again = tf.fit_records(cube, start, batch, free, maxiter=3)
+    compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
+    assert compiled == [], compiled
+    monkeypatch.setattr(tf, "_PROGRAMS", ProgramCache())      # compiled afresh
+    fresh = tf.fit_records(cube, start, batch, free, maxiter=3)
+    assert again.values == fresh.values and again.cost == fresh.cost
+    assert again.cost_start == fresh.cost_start and again.iterations == fresh.iterations
+
+
+def test_a_fit_held_by_the_safe_step_says_so(cube, damping_past_the_safe_step, monkeypatch):
+    """Regression: a record that wants a contact k or c past what the fit's dt allows ended
+    at the safe step with only LM's word ('iteration limit reached'; a cube whose record
+    wanted k = 3e5 crept to k = 128368, 57% low) or, at the cap itself, with 'widen
+    [fit.bounds]', which does nothing. Both now say the leaf is held by the safe step and
+    that a smaller dt helps. Here: the scene's own limit on a box's damping (about 88 N s/m,
+    below the one-contact cap), and a cap lowered to 20 N s/m (the record wants 30)."""
+    import tuning.stable as st
+    batch, res = damping_past_the_safe_step
+    free = [tf.Free("contact.board.c", 1.0, 1e3)]
+    assert res.unstable == 0 and res.values["contact.board.c"] < 100.0
+    assert res.message.startswith("held by the safe step"), res.message
+    assert "contact.board.c" in res.message and "smaller dt" in res.message
+    assert "widen" not in res.message
+    k_max, _ = st.safe_contact_bounds(cube)
+    monkeypatch.setattr(st, "safe_contact_bounds", lambda sim: (k_max, 20.0))
+    res = tf.fit_records(cube, tf.with_leaves(cube.params(), {"contact.board.c": 10.0}),
+                         batch, free, maxiter=6)
+    assert res.values["contact.board.c"] == pytest.approx(20.0, rel=1e-9)
+    assert res.message.startswith("held by the safe step"), res.message
+    assert "widen" not in res.message and "at a bound" not in res.message
+
 
 def test_record_fit_bounds_stay_inside_the_safe_step(cube, monkeypatch):
     """Regression: fit_records let Levenberg-Marquardt walk contact k and c past the safe
-    step (only the final result was judged); their upper bounds are now capped at it."""
+    step (only the final result was judged); their upper bounds are now capped at it.
+    (The record, 0.1 s of the cube with k and c free, has the layout of
+    test_directions_a_record_cannot_determine_are_reported's record: the program that gives
+    the start's cost may be compiled already.)"""
     from tuning.stable import safe_contact_bounds
     seen = {}
 
@@ -504,7 +575,7 @@ def test_record_fit_bounds_stay_inside_the_safe_step(cube, monkeypatch):
         raise RuntimeError("stop")
     monkeypatch.setattr(tf, "levenberg_marquardt", fake_lm)
     params = cube.params()
-    rec = tf.synthetic_record(cube, params, 0.05, 5e-3, {"cube": 0})
+    rec = tf.synthetic_record(cube, params, 0.1, 5e-3, {"cube": 0})
     batch = tf.prepare(cube, [rec], estimate="record")
     k_max, c_max = safe_contact_bounds(cube)
     free = [tf.Free("contact.board.k", 1.0, 1e12), tf.Free("contact.board.c", 0.1, 1e9)]
@@ -618,8 +689,19 @@ def test_first_state_uses_the_flight_frames_only(cube):
     assert np.mean(err[20]) < 0.6 * np.mean(err[10])
 
 
+@pytest.fixture(scope="module")
+def flat_box():
+    """A 20 x 5 x 2.5 cm box 2 m up (no plane), compiled for rk4 at 0.1 ms; the tests set
+    its spin in the start state (Simulator.state_from). Shared: never mutate it."""
+    scene = dp.Scene()
+    scene.add_box((0.1, 0.05, 0.025), 0.5, (0.0, 0.0, 2.0),
+                  orientation=(0.9, 0.3, 0.2, 0.1), velocity=(0.6, 0.1, 1.0),
+                  angular_velocity=(0.0, 0.0, 0.0))
+    return dp.compile(scene, 1e-4, integrator="rk4")
+
+
 @pytest.mark.parametrize("rates, frames", [((3.0, 8.0, 2.0), 20), ((10.0, 30.0, 5.0), 40)])
-def test_first_state_fits_torque_free_rotation(rates, frames):
+def test_first_state_fits_torque_free_rotation(flat_box, rates, frames):
     """Regression: for a body with unequal principal moments the "fit" estimate took the
     angular velocity as constant in free flight; a 20 x 5 x 2.5 cm box turning at (3, 8, 2)
     rad/s (body frame) came out 22% off in x after 20 frames (2.39 against 3.06 rad/s in
@@ -628,17 +710,14 @@ def test_first_state_fits_torque_free_rotation(rates, frames):
     a fit over all frames at once, started from their mean rate, ended at (68, 18, -8)
     against (9.3, 24.2, 18.8) rad/s): on frames of a diffpen rk4 rollout (0.1 ms steps, no
     plane in reach) the start angular velocity and orientation come out to 1e-6 (1e-5 at
-    32 rad/s)."""
-    scene = dp.Scene()
-    scene.add_box((0.1, 0.05, 0.025), 0.5, (0.0, 0.0, 2.0),
-                  orientation=(0.9, 0.3, 0.2, 0.1), velocity=(0.6, 0.1, 1.0),
-                  angular_velocity=(0.0, 0.0, 0.0))
+    32 rad/s). Both cases roll out the one compiled box (``flat_box``) from a start state
+    spinning at the rates."""
+    sim = flat_box
+    scene = sim.scene
     q0 = np.array(scene.bodies[0].orientation)
     w_world = pose.rotmat(q0) @ np.array(rates)
-    scene.bodies[0] = scene.bodies[0].__class__(**{**scene.bodies[0].__dict__,
-                                                   "angular_velocity": tuple(w_world)})
-    sim = dp.compile(scene, 1e-4, integrator="rk4")
-    traj = sim.rollout(sim.params(), 40 * 50, save_every=50)
+    start = sim.state_from(body=0, angular_velocity=w_world, frame="world")
+    traj = sim.rollout(sim.params(), 40 * 50, start, save_every=50)
     t = np.concatenate([[0.0], np.asarray(traj.time)])
     pos = np.concatenate([[scene.bodies[0].position], np.asarray(traj.position[:, 0])])
     quat = np.concatenate([[q0], np.asarray(traj.orientation[:, 0])])
@@ -777,22 +856,26 @@ def test_a_growing_horizon_never_ends_worse_than_its_start(tmp_path):
     to its bound and the fit ended at 315% position error against 38% at the start (now
     17%, the whole-record fit's own answer for these inconsistent records). Now
     the whole-record stage starts from the start point when that is better there, so a fit
-    never ends above its start."""
-    text = ("dt = 1e-3\n[[ropes]]\nn = 6\nstart = [0.0, 0.0, 1.0]\nend = [0.5, 0.0, 1.0]\n"
-            "mass = 0.3\nk = 150.0\nc = 0.1\npinned = [0]\nvelocity = [0.0, {vy}, 0.0]\n"
-            "[fit]\nparams = [\"springs.rope.stretch.k\", \"springs.rope.stretch.c\"]\n"
-            "observe = [\"rope[2]\", \"rope[4]\", \"rope[5]\"]\n")
+    never ends above its start. The records (rk4 at 0.25 ms, k 400 N/m, c 0.6 N s/m) start
+    the free nodes at 0.5 and -1 m/s in y: one simulator, its start state's velocities set
+    (the state a scene file with that rope velocity starts from)."""
+    start = tmp_path / "rope.toml"
+    start.write_text("dt = 1e-3\n[[ropes]]\nn = 6\nstart = [0.0, 0.0, 1.0]\n"
+                     "end = [0.5, 0.0, 1.0]\nmass = 0.3\nk = 150.0\nc = 0.1\npinned = [0]\n"
+                     "[fit]\nparams = [\"springs.rope.stretch.k\", \"springs.rope.stretch.c\"]\n"
+                     "observe = [\"rope[2]\", \"rope[4]\", \"rope[5]\"]\n")
+    sf = load_scene_file(str(start))
+    sim = sf.compile(integrator="rk4", dt=2.5e-4)
+    truth = tf.with_leaves(sf.params(sim), {"springs.rope.stretch.k": 400.0,
+                                            "springs.rope.stretch.c": 0.6})
+    ids = {b: sf.names[b] for b in sf.spec.observe}
+    free = [j for j, b in enumerate(sim.scene.bodies) if not b.pinned]
     recs = []
     for i, vy in enumerate((0.5, -1.0)):
-        scene, rec = _record_file(tmp_path, text.format(vy=vy),
-                                  {"springs.rope.stretch.k": 400.0,
-                                   "springs.rope.stretch.c": 0.6},
-                                  ["rope[2]", "rope[4]", "rope[5]"], f"swing{i}",
-                                  integrator="rk4", dt=2.5e-4, every=5e-3, duration=1.0,
-                                  noise=2e-4, seed=i)
-        recs.append(rec)
-    start = tmp_path / "rope.toml"
-    start.write_text(text.format(vy=0.0))
+        s = sim.state_from(body=free, velocity=np.tile([0.0, vy, 0.0], (len(free), 1)))
+        recs.append(str(tmp_path / f"swing{i}.csv"))
+        write_record(recs[-1], tf.synthetic_record(sim, truth, 1.0, 5e-3, ids, state=s,
+                                                   noise=2e-4, seed=i))
     out = tf.fit_files(str(start), recs)
     assert out["horizons"][-1] is None and len(out["horizons"]) == 4
     assert (out["after"]["position_error_pct"]["mean"]
@@ -1068,12 +1151,14 @@ def test_a_record_fit_refuses_a_method_it_does_not_use(tmp_path):
     """Regression: [fit] method = "adam" in a scene file with records was silently ignored
     (the fit ran Levenberg-Marquardt), while --method adam was refused."""
     from tuning.scene_fit import fit_files
-    scene, rec = _record_file(tmp_path, ROPE.format(k=200.0, c=0.3).replace(
-        "[fit]", '[fit]\nmethod = "adam"'), {"springs.rope.stretch.k": 300.0},
-        ["rope[1]"], "rope", integrator="semi_implicit_euler", dt=1e-3, every=5e-3,
-        duration=0.05, noise=0.0, seed=0)
+    scene = tmp_path / "rope.toml"
+    scene.write_text(ROPE.format(k=200.0, c=0.3).replace("[fit]", '[fit]\nmethod = "adam"'))
+    rec = tmp_path / "rope.csv"         # 50 ms of node 1 falling: a record the scene reads
+    rec.write_text("t,rope[1].x,rope[1].y,rope[1].z\n" + "".join(
+        f"{5e-3 * i!r},0.1,0.0,{1.0 - 4.905 * (5e-3 * i) ** 2!r}\n" for i in range(11)))
+    assert tf.load_records(load_scene_file(str(scene)), [str(rec)])[1] == {"rope[1]": 1}
     with pytest.raises(tf.FitError, match="method = 'adam', but fits to records use"):
-        fit_files(scene, [rec])
+        fit_files(str(scene), [str(rec)])
 
 
 SPHERE = ('dt = 1e-3\nduration = 0.1\n[[spheres]]\n{name}radius = 0.05\nmass = 0.2\n'
@@ -1159,70 +1244,21 @@ def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
         tf.load_records(sf, [path])
 
 
-def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
-                                                                  damping_past_the_safe_step,
-                                                                  caplog, monkeypatch):
-    """Regression: every fit_records call built its residual and Jacobian program anew (a
-    closure over the call's params and records) and compiled it again, 3-7 s for one cube
-    record, so a script fitting record after record, or from start after start, paid it at
-    every call. The programs now take the params and the records' arrays as arguments: a fit
-    of another record of the same layout (here the damping fixture's: 0.15 s at 5 ms, the
-    cube, c free), from another start, compiles nothing, and gives what a program compiled
-    afresh gives."""
-    from tuning.record_batch import ProgramCache
-    s = cube.state_from(body=0, position=(0.0, 0.0, 0.08), velocity=(-0.2, 0.1, -0.4),
-                        orientation=(0.9, 0.1, 0.3, 0.2), angular_velocity=(-1.0, 2.0, 0.5))
-    rec = tf.synthetic_record(cube, cube.params(), 0.15, 5e-3, {"cube": 0}, state=s,
-                              noise=1e-4)
-    batch = tf.prepare(cube, [rec], estimate="record")
-    start = tf.with_leaves(cube.params(), {"contact.board.c": 12.0})
-    free = [tf.Free("contact.board.c", 1.0, 1e3)]
-    # the fixture's layout fitted here once more (its programs may have left the cache of
-    # the last few layouts since the fixture ran)
-    tf.fit_records(cube, cube.params(), damping_past_the_safe_step[0], free, maxiter=1)
-    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
-        again = tf.fit_records(cube, start, batch, free, maxiter=3)
-    compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
-    assert compiled == [], compiled
-    monkeypatch.setattr(tf, "_PROGRAMS", ProgramCache())      # compiled afresh
-    fresh = tf.fit_records(cube, start, batch, free, maxiter=3)
-    assert again.values == fresh.values and again.cost == fresh.cost
-    assert again.cost_start == fresh.cost_start and again.iterations == fresh.iterations
-
-
-def test_a_fit_held_by_the_safe_step_says_so(cube, damping_past_the_safe_step, monkeypatch):
-    """Regression: a record that wants a contact k or c past what the fit's dt allows ended
-    at the safe step with only LM's word ('iteration limit reached'; a cube whose record
-    wanted k = 3e5 crept to k = 128368, 57% low) or, at the cap itself, with 'widen
-    [fit.bounds]', which does nothing. Both now say the leaf is held by the safe step and
-    that a smaller dt helps. Here: the scene's own limit on a box's damping (about 88 N s/m,
-    below the one-contact cap), and a cap lowered to 20 N s/m (the record wants 30)."""
-    import tuning.stable as st
-    batch, res = damping_past_the_safe_step
-    free = [tf.Free("contact.board.c", 1.0, 1e3)]
-    assert res.unstable == 0 and res.values["contact.board.c"] < 100.0
-    assert res.message.startswith("held by the safe step"), res.message
-    assert "contact.board.c" in res.message and "smaller dt" in res.message
-    assert "widen" not in res.message
-    k_max, _ = st.safe_contact_bounds(cube)
-    monkeypatch.setattr(st, "safe_contact_bounds", lambda sim: (k_max, 20.0))
-    res = tf.fit_records(cube, tf.with_leaves(cube.params(), {"contact.board.c": 10.0}),
-                         batch, free, maxiter=6)
-    assert res.values["contact.board.c"] == pytest.approx(20.0, rel=1e-9)
-    assert res.message.startswith("held by the safe step"), res.message
-    assert "widen" not in res.message and "at a bound" not in res.message
-
-
 def test_multi_start_screens_past_a_horizon_that_ties(cube):
     """Regression: every start's screen cost was 0 when the first horizon ended before the
     first contact, so LM ran from the first starts drawn instead of the cheapest. The
     screen now takes the next horizons while the costs are equal, and says so when they
-    never differ."""
+    never differ. Both records last 0.3 s (one layout: one compile of the fit's programs):
+    dropped from 0.2 m the cube lands after 0.17 s, past the first horizon (0.05 s);
+    dropped from 0.6 m its lowest face is still 0.11 m above the plane at the end."""
     truth = cube.params()                                    # c = 30 N s/m
-    s = cube.state_from(body=0, position=(0, 0, 0.2), velocity=(0.3, 0, 0.0),
-                        orientation=(1.0, 0, 0, 0), angular_velocity=(0, 0, 0))
-    rec = tf.synthetic_record(cube, truth, 0.3, 5e-3, {"cube": 0}, state=s)
-    batch = tf.prepare(cube, [rec], estimate="record")
+
+    def drop(z):
+        s = cube.state_from(body=0, position=(0, 0, z), velocity=(0.3, 0, 0.0),
+                            orientation=(1.0, 0, 0, 0), angular_velocity=(0, 0, 0))
+        return tf.prepare(cube, [tf.synthetic_record(cube, truth, 0.3, 5e-3, {"cube": 0},
+                                                     state=s)], estimate="record")
+    batch = drop(0.2)
     far = tf.with_leaves(truth, {"contact.board.c": 8.0})
     free = [tf.Free("contact.board.c", 1.0, 60.0)]
     res = tf.fit_records(cube, far, batch, free, horizons=(0.05, None), maxiter=1,
@@ -1230,8 +1266,8 @@ def test_multi_start_screens_past_a_horizon_that_ties(cube):
     assert res.starts[0]["cost"] is None and res.starts[1]["cost"] is not None
     assert res.starts[1]["screen_cost"] < res.starts[0]["screen_cost"]
     assert "first horizon were equal" in res.message, res.message
-    flight = tf.prepare(cube, [tf.synthetic_record(cube, truth, 0.05, 5e-3, {"cube": 0},
-                                                   state=s)], estimate="record")
+    flight = drop(0.6)
+    assert np.min(flight.pos[..., 2]) > 0.05 + 0.1     # the lowest face 0.1 m above the plane
     res = tf.fit_records(cube, far, flight, free, maxiter=1,
                          starts=[{"contact.board.c": 30.0}], keep=1)
     assert "screen costs are equal up to the whole records" in res.message, res.message
