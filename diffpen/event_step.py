@@ -43,8 +43,9 @@ only followed by the flow. The cases that need Newton's method share one solve a
 one last flow (with separate solves: reverse-mode compile 24 s, 1024 batched ~150x). Cost
 against the centred record (float32, 3000 steps, one process, three runs): a bouncing Hertz
 ball 1.0-1.5x forward, 0.7-1.05x forward-mode gradient; a ball resting in contact, where
-every step shoots, 9-10x; 1024 batched balls ~95x; compile 1.0 s forward, 2.8 s
-forward-mode, 14 s reverse-mode (XLA's default options).
+every step shoots, 9-10x; 1024 batched balls 3.6-4.3x (~95x before the batched step
+gathered the lanes that need the shooting and the solve, :func:`_lanes`); compile 1.0 s
+forward, 2.8 s forward-mode, 14 s reverse-mode (XLA's default options).
 
 The spring's motion over a time ``tau`` is the exponential of its 3x3 augmented matrix,
 computed in arithmetic only (Taylor series at ``tau / 16``, then four squarings; XLA's
@@ -64,13 +65,18 @@ limit keeps ``w0 h < 2``, a contact of at least ``pi / w0 > 1.57 h``).
 Cost against the default (centred) record on the quick-start ball (float32, one rollout):
 linear 1.75-1.83x forward, 1.47-1.51x forward-mode gradient; no_tension 1.67-1.74x and
 1.54-1.64x: only the steps next to a crossing run the Newton solve (``lax.cond``). Under
-``jax.vmap`` every case runs in every step (~100-130x at 1024 balls), which is why it is
-opt-in (README, "Event-exact contact").
+``jax.vmap``, where a ``lax.cond`` runs both branches on every lane, the step gathers the
+lanes next to a crossing and solves those only (:func:`_lanes`): 1024 batched balls
+(float32, 2000 steps, heights recorded) 16-18x the default record forward (linear; 84-90x
+before), no_tension 16-24x (84x), Hertz 3.6-4.3x (94x). Their forward-mode gradients still
+differentiate every lane's solve (1024 balls ~50x). Opt-in for these costs (README,
+"Event-exact contact").
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.custom_batching import custom_vmap
 
 from .window import _power
 
@@ -170,6 +176,107 @@ def _cases(x, u, a, h):
             _entry_time(x, U, a, h))
 
 
+#: lanes a batched step solves the crossing for at a time (:func:`_lanes`)
+LANES_PER_PASS = 32
+
+
+def _lanes(general):
+    """``general(*args) -> out`` (the crossing's every-case solve: elementwise, without
+    ``lax.cond``) as ``call(need, fill, *args)``, whose batched form solves only the lanes
+    where ``need`` and gives ``fill`` elsewhere.
+
+    One rollout calls the crossing only in the steps next to a crossing (the callers'
+    ``lax.cond``), on every contact: ``call`` is ``general`` there (``need`` and ``fill``
+    unused). Under ``jax.vmap`` a ``lax.cond`` on a batched predicate runs both branches on
+    every lane, so every lane paid for the Newton solve in every step (~100x the default
+    record's cost at 1024 balls). The batched form (a ``custom_vmap`` rule) gathers the
+    lanes where ``need`` :data:`LANES_PER_PASS` at a time (as many passes as there are such
+    lanes; none in most steps), solves them, and each such lane reads its result back from
+its pass (the others keep ``fill``; no scatter, which would end XLA CPU's single-kernel
+rollout loop; where more than a quarter of the lanes need it, every lane is solved). The
+    callers pass as ``fill`` what ``general`` gives on the other lanes (the parabola apart,
+    the spring's motion in contact: the same operations), so the values are ``general``'s,
+    lane by lane. Derivatives are ``general``'s on every lane (a ``custom_jvp`` rule: its
+    forward- and reverse-mode cost is unchanged; the rule holds no ``lax.cond``, whose
+    derivative inside a ``custom_jvp`` rule under ``jax.vmap`` and ``lax.scan`` does not
+    transpose in JAX 0.10)."""
+    def call(need, fill, *args):
+        # Python numbers (the step h) stay static: closed over, as the callers have them
+        static = {i: v for i, v in enumerate(args) if isinstance(v, (int, float))}
+        leaves, tree = jax.tree_util.tree_flatten(
+            (fill, [v for i, v in enumerate(args) if i not in static]))
+
+        def unflat(ls):
+            fill, dynamic = jax.tree_util.tree_unflatten(tree, ls)
+            dynamic = iter(dynamic)
+            return fill, [static[i] if i in static else next(dynamic)
+                          for i in range(len(args))]
+
+        @custom_vmap
+        def batched(need, *ls):
+            return general(*unflat(ls)[1])
+
+        @batched.def_vmap
+        def _rule(axis_size, in_batched, need, *ls):
+            batched_in = list(in_batched)
+            vals = [need] + list(ls)
+            lanes = [jnp.shape(v)[1:] if bt else jnp.shape(v) for v, bt in zip(vals, batched_in)]
+            lane = jnp.broadcast_shapes(*lanes)
+            shape = (axis_size,) + lane
+
+            def lined(v, bt, sh):           # every value to (axis_size,) + lane, then flat
+                if bt:
+                    v = jnp.reshape(v, (axis_size,) + (1,) * (len(lane) - len(sh)) + sh)
+                return jnp.reshape(jnp.broadcast_to(v, shape), (-1,))
+            flat = [lined(v, bt, sh) for v, bt, sh in zip(vals, batched_in, lanes)]
+            need, flat = flat[0], flat[1:]
+            fill, args = unflat(flat)
+            n = need.shape[0]
+            # the pass that starts at the need-lane numbered `done` takes the lanes whose running
+            # count of need-lanes reaches done + 1 ... done + m (binary searches), and each
+            # lane reads its result back from the pass by its own number (a gather)
+            running = jnp.cumsum(need.astype(jnp.int32))
+            count = running[-1]
+            m = min(LANES_PER_PASS, n)
+            slots = jnp.arange(1, m + 1, dtype=jnp.int32)
+
+            def gathered(sel):
+                return [v if isinstance(v, (int, float)) else
+                        jax.tree_util.tree_map(lambda w: w[sel], v) for v in args]
+
+            def one_pass(state):
+                out, done = state
+                sel = jnp.minimum(jnp.searchsorted(running, done + slots, side="left",
+                                                   method="scan_unrolled"), n - 1)
+                res = general(*gathered(sel))
+                mine = running - 1 - done           # this lane's slot in the pass
+                take = need & (mine >= 0) & (mine < m)
+                at = jnp.clip(mine, 0, m - 1)
+                out = jax.tree_util.tree_map(lambda o, r: jnp.where(take, r[at], o), out, res)
+                return out, done + m
+
+            def passes(_):
+                return jax.lax.while_loop(lambda st: st[1] < count, one_pass,
+                                          (fill, jnp.zeros((), jnp.int32)))[0]
+
+            def every_lane(_):          # most lanes need it (a resting Hertz ball's shooting)
+                return jax.tree_util.tree_map(lambda r, f: jnp.where(need, r, f),
+                                              general(*args), fill)
+            out = jax.lax.cond(4 * count > n, every_lane, passes, None)
+            out = jax.tree_util.tree_map(lambda o: jnp.reshape(o, shape), out)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        @jax.custom_jvp
+        def differentiable(need, *ls):
+            return batched(need, *ls)
+
+        @differentiable.defjvp
+        def _jvp(primals, tangents):
+            return jax.jvp(lambda *ls: general(*unflat(ls)[1]), primals[1:], tangents[1:])
+        return differentiable(need, *leaves)
+    return call
+
+
 def _crossing(x, u, w2, b, a, h, flows):
     """The continuous motion's depth at ``t + h`` (m) through the samples ``x`` at ``t`` and
     ``xp = x - h u`` at ``t - h`` (``u`` the secant rate of penetration, m/s; ``a`` the other
@@ -213,20 +320,25 @@ def _crossing(x, u, w2, b, a, h, flows):
     return jnp.where(was_in, jnp.where(now_in, x_ii, x_iv), jnp.where(now_in, d, x_i))
 
 
+_CROSSING = _lanes(_crossing)
+
+
 def _next_depth(x, u, w2, b, a, h, flows):
     """``_crossing``, with the common cases first: apart over both steps and the next (the
     parabola; also returns True there: no force) and in contact over both and the next (the
     spring alone). One rollout (no batch) then runs the crossing's Newton solve only in the
-    steps that need it; under ``jax.vmap`` every case is computed."""
+    steps that need it; under ``jax.vmap`` only on the lanes that need it
+    (:func:`_lanes`)."""
     xp = x - h * u
     x_free = x + h * u + a * h * h
     apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
 
     def not_apart(_):
         stay = _stay(x, xp, a, flows)[0]
-        simple = jnp.all((x > 0.0) & (xp > 0.0) & (stay >= 0.0))
-        return jax.lax.cond(simple, lambda _: stay,
-                            lambda _: _crossing(x, u, w2, b, a, h, flows), None)
+        lanes = (x > 0.0) & (xp > 0.0) & (stay >= 0.0)
+        return jax.lax.cond(jnp.all(lanes), lambda _: stay,
+                            lambda _: _CROSSING(~apart & ~lanes, jnp.where(apart, x_free, stay),
+                                                x, u, w2, b, a, h, flows), None)
     nxt = jax.lax.cond(jnp.all(apart), lambda _: x_free, not_apart, None)
     return nxt, apart
 
@@ -319,6 +431,15 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
     return nxt, free & ((x > 0.0) | (x_free <= 0.0))
 
 
+def _no_tension_crossing_lanes(x, u, w2, b, a, h, flows):
+    """:func:`_no_tension_crossing` with its contact-free flag as 0 / 1 (for :func:`_lanes`)."""
+    nxt, free = _no_tension_crossing(x, u, w2, b, a, h, flows)
+    return nxt, jnp.where(free, 1.0, 0.0).astype(nxt.dtype)
+
+
+_NO_TENSION_CROSSING = _lanes(_no_tension_crossing_lanes)
+
+
 def _no_tension_next(x, u, w2, b, a, h, flows):
     """:func:`_no_tension_crossing`, with the common cases first (as :func:`_next_depth`):
     apart over both steps and the next, and pushing at ``t - h``, ``t`` and ``t + h``."""
@@ -326,17 +447,20 @@ def _no_tension_next(x, u, w2, b, a, h, flows):
     x_free = x + h * u + a * h * h
     apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
 
-    def general(_):
-        return _no_tension_crossing(x, u, w2, b, a, h, flows)
-
     def not_apart(_):
         stay, un = _stay(x, xp, a, flows)
         back, ahead = flows
         up = back[2] * x + back[3] * un + a * back[5]
         un1 = _along(ahead, x, un, a)[1]
-        simple = jnp.all((xp > 0.0) & (x > 0.0) & (stay > 0.0) & (w2 * xp + b * up > 0.0)
-                         & (w2 * x + b * un > 0.0) & (w2 * stay + b * un1 > 0.0))
-        return jax.lax.cond(simple, lambda _: (stay, jnp.zeros_like(apart)), general, None)
+        lanes = ((xp > 0.0) & (x > 0.0) & (stay > 0.0) & (w2 * xp + b * up > 0.0)
+                 & (w2 * x + b * un > 0.0) & (w2 * stay + b * un1 > 0.0))
+
+        def general(_):
+            fill = (jnp.where(apart, x_free, stay), jnp.where(apart, 1.0, 0.0).astype(x.dtype))
+            nxt, free = _NO_TENSION_CROSSING(~apart & ~lanes, fill, x, u, w2, b, a, h, flows)
+            return nxt, free > 0.5
+        return jax.lax.cond(jnp.all(lanes), lambda _: (stay, jnp.zeros_like(apart)), general,
+                            None)
     return jax.lax.cond(jnp.all(apart), lambda _: (x_free, apart), not_apart, None)
 
 
@@ -449,17 +573,25 @@ def _hc_next(n):
         x_iv = x + h * (v + a * s) + 0.5 * a * h * h
         return jnp.where(stayed, x_ii, jnp.where(entered, d, jnp.where(left, x_iv, x_i)))
 
+    def stay_motion(x, xp, u, kr, cr, a, h):
+        """the contact motion through both samples: its rate at ``t``, its depth at
+        ``t + h``"""
+        un = shoot(x, xp, u, kr, cr, a, h)
+        return un, flow(x, un, h, kr, cr, a, True)[0]
+    crossing, motion = _lanes(general), _lanes(stay_motion)
+
     def next_depth(x, u, kr, cr, a, h, _factors):
         xp = x - h * u
         x_free = x + h * u + a * h * h
         apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
 
         def not_apart(_):
-            un = shoot(x, xp, u, kr, cr, a, h)
-            x_stay = flow(x, un, h, kr, cr, a, True)[0]
-            simple = jnp.all((x > 0.0) & (xp > 0.0) & (x_stay >= 0.0))
-            return jax.lax.cond(simple, lambda _: x_stay,
-                                lambda _: general(x, u, kr, cr, a, h, un, x_stay), None)
+            un, x_stay = motion(~apart, (u, x), x, xp, u, kr, cr, a, h)
+            lanes = (x > 0.0) & (xp > 0.0) & (x_stay >= 0.0)
+            return jax.lax.cond(
+                jnp.all(lanes), lambda _: x_stay,
+                lambda _: crossing(~apart & ~lanes, jnp.where(apart, x_free, x_stay),
+                                   x, u, kr, cr, a, h, un, x_stay), None)
         return jax.lax.cond(jnp.all(apart), lambda _: x_free, not_apart, None), apart
     return next_depth
 
