@@ -78,7 +78,7 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
-from .window import _power
+from .window import _power, _lined_up
 
 __all__ = ["spring_flow", "event_step_factors", "linear_events", "no_tension_events",
            "hunt_crossley_events"]
@@ -218,18 +218,10 @@ rollout loop; where more than a quarter of the lanes need it, every lane is solv
 
         @batched.def_vmap
         def _rule(axis_size, in_batched, need, *ls):
-            batched_in = list(in_batched)
-            vals = [need] + list(ls)
-            lanes = [jnp.shape(v)[1:] if bt else jnp.shape(v) for v, bt in zip(vals, batched_in)]
-            lane = jnp.broadcast_shapes(*lanes)
-            shape = (axis_size,) + lane
-
-            def lined(v, bt, sh):           # every value to (axis_size,) + lane, then flat
-                if bt:
-                    v = jnp.reshape(v, (axis_size,) + (1,) * (len(lane) - len(sh)) + sh)
-                return jnp.reshape(jnp.broadcast_to(v, shape), (-1,))
-            flat = [lined(v, bt, sh) for v, bt, sh in zip(vals, batched_in, lanes)]
-            need, flat = flat[0], flat[1:]
+            # every value to (axis_size,) + lane, then flat: one lane per element
+            lined = _lined_up(axis_size, in_batched, [need, *ls])
+            shape = jnp.shape(lined[0])
+            need, *flat = [jnp.reshape(v, (-1,)) for v in lined]
             fill, args = unflat(flat)
             n = need.shape[0]
             # the pass that starts at the need-lane numbered `done` takes the lanes whose running
