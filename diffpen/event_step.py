@@ -44,8 +44,8 @@ one last flow (with separate solves: reverse-mode compile 24 s, 1024 batched ~15
 against the centred record (float32, 3000 steps, one process, three runs): a bouncing Hertz
 ball 1.0-1.5x forward, 0.7-1.05x forward-mode gradient; a ball resting in contact, where
 every step shoots, 9-10x; 1024 batched balls 3.6-4.3x (~95x before the batched step
-gathered the lanes that need the shooting and the solve, :func:`_lanes`); compile 1.0 s
-forward, 2.8 s forward-mode, 14 s reverse-mode (XLA's default options).
+gathered the lanes that need the shooting and the solve, :func:`diffpen.lanes.by_lanes`);
+compile 1.0 s forward, 2.8 s forward-mode, 14 s reverse-mode (XLA's default options).
 
 The spring's motion over a time ``tau`` is the exponential of its 3x3 augmented matrix,
 computed in arithmetic only (Taylor series at ``tau / 16``, then four squarings; XLA's
@@ -66,19 +66,19 @@ Cost against the default (centred) record on the quick-start ball (float32, one 
 linear 1.75-1.83x forward, 1.47-1.51x forward-mode gradient; no_tension 1.67-1.74x and
 1.54-1.64x: only the steps next to a crossing run the Newton solve (``lax.cond``). Under
 ``jax.vmap``, where a ``lax.cond`` runs both branches on every lane, the step gathers the
-lanes next to a crossing and solves those only (:func:`_lanes`): 1024 batched balls
-(float32, 2000 steps, heights recorded) 16-18x the default record forward (linear; 84-90x
-before), no_tension 16-24x (84x), Hertz 3.6-4.3x (94x). Their forward-mode gradients still
-differentiate every lane's solve (1024 balls ~50x). Opt-in for these costs (README,
+lanes next to a crossing and solves those only (:func:`diffpen.lanes.by_lanes`): 1024
+batched balls (float32, 2000 steps, heights recorded) 16-21x the default record forward
+(linear; 84-90x before), no_tension 12-24x (84x), Hertz 3.6-4.3x (94x). Their forward-mode
+gradients still differentiate every lane's solve (1024 balls ~50x). Opt-in for these costs (README,
 "Event-exact contact").
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jax.custom_batching import custom_vmap
 
-from .window import _power, _lined_up
+from .lanes import by_lanes
+from .window import _power
 
 __all__ = ["spring_flow", "event_step_factors", "linear_events", "no_tension_events",
            "hunt_crossley_events"]
@@ -176,99 +176,6 @@ def _cases(x, u, a, h):
             _entry_time(x, U, a, h))
 
 
-#: lanes a batched step solves the crossing for at a time (:func:`_lanes`)
-LANES_PER_PASS = 32
-
-
-def _lanes(general):
-    """``general(*args) -> out`` (the crossing's every-case solve: elementwise, without
-    ``lax.cond``) as ``call(need, fill, *args)``, whose batched form solves only the lanes
-    where ``need`` and gives ``fill`` elsewhere.
-
-    One rollout calls the crossing only in the steps next to a crossing (the callers'
-    ``lax.cond``), on every contact: ``call`` is ``general`` there (``need`` and ``fill``
-    unused). Under ``jax.vmap`` a ``lax.cond`` on a batched predicate runs both branches on
-    every lane, so every lane paid for the Newton solve in every step (~100x the default
-    record's cost at 1024 balls). The batched form (a ``custom_vmap`` rule) gathers the
-    lanes where ``need`` :data:`LANES_PER_PASS` at a time (as many passes as there are such
-    lanes; none in most steps), solves them, and each such lane reads its result back from
-its pass (the others keep ``fill``; no scatter, which would end XLA CPU's single-kernel
-rollout loop; where more than a quarter of the lanes need it, every lane is solved). The
-    callers pass as ``fill`` what ``general`` gives on the other lanes (the parabola apart,
-    the spring's motion in contact: the same operations), so the values are ``general``'s,
-    lane by lane. Derivatives are ``general``'s on every lane (a ``custom_jvp`` rule: its
-    forward- and reverse-mode cost is unchanged; the rule holds no ``lax.cond``, whose
-    derivative inside a ``custom_jvp`` rule under ``jax.vmap`` and ``lax.scan`` does not
-    transpose in JAX 0.10)."""
-    def call(need, fill, *args):
-        # Python numbers (the step h) stay static: closed over, as the callers have them
-        static = {i: v for i, v in enumerate(args) if isinstance(v, (int, float))}
-        leaves, tree = jax.tree_util.tree_flatten(
-            (fill, [v for i, v in enumerate(args) if i not in static]))
-
-        def unflat(ls):
-            fill, dynamic = jax.tree_util.tree_unflatten(tree, ls)
-            dynamic = iter(dynamic)
-            return fill, [static[i] if i in static else next(dynamic)
-                          for i in range(len(args))]
-
-        @custom_vmap
-        def batched(need, *ls):
-            return general(*unflat(ls)[1])
-
-        @batched.def_vmap
-        def _rule(axis_size, in_batched, need, *ls):
-            # every value to (axis_size,) + lane, then flat: one lane per element
-            lined = _lined_up(axis_size, in_batched, [need, *ls])
-            shape = jnp.shape(lined[0])
-            need, *flat = [jnp.reshape(v, (-1,)) for v in lined]
-            fill, args = unflat(flat)
-            n = need.shape[0]
-            # the pass that starts at the need-lane numbered `done` takes the lanes whose running
-            # count of need-lanes reaches done + 1 ... done + m (binary searches), and each
-            # lane reads its result back from the pass by its own number (a gather)
-            running = jnp.cumsum(need.astype(jnp.int32))
-            count = running[-1]
-            m = min(LANES_PER_PASS, n)
-            slots = jnp.arange(1, m + 1, dtype=jnp.int32)
-
-            def gathered(sel):
-                return [v if isinstance(v, (int, float)) else
-                        jax.tree_util.tree_map(lambda w: w[sel], v) for v in args]
-
-            def one_pass(state):
-                out, done = state
-                sel = jnp.minimum(jnp.searchsorted(running, done + slots, side="left",
-                                                   method="scan_unrolled"), n - 1)
-                res = general(*gathered(sel))
-                mine = running - 1 - done           # this lane's slot in the pass
-                take = need & (mine >= 0) & (mine < m)
-                at = jnp.clip(mine, 0, m - 1)
-                out = jax.tree_util.tree_map(lambda o, r: jnp.where(take, r[at], o), out, res)
-                return out, done + m
-
-            def passes(_):
-                return jax.lax.while_loop(lambda st: st[1] < count, one_pass,
-                                          (fill, jnp.zeros((), jnp.int32)))[0]
-
-            def every_lane(_):          # most lanes need it (a resting Hertz ball's shooting)
-                return jax.tree_util.tree_map(lambda r, f: jnp.where(need, r, f),
-                                              general(*args), fill)
-            out = jax.lax.cond(4 * count > n, every_lane, passes, None)
-            out = jax.tree_util.tree_map(lambda o: jnp.reshape(o, shape), out)
-            return out, jax.tree_util.tree_map(lambda _: True, out)
-
-        @jax.custom_jvp
-        def differentiable(need, *ls):
-            return batched(need, *ls)
-
-        @differentiable.defjvp
-        def _jvp(primals, tangents):
-            return jax.jvp(lambda *ls: general(*unflat(ls)[1]), primals[1:], tangents[1:])
-        return differentiable(need, *leaves)
-    return call
-
-
 def _crossing(x, u, w2, b, a, h, flows):
     """The continuous motion's depth at ``t + h`` (m) through the samples ``x`` at ``t`` and
     ``xp = x - h u`` at ``t - h`` (``u`` the secant rate of penetration, m/s; ``a`` the other
@@ -312,7 +219,7 @@ def _crossing(x, u, w2, b, a, h, flows):
     return jnp.where(was_in, jnp.where(now_in, x_ii, x_iv), jnp.where(now_in, d, x_i))
 
 
-_CROSSING = _lanes(_crossing)
+_CROSSING = by_lanes(_crossing)
 
 
 def _next_depth(x, u, w2, b, a, h, flows):
@@ -320,7 +227,7 @@ def _next_depth(x, u, w2, b, a, h, flows):
     parabola; also returns True there: no force) and in contact over both and the next (the
     spring alone). One rollout (no batch) then runs the crossing's Newton solve only in the
     steps that need it; under ``jax.vmap`` only on the lanes that need it
-    (:func:`_lanes`)."""
+    (:func:`diffpen.lanes.by_lanes`)."""
     xp = x - h * u
     x_free = x + h * u + a * h * h
     apart = (x_free <= 0.0) & (x <= 0.0) & (xp <= 0.0)
@@ -424,12 +331,13 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
 
 
 def _no_tension_crossing_lanes(x, u, w2, b, a, h, flows):
-    """:func:`_no_tension_crossing` with its contact-free flag as 0 / 1 (for :func:`_lanes`)."""
+    """:func:`_no_tension_crossing` with its contact-free flag as 0 / 1 (for
+    :func:`diffpen.lanes.by_lanes`)."""
     nxt, free = _no_tension_crossing(x, u, w2, b, a, h, flows)
     return nxt, jnp.where(free, 1.0, 0.0).astype(nxt.dtype)
 
 
-_NO_TENSION_CROSSING = _lanes(_no_tension_crossing_lanes)
+_NO_TENSION_CROSSING = by_lanes(_no_tension_crossing_lanes)
 
 
 def _no_tension_next(x, u, w2, b, a, h, flows):
@@ -570,7 +478,7 @@ def _hc_next(n):
         ``t + h``"""
         un = shoot(x, xp, u, kr, cr, a, h)
         return un, flow(x, un, h, kr, cr, a, True)[0]
-    crossing, motion = _lanes(general), _lanes(stay_motion)
+    crossing, motion = by_lanes(general), by_lanes(stay_motion)
 
     def next_depth(x, u, kr, cr, a, h, _factors):
         xp = x - h * u

@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 from jax.custom_batching import custom_vmap
 
+from .lanes import lined_up
+
 __all__ = ["window_mean", "window_moments"]
 
 
@@ -121,20 +123,6 @@ def _window_linear(d, vn, h):
     return _window_linear_parts(d, vn, h)[:2]
 
 
-def _lined_up(axis_size: int, in_batched, values) -> list:
-    """A ``custom_vmap`` rule's ``values`` (batched ones with the batch axis in front, the
-    others without it), each lane's broadcast together (e.g. (n,) and ()), lined up on the
-    lane's shape behind the batch axis: every one (axis_size,) + lane."""
-    lanes = [jnp.shape(x)[1:] if b else jnp.shape(x) for x, b in zip(values, in_batched)]
-    lane = jnp.broadcast_shapes(*lanes)
-
-    def lined(x, b, shape):
-        if b:
-            x = jnp.reshape(x, (axis_size,) + (1,) * (len(lane) - len(shape)) + shape)
-        return jnp.broadcast_to(x, (axis_size,) + lane)
-    return [lined(x, b, sh) for x, b, sh in zip(values, in_batched, lanes)]
-
-
 @functools.lru_cache(maxsize=None)
 def _closed_parts(h: float):
     """``(d, vn) -> (frac, mean, u, delta, on, pos, u / delta)`` of the closed-form path for
@@ -160,7 +148,7 @@ def _closed_parts(h: float):
 
     @closed.def_vmap
     def _batched(axis_size, in_batched, d, vn):
-        d, vn = _lined_up(axis_size, in_batched, (d, vn))
+        d, vn = lined_up(axis_size, in_batched, (d, vn))
         return parts(d, vn, False), (True,) * 7
 
     # derivatives of these values (second-order derivatives of the window) by autodiff of

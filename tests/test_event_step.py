@@ -328,13 +328,14 @@ def test_batched_records_solve_only_the_lanes_at_a_crossing(monkeypatch, law, k,
     """Under ``jax.vmap`` a ``lax.cond`` runs both branches on every lane, so every batched
     ball paid for the crossing's Newton solve (and a Hertz ball for its shooting) in every
     step: 1024 balls 85-95x the default record's time. The batched step now gathers the
-    lanes that need the solve and solves those only (``diffpen.event_step._lanes``; here
+    lanes that need the solve and solves those only (``diffpen.lanes.by_lanes``; here
     two lanes per pass, so that the passes repeat). Twelve 0.3 kg balls of different k,
     0.2 s (the first impact on every lane at once, then contact ends at different steps):
     the batched heights equal each ball's own rollout, and the solve's flows are traced on
     gathered lanes of the pass's width (on the old code only on whole batches)."""
     import diffpen.event_step as es
-    monkeypatch.setattr(es, "LANES_PER_PASS", 2)
+    import diffpen.lanes
+    monkeypatch.setattr(diffpen.lanes, "LANES_PER_PASS", 2)
     seen, original = [], getattr(es, flow)
 
     def spying(x, *args):
