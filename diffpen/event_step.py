@@ -62,6 +62,16 @@ step, semi-implicit Euler's lag ``h / 2``), and at most one contact start and on
 two steps (a contact shorter than about two steps is approximate; the explicit stability
 limit keeps ``w0 h < 2``, a contact of at least ``pi / w0 > 1.57 h``).
 
+The crossing's time and rate (Newton's method) are differentiated implicitly
+(``jax.lax.custom_root``, :func:`_root`): the derivative of the root comes from the residuals'
+derivatives at the root, not from the differentiated iterations. Derivatives of every order
+equal the differentiated iterations' to 5e-14 (float64, a 0.3 kg ball's loss, Hessians by
+``jax.hessian`` and ``jacfwd(jacfwd)``, linear, no_tension and Hertz); a bouncing ball's
+reverse-mode gradient costs 3.3x the default record's instead of 6.6x, its forward-mode
+gradient 1.47x instead of 1.76x (float32, 20000 steps, c 0.5: one process, 15 interleaved
+runs), 1024 batched balls 0.87 s instead of 1.13 s forward mode, 1.5 s instead of 2.6 s
+reverse mode.
+
 Cost against the default (centred) record on the quick-start ball (float32, one rollout):
 linear 1.75-1.83x forward, 1.47-1.51x forward-mode gradient; no_tension 1.67-1.74x and
 1.54-1.64x: only the steps next to a crossing run the Newton solve (``lax.cond``). Under
@@ -123,16 +133,35 @@ def _along(p, x0, u0, a):
     return p[0] * x0 + p[1] * u0 + a * p[4], p[2] * x0 + p[3] * u0 + a * p[5]
 
 
-def _newton(update, init):
-    return jax.lax.fori_loop(0, _NEWTON, lambda _, z: update(*z), init)
-
-
-def _newton_update(s, v, r1, r2, j11, j12, j21, j22, h):
-    """One Newton step on ``(s, v)`` for the residuals ``(r1, r2)`` and their Jacobian, ``s``
-    kept inside ``[0, h]``."""
+def _solve_2x2(j11, j12, j21, j22, r1, r2):
+    """``J^-1 (r1, r2)`` for ``J = [[j11, j12], [j21, j22]]``, elementwise (a singular ``J``
+    taken as having determinant 1)."""
     det = j11 * j22 - j12 * j21
     det = _safe(det, det != 0.0)
-    return jnp.clip(s - (j22 * r1 - j12 * r2) / det, 0.0, h), v - (j11 * r2 - j21 * r1) / det
+    return (j22 * r1 - j12 * r2) / det, (j11 * r2 - j21 * r1) / det
+
+
+def _tangent_solve(g, y):
+    """``g^-1 y`` for the linearised residuals ``g`` of :func:`_root` (one 2x2 system per
+    element: ``g``'s columns from unit tangents of ``s`` and of ``v``)."""
+    one, zero = jnp.ones_like(y[0]), jnp.zeros_like(y[0])
+    (j11, j21), (j12, j22) = g((one, zero)), g((zero, one))
+    return _solve_2x2(j11, j12, j21, j22, *y)
+
+
+def _root(system, init, h):
+    """The root ``(s, v)`` of ``system(s, v) -> ((r1, r2), (j11, j12, j21, j22))`` (its
+    residuals and their Jacobian), elementwise: Newton's method from ``init``, ``s`` kept
+    inside ``[0, h]``. Its derivatives are implicit (``jax.lax.custom_root``): the residuals'
+    derivatives at the root, not ``_NEWTON`` differentiated iterations."""
+    def newton(_, z):
+        (r1, r2), jac = system(*z)
+        ds, dv = _solve_2x2(*jac, r1, r2)
+        return jnp.clip(z[0] - ds, 0.0, h), z[1] - dv
+
+    return jax.lax.custom_root(lambda z: system(*z)[0], init,
+                               lambda _, z: jax.lax.fori_loop(0, _NEWTON, newton, z),
+                               _tangent_solve)
 
 
 def _entry_time(x, U, a, h):
@@ -197,18 +226,18 @@ def _crossing(x, u, w2, b, a, h, flows):
                              -h * x / _safe(xp - x, xp - x > 0.0)))
     x0 = jnp.where(stayed, x, 0.0)
 
-    def iterate(s, v):
+    def system(s, v):
         p = spring_flow(jnp.where(left, s - h, s), w2, b)
         d, r = _along(p, x0, v, a)
         g = h - s
         r1 = jnp.where(stayed, d, jnp.where(entered, -v * g + 0.5 * a * g * g - xp,
                                              v * s + 0.5 * a * s * s - x))
-        r2 = jnp.where(stayed, 0.0, d - jnp.where(entered, x, xp))
+        r2 = jnp.where(stayed, v - un, d - jnp.where(entered, x, xp))
         j11 = jnp.where(stayed, r, jnp.where(entered, v - a * g, v + a * s))
         j12 = jnp.where(stayed, 0.0, jnp.where(entered, -g, s))
         j21, j22 = jnp.where(stayed, 0.0, r), jnp.where(stayed, 1.0, p[1])
-        return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
-    s, v = _newton(iterate, (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)))
+        return (r1, r2), (j11, j12, j21, j22)
+    s, v = _root(system, (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)), h)
     # the last flow: apart, from the crossing s1 to t + h; stayed, to the exit s (its rate);
     # entered, from the crossing to t + h
     tau = jnp.where(stayed, s, jnp.where(entered, s + h, h - s1))
@@ -302,7 +331,7 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
                              -h * f_now / _safe(f_prev - f_now, f_prev - f_now > 0.0)))
     x0 = jnp.where(spring, x, 0.0)
 
-    def iterate(s, v):
+    def system(s, v):
         xr = -b * v * inv_w2                     # the release depth of a release rate v
         p = spring_flow(jnp.where(released, s - h, s), w2, b)
         start = jnp.where(spring, x, jnp.where(entered, 0.0, xr))
@@ -312,14 +341,14 @@ def _no_tension_crossing(x, u, w2, b, a, h, flows):
         r1 = jnp.where(spring, w2 * d + b * r,
                        jnp.where(entered, -v * g + 0.5 * a * g * g - xp,
                                  xr + v * s + 0.5 * a * s * s - x))
-        r2 = jnp.where(spring, 0.0, d - jnp.where(entered, x, xp))
+        r2 = jnp.where(spring, v - un, d - jnp.where(entered, x, xp))
         j11 = jnp.where(spring, w2 * r + b * acc,
                         jnp.where(entered, v - a * g, v + a * s))
         j12 = jnp.where(spring, 0.0, jnp.where(entered, -g, s - b * inv_w2))
         j21 = jnp.where(spring, 0.0, r)
         j22 = jnp.where(spring, 1.0, jnp.where(entered, p[1], p[1] - b * inv_w2 * p[0]))
-        return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
-    s, v = _newton(iterate, (jnp.clip(s0, 0.0, h), jnp.where(spring, un, u)))
+        return (r1, r2), (j11, j12, j21, j22)
+    s, v = _root(system, (jnp.clip(s0, 0.0, h), jnp.where(spring, un, u)), h)
     tau = jnp.where(spring, s, jnp.where(entered, s + h, h - s1))
     d, r = _along(spring_flow(tau, w2, b), x0, jnp.where(spring | entered, v, U + a * s1), a)
     x_apart = jnp.where((x > 0.0) | (x_free <= 0.0), x_free, d)
@@ -448,8 +477,7 @@ def _hc_next(n):
         # parabola on to x, the flow from the exit back to xp)
         x0 = jnp.where(stayed, x, 0.0)
 
-        def iterate(_, z):
-            s, v = z
+        def system(s, v):
             g = h - s
             y, ry, dy = flow_dv(x0, v, jnp.where(left, -g, s), kr, cr, a, stayed)
             r1 = jnp.where(stayed, y, jnp.where(entered, -v * g + 0.5 * a * g * g - xp,
@@ -458,12 +486,11 @@ def _hc_next(n):
             j11 = jnp.where(stayed, ry, jnp.where(entered, v - a * g, v + a * s))
             j12 = jnp.where(stayed, dy, jnp.where(entered, -g, s))
             j21, j22 = jnp.where(stayed, 0.0, ry), jnp.where(stayed, 1.0, dy)
-            return _newton_update(s, v, r1, r2, j11, j12, j21, j22, h)
+            return (r1, r2), (j11, j12, j21, j22)
         s0 = jnp.where(stayed, h * x / _safe(x - x_stay, x - x_stay > 0.0),
                        jnp.where(entered, h * x / _safe(x - xp, x - xp > 0.0),
                                  -h * x / _safe(xp - x, xp - x > 0.0)))
-        s, v = jax.lax.fori_loop(0, _NEWTON, iterate,
-                                 (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)))
+        s, v = _root(system, (jnp.clip(s0, 0.0, h), jnp.where(stayed, un, u)), h)
         # the last flow: apart, from the parabola's crossing s1 to t + h; stayed, to the exit
         # s (its rate there); entered, from the crossing to t + h
         d, r = flow(x0, jnp.where(stayed | entered, v, U + a * s1),
