@@ -72,7 +72,8 @@ gradient 1.47x instead of 1.76x (float32, 20000 steps, c 0.5: one process, 15 in
 runs), 1024 batched balls 0.87 s instead of 1.13 s forward mode, 1.5 s instead of 2.6 s
 reverse mode.
 
-Cost against the default (centred) record on the quick-start ball (float32, one rollout):
+Cost against the default (centred) record on the quick-start ball (float32, one rollout;
+measured before the implicit derivatives above):
 linear 1.75-1.83x forward, 1.47-1.51x forward-mode gradient; no_tension 1.67-1.74x and
 1.54-1.64x: only the steps next to a crossing run the Newton solve (``lax.cond``). Under
 ``jax.vmap``, where a ``lax.cond`` runs both branches on every lane, the step gathers the
