@@ -636,6 +636,51 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
     assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None
 
 
+def _hertz_rope(**first):
+    """Three 1 kg balls (radius 0.1 m) 0.3 m apart at 1 m, joined by springs at their rest
+    length (k 500 N/m, c 1 N s/m), over the ground; ``first``: the first ball's options."""
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0), **first)
+    for i in (1, 2):
+        s.add_sphere(0.1, 1.0, (0.3 * i, 0.0, 1.0))
+        s.add_spring(i - 1, i, k=500.0, c=1.0)
+    s.add_plane()
+    return s
+
+
+def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
+    """Regression: any spring kept the radius as Hunt-Crossley's reference depth, so three
+    Hertz balls joined by springs (k 3e5 N/m^1.5, c 3e4, dropped from 1 m) were refused at
+    dt 1 ms (their 10 cm radius counted; the balls sink under 5 cm). A damped spring gives
+    back no more than it stored, so where every spring starts at its rest length and every
+    free body collides, the start energy bounds the depth as for one ball: the drop runs
+    with the traced flag clear and sinks less than counted. A spring stretched at the start
+    (its energy would need its stiffness), a plastic spring (its rest length moves) or a
+    free body no plane holds up (it could pull the others in) keep the radius."""
+    from diffpen.stability.depth import energy_depth
+    sim = dp.compile(_hertz_rope(), 1e-3, law="hunt_crossley", exponent=1.5)
+    assert sim.analysis.depth_exponent == 1.5
+    p = sim.params(k=3e5, c=3e4)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    assert sim.stability(p).safe
+    energy = sim.start_energy(sim.init_state())
+    assert energy == pytest.approx(3 * 9.81 * 1.0, rel=1e-12)    # at rest, counted from z = 0
+    traj = sim.rollout(p, 700, observe=lambda s: jnp.min(s.position[:, 2]))
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+    deepest = 0.1 - float(np.min(np.asarray(traj.observed)))
+    assert 0.0 < deepest < float(energy_depth(1.5, 3e5, energy)) < 0.1
+    stretched = sim.state_from(body=[0], position=[[-0.01, 0.0, 1.0]])
+    assert sim.start_energy(stretched) is None
+    with pytest.raises(dp.StabilityError):
+        sim.rollout(p, 10, state=stretched)
+    plastic = _hertz_rope()
+    plastic.add_plastic_spring(0, 2, k=100.0, yield_strain=0.1)
+    assert dp.compile(plastic, 1e-3, law="hunt_crossley",
+                      exponent=1.5).analysis.depth_exponent is None
+    loose = dp.compile(_hertz_rope(collide=False), 1e-3, law="hunt_crossley", exponent=1.5)
+    assert loose.analysis.depth_exponent is None
+
+
 def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: rotating bodies kept the radius as Hunt-Crossley's reference depth (for the
     cube, its 9.1 cm half-diagonal). The start energy now bounds their depth too, with the

@@ -8,12 +8,16 @@ k 1e6 N/m^1.5) sinks 1.4 cm, not 10, and its stiffness there is 2.7x smaller: th
 refuses a step of 1 ms that this ball takes safely.
 
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
-contacts, friction and drag can give energy back (no springs, no custom terms), gravity's
-potential is bounded below (no gravity, or every plane a horizontal floor, unnamed: a fixed
-offset), and no body starting in contact (a box: none of its corners on or below a plane).
-Then no contact ever stores more than the start's kinetic energy (rotation included) and
-potential energy ``E0``, and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
-E0``. The potential is counted from where a body's centre could get at the deepest
+contacts, springs, friction and drag can give energy back (no custom terms, no plastic
+springs, whose rest lengths move), gravity's potential is bounded below (no gravity, or every
+plane a horizontal floor, unnamed: a fixed offset; with springs, every free body collides,
+so that none can sink below the floor and pull another body in through a spring), every
+spring and anchored spring starts at its rest length (within :data:`REST_TOLERANCE`: its
+stored energy, which would need its stiffness, is then none), and no body starts in contact
+(a box: none of its corners on or below a plane). A damped linear spring stores ``k x^2 / 2
+>= 0`` and gives back no more than it stored, so then no contact ever stores more than the
+start's kinetic energy (rotation included) and potential energy ``E0``, and a contact of
+stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where a body's centre could get at the deepest
 penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
 the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
 extents)`` below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
@@ -31,7 +35,7 @@ import numpy as np
 
 from ..geometry import box_corners
 
-__all__ = ["ENERGY_MARGIN", "qualifies", "start_energy", "energy_depth"]
+__all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "energy_depth"]
 
 #: the energy a contact may store, in units of the start's kinetic and potential energy
 ENERGY_MARGIN = 2.0
@@ -44,16 +48,43 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
         return False                    # the stiffness does not depend on depth
     if not builtin_terms:
         return False
-    if scene.springs or scene.anchored_springs or scene.plastic_springs:
-        return False
+    if scene.plastic_springs:
+        return False                    # their rest lengths move (diffpen.plastic)
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn == 0.0:
         return True
+    if (scene.springs or scene.anchored_springs) and not all(
+            b.collide or b.pinned for b in scene.bodies):
+        return False                    # a body no plane holds up could pull one in deeper
     up = -g / gn
     return bool(scene.planes) and all(
         p.name is None and float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12
         for p in scene.planes)
+
+
+#: how far (relative to its rest length, floored at 1 mm) a spring may be stretched or
+#: compressed at the start for its energy to count as none (float32 positions round to ~1e-7)
+REST_TOLERANCE = 1e-6
+
+
+def _springs_at_rest(scene, x, rot) -> bool:
+    """Whether every spring and anchored spring of ``scene`` starts at its rest length
+    (within :data:`REST_TOLERANCE`), ``x`` (n, 3) the centres, ``rot`` (n, 3, 3) the
+    rotations or None."""
+    pairs = [(x[sp.a], np.asarray(sp.anchor, float) if sp.b is None else x[sp.b],
+              sp.rest_length) for sp in scene.springs]
+    if scene.anchored_springs:
+        if rot is None:
+            return False
+
+        def end(i, point):              # an anchor in body i's frame, or a world point
+            point = np.asarray(point, float)
+            return point if i is None else x[i] + rot[i] @ point
+        pairs += [(end(sp.a, sp.anchor_a), end(sp.b, sp.anchor_b), sp.rest_length)
+                  for sp in scene.anchored_springs]
+    return all(abs(float(np.linalg.norm(pa - pb)) - rest)
+               <= REST_TOLERANCE * max(rest, 1e-3) for pa, pb, rest in pairs)
 
 
 def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
@@ -80,6 +111,8 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
         from ..rigid import quat_to_matrix
         rot = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True), xp=np)
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
+        return None
+    if not _springs_at_rest(scene, x, rot):
         return None
     collide = np.asarray(collide, bool)
     boxes = np.array([i for i, b in enumerate(scene.bodies)
