@@ -374,7 +374,7 @@ class Simulator:
         that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
         """
         rep = _stability.report(self.analysis, params, energy=self.start_energy(
-            self._init if state is None else state))
+            self._init if state is None else state, params))
         if rep is None:
             raise SceneError("sim.stability(params) needs concrete parameter values, not "
                              "jit tracers.")
@@ -387,6 +387,9 @@ class Simulator:
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag: past the safe step for these (possibly traced) values
         # (energy: the start energy the up-front gate counted, diffpen.stability.depth)
+        if energy is None and self.analysis.depth_exponent is not None:
+            # the start state or a named plane's offset is traced: the same energy, traced
+            energy = self._traced_energy(params, state)
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps, energy=energy)
         # per-contact step constants of the law (ContactLaw.step_factors), once, outside
         # the loop (a rematerialised step would recompute them and their derivatives)
@@ -416,24 +419,55 @@ class Simulator:
         without compiling anything."""
         return self._rollout_traces[0]
 
-    def start_energy(self, state) -> float | None:
+    def start_energy(self, state, params: Params | None = None) -> float | None:
         """The energy (J) with which a rollout from ``state`` bounds the reference depth of a
         contact law that stiffens with depth (:mod:`diffpen.stability.depth`: kinetic,
-        rotation included, and potential), as the up-front check and the traced flag count
-        it; None where the radii bound it instead: the law's stiffness does not grow with
-        depth, the scene does not qualify, the state is traced (under jit or vmap) or a body
-        starts in contact."""
-        rotating = self._rigid is not None
-        parts = (state.position, state.velocity) + (
-            (state.orientation, state.angular_velocity) if rotating else ())
-        if self.analysis.depth_exponent is None or not all(map(_is_concrete, parts)):
+        rotation included, and potential), as the up-front check counts it; None where the
+        radii bound it instead: the law's stiffness does not grow with depth, the scene does
+        not qualify, the state is traced (under jit or vmap), a body starts in contact, or a
+        named plane's offset is not given by concrete ``params`` (its
+        ``params.extra["plane_offset"]``). The traced flag of a rollout counts the same
+        energy from traced values too (:meth:`_traced_energy`)."""
+        if self.analysis.depth_exponent is None:
             return None
-        spin = {}
-        if rotating:
-            spin = dict(orientation=state.orientation,
-                        angular_velocity=state.angular_velocity, inertia=self._moments)
+        offsets = self._plane_offsets(params)
+        parts = self._energy_parts(state) + (() if offsets is None else tuple(offsets))
+        if (any(p.name is not None for p in self.scene.planes) and offsets is None) or not all(
+                map(_is_concrete, parts)):
+            return None
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
-                                   self._collide, state.position, state.velocity, **spin)
+                                   self._collide, state.position, state.velocity,
+                                   offsets=offsets, **self._spin(state))
+
+    def _energy_parts(self, state) -> tuple:
+        return (state.position, state.velocity) + (
+            (state.orientation, state.angular_velocity) if self._rigid is not None else ())
+
+    def _spin(self, state) -> dict:
+        if self._rigid is None:
+            return {}
+        return dict(orientation=state.orientation, angular_velocity=state.angular_velocity,
+                    inertia=self._moments)
+
+    def _plane_offsets(self, params) -> list | None:
+        """The planes' offsets (m), a named plane's from ``params`` (None: a named plane and
+        no params)."""
+        named = [p.name for p in self.scene.planes if p.name is not None]
+        if not named:
+            return [float(p.offset) for p in self.scene.planes]
+        if params is None:
+            return None
+        given = params.extra.get("plane_offset", {})
+        return [given[p.name] if p.name is not None else float(p.offset)
+                for p in self.scene.planes]
+
+    def _traced_energy(self, params, state):
+        """:meth:`start_energy` from traced values (a start state or a named plane's offset
+        under jit, vmap or grad), for the traced flag: inf where the radii bound the depth."""
+        return _depth.energy_bound(self.scene, self.mass, self.radius, self.pinned,
+                                   self._collide, state.position, state.velocity,
+                                   offsets=self._plane_offsets(params), xp=jnp,
+                                   **self._spin(state))
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,
@@ -484,7 +518,7 @@ class Simulator:
         _checks.warn_batched_recording(params, state, steps, given, observe)
         if state is None:
             state = self._init
-        energy = self.start_energy(state)
+        energy = self.start_energy(state, params)
         n = _stability.gate(self.analysis, params, check=check_stability,
                             substeps=None if substeps is None else int(substeps),
                             cache=self.gate_cache, energy=energy)  # host-side only

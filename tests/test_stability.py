@@ -631,9 +631,40 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
             jnp.array([1.0, 1.1]))
     resting = sim.state_from(body=[0], position=[[0.0, 0.0, 0.099]])
     assert sim.start_energy(resting) is None
-    named = dp.compile(_hertz_ball(name="ground"), 1e-3, law="hunt_crossley", exponent=1.5)
-    assert named.analysis.depth_exponent is None
     assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None
+
+
+def test_traced_starts_and_named_floors_count_their_start_energy_in_the_traced_flag():
+    """Regression: a traced start state (jax.vmap over where the Hertz ball starts) or a
+    named, fittable floor kept the radius as the reference depth, so the traced flag of a
+    drop from 1 m was raised as it is from 30 m. The traced flag now counts the start
+    energy from traced values too: under vmap the 1 m drop is clear and the 30 m drop is
+    flagged (the up-front check cannot read traced values: it still refuses them); a named
+    floor counts from its offset in the params, concrete (the up-front check) or traced
+    (under jit: clear at 0, flagged where the raised floor starts in contact with the
+    ball, and where it is lowered 30 m)."""
+    sim = dp.compile(_hertz_ball(), 1e-3, law="hunt_crossley", exponent=1.5)
+    p = sim.params(k=1e6, c=3e4)
+
+    def flag_from(z):
+        state = sim.state_from(body=[0], position=jnp.stack([0.0, 0.0, z])[None])
+        return sim.rollout(p, 2, state=state, save_every=2,
+                           check_stability=False).aux[stability.FLAG][-1]
+    assert np.asarray(jax.jit(jax.vmap(flag_from))(jnp.array([1.0, 30.0]))).tolist() == [
+        False, True]
+    named = dp.compile(_hertz_ball(name="ground"), 1e-3, law="hunt_crossley", exponent=1.5)
+    assert named.analysis.depth_exponent == 1.5
+    q = named.params(k=1e6, c=3e4)
+    assert named.start_energy(named.init_state()) is None          # no offset given
+    assert named.start_energy(named.init_state(), q) == pytest.approx(9.81)
+    traj = named.rollout(q, 600, save_every=600)                    # the gate counts it
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+
+    def flag_at(offset):
+        r = q._replace(extra={**q.extra, "plane_offset": {"ground": offset}})
+        return named.rollout(r, 2, save_every=2,
+                             check_stability=False).aux[stability.FLAG][-1]
+    assert [bool(jax.jit(flag_at)(o)) for o in (0.0, 0.95, -30.0)] == [False, True, True]
 
 
 def _hertz_rope(**first):

@@ -44,7 +44,8 @@ the float32 refusal). The flag is sticky and saved in ``Trajectory.aux``.
 A contact law that stiffens with depth (Hunt-Crossley) is counted at a reference depth: each
 body's radius, or, where the scene lets the start state's energy bound it, the depth at which
 the contact would store twice that energy (:mod:`.depth`; a rollout hands the same energy to
-the up-front gate and to the traced flag).
+the up-front gate and to the traced flag, which counts it from traced start states and named
+planes' traced offsets too).
 
 Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps),
 :mod:`.bounds` (the terms' :class:`Bound` rows summed into rates, numpy and traced),

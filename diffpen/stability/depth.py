@@ -10,7 +10,8 @@ refuses a step of 1 ms that this ball takes safely.
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
 contacts, springs, friction and drag can give energy back (no custom terms, no plastic
 springs, whose rest lengths move), gravity's potential is bounded below (no gravity, or every
-plane a horizontal floor, unnamed: a fixed offset; with springs, every free body collides,
+plane a horizontal floor, a named one at the offset its params give; with springs, every free
+body collides,
 so that none can sink below the floor and pull another body in through a spring), every
 spring and anchored spring starts at its rest length (within :data:`REST_TOLERANCE`: its
 stored energy, which would need its stiffness, is then none), and no body starts in contact
@@ -27,7 +28,10 @@ the radius stays.
 
 :func:`start_energy` computes ``E0`` on the host from a concrete start state (None where the
 scene or the state does not qualify); ``Simulator.rollout`` hands it to the up-front gate and,
-as a traced argument, to the traced flag, so both count the same depth.
+as a traced argument, to the traced flag, so both count the same depth. Where the start state
+or a named plane's offset is traced (under jit, vmap or grad) the up-front gate keeps the
+radius (it cannot read them), and the traced flag counts the same energy from the traced
+values (:func:`energy_bound`: ``inf``, the radius, where a body starts in contact).
 """
 from __future__ import annotations
 
@@ -35,7 +39,8 @@ import numpy as np
 
 from ..geometry import box_corners
 
-__all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "energy_depth"]
+__all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "energy_bound",
+           "energy_depth"]
 
 #: the energy a contact may store, in units of the start's kinetic and potential energy
 ENERGY_MARGIN = 2.0
@@ -59,8 +64,7 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
         return False                    # a body no plane holds up could pull one in deeper
     up = -g / gn
     return bool(scene.planes) and all(
-        p.name is None and float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12
-        for p in scene.planes)
+        float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12 for p in scene.planes)
 
 
 #: how far (relative to its rest length, floored at 1 mm) a spring may be stretched or
@@ -68,95 +72,121 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
 REST_TOLERANCE = 1e-6
 
 
-def _springs_at_rest(scene, x, rot) -> bool:
+def _springs_at_rest(scene, x, rot, xp=np):
     """Whether every spring and anchored spring of ``scene`` starts at its rest length
     (within :data:`REST_TOLERANCE`), ``x`` (n, 3) the centres, ``rot`` (n, 3, 3) the
-    rotations or None."""
+    rotations or None: a bool (array)."""
     pairs = [(x[sp.a], np.asarray(sp.anchor, float) if sp.b is None else x[sp.b],
               sp.rest_length) for sp in scene.springs]
     if scene.anchored_springs:
         if rot is None:
-            return False
+            return xp.asarray(False)
 
         def end(i, point):              # an anchor in body i's frame, or a world point
             point = np.asarray(point, float)
             return point if i is None else x[i] + rot[i] @ point
         pairs += [(end(sp.a, sp.anchor_a), end(sp.b, sp.anchor_b), sp.rest_length)
                   for sp in scene.anchored_springs]
-    return all(abs(float(np.linalg.norm(pa - pb)) - rest)
-               <= REST_TOLERANCE * max(rest, 1e-3) for pa, pb, rest in pairs)
+    ok = xp.asarray(True)
+    for pa, pb, rest in pairs:
+        ok = ok & (xp.abs(xp.linalg.norm(pa - pb) - rest) <= REST_TOLERANCE * max(rest, 1e-3))
+    return ok
 
 
 def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
-                 orientation=None, angular_velocity=None, inertia=None) -> float | None:
+                 orientation=None, angular_velocity=None, inertia=None,
+                 offsets=None) -> float | None:
     """Kinetic (rotation included) and potential energy (J) of a concrete start state
     (``position``, ``velocity`` (n, 3)), potential counted as the module docstring says;
     None when a colliding body (``collide`` (n,) bool, fixed per simulator) starts in contact
     (with a plane: a box by its corners, other bodies by their ``radius``; with a fixed sphere
-    or another colliding body: by ``radius``, a box's bounding sphere) or a value is not
-    finite. Rotating scenes also give ``orientation`` (n, 4) (w, x, y, z), ``angular_velocity``
-    (n, 3) world frame, rad/s, and ``inertia`` (n, 3) body-frame principal moments, kg m^2 (0
-    for bodies that do not rotate). Assumes :func:`qualifies`."""
-    x = np.asarray(position, float)
-    v = np.asarray(velocity, float)
+    or another colliding body: by ``radius``, a box's bounding sphere), a spring starts
+    stretched or compressed, or a value is not finite. Rotating scenes also give
+    ``orientation`` (n, 4) (w, x, y, z), ``angular_velocity`` (n, 3) world frame, rad/s, and
+    ``inertia`` (n, 3) body-frame principal moments, kg m^2 (0 for bodies that do not
+    rotate). ``offsets``: the planes' offsets (m, one per plane; default the scene's), as a
+    named plane's ``params.extra["plane_offset"]`` sets them. Assumes :func:`qualifies`;
+    :func:`energy_bound` is the same, traceable."""
+    e = float(energy_bound(scene, mass, radius, pinned, collide, position, velocity,
+                           orientation=orientation, angular_velocity=angular_velocity,
+                           inertia=inertia, offsets=offsets, xp=np))
+    return e if np.isfinite(e) else None
+
+
+def _scatter(xp, a, idx, vals):
+    """``a`` with ``a[idx] = vals`` (numpy or jax.numpy)."""
+    if xp is np:
+        a = a.copy()
+        a[idx] = vals
+        return a
+    return a.at[idx].set(vals)
+
+
+def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
+                 orientation=None, angular_velocity=None, inertia=None, offsets=None,
+                 xp=np):
+    """:func:`start_energy` as an array, ``inf`` where it is None: with ``xp=jax.numpy`` the
+    start state and the offsets may be traced (a rollout's traced flag counts a traced start
+    state, or a named plane's traced offset, this way: :meth:`diffpen.Simulator.rollout`)."""
+    fl = xp.float64 if xp is np else None
+    x = xp.asarray(position, fl)
+    v = xp.asarray(velocity, x.dtype)
     m = np.where(np.asarray(pinned, bool), 0.0, np.asarray(mass, float))
     r = np.asarray(radius, float)
+    ok = xp.all(xp.isfinite(x)) & xp.all(xp.isfinite(v))
     rot = None
     if orientation is not None:
-        q = np.asarray(orientation, float)
-        w = np.asarray(angular_velocity, float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(w))):
-            return None
+        q = xp.asarray(orientation, x.dtype)
+        w = xp.asarray(angular_velocity, x.dtype)
+        ok = ok & xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(w))
         # imported here: diffpen.rigid imports the terms, which import this package
         from ..rigid import quat_to_matrix
-        rot = quat_to_matrix(q / np.linalg.norm(q, axis=1, keepdims=True), xp=np)
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
-        return None
-    if not _springs_at_rest(scene, x, rot):
-        return None
+        rot = quat_to_matrix(q / xp.linalg.norm(q, axis=1, keepdims=True), xp=xp)
+    ok = ok & _springs_at_rest(scene, x, rot, xp)
+    if offsets is None:
+        offsets = [float(p.offset) for p in scene.planes]
     collide = np.asarray(collide, bool)
     boxes = np.array([i for i, b in enumerate(scene.bodies)
                       if b.half_extents is not None and rot is not None], dtype=int)
     # (boxes, 8, 3) corners from the centres, world frame
-    corners = (np.einsum("bij,bkj->bki", rot[boxes], np.stack(
+    corners = (xp.einsum("bij,bkj->bki", rot[boxes], np.stack(
         [box_corners(scene.bodies[i].half_extents) for i in boxes]))
-        if boxes.size else np.zeros((0, 8, 3)))
+        if boxes.size else None)
     # how far below its centre a body reaches towards a plane: a box by its lowest corner
-    for p in scene.planes:
+    for p, off in zip(scene.planes, offsets):
         nrm = np.asarray(p.normal, float)
-        reach = r.copy()
-        reach[boxes] = np.max(-(corners @ nrm), axis=1)
-        gap = x @ nrm - float(p.offset) - reach
-        if np.any(collide & (gap <= 0.0)):
-            return None
+        reach = r if corners is None else _scatter(xp, xp.asarray(r, x.dtype), boxes,
+                                                   xp.max(-(corners @ nrm), axis=1))
+        gap = x @ nrm - off - reach
+        ok = ok & ~xp.any(collide & (gap <= 0.0))
     for fs in scene.fixed_spheres:
-        dist = np.linalg.norm(x - np.asarray(fs.center, float), axis=1)
-        if np.any(collide & (dist <= r + float(fs.radius))):
-            return None
+        dist = xp.linalg.norm(x - np.asarray(fs.center, float), axis=1)
+        ok = ok & ~xp.any(collide & (dist <= r + float(fs.radius)))
     idx = np.flatnonzero(collide)
+    if idx.size > 512:                     # the pair check's cost: keep the radius
+        return xp.asarray(np.inf)
     if idx.size > 1:
-        if idx.size > 512:                 # the pair check's cost: keep the radius
-            return None
         xc, rc = x[idx], r[idx]
-        dist = np.linalg.norm(xc[:, None, :] - xc[None, :, :], axis=-1)
-        overlap = dist <= rc[:, None] + rc[None, :]
-        np.fill_diagonal(overlap, False)
-        if np.any(overlap):
-            return None
-    energy = 0.5 * float(np.sum(m * np.sum(v * v, axis=1)))
+        dist = xp.sqrt(xp.sum((xc[:, None, :] - xc[None, :, :]) ** 2, axis=-1))
+        overlap = (dist <= rc[:, None] + rc[None, :]) & ~np.eye(idx.size, dtype=bool)
+        ok = ok & ~xp.any(overlap)
+    energy = 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
     if rot is not None:
-        spin = np.einsum("nji,nj->ni", rot, np.asarray(angular_velocity, float))   # body frame
+        spin = xp.einsum("nji,nj->ni", rot, w)                          # body frame
         moments = np.where(np.asarray(pinned, bool)[:, None], 0.0, np.asarray(inertia, float))
-        energy += 0.5 * float(np.sum(moments * spin * spin))
+        energy = energy + 0.5 * xp.sum(moments * spin * spin)
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn > 0.0:
-        floor = min(float(p.offset) for p in scene.planes)
+        floor = offsets[0]
+        for off in offsets[1:]:
+            floor = xp.minimum(floor, off)
         # a box can sink its centre below the floor by its half-diagonal less its support
-        sink = np.zeros(len(x))
+        sink = np.zeros(len(r))
         sink[boxes] = r[boxes] - np.array([min(scene.bodies[i].half_extents) for i in boxes])
-        energy += gn * float(np.sum(m * (x @ (-g / gn) - floor + sink)))
-    return energy if np.isfinite(energy) else None
+        energy = energy + gn * xp.sum(m * (x @ (-g / gn) - floor + sink))
+    ok = ok & xp.isfinite(energy)
+    return xp.where(ok, energy, xp.inf)
 
 
 def energy_depth(exponent: float, k, energy, xp=np):
