@@ -1310,3 +1310,33 @@ def test_commands_run_in_the_test_session_leave_the_compilation_cache_off():
     before = jax.config.jax_compilation_cache_dir
     setup_jax()
     assert jax.config.jax_compilation_cache_dir == before
+
+
+HERTZ_BALL = ('law = "hunt_crossley"\nexponent = 1.5\ndt = 1e-3\nduration = 1.0\n'
+              '[materials.rubber]\nk = {k}\nc = {c}\n'
+              '[[spheres]]\nname = "ball"\nradius = 0.1\nmass = 1.0\nposition = [0.0, 0.0, 1.0]\n'
+              'material = "rubber"\n[[planes]]\nmaterial = "rubber"\nname = "ground"\n'
+              '[fit]\nparams = ["contact.rubber.k", "contact.rubber.c"]\nobserve = ["ball"]\n'
+              '[fit.bounds]\n"contact.rubber.k" = [3e5, 3e6]\n"contact.rubber.c" = [1e3, 1e5]\n')
+
+
+def test_a_hertz_record_fit_counts_the_records_start_energy(tmp_path):
+    """Regression: record fits capped Hunt-Crossley's k and c at the safe step with the
+    contact taken at the ball's radius (10 cm), so the Hertz ball of the README (1 kg, k 1e6
+    N/m^1.5, here c 4e4, dropped from 1 m onto a named, fittable floor) could not be fitted
+    at dt 1 ms: both values lay past the caps (k 5.2e5, c 3.1e4). The caps now count the
+    records' own start energy (the softest k of the bounds sinks deepest) and the floor's
+    offset from the params, as a rollout from those starts does (k 1.26e6, c 1.85e5): the
+    fit recovers k and c within 2% from a record made by rk4 at 0.25 ms."""
+    from tuning.stable import safe_contact_bounds
+    truth = {"contact.rubber.k": 1e6, "contact.rubber.c": 4e4}
+    scene, rec = _record_file(tmp_path, HERTZ_BALL.format(k=5e5, c=2e4), truth, ["ball"],
+                              "hertz", integrator="rk4", dt=2.5e-4, every=5e-3, duration=1.0,
+                              noise=0.0, seed=0)
+    sf = load_scene_file(scene)
+    sim = sf.compile()
+    radius_caps = safe_contact_bounds(sim)
+    assert radius_caps[0] < 1e6 and radius_caps[1] < 4e4
+    out = tf.fit_files(scene, [rec], horizons=[None])
+    assert out["fitted"]["contact.rubber.k"] == pytest.approx(1e6, rel=0.02)
+    assert out["fitted"]["contact.rubber.c"] == pytest.approx(4e4, rel=0.02)

@@ -39,15 +39,29 @@ def _light_mass(sim) -> float:
     return float(m.min()) if m.size else float(np.asarray(an.mass).min())
 
 
-def start_energy(sim, state) -> float | None:
+def start_energy(sim, state, params=None) -> float | None:
     """The energy (J) with which a rollout of ``sim`` from ``state`` bounds the reference
     depth of a contact that stiffens with depth (:mod:`diffpen.stability.depth`, as
     ``sim.rollout(params, steps, state)`` counts it), or None: no state given, the law's
-    stiffness does not grow with depth, the scene does not qualify, the state is traced or a
-    body starts in contact (then the bodies' radii bound the depth)."""
+    stiffness does not grow with depth, the scene does not qualify, the state is traced, a
+    body starts in contact, or a named plane's offset is not given by ``params`` (then the
+    bodies' radii bound the depth). ``state`` may also be a batch of start states (a State
+    whose leaves have a leading axis, as :class:`tuning.record_batch.Batch` ``start``) or a
+    list of such batches: the largest of their energies (None if any is None)."""
     if state is None:
         return None
-    return sim.start_energy(state)
+    if isinstance(state, (list, tuple)) and not hasattr(state, "_fields"):
+        parts = [start_energy(sim, s, params) for s in state]
+        return None if not parts or any(e is None for e in parts) else max(parts)
+    if np.ndim(state.position) == 3:             # a batch: one start state per record
+        leaves = jax.tree_util.tree_leaves(state)
+        if any(isinstance(a, jax.core.Tracer) for a in leaves):
+            return None
+        state = jax.tree_util.tree_map(np.asarray, state)    # one transfer, then rows
+        rows = [jax.tree_util.tree_map(lambda a, i=i: a[i], state)
+                for i in range(np.shape(state.position)[0])]
+        return start_energy(sim, rows, params)
+    return sim.start_energy(state, params)
 
 
 def params_unstable(sim, params, state=None):
@@ -70,7 +84,7 @@ def params_unstable(sim, params, state=None):
                      for n, cp in params.contact.items()},
             springs=None, extra=None)
         return jax.vmap(lambda p: params_unstable(sim, p, state), in_axes=(axes,))(params)
-    bad = _dp_stability.unsafe(sim.analysis, params, energy=start_energy(sim, state))
+    bad = _dp_stability.unsafe(sim.analysis, params, energy=start_energy(sim, state, params))
     for cp in params.contact.values():
         bad = bad | ~jnp.all(jnp.isfinite(jnp.asarray(cp.k))) | ~jnp.all(
             jnp.isfinite(jnp.asarray(cp.c)))
@@ -135,7 +149,7 @@ def implicit_contact_limits(sim, mass: float | None = None) -> tuple[float, floa
 
 
 def safe_contact_bounds(sim, mass: float | None = None, *, state=None,
-                        k_min: float | None = None) -> tuple[float, float]:
+                        k_min: float | None = None, params=None) -> tuple[float, float]:
     """:func:`safe_contact_limits` at the inner step of ``sim`` for a body of ``mass`` kg
     (default: the lightest movable body), in the units of the simulator's contact law: a law
     whose stiffness grows with depth (Hunt-Crossley, ``k`` N/m^n, ``c`` N s/m^(n+1)) has the
@@ -151,7 +165,9 @@ def safe_contact_bounds(sim, mass: float | None = None, *, state=None,
     whose stiffness at its own depth is inside the step (found by bisection; the stiffness
     grows with ``k``), and ``c_max`` takes the depth of ``k_min`` (N/m^n; the smallest
     stiffness the bound must hold for: the softest contact sinks deepest; default: the
-    radius). Default None: the radii (conservative for any start)."""
+    radius). Default None: the radii (conservative for any start). ``state`` may be a
+    batch of start states (:func:`start_energy`: the largest energy counts); ``params``
+    gives a named plane's offset (without it a named plane keeps the radii)."""
     an = sim.analysis
     if not an.integrator.explicit:
         k_max, c_max = implicit_contact_limits(sim, mass)
@@ -164,19 +180,19 @@ def safe_contact_bounds(sim, mass: float | None = None, *, state=None,
     if an.contact_scale is not None:
         if not an.integrator.explicit:
             state = None
-        c_scale = contact_scales(sim, k_min, state=state)[1] if k_min and k_min > 0.0 else (
-            contact_scales(sim, 0.0)[1])
-        return law_k(sim, k_max, state=state), c_max / c_scale
+        c_scale = (contact_scales(sim, k_min, state=state, params=params)[1]
+                   if k_min and k_min > 0.0 else contact_scales(sim, 0.0)[1])
+        return law_k(sim, k_max, state=state, params=params), c_max / c_scale
     return k_max, c_max
 
 
-def _reference(sim, state) -> tuple[float, float | None]:
+def _reference(sim, state, params=None) -> tuple[float, float | None]:
     """``(d_ref, energy)``: the deepest reference depth of the movable bodies (m) and the
-    start energy of ``state`` (J; None: the depth is ``d_ref``)."""
+    start energy of ``state`` (J, :func:`start_energy`; None: the depth is ``d_ref``)."""
     an = sim.analysis
     free = ~np.asarray(an.pinned)
     d = float(np.max(np.asarray(an.d_ref)[free])) if free.any() else 1.0
-    energy = start_energy(sim, state) if an.depth_exponent is not None else None
+    energy = start_energy(sim, state, params) if an.depth_exponent is not None else None
     return d, energy
 
 
@@ -189,24 +205,24 @@ def _scales_at(an, k: float, d_ref: float, energy: float | None) -> tuple[float,
     return tuple(float(x) for x in an.contact_scale(1.0, 1.0, d))
 
 
-def contact_scales(sim, k: float, *, state=None) -> tuple[float, float]:
+def contact_scales(sim, k: float, *, state=None, params=None) -> tuple[float, float]:
     """The factors ``(stiffness / k, damping / c)`` of ``sim``'s contact law for a contact of
     stiffness ``k`` (the law's units) at its reference depth, as the safe step counts them
     (``ContactLaw.stiffness``): 1 and 1 for the linear laws; for Hunt-Crossley
     ``(n d^(n-1), d^n)`` at the depth ``d`` where the contact would store twice the energy of
     ``state`` (:func:`start_energy`; never deeper than the bodies' largest radius, which is
     the depth without a state or for ``k`` 0)."""
-    return _scales_at(sim.analysis, k, *_reference(sim, state))
+    return _scales_at(sim.analysis, k, *_reference(sim, state, params))
 
 
-def law_k(sim, stiffness: float, *, state=None) -> float:
+def law_k(sim, stiffness: float, *, state=None, params=None) -> float:
     """The largest stiffness ``k`` in the units of ``sim``'s contact law (Hunt-Crossley
     N/m^n) whose stiffness at its reference depth (:func:`contact_scales`) is at most
     ``stiffness`` N/m: ``stiffness`` itself for the linear laws; at the radius a division;
     with a ``state`` whose energy bounds the depth, bisection on log k (the stiffness grows
     with k)."""
     an = sim.analysis
-    d_ref, energy = _reference(sim, state)              # the start energy, once
+    d_ref, energy = _reference(sim, state, params)      # the start energy, once
     k_rad = stiffness / _scales_at(an, 0.0, d_ref, None)[0]   # at the radius: the bound holds
     if energy is None:
         return k_rad
@@ -224,11 +240,11 @@ def law_k(sim, stiffness: float, *, state=None) -> float:
     return lo
 
 
-def law_c(sim, damping: float, k: float, *, state=None) -> float:
+def law_c(sim, damping: float, k: float, *, state=None, params=None) -> float:
     """The damping ``c`` in the units of ``sim``'s contact law (Hunt-Crossley N s/m^(n+1))
     that damps a contact of stiffness ``k`` (its units) by ``damping`` N s/m at its
     reference depth (:func:`contact_scales`)."""
-    return damping / contact_scales(sim, k, state=state)[1]
+    return damping / contact_scales(sim, k, state=state, params=params)[1]
 
 
 def unsafe_start(start, dt: float | None = None) -> FitError:

@@ -202,7 +202,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     # the optimiser stays inside the stable region: contact k and c capped at the safe step
     # of one contact on the lightest body (tuning.stable); the flag still judges the result
     from .stable import safe_contact_bounds
-    k_max, c_max = safe_contact_bounds(sim)
+    batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
+    k_max, c_max = safe_contact_bounds(sim, **_depth_reference(sim, params, free, lo, batches))
     caps = []                       # each leaf's safe-step cap (inf: none)
     for i, f in enumerate(free):
         parts = f.name.split(".")
@@ -216,7 +217,6 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                                "use a smaller dt or more substeps.")
             hi[i] = min(hi[i], float(f.to_x(cap)))
 
-    batches = list(batch) if isinstance(batch, (list, tuple)) else [batch]
     # the compiled residuals take the params and the records' arrays as arguments: a later
     # fit of the same layout (simulator, leaves, loss, batch shapes) compiles nothing
     programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay)
@@ -382,6 +382,21 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged,
                          cost_chosen_start=cost_chosen_start)
+
+
+def _depth_reference(sim, params, free, lo, batches) -> dict:
+    """What :func:`tuning.stable.safe_contact_bounds` needs for a contact law that stiffens
+    with depth to count the records' own start energy (:mod:`diffpen.stability.depth`) instead
+    of the bodies' radii: the records' start states, ``params`` (a named plane's offset) and
+    the softest contact stiffness the fit may reach (the lower bound of a fitted contact k,
+    else its value), whose contact sinks deepest; empty for the other laws."""
+    if sim.analysis.depth_exponent is None:
+        return {}
+    fitted = {f.name: float(f.from_x(lo[i])) for i, f in enumerate(free)}
+    ks = [fitted.get(f"contact.{name}.k", float(np.min(np.asarray(cp.k))))
+          for name, cp in params.contact.items()]
+    return dict(state=[b.start for b in batches], params=params,
+                k_min=min(ks) if ks else None)
 
 
 #: compiled record-fit programs by (simulator, leaves, loss settings, batch layouts)
