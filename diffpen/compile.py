@@ -430,18 +430,13 @@ class Simulator:
         energy from traced values too (:meth:`_traced_energy`)."""
         if self.analysis.depth_exponent is None:
             return None
-        offsets = self._plane_offsets(params)
-        parts = self._energy_parts(state) + (() if offsets is None else tuple(offsets))
-        if (any(p.name is not None for p in self.scene.planes) and offsets is None) or not all(
-                map(_is_concrete, parts)):
+        offsets, spin = self._plane_offsets(params), self._spin(state)
+        if offsets is None or not all(map(_is_concrete, (state.position, state.velocity,
+                                                         *offsets, *spin.values()))):
             return None
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
-                                   offsets=offsets, **self._spin(state))
-
-    def _energy_parts(self, state) -> tuple:
-        return (state.position, state.velocity) + (
-            (state.orientation, state.angular_velocity) if self._rigid is not None else ())
+                                   offsets=offsets, **spin)
 
     def _spin(self, state) -> dict:
         if self._rigid is None:
