@@ -46,7 +46,7 @@ from .stability import depth as _depth
 from . import start_state as _start_state
 from . import stepping as _stepping
 from . import terms as _terms
-from .errors import SceneError
+from .errors import SceneError, StabilityError
 from .integrators import kick_then_drift
 from .scene import Scene
 from .params import _is_concrete
@@ -430,13 +430,22 @@ class Simulator:
         energy from traced values too (:meth:`_traced_energy`)."""
         if self.analysis.depth_exponent is None:
             return None
-        offsets, spin = self._plane_offsets(params), self._spin(state)
-        if offsets is None or not all(map(_is_concrete, (state.position, state.velocity,
-                                                         *offsets, *spin.values()))):
+        offsets = self._plane_offsets(params)
+        if offsets is None or self._traced_start(state, params):
             return None
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
-                                   offsets=offsets, **spin)
+                                   offsets=offsets, **self._spin(state))
+
+    def _traced_start(self, state, params) -> bool:
+        """Whether the start energy of a contact that stiffens with depth is left to the
+        traced flag: the start state or a named plane's offset is traced, in a scene whose
+        energy could bound the depth (:meth:`start_energy`)."""
+        if self.analysis.depth_exponent is None:
+            return False
+        offsets = self._plane_offsets(params) or []
+        return not all(map(_is_concrete, (state.position, state.velocity, *offsets,
+                                          *self._spin(state).values())))
 
     def _spin(self, state) -> dict:
         if self._rigid is None:
@@ -514,9 +523,21 @@ class Simulator:
         if state is None:
             state = self._init
         energy = self.start_energy(state, params)
-        n = _stability.gate(self.analysis, params, check=check_stability,
-                            substeps=None if substeps is None else int(substeps),
-                            cache=self.gate_cache, energy=energy)  # host-side only
+        try:
+            n = _stability.gate(self.analysis, params, check=check_stability,
+                                substeps=None if substeps is None else int(substeps),
+                                cache=self.gate_cache, energy=energy)  # host-side only
+        except StabilityError as exc:
+            if energy is None and self._traced_start(state, params):
+                raise StabilityError(
+                    f"{exc} The start state (or a named plane's offset) is traced under jit "
+                    "or vmap, so this check counted the contact at the bodies' radius, not "
+                    "at the depth the start energy allows (diffpen.stability.depth): give a "
+                    "concrete start state, or pass check_stability=False and read the "
+                    "rollout's traced flag (traj.aux['unstable']), which counts each traced "
+                    "start's own energy.", stable_dt=exc.stable_dt,
+                    substeps=exc.substeps) from None
+            raise
         if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
             # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
             # more substeps, a fixed count is refused (traced params never raise)

@@ -625,7 +625,9 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
     flag = jax.jit(lambda k: sim.rollout(sim.params(k=k, c=3e4), 2, save_every=2)
                    .aux[stability.FLAG][-1])
     assert not bool(flag(1e6)) and bool(flag(1e7))
-    with pytest.raises(dp.StabilityError):              # a traced start: the radius again
+    # a traced start: the radius again, and the error says how the traced flag counts it
+    with pytest.raises(dp.StabilityError, match="check_stability=False and read the "
+                                                "rollout's traced flag"):
         jax.vmap(lambda z: sim.rollout(p, 2, state=sim.state_from(
             body=[0], position=jnp.stack([0.0, 0.0, z])[None])).position[-1, 0, 2])(
             jnp.array([1.0, 1.1]))
