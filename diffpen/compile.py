@@ -435,7 +435,8 @@ class Simulator:
             return None
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
-                                   offsets=offsets, **self._spin(state))
+                                   offsets=offsets, spring_k=self._spring_k(params),
+                                   **self._spin(state))
 
     def _traced_start(self, state, params) -> bool:
         """Whether the start energy of a contact that stiffens with depth is left to the
@@ -444,7 +445,8 @@ class Simulator:
         if self.analysis.depth_exponent is None:
             return False
         offsets = self._plane_offsets(params) or []
-        return not all(map(_is_concrete, (state.position, state.velocity, *offsets,
+        ks = list((self._spring_k(params) or {}).values())
+        return not all(map(_is_concrete, (state.position, state.velocity, *offsets, *ks,
                                           *self._spin(state).values())))
 
     def _spin(self, state) -> dict:
@@ -470,8 +472,14 @@ class Simulator:
         under jit, vmap or grad), for the traced flag: inf where the radii bound the depth."""
         return _depth.energy_bound(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
-                                   offsets=self._plane_offsets(params), xp=jnp,
+                                   offsets=self._plane_offsets(params),
+                                   spring_k=self._spring_k(params), xp=jnp,
                                    **self._spin(state))
+
+    @staticmethod
+    def _spring_k(params) -> dict | None:
+        """The spring groups' stiffness (N/m) in ``params`` (None without params)."""
+        return None if params is None else {g: sp.k for g, sp in params.springs.items()}
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,

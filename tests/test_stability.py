@@ -636,6 +636,37 @@ def test_a_hertz_contact_is_bounded_at_the_depth_its_start_energy_reaches():
     assert dp.compile(_hertz_ball(), 1e-3).analysis.depth_exponent is None
 
 
+def test_anchored_springs_count_their_stored_energy_at_the_start():
+    """The start energy of two Hertz boxes joined by an anchored spring, one of them also hung
+    from a world point (both springs stretched, the first box turned): the springs' ``k x^2 /
+    2`` at their anchors (turned with the box) and gravity's potential down to each box sunk
+    face down, as a hand computation gives it; the traced form equals it; without params
+    (no spring stiffness) the radius stays."""
+    from tuning.pose import rotmat
+    half, q = 0.05, np.array([0.9, 0.1, 0.2, 0.3]) / np.linalg.norm([0.9, 0.1, 0.2, 0.3])
+    s = dp.Scene()
+    a = s.add_box((half,) * 3, 1.0, (0.0, 0.0, 0.5), orientation=tuple(q))
+    b = s.add_box((half,) * 3, 1.0, (0.3, 0.0, 0.5))
+    s.add_anchored_spring(a, b, (half, 0.0, 0.0), (-half, 0.0, 0.0), k=200.0, rest_length=0.15)
+    s.add_anchored_spring(a, None, (0.0, 0.0, half), (0.0, 0.0, 1.0), k=100.0,
+                          rest_length=0.4, group="hang")
+    s.add_plane()
+    sim = dp.compile(s, 1e-3, law="hunt_crossley", exponent=1.5)
+    p = sim.params(k=1e5, c=1e2)
+    start = sim.init_state()
+    rot = rotmat(q)
+    x = np.array([0.0, 0.0, 0.5])
+    stretch = (np.linalg.norm(x + rot @ [half, 0, 0] - [0.3 - half, 0.0, 0.5]) - 0.15,
+               np.linalg.norm(x + rot @ [0, 0, half] - [0.0, 0.0, 1.0]) - 0.4)
+    sink = np.sqrt(3.0) * half - half
+    want = 0.5 * 200.0 * stretch[0] ** 2 + 0.5 * 100.0 * stretch[1] ** 2 + 2 * 9.81 * (0.5 + sink)
+    assert min(abs(v) for v in stretch) > 1e-3
+    assert sim.start_energy(start, p) == pytest.approx(want, rel=1e-12)
+    assert float(jax.jit(lambda st: sim._traced_energy(p, st))(start)) == pytest.approx(
+        want, rel=1e-12)
+    assert sim.start_energy(start) is None
+
+
 def test_traced_starts_and_named_floors_count_their_start_energy_in_the_traced_flag():
     """Regression: a traced start state (jax.vmap over where the Hertz ball starts) or a
     named, fittable floor kept the radius as the reference depth, so the traced flag of a
@@ -685,11 +716,12 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: any spring kept the radius as Hunt-Crossley's reference depth, so three
     Hertz balls joined by springs (k 3e5 N/m^1.5, c 3e4, dropped from 1 m) were refused at
     dt 1 ms (their 10 cm radius counted; the balls sink under 5 cm). A damped spring gives
-    back no more than it stored, so where every spring starts at its rest length and every
-    free body collides, the start energy bounds the depth as for one ball: the drop runs
-    with the traced flag clear and sinks less than counted. A spring stretched at the start
-    (its energy would need its stiffness), a plastic spring (its rest length moves) or a
-    free body no plane holds up (it could pull the others in) keep the radius."""
+    back no more than it stored, so where every free body collides, the start energy
+    (the springs' own ``k x^2 / 2`` included, their k from the params) bounds the depth as
+    for one ball: the drop runs with the traced flag clear and sinks less than counted; a
+    spring stretched by 1 cm adds its 0.025 J, one stretched by 1 m is refused. Without
+    params a stretched spring keeps the radius, and so do a plastic spring (its rest length
+    moves) and a free body no plane holds up (it could pull the others in)."""
     from diffpen.stability.depth import energy_depth
     sim = dp.compile(_hertz_rope(), 1e-3, law="hunt_crossley", exponent=1.5)
     assert sim.analysis.depth_exponent == 1.5
@@ -703,9 +735,13 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     deepest = 0.1 - float(np.min(np.asarray(traj.observed)))
     assert 0.0 < deepest < float(energy_depth(1.5, 3e5, energy)) < 0.1
     stretched = sim.state_from(body=[0], position=[[-0.01, 0.0, 1.0]])
-    assert sim.start_energy(stretched) is None
+    assert sim.start_energy(stretched) is None                    # no spring stiffness given
+    assert sim.start_energy(stretched, p) == pytest.approx(3 * 9.81 + 0.5 * 500.0 * 0.01 ** 2,
+                                                           rel=1e-9)
+    sim.rollout(p, 10, state=stretched)                           # its springs' energy counts
+    far = sim.state_from(body=[0], position=[[-1.0, 0.0, 1.0]])   # 1 m: 250 J more
     with pytest.raises(dp.StabilityError):
-        sim.rollout(p, 10, state=stretched)
+        sim.rollout(p, 10, state=far)
     plastic = _hertz_rope()
     plastic.add_plastic_spring(0, 2, k=100.0, yield_strain=0.1)
     assert dp.compile(plastic, 1e-3, law="hunt_crossley",

@@ -11,17 +11,18 @@ Energy bounds the depth instead, where the scene lets it: no force besides gravi
 contacts, springs, friction and drag can give energy back (no custom terms, no plastic
 springs, whose rest lengths move), gravity's potential is bounded below (no gravity, or every
 plane a horizontal floor, a named one at the offset its params give; with springs, every free
-body collides,
-so that none can sink below the floor and pull another body in through a spring), every
-spring and anchored spring starts at its rest length (within :data:`REST_TOLERANCE`: its
-stored energy, which would need its stiffness, is then none), and no body starts in contact
-(a box: none of its corners on or below a plane). A damped linear spring stores ``k x^2 / 2
->= 0`` and gives back no more than it stored, so then no contact ever stores more than the
-start's kinetic energy (rotation included) and potential energy ``E0``, and a contact of
-stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where a body's centre could get at the deepest
-penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
-the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
-extents)`` below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
+body collides, so that none can sink below the floor and pull another body in through a
+spring), the springs' stored energy ``k x^2 / 2`` at the start is counted (with their
+groups' stiffness from the params; without them, every spring and anchored spring must start
+at its rest length, within :data:`REST_TOLERANCE`), and no body starts in contact (a box:
+none of its corners on or below a plane). A damped linear spring stores ``k x^2 / 2 >= 0``
+and gives back no more than it stored, so then no contact ever stores more than the start's
+kinetic energy (rotation included), potential energy and springs' energy ``E0``, and a
+contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted
+from where a body's centre could get at the deepest penetration counted (its reference size
+``d_ref`` below its support): for a sphere that is the floor (its support is its radius, its
+reference size too), for a box ``d_ref - min(half extents)`` below it (a box face down and
+sunk by its half-diagonal). The bound takes twice ``E0``
 (:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several %
 per contact event by the safe step), and never more than the radius. Where any condition fails
 the radius stays.
@@ -72,36 +73,69 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
 REST_TOLERANCE = 1e-6
 
 
-def _springs_at_rest(scene, x, rot, xp=np):
-    """Whether every spring and anchored spring of ``scene`` starts at its rest length
-    (within :data:`REST_TOLERANCE`), ``x`` (n, 3) the centres, ``rot`` (n, 3, 3) the
-    rotations or None: a bool (array)."""
-    pairs = [(x[sp.a], np.asarray(sp.anchor, float) if sp.b is None else x[sp.b],
-              sp.rest_length) for sp in scene.springs]
-    if scene.anchored_springs:
+def _spring_stretches(scene, x, rot, xp=np):
+    """``(stretch, rest, groups)``: every spring's and anchored spring's length less its rest
+    length (m; an array), the rest lengths (m) and the group names, ``x`` (n, 3) the centres,
+    ``rot`` (n, 3, 3) the rotations (None: an anchored spring cannot be measured: stretch
+    None)."""
+    def far(ends, anchors, moved):
+        """the second ends: a body's point or a world point"""
+        ib = np.array([-1 if b is None else b for b in ends], dtype=int)
+        world = np.asarray(anchors, float).reshape(-1, 3)
+        return xp.where((ib >= 0)[:, None], moved(np.maximum(ib, 0)), world)
+    springs, anchored = scene.springs, scene.anchored_springs
+    rest = np.array([sp.rest_length for sp in springs] + [sp.rest_length for sp in anchored])
+    groups = [sp.group for sp in springs] + [sp.group for sp in anchored]
+    parts = []
+    if springs:
+        pa = x[np.array([sp.a for sp in springs], dtype=int)]
+        pb = far([sp.b for sp in springs],
+                 [sp.anchor if sp.b is None else (0.0, 0.0, 0.0) for sp in springs],
+                 lambda i: x[i])
+        parts.append(xp.linalg.norm(pa - pb, axis=1))
+    if anchored:
         if rot is None:
-            return xp.asarray(False)
+            return None, rest, groups
+        ia = np.array([sp.a for sp in anchored], dtype=int)
+        local_a = np.array([sp.anchor_a for sp in anchored], float)
+        local_b = np.array([sp.anchor_b for sp in anchored], float)
+        pa = x[ia] + xp.einsum("nij,nj->ni", rot[ia], local_a)
+        pb = far([sp.b for sp in anchored], local_b,
+                 lambda i: x[i] + xp.einsum("nij,nj->ni", rot[i], local_b))
+        parts.append(xp.linalg.norm(pa - pb, axis=1))
+    if not parts:
+        return xp.zeros(0), rest, groups
+    return xp.concatenate(parts) - rest, rest, groups
 
-        def end(i, point):              # an anchor in body i's frame, or a world point
-            point = np.asarray(point, float)
-            return point if i is None else x[i] + rot[i] @ point
-        pairs += [(end(sp.a, sp.anchor_a), end(sp.b, sp.anchor_b), sp.rest_length)
-                  for sp in scene.anchored_springs]
-    ok = xp.asarray(True)
-    for pa, pb, rest in pairs:
-        ok = ok & (xp.abs(xp.linalg.norm(pa - pb) - rest) <= REST_TOLERANCE * max(rest, 1e-3))
-    return ok
+
+def _spring_energy(scene, x, rot, xp=np, spring_k=None):
+    """``(ok, energy)``: the springs' stored energy ``k x^2 / 2`` (J) at the start, with the
+    groups' stiffness ``spring_k`` (``{group: k}`` N/m); without it, whether every spring
+    starts at its rest length (within :data:`REST_TOLERANCE`), which stores none."""
+    if not (scene.springs or scene.anchored_springs):
+        return xp.asarray(True), 0.0
+    stretch, rest, groups = _spring_stretches(scene, x, rot, xp)
+    if stretch is None:
+        return xp.asarray(False), 0.0
+    if spring_k is not None:
+        names = sorted(set(groups))
+        table = xp.stack([xp.asarray(spring_k[g], stretch.dtype) for g in names])
+        k = table[np.array([names.index(g) for g in groups], dtype=int)]
+        return xp.all(table >= 0.0), 0.5 * xp.sum(k * stretch * stretch)
+    return xp.all(xp.abs(stretch) <= REST_TOLERANCE * np.maximum(rest, 1e-3)), 0.0
 
 
 def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
                  orientation=None, angular_velocity=None, inertia=None,
-                 offsets=None) -> float | None:
+                 offsets=None, spring_k=None) -> float | None:
     """Kinetic (rotation included) and potential energy (J) of a concrete start state
     (``position``, ``velocity`` (n, 3)), potential counted as the module docstring says;
     None when a colliding body (``collide`` (n,) bool, fixed per simulator) starts in contact
     (with a plane: a box by its corners, other bodies by their ``radius``; with a fixed sphere
-    or another colliding body: by ``radius``, a box's bounding sphere), a spring starts
-    stretched or compressed, or a value is not finite. Rotating scenes also give
+    or another colliding body: by ``radius``, a box's bounding sphere), a value is not
+    finite, or, without ``spring_k`` (``{spring group: k}`` N/m, as ``params.springs``
+    gives them), a spring starts stretched or compressed (with it, the springs' stored
+    energy counts). Rotating scenes also give
     ``orientation`` (n, 4) (w, x, y, z), ``angular_velocity`` (n, 3) world frame, rad/s, and
     ``inertia`` (n, 3) body-frame principal moments, kg m^2 (0 for bodies that do not
     rotate). ``offsets``: the planes' offsets (m, one per plane; default the scene's), as a
@@ -109,7 +143,7 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
     :func:`energy_bound` is the same, traceable."""
     e = float(energy_bound(scene, mass, radius, pinned, collide, position, velocity,
                            orientation=orientation, angular_velocity=angular_velocity,
-                           inertia=inertia, offsets=offsets, xp=np))
+                           inertia=inertia, offsets=offsets, spring_k=spring_k, xp=np))
     return e if np.isfinite(e) else None
 
 
@@ -124,10 +158,12 @@ def _scatter(xp, a, idx, vals):
 
 def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
                  orientation=None, angular_velocity=None, inertia=None, offsets=None,
-                 xp=np):
+                 spring_k=None, xp=np):
     """:func:`start_energy` as an array, ``inf`` where it is None: with ``xp=jax.numpy`` the
     start state and the offsets may be traced (a rollout's traced flag counts a traced start
     state, or a named plane's traced offset, this way: :meth:`diffpen.Simulator.rollout`)."""
+    if np.count_nonzero(np.asarray(collide, bool)) > 512:   # the pair check's cost: the radius
+        return xp.asarray(np.inf)
     fl = xp.float64 if xp is np else None
     x = xp.asarray(position, fl)
     v = xp.asarray(velocity, x.dtype)
@@ -142,7 +178,8 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         # imported here: diffpen.rigid imports the terms, which import this package
         from ..rigid import quat_to_matrix
         rot = quat_to_matrix(q / xp.linalg.norm(q, axis=1, keepdims=True), xp=xp)
-    ok = ok & _springs_at_rest(scene, x, rot, xp)
+    ok_springs, energy = _spring_energy(scene, x, rot, xp, spring_k)
+    ok = ok & ok_springs
     if offsets is None:
         offsets = [float(p.offset) for p in scene.planes]
     collide = np.asarray(collide, bool)
@@ -163,14 +200,12 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         dist = xp.linalg.norm(x - np.asarray(fs.center, float), axis=1)
         ok = ok & ~xp.any(collide & (dist <= r + float(fs.radius)))
     idx = np.flatnonzero(collide)
-    if idx.size > 512:                     # the pair check's cost: keep the radius
-        return xp.asarray(np.inf)
     if idx.size > 1:
         xc, rc = x[idx], r[idx]
         dist = xp.sqrt(xp.sum((xc[:, None, :] - xc[None, :, :]) ** 2, axis=-1))
         overlap = (dist <= rc[:, None] + rc[None, :]) & ~np.eye(idx.size, dtype=bool)
         ok = ok & ~xp.any(overlap)
-    energy = 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
+    energy = energy + 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
     if rot is not None:
         spin = xp.einsum("nji,nj->ni", rot, w)                          # body frame
         moments = np.where(np.asarray(pinned, bool)[:, None], 0.0, np.asarray(inertia, float))
