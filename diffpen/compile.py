@@ -52,6 +52,7 @@ from .scene import Scene
 from .params import _is_concrete
 from .state import Params, State, Trajectory
 from .terms import CompileContext, Term
+from .terms.plastic import AUX_KEY as _PLASTIC_REST
 
 __all__ = ["compile", "Simulator", "Term", "CompileContext", "BUILTIN_TERMS"]
 
@@ -436,6 +437,7 @@ class Simulator:
         return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
                                    offsets=offsets, spring_k=self._spring_k(params),
+                                   plastic_rest=state.aux.get(_PLASTIC_REST),
                                    **self._spin(state))
 
     def _traced_start(self, state, params) -> bool:
@@ -447,6 +449,7 @@ class Simulator:
         offsets = self._plane_offsets(params) or []
         ks = list((self._spring_k(params) or {}).values())
         return not all(map(_is_concrete, (state.position, state.velocity, *offsets, *ks,
+                                          state.aux.get(_PLASTIC_REST),
                                           *self._spin(state).values())))
 
     def _spin(self, state) -> dict:
@@ -473,7 +476,8 @@ class Simulator:
         return _depth.energy_bound(self.scene, self.mass, self.radius, self.pinned,
                                    self._collide, state.position, state.velocity,
                                    offsets=self._plane_offsets(params),
-                                   spring_k=self._spring_k(params), xp=jnp,
+                                   spring_k=self._spring_k(params),
+                                   plastic_rest=state.aux.get(_PLASTIC_REST), xp=jnp,
                                    **self._spin(state))
 
     @staticmethod

@@ -719,9 +719,11 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     back no more than it stored, so where every free body collides, the start energy
     (the springs' own ``k x^2 / 2`` included, their k from the params) bounds the depth as
     for one ball: the drop runs with the traced flag clear and sinks less than counted; a
-    spring stretched by 1 cm adds its 0.025 J, one stretched by 1 m is refused. Without
-    params a stretched spring keeps the radius, and so do a plastic spring (its rest length
-    moves) and a free body no plane holds up (it could pull the others in)."""
+    spring stretched by 1 cm adds its 0.025 J, one stretched by 1 m is refused; a plastic
+    spring counts what it stores against its current rest length (its rest length only
+    follows its compressed length, which lowers what it stores). Without params a stretched
+    spring keeps the radius, and so does a free body no plane holds up (it could pull the
+    others in)."""
     from diffpen.stability.depth import energy_depth
     sim = dp.compile(_hertz_rope(), 1e-3, law="hunt_crossley", exponent=1.5)
     assert sim.analysis.depth_exponent == 1.5
@@ -742,10 +744,19 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     far = sim.state_from(body=[0], position=[[-1.0, 0.0, 1.0]])   # 1 m: 250 J more
     with pytest.raises(dp.StabilityError):
         sim.rollout(p, 10, state=far)
-    plastic = _hertz_rope()
-    plastic.add_plastic_spring(0, 2, k=100.0, yield_strain=0.1)
-    assert dp.compile(plastic, 1e-3, law="hunt_crossley",
-                      exponent=1.5).analysis.depth_exponent is None
+    # a plastic spring counts what it stores against its current rest length (State.aux): a
+    # rest length shortened to 0.5 m stores 100 N/m x (0.1 m)^2 / 2 at the start's 0.6 m
+    scene = _hertz_rope()
+    scene.add_plastic_spring(0, 2, k=100.0, yield_strain=0.1)
+    plastic = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    assert plastic.analysis.depth_exponent == 1.5
+    q = plastic.params(k=3e5, c=3e4)
+    start = plastic.init_state()
+    assert plastic.start_energy(start, q) == pytest.approx(3 * 9.81, rel=1e-12)
+    shortened = start._replace(aux={**start.aux, "plastic_rest": jnp.array([0.5])})
+    assert plastic.start_energy(shortened, q) == pytest.approx(3 * 9.81 + 0.5, rel=1e-12)
+    assert float(jax.jit(lambda st: plastic._traced_energy(q, st))(shortened)) == (
+        pytest.approx(3 * 9.81 + 0.5, rel=1e-12))
     loose = dp.compile(_hertz_rope(collide=False), 1e-3, law="hunt_crossley", exponent=1.5)
     assert loose.analysis.depth_exponent is None
 

@@ -8,21 +8,21 @@ k 1e6 N/m^1.5) sinks 1.4 cm, not 10, and its stiffness there is 2.7x smaller: th
 refuses a step of 1 ms that this ball takes safely.
 
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
-contacts, springs, friction and drag can give energy back (no custom terms, no plastic
-springs, whose rest lengths move), gravity's potential is bounded below (no gravity, or every
-plane a horizontal floor, a named one at the offset its params give; with springs, every free
-body collides, so that none can sink below the floor and pull another body in through a
-spring), the springs' stored energy ``k x^2 / 2`` at the start is counted (with their
-groups' stiffness from the params; without them, every spring and anchored spring must start
-at its rest length, within :data:`REST_TOLERANCE`), and no body starts in contact (a box:
-none of its corners on or below a plane). A damped linear spring stores ``k x^2 / 2 >= 0``
-and gives back no more than it stored, so then no contact ever stores more than the start's
-kinetic energy (rotation included), potential energy and springs' energy ``E0``, and a
-contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted
-from where a body's centre could get at the deepest penetration counted (its reference size
-``d_ref`` below its support): for a sphere that is the floor (its support is its radius, its
-reference size too), for a box ``d_ref - min(half extents)`` below it (a box face down and
-sunk by its half-diagonal). The bound takes twice ``E0``
+contacts, springs, friction and drag can give energy back (no custom terms; a plastic
+spring's rest length only follows its compressed length, which lowers what it stores),
+gravity's potential is bounded below (no gravity, or every plane a horizontal floor, a named
+one at the offset its params give; with springs, every free body collides, so that none can
+sink below the floor and pull another body in through a spring), the springs' stored energy
+``k x^2 / 2`` at the start is counted (with their groups' stiffness from the params; without
+them, every spring must start at its rest length, within :data:`REST_TOLERANCE`), and no
+body starts in contact (a box: none of its corners on or below a plane). A damped linear
+spring stores ``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact
+ever stores more than the start's kinetic energy (rotation included), potential energy and
+springs' energy ``E0``, and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
+E0``. The potential is counted from where a body's centre could get at the deepest
+penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
+the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
+extents)`` below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
 (:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several %
 per contact event by the safe step), and never more than the radius. Where any condition fails
 the radius stays.
@@ -54,13 +54,11 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
         return False                    # the stiffness does not depend on depth
     if not builtin_terms:
         return False
-    if scene.plastic_springs:
-        return False                    # their rest lengths move (diffpen.plastic)
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn == 0.0:
         return True
-    if (scene.springs or scene.anchored_springs) and not all(
+    if (scene.springs or scene.anchored_springs or scene.plastic_springs) and not all(
             b.collide or b.pinned for b in scene.bodies):
         return False                    # a body no plane holds up could pull one in deeper
     up = -g / gn
@@ -73,19 +71,24 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
 REST_TOLERANCE = 1e-6
 
 
-def _spring_stretches(scene, x, rot, xp=np):
-    """``(stretch, rest, groups)``: every spring's and anchored spring's length less its rest
-    length (m; an array), the rest lengths (m) and the group names, ``x`` (n, 3) the centres,
-    ``rot`` (n, 3, 3) the rotations (None: an anchored spring cannot be measured: stretch
-    None)."""
+def _spring_stretches(scene, x, rot, xp=np, plastic_rest=None):
+    """``(stretch, rest, groups)``: every spring's, anchored spring's and plastic spring's
+    length less its rest length (m; an array), the rest lengths (m) and the group names, ``x``
+    (n, 3) the centres, ``rot`` (n, 3, 3) the rotations (None: an anchored spring cannot be
+    measured: stretch None), ``plastic_rest`` the plastic springs' current rest lengths
+    (``State.aux["plastic_rest"]``; None: their initial ones)."""
     def far(ends, anchors, moved):
         """the second ends: a body's point or a world point"""
         ib = np.array([-1 if b is None else b for b in ends], dtype=int)
         world = np.asarray(anchors, float).reshape(-1, 3)
         return xp.where((ib >= 0)[:, None], moved(np.maximum(ib, 0)), world)
-    springs, anchored = scene.springs, scene.anchored_springs
-    rest = np.array([sp.rest_length for sp in springs] + [sp.rest_length for sp in anchored])
-    groups = [sp.group for sp in springs] + [sp.group for sp in anchored]
+    springs, anchored, plastic = scene.springs, scene.anchored_springs, scene.plastic_springs
+    rest = np.array([sp.rest_length for sp in springs] + [sp.rest_length for sp in anchored]
+                    + [sp.rest_length for sp in plastic])
+    if plastic and plastic_rest is not None:
+        rest = xp.concatenate([rest[:len(rest) - len(plastic)],
+                               xp.asarray(plastic_rest, x.dtype).reshape(-1)])
+    groups = [sp.group for sp in springs + anchored + plastic]
     parts = []
     if springs:
         pa = x[np.array([sp.a for sp in springs], dtype=int)]
@@ -103,18 +106,21 @@ def _spring_stretches(scene, x, rot, xp=np):
         pb = far([sp.b for sp in anchored], local_b,
                  lambda i: x[i] + xp.einsum("nij,nj->ni", rot[i], local_b))
         parts.append(xp.linalg.norm(pa - pb, axis=1))
+    if plastic:
+        ends = np.array([(sp.a, sp.b) for sp in plastic], dtype=int)
+        parts.append(xp.linalg.norm(x[ends[:, 0]] - x[ends[:, 1]], axis=1))
     if not parts:
         return xp.zeros(0), rest, groups
     return xp.concatenate(parts) - rest, rest, groups
 
 
-def _spring_energy(scene, x, rot, xp=np, spring_k=None):
+def _spring_energy(scene, x, rot, xp=np, spring_k=None, plastic_rest=None):
     """``(ok, energy)``: the springs' stored energy ``k x^2 / 2`` (J) at the start, with the
     groups' stiffness ``spring_k`` (``{group: k}`` N/m); without it, whether every spring
     starts at its rest length (within :data:`REST_TOLERANCE`), which stores none."""
-    if not (scene.springs or scene.anchored_springs):
+    if not (scene.springs or scene.anchored_springs or scene.plastic_springs):
         return xp.asarray(True), 0.0
-    stretch, rest, groups = _spring_stretches(scene, x, rot, xp)
+    stretch, rest, groups = _spring_stretches(scene, x, rot, xp, plastic_rest)
     if stretch is None:
         return xp.asarray(False), 0.0
     if spring_k is not None:
@@ -122,12 +128,12 @@ def _spring_energy(scene, x, rot, xp=np, spring_k=None):
         table = xp.stack([xp.asarray(spring_k[g], stretch.dtype) for g in names])
         k = table[np.array([names.index(g) for g in groups], dtype=int)]
         return xp.all(table >= 0.0), 0.5 * xp.sum(k * stretch * stretch)
-    return xp.all(xp.abs(stretch) <= REST_TOLERANCE * np.maximum(rest, 1e-3)), 0.0
+    return xp.all(xp.abs(stretch) <= REST_TOLERANCE * xp.maximum(rest, 1e-3)), 0.0
 
 
 def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
                  orientation=None, angular_velocity=None, inertia=None,
-                 offsets=None, spring_k=None) -> float | None:
+                 offsets=None, spring_k=None, plastic_rest=None) -> float | None:
     """Kinetic (rotation included) and potential energy (J) of a concrete start state
     (``position``, ``velocity`` (n, 3)), potential counted as the module docstring says;
     None when a colliding body (``collide`` (n,) bool, fixed per simulator) starts in contact
@@ -135,7 +141,8 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
     or another colliding body: by ``radius``, a box's bounding sphere), a value is not
     finite, or, without ``spring_k`` (``{spring group: k}`` N/m, as ``params.springs``
     gives them), a spring starts stretched or compressed (with it, the springs' stored
-    energy counts). Rotating scenes also give
+    energy counts); ``plastic_rest``: the plastic springs' rest lengths (m, the state's
+    ``aux["plastic_rest"]``; default their initial ones). Rotating scenes also give
     ``orientation`` (n, 4) (w, x, y, z), ``angular_velocity`` (n, 3) world frame, rad/s, and
     ``inertia`` (n, 3) body-frame principal moments, kg m^2 (0 for bodies that do not
     rotate). ``offsets``: the planes' offsets (m, one per plane; default the scene's), as a
@@ -143,7 +150,8 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
     :func:`energy_bound` is the same, traceable."""
     e = float(energy_bound(scene, mass, radius, pinned, collide, position, velocity,
                            orientation=orientation, angular_velocity=angular_velocity,
-                           inertia=inertia, offsets=offsets, spring_k=spring_k, xp=np))
+                           inertia=inertia, offsets=offsets, spring_k=spring_k,
+                           plastic_rest=plastic_rest, xp=np))
     return e if np.isfinite(e) else None
 
 
@@ -158,7 +166,7 @@ def _scatter(xp, a, idx, vals):
 
 def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
                  orientation=None, angular_velocity=None, inertia=None, offsets=None,
-                 spring_k=None, xp=np):
+                 spring_k=None, plastic_rest=None, xp=np):
     """:func:`start_energy` as an array, ``inf`` where it is None: with ``xp=jax.numpy`` the
     start state and the offsets may be traced (a rollout's traced flag counts a traced start
     state, or a named plane's traced offset, this way: :meth:`diffpen.Simulator.rollout`)."""
@@ -178,7 +186,7 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         # imported here: diffpen.rigid imports the terms, which import this package
         from ..rigid import quat_to_matrix
         rot = quat_to_matrix(q / xp.linalg.norm(q, axis=1, keepdims=True), xp=xp)
-    ok_springs, energy = _spring_energy(scene, x, rot, xp, spring_k)
+    ok_springs, energy = _spring_energy(scene, x, rot, xp, spring_k, plastic_rest)
     ok = ok & ok_springs
     if offsets is None:
         offsets = [float(p.offset) for p in scene.planes]
