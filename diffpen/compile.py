@@ -423,12 +423,13 @@ class Simulator:
     def start_energy(self, state, params: Params | None = None) -> float | None:
         """The energy (J) with which a rollout from ``state`` bounds the reference depth of a
         contact law that stiffens with depth (:mod:`diffpen.stability.depth`: kinetic,
-        rotation included, and potential), as the up-front check counts it; None where the
-        radii bound it instead: the law's stiffness does not grow with depth, the scene does
-        not qualify, the state is traced (under jit or vmap), a body starts in contact, or a
-        named plane's offset is not given by concrete ``params`` (its
-        ``params.extra["plane_offset"]``). The traced flag of a rollout counts the same
-        energy from traced values too (:meth:`_traced_energy`)."""
+        rotation included, potential, and the springs' stored energy with their stiffness
+        from ``params``), as the up-front check counts it; None where the radii bound it
+        instead: the law's stiffness does not grow with depth, the scene does not qualify, the
+        state is traced (under jit or vmap), a body starts in contact, a named plane's offset
+        is not given by concrete ``params`` (its ``params.extra["plane_offset"]``), or,
+        without ``params``, a spring starts stretched or compressed. The traced flag of a
+        rollout counts the same energy from traced values too (:meth:`_traced_energy`)."""
         if self.analysis.depth_exponent is None:
             return None
         offsets = self._plane_offsets(params)
