@@ -42,6 +42,7 @@ from . import motion as _motion
 from . import params as _params
 from . import rollout as _rollout
 from . import stability as _stability
+from . import start_energy as _start_energy
 from .stability import depth as _depth
 from . import start_state as _start_state
 from . import stepping as _stepping
@@ -52,7 +53,6 @@ from .scene import Scene
 from .params import _is_concrete
 from .state import Params, State, Trajectory
 from .terms import CompileContext, Term
-from .terms.plastic import AUX_KEY as _PLASTIC_REST
 
 __all__ = ["compile", "Simulator", "Term", "CompileContext", "BUILTIN_TERMS"]
 
@@ -390,7 +390,7 @@ class Simulator:
         # (energy: the start energy the up-front gate counted, diffpen.stability.depth)
         if energy is None and self.analysis.depth_exponent is not None:
             # the start state or a named plane's offset is traced: the same energy, traced
-            energy = self._traced_energy(params, state)
+            energy = _start_energy.traced(self, params, state)
         flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps, energy=energy)
         # per-contact step constants of the law (ContactLaw.step_factors), once, outside
         # the loop (a rematerialised step would recompute them and their derivatives)
@@ -429,62 +429,8 @@ class Simulator:
         state is traced (under jit or vmap), a body starts in contact, a named plane's offset
         is not given by concrete ``params`` (its ``params.extra["plane_offset"]``), or,
         without ``params``, a spring starts stretched or compressed. The traced flag of a
-        rollout counts the same energy from traced values too (:meth:`_traced_energy`)."""
-        if self.analysis.depth_exponent is None:
-            return None
-        offsets = self._plane_offsets(params)
-        if offsets is None or self._traced_start(state, params):
-            return None
-        return _depth.start_energy(self.scene, self.mass, self.radius, self.pinned,
-                                   self._collide, state.position, state.velocity,
-                                   offsets=offsets, spring_k=self._spring_k(params),
-                                   plastic_rest=state.aux.get(_PLASTIC_REST),
-                                   **self._spin(state))
-
-    def _traced_start(self, state, params) -> bool:
-        """Whether the start energy of a contact that stiffens with depth is left to the
-        traced flag: the start state or a named plane's offset is traced, in a scene whose
-        energy could bound the depth (:meth:`start_energy`)."""
-        if self.analysis.depth_exponent is None:
-            return False
-        offsets = self._plane_offsets(params) or []
-        ks = list((self._spring_k(params) or {}).values())
-        return not all(map(_is_concrete, (state.position, state.velocity, *offsets, *ks,
-                                          state.aux.get(_PLASTIC_REST),
-                                          *self._spin(state).values())))
-
-    def _spin(self, state) -> dict:
-        if self._rigid is None:
-            return {}
-        return dict(orientation=state.orientation, angular_velocity=state.angular_velocity,
-                    inertia=self._moments)
-
-    def _plane_offsets(self, params) -> list | None:
-        """The planes' offsets (m), a named plane's from ``params`` (None: a named plane and
-        no params)."""
-        named = [p.name for p in self.scene.planes if p.name is not None]
-        if not named:
-            return [float(p.offset) for p in self.scene.planes]
-        if params is None:
-            return None
-        given = params.extra.get("plane_offset", {})
-        return [given[p.name] if p.name is not None else float(p.offset)
-                for p in self.scene.planes]
-
-    def _traced_energy(self, params, state):
-        """:meth:`start_energy` from traced values (a start state or a named plane's offset
-        under jit, vmap or grad), for the traced flag: inf where the radii bound the depth."""
-        return _depth.energy_bound(self.scene, self.mass, self.radius, self.pinned,
-                                   self._collide, state.position, state.velocity,
-                                   offsets=self._plane_offsets(params),
-                                   spring_k=self._spring_k(params),
-                                   plastic_rest=state.aux.get(_PLASTIC_REST), xp=jnp,
-                                   **self._spin(state))
-
-    @staticmethod
-    def _spring_k(params) -> dict | None:
-        """The spring groups' stiffness (N/m) in ``params`` (None without params)."""
-        return None if params is None else {g: sp.k for g, sp in params.springs.items()}
+        rollout counts the same energy from traced values too (:func:`diffpen.start_energy.traced`)."""
+        return _start_energy.host(self, state, params)
 
     def rollout(self, params: Params, steps: int, state: State | None = None, *,
                 save_every: int | None = None, check_finite: bool = True,
@@ -541,15 +487,8 @@ class Simulator:
                                 substeps=None if substeps is None else int(substeps),
                                 cache=self.gate_cache, energy=energy)  # host-side only
         except StabilityError as exc:
-            if energy is None and self._traced_start(state, params):
-                raise StabilityError(
-                    f"{exc} The start state (or a named plane's offset) is traced under jit "
-                    "or vmap, so this check counted the contact at the bodies' radius, not "
-                    "at the depth the start energy allows (diffpen.stability.depth): give a "
-                    "concrete start state, or pass check_stability=False and read the "
-                    "rollout's traced flag (traj.aux['unstable']), which counts each traced "
-                    "start's own energy.", stable_dt=exc.stable_dt,
-                    substeps=exc.substeps) from None
+            if energy is None and _start_energy.left_to_flag(self, state, params):
+                raise _start_energy.with_hint(exc) from None
             raise
         if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
             # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
