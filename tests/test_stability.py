@@ -761,6 +761,64 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     assert loose.analysis.depth_exponent is None
 
 
+def test_a_ramp_over_a_floor_is_bounded_at_the_depth_its_start_energy_reaches():
+    """Regression: a plane that is not a horizontal floor kept the radius as Hunt-Crossley's
+    reference depth, so the Hertz ball (1 kg, k 1e6 N/m^1.5, c 3e4) dropped from 1 m onto a
+    20 deg ramp over the floor was refused at dt 0.7 ms (w h 0.67 and c h / m 1.29 at its
+    10 cm radius). Every colliding body stays above every plane, so one horizontal floor
+    bounds gravity's potential whatever the other planes' tilt: the start energy counts
+    (9.81 J, host and traced), the drop runs with the traced flag clear, and the ball, which
+    hits the ramp, rolls down it and lands on the floor, sinks into either less than
+    counted. A scene of tilted planes only keeps the radius."""
+    from diffpen.stability.depth import energy_depth
+    tilt = np.deg2rad(20.0)
+    normal = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    scene.add_plane()
+    scene.add_plane(normal=tuple(normal), offset=0.3)
+    sim = dp.compile(scene, 7e-4, law="hunt_crossley", exponent=1.5)
+    assert sim.analysis.depth_exponent == 1.5
+    p = sim.params(k=1e6, c=3e4)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    energy = sim.start_energy(sim.init_state(), p)
+    assert energy == pytest.approx(9.81, rel=1e-12)
+    assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(sim.init_state())) == (
+        pytest.approx(9.81, rel=1e-12))
+    traj = sim.rollout(p, 4000, observe=lambda s: s.position[0])
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+    x = np.asarray(traj.observed)
+    floor, ramp = 0.1 - x[:, 2], 0.1 - (x @ normal - 0.3)
+    assert x[-1, 0] > 1.0 and floor.max() > 0.0 and ramp.max() > 0.0   # ramp, then floor
+    assert max(floor.max(), ramp.max()) < float(energy_depth(1.5, 1e6, energy)) < 0.1
+    tilted = dp.Scene()
+    tilted.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    tilted.add_plane(normal=tuple(normal), offset=0.3)
+    assert dp.compile(tilted, 7e-4, law="hunt_crossley",
+                      exponent=1.5).analysis.depth_exponent is None
+
+
+def test_a_body_that_collides_with_nothing_leaves_the_start_energy_alone():
+    """Regression: the start energy counted every free body, also one that collides with
+    nothing (and, in a scene that qualifies, hangs on no spring), whose energy never reaches
+    a contact: a 1 kg particle 5 m up loosened the Hertz ball's bound (58.9 J instead of
+    9.81), and one 1000 m below the floor made it negative (-9800 J), so the stability
+    analysis stopped on a misleading error about negative stiffness; a particle 0.5 m below
+    the floor would have halved the energy counted, and the safe step with it. Now only bodies
+    that collide count: 9.81 J wherever the particle is, host and traced."""
+    for z in (5.0, -0.5, -1000.0):
+        scene = dp.Scene()
+        scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+        scene.add_particle(1.0, (3.0, 0.0, z), collide=False)
+        scene.add_plane()
+        sim = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+        p = sim.params(k=1e6, c=3e4)
+        assert sim.start_energy(sim.init_state(), p) == pytest.approx(9.81, rel=1e-12)
+        assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(
+            sim.init_state())) == pytest.approx(9.81, rel=1e-12)
+        assert sim.stability(p).safe
+
+
 def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: rotating bodies kept the radius as Hunt-Crossley's reference depth (for the
     cube, its 9.1 cm half-diagonal). The start energy now bounds their depth too, with the

@@ -10,15 +10,17 @@ refuses a step of 1 ms that this ball takes safely.
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
 contacts, springs, friction and drag can give energy back (no custom terms; a plastic
 spring's rest length only follows its compressed length, which lowers what it stores),
-gravity's potential is bounded below (no gravity, or every plane a horizontal floor, a named
-one at the offset its params give; with springs, every free body collides, so that none can
+gravity's potential is bounded below (no gravity, or at least one plane a horizontal floor, a
+named one at the offset its params give; the other planes may tilt any way: every colliding
+body stays above every plane; with springs, every free body collides, so that none can
 sink below the floor and pull another body in through a spring), the springs' stored energy
 ``k x^2 / 2`` at the start is counted (with their groups' stiffness from the params; without
 them, every spring must start at its rest length, within :data:`REST_TOLERANCE`), and no
 body starts in contact (a box: none of its corners on or below a plane). A damped linear
 spring stores ``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact
 ever stores more than the start's kinetic energy (rotation included), potential energy and
-springs' energy ``E0``, and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
+springs' energy ``E0`` of the bodies that collide (a body that collides with nothing keeps
+its energy to itself: it could only reach a contact through a spring), and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
 E0``. The potential is counted from where a body's centre could get at the deepest
 penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
 the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
@@ -61,9 +63,16 @@ def qualifies(scene, law, builtin_terms: bool) -> bool:
     if (scene.springs or scene.anchored_springs or scene.plastic_springs) and not all(
             b.collide or b.pinned for b in scene.bodies):
         return False                    # a body no plane holds up could pull one in deeper
-    up = -g / gn
-    return bool(scene.planes) and all(
-        float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12 for p in scene.planes)
+    return bool(_floors(scene))
+
+
+def _floors(scene) -> list[int]:
+    """The planes that are horizontal floors (normal straight up against gravity): every
+    colliding body stays above each of them, so the lowest bounds gravity's potential."""
+    g = np.asarray(scene.gravity, float)
+    up = -g / float(np.linalg.norm(g))
+    return [i for i, p in enumerate(scene.planes)
+            if float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12]
 
 
 #: how far (relative to its rest length, floored at 1 mm) a spring may be stretched or
@@ -175,7 +184,11 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     fl = xp.float64 if xp is np else None
     x = xp.asarray(position, fl)
     v = xp.asarray(velocity, x.dtype)
-    m = np.where(np.asarray(pinned, bool), 0.0, np.asarray(mass, float))
+    # only bodies that can touch a collider count: one that collides with nothing (and,
+    # in scenes that qualify, is tied to no spring) keeps its own energy to itself, and
+    # one below the floor would count a negative potential
+    m = np.where(np.asarray(pinned, bool) | ~np.asarray(collide, bool), 0.0,
+                 np.asarray(mass, float))
     r = np.asarray(radius, float)
     ok = xp.all(xp.isfinite(x)) & xp.all(xp.isfinite(v))
     rot = None
@@ -216,13 +229,17 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     energy = energy + 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
     if rot is not None:
         spin = xp.einsum("nji,nj->ni", rot, w)                          # body frame
-        moments = np.where(np.asarray(pinned, bool)[:, None], 0.0, np.asarray(inertia, float))
+        moments = np.where((np.asarray(pinned, bool) | ~np.asarray(collide, bool))[:, None],
+                           0.0, np.asarray(inertia, float))
         energy = energy + 0.5 * xp.sum(moments * spin * spin)
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn > 0.0:
-        floor = offsets[0]
-        for off in offsets[1:]:
+        floors = [offsets[i] for i in _floors(scene)]
+        if not floors:                  # (a scene that does not qualify: the radius)
+            return xp.asarray(np.inf)
+        floor = floors[0]
+        for off in floors[1:]:
             floor = xp.minimum(floor, off)
         # a box can sink its centre below the floor by its half-diagonal less its support
         sink = np.zeros(len(r))
