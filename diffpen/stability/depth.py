@@ -20,11 +20,12 @@ body starts in contact (a box: none of its corners on or below a plane). A dampe
 spring stores ``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact
 ever stores more than the start's kinetic energy (rotation included), potential energy and
 springs' energy ``E0`` of the bodies that collide (a body that collides with nothing keeps
-its energy to itself: it could only reach a contact through a spring), and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) =
-E0``. The potential is counted from where a body's centre could get at the deepest
-penetration counted (its reference size ``d_ref`` below its support): for a sphere that is
-the floor (its support is its radius, its reference size too), for a box ``d_ref - min(half
-extents)`` below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
+its energy to itself: it could only reach a contact through a spring), and a contact of
+stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where
+a body's centre could get at the deepest penetration counted (its reference size ``d_ref``
+below its support): for a sphere that is the floor (its support is its radius, its
+reference size too), for a box ``d_ref - min(half extents)`` below it (a box face down and
+sunk by its half-diagonal). The bound takes twice ``E0``
 (:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several %
 per contact event by the safe step), and never more than the radius. Where any condition fails
 the radius stays.
@@ -187,8 +188,8 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     # only bodies that can touch a collider count: one that collides with nothing (and,
     # in scenes that qualify, is tied to no spring) keeps its own energy to itself, and
     # one below the floor would count a negative potential
-    m = np.where(np.asarray(pinned, bool) | ~np.asarray(collide, bool), 0.0,
-                 np.asarray(mass, float))
+    idle = np.asarray(pinned, bool) | ~np.asarray(collide, bool)
+    m = np.where(idle, 0.0, np.asarray(mass, float))
     r = np.asarray(radius, float)
     ok = xp.all(xp.isfinite(x)) & xp.all(xp.isfinite(v))
     rot = None
@@ -229,8 +230,7 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     energy = energy + 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
     if rot is not None:
         spin = xp.einsum("nji,nj->ni", rot, w)                          # body frame
-        moments = np.where((np.asarray(pinned, bool) | ~np.asarray(collide, bool))[:, None],
-                           0.0, np.asarray(inertia, float))
+        moments = np.where(idle[:, None], 0.0, np.asarray(inertia, float))
         energy = energy + 0.5 * xp.sum(moments * spin * spin)
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
