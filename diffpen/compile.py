@@ -100,6 +100,9 @@ class Simulator:
         _checks.check_pairs(scene, broadphase)
         builders = _assembly.builders(terms)
         builtin_terms = all(b in _terms.BUILTIN for b in builders)
+        # terms that give no energy back beyond the start's (diffpen.stability.depth)
+        passive_terms = all(b in _terms.BUILTIN or getattr(b, "passive", False) is True
+                            for b in builders)
         dt, method, contact_law, width = _checks.compile_arguments(
             scene, dt, integrator, law, exponent, smoothing, unroll, substeps,
             builtin_terms=builtin_terms)
@@ -181,7 +184,7 @@ class Simulator:
             gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
             contact_wh=contact_law.safe_wh or _stability.SAFE_WH,
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
-                scene, contact_law, builtin_terms) else None))
+                scene, contact_law, passive_terms) else None))
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())

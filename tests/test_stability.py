@@ -819,6 +819,33 @@ def test_a_body_that_collides_with_nothing_leaves_the_start_energy_alone():
         assert sim.stability(p).safe
 
 
+def test_a_custom_term_declared_passive_keeps_the_start_energy_bound():
+    """Any custom term kept the radius as Hunt-Crossley's reference depth (it could give
+    energy back). A term declared passive (``TermBuilder(..., passive=True)``: an air drag
+    ``-0.05 |v| v`` here) lets the Hertz ball (k 1e6 N/m^1.5, c 3e4, from 1 m) count its
+    start energy as without it: the drop runs at dt 1 ms with the traced flag clear. The
+    same term undeclared keeps the radius, and the step is refused."""
+    def air_drag(ctx):
+        def force(params, state):
+            v = state.velocity
+            return -0.05 * jnp.sqrt(jnp.sum(v * v, axis=1, keepdims=True) + 1e-12) * v, None
+        return dp.terms.Term("air_drag", force)
+    for term, exponent in ((dp.terms.TermBuilder(air_drag, passive=True), 1.5),
+                           (dp.terms.with_bound(air_drag, None, passive=True), 1.5),
+                           (air_drag, None), (dp.terms.TermBuilder(air_drag), None)):
+        sim = dp.compile(_hertz_ball(), 1e-3, law="hunt_crossley", exponent=1.5,
+                         terms=(*dp.terms.BUILTIN, term))
+        assert sim.analysis.depth_exponent == exponent
+        p = sim.params(k=1e6, c=3e4)
+        if exponent is None:
+            with pytest.raises(dp.StabilityError, match="past its safe step"):
+                sim.rollout(p, 10)
+            continue
+        traj = sim.rollout(p, 600, save_every=600)
+        assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+        assert float(traj.position[-1, 0, 2]) > 0.3          # it bounced back up
+
+
 def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: rotating bodies kept the radius as Hunt-Crossley's reference depth (for the
     cube, its 9.1 cm half-diagonal). The start energy now bounds their depth too, with the

@@ -8,7 +8,8 @@ k 1e6 N/m^1.5) sinks 1.4 cm, not 10, and its stiffness there is 2.7x smaller: th
 refuses a step of 1 ms that this ball takes safely.
 
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
-contacts, springs, friction and drag can give energy back (no custom terms; a plastic
+contacts, springs, friction and drag can give energy back (no custom terms but those declared
+passive, :class:`diffpen.terms.TermBuilder`; a plastic
 spring's rest length only follows its compressed length, which lowers what it stores),
 gravity's potential is bounded below (no gravity, or at least one plane a horizontal floor, a
 named one at the offset its params give; the other planes may tilt any way: every colliding
@@ -50,12 +51,14 @@ __all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "ener
 ENERGY_MARGIN = 2.0
 
 
-def qualifies(scene, law, builtin_terms: bool) -> bool:
+def qualifies(scene, law, passive_terms: bool) -> bool:
     """Whether ``scene`` compiled with ``law`` (a ``diffpen.laws.ContactLaw``) lets the start
-    energy bound its contacts' depth (module docstring); static, at compile time."""
+    energy bound its contacts' depth (module docstring); static, at compile time.
+    ``passive_terms``: every term of the simulator is built in or declared passive
+    (:class:`diffpen.terms.TermBuilder`)."""
     if float(law.exponent) == 1.0 and float(law.damping_exponent) == 0.0:
         return False                    # the stiffness does not depend on depth
-    if not builtin_terms:
+    if not passive_terms:
         return False
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))

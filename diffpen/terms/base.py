@@ -375,6 +375,13 @@ class TermBuilder(NamedTuple):
       for this scene (``Params.contact`` keys, in a fixed order).
     groups: optional ``groups(ctx) -> names``: the spring groups it reads
       (``Params.springs`` keys).
+    passive: True when the term never gives the bodies energy they did not have at the start
+      (a drag, a damper: forces that only dissipate). A contact law that stiffens with depth
+      may then take its reference depth from the start energy
+      (:mod:`diffpen.stability.depth`); a custom term that is not declared passive keeps
+      each body's radius there. Declaring passive a term that adds energy (a motor, a
+      spring whose stored energy the start does not count) lets the safe step trust depths
+      the bodies can exceed.
 
     ``materials`` and ``groups`` are asked before any term is built (``ctx.material_index``
     and ``ctx.group_index`` are then empty); compile makes the params keys their union over
@@ -385,6 +392,7 @@ class TermBuilder(NamedTuple):
     bound: Callable[[CompileContext], tuple] | None = None
     materials: Callable[[CompileContext], Iterable[str]] | None = None
     groups: Callable[[CompileContext], Iterable[str]] | None = None
+    passive: bool = False
 
     def __call__(self, ctx: CompileContext) -> Term | None:
         term = self.build(ctx)
@@ -396,12 +404,13 @@ class TermBuilder(NamedTuple):
 def with_bound(build: Callable[[CompileContext], Term | None],
                bound: Callable[[CompileContext], tuple] | None, *,
                materials: Callable[[CompileContext], Iterable[str]] | None = None,
-               groups: Callable[[CompileContext], Iterable[str]] | None = None) -> TermBuilder:
+               groups: Callable[[CompileContext], Iterable[str]] | None = None,
+               passive: bool = False) -> TermBuilder:
     """A :class:`TermBuilder`: ``build`` whose Term carries ``bound(ctx)`` (a tuple of
-    :class:`diffpen.stability.Bound`), declaring ``materials(ctx)`` / ``groups(ctx)``: how a
-    term, its stability bound and the params keys it reads are registered together (one
-    line per term)."""
-    return TermBuilder(build, bound, materials, groups)
+    :class:`diffpen.stability.Bound`), declaring ``materials(ctx)`` / ``groups(ctx)`` (and
+    whether it is ``passive``): how a term, its stability bound and the params keys it reads
+    are registered together (one line per term)."""
+    return TermBuilder(build, bound, materials, groups, passive)
 
 
 def declared(builders: Iterable, ctx: CompileContext, facet: str) -> tuple[str, ...]:
