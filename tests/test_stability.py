@@ -846,6 +846,39 @@ def test_a_custom_term_declared_passive_keeps_the_start_energy_bound():
         assert float(traj.position[-1, 0, 2]) > 0.3          # it bounced back up
 
 
+def test_more_than_512_colliding_bodies_count_their_start_energy():
+    """Regression: with more than 512 colliding bodies the start energy was not counted (its
+    check that no two bodies start touching compared every pair at once), so 600 Hertz beads
+    (1 g, radius 5 mm, a 10 x 6 x 10 grid 2 cm apart, 5-23 cm up; k 1e8 N/m^1.5, c 1e3)
+    kept the radius and were refused at dt 4 us. On the host the check now sweeps along x:
+    the beads count their potential energy (0.824 J) and the step is inside the safe step;
+    two beads touching give None; the sweep agrees with every pair compared on random
+    placements. A traced start state of that many bodies still keeps the radius."""
+    from diffpen.stability import depth
+    scene = dp.Scene()
+    grid = [(0.02 * i, 0.02 * j, 0.05 + 0.02 * k)
+            for i in range(10) for j in range(6) for k in range(10)]
+    for pos in grid:
+        scene.add_sphere(0.005, 0.001, pos)
+    scene.add_plane()
+    sim = dp.compile(scene, 4e-6, law="hunt_crossley", exponent=1.5)
+    p = sim.params(k=1e8, c=1e3)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    want = 0.001 * 9.81 * sum(z for _, _, z in grid)
+    assert sim.start_energy(sim.init_state()) == pytest.approx(want, rel=1e-12)
+    assert sim.stability(p).safe
+    touching = sim.state_from(body=[1], position=[[0.0, 0.0, 0.059]])   # 9 mm above bead 0
+    assert sim.start_energy(touching) is None
+    assert float(start_energy.traced(sim, p, sim.init_state())) == math.inf
+    rng = np.random.default_rng(0)
+    for n in (2, 40, 300):
+        for spread in (0.1, 1.0):
+            x = rng.uniform(0.0, spread, (n, 3))
+            r = rng.uniform(0.001, 0.03, n)
+            gap = np.linalg.norm(x[:, None] - x[None], axis=-1) - (r[:, None] + r[None])
+            assert depth._touching(x, r) == bool(np.any((gap <= 0.0) & ~np.eye(n, dtype=bool)))
+
+
 def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: rotating bodies kept the radius as Hunt-Crossley's reference depth (for the
     cube, its 9.1 cm half-diagonal). The start energy now bounds their depth too, with the

@@ -36,7 +36,9 @@ scene or the state does not qualify); ``Simulator.rollout`` hands it to the up-f
 as a traced argument, to the traced flag, so both count the same depth. Where the start state
 or a named plane's offset is traced (under jit, vmap or grad) the up-front gate keeps the
 radius (it cannot read them), and the traced flag counts the same energy from the traced
-values (:func:`energy_bound`: ``inf``, the radius, where a body starts in contact).
+values (:func:`energy_bound`: ``inf``, the radius, where a body starts in contact, and for
+a traced start of more than 512 colliding bodies, whose every pair it would compare; the host
+sweeps along x instead).
 """
 from __future__ import annotations
 
@@ -168,6 +170,31 @@ def start_energy(scene, mass, radius, pinned, collide, position, velocity, *,
     return e if np.isfinite(e) else None
 
 
+#: colliding bodies up to which every pair is compared at once (a traced start state with
+#: more keeps the radius); the host sweeps along x beyond it
+_DENSE_PAIRS = 512
+#: the most pairs the host's sweep compares (beyond it: the radius)
+_SWEEP_PAIRS = 20_000_000
+
+
+def _touching(x, r) -> bool | None:
+    """Whether two of the bodies (centres ``x`` (n, 3) m, radii ``r`` (n,) m) touch (centre
+    distance <= the sum of their radii), on the host: the bodies sorted along x, each
+    compared with those ahead of it within its radius plus the largest one. None (unknown)
+    where that would compare more than :data:`_SWEEP_PAIRS` pairs."""
+    order = np.argsort(x[:, 0], kind="stable")
+    xs, rs = x[order], r[order]
+    ahead = (np.searchsorted(xs[:, 0], xs[:, 0] + rs + rs.max(), side="right")
+             - np.arange(len(xs)) - 1)
+    if ahead.sum() > _SWEEP_PAIRS:
+        return None
+    for k in range(1, int(ahead.max(initial=0)) + 1):
+        i = np.flatnonzero(ahead >= k)
+        if np.any(np.sum((xs[i] - xs[i + k]) ** 2, axis=1) <= (rs[i] + rs[i + k]) ** 2):
+            return True
+    return False
+
+
 def _scatter(xp, a, idx, vals):
     """``a`` with ``a[idx] = vals`` (numpy or jax.numpy)."""
     if xp is np:
@@ -183,8 +210,8 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     """:func:`start_energy` as an array, ``inf`` where it is None: with ``xp=jax.numpy`` the
     start state and the offsets may be traced (a rollout's traced flag counts a traced start
     state, or a named plane's traced offset, this way: :meth:`diffpen.Simulator.rollout`)."""
-    if np.count_nonzero(np.asarray(collide, bool)) > 512:   # the pair check's cost: the radius
-        return xp.asarray(np.inf)
+    if np.count_nonzero(np.asarray(collide, bool)) > _DENSE_PAIRS and xp is not np:
+        return xp.asarray(np.inf)       # a traced pair check of every pair: the radius
     fl = xp.float64 if xp is np else None
     x = xp.asarray(position, fl)
     v = xp.asarray(velocity, x.dtype)
@@ -225,7 +252,9 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         dist = xp.linalg.norm(x - np.asarray(fs.center, float), axis=1)
         ok = ok & ~xp.any(collide & (dist <= r + float(fs.radius)))
     idx = np.flatnonzero(collide)
-    if idx.size > 1:
+    if idx.size > _DENSE_PAIRS:         # on the host: a sweep along x
+        ok = ok & (_touching(x[idx], r[idx]) is False)
+    elif idx.size > 1:
         xc, rc = x[idx], r[idx]
         dist = xp.sqrt(xp.sum((xc[:, None, :] - xc[None, :, :]) ** 2, axis=-1))
         overlap = (dist <= rc[:, None] + rc[None, :]) & ~np.eye(idx.size, dtype=bool)
