@@ -24,6 +24,9 @@ def builders(terms) -> tuple:
         if not callable(b):
             raise SceneError(f"terms must hold term builders, build(ctx) -> Term | None "
                              f"(diffpen.terms.TermBuilder or a function); got {b!r}.")
+        if not isinstance(getattr(b, "passive", False), bool):
+            raise SceneError(f"a term builder's passive must be True or False (whether the "
+                             f"term only takes energy away), got {b.passive!r}.")
     return terms
 
 

@@ -101,7 +101,7 @@ class Simulator:
         builders = _assembly.builders(terms)
         builtin_terms = all(b in _terms.BUILTIN for b in builders)
         # terms that give no energy back beyond the start's (diffpen.stability.depth)
-        passive_terms = all(b in _terms.BUILTIN or getattr(b, "passive", False) is True
+        passive_terms = all(b in _terms.BUILTIN or getattr(b, "passive", False)
                             for b in builders)
         dt, method, contact_law, width = _checks.compile_arguments(
             scene, dt, integrator, law, exponent, smoothing, unroll, substeps,

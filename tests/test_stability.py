@@ -844,6 +844,9 @@ def test_a_custom_term_declared_passive_keeps_the_start_energy_bound():
         traj = sim.rollout(p, 600, save_every=600)
         assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
         assert float(traj.position[-1, 0, 2]) > 0.3          # it bounced back up
+    with pytest.raises(dp.SceneError, match="passive must be True or False"):
+        dp.compile(_hertz_ball(), 1e-3, law="hunt_crossley", exponent=1.5,
+                   terms=(*dp.terms.BUILTIN, dp.terms.TermBuilder(air_drag, passive="yes")))
 
 
 def test_more_than_512_colliding_bodies_count_their_start_energy():
