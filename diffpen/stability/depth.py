@@ -8,28 +8,27 @@ k 1e6 N/m^1.5) sinks 1.4 cm, not 10, and its stiffness there is 2.7x smaller: th
 refuses a step of 1 ms that this ball takes safely.
 
 Energy bounds the depth instead, where the scene lets it: no force besides gravity, the
-contacts, springs, friction and drag can give energy back (no custom terms but those declared
-passive, :class:`diffpen.terms.TermBuilder`; a plastic
-spring's rest length only follows its compressed length, which lowers what it stores),
-gravity's potential is bounded below (no gravity, or at least one plane a horizontal floor, a
-named one at the offset its params give; the other planes may tilt any way: every colliding
-body stays above every plane; with springs, every free body collides, so that none can
-sink below the floor and pull another body in through a spring), the springs' stored energy
-``k x^2 / 2`` at the start is counted (with their groups' stiffness from the params; without
-them, every spring must start at its rest length, within :data:`REST_TOLERANCE`), and no
-body starts in contact (a box: none of its corners on or below a plane). A damped linear
-spring stores ``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact
-ever stores more than the start's kinetic energy (rotation included), potential energy and
-springs' energy ``E0`` of the bodies that collide (a body that collides with nothing keeps
-its energy to itself: it could only reach a contact through a spring), and a contact of
-stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where
-a body's centre could get at the deepest penetration counted (its reference size ``d_ref``
-below its support): for a sphere that is the floor (its support is its radius, its
-reference size too), for a box ``d_ref - min(half extents)`` below it (a box face down and
-sunk by its half-diagonal). The bound takes twice ``E0``
-(:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several %
-per contact event by the safe step), and never more than the radius. Where any condition fails
-the radius stays.
+contacts, springs, friction and drag can give energy back (no custom terms but those
+declared passive, :class:`diffpen.terms.TermBuilder`; a plastic spring's rest length only
+follows its compressed length, which lowers what it stores), gravity's potential is bounded
+below (no gravity, or at least one plane a horizontal floor, a named one at the offset its
+params give; the other planes may tilt any way: every colliding body stays above every
+plane; with springs, every free body collides, so that none can sink below the floor and
+pull another body in through a spring), the springs' stored energy ``k x^2 / 2`` at the
+start is counted (with their groups' stiffness from the params; without them, every spring
+must start at its rest length, within :data:`REST_TOLERANCE`), and no body starts in contact
+(a box: none of its corners on or below a plane). A damped linear spring stores
+``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact ever stores
+more than the start's kinetic energy (rotation included), potential energy and springs'
+energy ``E0`` of the bodies that collide (a body that collides with nothing keeps its energy
+to itself: it could only reach a contact through a spring), and a contact of stiffness ``k``
+holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where a body's centre
+could get at the deepest penetration counted (its reference size ``d_ref`` below its
+support): for a sphere that is the floor (its support is its radius, its reference size
+too), for a box ``d_ref - min(half extents)`` below it (a box face down and sunk by its
+half-diagonal). The bound takes twice ``E0`` (:data:`ENERGY_MARGIN`: room for the explicit
+step's own energy error, held to several % per contact event by the safe step), and never
+more than the radius. Where any condition fails the radius stays.
 
 :func:`start_energy` computes ``E0`` on the host from a concrete start state (None where the
 scene or the state does not qualify); ``Simulator.rollout`` hands it to the up-front gate and,
