@@ -191,7 +191,7 @@ def test_a_ramp_over_a_floor_is_bounded_at_the_depth_its_start_energy_reaches():
     bounds gravity's potential whatever the other planes' tilt: the start energy counts
     (9.81 J, host and traced), the drop runs with the traced flag clear, and the ball, which
     hits the ramp, rolls down it and lands on the floor, sinks into either less than
-    counted. A scene of tilted planes only keeps the radius."""
+    counted. A ramp alone keeps the radius (nothing holds a body up)."""
     from diffpen.stability.depth import energy_depth
     tilt = np.deg2rad(20.0)
     normal = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
@@ -218,6 +218,54 @@ def test_a_ramp_over_a_floor_is_bounded_at_the_depth_its_start_energy_reaches():
     tilted.add_plane(normal=tuple(normal), offset=0.3)
     assert dp.compile(tilted, 7e-4, law="hunt_crossley",
                       exponent=1.5).analysis.depth_exponent is None
+
+
+def test_a_trough_of_tilted_planes_is_bounded_at_the_depth_its_start_energy_reaches():
+    """Regression: without a horizontal floor every scene kept the radius, so the Hertz ball
+    (1 kg, k 1e6 N/m^1.5, c 3e4) dropped from 1 m into a V-trough of two planes tilted
+    30 deg was refused at dt 0.7 ms. The two normals, each weighted 1 / (2 cos 30 deg), sum
+    to the up direction, so a body above both is no lower than the weighted sum of their
+    offsets (the weak dual of the trough's lowest point): the start energy counts (9.81 J,
+    host and traced), the drop runs with the traced flag clear and sinks into either plane
+    less than counted. So does a funnel of three tilted planes, and a ramp sloping into a
+    wall; a ramp sloping away from the wall does not hold a body up."""
+    from diffpen.stability import depth
+    from diffpen.stability.depth import energy_depth
+    tilt = np.deg2rad(30.0)
+    normals = [np.array([s * np.sin(tilt), 0.0, np.cos(tilt)]) for s in (1.0, -1.0)]
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.05, 0.0, 1.0))
+    for n in normals:
+        scene.add_plane(normal=tuple(n))
+    [(planes, w)] = depth._floors(scene)
+    assert planes == (0, 1) and w == pytest.approx([0.5 / np.cos(tilt)] * 2, rel=1e-12)
+    sim = dp.compile(scene, 7e-4, law="hunt_crossley", exponent=1.5)
+    assert sim.analysis.depth_exponent == 1.5
+    p = sim.params(k=1e6, c=3e4)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    energy = sim.start_energy(sim.init_state(), p)
+    assert energy == pytest.approx(9.81, rel=1e-12)
+    assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(sim.init_state())) == (
+        pytest.approx(9.81, rel=1e-12))
+    traj = sim.rollout(p, 3000, observe=lambda s: s.position[0])
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+    x = np.asarray(traj.observed)
+    deepest = [float(np.max(0.1 - x @ n)) for n in normals]
+    assert min(deepest) > 0.0 and max(deepest) < float(energy_depth(1.5, 1e6, energy)) < 0.1
+
+    def held(*planes):
+        funnel = dp.Scene()
+        funnel.add_sphere(0.1, 1.0, (0.0, 0.0, 2.0))
+        for n in planes:
+            funnel.add_plane(normal=n, offset=-1.0)
+        return depth._floors(funnel)
+    azimuths = np.deg2rad([0.0, 120.0, 240.0])
+    [(_, w)] = held(*[(np.sin(tilt) * np.cos(a), np.sin(tilt) * np.sin(a), np.cos(tilt))
+                      for a in azimuths])
+    assert w == pytest.approx([1.0 / (3.0 * np.cos(tilt))] * 3, rel=1e-12)
+    ramp = (np.sin(tilt), 0.0, np.cos(tilt))                      # slopes down towards +x
+    assert held(ramp, (-1.0, 0.0, 0.0))                            # a wall at its foot
+    assert not held(ramp, (1.0, 0.0, 0.0))                         # a wall at its top
 
 
 def test_a_body_that_collides_with_nothing_leaves_the_start_energy_alone():

@@ -11,24 +11,25 @@ Energy bounds the depth instead, where the scene lets it: no force besides gravi
 contacts, springs, friction and drag can give energy back (no custom terms but those
 declared passive, :class:`diffpen.terms.TermBuilder`; a plastic spring's rest length only
 follows its compressed length, which lowers what it stores), gravity's potential is bounded
-below (no gravity, or at least one plane a horizontal floor, a named one at the offset its
-params give; the other planes may tilt any way: every colliding body stays above every
-plane; with springs, every free body collides, so that none can sink below the floor and
-pull another body in through a spring), the springs' stored energy ``k x^2 / 2`` at the
-start is counted (with their groups' stiffness from the params; without them, every spring
-must start at its rest length, within :data:`REST_TOLERANCE`), and no body starts in contact
-(a box: none of its corners on or below a plane). A damped linear spring stores
-``k x^2 / 2 >= 0`` and gives back no more than it stored, so then no contact ever stores
-more than the start's kinetic energy (rotation included), potential energy and springs'
-energy ``E0`` of the bodies that collide (a body that collides with nothing keeps its energy
-to itself: it could only reach a contact through a spring), and a contact of stiffness ``k``
-holds it at ``k d^(n+1) / (n+1) = E0``. The potential is counted from where a body's centre
-could get at the deepest penetration counted (its reference size ``d_ref`` below its
-support): for a sphere that is the floor (its support is its radius, its reference size
-too), for a box ``d_ref - min(half extents)`` below it (a box face down and sunk by its
-half-diagonal). The bound takes twice ``E0`` (:data:`ENERGY_MARGIN`: room for the explicit
-step's own energy error, held to several % per contact event by the safe step), and never
-more than the radius. Where any condition fails the radius stays.
+below (no gravity, or planes that hold the bodies up, :func:`_floors`: a horizontal floor,
+or tilted planes whose normals add up to the up direction, as a trough, a funnel or a ramp
+sloping into a wall; a named plane at the offset its params give; with springs, every free
+body collides, so that none can sink below the floor and pull another body in through a
+spring), the springs' stored energy ``k x^2 / 2`` at the start is counted (with their
+groups' stiffness from the params; without them, every spring must start at its rest length,
+within :data:`REST_TOLERANCE`), and no body starts in contact (a box: none of its corners on
+or below a plane). A damped linear spring stores ``k x^2 / 2 >= 0`` and gives back no more
+than it stored, so then no contact ever stores more than the start's kinetic energy
+(rotation included), potential energy and springs' energy ``E0`` of the bodies that collide
+(a body that collides with nothing keeps its energy to itself: it could only reach a contact
+through a spring), and a contact of stiffness ``k`` holds it at ``k d^(n+1) / (n+1) = E0``.
+The potential is counted from where a body's centre could get at the deepest penetration
+counted (its reference size ``d_ref`` below its support): for a sphere that is the floor
+(its support is its radius, its reference size too), for a box ``d_ref - min(half extents)``
+below it (a box face down and sunk by its half-diagonal). The bound takes twice ``E0``
+(:data:`ENERGY_MARGIN`: room for the explicit step's own energy error, held to several % per
+contact event by the safe step), and never more than the radius. Where any condition fails
+the radius stays.
 
 :func:`start_energy` computes ``E0`` on the host from a concrete start state (None where the
 scene or the state does not qualify); ``Simulator.rollout`` hands it to the up-front gate and,
@@ -40,6 +41,8 @@ a traced start of more than 512 colliding bodies, whose every pair it would comp
 sweeps along x instead).
 """
 from __future__ import annotations
+
+import itertools
 
 import numpy as np
 
@@ -71,13 +74,27 @@ def qualifies(scene, law, passive_terms: bool) -> bool:
     return bool(_floors(scene))
 
 
-def _floors(scene) -> list[int]:
-    """The planes that are horizontal floors (normal straight up against gravity): every
-    colliding body stays above each of them, so the lowest bounds gravity's potential."""
+def _floors(scene) -> list[tuple[tuple[int, ...], np.ndarray]]:
+    """What holds the colliding bodies up against gravity: each ``(planes, weights)`` a set of
+    up to three planes whose normals, weighted by ``weights >= 0``, sum to the up direction.
+    Every colliding body stays above every plane (``n_p . x >= offset_p`` less what it
+    reaches and sinks), so ``up . x = sum_p w_p n_p . x >= sum_p w_p offset_p``: a horizontal
+    floor (one plane, weight 1), a trough of two tilted planes or a funnel of three bound
+    gravity's potential below (the weak dual of the lowest point above every plane); a ramp
+    alone does not (empty: the radius). Scenes of more than 12 planes look for floors only."""
     g = np.asarray(scene.gravity, float)
     up = -g / float(np.linalg.norm(g))
-    return [i for i, p in enumerate(scene.planes)
-            if float(np.dot(np.asarray(p.normal, float), up)) > 1.0 - 1e-12]
+    normals = [np.asarray(p.normal, float) / np.linalg.norm(p.normal) for p in scene.planes]
+    sizes = (1, 2, 3) if len(normals) <= 12 else (1,)
+    found = []
+    for size in sizes:
+        for planes in itertools.combinations(range(len(normals)), size):
+            basis = np.stack([normals[i] for i in planes], axis=1)          # (3, size)
+            w, _, rank, _ = np.linalg.lstsq(basis, up, rcond=None)
+            if (rank == size and np.all(w >= 0.0)
+                    and np.linalg.norm(basis @ w - up) <= 1e-12):
+                found.append((planes, w))
+    return found
 
 
 #: how far (relative to its rest length, floored at 1 mm) a spring may be stretched or
@@ -266,16 +283,19 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
     g = np.asarray(scene.gravity, float)
     gn = float(np.linalg.norm(g))
     if gn > 0.0:
-        floors = [offsets[i] for i in _floors(scene)]
+        floors = _floors(scene)
         if not floors:                  # (a scene that does not qualify: the radius)
             return xp.asarray(np.inf)
-        floor = floors[0]
-        for off in floors[1:]:
-            floor = xp.minimum(floor, off)
-        # a box can sink its centre below the floor by its half-diagonal less its support
+        # a box can sink its centre into a plane by its half-diagonal less its support
         sink = np.zeros(len(r))
         sink[boxes] = r[boxes] - np.array([min(scene.bodies[i].half_extents) for i in boxes])
-        energy = energy + gn * xp.sum(m * (x @ (-g / gn) - floor + sink))
+        # the lowest each body's centre can get: the best of the floors' bounds
+        low = None
+        for planes, w in floors:
+            bound = sum(float(wi) * offsets[i] for i, wi in zip(planes, w)) - sink * float(
+                np.sum(w))
+            low = bound if low is None else xp.maximum(low, bound)
+        energy = energy + gn * xp.sum(m * (x @ (-g / gn) - low))
     ok = ok & xp.isfinite(energy)
     return xp.where(ok, energy, xp.inf)
 
