@@ -42,6 +42,7 @@ sweeps along x instead).
 """
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -81,10 +82,18 @@ def _floors(scene) -> list[tuple[tuple[int, ...], np.ndarray]]:
     reaches and sinks), so ``up . x = sum_p w_p n_p . x >= sum_p w_p offset_p``: a horizontal
     floor (one plane, weight 1), a trough of two tilted planes or a funnel of three bound
     gravity's potential below (the weak dual of the lowest point above every plane); a ramp
-    alone does not (empty: the radius). Scenes of more than 12 planes look for floors only."""
-    g = np.asarray(scene.gravity, float)
+    alone does not (empty: the radius). Scenes of more than 12 planes look for floors only.
+    Depends on the gravity and the planes' normals only (cached: a rollout asks each time)."""
+    return _floor_sets(tuple(float(v) for v in scene.gravity),
+                       tuple(tuple(float(v) for v in p.normal) for p in scene.planes))
+
+
+@functools.lru_cache(maxsize=256)
+def _floor_sets(gravity: tuple, normals: tuple) -> list:
+    """:func:`_floors` of the gravity and the planes' normals."""
+    g = np.asarray(gravity, float)
     up = -g / float(np.linalg.norm(g))
-    normals = [np.asarray(p.normal, float) / np.linalg.norm(p.normal) for p in scene.planes]
+    normals = [np.asarray(n, float) / np.linalg.norm(n) for n in normals]
     sizes = (1, 2, 3) if len(normals) <= 12 else (1,)
     found = []
     for size in sizes:
