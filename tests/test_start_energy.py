@@ -289,6 +289,27 @@ def test_a_body_that_collides_with_nothing_leaves_the_start_energy_alone():
         assert sim.stability(p).safe
 
 
+def test_boxes_side_by_side_count_their_start_energy():
+    """Regression: the check that no two bodies start touching compared every pair of
+    colliding bodies by their bounding spheres, boxes with boxes too, which never touch: two
+    Hertz cubes (10 cm, 0.37 kg) 2 cm apart, 20 cm up, kept the radius (their half-diagonals
+    overlap). Only pairs that have a contact are compared now (sphere-sphere, a sphere or
+    particle with a box): the two cubes count their potential energy, host and traced; a
+    sphere inside a cube's bounding sphere still keeps the radius."""
+    scene = dp.Scene()
+    for x in (0.0, 0.12):
+        scene.add_box((0.05,) * 3, 0.37, (x, 0.0, 0.2))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    want = 2 * 0.37 * 9.81 * (0.2 + (math.sqrt(3.0) - 1.0) * 0.05)   # sunk face down
+    assert sim.start_energy(sim.init_state()) == pytest.approx(want, rel=1e-12)
+    assert float(jax.jit(lambda st: start_energy.traced(sim, sim.params(k=1e5, c=1e3), st))(
+        sim.init_state())) == pytest.approx(want, rel=1e-12)
+    scene.add_sphere(0.02, 0.1, (0.06, 0.08, 0.2))     # 9 cm from both centres
+    sim = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    assert sim.start_energy(sim.init_state()) is None
+
+
 def test_a_custom_term_declared_passive_keeps_the_start_energy_bound():
     """Any custom term kept the radius as Hunt-Crossley's reference depth (it could give
     energy back). A term declared passive (``TermBuilder(..., passive=True)``: an air drag
@@ -348,8 +369,10 @@ def test_more_than_512_colliding_bodies_count_their_start_energy():
         for spread in (0.1, 1.0):
             x = rng.uniform(0.0, spread, (n, 3))
             r = rng.uniform(0.001, 0.03, n)
+            kind = rng.integers(0, 3, n)                  # particles, spheres, boxes
             gap = np.linalg.norm(x[:, None] - x[None], axis=-1) - (r[:, None] + r[None])
-            assert depth._touching(x, r) == bool(np.any((gap <= 0.0) & ~np.eye(n, dtype=bool)))
+            pairs = depth._can_touch(kind[:, None], kind[None]) & ~np.eye(n, dtype=bool)
+            assert depth._touching(x, r, kind) == bool(np.any(pairs & (gap <= 0.0)))
 
 
 def test_a_rotating_box_is_bounded_at_the_depth_its_start_energy_reaches():

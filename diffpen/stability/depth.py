@@ -202,19 +202,34 @@ _DENSE_PAIRS = 512
 _SWEEP_PAIRS = 20_000_000
 
 
-def _touching(x, r) -> bool | None:
-    """Whether two of the bodies (centres ``x`` (n, 3) m, radii ``r`` (n,) m) touch (centre
-    distance <= the sum of their radii), on the host: the bodies sorted along x, each
-    compared with those ahead of it within its radius plus the largest one. None (unknown)
-    where that would compare more than :data:`_SWEEP_PAIRS` pairs."""
+def _can_touch(a, b):
+    """Whether bodies of kinds ``a`` and ``b`` (arrays of :func:`_kinds`) have a contact:
+    sphere-sphere, and a sphere or particle with a box (boxes do not touch boxes, particles
+    touch only colliders and boxes)."""
+    return ((a == 1) & (b == 1)) | ((a == 2) != (b == 2))
+
+
+def _kinds(scene, idx):
+    """The kinds of bodies ``idx``: 0 particle, 1 sphere, 2 box."""
+    return np.array([{"particle": 0, "sphere": 1, "box": 2}[scene.bodies[i].kind]
+                     for i in idx], dtype=int)
+
+
+def _touching(x, r, kind) -> bool | None:
+    """Whether two of the bodies (centres ``x`` (n, 3) m, radii ``r`` (n,) m, ``kind`` (n,)
+    as :func:`_kinds`) that have a contact touch (centre distance <= the sum of their radii),
+    on the host: the bodies sorted along x, each compared with those ahead of it within its
+    radius plus the largest one. None (unknown) where that would compare more than
+    :data:`_SWEEP_PAIRS` pairs."""
     order = np.argsort(x[:, 0], kind="stable")
-    xs, rs = x[order], r[order]
+    xs, rs, ks = x[order], r[order], kind[order]
     ahead = (np.searchsorted(xs[:, 0], xs[:, 0] + rs + rs.max(), side="right")
              - np.arange(len(xs)) - 1)
     if ahead.sum() > _SWEEP_PAIRS:
         return None
     for k in range(1, int(ahead.max(initial=0)) + 1):
         i = np.flatnonzero(ahead >= k)
+        i = i[_can_touch(ks[i], ks[i + k])]
         if np.any(np.sum((xs[i] - xs[i + k]) ** 2, axis=1) <= (rs[i] + rs[i + k]) ** 2):
             return True
     return False
@@ -277,13 +292,14 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         dist = xp.linalg.norm(x - np.asarray(fs.center, float), axis=1)
         ok = ok & ~xp.any(collide & (dist <= r + float(fs.radius)))
     idx = np.flatnonzero(collide)
+    kind = _kinds(scene, idx)
     if idx.size > _DENSE_PAIRS:         # on the host: a sweep along x
-        ok = ok & (_touching(x[idx], r[idx]) is False)
+        ok = ok & (_touching(x[idx], r[idx], kind) is False)
     elif idx.size > 1:
         xc, rc = x[idx], r[idx]
         dist = xp.sqrt(xp.sum((xc[:, None, :] - xc[None, :, :]) ** 2, axis=-1))
-        overlap = (dist <= rc[:, None] + rc[None, :]) & ~np.eye(idx.size, dtype=bool)
-        ok = ok & ~xp.any(overlap)
+        pairs = _can_touch(kind[:, None], kind[None, :]) & ~np.eye(idx.size, dtype=bool)
+        ok = ok & ~xp.any(pairs & (dist <= rc[:, None] + rc[None, :]))
     energy = energy + 0.5 * xp.sum(m * xp.sum(v * v, axis=1))
     if rot is not None:
         spin = xp.einsum("nji,nj->ni", rot, w)                          # body frame
