@@ -183,6 +183,24 @@ def test_a_hertz_rope_is_bounded_at_the_depth_its_start_energy_reaches():
     assert loose.analysis.depth_exponent is None
 
 
+def _hertz_drop_counts_its_start_energy(scene, steps):
+    """The Hertz ball of ``scene`` (1 kg, dropped from 1 m; k 1e6 N/m^1.5, c 3e4) at dt
+    0.7 ms: refused at the radius, its start energy counted (9.81 J, host and traced), and
+    ``steps`` steps run with the traced flag clear. Returns its centre (steps, 3), m, and the
+    energy, J."""
+    sim = dp.compile(scene, 7e-4, law="hunt_crossley", exponent=1.5)
+    assert sim.analysis.depth_exponent == 1.5
+    p = sim.params(k=1e6, c=3e4)
+    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
+    energy = sim.start_energy(sim.init_state(), p)
+    assert energy == pytest.approx(9.81, rel=1e-12)
+    assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(sim.init_state())) == (
+        pytest.approx(9.81, rel=1e-12))
+    traj = sim.rollout(p, steps, observe=lambda s: s.position[0])
+    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
+    return np.asarray(traj.observed), energy
+
+
 def test_a_ramp_over_a_floor_is_bounded_at_the_depth_its_start_energy_reaches():
     """Regression: a plane that is not a horizontal floor kept the radius as Hunt-Crossley's
     reference depth, so the Hertz ball (1 kg, k 1e6 N/m^1.5, c 3e4) dropped from 1 m onto a
@@ -199,17 +217,7 @@ def test_a_ramp_over_a_floor_is_bounded_at_the_depth_its_start_energy_reaches():
     scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
     scene.add_plane()
     scene.add_plane(normal=tuple(normal), offset=0.3)
-    sim = dp.compile(scene, 7e-4, law="hunt_crossley", exponent=1.5)
-    assert sim.analysis.depth_exponent == 1.5
-    p = sim.params(k=1e6, c=3e4)
-    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
-    energy = sim.start_energy(sim.init_state(), p)
-    assert energy == pytest.approx(9.81, rel=1e-12)
-    assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(sim.init_state())) == (
-        pytest.approx(9.81, rel=1e-12))
-    traj = sim.rollout(p, 4000, observe=lambda s: s.position[0])
-    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
-    x = np.asarray(traj.observed)
+    x, energy = _hertz_drop_counts_its_start_energy(scene, 4000)
     floor, ramp = 0.1 - x[:, 2], 0.1 - (x @ normal - 0.3)
     assert x[-1, 0] > 1.0 and floor.max() > 0.0 and ramp.max() > 0.0   # ramp, then floor
     assert max(floor.max(), ramp.max()) < float(energy_depth(1.5, 1e6, energy)) < 0.1
@@ -239,17 +247,7 @@ def test_a_trough_of_tilted_planes_is_bounded_at_the_depth_its_start_energy_reac
         scene.add_plane(normal=tuple(n))
     [(planes, w)] = depth._floors(scene)
     assert planes == (0, 1) and w == pytest.approx([0.5 / np.cos(tilt)] * 2, rel=1e-12)
-    sim = dp.compile(scene, 7e-4, law="hunt_crossley", exponent=1.5)
-    assert sim.analysis.depth_exponent == 1.5
-    p = sim.params(k=1e6, c=3e4)
-    assert not stability.report(sim.analysis, p).safe             # at the radius: refused
-    energy = sim.start_energy(sim.init_state(), p)
-    assert energy == pytest.approx(9.81, rel=1e-12)
-    assert float(jax.jit(lambda st: start_energy.traced(sim, p, st))(sim.init_state())) == (
-        pytest.approx(9.81, rel=1e-12))
-    traj = sim.rollout(p, 3000, observe=lambda s: s.position[0])
-    assert not bool(np.asarray(traj.aux[stability.FLAG])[-1])
-    x = np.asarray(traj.observed)
+    x, energy = _hertz_drop_counts_its_start_energy(scene, 3000)
     deepest = [float(np.max(0.1 - x @ n)) for n in normals]
     assert min(deepest) > 0.0 and max(deepest) < float(energy_depth(1.5, 1e6, energy)) < 0.1
 
