@@ -200,9 +200,11 @@ class Scene:
         uses the collider's material; a sphere-sphere contact uses the bodies' material when
         both share one, else ``"default"``.
 
-        ``friction`` (Coulomb coefficient mu >= 0) > 0 adds smooth Coulomb friction to the box
-        corner contacts of this material, ``-mu f_n v_t / sqrt(|v_t|^2 + slip_speed^2)``
-        (``slip_speed`` m/s > 0, static); mu is then ``params.extra["friction"][name]``.
+        ``friction`` (Coulomb coefficient mu >= 0) > 0 adds smooth Coulomb friction to the
+        contacts of box corners, spheres (rigid or not) and particles with planes of this
+        material, ``-mu f_n v_t / sqrt(|v_t|^2 + slip_speed^2)`` (``slip_speed`` m/s > 0,
+        static); mu is then ``params.extra["friction"][name]``. Contacts with fixed spheres,
+        between spheres and with boxes stay frictionless.
         """
         if not isinstance(name, str) or not name:
             raise SceneError(f"material name must be a non-empty string, got {name!r}.")

@@ -133,12 +133,14 @@ class Analysis(NamedTuple):
 class Rates(NamedTuple):
     """Gershgorin rows per body: K_row (n,) 1/s^2 of ``M^-1 K``, C_row (n,) 1/s of
     ``M^-1 C``; Kc, Cc (n,) the contact parts alone; ``source(i)`` names what sets body i's
-    stiffest entry (numpy evaluation only, else None)."""
+    stiffest entry and ``damper(i)`` its largest damping entry (numpy evaluation only, else
+    None)."""
     K_row: Any
     C_row: Any
     Kc: Any
     Cc: Any
     source: Callable | None
+    damper: Callable | None = None
 
 
 def _block_values(block: Bound, params, xp):
@@ -193,7 +195,7 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False,
     zeros = (lambda: np.zeros(n)) if xp is np else (lambda: xp.zeros(n, an.dtype))
     cast = (lambda a: a) if xp is np else (lambda a: xp.asarray(a, an.dtype))
     kr, cr, ck, ccr, ek, ec = (zeros() for _ in range(6))
-    spring_rows, contact_rows, grouped = [], [], {}
+    spring_rows, contact_rows, grouped, damper_rows = [], [], {}, []
     contacts = []
     for block in an.bounds:
         vals = _block_values(block, params, xp)
@@ -213,6 +215,10 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False,
                 depth = xp.minimum(depth, energy_depth(an.depth_exponent, kv[block.key],
                                                        energy, xp))
             kk, cc = an.contact_scale(kk, cc, depth)
+        if xp is np and block.labels:
+            rate = cc / an.mass[block.body] if block.per_mass else cc
+            damper_rows += [(int(b), float(v), lab)
+                            for b, v, lab in zip(block.body, rate, block.labels)]
         if block.combine == "contact":
             contacts.append((block, kk, cc))
             continue
@@ -278,7 +284,12 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False,
             rows = [r for r in spring_rows if r[0] == i]
             return max(rows, key=lambda r: r[1])[2]
         return ""
-    return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, source)
+
+    def damper(i: int) -> str:
+        """What gives body i its largest damping row entry, in words."""
+        rows = [r for r in damper_rows if r[0] == i and r[1] > 0.0]
+        return max(rows, key=lambda r: r[1])[2] if rows else ""
+    return Rates(K_row, C_row, ck / free_mass, ccr / free_mass, source, damper)
 
 
 def scene_rates(sim, params, *, packed: bool = False):

@@ -37,7 +37,9 @@ class StabilityReport(NamedTuple):
     substeps_needed: smallest substep count whose inner step is within safe_dt.
     omega_max: bound on the highest angular frequency sqrt(K), rad/s.
     damping_rate: bound on the largest C, 1/s.
-    limiting_body: body index of the largest K row (None when no springs or contacts).
+    limiting_body: body index of the largest K row, or of the largest C row where the
+      damping alone limits the step more than the stiffness (None when no springs or
+      contacts).
     limiting: what sets the limit, in words.
     packed_dt: stable step if a sphere touches all its candidate sphere neighbours at once.
     """
@@ -134,11 +136,15 @@ def report(sim, params, *, substeps: int | None = None,
                    K, an.contact_wh)
     safe_margin = math.inf if math.isinf(safe) else safe / h
     body = int(np.argmax(K_row)) if K > 0.0 else None
+    limiting = f"{source(body)} on body {body}" if body is not None else ""
+    if C > 0.0 and r.damper is not None and stable_dt(rec, 0.0, C) < stable_dt(rec, K, 0.0):
+        # the damping alone limits the step more than the stiffness: name the damper (a
+        # stiff contact named instead sent users to lower a k that was not the cause)
+        body = int(np.argmax(C_row))
+        limiting = f"{r.damper(body)} on body {body}"
     return StabilityReport(rec.name, an.dt, substeps, h, sdt, margin, margin > 1.0,
                            safe, safe_margin, safe_margin >= 1.0 - SAFE_TIE,
-                           _needed(an.dt, safe), math.sqrt(K), C, body,
-                           (f"{source(body)} on body {body}" if body is not None else ""),
-                           pdt)
+                           _needed(an.dt, safe), math.sqrt(K), C, body, limiting, pdt)
 
 
 class GateCache:

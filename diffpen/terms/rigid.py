@@ -1,7 +1,8 @@
 """Rigid-body terms, the ones that produce torque: box corners on planes, their friction,
 boxes against fixed spheres, sphere-box contact and anchored springs (the dynamics,
-quaternions, inertia and Euler's equations are :mod:`diffpen.rigid`; nothing of this module is
-traced for scenes without rigid bodies).
+quaternions, inertia and Euler's equations are :mod:`diffpen.rigid`), and the friction of
+spheres and particles on rough planes (torque on rigid spheres). Nothing of this module is
+traced for scenes without rigid bodies or rough planes.
 
 Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
 
@@ -11,6 +12,8 @@ Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment 
 * ``contact_sphere_box``: spheres and particles against boxes (closest point on the box).
 * ``contact_box_fixed_sphere``: boxes against fixed spheres.
 * ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
+* ``friction_sphere_plane``: smooth Coulomb friction (:func:`smooth_coulomb`) of spheres and
+  particles on planes whose material has friction; rigid spheres also feel its torque.
 
 Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
 friction their force passes through the centres and produces no torque.
@@ -180,12 +183,21 @@ def _row_mu(params, rough, fi, like):
                      + [jnp.zeros_like(like)])[fi]
 
 
+def _slider_rows(ctx: CompileContext) -> list[int]:
+    """The bodies friction on a plane acts on apart from boxes: free, colliding spheres
+    (rigid or not) and particles."""
+    return [i for i, b in enumerate(ctx.scene.bodies)
+            if b.kind in ("sphere", "particle") and b.collide and not b.pinned]
+
+
 def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
-    """Smooth Coulomb friction of rigid spheres on rough planes (the normal force is the
-    core's ``contact_plane`` law, recomputed here for these rows only)."""
+    """Smooth Coulomb friction of spheres and particles on rough planes (the normal force is
+    the core's ``contact_plane`` law, recomputed here for these rows only). A rigid sphere's
+    contact point is ``-radius n`` from its centre: friction there turns it; a sphere that
+    does not rotate (``add_sphere``) or a particle slides, its contact point moving with its
+    centre, and the force goes through the centre."""
     scene = ctx.scene
-    rows = [(i, p) for i, b in enumerate(scene.bodies)
-            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+    rows = [(i, p) for i in _slider_rows(ctx)
             for p, pl in enumerate(scene.planes) if scene.materials[pl.material].friction > 0]
     if not rows:
         return None
@@ -205,18 +217,22 @@ def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
     normals_np = np.array([scene.planes[r[1]].normal for r in rows], dtype=float)
     inv_m, g_n = ctx.const(ctx.inv_mass(bi)), ctx.const(ctx.normal_gravity(normals_np, bi))
     site = ctx.factor_site(mi, inv_m)       # a law's per-contact step constants, if any
+    # centre to contact point of the rigid spheres' rows (None: no row turns)
+    turning = np.array([scene.bodies[i].rigid for i in bi])
+    lever = (ctx.const(-(ctx.radius[bi] * turning)[:, None] * normals_np)
+             if turning.any() else None)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        w = gather(state.angular_velocity, bi, n)
         d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
         fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h, inv_m, g_n,
                                ctx.step_factors(params, site, h))
-        r = -radii[:, None] * normals                    # centre to contact point
-        f = jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
-                                     _row_mu(params, rough, fi, fn[0]), slip)
-        return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
+        if lever is not None:
+            v = v + jnp.cross(gather(state.angular_velocity, bi, n), lever)
+        f = jax.vmap(smooth_coulomb)(v, normals, fn, _row_mu(params, rough, fi, fn[0]), slip)
+        tau = None if lever is None else scatter(jnp.cross(lever, f), bi, n)
+        return scatter(f, bi, n), tau
     return Term("friction_sphere_plane", force, step_aware=True, extra=extra, checks=checks)
 
 
@@ -400,6 +416,15 @@ def _friction_row(scene, i: int, material: str, levers):
     return (i, material, load / mat.slip_speed * _mobility(scene, i, levers))
 
 
+def _friction_bound(scene, rows):
+    """The :class:`diffpen.stability.Bound` of friction rows from :func:`_friction_row`,
+    each named by its material and slip speed (what to raise where it limits the step)."""
+    return Bound.of([(b, name, w, w, f"friction of material {name!r} below its slip speed "
+                     f"{scene.materials[name].slip_speed:g} m/s (a damper of rate "
+                     "mu |g| / slip_speed)") for b, name, w in rows], "friction",
+                    per_mass=False)
+
+
 def _box_plane_bound(ctx: CompileContext):
     """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
     scene, contact, friction = ctx.scene, [], []
@@ -412,16 +437,15 @@ def _box_plane_bound(ctx: CompileContext):
                 friction.append(_friction_row(scene, i, pl.material,
                                               geometry.box_corners(b.half_extents)))
     return tuple(x for x in (_rows_bound(contact, "contact"),
-                             _rows_bound(friction, "friction")) if x is not None)
+                             _friction_bound(scene, friction)) if x is not None)
 
 
 def _sphere_plane_friction_bound(ctx: CompileContext):
     scene = ctx.scene
-    rows = [_friction_row(scene, i, pl.material, (0.0, 0.0, b.radius))
-            for i, b in enumerate(scene.bodies)
-            if b.rigid and b.kind == "sphere" and b.collide and not b.pinned
+    rows = [_friction_row(scene, i, pl.material, (0.0, 0.0, scene.bodies[i].radius))
+            for i in _slider_rows(ctx)
             for pl in scene.planes if scene.materials[pl.material].friction > 0.0]
-    out = _rows_bound(rows, "friction")
+    out = _friction_bound(scene, rows)
     return () if out is None else (out,)
 
 
@@ -555,10 +579,9 @@ def _box_collider_materials(ctx: CompileContext, colliders: list) -> tuple:
 
 def _friction_materials(ctx: CompileContext) -> tuple:
     """The rough planes' materials (their k, c give the normal force) when some free
-    colliding rigid sphere exists."""
+    colliding sphere or particle exists."""
     scene = ctx.scene
-    if not any(b.rigid and b.kind == "sphere" and b.collide and not b.pinned
-               for b in scene.bodies):
+    if not _slider_rows(ctx):
         return ()
     return tuple(dict.fromkeys(pl.material for pl in scene.planes
                                if scene.materials[pl.material].friction > 0.0))

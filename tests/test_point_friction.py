@@ -1,0 +1,116 @@
+"""Smooth Coulomb friction of spheres that do not rotate and of particles on rough planes.
+
+A material's friction acted on box corners and rigid spheres only: a particle or an
+``add_sphere`` ball launched at 2 m/s on a plane of friction 0.3 slid on at 2 m/s, with no
+friction in its params and no word of it (so rope, cloth and jelly nodes never felt a rough
+floor). Closed forms: sliding, the speed falls at ``mu g`` and the body stops after
+``v0^2 / (2 mu g)``; on a slope of angle ``a`` it accelerates at ``g (sin a - mu cos a)``.
+"""
+import jax
+import numpy as np
+import pytest
+
+import diffpen as dp
+
+G = 9.81
+K, C, MU, SLIP = 1e5, 300.0, 0.3, 1e-3
+V0 = np.array([0.8, 0.6, 0.0])          # 1 m/s along (0.8, 0.6)
+
+
+@pytest.fixture(scope="module", params=["particle", "sphere"])
+def slider(request):
+    """A 1 kg particle, or a 1 kg sphere of radius 0.1 m that does not rotate, launched at
+    1 m/s along the rough floor z = 0 from its resting depth m g / k (dt 1e-4 s)."""
+    scene = dp.Scene()
+    scene.add_material("rough", friction=MU, slip_speed=SLIP)
+    if request.param == "particle":
+        scene.add_particle(1.0, (0.0, 0.0, -G / K), tuple(V0), allow_overlap=True)
+    else:
+        scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1 - G / K), tuple(V0))
+    scene.add_plane(material="rough")
+    return dp.compile(scene, dt=1e-4)
+
+
+def _slide(sim, mu, steps=4000):
+    return sim.rollout(sim.params(k=K, c=C, extra={"friction": {"rough": mu}}), steps=steps,
+                       save_every=40)
+
+
+def test_a_sliding_particle_or_sphere_stops_after_v0_squared_over_2_mu_g(slider):
+    assert "friction_sphere_plane" in slider.terms
+    assert slider.params(k=K, c=C).extra["friction"] == {"rough": MU}
+    traj = _slide(slider, MU)
+    t = np.asarray(traj.time)
+    v = np.asarray(traj.velocity[:, 0])
+    speed = np.linalg.norm(v[:, :2], axis=1)
+    sliding = speed > 0.05
+    np.testing.assert_allclose(speed[sliding], 1.0 - MU * G * t[sliding], atol=1e-4)
+    # along its launch direction, no torque and no turn
+    np.testing.assert_allclose(v[sliding, :2] / speed[sliding, None],
+                               np.broadcast_to(V0[:2], (sliding.sum(), 2)), atol=1e-9)
+    moved = np.asarray(traj.position[-1, 0, :2])           # from (0, 0)
+    np.testing.assert_allclose(moved, V0[:2] / (2 * MU * G), rtol=1e-3)
+    np.testing.assert_allclose(v[-1], 0.0, atol=1e-4)
+
+
+def test_the_stop_distance_gradient_is_the_closed_forms(slider):
+    def stop(mu):
+        return _slide(slider, mu).position[-1, 0, 0]
+    g = float(jax.jit(jax.grad(stop))(MU))
+    fd = float((stop(MU + 1e-5) - stop(MU - 1e-5)) / 2e-5)
+    np.testing.assert_allclose(g, fd, rtol=1e-4)
+    # d/dmu of 0.8 v0^2 / (2 mu g)
+    np.testing.assert_allclose(g, -0.8 / (2 * MU * MU * G), rtol=5e-3)
+
+
+@pytest.mark.parametrize("mu", [0.3, 0.7])
+def test_a_particle_on_a_rough_slope_slides_at_g_sin_minus_mu_cos(mu):
+    """A 30 deg slope: mu 0.3 slides at g (sin a - mu cos a) = 2.356 m/s^2 (4.905 without
+    friction); mu 0.7 > tan a holds it: it creeps at the smooth law's viscous speed, below
+    twice the slip speed."""
+    a = np.radians(30.0)
+    normal = (0.0, -np.sin(a), np.cos(a))
+    scene = dp.Scene()
+    scene.add_material("rough", friction=mu, slip_speed=SLIP)
+    scene.add_particle(1.0, (0.0, 0.0, -G * np.cos(a) / K), allow_overlap=True)
+    scene.add_plane(normal, material="rough")
+    sim = dp.compile(scene, dt=1e-4)
+    traj = sim.rollout(sim.params(k=K, c=C), steps=3000, save_every=30)
+    down = np.array([0.0, -np.cos(a), -np.sin(a)])      # down the slope
+    t = np.asarray(traj.time)
+    speed = np.asarray(traj.velocity[:, 0]) @ down
+    late = t > 0.05
+    if mu < np.tan(a):
+        np.testing.assert_allclose(speed[late], G * (np.sin(a) - mu * np.cos(a)) * t[late],
+                                   atol=2e-3)
+    else:
+        assert np.all(np.abs(speed[late]) < 2 * SLIP)
+
+
+def test_rope_nodes_on_a_rough_floor_feel_its_friction():
+    """A rope of 5 nodes laid on a rough floor and launched sideways at 1 m/s stops after
+    v0^2 / (2 mu g), every node alike (its springs stay at rest length)."""
+    from diffpen.builders import add_rope
+    scene = dp.Scene()
+    scene.add_material("rough", friction=MU, slip_speed=SLIP)
+    nodes = add_rope(scene, 5, (0.0, 0.0, 0.0), (0.4, 0.0, 0.0), mass=0.1, k=500.0, c=0.5,
+                     pinned=(), velocity=(0.0, 1.0, 0.0))
+    scene.add_plane(material="rough")
+    sim = dp.compile(scene, dt=1e-4)
+    traj = sim.rollout(sim.params(k=K, c=30.0), steps=4000, save_every=4000)
+    moved = np.asarray(traj.position[-1, nodes, 1])
+    np.testing.assert_allclose(moved, 1.0 / (2 * MU * G), rtol=2e-3)
+    np.testing.assert_allclose(np.asarray(traj.velocity[-1, nodes]), 0.0, atol=1e-4)
+
+
+def test_friction_on_particles_counts_in_the_safe_step():
+    """Below the slip speed friction is a damper of rate mu g / s: at s = 1e-6 m/s and mu 0.5
+    that is 4.9e6 1/s, past what dt 1e-4 s can take, and the rollout is refused."""
+    scene = dp.Scene()
+    scene.add_material("rough", friction=0.5, slip_speed=1e-6)
+    scene.add_particle(1.0, (0.0, 0.0, 0.0))
+    scene.add_plane(material="rough")
+    sim = dp.compile(scene, dt=1e-4)
+    with pytest.raises(dp.StabilityError, match="set by friction of material 'rough' below "
+                       "its slip speed 1e-06 m/s"):
+        sim.rollout(sim.params(k=1e3, c=1.0), steps=10)
