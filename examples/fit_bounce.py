@@ -29,6 +29,7 @@ import numpy as np  # noqa: E402
 import diffpen as dp  # noqa: E402
 from tuning import scenes  # noqa: E402
 from tuning.bounce import fit_bounce  # noqa: E402
+from tuning.io import save_figure_file  # noqa: E402
 
 TARGETS = {
     "trampoline": {"apex_heights": [0.6], "settling_time": 4.8},
@@ -90,7 +91,7 @@ def main(argv=None):
     fig.tight_layout()
     out = args.plot
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig.savefig(out, dpi=120)
+    save_figure_file(fig, out, dpi=120)
     print(f"figure: {out}")
 
 

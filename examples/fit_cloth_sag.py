@@ -22,6 +22,7 @@ import optax
 
 import diffpen as dp
 from diffpen.builders import add_cloth
+from tuning.io import save_figure_file
 
 GROUP = "cloth.structural"
 
@@ -161,7 +162,7 @@ def _draw(history, losses, target, sag, out, method):
                  + ("optax Adam" if method == "adam" else "tuning.fit, Levenberg-Marquardt")
                  + " on log k)")
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    save_figure_file(fig, out, dpi=110)
     plt.close(fig)
     print(f"wrote {out}")
 

@@ -165,7 +165,8 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
     assert sorted(os.listdir(plots)) == ["plots.json", "toss_0.png", "toss_1.png"]
     index = json.loads((plots / "plots.json").read_text())
     assert index == {"scene": os.path.abspath(scene), "files": ["toss_0.png", "toss_1.png"],
-                     "records": [os.path.abspath(p) for p in paths]}
+                     "records": [os.path.abspath(p) for p in paths],
+                     "written_by": "diffpen evaluate"}
     (plots / "mine.png").write_bytes(b"not listed")          # never touched
     outside = tmp_path / "outside.png"
     outside.write_bytes(b"not in the folder")
@@ -176,6 +177,21 @@ def test_cli_evaluate_json_and_plots(setup, tmp_path, capsys):
     assert sorted(os.listdir(plots)) == ["mine.png", "plots.json", "toss_0.png"]
     assert outside.exists()
     assert json.loads((plots / "plots.json").read_text())["files"] == ["toss_0.png"]
+    # regression: a NAME.png no run of ours listed was drawn over (a user's own figure)
+    (plots / "toss_1.png").write_bytes(b"my own figure")
+    assert main(["evaluate", scene, "--data", *paths, "--json", "--plot", str(plots)]) == 0
+    assert json.loads(capsys.readouterr().out)["plots"] == [
+        str(plots / "toss_0.png"), str(plots / "001_toss_1.png")]
+    assert (plots / "toss_1.png").read_bytes() == b"my own figure"
+    # regression: another program's plots.json had the figures it lists removed
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "figure1.png").write_bytes(b"precious")
+    (foreign / "plots.json").write_text('{"files": ["figure1.png"]}')
+    assert main(["evaluate", scene, "--data", paths[0], "--json", "--plot", str(foreign)]) == 0
+    capsys.readouterr()
+    assert (foreign / "figure1.png").read_bytes() == b"precious"
+    assert sorted(os.listdir(foreign)) == ["figure1.png", "plots.json", "toss_0.png"]
     # bad input: a clear error, exit status 2
     assert main(["evaluate", scene, "--data", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
@@ -283,18 +299,22 @@ def test_cli_evaluate_refuses_a_plot_path_that_is_a_folder_before_rolling_out(
         setup, tmp_path, capsys, monkeypatch):
     """--plot DIR where DIR/NAME.png (a record's picture) is a folder: the records were
     compiled and rolled out, then saving failed ("Is a directory"), the JSON lost and the
-    index listing the picture. Now refused with status 2 before anything is compiled."""
+    index listing the picture. Now refused with status 2 before anything is compiled (a
+    name an earlier run listed; a folder or file no run listed is someone else's, and the
+    picture takes another name)."""
     pytest.importorskip("matplotlib")
     scene, paths, *_ = setup
 
     _no_rollout(monkeypatch, "rolled out before checking the pictures' paths")
     (tmp_path / "plots" / "toss_1.png").mkdir(parents=True)
+    (tmp_path / "plots" / "plots.json").write_text(json.dumps(
+        {"files": ["toss_1.png"], "written_by": "diffpen evaluate"}))
     capsys.readouterr()
     assert main(["evaluate", scene, "--data", *paths, "--plot", str(tmp_path / "plots")]) == 2
     err = capsys.readouterr().err
     assert f"{tmp_path / 'plots' / 'toss_1.png'} is a folder" in err
     assert "move or remove it, or choose another --plot folder" in err
-    assert sorted(os.listdir(tmp_path / "plots")) == ["toss_1.png"]     # nothing written
+    assert sorted(os.listdir(tmp_path / "plots")) == ["plots.json", "toss_1.png"]
 
 
 def test_cli_evaluate_refuses_a_plot_folder_another_run_is_writing(

@@ -197,3 +197,69 @@ def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
         with pytest.raises(IO.OutputError, match="must end in one of"):
             IO.check_plot(str(tmp_path / bad))
     assert IO.check_plot(str(tmp_path / "heat.PDF")).endswith("heat.PDF")
+
+
+def test_a_sweep_through_a_symbolic_link_resumes_and_finishes_the_file_it_names(
+        evaluate, tmp_path):
+    """``out`` a symbolic link to an interrupted sweep: the run resumed from the link's
+    target, then ``os.replace`` onto the link turned it into a plain file beside the target,
+    which kept the interrupted rows. Now the target is finished and the link kept; the lock
+    of the link and of the file is one lock; the table's numbers read back exactly."""
+    (tmp_path / "real").mkdir()
+    real, link = str(tmp_path / "real" / "s.npz"), str(tmp_path / "link.npz")
+
+    def stop(i, res):
+        if i == 0:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        run(evaluate, real, {"dt": 1e-3}, on_chunk=stop)
+    os.symlink(real, link)
+    with IO.OutputLock(real):
+        with pytest.raises(IO.OutputError, match="being written by another process"):
+            run(evaluate, link, {"dt": 1e-3})
+    res = run(evaluate, link, {"dt": 1e-3})
+    assert res.evaluated == 6
+    assert os.path.islink(link) and os.path.realpath(link) == os.path.realpath(real)
+    assert S.load_sweep(real).done.all()
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(IO.TMP_PREFIX)]
+    # the table: 17 significant digits (10 rounded most points of a log grid: a point read
+    # from the table was not the point simulated)
+    grid = np.geomspace(1.0, 10.0, 10)[:, None]
+    S.sweep(None, PARAMS0, grid, NAMES, chunk=4, out=link, key={"dt": 1e-3, "log": True},
+            evaluate=evaluate, resume=False, progress=False)
+    csv = str(tmp_path / "link.csv")
+    header = open(csv).readline().strip().split(",")
+    table = np.loadtxt(csv, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(table[:, 0], grid[:, 0])
+    np.testing.assert_array_equal(table[:, header.index("twice")],
+                                  np.where(grid[:, 0] > 9.0, np.nan, 2.0 * grid[:, 0]))
+
+
+def test_figures_are_written_atomically(tmp_path):
+    """A run stopped while drawing left an empty or half-written figure over a good one
+    (``fig.savefig`` straight onto the path). Now the old figure stays until the new one is
+    whole; the file type follows the extension."""
+    plt = pytest.importorskip("matplotlib.pyplot")
+    out = tmp_path / "f.png"
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [0, 1])
+    IO.save_figure_file(fig, str(out), dpi=50)
+    good = out.read_bytes()
+    assert good[:8] == b"\x89PNG\r\n\x1a\n"
+
+    class Stop(Exception):
+        pass
+
+    def broken(fh, **kw):
+        fh.write(b"\x89PNG half")
+        raise Stop
+    fig.savefig = broken
+    with pytest.raises(Stop):
+        IO.save_figure_file(fig, str(out))
+    assert out.read_bytes() == good
+    assert sorted(os.listdir(tmp_path)) == ["f.png"]
+    plt.close(fig)
+    fig, ax = plt.subplots()
+    IO.save_figure_file(fig, str(tmp_path / "f.svg"))
+    assert b"<svg" in (tmp_path / "f.svg").read_bytes()[:400]
+    plt.close(fig)

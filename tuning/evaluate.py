@@ -28,6 +28,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .first_state import FLIGHT_FRAMES
+from .io import save_figure_file
 from .record_batch import ProgramCache, layout_of, typed_params, with_arrays
 from .trajfit import Batch, rotation_angle, simulate
 
@@ -36,6 +37,9 @@ __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
 #: the file in an ``evaluate --plot`` folder naming the scene, the records and the plots of
 #: the run that drew them (the next run into the folder removes those it does not redraw)
 PLOT_INDEX = "plots.json"
+#: the index's ``written_by``: only an index that carries it names plots this command drew
+#: (and may redraw or remove)
+PLOT_INDEX_MARK = "diffpen evaluate"
 
 
 @dataclasses.dataclass
@@ -229,7 +233,7 @@ def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure_file(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -246,7 +250,8 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     when that name is not unique, :func:`_plot_names`) and lists them in
     ``plot/plots.json`` with the scene and the records (:data:`PLOT_INDEX`); the PNGs an
     earlier run's index lists that this run does not redraw are removed (no other file in
-    the folder is touched). One run per folder: the run holds
+    the folder is touched: a record whose ``NAME.png`` another program wrote there is drawn
+    to ``NNN_NAME.png``). One run per folder: the run holds
     :class:`tuning.io.OutputLock` on ``plot/plots.json`` from the checks to its end, and a
     second run into the folder is refused at once (:class:`tuning.io.OutputError`).
     ``estimate`` /
@@ -288,7 +293,11 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
         files = None
         if plot is not None:        # each record's picture: a file name no other one has
             shown = range(min(n_plot, len(records)))
-            files = _plot_names([records[r].path for r in shown])
+            # files in the folder that no earlier run of this command listed are someone
+            # else's: never drawn over (a user's toss_003.png was replaced by the plot)
+            ours = {f.lower() for f in _listed_plots(plot)}
+            foreign = {f.lower() for f in os.listdir(plot) if f.lower() not in ours}
+            files = _plot_names([records[r].path for r in shown], taken=foreign)
             for r, f in zip(shown, files):
                 p = os.path.join(plot, f)
                 if os.path.isdir(p) or (os.path.exists(p) and not os.access(p, os.W_OK)):
@@ -303,14 +312,15 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
             lock.release()
 
 
-def _plot_names(paths) -> list:
+def _plot_names(paths, taken=()) -> list:
     """The file names ``evaluate --plot`` draws the records ``paths`` to, one per record and
     all different (compared without case): ``NAME.png`` for a record ``.../NAME.csv``;
     ``NNN_NAME.png`` (``NNN`` its position) when two records share a name or a name is
-    already taken, then ``NNN_NAME_2.png``, ... until free."""
+    already taken (by an earlier record or among ``taken``, lower-case names of files that
+    must not be written over), then ``NNN_NAME_2.png``, ... until free."""
     import os
     names = [os.path.splitext(os.path.basename(str(p)))[0] for p in paths]
-    taken, files = set(), []
+    taken, files = {t.lower() for t in taken}, []
     for r, name in enumerate(names):
         stem = name if names.count(name) == 1 else f"{r:03d}_{name}"
         if stem.lower() + ".png" in taken:
@@ -365,15 +375,18 @@ def _evaluate(sf, scene_path, records, bodies, estimate, max_frames, plot, files
 
 def _listed_plots(folder: str) -> list:
     """The plot files the index in ``folder`` lists (plain ``.png`` names in the folder;
-    anything else in it is ignored); [] without a readable index."""
+    anything else in it is ignored); [] without a readable index written by this command
+    (:data:`PLOT_INDEX_MARK`: another program's ``plots.json`` listing its own figures had
+    them removed)."""
     import json
     import os
     try:
         with open(os.path.join(folder, PLOT_INDEX)) as fh:
-            files = json.load(fh).get("files", [])
+            index = json.load(fh)
+        files = index.get("files", [])
     except (OSError, ValueError, AttributeError):
         return []
-    if not isinstance(files, list):
+    if not isinstance(files, list) or index.get("written_by") != PLOT_INDEX_MARK:
         return []
     return [f for f in files if isinstance(f, str) and f.lower().endswith(".png")
             and f == os.path.basename(f)]
@@ -384,5 +397,5 @@ def _write_plot_index(folder: str, index: dict) -> None:
     import os
 
     from .io import atomic_write
-    text = json.dumps(index, indent=1) + "\n"
+    text = json.dumps(dict(index, written_by=PLOT_INDEX_MARK), indent=1) + "\n"
     atomic_write(os.path.join(folder, PLOT_INDEX), lambda fh: fh.write(text.encode()))

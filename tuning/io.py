@@ -7,7 +7,8 @@ of killed runs, and the key of everything that determines a result.
   :func:`check_distinct` that no output is one of the run's inputs or another output.
 * :func:`atomic_write` writes through a temporary file in the output's own folder and
   ``os.replace`` (a crash never leaves a half-written file; the temporary file is never put
-  anywhere else, e.g. in ``/``).
+  anywhere else, e.g. in ``/``); :func:`save_figure_file` saves a figure that way. Every
+  path is followed through symbolic links to the file they name.
 * :class:`OutputLock` holds an exclusive ``fcntl`` lock on ``.<name>.lock`` beside the output
   for the whole run: a second writer of the same output is refused at once with the first
   writer's pid. The kernel drops the lock when a process dies, so a killed run never blocks
@@ -32,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["OutputError", "check_output", "check_plot", "check_distinct", "PLOT_TYPES",
-           "atomic_write", "OutputLock", "clean_orphans",
+           "atomic_write", "save_figure_file", "OutputLock", "clean_orphans",
            "result_key", "key_digest", "key_differences", "describe_simulator", "version",
            "TMP_PREFIX"]
 
@@ -69,7 +70,9 @@ def check_output(path, *, what: str = "output", ext: str | None = None,
     """
     if not isinstance(path, (str, os.PathLike)) or not str(path):
         raise OutputError(f"{what} must be a file path, got {path!r}.")
-    p = os.path.abspath(os.fspath(path))
+    # a symbolic link's target is what gets written (os.replace onto the link itself
+    # turned it into a plain file beside the target, which kept the interrupted run's rows)
+    p = os.path.realpath(os.fspath(path))
     if derived_from and os.path.isdir(p):
         raise OutputError(f"{what} {path} is a directory: its name follows from "
                           f"{derived_from}, so move or remove that folder, or choose another "
@@ -150,8 +153,9 @@ def atomic_write(path, write: Callable) -> None:
     """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
     flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
     plain ``open(path, "w")`` would give it (``mkstemp`` alone makes it owner-only). The
-    parent folder must exist (see :func:`check_output`)."""
-    p = os.path.abspath(os.fspath(path))
+    parent folder must exist (see :func:`check_output`). A symbolic link is followed: its
+    target is replaced and the link kept."""
+    p = os.path.realpath(os.fspath(path))
     folder = os.path.dirname(p)
     fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=os.path.basename(p), dir=folder)
     try:
@@ -167,12 +171,20 @@ def atomic_write(path, write: Callable) -> None:
         raise
 
 
+def save_figure_file(fig, path, **savefig) -> None:
+    """``fig.savefig(path, **savefig)`` written atomically (:func:`atomic_write`): a run
+    stopped while drawing leaves the figure that was there, not an empty or half-written
+    file. The file type follows the name's extension (:data:`PLOT_TYPES`)."""
+    fmt = os.path.splitext(os.fspath(path))[1][1:].lower() or "png"
+    atomic_write(path, lambda fh: fig.savefig(fh, format=fmt, **savefig))
+
+
 def clean_orphans(path) -> list:
     """Remove temporary files of :func:`atomic_write` for ``path`` left by a killed writer.
 
     Only call it while holding :class:`OutputLock` on ``path`` (a live writer's temporary file
     would otherwise be removed). Returns the removed paths."""
-    p = os.path.abspath(os.fspath(path))
+    p = os.path.realpath(os.fspath(path))
     folder, base = os.path.dirname(p), os.path.basename(p)
     removed = []
     for f in glob.glob(os.path.join(glob.escape(folder), glob.escape(TMP_PREFIX) + "*"
@@ -198,7 +210,9 @@ class OutputLock:
     """
 
     def __init__(self, path, *, what: str = "output"):
-        p = os.path.abspath(os.fspath(path))
+        # the target of a symbolic link: writers through the link and through the file
+        # itself take the same lock
+        p = os.path.realpath(os.fspath(path))
         self.path = p
         self.what = what
         self.lock_path = os.path.join(os.path.dirname(p), "." + os.path.basename(p) + ".lock")

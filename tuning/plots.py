@@ -6,6 +6,8 @@ import pathlib
 
 import numpy as np
 
+from .io import save_figure_file
+
 __all__ = ["require_matplotlib", "fit_figure", "trajectory_fit_figure", "heatmap",
            "save_figure", "save_strip", "save_gif"]
 
@@ -59,7 +61,7 @@ def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radiu
     a2.set_title("loss per simulation (search, then LM)" if evaluations
                  else "loss")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure_file(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -79,7 +81,7 @@ def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> Non
     a3.set_xlabel("LM step (all horizons)")
     a3.set_ylabel("cost (m^2)")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure_file(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -130,7 +132,7 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
     ax.set_ylabel(labels[1])
     ax.set_title(title or metric)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure_file(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -141,7 +143,7 @@ def save_figure(fig, out, *, dpi: int = 110) -> pathlib.Path:
     written."""
     plt = require_matplotlib()
     fig.tight_layout()
-    fig.savefig(out, dpi=dpi)
+    save_figure_file(fig, out, dpi=dpi)
     plt.close(fig)
     return pathlib.Path(out)
 

@@ -266,7 +266,8 @@ def _save(out: str, res: SweepResult) -> None:
 
     def write_csv(fh):
         fh.write((",".join(header) + "\n").encode())
-        np.savetxt(fh, table, delimiter=",", fmt="%.10g")
+        # 17 significant digits: every float64 reads back as the value simulated
+        np.savetxt(fh, table, delimiter=",", fmt="%.17g")
     atomic_write(csv_path, write_csv)
 
 

@@ -20,6 +20,7 @@ import numpy as np
 
 import diffpen as dp
 
+from ..io import save_figure_file
 from ..scenes import ball_scene
 from .extreme import INTEGRATORS
 from .reference import (G, BallReference, apex_heights, ball_reference, chain_reference,
@@ -308,5 +309,5 @@ def plot_accuracy(result: dict, path: str) -> None:
     fig.suptitle("diffpen work-precision (lower left is better; label = coarsest dt)",
                  fontsize=11)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure_file(fig, path, dpi=110)
     plt.close(fig)
