@@ -263,3 +263,20 @@ def test_figures_are_written_atomically(tmp_path):
     IO.save_figure_file(fig, str(tmp_path / "f.svg"))
     assert b"<svg" in (tmp_path / "f.svg").read_bytes()[:400]
     plt.close(fig)
+
+
+def test_a_resume_with_another_chunk_is_refused(evaluate, tmp_path):
+    """A chunk of 1 point runs unvectorised and rounds otherwise than larger chunks (~5e-10
+    on a scene-file sweep): a resume with another --chunk mixed the two into a file equal to
+    neither uninterrupted run. The chunk is part of the key now."""
+    out = str(tmp_path / "s.npz")
+
+    def stop(i, res):
+        if i == 0:
+            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt):
+        run(evaluate, out, {"dt": 1e-3}, on_chunk=stop)
+    with pytest.raises(S.SweepError, match="chunk: file has 4, this run has 3"):
+        S.sweep(None, PARAMS0, POINTS, NAMES, chunk=3, out=out, key={"dt": 1e-3},
+                evaluate=evaluate, progress=False)
+    assert run(evaluate, out, {"dt": 1e-3}).evaluated == 6

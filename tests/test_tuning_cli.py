@@ -180,6 +180,32 @@ def test_an_interrupted_command_says_so_without_a_traceback(monkeypatch, capsys)
     assert "interrupted; rerun the same command to resume" in capsys.readouterr().err
 
 
+def test_an_interrupted_command_ends_without_tearing_its_modules_down(monkeypatch):
+    """The diffpen command after an interruption: the exit handlers run (a cluster's
+    process tells the others it stopped), then the process ends with status 130 without
+    the interpreter's teardown, where jaxlib crashed (exit 139) in about half the fits
+    interrupted on a loaded machine. Other statuses exit as usual."""
+    import atexit
+    import os
+
+    import tuning.cli as cli
+    seen = []
+    monkeypatch.setattr(atexit, "_run_exitfuncs", lambda: seen.append("handlers"))
+
+    def ended(status):
+        seen.append(status)
+        raise SystemExit(status)
+    monkeypatch.setattr(os, "_exit", ended)
+    monkeypatch.setattr(cli, "main", lambda: 130)
+    with pytest.raises(SystemExit):
+        cli.entry()
+    assert seen == ["handlers", 130]
+    monkeypatch.setattr(cli, "main", lambda: 2)
+    with pytest.raises(SystemExit) as exc:
+        cli.entry()
+    assert exc.value.code == 2 and seen == ["handlers", 130]
+
+
 def test_sweep_target_needs_a_plot(tmp_path, capsys):
     """--target (a contour on the heatmap) without --plot was ignored silently."""
     from tuning.cli import main as cli_main

@@ -446,6 +446,10 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
                            str(min(int(chunk), n)).encode())
     distributed.check_same("out (a file on some processes, none on others)",
                            str(bool(out)).encode())
+    # the batch size is part of the result: XLA computes a chunk of 1 point unvectorised and
+    # larger chunks vectorised, rounding differently (~5e-10), so a resume with another chunk
+    # gave a file equal to neither uninterrupted run
+    full_key["chunk"] = int(min(int(chunk), n))
     writer = distributed.is_writer()
     lock = None
     try:

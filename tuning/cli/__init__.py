@@ -81,8 +81,29 @@ def main(argv=None) -> int:
         print(f"diffpen {argv[0]}: interrupted"
               + ("; rerun the same command to resume the sweep" if argv[0] == "sweep"
                  else ""), file=sys.stderr)
-        return 130
+        return INTERRUPTED
+
+
+#: the exit status of an interrupted command (128 + SIGINT, as a shell reports it)
+INTERRUPTED = 130
+
+
+def entry() -> None:
+    """The ``diffpen`` command (and ``python -m tuning.cli``): :func:`main`, then exit with
+    its status. An interrupted command (:data:`INTERRUPTED`) runs the exit handlers and ends
+    without tearing its modules down: a Ctrl-C that landed inside JAX's runtime made that
+    teardown crash in jaxlib (exit 139, a segmentation fault, after "interrupted") in about
+    half the interrupted fits on a loaded machine."""
+    status = main()
+    if status == INTERRUPTED:
+        import atexit
+        import os
+        sys.stdout.flush()
+        sys.stderr.flush()
+        atexit._run_exitfuncs()
+        os._exit(INTERRUPTED)
+    sys.exit(status)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

@@ -1,6 +1,4 @@
 """``python -m tuning.cli``: the ``diffpen`` command."""
-import sys
+from . import entry
 
-from . import main
-
-sys.exit(main())
+entry()
