@@ -1,6 +1,8 @@
 """Library input checks: scenes refuse bodies starting inside colliders or each other (unless
 asked), numbers are never coerced from strings or bools, params() refuses vectors, rollout
 names a bad params pytree, state or size before anything is traced."""
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -408,6 +410,32 @@ def test_a_step_no_substep_count_can_save_says_so():
     sim = dp.compile(s, 1e-3)
     with pytest.raises(dp.StabilityError, match="no practical step.*implicit_euler"):
         sim.rollout(sim.params(), 10)
+
+
+@pytest.mark.parametrize("k, mass, count", [(1e300, 1.0, "about 2e+147 substeps"),
+                                             (1e4, 1e-300, "about 1e+298 substeps"),
+                                             (1e4, 1e-30, "too small for any count")])
+def test_an_absurd_stiffness_or_mass_is_refused_at_once(k, mass, count):
+    """k = 1e300 N/m or a 1e-300 kg ball hung the rollout (and ``diffpen simulate ball --k
+    1e300``): the substep count's search stepped n by one from ~1e150, where dt / n and
+    dt / (n - 1) are one float, and never ended. Refused at once now, with the count in
+    three digits (a mass of 1e-30 kg said "safe step 0 s, 100001 substeps")."""
+    import signal
+
+    def hung(*_):
+        raise TimeoutError("the stability check hung")
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.alarm(30)
+    try:
+        s = dp.Scene()
+        s.add_sphere(0.1, mass, (0.0, 0.0, 1.0))
+        s.add_plane()
+        sim = dp.compile(s, 1e-3)
+        with pytest.raises(dp.StabilityError, match=f"no practical step.*{re.escape(count)}"):
+            sim.rollout(sim.params(k=k, c=10.0), 10)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
 
 
 def test_contact_pairs_may_be_arrays():

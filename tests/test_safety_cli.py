@@ -62,6 +62,11 @@ def err_of(capsys, argv):
     (["report", "gradients", "--integrators", "rk4"], "--integrators is not read"),
     # c = 0 crashed with a ZeroDivisionError (its central differences step c both ways)
     (["report", "gradients", "--c", "0"], "--c must be > 0 for the gradients report"),
+    # dt 1e-7 (38 million steps a rollout) ran for days; dt 1e-300 ended on an OverflowError
+    # traceback; a 1e-300 kg ball on "math domain error"
+    (["fit", "--dt", "1e-7"], "needs about 3.84e+07 steps for the 3.84 s rollout"),
+    (["fit", "--dt", "1e-300"], "at most 1000000 steps a rollout. Give dt >= 3.84e-06 s"),
+    (["fit", "--mass", "1e-300"], "the ball's mass 1e-300 kg is outside 1e-100..1e+100 kg"),
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)

@@ -48,6 +48,14 @@ SETTLE_MARGIN = 1.1
 #: bounces the targets describe.
 MIN_STEPS = 100
 
+#: Masses (kg) :func:`fit_bounce` fits a ball of: its stiffness and damping scale as 1e4 m
+#: and 1e2 m, and their products (k m, c^2) must stay inside float64's range.
+MASS_RANGE = (1e-100, 1e100)
+
+#: Most steps one :func:`fit_bounce` rollout takes: a fit rolls out about a hundred times, so
+#: dt = 1e-7 s (38 million steps on the default ball) ran for days without a word.
+MAX_STEPS = 1_000_000
+
 #: A decay-time fit's default rollout lasts at least this many times the target: the decay
 #: time is reported only when the energy left at the end is at most
 #: ``tuning.metrics.DECAY_TAIL`` of the start's (ln 1000 ~ 6.9 decay times for an
@@ -274,6 +282,13 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     notes = []
     mat = info["material"]
     g, m = info["g"], info["mass"]
+    if not MASS_RANGE[0] <= m <= MASS_RANGE[1]:
+        # the start's k ~ 1e4 m and c ~ sqrt(k m): a 1e-300 kg ball's damping underflowed to
+        # 0 and the fit stopped on "math domain error"
+        raise FitError(f"the ball's mass {m:g} kg is outside {MASS_RANGE[0]:g}.."
+                       f"{MASS_RANGE[1]:g} kg, where the fit's stiffness and damping (k about "
+                       "1e4 m N/m, c about sqrt(k m) N s/m) stay well inside the float range: "
+                       "give the mass in kg (or rescale the units).")
     n_apex = max([tg[k].size for k in ("apex_heights", "restitution", "contact_durations")
                   if k in tg] + [1])
     given = duration is not None
@@ -303,7 +318,15 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        "could not be told from one that settled on time. Give a duration of "
                        f"at least {SETTLE_MARGIN:g} x the target, or leave it out (default "
                        "1.4 x the target + 0.2 s).")
-    steps = int(math.ceil(duration / dt))
+    ratio = duration / dt
+    if not ratio <= MAX_STEPS:
+        raise FitError(f"time step dt = {dt:g} s needs about {ratio:.3g} steps for the "
+                       f"{duration:.3g} s rollout "
+                       + ("(duration)" if given else "the targets need") +
+                       f", and a fit rolls it out about a hundred times: at most {MAX_STEPS} "
+                       f"steps a rollout. Give dt >= {duration / MAX_STEPS:.3g} s (default "
+                       "1e-3 s).")
+    steps = int(math.ceil(ratio))
     if steps < MIN_STEPS:
         raise FitError(f"time step dt = {dt:g} s leaves {steps} step(s) in the "
                        f"{duration:.3g} s rollout "

@@ -81,12 +81,24 @@ def _down(x: float, digits: int) -> float:
     return math.floor(x / q * (1.0 + 1e-15)) * q
 
 
+def _count(n: int) -> str:
+    """A substep count in words: exact up to a million, else three digits."""
+    return str(n) if n <= 1_000_000 else f"about {float(n):.3g}"
+
+
 def _needed(dt: float, sdt: float) -> int:
+    """Smallest substep count ``n`` with ``dt / n`` within the safe step ``sdt`` (s)."""
     if math.isinf(sdt):
         return 1
     if sdt <= 0.0:
         return MAX_AUTO_SUBSTEPS + 1
-    n = max(1, math.ceil(dt / sdt))
+    ratio = dt / sdt
+    if not ratio < 2.0 ** 50:
+        # past 2^53 dt / n and dt / (n - 1) are one float: the search below never ended
+        # (k = 1e300 N/m or a 1e-300 kg body hung the rollout); a count that large is
+        # refused anyway
+        return int(min(ratio, 1e300)) + 1
+    n = max(1, math.ceil(ratio))
     while dt / n > sdt * (1.0 + SAFE_TIE):  # a step equal to the safe step is accepted
         n += 1
     while n > 1 and dt / (n - 1) <= sdt * (1.0 + SAFE_TIE):
@@ -270,7 +282,7 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None) -> i
         n = rep.substeps_needed
         if n > MAX_AUTO_SUBSTEPS:
             raise StabilityError(
-                f"substeps='auto' would need {n} substeps per step of dt={an.dt:g} s "
+                f"substeps='auto' would need {_count(n)} substeps per step of dt={an.dt:g} s "
                 f"(safe step {rep.safe_dt:.3g} s, {rep.limiting}): too slow. Lower the "
                 "stiffness, raise the mass, or use integrator='implicit_euler'.",
                 stable_dt=rep.safe_dt, substeps=n)
@@ -282,7 +294,9 @@ def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None) -> i
                 f"integrator {an.integrator.name!r} has no practical step here: the safe step "
                 f"is {rep.safe_dt:.3g} s (w_max <= {rep.omega_max:.4g} rad/s, C/m <= "
                 f"{rep.damping_rate:.4g} 1/s, set by {rep.limiting or 'the springs and contacts'}"
-                f"), {rep.substeps_needed} substeps per step of {an.dt:g} s. Lower that "
+                f"), " + (f"{_count(rep.substeps_needed)} substeps per step of {an.dt:g} s"
+                          if rep.safe_dt > 0.0 else "too small for any count of substeps") +
+                ". Lower that "
                 "stiffness, damping or friction, raise the mass, or use "
                 "integrator='implicit_euler' (no step limit).",
                 stable_dt=rep.safe_dt, substeps=rep.substeps_needed)
