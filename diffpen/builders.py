@@ -86,10 +86,25 @@ def _kc(name: str, value) -> tuple[float, float] | None:
 
 
 def _pins(name: str, pinned, shape: tuple[int, ...]) -> set[tuple[int, ...]]:
-    """Grid coordinates of pinned nodes; negative indices count from the end."""
+    """Grid coordinates of pinned nodes; negative indices count from the end. ``pinned``: a
+    collection of node indices (integers for a 1-D builder, index tuples for a grid), one
+    integer for a 1-D builder's single node, or None for none."""
+    if pinned is None:
+        pinned = ()
+    elif isinstance(pinned, (int, np.integer)) and not isinstance(pinned, (bool, np.bool_)) \
+            and len(shape) == 1:
+        pinned = (pinned,)          # pinned=0 pinned no node at all ("0 or ()" is ())
+    try:
+        items = list(pinned)
+    except TypeError:
+        raise SceneError(f"{name}: pinned must be a list of node indices (e.g. [0] or [] for "
+                         f"none), got {pinned!r}.") from None
     out = set()
-    for p in (pinned or ()):
-        q = (p,) if isinstance(p, (int, np.integer)) else tuple(p)
+    for p in items:
+        try:
+            q = (p,) if np.ndim(p) == 0 else tuple(p)
+        except TypeError:
+            q = (p,)
         if len(q) != len(shape) or not all(isinstance(v, (int, np.integer))
                                            and not isinstance(v, (bool, np.bool_)) for v in q):
             raise SceneError(f"{name}: each pinned node must be {len(shape)} integer grid "

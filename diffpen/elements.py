@@ -56,6 +56,21 @@ def finite_vec(name: str, value, size: int) -> np.ndarray:
     return arr
 
 
+def unit_vector(arr: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(arr / |arr|, |arr|)`` of a finite vector without overflow or underflow: scaled by
+    its largest entry first (``np.linalg.norm`` of (1e200, 1e200, 0) is inf, and the
+    division gave a zero normal or quaternion). ``|arr|`` is inf where it overflows and 0
+    for a zero vector (then the unit vector is zeros)."""
+    arr = np.asarray(arr, dtype=float)
+    scale = float(np.max(np.abs(arr), initial=0.0))
+    if scale == 0.0:
+        return np.zeros_like(arr), 0.0
+    scaled = arr / scale
+    length = float(np.linalg.norm(scaled))
+    with np.errstate(over="ignore"):
+        return scaled / length, scale * length
+
+
 def number(name: str, value) -> float:
     """A finite real number (no strings, bools or arrays: they are refused, not coerced)."""
     arr = _real_array(name, value, "a number")

@@ -17,7 +17,7 @@ import numpy as np
 
 from .elements import (DEFAULT, AnchoredSpring, Body, Drag, FixedSphere, Material,
                        PlasticSpring, Plane, Spring, SpringGroup, finite_vec, number,
-                       positive, vec3)
+                       positive, unit_vector, vec3)
 from .errors import SceneError
 from .overlap import OverlapIndex
 
@@ -162,8 +162,7 @@ class Scene:
             fit where a measured ground really is. Unnamed planes keep a constant offset.
         Returns: the plane's index.
         """
-        n = np.asarray(vec3("plane normal", normal))
-        norm = float(np.linalg.norm(n))
+        n, norm = unit_vector(vec3("plane normal", normal))
         if norm == 0.0:
             raise SceneError("plane normal must be non-zero, e.g. (0, 0, 1) for the ground.")
         offset = number("plane offset (m)", offset)
@@ -173,7 +172,7 @@ class Scene:
                 raise SceneError(f"plane name must be a non-empty string, got {name!r}.")
             if any(pl.name == name for pl in self.planes):
                 raise SceneError(f"a plane named {name!r} exists already: names must differ.")
-        plane = Plane(tuple(float(a) for a in n / norm), offset, material, name)
+        plane = Plane(tuple(float(a) for a in n), offset, material, name)
         if not self._allowed(allow_overlap):
             self._overlap.check_collider(self, "plane", plane, len(self.planes))
         self.planes.append(plane)
@@ -372,8 +371,7 @@ class Scene:
         """Turn the just-added body ``i`` into a rigid body (removed again on bad input)."""
         body = self.bodies[i]
         try:
-            q = finite_vec("orientation (w, x, y, z)", orientation, 4)
-            norm = float(np.linalg.norm(q))
+            q, norm = unit_vector(finite_vec("orientation (w, x, y, z)", orientation, 4))
             if norm < 1e-12:
                 raise SceneError("orientation quaternion is zero: give a rotation as "
                                  "(w, x, y, z), e.g. (1, 0, 0, 0) for none.")
@@ -392,7 +390,7 @@ class Scene:
                         "plate reaches equality). Check the values and their order (body "
                         "x, y, z axes).")
             rigid = dataclasses.replace(
-                body, rigid=True, orientation=tuple(float(v) for v in q / norm),
+                body, rigid=True, orientation=tuple(float(v) for v in q),
                 angular_velocity=w, inertia=inertia, half_extents=half_extents)
             if body.kind == "box":
                 self._overlap.check_body(self, rigid, i, allow=self._allowed(allow_overlap))

@@ -1,5 +1,7 @@
 """Soft-body builders: structure, cloth sag against an independent scipy equilibrium, contact
 of nodes, left-out terms, bad input."""
+import re
+
 import numpy as np
 import pytest
 from scipy.optimize import minimize
@@ -247,3 +249,22 @@ def test_yield_strain_params_are_real_scalars():
         with pytest.raises(dp.SceneError, match=words):
             sim.params(extra={"plastic": {"bar": bad}})
     sim.params(extra={"plastic": {"bar": 0.1}})
+
+
+def test_one_pinned_index_pins_that_node_and_anything_else_is_refused_clearly():
+    """``add_rope(pinned=0)`` pinned no node at all (``0 or ()``); ``pinned=2`` and
+    ``pinned=[1.0]`` ended on raw TypeErrors."""
+    for pin, want in ((0, [0]), (2, [2]), (None, []), ((0, -1), [0, 3])):
+        s = dp.Scene()
+        add_rope(s, 4, (0.0, 0.0, 1.0), (1.0, 0.0, 1.0), 0.1, 100.0, pinned=pin)
+        assert [i for i, b in enumerate(s.bodies) if b.pinned] == want, pin
+    s = dp.Scene()
+    add_crumple_bar(s, 3, (0.0, 0.0, 1.0), (1.0, 0.0, 1.0), 0.1, 100.0, yield_strain=0.1,
+                    pinned=0)
+    assert [b.pinned for b in s.bodies] == [True, False, False]
+    for pin, words in ((True, "pinned must be a list of node indices"),
+                       ([1.0], "must be 1 integer grid index(es)")):
+        with pytest.raises(dp.SceneError, match=re.escape(words)):
+            add_rope(dp.Scene(), 4, (0.0, 0.0, 1.0), (1.0, 0.0, 1.0), 0.1, 100.0, pinned=pin)
+    with pytest.raises(dp.SceneError, match="pinned must be a list of node indices"):
+        add_cloth(dp.Scene(), 3, 3, 0.1, 0.1, structural=(10.0, 0.1), pinned=0)

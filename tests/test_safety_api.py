@@ -581,3 +581,19 @@ def test_a_scene_far_from_the_origin_is_refused_where_the_dtype_cannot_resolve_i
     for z in (0.0, 100.0):
         dp.compile(scene(z), 1e-3, dtype=jnp.float32)
     dp.compile(scene(1e4), 1e-3, dtype=jnp.float64)
+
+
+def test_huge_and_tiny_normals_and_quaternions_are_normalised():
+    """A plane normal (1e200, 1e200, 0) and a box orientation (1e200, 1e200, 0, 0) became
+    zeros (their norm overflowed to inf): the plane pushed nothing and the box's rollout
+    failed blaming the time step. A normal of 1e-200 entries underflowed the same way."""
+    s = dp.Scene()
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0), orientation=(1e200, 1e200, 0.0, 0.0))
+    s.add_plane((1e200, 1e200, 0.0), offset=-5.0)
+    s.add_plane((1e-200, 0.0, 1e-200), offset=-5.0)
+    h = np.sqrt(0.5)
+    np.testing.assert_allclose(s.bodies[0].orientation, (h, h, 0.0, 0.0), rtol=1e-15)
+    np.testing.assert_allclose(s.planes[0].normal, (h, h, 0.0), rtol=1e-15)
+    np.testing.assert_allclose(s.planes[1].normal, (h, 0.0, h), rtol=1e-15)
+    with pytest.raises(dp.SceneError, match="plane normal must be non-zero"):
+        s.add_plane((0.0, 0.0, 0.0))

@@ -8,6 +8,7 @@ import numpy as np
 
 import diffpen as dp
 from diffpen import builders
+from diffpen.elements import unit_vector
 
 from .. import validate as V
 from ..validate import Where
@@ -57,7 +58,7 @@ def _int_grid(w: Where, v, dims: int) -> list:
 
 
 def _quat_rotate(q, v) -> tuple:
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
+    w, x, y, z = unit_vector(np.asarray(q, float))[0]
     r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
