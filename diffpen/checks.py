@@ -223,9 +223,14 @@ def _check_one_contact_record(scene, method, contact_law, width, builtin_terms) 
                          f"Give law={contact_law.name!r} (its records fit any scene).")
 
 
-def check_rollout_options(steps, save_every, substeps, checkpoint) -> None:
+def check_rollout_options(steps, save_every, substeps, checkpoint, **flags) -> None:
     """``steps``, ``save_every``, ``substeps`` and ``checkpoint`` of ``Simulator.rollout``
-    (see its docstring). Raises SceneError."""
+    (see its docstring), and its switches ``flags`` (``check_stability``, ``check_finite``:
+    True or False; None switched the stability check off, "no" left it on). Raises
+    SceneError."""
+    for name, value in flags.items():
+        if not isinstance(value, (bool, np.bool_)):
+            raise SceneError(f"{name} must be True or False, got {value!r}.")
     if not isinstance(steps, (int, np.integer)) or isinstance(steps, bool) or steps <= 0:
         raise SceneError(f"steps must be a positive int, got {steps!r}.")
     if (not isinstance(save_every, (int, np.integer)) or save_every <= 0

@@ -480,7 +480,9 @@ class Simulator:
         """
         given, save_every = save_every, (1 if save_every is None else save_every)
         _checks.check_rollout(self, params, steps, state, save_every, observe)
-        _checks.check_rollout_options(steps, save_every, substeps, checkpoint)
+        _checks.check_rollout_options(steps, save_every, substeps, checkpoint,
+                                      check_stability=check_stability,
+                                      check_finite=check_finite)
         _checks.warn_batched_recording(params, state, steps, given, observe)
         if state is None:
             state = self._init
@@ -545,7 +547,8 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         (``diffpen.laws``), continuous through contact start and end, so no band is needed.
         A width > 0 selects the smoothed pointwise law instead (no step averaging). Static:
         changing it recompiles.
-      exponent: Hunt-Crossley exponent n (1.5 = Hertz); ignored by the other laws.
+      exponent: Hunt-Crossley exponent n (1.5 = Hertz); any other value than 1 with
+        another law is refused.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).
       substeps: inner steps of ``dt / substeps`` per step (int >= 1), or ``"auto"``: each

@@ -476,9 +476,18 @@ def get(law, exponent: float = 1.0, centred: bool = False, events: bool = False)
     :data:`CONTACT_LAWS` (``exponent`` goes to ``hunt_crossley``; ``centred`` builds the
     name's record with its damping at the step window's centre, ``events`` its event-exact
     one-contact record, :mod:`diffpen.event_step`). Raises ValueError naming the choices
-    otherwise."""
+    otherwise, and an ``exponent`` other than 1 for any other name, or other than a record's
+    own (it was ignored: a linear law asked for with exponent 2.0 ran linear)."""
     if isinstance(law, ContactLaw):
+        if exponent not in (1.0, law.exponent):
+            raise ValueError(f"exponent={exponent!r} differs from the contact law record's own "
+                             f"({law.exponent:g}): a record carries its exponent; leave the "
+                             "exponent out or build the record with the one you want.")
         return law
+    if exponent != 1.0 and law != "hunt_crossley":
+        raise ValueError(f"exponent={exponent!r} is read by law='hunt_crossley' only "
+                         f"(law={law!r} has none): pass law='hunt_crossley' or leave the "
+                         "exponent out.")
     if isinstance(law, str) and law in CONTACT_LAWS:
         if law == "hunt_crossley":
             return hunt_crossley(exponent, centred, events)

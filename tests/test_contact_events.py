@@ -41,7 +41,8 @@ def test_zero_force_and_derivative_apart_every_contact_kind(law, width, h):
     state. (The force-space clamp of no_tension / hunt_crossley left k width^n / 8 acting at
     any distance: 1.25 N at k = 1e5, width = 1e-2.) Per pair, every law and both forms are
     checked by the next test; here every contact kind routes through the law."""
-    sim = dp.compile(_apart_scene(), 1e-3, law=law, smoothing=width, exponent=1.5)
+    sim = dp.compile(_apart_scene(), 1e-3, law=law, smoothing=width,
+                     exponent=1.5 if law == "hunt_crossley" else 1.0)
     kinds = {"contact_plane", "contact_sphere_sphere", "contact_sphere_box",
              "contact_box_plane", "contact_fixed_sphere", "contact_box_fixed_sphere"}
     assert kinds <= set(sim.terms)
@@ -492,6 +493,12 @@ def test_compile_takes_a_record_or_a_name():
         dp.compile(scene, 1e-3, law="hertz")
     with pytest.raises(dp.SceneError, match="exponent"):
         dp.compile(scene, 1e-3, law="hunt_crossley", exponent=0.5)
+    # an exponent with another law was ignored: law="linear", exponent=2.0 ran linear
+    with pytest.raises(dp.SceneError, match="read by law='hunt_crossley' only"):
+        dp.compile(scene, 1e-3, law="linear", exponent=2.0)
+    with pytest.raises(dp.SceneError, match="differs from the contact law record's own"):
+        dp.compile(scene, 1e-3, law=plain, exponent=2.0)
+    assert dp.compile(scene, 1e-3, law=plain, exponent=1.5).contact_law is plain
 
 
 # --------------------------------------------------------------------------- no length scale

@@ -597,3 +597,14 @@ def test_huge_and_tiny_normals_and_quaternions_are_normalised():
     np.testing.assert_allclose(s.planes[1].normal, (h, 0.0, h), rtol=1e-15)
     with pytest.raises(dp.SceneError, match="plane normal must be non-zero"):
         s.add_plane((0.0, 0.0, 0.0))
+
+
+def test_rollout_switches_take_true_or_false_only():
+    """``rollout(check_stability=None)`` switched the stability check off and
+    ``check_finite="no"`` left the finiteness check on, without a word."""
+    sim = dp.compile(ball_scene(), 1e-3)
+    p = sim.params(k=1e4, c=10.0)
+    for name, bad in (("check_stability", None), ("check_finite", "no"),
+                      ("check_stability", 1)):
+        with pytest.raises(dp.SceneError, match=f"{name} must be True or False"):
+            sim.rollout(p, 10, **{name: bad})
