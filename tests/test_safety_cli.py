@@ -67,6 +67,9 @@ def err_of(capsys, argv):
     (["fit", "--dt", "1e-7"], "needs about 3.84e+07 steps for the 3.84 s rollout"),
     (["fit", "--dt", "1e-300"], "at most 1000000 steps a rollout. Give dt >= 3.84e-06 s"),
     (["fit", "--mass", "1e-300"], "the ball's mass 1e-300 kg is outside 1e-100..1e+100 kg"),
+    # read by nothing, accepted without a word
+    (["fit", "--lr", "0.1"], "--lr is the learning rate of the optax optimisers"),
+    (["fit", "--loss", "l1"], "--first-state and --loss need a scene file"),
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)

@@ -161,7 +161,9 @@ group = "air"
 
 
 def _quat_matrix(q):
-    w, x, y, z = np.asarray(q) / np.linalg.norm(q)
+    # normalised as the scene does (diffpen.elements.unit_vector), to the last bit
+    from diffpen.elements import unit_vector
+    w, x, y, z = unit_vector(np.asarray(q, float))[0]
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
@@ -382,6 +384,16 @@ BAD = [
     (BALL + FIT.replace("[fit]", "[fit]\nflight_frames = 2"),
      r"fit\.flight_frames must be an integer >= 3"),
     (BALL + FIT.replace("[fit]", "[fit]\nhorizon = [0.5, -1]"), r"fit\.horizon\[1\] must be > 0"),
+    # settings the fit does not read were accepted and ignored (and params = [] fitted the
+    # contact's k and c)
+    (BALL + FIT.replace("[fit]", "[fit]\nlr = 0.1"),
+     r"fit\.lr is the learning rate of the optax optimisers .*method = \"lm\" does not"),
+    (BALL + FIT.replace("[fit]", "[fit]\nhorizon = [0.5]"),
+     r"fit\.horizon is read by fits to motion records"),
+    (BALL + FIT.replace("[fit]", '[fit]\nfirst_state = "record"'),
+     r"fit\.first_state is read by fits to motion records"),
+    (BALL + FIT.replace('params = ["contact.rubber.k"]', "params = []"),
+     r"fit\.params is empty: name the leaves to fit"),
     ("duration = 1e9\n" + BALL,
      r"duration = 1e\+09 s at dt = 0\.001 s is 1e\+12 steps: a rollout saving every step "
      r"would hold about .* TiB and run for roughly .* days.*max_steps="),

@@ -178,9 +178,14 @@ def _run(args) -> int:
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
-            or args.flight_frames is not None or args.first_state is not None):
-        raise CLIError("--out, --horizon, --starts, --keep, --flight-frames and "
-                       "--first-state need a scene file and --data records")
+            or args.flight_frames is not None or args.first_state is not None
+            or args.loss != "l2"):
+        raise CLIError("--out, --horizon, --starts, --keep, --flight-frames, --first-state "
+                       "and --loss need a scene file and --data records")
+    if args.scene is None and args.method == "lm" and args.lr != DEFAULT_LR:
+        # it was accepted and unused
+        raise CLIError("--lr is the learning rate of the optax optimisers (--method adam or "
+                       "sgd); Levenberg-Marquardt (--method lm, the default) does not read it")
     if args.data and len(args.data) > 1:
         raise CLIError("without a scene file --data reads one t,z record of the ball; give "
                        "SCENE.toml to fit several records")
@@ -437,6 +442,9 @@ def _run_records(args) -> int:
     """SCENE.toml --data FILES...: the scene file's [fit] params fitted to all records."""
     if args.method != "lm":
         raise CLIError("fits to records use Levenberg-Marquardt (--method lm)")
+    if args.lr != DEFAULT_LR:
+        raise CLIError("--lr is the learning rate of the optax optimisers; fits to records use "
+                       "Levenberg-Marquardt, which does not read it")
     if args.plot:
         raise CLIError("--plot draws ball fits; for records run diffpen evaluate FITTED.toml "
                        "--data FILES... --plot DIR on the scene written by --out")

@@ -85,6 +85,20 @@ class _FitTable:
         horizon = (None if "horizon" not in fit else [] if fit["horizon"] == [] else
                    sorted(V.number_list(w / "horizon", fit["horizon"], low=0.0, low_open=True,
                                         unit="s")))
+        # settings a fit of this kind does not read were accepted and ignored
+        if "lr" in fit and method == "lm":
+            raise (w / "lr").error("is the learning rate of the optax optimisers (method = "
+                                   "\"adam\" or \"sgd\"); method = \"lm\" does not read it: "
+                                   "drop it or choose an optax method.")
+        if has_t:
+            for key in ("first_state", "flight_frames", "horizon"):
+                if key in fit:
+                    raise (w / key).error("is read by fits to motion records (data = ...); a "
+                                          "fit to [fit.targets] does not read it: drop it.")
+        if fit.get("params") == []:
+            raise (w / "params").error("is empty: name the leaves to fit (e.g. "
+                                       "[\"contact.default.k\", \"contact.default.c\"]), or "
+                                       "leave params out to fit the contact's k and c.")
         free, bounds, space = self.fit_params(w, fit, sf, k, c)
         return FitSpec(free=free, bounds=bounds, space=space, targets=targets, data=data,
                        body=body, plane=plane, observe=observe, method=method,
