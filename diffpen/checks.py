@@ -510,6 +510,38 @@ def _check_state(sim, state) -> None:
 FAR_COARSER = 16.0
 
 
+def check_dtype_range(scene, dtype) -> None:
+    """Refuse a scene number that ``dtype`` cannot hold: past its largest finite value it
+    becomes inf when the simulator is built (float32: a sphere at x = 1e39 m compiled and its
+    rollout stopped on NaN blaming the time step). Every number of every element (bodies,
+    planes, fixed spheres, springs, materials, spring and drag groups, gravity). Raises
+    SceneError naming the element and the value."""
+    import dataclasses
+    top = float(np.finfo(dtype).max)
+    name = np.dtype(dtype).name
+
+    def walk(what, value):
+        if dataclasses.is_dataclass(value):
+            for f in dataclasses.fields(value):
+                walk(f"{what}.{f.name}", getattr(value, f.name))
+        elif isinstance(value, (tuple, list)):
+            for v in value:
+                walk(what, v)
+        elif isinstance(value, (float, int, np.floating, np.integer)) \
+                and not isinstance(value, (bool, np.bool_)) and abs(float(value)) > top:
+            raise SceneError(f"{what} = {float(value):.4g} is past {name}'s largest number "
+                             f"({top:.4g}): it would become inf. Rescale the units, or "
+                             "compile with dtype=jnp.float64.")
+    walk("gravity", scene.gravity)
+    for kind in ("bodies", "planes", "fixed_spheres", "springs", "anchored_springs",
+                 "plastic_springs", "drags"):
+        for i, e in enumerate(getattr(scene, kind)):
+            walk(f"{kind}[{i}]", e)
+    for kind in ("materials", "spring_groups", "drag_groups"):
+        for key, e in getattr(scene, kind).items():
+            walk(f"{kind}[{key!r}]", e)
+
+
 def check_coordinates(scene, dtype) -> None:
     """Refuse a scene placed so far from the origin that ``dtype`` cannot resolve its motion
     there: the spacing of representable numbers at its farthest coordinate (body positions,

@@ -129,6 +129,7 @@ class Simulator:
             raise SceneError("dtype float64 needs jax.config.update('jax_enable_x64', True) "
                              "before compiling.")
 
+        _checks.check_dtype_range(scene, self.dtype)
         _checks.check_coordinates(scene, self.dtype)
         bodies = scene.bodies
         self.n_bodies = len(bodies)

@@ -117,9 +117,11 @@ class OverlapIndex:
 
     # ------------------------------------------------------------ grid
     def _range(self, x, r):
-        lo = np.floor((np.asarray(x) - r) / self.h).astype(int)
-        hi = np.floor((np.asarray(x) + r) / self.h).astype(int)
-        return lo, hi
+        # clipped to the integers' range: a body 1e39 m out made an invalid cast (its cell
+        # then shares the clipped edge cell with any other that far, compared directly)
+        def cell(v):
+            return np.clip(np.floor(v / self.h), -2.0 ** 62, 2.0 ** 62).astype(np.int64)
+        return cell(np.asarray(x) - r), cell(np.asarray(x) + r)
 
     def _ncells(self, lo, hi) -> int:
         return int(np.prod(hi - lo + 1))

@@ -94,7 +94,22 @@ def _checked_pair(sim, make, kind: str, owner: str, kk, cc):
     ``"{kind} k of {owner} (N/m)"``)."""
     _check_value(f"{kind} k of {owner} (N/m)", kk)
     _check_value(f"{kind} c of {owner} (N s/m)", cc)
-    return make(cast(sim.dtype, kk), cast(sim.dtype, cc))
+    return make(_in_dtype(sim, f"{kind} k of {owner} (N/m)", kk),
+                _in_dtype(sim, f"{kind} c of {owner} (N s/m)", cc))
+
+
+def _in_dtype(sim, name: str, v):
+    """:func:`cast` of a checked value to the simulator's dtype, refusing a host value past
+    the dtype's largest number (float32: k = 1e300 became inf, and the rollout then said
+    "k must be finite, got inf" of a value given finite)."""
+    with np.errstate(over="ignore"):        # refused just below, by name
+        out = cast(sim.dtype, v)
+    if isinstance(out, np.ndarray) and not np.all(np.isfinite(out)):
+        top = float(np.finfo(sim.dtype).max)
+        raise SceneError(f"{name} = {float(np.asarray(v)):.4g} is past "
+                         f"{np.dtype(sim.dtype).name}'s largest number ({top:.4g}): it would "
+                         "become inf. Rescale the units, or compile with dtype=jnp.float64.")
+    return out
 
 
 def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
@@ -143,7 +158,8 @@ def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
             check = sim._extra_checks.get(name, _check_value)
             for g, v in merged.items():
                 check(f"{name} parameter of group {g!r}", v)
-            out_x[name] = {g: cast(sim.dtype, v) for g, v in merged.items()}
+            out_x[name] = {g: _in_dtype(sim, f"{name} parameter of group {g!r}", v)
+                           for g, v in merged.items()}
         elif name not in out_x:
             out_x[name] = default
     return Params(out_c, out_s, out_x)

@@ -608,3 +608,26 @@ def test_rollout_switches_take_true_or_false_only():
                       ("check_stability", 1)):
         with pytest.raises(dp.SceneError, match=f"{name} must be True or False"):
             sim.rollout(p, 10, **{name: bad})
+
+
+def test_numbers_past_float32s_range_are_refused_by_name():
+    """In float32 a sphere at x = 1e39 m compiled with an inf start state (its rollout then
+    stopped on NaN blaming the time step), and sim.params(k=1e300) became inf (the rollout
+    then said k must be finite, of a value given finite)."""
+    s = dp.Scene()
+    s.add_sphere(0.1, 1.0, (1e39, 0.0, 1.0))
+    s.add_plane()
+    with pytest.raises(dp.SceneError, match=r"bodies\[0\]\.position = 1e\+39 is past "
+                                            "float32's largest number"):
+        dp.compile(s, 1e-3, dtype=jnp.float32)
+    s = dp.Scene()
+    s.add_material("hard", k=1e300, c=1.0)
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    s.add_plane(material="hard")
+    with pytest.raises(dp.SceneError, match=r"materials\['hard'\]\.k = 1e\+300 is past"):
+        dp.compile(s, 1e-3, dtype=jnp.float32)
+    sim = dp.compile(ball_scene(), 1e-3, dtype=jnp.float32)
+    with pytest.raises(dp.SceneError, match=r"contact k of material 'default' \(N/m\) = "
+                                            r"1e\+300 is past float32's largest number"):
+        sim.params(k=1e300, c=1.0)
+    assert np.isfinite(sim.params(k=1e30, c=1.0).contact["default"].k)
