@@ -105,6 +105,35 @@ def estimate(sim, steps: int, save_every: int = 1, observe=None) -> tuple[float,
 _OBSERVED: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
+def _check_observe(sim, observe) -> None:
+    """``observe`` must be a function of the state returning arrays: a string failed with
+    "'str' object is not callable" from inside the rollout, and a function returning text
+    with a raw error of JAX's scan. Raises SceneError (errors raised by ``observe`` itself
+    are left to the rollout, which reports them)."""
+    if not callable(observe):
+        raise SceneError(f"observe must be a function of the state returning arrays (e.g. "
+                         f"lambda s: s.position[:, 2]), got {observe!r}.")
+    try:
+        if observe in _OBSERVED[sim]:
+            return                      # checked and measured by an earlier rollout
+    except (KeyError, TypeError):
+        pass
+    try:
+        out = jax.eval_shape(observe, _spec(sim))
+    except TypeError as exc:
+        if "valid JAX type" not in str(exc):
+            return                      # the rollout itself reports a failing observe
+        bad = [str(exc).split("of type ", 1)[-1].split(" at ", 1)[0]]
+    except Exception:  # noqa: BLE001 - the rollout itself reports a failing observe
+        return
+    else:
+        bad = [type(leaf).__name__ for leaf in jax.tree_util.tree_leaves(out)
+               if not isinstance(leaf, jax.ShapeDtypeStruct)]
+    if bad:
+        raise SceneError(f"observe(state) must return arrays or a pytree of them, got "
+                         f"{', '.join(sorted(set(bad)))} in its output.")
+
+
 def observed_bytes(sim, observe) -> float:
     """Bytes of one ``observe(state)`` output on this simulator's state (``jax.eval_shape``:
     nothing is computed; remembered per simulator and function), 0 when ``observe`` cannot
@@ -351,6 +380,8 @@ def check_step(sim, params, state) -> None:
 def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
     """Check ``sim.rollout``'s arguments; raise :class:`SceneError` saying what to change."""
     _check_params(sim, params, "rollout")
+    if observe is not None:
+        _check_observe(sim, observe)
     steps = _int("steps", steps)
     save_every = _int("save_every", save_every)
     stored, seconds = estimate(sim, steps, save_every, observe)

@@ -378,6 +378,7 @@ class Simulator:
         would take (default the scene's), whose energy bounds the depth of a contact law
         that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
         """
+        _checks._check_params(self, params, "sim.stability")
         rep = _stability.report(self.analysis, params, energy=self.start_energy(
             self._init if state is None else state, params))
         if rep is None:

@@ -115,6 +115,12 @@ def _in_dtype(sim, name: str, v):
 def build(sim, k=None, c=None, *, contact: dict | None = None, spring_k=None,
           spring_c=None, springs: dict | None = None, extra: dict | None = None) -> Params:
     """``sim.params(...)``: see :meth:`diffpen.Simulator.params` (arguments, units)."""
+    for what, given, example in (("contact", contact, "{'default': (1e4, 20.0)}"),
+                                 ("springs", springs, "{'rope.stretch': (500.0, 0.5)}"),
+                                 ("extra", extra, "{'friction': {'default': 0.3}}")):
+        if given is not None and not isinstance(given, dict):
+            raise SceneError(f"sim.params({what}=...) takes a dict, e.g. {what}={example}; "
+                             f"got {given!r}.")
     contact = dict(contact or {})
     springs = dict(springs or {})
     for name in contact:

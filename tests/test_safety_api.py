@@ -469,7 +469,8 @@ def test_stability_report_refuses_non_finite_params(sim):
     p = sim.params(k=1e4, c=20.0)
     mat = next(iter(p.contact))
     bad = p._replace(contact={**p.contact, mat: p.contact[mat]._replace(k=float("nan"))})
-    with pytest.raises(dp.SceneError, match="NaN, infinite or negative"):
+    with pytest.raises(dp.SceneError, match=r"contact k of material '\w+' \(N/m\) must be "
+                                            "finite, got nan"):
         sim.stability(bad)
 
 
@@ -631,3 +632,22 @@ def test_numbers_past_float32s_range_are_refused_by_name():
                                             r"1e\+300 is past float32's largest number"):
         sim.params(k=1e300, c=1.0)
     assert np.isfinite(sim.params(k=1e30, c=1.0).contact["default"].k)
+
+
+def test_params_stability_and_observe_arguments_of_the_wrong_kind_say_so():
+    """Raw Python errors before: sim.params(contact=[1, 2]) a TypeError, extra="x" a
+    ValueError, sim.stability(None) an AttributeError, rollout(observe="x") "'str' object is
+    not callable", and an observe returning text a raw error of JAX's scan."""
+    sim = dp.compile(ball_scene(), 1e-3)
+    p = sim.params(k=1e4, c=10.0)
+    cases = ((lambda: sim.params(contact=[1, 2]), r"sim.params\(contact=...\) takes a dict"),
+             (lambda: sim.params(k=1.0, c=1.0, extra="x"), r"params\(extra=...\) takes a dict"),
+             (lambda: sim.params(springs=[1]), r"sim.params\(springs=...\) takes a dict"),
+             (lambda: sim.stability(None), "sim.stability needs the params pytree"),
+             (lambda: sim.rollout(p, 10, observe="x"), "observe must be a function"),
+             (lambda: sim.rollout(p, 10, observe=lambda s: "a"),
+              "observe.state. must return arrays"))
+    for call, words in cases:
+        with pytest.raises(dp.SceneError, match=words):
+            call()
+    assert sim.rollout(p, 10, observe=lambda s: s.position[:, 2]).observed.shape == (10, 1)
