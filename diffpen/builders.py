@@ -56,8 +56,19 @@ def _pos(name: str, value) -> float:
     return v
 
 
+def _nonneg(name: str, value) -> float:
+    """A finite number >= 0 (0 allowed, e.g. no drag or no gravity)."""
+    if isinstance(value, (int, float, np.integer, np.floating)) and value == 0 \
+            and not isinstance(value, (bool, np.bool_)):
+        return 0.0
+    return _pos(name, value)
+
+
 def _vec(name: str, value) -> np.ndarray:
     try:
+        if isinstance(value, (str, bytes)) or any(
+                isinstance(v, (str, bytes, bool, np.bool_)) for v in value):
+            raise ValueError                # numbers only, never coerced ("0", True)
         arr = np.asarray(value, dtype=float).reshape(-1)
     except (TypeError, ValueError):
         raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
@@ -117,7 +128,12 @@ def _pins(name: str, pinned, shape: tuple[int, ...]) -> set[tuple[int, ...]]:
     return out
 
 
-def _check_new_groups(scene: Scene, names: Iterable[str]) -> None:
+def _check_new_groups(scene: Scene, names: Iterable[str], group) -> None:
+    """Refuse ``group`` (the builder's prefix) unless a non-empty string (None made groups
+    named "None.stretch"), and any of ``names`` the scene already has."""
+    if not (isinstance(group, str) and group):
+        raise SceneError(f"group must be a non-empty string (the prefix of the builder's "
+                         f"spring groups), got {group!r}.")
     for g in names:
         if g in scene.spring_groups or g in scene.drag_groups:
             raise SceneError(f"group {g!r} already exists in this scene: pass another "
@@ -202,7 +218,7 @@ def add_rope(scene: Scene, n: int, start: Sequence[float], end: Sequence[float],
     bend = _kc("rope bend", bend)
     pins = _pins("rope pinned", pinned, (n,))
     velocity = _vec("rope velocity (m/s)", velocity)
-    _check_new_groups(scene, [f"{group}.stretch", f"{group}.bend", f"{group}.drag"])
+    _check_new_groups(scene, [f"{group}.stretch", f"{group}.bend", f"{group}.drag"], group)
     t = np.linspace(0.0, 1.0, n)[:, None]
     idx = _lattice(scene, p0 + t * (p1 - p0), mass / n, pins, velocity, collide)
     _connect(scene, _pairs(idx, [(1,)]), f"{group}.stretch", stretch)
@@ -264,7 +280,7 @@ def add_cloth(scene: Scene, nx: int, ny: int, spacing: float, mass: float, *,
         raise SceneError("cloth structural springs are required: give structural=(k, c).")
     pins = _pins("cloth pinned", pinned, (nx, ny))
     velocity = _vec("cloth velocity (m/s)", velocity)
-    _check_new_groups(scene, [f"{group}.{g}" for g in (*kcs, "drag")])
+    _check_new_groups(scene, [f"{group}.{g}" for g in (*kcs, "drag")], group)
     i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     pos = o + spacing * (i[..., None] * u + j[..., None] * v)
     idx = _lattice(scene, pos, mass / (nx * ny), pins, velocity, collide)
@@ -317,7 +333,7 @@ def add_jelly(scene: Scene, nx: int, ny: int, nz: int, spacing: float, mass: flo
         raise SceneError("jelly edge springs are required: give edge=(k, c).")
     pins = _pins("jelly pinned", pinned, (nx, ny, nz))
     velocity = _vec("jelly velocity (m/s)", velocity)
-    _check_new_groups(scene, [f"{group}.{g}" for g in (*kcs, "drag")])
+    _check_new_groups(scene, [f"{group}.{g}" for g in (*kcs, "drag")], group)
     grid = np.stack(np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij"),
                     axis=-1)
     idx = _lattice(scene, o + spacing * grid, mass / (nx * ny * nz), pins, velocity, collide)
@@ -375,7 +391,7 @@ def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[
                          f"{yield_strain!r}.")
     pin_st = {p[0] for p in _pins("bar pinned", pinned, (n,))}
     velocity = _vec("bar velocity (m/s)", velocity)
-    _check_new_groups(scene, [group, f"{group}.drag"])
+    _check_new_groups(scene, [group, f"{group}.drag"], group)
     if group in scene.plastic_groups:
         raise SceneError(f"plastic group {group!r} already exists: pass another group=.")
     t = np.linspace(0.0, 1.0, n)[:, None]
@@ -435,9 +451,12 @@ def paper_chain(*, seed: int = 0, spread: float = 80.0, n_balls: int = 7, mass: 
     """
     n_balls = _count("paper chain n_balls", n_balls, 3)
     mass, ks = _pos("chain mass (kg)", mass), _pos("chain KS (N/m)", ks)
-    kd = _kc("chain KD", (kd, 0.0))[0]
-    g = _kc("chain g", (g, 0.0))[0]
+    kd = _nonneg("chain KD (N s/m)", kd)
+    g = _nonneg("chain g (m/s^2, along -z)", g)
     p0, p1 = _vec("chain first (m)", first), _vec("chain last (m)", last)
+    if seed is not None and (isinstance(seed, (bool, np.bool_))
+                             or not isinstance(seed, (int, np.integer))):
+        raise SceneError(f"paper chain seed must be an integer (or None), got {seed!r}.")
     spread = 0.0 if spread == 0 and not isinstance(spread, (str, bytes, bool)) else _pos(
         "paper chain spread (m, the z scatter of the start positions; 0 for none)", spread)
     rng = np.random.default_rng(seed)
@@ -466,6 +485,8 @@ def paper_chain_equilibrium(*, n_balls: int = 7, mass: float = 10.0, ks: float =
     Returns: (n_balls, 3) positions, m, including the two fixed ends.
     """
     n = _count("paper chain n_balls", n_balls, 3)
+    mass, ks = _pos("chain mass (kg)", mass), _pos("chain KS (N/m)", ks)
+    g = _nonneg("chain g (m/s^2, along -z)", g)
     p0, p1 = _vec("chain first (m)", first), _vec("chain last (m)", last)
     m = n - 2
     K = ks * (2.0 * np.eye(m) - np.eye(m, k=1) - np.eye(m, k=-1))

@@ -268,3 +268,27 @@ def test_one_pinned_index_pins_that_node_and_anything_else_is_refused_clearly():
             add_rope(dp.Scene(), 4, (0.0, 0.0, 1.0), (1.0, 0.0, 1.0), 0.1, 100.0, pinned=pin)
     with pytest.raises(dp.SceneError, match="pinned must be a list of node indices"):
         add_cloth(dp.Scene(), 3, 3, 0.1, 0.1, structural=(10.0, 0.1), pinned=0)
+
+
+def test_builder_coordinates_groups_and_the_paper_chain_take_numbers_and_names_only():
+    """Coerced or crashing before: rope start ("0", "0", "1") accepted and (True, False,
+    True) refused as "start and end coincide"; group=None made groups "None.stretch";
+    paper_chain(g=-9.8) said "chain g = (k, c) must be ...", seed="a" a raw TypeError;
+    paper_chain_equilibrium(ks=0) a raw LinAlgError and mass=nan NaN positions."""
+    from diffpen.builders import paper_chain_equilibrium
+    end = (1.0, 0.0, 1.0)
+    cases = ((lambda: add_rope(dp.Scene(), 4, ("0", "0", "1"), end, 0.1, 100.0),
+              r"rope start \(m\) must be 3 numbers"),
+             (lambda: add_rope(dp.Scene(), 4, (True, False, True), end, 0.1, 100.0),
+              r"rope start \(m\) must be 3 numbers"),
+             (lambda: add_rope(dp.Scene(), 4, (0.0, 0.0, 1.0), end, 0.1, 100.0, group=None),
+              "group must be a non-empty string"),
+             (lambda: paper_chain(g=-9.8), r"chain g \(m/s\^2, along -z\) must be a positive"),
+             (lambda: paper_chain(seed="a"), "paper chain seed must be an integer"),
+             (lambda: paper_chain_equilibrium(ks=0), r"chain KS \(N/m\) must be a positive"),
+             (lambda: paper_chain_equilibrium(mass=float("nan")), "chain mass"))
+    for call, words in cases:
+        with pytest.raises(dp.SceneError, match=words):
+            call()
+    scene, balls = paper_chain(kd=0.0, g=0.0)         # no drag, no gravity: allowed
+    assert scene.gravity == (0.0, 0.0, 0.0) and len(balls) == 7
