@@ -26,6 +26,7 @@ building and validation in :mod:`diffpen.params`, start states in
 """
 from __future__ import annotations
 
+import math
 import types
 from typing import Callable
 
@@ -280,6 +281,16 @@ class Simulator:
         values, a search past its static capacity warns
         (:class:`diffpen.broadphase.BroadPhaseOverflowWarning`), as a rollout does: the
         forces then miss contacts."""
+        _checks._check_params(self, params, "sim.forces")
+        if h is not None:
+            try:
+                ok = not isinstance(h, (bool, str)) and math.isfinite(float(h)) and h > 0.0
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:      # NaN gave NaN forces and a negative step was taken as given
+                raise SceneError(f"h must be a positive, finite inner step in s (or None for "
+                                 f"the instantaneous forces), got {h!r}.")
+            h = float(h)
         out = self._forces_jit(params, state, h=h)
         if self._reporting and all(map(_is_concrete, jax.tree_util.tree_leaves(
                 (params, state)))):

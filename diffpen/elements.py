@@ -65,6 +65,9 @@ def unit_vector(arr: np.ndarray) -> tuple[np.ndarray, float]:
     scale = float(np.max(np.abs(arr), initial=0.0))
     if scale == 0.0:
         return np.zeros_like(arr), 0.0
+    if 1e-150 < scale < 1e150:          # no overflow or underflow: one rounding, as before
+        length = float(np.linalg.norm(arr))
+        return arr / length, length
     scaled = arr / scale
     length = float(np.linalg.norm(scaled))
     with np.errstate(over="ignore"):

@@ -651,3 +651,17 @@ def test_params_stability_and_observe_arguments_of_the_wrong_kind_say_so():
         with pytest.raises(dp.SceneError, match=words):
             call()
     assert sim.rollout(p, 10, observe=lambda s: s.position[:, 2]).observed.shape == (10, 1)
+
+
+def test_forces_checks_its_step_and_arguments():
+    """sim.forces(p, s, h=nan) returned NaN forces and h=-1 was taken as given; its params
+    are checked as a rollout's (the state may be any, e.g. a pinned body moving)."""
+    sim = dp.compile(ball_scene(), 1e-3)
+    p, s = sim.params(k=1e4, c=10.0), sim.init_state()
+    for bad in (float("nan"), -1.0, 0.0, "1e-3", True):
+        with pytest.raises(dp.SceneError, match="h must be a positive, finite inner step"):
+            sim.forces(p, s, h=bad)
+    with pytest.raises(dp.SceneError, match="needs the params pytree"):
+        sim.forces(None, s)
+    f, _ = sim.forces(p, s, h=1e-3)
+    assert np.all(np.isfinite(np.asarray(f)))
