@@ -165,7 +165,7 @@ def one_contact_per_body(scene, builtin_terms: bool = True) -> bool:
     by a string takes its damping at the step window's centre speed (``diffpen.laws``,
     ``centred``): semi-implicit Euler's velocity lags the position by half a step, and the
     centre speed is rebuilt from the contact's own force and gravity, which is exact for a
-    body on one contact (apexes within 0.1% instead of 0.3-0.9% low at dt 1e-3 on the
+    body on one contact (apex heights +0.03/+0.07/+0.12% instead of 0.3-0.9% low at dt 1e-3 on the
     quick-start ball). Elsewhere it keeps the plain step average: a body on several
     contacts rests exactly with it, and would not with the centred form."""
     if not builtin_terms:

@@ -8,9 +8,9 @@ A 0.1 m, 1 kg ball is dropped from a centre height of 1 m onto the plane z = 0.
 Each fit checks its targets against the scene, starts from closed-form guesses and runs
 Levenberg-Marquardt on the exact metrics. Two (k, c) pairs meet the swamp's two targets: an
 overdamped one that never rebounds (k ~ 300 N/m, damping ratio ~ 1.3) and an underdamped one
-that rebounds about 5 cm and is still by 1.0 s all the same (k ~ 1240 N/m, damping ratio
+that rebounds about 5 cm and is still by 1.0 s all the same (k ~ 1255 N/m, damping ratio
 ~ 0.35). The targets cannot tell them apart; the start decides, so the swamp starts from a
-soft k0 = 300 N/m (from the default start LM lands on the bouncing one). Prints the fitted
+soft k0 = 300 N/m (from the default start LM reaches neither: it ends still bouncing). Prints the fitted
 k, c, damping ratio and the achieved metrics; draws both trajectories to --plot when
 matplotlib is installed.
 

@@ -74,7 +74,10 @@ def fit_case(case, k0, c0):
               f"largest target error {worst:.1e}, {time.perf_counter() - t0:.1f} s")
 
 
-def main():
+def main(argv=None):
+    import argparse
+    argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split())
+                            ).parse_args(argv)      # --help; no options
     for case, k0, c0 in CASES:
         fit_case(case, k0, c0)
 

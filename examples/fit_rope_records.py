@@ -18,12 +18,18 @@ import argparse
 import os
 import tempfile
 
-from tuning import trajfit as tf
-from tuning.scene_fit import fit_files
-from tuning.synthetic import synthetic_record
-from tuning.evaluate import evaluate_files
-from tuning.records import write_record
-from tuning.scenefile import load_scene_file
+import jax
+
+# record fits in float64, as diffpen fit runs them (in float32 the library warns that record
+# fits are less reliable)
+jax.config.update("jax_enable_x64", True)
+
+from tuning import trajfit as tf  # noqa: E402
+from tuning.scene_fit import fit_files  # noqa: E402
+from tuning.synthetic import synthetic_record  # noqa: E402
+from tuning.evaluate import evaluate_files  # noqa: E402
+from tuning.records import write_record  # noqa: E402
+from tuning.scenefile import load_scene_file  # noqa: E402
 
 SCENE = """
 description = "a rope of 6 nodes hanging from one end"

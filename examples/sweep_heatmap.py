@@ -29,8 +29,8 @@ from tuning.sweep import grid_points, sweep  # noqa: E402
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
-         figures=os.path.join(HERE, "images")):
+def run(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
+        figures=os.path.join(HERE, "images")):
     if figures:             # the figures' folder first: a missing one must not cost the sweep
         os.makedirs(figures, exist_ok=True)
     sim = dp.compile(ball_scene(radius=0.1, mass=1.0, height=1.0), dt)
@@ -67,12 +67,16 @@ def main(n=64, duration=2.0, dt=1e-3, out="sweep_heatmap.npz", fresh=False,
         print(exc)
 
 
-if __name__ == "__main__":
+def main(argv=None):
     ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--out", default="sweep_heatmap.npz", help="results .npz (+ .csv)")
     ap.add_argument("--fresh", action="store_true", help="overwrite --out instead of resuming")
     ap.add_argument("--n", type=int, default=64, help="grid points per axis (default 64)")
     ap.add_argument("--figures", default=os.path.join(HERE, "images"),
                     help="folder for the two heatmaps (default examples/images; '' for none)")
-    a = ap.parse_args()
-    main(n=a.n, out=a.out, fresh=a.fresh, figures=a.figures)
+    a = ap.parse_args(argv)
+    run(n=a.n, out=a.out, fresh=a.fresh, figures=a.figures)
+
+
+if __name__ == "__main__":
+    main()

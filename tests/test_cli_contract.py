@@ -84,3 +84,22 @@ def test_examples_refuse_a_bad_picture_name_and_step_count_before_running(capsys
         assert "a figure's name must end in one of" in err and "integer >= 1" in err
     finally:
         sys.path.remove(str(EXAMPLES))
+
+
+def test_every_example_answers_help_without_running(capsys):
+    """``python examples/fit_event_exact.py --help`` ignored the flag and ran both fits
+    (15 s); every example now prints its usage and exits 0."""
+    import runpy
+    import sys
+    sys.path.insert(0, str(EXAMPLES))
+    try:
+        for path in sorted(EXAMPLES.glob("*.py")):
+            if path.name.startswith("_"):
+                continue
+            mod = runpy.run_path(str(path), run_name="example")
+            with pytest.raises(SystemExit) as exc:
+                mod["main"](["--help"])
+            assert exc.value.code == 0, path.name
+            assert capsys.readouterr().out.startswith("usage:"), path.name
+    finally:
+        sys.path.remove(str(EXAMPLES))
