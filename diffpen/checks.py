@@ -546,7 +546,8 @@ def check_dtype_range(scene, dtype) -> None:
     becomes inf when the simulator is built (float32: a sphere at x = 1e39 m compiled and its
     rollout stopped on NaN blaming the time step). Every number of every element (bodies,
     planes, fixed spheres, springs, materials, spring and drag groups, gravity), one array
-    per field (10,000 bodies: a few ms). Raises SceneError naming the element and the
+    per field (10,000 bodies: 0.13 s, against 2.5 s for their compile); nothing to check in
+    float64. Raises SceneError naming the element and the
     value."""
     import dataclasses
     top = float(np.finfo(dtype).max)
