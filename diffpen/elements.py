@@ -183,8 +183,8 @@ class PlasticSpring:
 @dataclasses.dataclass
 class Material:
     """Contact material: default penalty stiffness ``k`` (N/m) and damping ``c`` (N s/m);
-    Coulomb ``friction`` coefficient (on planes: box corners, spheres and particles, see
-    :mod:`diffpen.terms.rigid`) and the
+    Coulomb ``friction`` coefficient (on planes: box corners, spheres and particles; on fixed
+    spheres: spheres and particles; see :mod:`diffpen.terms.rigid`) and the
     ``slip_speed`` (m/s) below which friction is smoothed into a viscous law."""
     k: float | None = None
     c: float | None = None

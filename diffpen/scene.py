@@ -201,9 +201,10 @@ class Scene:
 
         ``friction`` (Coulomb coefficient mu >= 0) > 0 adds smooth Coulomb friction to the
         contacts of box corners, spheres (rigid or not) and particles with planes of this
-        material, ``-mu f_n v_t / sqrt(|v_t|^2 + slip_speed^2)`` (``slip_speed`` m/s > 0,
-        static); mu is then ``params.extra["friction"][name]``. Contacts with fixed spheres,
-        between spheres and with boxes stay frictionless.
+        material, and of spheres and particles with fixed spheres of it,
+        ``-mu f_n v_t / sqrt(|v_t|^2 + slip_speed^2)`` (``slip_speed`` m/s > 0, static); mu is
+        then ``params.extra["friction"][name]``. Contacts between spheres, with boxes and of
+        box corners with fixed spheres stay frictionless.
         """
         if not isinstance(name, str) or not name:
             raise SceneError(f"material name must be a non-empty string, got {name!r}.")

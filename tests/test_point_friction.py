@@ -7,6 +7,7 @@ floor). Closed forms: sliding, the speed falls at ``mu g`` and the body stops af
 ``v0^2 / (2 mu g)``; on a slope of angle ``a`` it accelerates at ``g (sin a - mu cos a)``.
 """
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -114,3 +115,35 @@ def test_friction_on_particles_counts_in_the_safe_step():
     with pytest.raises(dp.StabilityError, match="set by friction of material 'rough' below "
                        "its slip speed 1e-06 m/s"):
         sim.rollout(sim.params(k=1e3, c=1.0), steps=10)
+
+
+@pytest.mark.parametrize("mu", [0.3, 0.7])
+def test_a_particle_on_a_rough_fixed_sphere_slides_or_holds_by_the_slope(mu):
+    """A particle at rest 20 deg from the top of a fixed sphere of radius 1 m (contacts with
+    fixed spheres were frictionless): mu 0.3 < tan 20 deg starts sliding at
+    g (sin a - mu cos a) = 0.589 m/s^2 (3.355 without friction); mu 0.7 holds it, creeping
+    below twice the slip speed. The derivative of the speed w.r.t. mu is -g cos a t."""
+    a = np.radians(20.0)
+    up = np.array([np.sin(a), 0.0, np.cos(a)])
+    scene = dp.Scene()
+    scene.add_material("rough", friction=mu, slip_speed=SLIP)
+    scene.add_particle(1.0, tuple(up * (1.0 - G * np.cos(a) / K)), allow_overlap=True)
+    scene.add_fixed_sphere((0.0, 0.0, 0.0), 1.0, material="rough")
+    sim = dp.compile(scene, dt=1e-4)
+    assert "friction_fixed_sphere" in sim.terms
+
+    def speed(m):
+        """Speed down the sphere gained from 0.02 to 0.05 s (past the smooth law's start,
+        where it grips below the slip speed), m/s."""
+        p = sim.params(k=K, c=C, extra={"friction": {"rough": m}})
+        v = sim.rollout(p, steps=500, save_every=100).velocity[:, 0]
+        down = v @ jnp.asarray([np.cos(a), 0.0, -np.sin(a)])
+        return down[4] - down[1]
+    t = 0.03
+    if mu < np.tan(a):
+        np.testing.assert_allclose(float(speed(mu)), G * (np.sin(a) - mu * np.cos(a)) * t,
+                                   rtol=2e-2)
+        np.testing.assert_allclose(float(jax.grad(speed)(mu)), -G * np.cos(a) * t, rtol=2e-2)
+    else:
+        v = sim.rollout(sim.params(k=K, c=C), steps=500, save_every=500).velocity[-1, 0]
+        assert float(jnp.linalg.norm(v)) < 2 * SLIP

@@ -1,8 +1,8 @@
 """Rigid-body terms, the ones that produce torque: box corners on planes, their friction,
 boxes against fixed spheres, sphere-box contact and anchored springs (the dynamics,
 quaternions, inertia and Euler's equations are :mod:`diffpen.rigid`), and the friction of
-spheres and particles on rough planes (torque on rigid spheres). Nothing of this module is
-traced for scenes without rigid bodies or rough planes.
+spheres and particles on rough planes and fixed spheres (torque on rigid spheres). Nothing
+of this module is traced for scenes without rigid bodies or rough colliders.
 
 Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
 
@@ -14,6 +14,7 @@ Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment 
 * ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
 * ``friction_sphere_plane``: smooth Coulomb friction (:func:`smooth_coulomb`) of spheres and
   particles on planes whose material has friction; rigid spheres also feel its torque.
+* ``friction_fixed_sphere``: the same on fixed spheres whose material has friction.
 
 Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
 friction their force passes through the centres and produces no torque.
@@ -190,50 +191,75 @@ def _slider_rows(ctx: CompileContext) -> list[int]:
             if b.kind in ("sphere", "particle") and b.collide and not b.pinned]
 
 
-def _sphere_plane_friction(ctx: CompileContext) -> Term | None:
-    """Smooth Coulomb friction of spheres and particles on rough planes (the normal force is
-    the core's ``contact_plane`` law, recomputed here for these rows only). A rigid sphere's
-    contact point is ``-radius n`` from its centre: friction there turns it; a sphere that
-    does not rotate (``add_sphere``) or a particle slides, its contact point moving with its
-    centre, and the force goes through the centre."""
+def _slider_friction(ctx: CompileContext, name: str, colliders, geometry_of) -> Term | None:
+    """Smooth Coulomb friction of spheres and particles on the rough ones of ``colliders``
+    (planes or fixed spheres). The normal force is the core contact's law (``contact_plane``,
+    ``contact_fixed_sphere``), recomputed for these rows, centred damping included (a
+    sphere's contact point lies on the normal through its centre: effective inverse mass
+    1 / m). A rigid sphere's contact point is ``-radius n`` from its centre: friction there
+    turns it; a sphere that does not rotate (``add_sphere``) or a particle slides, its
+    contact point moving with its centre, and the force goes through the centre.
+
+    ``geometry_of(ctx, cols, bi) -> (contact, extra, checks)``: for the rows' colliders
+    ``cols`` and bodies ``bi``, ``contact(params, x) -> (d (m,), n (m, 3), g_n (m,))`` (depth,
+    unit normal, gravity's separating acceleration) and the term's extra params."""
     scene = ctx.scene
-    rows = [(i, p) for i in _slider_rows(ctx)
-            for p, pl in enumerate(scene.planes) if scene.materials[pl.material].friction > 0]
+    rows = [(i, j) for i in _slider_rows(ctx) for j, col in enumerate(colliders)
+            if scene.materials[col.material].friction > 0]
     if not rows:
         return None
     bi = np.array([r[0] for r in rows], dtype=np.int32)
-    mats = [scene.planes[r[1]].material for r in rows]
+    mats = [colliders[r[1]].material for r in rows]
     mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
     found = _rough(ctx, mats)
     rough, fi, slip = found
-    normals = ctx.const([scene.planes[r[1]].normal for r in rows])
-    offsets = plane_offsets(ctx, [r[1] for r in rows])
-    extra, checks = plane_offset_extra(ctx, [r[1] for r in rows])
+    contact, extra, checks = geometry_of(ctx, [r[1] for r in rows], bi)
     extra = merge_extra(_friction_extra(ctx, found), extra)
-    radii = ctx.const(ctx.radius[bi])
-    n = ctx.n
-    # the same normal force as contact_plane applies, centred damping included (a sphere's
-    # contact point lies on the normal through its centre: effective inverse mass 1 / m)
-    normals_np = np.array([scene.planes[r[1]].normal for r in rows], dtype=float)
-    inv_m, g_n = ctx.const(ctx.inv_mass(bi)), ctx.const(ctx.normal_gravity(normals_np, bi))
+    inv_m = ctx.const(ctx.inv_mass(bi))
     site = ctx.factor_site(mi, inv_m)       # a law's per-contact step constants, if any
-    # centre to contact point of the rigid spheres' rows (None: no row turns)
     turning = np.array([scene.bodies[i].rigid for i in bi])
-    lever = (ctx.const(-(ctx.radius[bi] * turning)[:, None] * normals_np)
-             if turning.any() else None)
+    arm = ctx.const(ctx.radius[bi] * turning) if turning.any() else None   # None: none turns
+    n = ctx.n
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
         x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
-        fn = ctx.contact_force(d, jnp.sum(normals * v, axis=-1), k, c, h, inv_m, g_n,
+        d, nrm, g_n = contact(params, x)
+        fn = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m, g_n,
                                ctx.step_factors(params, site, h))
+        lever = None if arm is None else -arm[:, None] * nrm     # centre to contact point
         if lever is not None:
             v = v + jnp.cross(gather(state.angular_velocity, bi, n), lever)
-        f = jax.vmap(smooth_coulomb)(v, normals, fn, _row_mu(params, rough, fi, fn[0]), slip)
+        f = jax.vmap(smooth_coulomb)(v, nrm, fn, _row_mu(params, rough, fi, fn[0]), slip)
         tau = None if lever is None else scatter(jnp.cross(lever, f), bi, n)
         return scatter(f, bi, n), tau
-    return Term("friction_sphere_plane", force, step_aware=True, extra=extra, checks=checks)
+    return Term(name, force, step_aware=True, extra=extra, checks=checks)
+
+
+def _plane_geometry(ctx: CompileContext, planes, bi):
+    """:func:`_slider_friction`'s geometry of planes (offsets of named planes are params)."""
+    normals_np = np.array([ctx.scene.planes[p].normal for p in planes], dtype=float)
+    normals, radii = ctx.const(normals_np), ctx.const(ctx.radius[bi])
+    offsets = plane_offsets(ctx, planes)
+    g_n = ctx.const(ctx.normal_gravity(normals_np, bi))
+    extra, checks = plane_offset_extra(ctx, planes)
+
+    def contact(params, x):
+        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
+        return d, normals, g_n
+    return contact, extra, checks
+
+
+def _fixed_sphere_geometry(ctx: CompileContext, spheres, bi):
+    """:func:`_slider_friction`'s geometry of fixed spheres (normals from their centres)."""
+    fixed = [ctx.scene.fixed_spheres[s] for s in spheres]
+    centers, big = ctx.const([f.center for f in fixed]), ctx.const([f.radius for f in fixed])
+    radii, g_vec = ctx.const(ctx.radius[bi]), ctx.const(ctx.scene.gravity)
+
+    def contact(params, x):
+        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, big)
+        return d, nrm, geometry.dot(nrm, g_vec)
+    return contact, {}, {}
 
 
 def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -440,11 +466,13 @@ def _box_plane_bound(ctx: CompileContext):
                              _friction_bound(scene, friction)) if x is not None)
 
 
-def _sphere_plane_friction_bound(ctx: CompileContext):
+def _slider_friction_bound(ctx: CompileContext, colliders):
+    """Friction's viscous rows of every free, colliding sphere or particle against the rough
+    ones of ``colliders`` (planes or fixed spheres)."""
     scene = ctx.scene
-    rows = [_friction_row(scene, i, pl.material, (0.0, 0.0, scene.bodies[i].radius))
+    rows = [_friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius))
             for i in _slider_rows(ctx)
-            for pl in scene.planes if scene.materials[pl.material].friction > 0.0]
+            for col in colliders if scene.materials[col.material].friction > 0.0]
     out = _friction_bound(scene, rows)
     return () if out is None else (out,)
 
@@ -577,14 +605,13 @@ def _box_collider_materials(ctx: CompileContext, colliders: list) -> tuple:
     return tuple(dict.fromkeys(col.material for col in colliders))
 
 
-def _friction_materials(ctx: CompileContext) -> tuple:
-    """The rough planes' materials (their k, c give the normal force) when some free
-    colliding sphere or particle exists."""
-    scene = ctx.scene
+def _rough_materials(ctx: CompileContext, colliders) -> tuple:
+    """The rough materials of ``colliders`` (planes or fixed spheres: their k, c give the
+    normal force) when some free colliding sphere or particle exists."""
     if not _slider_rows(ctx):
         return ()
-    return tuple(dict.fromkeys(pl.material for pl in scene.planes
-                               if scene.materials[pl.material].friction > 0.0))
+    return tuple(dict.fromkeys(col.material for col in colliders
+                               if ctx.scene.materials[col.material].friction > 0.0))
 
 
 def _sphere_box_materials(ctx: CompileContext) -> tuple:
@@ -603,8 +630,14 @@ def _anchored_groups(ctx: CompileContext) -> tuple:
 TERMS: tuple = (
     with_bound(_box_plane_contact, _box_plane_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.planes)),
-    with_bound(_sphere_plane_friction, _sphere_plane_friction_bound,
-               materials=_friction_materials),
+    with_bound(lambda ctx: _slider_friction(ctx, "friction_sphere_plane", ctx.scene.planes,
+                                            _plane_geometry),
+               lambda ctx: _slider_friction_bound(ctx, ctx.scene.planes),
+               materials=lambda ctx: _rough_materials(ctx, ctx.scene.planes)),
+    with_bound(lambda ctx: _slider_friction(ctx, "friction_fixed_sphere",
+                                            ctx.scene.fixed_spheres, _fixed_sphere_geometry),
+               lambda ctx: _slider_friction_bound(ctx, ctx.scene.fixed_spheres),
+               materials=lambda ctx: _rough_materials(ctx, ctx.scene.fixed_spheres)),
     with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.fixed_spheres)),
     with_bound(_sphere_box_contact, _sphere_box_bound, materials=_sphere_box_materials),
