@@ -10,6 +10,9 @@ of what a rollout returns:
 * :func:`check_finite_trajectory`: a concrete trajectory that became NaN/inf, with the first
   step and body (from :func:`last_state_finite`, which the rollout's program computes).
 
+What the dtype can hold and resolve (numbers past its range, a scene far from the origin)
+is :mod:`diffpen.precision`.
+
 Each failure raises :class:`diffpen.SceneError` (or :class:`diffpen.NonFiniteError`) saying
 what to change.
 """
@@ -29,7 +32,8 @@ from .errors import NonFiniteError, PerformanceWarning, SceneError
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
-           "check_finite_trajectory", "last_state_finite", "check_pairs", "check_step",
+           "check_finite_trajectory", "last_state_finite", "check_pairs", "check_params",
+           "check_step",
            "estimate", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
            "MAX_PAIRS"]
 
@@ -360,7 +364,9 @@ def check_pairs(scene, broadphase) -> None:
             "diffpen.broadphase.AABB(max_pairs).")
 
 
-def _check_params(sim, params, what: str) -> None:
+def check_params(sim, params, what: str) -> None:
+    """``params`` must be the pytree of ``sim.params``, its concrete values valid; ``what``
+    names the caller in the error (``"rollout"``, ``"sim.forces"``...). Raises SceneError."""
     if not isinstance(params, Params):
         raise SceneError(f"{what} needs the params pytree from sim.params(k=..., c=...), got "
                          f"{type(params).__name__}"
@@ -373,13 +379,13 @@ def check_step(sim, params, state) -> None:
     """Check ``sim.step``'s arguments as :func:`check_rollout` checks a rollout's: the params
     pytree and its values, the state's type, shapes, dtypes and finite values. Raises
     :class:`SceneError` saying what to change."""
-    _check_params(sim, params, "step")
+    check_params(sim, params, "step")
     _check_state(sim, state)
 
 
 def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
     """Check ``sim.rollout``'s arguments; raise :class:`SceneError` saying what to change."""
-    _check_params(sim, params, "rollout")
+    check_params(sim, params, "rollout")
     if observe is not None:
         _check_observe(sim, observe)
     steps = _int("steps", steps)
@@ -534,112 +540,3 @@ def _check_state(sim, state) -> None:
             np.isfinite(np.asarray(t))):
         raise SceneError(f"the start state's time is {np.asarray(t).tolist()}: give a finite "
                          "time in s (sim.init_state() starts at 0).")
-
-
-#: how much coarser than at the scene's own scale (1 m or its largest body) the dtype's
-#: resolution at the scene's farthest coordinate may be before it counts as far out
-FAR_COARSER = 16.0
-
-
-def check_dtype_range(scene, dtype) -> None:
-    """Refuse a scene number that ``dtype`` cannot hold: past its largest finite value it
-    becomes inf when the simulator is built (float32: a sphere at x = 1e39 m compiled and its
-    rollout stopped on NaN blaming the time step). Every number of every element (bodies,
-    planes, fixed spheres, springs, materials, spring and drag groups, gravity), one array
-    per field (10,000 bodies: 0.13 s, against 2.5 s for their compile); nothing to check in
-    float64. Raises SceneError naming the element and the
-    value."""
-    import dataclasses
-    top = float(np.finfo(dtype).max)
-    if top >= float(np.finfo(np.float64).max):
-        return                  # float64: every finite number fits (inf is refused on input)
-
-    def refuse(what, value):
-        raise SceneError(f"{what} = {float(value):.4g} is past {np.dtype(dtype).name}'s "
-                         f"largest number ({top:.4g}): it would become inf. Rescale the "
-                         "units, or compile with dtype=jnp.float64.")
-
-    def check(kind, names, elems):
-        """``elems``: dataclasses of one type (or plain numbers) named ``kind[name]``."""
-        if not elems:
-            return
-        fields = ([f.name for f in dataclasses.fields(elems[0])]
-                  if dataclasses.is_dataclass(elems[0]) else [None])
-        for field in fields:
-            values = [e if field is None else getattr(e, field) for e in elems]
-            kept = [i for i, v in enumerate(values) if v is not None
-                    and not isinstance(v, (str, bytes, bool, np.bool_))]
-            if not kept:
-                continue
-            try:
-                try:            # one array for the field (equal shapes: the common case)
-                    arr = np.asarray([values[i] for i in kept], dtype=float)
-                    big = np.max(np.abs(arr.reshape(len(kept), -1)), axis=1, initial=0.0)
-                except ValueError:          # ragged: element by element
-                    big = np.array([np.max(np.abs(np.asarray(values[i], dtype=float)),
-                                           initial=0.0) for i in kept])
-            except (TypeError, ValueError):
-                continue                # not numbers (names, groups)
-            rows = [(names[i], values[i]) for i in kept]
-            over = np.nonzero(np.asarray(big) > top)[0]
-            if over.size:
-                n, v = rows[int(over[0])]
-                worst = np.asarray(v, dtype=float).reshape(-1)
-                refuse(f"{kind}[{n!r}]" + (f".{field}" if field else ""),
-                       worst[np.argmax(np.abs(worst))])
-    g = np.asarray(scene.gravity, dtype=float)
-    if np.max(np.abs(g)) > top:
-        refuse("gravity", g[np.argmax(np.abs(g))])
-    for kind in ("bodies", "planes", "fixed_spheres", "springs", "anchored_springs",
-                 "plastic_springs", "drags"):
-        elems = getattr(scene, kind)
-        check(kind, list(range(len(elems))), elems)
-    for kind in ("materials", "spring_groups", "drag_groups"):
-        table = getattr(scene, kind)
-        check(kind, list(table), list(table.values()))
-
-
-def check_coordinates(scene, dtype) -> None:
-    """Refuse a scene placed so far from the origin that ``dtype`` cannot resolve its motion
-    there: the spacing of representable numbers at its farthest coordinate (body positions,
-    plane offsets, fixed spheres) above 1e-4 of its smallest body or 1% of the static
-    deflection ``m g / k`` of its declared contact materials, where that is more than
-    :data:`FAR_COARSER` times the spacing at the scene's own scale. There a step's
-    displacement ``|v| dt`` rounds away (float32: a box sliding at x = 1e4 m never moved while
-    friction stopped its velocity; a ball resting on a plane at z = 1e4 m froze, reading
-    -0.3 m/s). Raises SceneError: move the scene near the origin, or use float64."""
-    bodies = scene.bodies
-    if not bodies:
-        return
-    pos = np.abs(np.array([b.position for b in bodies], dtype=float))
-    far = float(pos.max())
-    for pl in scene.planes:
-        far = max(far, abs(float(pl.offset)))
-    for fs in scene.fixed_spheres:
-        far = max(far, float(np.max(np.abs(fs.center))) + float(fs.radius))
-    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in bodies]
-    sizes = [s for s in sizes if s > 0.0]
-    scale = max([1.0] + sizes)
-    dt = np.dtype(dtype).type
-    res_far = float(np.spacing(dt(far)))
-    if not np.isfinite(far) or res_far <= FAR_COARSER * float(np.spacing(dt(scale))):
-        return
-    limits = []
-    if sizes:
-        limits.append((1e-4 * min(sizes), f"1e-4 of its smallest body ({min(sizes):.3g} m)"))
-    g = float(np.linalg.norm(scene.gravity))
-    ks = [m.k for m in scene.materials.values() if m.k]
-    free = [b.mass for b in bodies if not b.pinned]
-    if g > 0.0 and ks and free:
-        depth = min(free) * g / max(ks)
-        limits.append((0.01 * depth, f"1% of a body's resting depth m g / k ({depth:.3g} m)"))
-    if not limits:
-        return
-    limit, what = min(limits)
-    if res_far > limit:
-        raise SceneError(
-            f"the scene reaches {far:.4g} m from the origin, where {np.dtype(dtype).name} "
-            f"resolves positions only to {res_far:.2g} m, more than {what}: a step's "
-            "displacement |v| dt would round away there (bodies freeze while their velocity "
-            "changes). Move the scene near the origin (only positions relative to each other "
-            "and to the planes matter), or compile with dtype=float64.")

@@ -41,6 +41,7 @@ from . import laws, rigid
 from . import layout as _layout
 from . import motion as _motion
 from . import params as _params
+from . import precision as _precision
 from . import rollout as _rollout
 from . import stability as _stability
 from . import start_energy as _start_energy
@@ -130,8 +131,8 @@ class Simulator:
             raise SceneError("dtype float64 needs jax.config.update('jax_enable_x64', True) "
                              "before compiling.")
 
-        _checks.check_dtype_range(scene, self.dtype)
-        _checks.check_coordinates(scene, self.dtype)
+        _precision.check_dtype_range(scene, self.dtype)
+        _precision.check_coordinates(scene, self.dtype)
         bodies = scene.bodies
         self.n_bodies = len(bodies)
         self.mass = np.array([b.mass for b in bodies])
@@ -281,7 +282,7 @@ class Simulator:
         values, a search past its static capacity warns
         (:class:`diffpen.broadphase.BroadPhaseOverflowWarning`), as a rollout does: the
         forces then miss contacts."""
-        _checks._check_params(self, params, "sim.forces")
+        _checks.check_params(self, params, "sim.forces")
         if h is not None:
             try:
                 ok = not isinstance(h, (bool, str)) and math.isfinite(float(h)) and h > 0.0
@@ -389,7 +390,7 @@ class Simulator:
         would take (default the scene's), whose energy bounds the depth of a contact law
         that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
         """
-        _checks._check_params(self, params, "sim.stability")
+        _checks.check_params(self, params, "sim.stability")
         rep = _stability.report(self.analysis, params, energy=self.start_energy(
             self._init if state is None else state, params))
         if rep is None:

@@ -22,7 +22,8 @@ import numpy as np
 from .geometry import rotate, rotate_back
 from .terms.base import CompileContext, gather, scatter
 
-__all__ = ["quat_to_matrix", "inertia_diagonal", "angular_acceleration", "RigidDynamics"]
+__all__ = ["quat_to_matrix", "inertia_diagonal", "mobility", "angular_acceleration",
+           "RigidDynamics"]
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -48,6 +49,23 @@ def inertia_diagonal(body) -> np.ndarray:
         hx, hy, hz = body.half_extents
         return m / 3.0 * np.array([hy * hy + hz * hz, hx * hx + hz * hz, hx * hx + hy * hy])
     return np.full(3, 0.4 * m * body.radius ** 2)
+
+
+def mobility(scene, i: int, levers) -> float:
+    """Bound on ``J M^-1 J^T`` (1/kg) of a unit force of any direction n at body-frame
+    point(s) ``levers`` (k, 3) m of body i: ``1/m + max (r x n)^T I^-1 (r x n)``, the largest
+    eigenvalue of ``[r]x^T diag(1/I) [r]x`` over the given points (0 for pinned bodies; no
+    rotation term for bodies that do not rotate or forces through the centre)."""
+    body = scene.bodies[i]
+    if body.pinned:
+        return 0.0
+    rot = 0.0
+    if body.rigid:
+        inv = 1.0 / inertia_diagonal(body)
+        for r in np.atleast_2d(np.asarray(levers, dtype=float)):
+            skew = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+            rot = max(rot, float(np.linalg.eigvalsh(skew.T @ (inv[:, None] * skew))[-1]))
+    return 1.0 / body.mass + rot
 
 
 def angular_acceleration(rot, w, tau, inertia, inv_inertia):

@@ -3,8 +3,10 @@ the scene by ``jax.vmap`` over static index arrays plus a segment sum onto bodie
 
 One module per kind of term: :mod:`~diffpen.terms.contact` (planes, fixed spheres,
 sphere-sphere, broad-phase pairs), :mod:`~diffpen.terms.springs` (springs, world springs,
-drag), :mod:`~diffpen.terms.plastic`, :mod:`~diffpen.terms.rigid` (box corners, friction,
-sphere-box, anchored springs); the record and shared helpers are :mod:`~diffpen.terms.base`.
+drag), :mod:`~diffpen.terms.plastic`, :mod:`~diffpen.terms.rigid` (box corners, sphere-box,
+anchored springs), :mod:`~diffpen.terms.friction` (smooth Coulomb friction: its law, and
+spheres and particles on rough planes and fixed spheres); the record and shared helpers are
+:mod:`~diffpen.terms.base`.
 A term builder ``build(ctx) -> Term | None`` returns None when the scene does not need the
 term, so it is never traced; its Term carries its force, stability bound, aux state
 init/update and extra params, and its :class:`~diffpen.terms.base.TermBuilder` declares

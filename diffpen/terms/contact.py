@@ -354,7 +354,8 @@ def _broadphase_bound(ctx: CompileContext):
     """Stability rows of the broad-phase pair term: each sphere's contact with another
     sphere, one at a time per material (``2 / m``), and the stiffest candidate sphere-box
     contact per body (rotation included)."""
-    from .rigid import _mobility, _rows_bound, sphere_box_rows
+    from .. import rigid as _rigid
+    from .rigid import _rows_bound, sphere_box_rows
     scene = ctx.scene
     bodies = scene.bodies
     zero = np.zeros(3)
@@ -372,7 +373,7 @@ def _broadphase_bound(ctx: CompileContext):
         m = bodies[i].material
         mats = dict.fromkeys(([m] if count[m] > 1 else [])
                              + ([DEFAULT] if len(spheres) > count[m] else []))
-        rows += [(i, mat, 2.0 * _mobility(scene, i, zero)) for mat in mats]
+        rows += [(i, mat, 2.0 * _rigid.mobility(scene, i, zero)) for mat in mats]
     rows += sphere_box_rows(scene)
     out = _rows_bound(rows, "contact")
     return () if out is None else (out,)

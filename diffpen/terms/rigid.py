@@ -1,23 +1,21 @@
-"""Rigid-body terms, the ones that produce torque: box corners on planes, their friction,
+"""Rigid-body terms, the ones that produce torque: box corners on planes and their friction,
 boxes against fixed spheres, sphere-box contact and anchored springs (the dynamics,
-quaternions, inertia and Euler's equations are :mod:`diffpen.rigid`), and the friction of
-spheres and particles on rough planes and fixed spheres (torque on rigid spheres). Nothing
-of this module is traced for scenes without rigid bodies or rough colliders.
+quaternions, inertia, mobility and Euler's equations are :mod:`diffpen.rigid`; friction's
+law and the friction of spheres and particles are :mod:`diffpen.terms.friction`). Nothing
+of this module is traced for scenes without rigid bodies.
 
 Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment sum):
 
 * ``contact_box_plane``: each box corner below a plane is a penalty contact at that corner
   (the contact law of the simulator), with force ``f n`` at the corner and torque
-  ``r x f n`` (``r`` corner lever arm).
+  ``r x f n`` (``r`` corner lever arm), and its friction where the plane's material has some.
 * ``contact_sphere_box``: spheres and particles against boxes (closest point on the box).
 * ``contact_box_fixed_sphere``: boxes against fixed spheres.
 * ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
-* ``friction_sphere_plane``: smooth Coulomb friction (:func:`smooth_coulomb`) of spheres and
-  particles on planes whose material has friction; rigid spheres also feel its torque.
-* ``friction_fixed_sphere``: the same on fixed spheres whose material has friction.
 
-Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
-friction their force passes through the centres and produces no torque.
+:data:`TERMS` also holds :data:`diffpen.terms.friction.TERMS`, after the box corners (the
+force summation order). Sphere-sphere and sphere-plane contacts of rigid spheres are the
+core's terms: without friction their force passes through the centres and produces no torque.
 """
 from __future__ import annotations
 
@@ -32,6 +30,9 @@ from ..stability import Bound
 from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
+from . import friction
+from .friction import (friction_bound, friction_extra, friction_row, rough_rows, row_mu,
+                       smooth_coulomb)
 from .springs import _spring_axis, _spring_vector
 
 __all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
@@ -63,26 +64,6 @@ def corner_plane_pair(x, v, w, rot, corner, normal, offset):
     d, _ = geometry.sphere_plane(x + r, 0.0, normal, offset)
     vn = jnp.sum(normal * (v + jnp.cross(w, r)), axis=-1)
     return d, vn, r
-
-
-def smooth_coulomb(v, normal, fn, mu, slip_speed):
-    """Smooth Coulomb friction of ONE contact: ``-mu max(fn, 0) v_t / sqrt(|v_t|^2 + s^2)``.
-
-    Args:
-      v: (3,) velocity of the contact point relative to the other surface, m/s.
-      normal: (3,) unit contact normal.  fn: normal force, N (only pushing counts).
-      mu: friction coefficient.  slip_speed: s, m/s > 0: below it friction grows linearly
-        with the sliding speed (a viscous law of coefficient ``mu fn / s``), so the force is
-        smooth in v (differentiable, including at rest) and tends to ``mu fn`` when sliding.
-    Returns:
-      (3,) tangential force, N.
-    """
-    v_t = v - jnp.sum(v * normal, axis=-1) * normal
-    speed = jnp.sqrt(jnp.sum(v_t * v_t, axis=-1) + slip_speed * slip_speed)
-    # a tie (fn = 0: a body starting exactly on the surface) takes the pushing side, as the
-    # contact window does (jnp.maximum splits its derivative 0.5 / 0.5 there: d loss / d
-    # plane offset of a box resting on a rough plane came out 13x too large)
-    return -mu * jnp.where(fn >= 0.0, fn, 0.0) * v_t / speed
 
 
 def sphere_box_pair(xs, vs, ws, rs, xb, vb, wb, rot, half):
@@ -138,8 +119,8 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
     extra, checks = plane_offset_extra(ctx, [r[1] for r in rows])
     n = ctx.n
     # smooth Coulomb friction only when some material has it (static choice)
-    rough = _rough(ctx, [scene.planes[r[1]].material for r in rows])
-    merge_extra(extra, _friction_extra(ctx, rough))
+    rough = rough_rows(ctx, [scene.planes[r[1]].material for r in rows])
+    merge_extra(extra, friction_extra(ctx, rough))
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
@@ -154,112 +135,9 @@ def _box_plane_contact(ctx: CompileContext) -> Term | None:
             with jax.named_scope("friction"):
                 names, fi, slip = rough
                 f = f + jax.vmap(smooth_coulomb)(v + jnp.cross(w, r), normals, fn,
-                                                 _row_mu(params, names, fi, fn[0]), slip)
+                                                 row_mu(params, names, fi, fn[0]), slip)
         return scatter(f, bi, n), scatter(jnp.cross(r, f), bi, n)
     return Term("contact_box_plane", force, step_aware=True, extra=extra, checks=checks)
-
-
-def _rough(ctx: CompileContext, materials: list[str]):
-    """Friction materials among ``materials`` (their mu is ``params.extra["friction"]``:
-    :func:`_friction_extra`), each row's index into them (``len`` for frictionless rows) and
-    slip speeds (m/s); None when no row has friction."""
-    scene = ctx.scene
-    rough = list(dict.fromkeys(m for m in materials if scene.materials[m].friction > 0.0))
-    if not rough:
-        return None
-    fi = np.array([rough.index(m) if m in rough else len(rough) for m in materials])
-    return rough, fi, ctx.const([scene.materials[m].slip_speed for m in materials])
-
-
-def _friction_extra(ctx: CompileContext, rough) -> dict:
-    """``{"friction": {material: mu}}``, the defaults of the friction coefficients read by
-    rows ``rough`` (from :func:`_rough`; empty for None)."""
-    if rough is None:
-        return {}
-    return {"friction": {m: ctx.scene.materials[m].friction for m in rough[0]}}
-
-
-def _row_mu(params, rough, fi, like):
-    return jnp.stack([jnp.asarray(params.extra["friction"][m]) for m in rough]
-                     + [jnp.zeros_like(like)])[fi]
-
-
-def _slider_rows(ctx: CompileContext) -> list[int]:
-    """The bodies friction on a plane acts on apart from boxes: free, colliding spheres
-    (rigid or not) and particles."""
-    return [i for i, b in enumerate(ctx.scene.bodies)
-            if b.kind in ("sphere", "particle") and b.collide and not b.pinned]
-
-
-def _slider_friction(ctx: CompileContext, name: str, colliders, geometry_of) -> Term | None:
-    """Smooth Coulomb friction of spheres and particles on the rough ones of ``colliders``
-    (planes or fixed spheres). The normal force is the core contact's law (``contact_plane``,
-    ``contact_fixed_sphere``), recomputed for these rows, centred damping included (a
-    sphere's contact point lies on the normal through its centre: effective inverse mass
-    1 / m). A rigid sphere's contact point is ``-radius n`` from its centre: friction there
-    turns it; a sphere that does not rotate (``add_sphere``) or a particle slides, its
-    contact point moving with its centre, and the force goes through the centre.
-
-    ``geometry_of(ctx, cols, bi) -> (contact, extra, checks)``: for the rows' colliders
-    ``cols`` and bodies ``bi``, ``contact(params, x) -> (d (m,), n (m, 3), g_n (m,))`` (depth,
-    unit normal, gravity's separating acceleration) and the term's extra params."""
-    scene = ctx.scene
-    rows = [(i, j) for i in _slider_rows(ctx) for j, col in enumerate(colliders)
-            if scene.materials[col.material].friction > 0]
-    if not rows:
-        return None
-    bi = np.array([r[0] for r in rows], dtype=np.int32)
-    mats = [colliders[r[1]].material for r in rows]
-    mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
-    found = _rough(ctx, mats)
-    rough, fi, slip = found
-    contact, extra, checks = geometry_of(ctx, [r[1] for r in rows], bi)
-    extra = merge_extra(_friction_extra(ctx, found), extra)
-    inv_m = ctx.const(ctx.inv_mass(bi))
-    site = ctx.factor_site(mi, inv_m)       # a law's per-contact step constants, if any
-    turning = np.array([scene.bodies[i].rigid for i in bi])
-    arm = ctx.const(ctx.radius[bi] * turning) if turning.any() else None   # None: none turns
-    n = ctx.n
-
-    def force(params, state, *, h=None):
-        k, c = ctx.contact_kc(params, mi)
-        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        d, nrm, g_n = contact(params, x)
-        fn = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m, g_n,
-                               ctx.step_factors(params, site, h))
-        lever = None if arm is None else -arm[:, None] * nrm     # centre to contact point
-        if lever is not None:
-            v = v + jnp.cross(gather(state.angular_velocity, bi, n), lever)
-        f = jax.vmap(smooth_coulomb)(v, nrm, fn, _row_mu(params, rough, fi, fn[0]), slip)
-        tau = None if lever is None else scatter(jnp.cross(lever, f), bi, n)
-        return scatter(f, bi, n), tau
-    return Term(name, force, step_aware=True, extra=extra, checks=checks)
-
-
-def _plane_geometry(ctx: CompileContext, planes, bi):
-    """:func:`_slider_friction`'s geometry of planes (offsets of named planes are params)."""
-    normals_np = np.array([ctx.scene.planes[p].normal for p in planes], dtype=float)
-    normals, radii = ctx.const(normals_np), ctx.const(ctx.radius[bi])
-    offsets = plane_offsets(ctx, planes)
-    g_n = ctx.const(ctx.normal_gravity(normals_np, bi))
-    extra, checks = plane_offset_extra(ctx, planes)
-
-    def contact(params, x):
-        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
-        return d, normals, g_n
-    return contact, extra, checks
-
-
-def _fixed_sphere_geometry(ctx: CompileContext, spheres, bi):
-    """:func:`_slider_friction`'s geometry of fixed spheres (normals from their centres)."""
-    fixed = [ctx.scene.fixed_spheres[s] for s in spheres]
-    centers, big = ctx.const([f.center for f in fixed]), ctx.const([f.radius for f in fixed])
-    radii, g_vec = ctx.const(ctx.radius[bi]), ctx.const(ctx.scene.gravity)
-
-    def contact(params, x):
-        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, big)
-        return d, nrm, geometry.dot(nrm, g_vec)
-    return contact, {}, {}
 
 
 def _box_fixed_sphere_contact(ctx: CompileContext) -> Term | None:
@@ -386,23 +264,6 @@ BOUND_LABEL = ("box contacts, sphere-box contacts, broad-phase pairs or anchored
                "(rotation included)")
 
 
-def _mobility(scene, i: int, levers) -> float:
-    """Bound on ``J M^-1 J^T`` (1/kg) of a unit force of any direction n at body-frame
-    point(s) ``levers`` (k, 3) m of body i: ``1/m + max (r x n)^T I^-1 (r x n)``, the largest
-    eigenvalue of ``[r]x^T diag(1/I) [r]x`` over the given points (0 for pinned bodies; no
-    rotation term for bodies that do not rotate or forces through the centre)."""
-    body = scene.bodies[i]
-    if body.pinned:
-        return 0.0
-    rot = 0.0
-    if body.rigid:
-        inv = 1.0 / _rigid.inertia_diagonal(body)
-        for r in np.atleast_2d(np.asarray(levers, dtype=float)):
-            skew = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-            rot = max(rot, float(np.linalg.eigvalsh(skew.T @ (inv[:, None] * skew))[-1]))
-    return 1.0 / body.mass + rot
-
-
 def _face_mobility(body) -> float:
     """Largest eigenvalue (1/kg) of ``M^-1 sum_c J_c^T J_c`` for a box resting on one face
     (its 4 corners in contact, normal = the face normal), the stiffest plane contact a box
@@ -428,27 +289,10 @@ def _rows_bound(rows, param: str):
 def _pair_rows(scene, i, j, key, lever_i, lever_j, count=1):
     """Rows of ONE contact or spring between bodies i and j (None: the world): its eigenvalue
     bound ``k (J_i M_i^-1 J_i^T + J_j M_j^-1 J_j^T)`` counted on both free ends."""
-    w = count * (_mobility(scene, i, lever_i)
-                 + (_mobility(scene, j, lever_j) if j is not None else 0.0))
+    w = count * (_rigid.mobility(scene, i, lever_i)
+                 + (_rigid.mobility(scene, j, lever_j) if j is not None else 0.0))
     return [(b, key, w * (2.0 if j is not None else 1.0)) for b in (i, j)
             if b is not None and not scene.bodies[b].pinned]
-
-
-def _friction_row(scene, i: int, material: str, levers):
-    """Friction below the slip speed is viscous: ``mu m |g| / s`` (at least 1 g) per body,
-    as a damping rate weight (1/s per unit mu)."""
-    b, mat = scene.bodies[i], scene.materials[material]
-    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
-    return (i, material, load / mat.slip_speed * _mobility(scene, i, levers))
-
-
-def _friction_bound(scene, rows):
-    """The :class:`diffpen.stability.Bound` of friction rows from :func:`_friction_row`,
-    each named by its material and slip speed (what to raise where it limits the step)."""
-    return Bound.of([(b, name, w, w, f"friction of material {name!r} below its slip speed "
-                     f"{scene.materials[name].slip_speed:g} m/s (a damper of rate "
-                     "mu |g| / slip_speed)") for b, name, w in rows], "friction",
-                    per_mass=False)
 
 
 def _box_plane_bound(ctx: CompileContext):
@@ -460,21 +304,10 @@ def _box_plane_bound(ctx: CompileContext):
         for pl in scene.planes:
             contact.append((i, pl.material, crowd * _face_mobility(b)))
             if scene.materials[pl.material].friction > 0.0:
-                friction.append(_friction_row(scene, i, pl.material,
+                friction.append(friction_row(scene, i, pl.material,
                                               geometry.box_corners(b.half_extents)))
     return tuple(x for x in (_rows_bound(contact, "contact"),
-                             _friction_bound(scene, friction)) if x is not None)
-
-
-def _slider_friction_bound(ctx: CompileContext, colliders):
-    """Friction's viscous rows of every free, colliding sphere or particle against the rough
-    ones of ``colliders`` (planes or fixed spheres)."""
-    scene = ctx.scene
-    rows = [_friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius))
-            for i in _slider_rows(ctx)
-            for col in colliders if scene.materials[col.material].friction > 0.0]
-    out = _friction_bound(scene, rows)
-    return () if out is None else (out,)
+                             friction_bound(scene, friction)) if x is not None)
 
 
 def _box_fixed_sphere_bound(ctx: CompileContext):
@@ -496,7 +329,7 @@ def sphere_box_rows(scene):
     def mobility(i, box):
         if (i, box) not in mob:
             levers = geometry.box_corners(scene.bodies[i].half_extents) if box else zero
-            mob[i, box] = _mobility(scene, i, levers)
+            mob[i, box] = _rigid.mobility(scene, i, levers)
         return mob[i, box]
     for i, j, mat in sphere_box_pairs(scene):
         w = 2.0 * (mobility(i, False) + mobility(j, True))
@@ -605,15 +438,6 @@ def _box_collider_materials(ctx: CompileContext, colliders: list) -> tuple:
     return tuple(dict.fromkeys(col.material for col in colliders))
 
 
-def _rough_materials(ctx: CompileContext, colliders) -> tuple:
-    """The rough materials of ``colliders`` (planes or fixed spheres: their k, c give the
-    normal force) when some free colliding sphere or particle exists."""
-    if not _slider_rows(ctx):
-        return ()
-    return tuple(dict.fromkeys(col.material for col in colliders
-                               if ctx.scene.materials[col.material].friction > 0.0))
-
-
 def _sphere_box_materials(ctx: CompileContext) -> tuple:
     if getattr(ctx, "broadphase", None) is not None:
         return ()                       # declared by the broad-phase pair term
@@ -630,14 +454,7 @@ def _anchored_groups(ctx: CompileContext) -> tuple:
 TERMS: tuple = (
     with_bound(_box_plane_contact, _box_plane_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.planes)),
-    with_bound(lambda ctx: _slider_friction(ctx, "friction_sphere_plane", ctx.scene.planes,
-                                            _plane_geometry),
-               lambda ctx: _slider_friction_bound(ctx, ctx.scene.planes),
-               materials=lambda ctx: _rough_materials(ctx, ctx.scene.planes)),
-    with_bound(lambda ctx: _slider_friction(ctx, "friction_fixed_sphere",
-                                            ctx.scene.fixed_spheres, _fixed_sphere_geometry),
-               lambda ctx: _slider_friction_bound(ctx, ctx.scene.fixed_spheres),
-               materials=lambda ctx: _rough_materials(ctx, ctx.scene.fixed_spheres)),
+    *friction.TERMS,
     with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.fixed_spheres)),
     with_bound(_sphere_box_contact, _sphere_box_bound, materials=_sphere_box_materials),
