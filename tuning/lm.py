@@ -84,7 +84,9 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
                         maxiter: int = 50, xtol: float = 1e-8, ftol: float = 1e-12,
                         stop: Callable | None = None, lam0: float = 1e-3,
                         progress: Progress | None = None, offset: int = 0,
-                        max_step: float | None = None, accept=None) -> LMResult:
+                        max_step: float | None = None, accept=None,
+                        resume: dict | None = None,
+                        on_iteration: Callable | None = None) -> LMResult:
     """Box-projected Levenberg-Marquardt with Marquardt's diagonal scaling (floored at
     :data:`SCALE_FLOOR` times its largest entry).
 
@@ -103,9 +105,15 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
       ftol: a relative cost decrease below this stops the fit; raised to
         :func:`precision_ftol` of the residuals' dtype (float32: 1.19e-6), so "step below
         tolerance" never rests on rounding; 0 switches the test off.
+      on_iteration: called after every iteration (its end decided) with the state a later
+        call resumes from: ``{"x", "lam", "iterations", "cost_history", "done",
+        "converged", "message"}`` (plain floats and lists; JSON-ready).
+      resume: such a state: continue from it (``x0`` and ``lam0`` are then not read). The
+        next iteration depends only on ``x`` and ``lam``, so a resumed call ends where an
+        uninterrupted one would, bit for bit; a state with ``done`` returns at once.
     Returns: :class:`LMResult` (``jacobian`` evaluated at ``x``).
     """
-    x = np.clip(np.asarray(x0, dtype=float), lo, hi)
+    x = np.clip(np.asarray(x0 if resume is None else resume["x"], dtype=float), lo, hi)
     out = res_and_jac(jnp.asarray(x))
     r, J, extra = np.asarray(out[0]), np.asarray(out[1]), out[2:]
     ftol = precision_ftol(ftol, r.dtype)
@@ -116,7 +124,18 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
     hist = [cost]
     lam = lam0
     message, converged, it = "iteration limit reached", False, 0
-    for it in range(1, maxiter + 1):
+    if resume is not None:
+        lam, it = float(resume["lam"]), int(resume["iterations"])
+        hist = [float(c) for c in resume["cost_history"]]
+        if resume["done"]:
+            return LMResult(x, r, J, hist, it, bool(resume["converged"]), resume["message"])
+
+    def notify(done: bool) -> None:
+        if on_iteration is not None:
+            on_iteration({"x": [float(v) for v in x], "lam": float(lam), "iterations": it,
+                          "cost_history": list(hist), "done": done, "converged": converged,
+                          "message": message})
+    for it in range(it + 1, maxiter + 1):
         if stop is not None and stop(r) and (accept is None or accept(extra)):
             message, converged, it = "targets reached", True, it - 1
             break
@@ -149,6 +168,7 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
             hist.append(cost)
             if progress is not None:
                 progress.update(offset + it, cost)
+            notify(True)
             break
         dx = np.max(np.abs(xn - x))
         rel_drop = (cost - cn) / max(cost, 1e-300)
@@ -161,7 +181,9 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
         # a tiny step only means convergence when it was not forced by heavy damping
         if (dx < xtol and lam < 1.0) or rel_drop < ftol or cost == 0.0:
             message, converged = "step below tolerance", True
+            notify(True)
             break
+        notify(False)
     return LMResult(x, r, J, hist, it, converged, message)
 
 

@@ -29,12 +29,13 @@ import csv
 import dataclasses
 import math
 import os
+from typing import Sequence
 
 import numpy as np
 
 from .fit import FitError
 
-__all__ = ["Record", "BodyRecord", "RecordError", "read_record", "read_height_record",
+__all__ = ["Record", "BodyRecord", "RecordError", "read_record", "load_records", "read_height_record",
            "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
 
 #: column groups of one body: name -> component suffixes (in array order)
@@ -524,3 +525,48 @@ def write_record(path, record: Record) -> None:
         for row in table:
             w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
     os.replace(tmp, path)
+
+
+def load_records(sf, paths: Sequence[str]):
+    """Read record files for scene file ``sf`` (:class:`tuning.scenefile.SceneFile`).
+
+    Returns ``(records, bodies)``: the :class:`tuning.records.Record` list and ``{record
+    body name: scene body index}``. The observed bodies are ``[fit] observe`` or the scene's
+    named bodies, and builder nodes (``rope[3]``, ``rope[-1]``); a record with plain ``x, y,
+    z`` columns belongs to the only one (or to the only free body of a scene without names).
+    A column naming another body, or two names of one body, is refused.
+    Raises :class:`tuning.records.RecordError` / :class:`FitError` before anything compiles.
+    """
+    if not paths:
+        raise FitError("no records: give --data FILE.csv [FILE.csv ...].")
+    named = [n for n in sf.names if "[" not in n]
+    observe = list(sf.spec.observe) if sf.spec is not None and sf.spec.observe else named
+    records = [read_record(p, body_names=observe, scene_names=named) for p in paths]
+    bodies, first = {}, {}                  # first: scene body -> (record body, record path)
+    for rec in records:
+        for name in rec.bodies:
+            if name in bodies:
+                i = bodies[name]
+            elif name in sf.names:
+                i = sf.names[name]
+            elif observe or "[" in name:
+                try:
+                    i = sf.body_index(name)
+                except Exception as exc:            # SceneFileError: say which record
+                    raise FitError(f"{rec.path}: the columns of {name!r}: {exc}") from None
+            else:                                   # plain x, y, z; the scene names no body
+                free = [i for i, b in enumerate(sf.scene.bodies) if not b.pinned]
+                if len(free) != 1:
+                    raise FitError(f"{rec.path}: the columns name no body and the scene has "
+                                   f"{len(free)} free bodies: name the body in the scene "
+                                   "(name = ...) and prefix the columns (NAME.x, ...).")
+                i = free[0]
+            other, where = first.setdefault(i, (name, rec.path))
+            if other != name:
+                said = ("" if where == rec.path else f", and {where} names it {other!r}")
+                cols = (f"the columns {other}.x, ... and {name}.x, ..." if where == rec.path
+                        else f"the columns {name}.x, ...")
+                raise FitError(f"{rec.path}: {cols} observe the same scene body {i}{said}: "
+                               "name each body once, the same way in every record.")
+            bodies[name] = i
+    return records, bodies

@@ -24,7 +24,8 @@ __all__ = ["fit_files"]
 def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
               estimate: str | None = None, loss: str = "l2", horizons=None,
               maxiter: int | None = None, starts: int = 0, keep: int = 1,
-              max_frames: int | None = None, progress: bool | None = False) -> dict:
+              max_frames: int | None = None, progress: bool | None = False,
+              fresh: bool = False) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
     the fitted scene to ``out`` (with ``estimate`` / ``max_frames`` in its ``[fit]`` table
@@ -35,12 +36,18 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     :data:`AUTO_HORIZON` of the longest record (+ the whole records) and ``FLIGHT_FRAMES``
     (20).
 
+    With ``out`` the fit is resumable: it holds ``out``'s lock (:class:`tuning.io.OutputLock`;
+    a second fit into the same file is refused) and writes its progress to
+    ``out`` + ``.fit-progress.json`` after every LM iteration
+    (:mod:`tuning.fit_checkpoint`); the same call again resumes an interrupted fit from
+    there (``fresh``: start afresh, overwriting the progress of another fit), and the file
+    is removed once ``out`` is written.
+
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost`` (at the scene file's and the fitted values;
     ``cost_chosen_start`` at the multi-start point the fit kept), the accuracy before and after
     (:mod:`tuning.evaluate` summaries), ``records``, ``seconds``, ``out``.
     """
-    from .evaluate import evaluate_batch, evaluator
     from .scenefile import load_scene_file
     sf = load_scene_file(scene_path)
     if sf.spec is None or not sf.spec.free:
@@ -68,8 +75,32 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         else:
             longest = max(r.duration for r in records)
             horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
-    if out is not None:
-        _check_out(out, scene_path, data)
+    run = dict(sf=sf, scene_path=scene_path, free=free, records=records, bodies=bodies,
+               out=out, estimate=estimate, loss=loss, horizons=horizons, maxiter=maxiter,
+               starts=starts, keep=keep, max_frames=max_frames, overrides=overrides,
+               progress=progress)
+    if out is None:
+        return _fit(**run)
+    _check_out(out, scene_path, data)
+    from .fit_checkpoint import checkpoint_path
+    from .io import OutputError, OutputLock, clean_orphans
+    try:
+        lock = OutputLock(out, what="--out").acquire()
+    except OutputError as exc:
+        raise FitError(str(exc)) from None
+    try:
+        clean_orphans(out)
+        clean_orphans(checkpoint_path(out))
+        return _fit(**run, fresh=fresh, checkpoint=checkpoint_path(out))
+    finally:
+        lock.release()
+
+
+def _fit(sf, scene_path, free, records, bodies, *, out, estimate, loss, horizons, maxiter,
+         starts, keep, max_frames, overrides, progress, fresh=False,
+         checkpoint=None) -> dict:
+    """:func:`fit_files` once its inputs are read and its output checked and locked."""
+    from .evaluate import evaluate_batch, evaluator
     t0 = time.perf_counter()
     sim = sf.compile()
     params = sf.params(sim)
@@ -83,7 +114,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                               max_frames=max_frames, cache=first_states)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
-                      progress=progress)
+                      progress=progress, checkpoint=checkpoint, fresh=fresh)
     moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
              if name.startswith("extra.plane_offset.")}
     if moved:
@@ -105,6 +136,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
             write_fitted(scene_path, res.values, out, fit=overrides)
         except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
             out_error = f"could not write --out {out}: {exc}"
+        if checkpoint is not None and out_error is None:
+            os.unlink(checkpoint)       # the fitted scene holds the result now
     summary = res.as_dict()
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,

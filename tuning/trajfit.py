@@ -24,10 +24,12 @@ Pipeline (each step a public function, all importable from here):
    determine (:mod:`tuning.fit_errors`).
 
 The params-leaf helpers (:func:`get_leaf`, :func:`with_leaves`), :class:`Free` and
-:func:`free_from_spec` live in :mod:`tuning.free_leaves` (importable from here); this module
-also holds :func:`load_records`. The command's file-level workflow, ``diffpen fit
-SCENE.toml --data FILES``, is :func:`tuning.scene_fit.fit_files`; records made by a
-simulator are :func:`tuning.synthetic.synthetic_record` (both importable from here too).
+:func:`free_from_spec` live in :mod:`tuning.free_leaves`, :func:`load_records` (records
+matched to a scene file's bodies) in :mod:`tuning.records` (all importable from here). The
+command's file-level workflow, ``diffpen fit SCENE.toml --data FILES``, is
+:func:`tuning.scene_fit.fit_files`; records made by a simulator are
+:func:`tuning.synthetic.synthetic_record` (both importable from here too).
+The checkpoint of a resumable fit is :mod:`tuning.fit_checkpoint`.
 """
 from __future__ import annotations
 
@@ -49,6 +51,7 @@ from .first_state import first_state
 from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names, with_leaves
 from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
+from .records import load_records
 from .record_batch import (Batch, ProgramCache, layout_of, prepare, prepare_buckets, simulate,
                            typed_params, with_arrays)
 from .stable import params_unstable, unsafe_start
@@ -56,7 +59,7 @@ from .stable import params_unstable, unsafe_start
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
            "fit_records", "ROT_WEIGHT", "rotation_angle", "LOG_SPAN", "AUTO_HORIZON",
-           "free_from_spec"]
+           "free_from_spec", "load_records"]
 
 #: a record fit whose scene file gives no ``[fit] horizon`` first fits these fractions of its
 #: longest record, then the whole records (oscillating and tumbling records have local
@@ -102,6 +105,8 @@ class TrajFitResult:
       bounded: not a result (the message says so; standard errors and correlations NaN).
     cost_chosen_start: the pose loss over the whole records at the start point the kept fit
       ran from (with multi-start, the chosen one of ``starts``; else ``cost_start``).
+    resumed: LM iterations taken from a checkpoint (``fit_records(checkpoint=...)``), 0 for
+      a fit run whole; ``iterations`` and ``history`` count them too.
     """
     params: dp.Params
     names: list
@@ -120,6 +125,7 @@ class TrajFitResult:
     starts: list = dataclasses.field(default_factory=list)
     diverged: bool = False
     cost_chosen_start: float | None = None
+    resumed: int = 0
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -130,7 +136,7 @@ class TrajFitResult:
                 "cost_chosen_start": self.cost_chosen_start, "cost": self.cost,
                 "horizons": self.horizons, "iterations": self.iterations,
                 "seconds": self.seconds, "message": self.message, "unstable": self.unstable,
-                "diverged": self.diverged, "starts": self.starts}
+                "diverged": self.diverged, "starts": self.starts, "resumed": self.resumed}
 
 
 #: Largest |d residual / d parameter| a fit trusts. Residuals are pose errors of order 1
@@ -148,7 +154,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 loss: str = "l2", maxiter: int = 30, starts: int | Sequence[dict] = 0,
                 keep: int = 1, seed: int = 0, spread: float = 3.0,
                 decay: float | None = None,
-                progress: bool | None = False) -> TrajFitResult:
+                progress: bool | None = False, checkpoint: str | None = None,
+                fresh: bool = False) -> TrajFitResult:
     """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
     or the list :func:`prepare_buckets` makes) jointly.
 
@@ -168,6 +175,13 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     message saying so; past the safe step: inf), LM runs from the ``keep``
     cheapest, and the result is the fit of lowest final cost;
     :attr:`TrajFitResult.starts` lists every start with its costs.
+
+    ``checkpoint``: a JSON file the fit's progress is written to after every LM iteration
+    (atomically; :mod:`tuning.fit_checkpoint`); a rerun of the same fit (same simulator,
+    params, records, leaves, bounds and options) resumes from it and returns what an
+    uninterrupted fit returns, bit for bit (:attr:`TrajFitResult.resumed`: the iterations
+    taken from it). A checkpoint of another fit raises :class:`FitError` naming what
+    differs, unless ``fresh``. The file is left in place: remove it once the result is kept.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
@@ -221,6 +235,17 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     # fit of the same layout (simulator, leaves, loss, batch shapes) compiles nothing
     programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay)
     params_in = typed_params(params, sim.dtype)
+    ck = None
+    if checkpoint is not None:
+        from .fit_checkpoint import FitCheckpoint, fit_key
+        ck = FitCheckpoint(checkpoint, fit_key(
+            sim, params_in, free, lo, hi, arrays, [layout_of(b)[0] for b in batches],
+            rot_weight=rot_weight, horizons=list(horizons), loss=loss, maxiter=maxiter,
+            starts=starts if isinstance(starts, (int, np.integer)) else
+            [dict(v) for v in starts], keep=keep, seed=seed, spread=spread, decay=decay),
+            fresh=fresh)
+    saved = ck.state if ck is not None else {}
+    resumed = ck.resumed_iterations if ck is not None else 0
 
     def res_jac_flag(x, horizon):
         return programs[0](params_in, arrays, x, horizon)
@@ -248,7 +273,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
             c = jnp.sum(r * r)
         return math.inf if int(bad) or not np.isfinite(float(c)) else float(c)
     screen_note = ""
-    if len(cands) > 1:
+    if "screen" in saved:
+        screened, order, screen_note = (saved["screen"]["costs"], saved["screen"]["order"],
+                                        saved["screen"]["note"])
+        screened = [float(c) for c in screened]
+    elif len(cands) > 1:
         # the first horizon's costs rank the starts; where they do not tell them apart (a
         # horizon that ends before the first contact), the next horizons in turn, up to the
         # whole records
@@ -273,6 +302,12 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         order = [int(i) for i in np.argsort(screened, kind="stable")[:keep]]
     else:
         order = [0]
+    if ck is not None and "screen" not in saved:
+        ck.state = {"screen": {"costs": screened, "order": order, "note": screen_note},
+                    "runs": []}
+        ck.save()
+    ended = {int(u["ci"]): u for u in (ck.state["runs"] if ck is not None else [])}
+    current = ck.state.get("current") if ck is not None else None
     bar = Progress(maxiter * len(horizons) * len(order), label="fit", enabled=progress)
     runs, it_all = [], 0
     for ci in order:
@@ -280,23 +315,15 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         if bool(params_unstable(sim, with_leaves(params, {
                 f.name: f.from_x(x[i]) for i, f in enumerate(free)}))):
             continue                    # past the safe step: no LM from here
-        hist, message = [], ""
-        # the start's cost on the whole records, the scale of the final cost (the first
-        # stage of a growing horizon sees only the first seconds of every record)
-        cost_start = whole_cost(cands[ci])
-        for j, hz in enumerate(horizons):
-            if hz is None and j > 0 and cost_start < whole_cost(x):
-                # the shorter horizons led somewhere the whole records like less than the
-                # start (parameters the early frames do not determine can drift): the
-                # whole-record stage starts from the start point instead
-                x = cands[ci]
-            h = jnp.asarray(np.inf if hz is None else float(hz))
-            res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
-                                      progress=bar, offset=it_all)
-            x = res.x
-            it_all += res.iterations
-            hist += [float(c) for c in res.cost_history]
-            message = res.message
+        if ci in ended:                 # a run the checkpoint holds whole
+            u = ended[ci]
+            x = np.asarray(u["x"], dtype=float)
+            hist, message, cost_start = list(u["history"]), u["message"], u["cost_start"]
+            it_all += int(u["iterations"])
+        else:
+            x, hist, message, cost_start, it_all = _run_stages(
+                ci, cands, horizons, lo, hi, maxiter, res_jac, whole_cost, bar, it_all,
+                current if current is not None and current["ci"] == ci else None, ck)
         r, J, n_bad = (np.asarray(a) for a in res_jac_flag(jnp.asarray(x),
                                                            jnp.asarray(np.inf)))
         runs.append((ci, x, r, J, int(n_bad), hist, message, cost_start))
@@ -381,7 +408,56 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged,
-                         cost_chosen_start=cost_chosen_start)
+                         cost_chosen_start=cost_chosen_start, resumed=resumed)
+
+
+def _run_stages(ci, cands, horizons, lo, hi, maxiter, res_jac, whole_cost, bar, it_all,
+                current, ck):
+    """One LM run of :func:`fit_records` from start ``cands[ci]`` through every horizon in
+    turn: ``(x, history, message, cost_start, it_all)``. ``current``: the checkpoint's run
+    in progress from this start (resumed at its stage), or None; ``ck``: the
+    :class:`tuning.fit_checkpoint.FitCheckpoint` told of every iteration, or None."""
+    x, hist, message, it_start = cands[ci], [], "", it_all
+    stage, lm_state = -1, None
+    if current is not None:
+        x = np.asarray(current["lm"]["x"], dtype=float)
+        hist, cost_start = list(current["history"]), current["cost_start"]
+        it_all, it_start = int(current["it_all"]), int(current["it_start"])
+        stage, lm_state = int(current["stage"]), current["lm"]
+    else:
+        # the start's cost on the whole records, the scale of the final cost (the first
+        # stage of a growing horizon sees only the first seconds of every record)
+        cost_start = whole_cost(cands[ci])
+    for j, hz in enumerate(horizons):
+        if j < stage:
+            continue
+        resume = lm_state if j == stage else None
+        if resume is None and hz is None and j > 0 and cost_start < whole_cost(x):
+            # the shorter horizons led somewhere the whole records like less than the
+            # start (parameters the early frames do not determine can drift): the
+            # whole-record stage starts from the start point instead
+            x = cands[ci]
+        h = jnp.asarray(np.inf if hz is None else float(hz))
+
+        def note(lm, j=j, before=list(hist), it_before=it_all):
+            ck.state["current"] = {"ci": ci, "stage": j, "history": before,
+                                   "cost_start": cost_start, "it_all": it_before,
+                                   "it_start": it_start, "lm": lm}
+            ck.save()
+        res = levenberg_marquardt(lambda xx: res_jac(xx, h), x, lo, hi, maxiter=maxiter,
+                                  progress=bar, offset=it_all, resume=resume,
+                                  on_iteration=None if ck is None else note)
+        x = res.x
+        it_all += res.iterations
+        hist += [float(c) for c in res.cost_history]
+        message = res.message
+    if ck is not None:
+        ck.state["runs"].append({"ci": ci, "x": [float(v) for v in x], "history": hist,
+                                 "message": message, "cost_start": cost_start,
+                                 "iterations": it_all - it_start})
+        ck.state.pop("current", None)
+        ck.save()
+    return x, hist, message, cost_start, it_all
 
 
 def _depth_reference(sim, params, free, lo, batches) -> dict:
@@ -476,52 +552,6 @@ def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
 
 
 # --------------------------------------------------------------------------- scene files
-def load_records(sf, paths: Sequence[str]):
-    """Read record files for scene file ``sf`` (:class:`tuning.scenefile.SceneFile`).
-
-    Returns ``(records, bodies)``: the :class:`tuning.records.Record` list and ``{record
-    body name: scene body index}``. The observed bodies are ``[fit] observe`` or the scene's
-    named bodies, and builder nodes (``rope[3]``, ``rope[-1]``); a record with plain ``x, y,
-    z`` columns belongs to the only one (or to the only free body of a scene without names).
-    A column naming another body, or two names of one body, is refused.
-    Raises :class:`tuning.records.RecordError` / :class:`FitError` before anything compiles.
-    """
-    from .records import read_record
-    if not paths:
-        raise FitError("no records: give --data FILE.csv [FILE.csv ...].")
-    named = [n for n in sf.names if "[" not in n]
-    observe = list(sf.spec.observe) if sf.spec is not None and sf.spec.observe else named
-    records = [read_record(p, body_names=observe, scene_names=named) for p in paths]
-    bodies, first = {}, {}                  # first: scene body -> (record body, record path)
-    for rec in records:
-        for name in rec.bodies:
-            if name in bodies:
-                i = bodies[name]
-            elif name in sf.names:
-                i = sf.names[name]
-            elif observe or "[" in name:
-                try:
-                    i = sf.body_index(name)
-                except Exception as exc:            # SceneFileError: say which record
-                    raise FitError(f"{rec.path}: the columns of {name!r}: {exc}") from None
-            else:                                   # plain x, y, z; the scene names no body
-                free = [i for i, b in enumerate(sf.scene.bodies) if not b.pinned]
-                if len(free) != 1:
-                    raise FitError(f"{rec.path}: the columns name no body and the scene has "
-                                   f"{len(free)} free bodies: name the body in the scene "
-                                   "(name = ...) and prefix the columns (NAME.x, ...).")
-                i = free[0]
-            other, where = first.setdefault(i, (name, rec.path))
-            if other != name:
-                said = ("" if where == rec.path else f", and {where} names it {other!r}")
-                cols = (f"the columns {other}.x, ... and {name}.x, ..." if where == rec.path
-                        else f"the columns {name}.x, ...")
-                raise FitError(f"{rec.path}: {cols} observe the same scene body {i}{said}: "
-                               "name each body once, the same way in every record.")
-            bodies[name] = i
-    return records, bodies
-
-
 def check_stable(sim: dp.Simulator, params) -> None:
     """Raise :class:`diffpen.StabilityError` (with the safe step) before any rollout when
     ``sim``'s explicit integrator is past its limit at ``params`` -- the batched rollouts

@@ -77,10 +77,13 @@ def main(argv=None) -> int:
         return status
     except KeyboardInterrupt:
         # long runs write their results atomically as they go: nothing half-written is
-        # left, and a sweep resumes where it stopped
+        # left, and a sweep or a fit of records with --out resumes where it stopped
+        resumable = {"sweep": "the sweep"}
+        if argv[0] == "fit" and getattr(args, "out", None) and getattr(args, "data", None):
+            resumable["fit"] = "the fit"
         print(f"diffpen {argv[0]}: interrupted"
-              + ("; rerun the same command to resume the sweep" if argv[0] == "sweep"
-                 else ""), file=sys.stderr)
+              + (f"; rerun the same command to resume {resumable[argv[0]]}"
+                 if argv[0] in resumable else ""), file=sys.stderr)
         return INTERRUPTED
 
 

@@ -52,7 +52,12 @@ def add_arguments(p) -> None:
                         "motion records (t, x, y, z[, qw, qx, qy, qz][, vx..][, wx..]) fitted "
                         "jointly")
     p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
-                   "scene with the fitted values")
+                   "scene with the fitted values; the fit's progress is kept beside it "
+                   "(FITTED.toml.fit-progress.json, removed once FITTED.toml is written), so "
+                   "an interrupted fit resumes when the same command runs again")
+    p.add_argument("--fresh", action="store_true", help="with --out: start the fit afresh "
+                   "instead of resuming the progress kept beside it (needed when that "
+                   "progress is of a fit with other settings)")
     add_start_state_arguments(p, "with SCENE.toml --data: ")
     p.add_argument("--loss", choices=["l2", "l1"], default="l2",
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
@@ -175,6 +180,9 @@ def _run(args) -> int:
                        f"with it (got --law {args.law})")
     if args.exponent < 1.0:
         raise CLIError(f"--exponent must be >= 1 (Hertz: 1.5), got {args.exponent:g}")
+    if args.fresh and not args.out:
+        raise CLIError("--fresh restarts a fit that --out keeps the progress of: give it with "
+                       "SCENE.toml --data FILES... --out FITTED.toml")
     if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
@@ -454,7 +462,7 @@ def _run_records(args) -> int:
     out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
                     loss=args.loss, horizons=horizons, maxiter=args.maxiter,
                     starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
-                    progress=False if args.json else None)
+                    progress=False if args.json else None, fresh=args.fresh)
     status = 0 if out["reached"] else 1
     if out.get("out_error"):
         status = 2
@@ -484,6 +492,9 @@ def _run_records(args) -> int:
               + rot)
     if out["out"]:
         print(f"wrote:     {out['out']}")
+    if out["resumed"]:
+        print(f"resumed:   {out['resumed']} LM iterations from the progress of an interrupted "
+              "run")
     print(f"status:    {out['message']}; {out['iterations']} LM iterations, "
           f"{out['seconds']:.2f} s wall time ({out['fit_seconds']:.2f} s fitting)"
           + ("" if out["reached"] else "; NOT a result: "

@@ -1,0 +1,174 @@
+"""Record fits resume after an interruption (tuning.fit_checkpoint): fit_records(checkpoint=)
+and diffpen fit SCENE.toml --data ... --out F.toml keep their progress after every LM
+iteration and a rerun ends with the result of a fit never interrupted, bit for bit."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tuning import fit_checkpoint
+from tuning import trajfit as tf
+from tuning.cli import main
+from tuning.io import OutputLock
+from tuning.records import write_record
+from tuning.scenefile import load_scene_file
+
+# a thrown particle with air drag: a record of the truth (drag 0.08) by rk4 at a finer step
+DRAG = """
+dt = 1e-3
+[[particles]]
+name = "p"
+mass = 0.1
+position = [0.0, 0.0, 5.0]
+velocity = [1.0, 0.0, 2.0]
+[[drag]]
+bodies = "p"
+c = 0.02
+group = "air"
+[fit]
+params = ["extra.drag.air"]
+"""
+
+
+@pytest.fixture(scope="module")
+def drag(tmp_path_factory):
+    """(scene path, record path, simulator, start params, batch, free leaves)."""
+    folder = tmp_path_factory.mktemp("resume")
+    scene = folder / "p.toml"
+    scene.write_text(DRAG)
+    sf = load_scene_file(str(scene))
+    truth = sf.compile(integrator="rk4", dt=2.5e-4)
+    rec = tf.synthetic_record(truth, tf.with_leaves(sf.params(truth), {"extra.drag.air": 0.08}),
+                              0.3, 5e-3, {"p": 0}, noise=1e-4, seed=3)
+    path = folder / "p.csv"
+    write_record(str(path), rec)
+    sim = sf.compile()
+    batch = tf.prepare(sim, [rec], estimate="record")
+    return str(scene), str(path), sim, sf.params(sim), batch, tf.free_from_spec(sf.spec)
+
+
+#: a fit with every part a checkpoint holds: a multi-start screen, two LM runs (one ended
+#: before the other starts) and two horizon stages each
+OPTIONS = dict(horizons=(0.1, None), maxiter=3, starts=[{"extra.drag.air": 0.05}], keep=2,
+               progress=False)
+
+
+def _same(a, b):
+    assert a.values == b.values and a.history == b.history
+    assert a.iterations == b.iterations and a.cost == b.cost and a.message == b.message
+    assert a.starts == b.starts and a.cost_start == b.cost_start
+    np.testing.assert_array_equal(a.correlation, b.correlation)
+
+
+class Interrupt(BaseException):
+    pass
+
+
+def _interrupt_after(monkeypatch, n):
+    """Make the n-th checkpoint save (and no other) end the fit right after writing."""
+    saves = {"n": 0}
+    real = fit_checkpoint.FitCheckpoint.save
+
+    def save(self):
+        real(self)
+        saves["n"] += 1
+        if saves["n"] == n:
+            raise Interrupt
+    monkeypatch.setattr(fit_checkpoint.FitCheckpoint, "save", save)
+    return saves
+
+
+def test_an_interrupted_record_fit_resumes_to_the_same_result(drag, tmp_path, monkeypatch):
+    """Interrupted after each save in turn (the screen, every LM iteration of both runs and
+    stages, each run's end), the rerun returns the uninterrupted fit's values, cost history,
+    iterations, starts and correlations exactly, and counts the iterations it took over."""
+    _, _, sim, params, batch, free = drag
+    whole = tf.fit_records(sim, params, batch, free, **OPTIONS)
+    counted = _interrupt_after(monkeypatch, 0)
+    path = str(tmp_path / "progress.json")
+    tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+    total = counted["n"]
+    assert total == 1 + whole.iterations + 2          # the screen, every iteration, 2 runs
+    os.unlink(path)
+    taken = []
+    for n in range(1, total + 1):
+        _interrupt_after(monkeypatch, n)
+        with pytest.raises(Interrupt):
+            tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+        monkeypatch.undo()
+        again = tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+        _same(again, whole)
+        taken.append(again.resumed)
+        os.unlink(path)
+    assert taken[0] == 0 and taken[-1] == whole.iterations
+    assert taken == sorted(taken)                      # each later save holds more
+
+
+def test_a_checkpoint_of_another_fit_is_refused(drag, tmp_path, monkeypatch):
+    """Other settings (here the iteration limit) never resume from a fit's progress: refused,
+    naming what differs; ``fresh`` starts over. A file that is not a checkpoint is refused."""
+    _, _, sim, params, batch, free = drag
+    path = str(tmp_path / "progress.json")
+    _interrupt_after(monkeypatch, 3)
+    with pytest.raises(Interrupt):
+        tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+    monkeypatch.undo()
+    other = {**OPTIONS, "maxiter": 4}
+    with pytest.raises(tf.FitError, match=r"another fit.*maxiter: file has 3, this run has 4"):
+        tf.fit_records(sim, params, batch, free, checkpoint=path, **other)
+    res = tf.fit_records(sim, params, batch, free, checkpoint=path, fresh=True, **other)
+    assert res.resumed == 0
+    _same(res, tf.fit_records(sim, params, batch, free, **other))
+    with open(path, "w") as fh:
+        fh.write("{not json")
+    with pytest.raises(tf.FitError, match="not a readable fit checkpoint"):
+        tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+
+
+def test_diffpen_fit_out_resumes_an_interrupted_fit(drag, tmp_path, capsys, monkeypatch):
+    """diffpen fit SCENE --data REC --out F.toml interrupted (exit 130) says to rerun the same
+    command and keeps F.toml.fit-progress.json (F.toml not written); the rerun resumes, writes
+    the values of a run never interrupted and removes the progress file."""
+    scene, rec, *_ = drag
+    argv = ["fit", scene, "--data", rec, "--horizon", "0.1", "--maxiter", "3", "--json"]
+    capsys.readouterr()
+    assert main(argv + ["--out", str(tmp_path / "whole.toml")]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    out = tmp_path / "f.toml"
+    progress = tmp_path / ("f.toml" + fit_checkpoint.SUFFIX)
+    _interrupt_after(monkeypatch, 3)
+    monkeypatch.setattr(tf, "_run_stages", _raising_keyboard(tf._run_stages))
+    assert main(argv + ["--out", str(out)]) == 130
+    io = capsys.readouterr()
+    assert "rerun the same command to resume the fit" in io.err
+    assert progress.exists() and not out.exists()
+    monkeypatch.undo()
+    assert main(argv + ["--out", str(out)]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["resumed"] > 0 and whole["resumed"] == 0
+    assert again["fitted"] == whole["fitted"] and again["cost"] == whole["cost"]
+    assert out.exists() and not progress.exists()
+    assert main(argv + ["--fresh"]) == 2                   # --fresh needs --out
+    assert "--fresh restarts a fit that --out keeps" in capsys.readouterr().err
+
+
+def _raising_keyboard(run_stages):
+    """``_run_stages`` with the tests' interruption turned into the KeyboardInterrupt of a
+    Ctrl-C (what the command catches)."""
+    def wrapped(*a, **k):
+        try:
+            return run_stages(*a, **k)
+        except Interrupt:
+            raise KeyboardInterrupt from None
+    return wrapped
+
+
+def test_a_second_fit_into_the_same_out_is_refused(drag, tmp_path):
+    """Two fits into one --out would write one progress file: the second is refused at
+    once, naming the first one's lock."""
+    scene, rec, *_ = drag
+    out = tmp_path / "f.toml"
+    with OutputLock(str(out)):
+        with pytest.raises(tf.FitError, match="being written by another process"):
+            tf.fit_files(scene, [rec], out=str(out), maxiter=1)
