@@ -1,6 +1,7 @@
 """Scene-file texts shared by the record-fit tests (tests/test_trajfit.py,
-tests/test_first_state.py): a box hung on two anchored springs (group "hang", ``{k}`` N/m and
-``{c}`` N s/m to fill in)."""
+tests/test_first_state.py, tests/test_fit_resume.py): a box hung on two anchored springs
+(group "hang", ``{k}`` N/m and ``{c}`` N s/m to fill in), and a particle thrown through air
+with drag (group "air", fitted from 0.05)."""
 
 BOX = """
 dt = 1e-3
@@ -27,4 +28,20 @@ group = "hang"
 rest_length = 0.2
 [fit]
 params = ["springs.hang.k", "springs.hang.c"]
+"""
+
+
+DRAG = """
+dt = 1e-3
+[[particles]]
+name = "p"
+mass = 0.1
+position = [0.0, 0.0, 5.0]
+velocity = [1.0, 0.0, 2.0]
+[[drag]]
+bodies = "p"
+c = 0.05
+group = "air"
+[fit]
+params = ["extra.drag.air"]
 """
