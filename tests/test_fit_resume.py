@@ -111,6 +111,11 @@ def test_a_checkpoint_of_another_fit_is_refused(drag, tmp_path, monkeypatch):
         fh.write("{not json")
     with pytest.raises(tf.FitError, match="not a readable fit checkpoint"):
         tf.fit_records(sim, params, batch, free, checkpoint=path, **OPTIONS)
+    # a path that cannot be written is refused before anything is fitted
+    for where, words in ((tmp_path, "is a directory"),
+                         (tmp_path / "no" / "p.json", "does not exist")):
+        with pytest.raises(tf.FitError, match=words):
+            tf.fit_records(sim, params, batch, free, checkpoint=str(where), **OPTIONS)
 
 
 def test_diffpen_fit_out_resumes_an_interrupted_fit(drag, tmp_path, capsys, monkeypatch):

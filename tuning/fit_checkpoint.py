@@ -23,7 +23,8 @@ import jax
 import numpy as np
 
 from .fit import FitError
-from .io import atomic_write, describe_simulator, key_differences, result_key
+from .io import (OutputError, atomic_write, check_output, describe_simulator, key_differences,
+                 result_key)
 
 __all__ = ["FitCheckpoint", "fit_key", "checkpoint_path", "SUFFIX"]
 
@@ -62,9 +63,15 @@ class FitCheckpoint:
     screen's costs, order and note), ``"runs"`` (the LM runs that ended) and ``"current"``
     (the run in progress). A file with another key raises :class:`FitError` naming the
     differences, unless ``fresh`` (then it is overwritten at the first save); so does an
-    unreadable one. The caller holds the output's lock (:class:`tuning.io.OutputLock`)."""
+    unreadable one, and a path that cannot be written (:func:`tuning.io.check_output`), before
+    the fit compiles anything. The caller holds the output's lock
+    (:class:`tuning.io.OutputLock`)."""
 
     def __init__(self, path: str, key: dict, *, fresh: bool = False):
+        try:
+            check_output(path, what="checkpoint", ext=".json")
+        except OutputError as exc:
+            raise FitError(str(exc)) from None
         self.path = os.fspath(path)
         self.key = key
         self.state: dict = {}
