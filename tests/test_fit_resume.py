@@ -120,8 +120,9 @@ def test_a_checkpoint_of_another_fit_is_refused(drag, tmp_path, monkeypatch):
 
 def test_diffpen_fit_out_resumes_an_interrupted_fit(drag, tmp_path, capsys, monkeypatch):
     """diffpen fit SCENE --data REC --out F.toml interrupted (exit 130) says to rerun the same
-    command and keeps F.toml.fit-progress.json (F.toml not written); the rerun resumes, writes
-    the values of a run never interrupted and removes the progress file."""
+    command and keeps F.toml.fit-progress.json (F.toml not written); a rerun with another
+    --first-state is refused, naming it; the same command resumes, writes the values of a
+    run never interrupted and removes the progress file."""
     scene, rec, *_ = drag
     argv = ["fit", scene, "--data", rec, "--horizon", "0.1", "--maxiter", "3", "--json"]
     capsys.readouterr()
@@ -136,6 +137,9 @@ def test_diffpen_fit_out_resumes_an_interrupted_fit(drag, tmp_path, capsys, monk
     assert "rerun the same command to resume the fit" in io.err
     assert progress.exists() and not out.exists()
     monkeypatch.undo()
+    # the same fit with another start-state estimate is refused, naming the option
+    assert main(argv + ["--out", str(out), "--first-state", "fit"]) == 2
+    assert 'first_state: file has "record", this run has "fit"' in capsys.readouterr().err
     assert main(argv + ["--out", str(out)]) == 0
     again = json.loads(capsys.readouterr().out)
     assert again["resumed"] > 0 and whole["resumed"] == 0

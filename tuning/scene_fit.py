@@ -76,6 +76,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
             longest = max(r.duration for r in records)
             horizons = tuple(f * longest for f in AUTO_HORIZON) + (None,)
     run = dict(sf=sf, scene_path=scene_path, free=free, records=records, bodies=bodies,
+               data=data,
                out=out, estimate=estimate, loss=loss, horizons=horizons, maxiter=maxiter,
                starts=starts, keep=keep, max_frames=max_frames, overrides=overrides,
                progress=progress)
@@ -96,8 +97,8 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         lock.release()
 
 
-def _fit(sf, scene_path, free, records, bodies, *, out, estimate, loss, horizons, maxiter,
-         starts, keep, max_frames, overrides, progress, fresh=False,
+def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, horizons,
+         maxiter, starts, keep, max_frames, overrides, progress, fresh=False,
          checkpoint=None) -> dict:
     """:func:`fit_files` once its inputs are read and its output checked and locked."""
     from .evaluate import evaluate_batch, evaluator
@@ -114,7 +115,9 @@ def _fit(sf, scene_path, free, records, bodies, *, out, estimate, loss, horizons
                               max_frames=max_frames, cache=first_states)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
-                      progress=progress, checkpoint=checkpoint, fresh=fresh)
+                      progress=progress, checkpoint=checkpoint, fresh=fresh,
+                      checkpoint_key={"data": [os.path.realpath(p) for p in data],
+                                      "first_state": estimate, "flight_frames": max_frames})
     moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
              if name.startswith("extra.plane_offset.")}
     if moved:

@@ -155,7 +155,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 keep: int = 1, seed: int = 0, spread: float = 3.0,
                 decay: float | None = None,
                 progress: bool | None = False, checkpoint: str | None = None,
-                fresh: bool = False) -> TrajFitResult:
+                fresh: bool = False, checkpoint_key: dict | None = None) -> TrajFitResult:
     """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
     or the list :func:`prepare_buckets` makes) jointly.
 
@@ -182,6 +182,9 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     uninterrupted fit returns, bit for bit (:attr:`TrajFitResult.resumed`: the iterations
     taken from it). A checkpoint of another fit raises :class:`FitError` naming what
     differs, unless ``fresh``. The file is left in place: remove it once the result is kept.
+    ``checkpoint_key``: fields the caller adds to the checkpoint's key, so that a refusal
+    names what the caller changed (``diffpen fit``: the record files, the start-state
+    estimate and its frame cap) and not only the records' arrays that follow from it.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
@@ -242,8 +245,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
             sim, params_in, free, lo, hi, arrays, [layout_of(b)[0] for b in batches],
             rot_weight=rot_weight, horizons=list(horizons), loss=loss, maxiter=maxiter,
             starts=starts if isinstance(starts, (int, np.integer)) else
-            [dict(v) for v in starts], keep=keep, seed=seed, spread=spread, decay=decay),
-            fresh=fresh)
+            [dict(v) for v in starts], keep=keep, seed=seed, spread=spread, decay=decay,
+            **(checkpoint_key or {})), fresh=fresh)
     saved = ck.state if ck is not None else {}
     resumed = ck.resumed_iterations if ck is not None else 0
 
