@@ -168,3 +168,108 @@ def test_a_second_fit_into_the_same_out_is_refused(drag, tmp_path):
     with OutputLock(str(out)):
         with pytest.raises(tf.FitError, match="being written by another process"):
             tf.fit_files(scene, [rec], out=str(out), maxiter=1)
+
+
+def test_diffpen_fit_out_audit_cases(drag, tmp_path, capsys, monkeypatch):
+    """What an audit of the command met, each fixed:
+    - a symbolic link as --out was replaced by a plain file, its target left as it was: the
+      target is written, the link kept, the progress kept beside the target;
+    - a Ctrl-C after FITTED.toml was written but before the summary was printed said to
+      rerun, yet the progress was gone and the rerun fitted again: the progress now goes only
+      after the summary, and that rerun takes every iteration over;
+    - interrupted with --fresh, the advice to rerun the same command started over: it says
+      to rerun without --fresh;
+    - a progress file that cannot be saved (a full disk) ended in a traceback: a one-line
+      error, exit status 2, saying the saved progress resumes;
+    - a folder where the progress file goes is named as following from --out."""
+    scene, rec, *_ = drag
+    argv = ["fit", scene, "--data", rec, "--horizon", "0.1", "--maxiter", "3", "--json"]
+    capsys.readouterr()
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "fitted.toml"
+    target.write_text("# old\n")
+    link = tmp_path / "link.toml"
+    link.symlink_to(target)
+    assert main(argv + ["--out", str(link)]) == 0
+    whole = json.loads(capsys.readouterr().out)
+    assert link.is_symlink() and "extra" in target.read_text()
+    assert not (tmp_path / "real" / ("fitted.toml" + fit_checkpoint.SUFFIX)).exists()
+
+    out = tmp_path / "f.toml"
+    progress = tmp_path / ("f.toml" + fit_checkpoint.SUFFIX)
+    from tuning.cli import fit as cli_fit
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(cli_fit, "dump_json", interrupted)     # after f.toml is written
+    assert main(argv + ["--out", str(out)]) == 130
+    assert "rerun the same command to resume the fit" in capsys.readouterr().err
+    assert out.exists() and progress.exists()
+    monkeypatch.undo()
+    assert main(argv + ["--out", str(out)]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert again["resumed"] == again["iterations"] == whole["iterations"]
+    assert again["fitted"] == whole["fitted"] and not progress.exists()
+
+    _interrupt_after(monkeypatch, 3)
+    monkeypatch.setattr(tf, "_run_stages", _raising_keyboard(tf._run_stages))
+    assert main(argv + ["--out", str(out), "--fresh"]) == 130
+    assert "rerun the same command without --fresh to resume" in capsys.readouterr().err
+    monkeypatch.undo()
+
+    real = fit_checkpoint.FitCheckpoint.save
+    calls = {"n": 0}
+
+    def full_disk(self):
+        calls["n"] += 1
+        if calls["n"] > 2:
+            raise OSError(28, "No space left on device", self.path)
+        real(self)
+    monkeypatch.setattr(fit_checkpoint.FitCheckpoint, "save", full_disk)
+    assert main(argv + ["--out", str(out), "--fresh"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "rerun the same command" in err
+    assert "Traceback" not in err
+    monkeypatch.undo()
+    assert main(argv + ["--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["resumed"] == 1
+
+    (tmp_path / ("g.toml" + fit_checkpoint.SUFFIX)).mkdir()
+    assert main(argv + ["--out", str(tmp_path / "g.toml")]) == 2
+    assert "its name follows from --out" in capsys.readouterr().err
+
+
+def test_a_refusal_names_what_changed(drag, tmp_path, capsys, monkeypatch):
+    """A rerun against another fit's progress names the changed entry itself: the record file
+    whose contents changed, a start value, the bounds as the scene file gives them (their
+    values were cut to 120 characters, the same on both sides); and a fit whose records the
+    scene file names ([fit] data) is told how to resume too."""
+    scene, rec, *_ = drag
+    copy = tmp_path / "p.csv"
+    copy.write_text(open(rec).read())
+    text = open(scene).read()
+    sfile = tmp_path / "p.toml"
+    sfile.write_text(text + 'data = ["p.csv"]\nmaxiter = 3\n')
+    out = tmp_path / "f.toml"
+    argv = ["fit", str(sfile), "--out", str(out), "--json"]
+    _interrupt_after(monkeypatch, 3)
+    monkeypatch.setattr(tf, "_run_stages", _raising_keyboard(tf._run_stages))
+    capsys.readouterr()
+    assert main(argv) == 130
+    assert "rerun the same command to resume the fit" in capsys.readouterr().err
+    monkeypatch.undo()
+    lines = copy.read_text().splitlines()
+    cells = lines[5].split(",")
+    cells[-1] = repr(float(cells[-1]) + 1e-4)         # one sample 0.1 mm higher
+    lines[5] = ",".join(cells)
+    copy.write_text("\n".join(lines) + "\n")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"data_contents.{os.path.realpath(copy)}: file has" in err
+    copy.write_text(open(rec).read())
+    sfile.write_text(text.replace("c = 0.05", "c = 0.06") + 'data = ["p.csv"]\nmaxiter = 3\n'
+                     + "[fit.bounds]\n\"extra.drag.air\" = [0.001, 1.0]\n")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "params.extra.drag.air: file has 0.05, this run has 0.06" in err
+    assert "fitted.extra.drag.air.bounds: file has" in err and "[0.001, 1.0]" in err

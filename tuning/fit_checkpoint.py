@@ -16,6 +16,7 @@ output (:func:`checkpoint_path`) and removes it once the fitted scene is written
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 
@@ -26,7 +27,7 @@ from .fit import FitError
 from .io import (OutputError, atomic_write, check_output, describe_simulator, key_differences,
                  result_key)
 
-__all__ = ["FitCheckpoint", "fit_key", "checkpoint_path", "SUFFIX"]
+__all__ = ["FitCheckpoint", "fit_key", "file_digest", "checkpoint_path", "SUFFIX"]
 
 #: appended to an output's name for its fit's checkpoint
 SUFFIX = ".fit-progress.json"
@@ -38,22 +39,34 @@ def checkpoint_path(out: str) -> str:
 
 
 def _leaves(tree) -> dict:
-    """``{path: array}`` of a pytree's leaves (the key's view of params and record arrays)."""
+    """``{dotted path: array}`` of a pytree's leaves (the key's view of params and record
+    arrays: a refusal names the leaf that differs, e.g. ``params.contact.board.k``)."""
     flat, _ = jax.tree_util.tree_flatten_with_path(tree)
-    return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in flat}
+    return {jax.tree_util.keystr(path, simple=True, separator="."): np.asarray(leaf)
+            for path, leaf in flat}
 
 
-def fit_key(sim, params, free, lo, hi, arrays, layouts, **options) -> dict:
+def file_digest(path: str) -> str:
+    """SHA-256 (16 hex digits) of a file's bytes: a key field that names a changed input."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
+def fit_key(sim, params, free, arrays, layouts, **options) -> dict:
     """The key of a record fit (:func:`tuning.io.result_key`): the simulator
-    (:func:`tuning.io.describe_simulator`), every params leaf, the fitted leaves with their
-    fitting-space bounds ``lo``, ``hi``, the batches' layouts and arrays (digests of the
-    records as the fit sees them: frames, masks, start states) and ``options`` (loss,
-    horizons, iteration limit, multi-start settings...)."""
+    (:func:`tuning.io.describe_simulator`), every params leaf (the start values), the fitted
+    leaves with their bounds and fitting space, the batches' layouts and arrays (digests of
+    the records as the fit sees them: frames, masks, start states) and ``options`` (loss,
+    horizons, iteration limit, multi-start settings...). The fitting-space bounds follow
+    from these (with the safe step's caps)."""
     return result_key(
         what="record fit", simulator=describe_simulator(sim), params=_leaves(params),
-        free=[[f.name, bool(f.log)] for f in free], lo=np.asarray(lo, float),
-        hi=np.asarray(hi, float), layouts=repr(layouts),
-        records=[_leaves(a) for a in arrays], **options)
+        fitted={f.name: {"bounds": [float(f.lo), float(f.hi)], "log": bool(f.log)}
+                for f in free},
+        layouts=repr(layouts), records=[_leaves(a) for a in arrays], **options)
 
 
 class FitCheckpoint:

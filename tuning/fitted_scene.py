@@ -26,7 +26,8 @@ Only leaves of the scene's params are placed (others are refused with the list o
 The result is read back before it replaces ``out``: every fitted leaf must have its value and
 every other leaf the value it had in the input (a file that reads back otherwise is not
 written). Comments of the input are not kept (the file is rewritten from its parsed content).
-The result is written atomically (temporary file, then rename), as UTF-8.
+The result is written atomically (temporary file, then rename; a symbolic link is followed to
+the file it names), as UTF-8.
 """
 from __future__ import annotations
 
@@ -347,8 +348,10 @@ def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> s
                  for p in items]
         fit["data"] = items if isinstance(fit["data"], list) else items[0]
     text = dumps_toml(doc)
-    folder = os.path.dirname(os.path.abspath(out))
-    fd, tmp = tempfile.mkstemp(prefix=".fitted-", suffix=".toml", dir=folder)
+    # a symbolic link is followed: its target is replaced and the link kept (os.replace onto
+    # the link itself made it a plain file and left its target as it was)
+    target = os.path.realpath(out)
+    fd, tmp = tempfile.mkstemp(prefix=".fitted-", suffix=".toml", dir=os.path.dirname(target))
     try:
         plain_mode(tmp)          # a scene file like any other (mkstemp makes it owner-only)
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
@@ -362,7 +365,7 @@ def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> s
         if bad:
             raise FitError(f"writing the fitted values into {out} reads back with "
                            f"{'; '.join(bad)}; {out} is not written.")
-        os.replace(tmp, out)
+        os.replace(tmp, target)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)

@@ -319,20 +319,36 @@ def key_digest(key: dict) -> str:
 
 
 def key_differences(old: dict | None, new: dict) -> list:
-    """``["field: file has A, this run has B", ...]`` for every field that differs."""
+    """``["field: file has A, this run has B", ...]`` for every field that differs. Fields
+    holding dicts, and lists of dicts or lists of equal length, are compared entry by entry
+    (``simulator.scene``, ``records.3.pos``), so that only what differs is named; values
+    longer than 120 characters are cut."""
     if old is None:
         return ["the file has no key (written by an older version or another program)"]
     out = []
-    for k in sorted(set(old) | set(new)):
-        a, b = old.get(k, "<absent>"), new.get(k, "<absent>")
-        if a != b:
-            sa, sb = json.dumps(a), json.dumps(b)
-            if len(sa) > 120:
-                sa = sa[:117] + "..."
-            if len(sb) > 120:
-                sb = sb[:117] + "..."
-            out.append(f"{k}: file has {sa}, this run has {sb}")
+    _differences("", old, new, out)
     return out
+
+
+def _differences(name: str, a, b, out: list) -> None:
+    if a == b:
+        return
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            _differences(f"{name}.{k}" if name else str(k), a.get(k, "<absent>"),
+                         b.get(k, "<absent>"), out)
+        return
+    if (isinstance(a, list) and isinstance(b, list) and len(a) == len(b)
+            and any(isinstance(v, (dict, list)) for v in a + b)):
+        for i, (u, v) in enumerate(zip(a, b)):
+            _differences(f"{name}.{i}", u, v, out)
+        return
+    sa, sb = json.dumps(a), json.dumps(b)
+    if len(sa) > 120:
+        sa = sa[:117] + "..."
+    if len(sb) > 120:
+        sb = sb[:117] + "..."
+    out.append(f"{name}: file has {sa}, this run has {sb}")
 
 
 def describe_simulator(sim) -> dict:

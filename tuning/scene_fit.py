@@ -25,7 +25,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
               estimate: str | None = None, loss: str = "l2", horizons=None,
               maxiter: int | None = None, starts: int = 0, keep: int = 1,
               max_frames: int | None = None, progress: bool | None = False,
-              fresh: bool = False) -> dict:
+              fresh: bool = False, keep_progress: bool = False) -> dict:
     """``diffpen fit SCENE.toml --data FILES...``: fit the scene file's ``[fit] params`` to
     all records jointly (:func:`fit_records`; ``starts`` / ``keep``: its multi-start), write
     the fitted scene to ``out`` (with ``estimate`` / ``max_frames`` in its ``[fit]`` table
@@ -41,7 +41,10 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     ``out`` + ``.fit-progress.json`` after every LM iteration
     (:mod:`tuning.fit_checkpoint`); the same call again resumes an interrupted fit from
     there (``fresh``: start afresh, overwriting the progress of another fit), and the file
-    is removed once ``out`` is written.
+    is removed once ``out`` is written (``keep_progress``: left for the caller to remove;
+    the command removes it once it has printed the summary, so that a Ctrl-C before then
+    still resumes). A symbolic link ``out`` is followed: its target is written, and the
+    progress kept beside the target.
 
     Returns a JSON-ready summary: ``fitted``, ``stderr``, ``correlation``,
     ``undetermined``, ``cost_start``/``cost`` (at the scene file's and the fitted values;
@@ -84,15 +87,20 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
         return _fit(**run)
     _check_out(out, scene_path, data)
     from .fit_checkpoint import checkpoint_path
-    from .io import OutputError, OutputLock, clean_orphans
+    from .io import OutputError, OutputLock, check_output, clean_orphans
+    progress = checkpoint_path(os.path.realpath(out))
     try:
+        check_output(progress, what="the fit's progress file", derived_from="--out")
         lock = OutputLock(out, what="--out").acquire()
     except OutputError as exc:
         raise FitError(str(exc)) from None
     try:
         clean_orphans(out)
-        clean_orphans(checkpoint_path(out))
-        return _fit(**run, fresh=fresh, checkpoint=checkpoint_path(out))
+        clean_orphans(progress)
+        summary = _fit(**run, fresh=fresh, checkpoint=progress)
+        if not keep_progress and summary["out"] is not None:
+            os.unlink(progress)         # the fitted scene holds the result now
+        return summary
     finally:
         lock.release()
 
@@ -116,8 +124,8 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress, checkpoint=checkpoint, fresh=fresh,
-                      checkpoint_key={"data": [os.path.realpath(p) for p in data],
-                                      "first_state": estimate, "flight_frames": max_frames})
+                      checkpoint_key=None if checkpoint is None else _progress_key(
+                          data, estimate, max_frames))
     moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
              if name.startswith("extra.plane_offset.")}
     if moved:
@@ -139,8 +147,6 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
             write_fitted(scene_path, res.values, out, fit=overrides)
         except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
             out_error = f"could not write --out {out}: {exc}"
-        if checkpoint is not None and out_error is None:
-            os.unlink(checkpoint)       # the fitted scene holds the result now
     summary = res.as_dict()
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
@@ -155,6 +161,15 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
     if out_error:
         summary["out_error"] = out_error
     return summary
+
+
+def _progress_key(data, estimate, max_frames) -> dict:
+    """What ``diffpen fit`` adds to its progress key: the record files in order, each file's
+    contents (a changed file is named), the start-state estimate and its frame cap."""
+    from .fit_checkpoint import file_digest
+    paths = [os.path.realpath(p) for p in data]
+    return {"data": paths, "data_contents": {p: file_digest(p) for p in paths},
+            "first_state": estimate, "flight_frames": max_frames}
 
 
 def _check_out(out: str, scene_path: str, data) -> None:

@@ -242,7 +242,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     if checkpoint is not None:
         from .fit_checkpoint import FitCheckpoint, fit_key
         ck = FitCheckpoint(checkpoint, fit_key(
-            sim, params_in, free, lo, hi, arrays, [layout_of(b)[0] for b in batches],
+            sim, params_in, free, arrays, [layout_of(b)[0] for b in batches],
             rot_weight=rot_weight, horizons=list(horizons), loss=loss, maxiter=maxiter,
             starts=starts if isinstance(starts, (int, np.integer)) else
             [dict(v) for v in starts], keep=keep, seed=seed, spread=spread, decay=decay,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import re
 import importlib
+import os
 import sys
 
 #: subcommand -> (module, one-line help)
@@ -78,12 +79,18 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         # long runs write their results atomically as they go: nothing half-written is
         # left, and a sweep or a fit of records with --out resumes where it stopped
-        resumable = {"sweep": "the sweep"}
-        if argv[0] == "fit" and getattr(args, "out", None) and getattr(args, "data", None):
-            resumable["fit"] = "the fit"
-        print(f"diffpen {argv[0]}: interrupted"
-              + (f"; rerun the same command to resume {resumable[argv[0]]}"
-                 if argv[0] in resumable else ""), file=sys.stderr)
+        hint = ""
+        if argv[0] == "sweep":
+            hint = "; rerun the same command to resume the sweep"
+        elif argv[0] == "fit" and getattr(args, "out", None):
+            # a fit of records (--out needs them) keeps its progress beside --out
+            from ..fit_checkpoint import checkpoint_path
+            if os.path.exists(checkpoint_path(os.path.realpath(args.out))):
+                hint = ("; rerun the same command" + (" without --fresh" if args.fresh else "")
+                        + " to resume the fit")
+        # a progress bar may hold the line
+        print(("\n" if sys.stderr.isatty() else "") + f"diffpen {argv[0]}: interrupted{hint}",
+              file=sys.stderr)
         return INTERRUPTED
 
 

@@ -8,6 +8,7 @@ settling time ``DEFAULT_SETTLE`` s (band 1 mm).
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
 
@@ -459,10 +460,31 @@ def _run_records(args) -> int:
     setup_jax()
     from ..scene_fit import fit_files
     horizons = tuple(sorted(args.horizon)) + (None,) if args.horizon else None
-    out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
-                    loss=args.loss, horizons=horizons, maxiter=args.maxiter,
-                    starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
-                    progress=False if args.json else None, fresh=args.fresh)
+    try:
+        out = fit_files(args.scene, args.data, out=args.out, estimate=args.first_state,
+                        loss=args.loss, horizons=horizons, maxiter=args.maxiter,
+                        starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
+                        progress=False if args.json else None, fresh=args.fresh,
+                        keep_progress=True)
+    except OSError as exc:          # e.g. a full disk while saving the fit's progress
+        where = f" ({exc.filename})" if exc.filename else ""
+        raise CLIError(f"{exc.strerror or exc}{where}"
+                       + ("; the progress saved before it is kept: rerun the same command "
+                          "(without --fresh) to resume" if args.out else "")) from None
+    status = _print_records(args, out)
+    if out["out"] is not None:
+        # the fitted scene and the summary are out: the progress is no longer needed (removed
+        # only now, so that a Ctrl-C before the summary still resumes at once)
+        from ..fit_checkpoint import checkpoint_path
+        try:
+            os.unlink(checkpoint_path(os.path.realpath(out["out"])))
+        except FileNotFoundError:
+            pass
+    return status
+
+
+def _print_records(args, out: dict) -> int:
+    """Print a record fit's summary (JSON or text); its exit status."""
     status = 0 if out["reached"] else 1
     if out.get("out_error"):
         status = 2
