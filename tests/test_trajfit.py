@@ -20,7 +20,7 @@ from tuning.first_state import flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
-from record_scenes import BOX
+from record_scenes import BOX, DRAG
 
 ROPE = """
 dt = 1e-3
@@ -779,22 +779,6 @@ def test_first_state_of_a_fast_spin_does_not_wrap(cube):
     p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=20)
     np.testing.assert_allclose(om, w, atol=1e-9)
     np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
-
-
-DRAG = """
-dt = 1e-3
-[[particles]]
-name = "p"
-mass = 0.1
-position = [0.0, 0.0, 5.0]
-velocity = [1.0, 0.0, 2.0]
-[[drag]]
-bodies = "p"
-c = 0.05
-group = "air"
-[fit]
-params = ["extra.drag.air"]
-"""
 
 
 def test_a_leaf_the_records_want_at_zero_stops_at_its_span(tmp_path):
