@@ -3,6 +3,10 @@ and diffpen fit SCENE.toml --data ... --out F.toml keep their progress after eve
 iteration and a rerun ends with the result of a fit never interrupted, bit for bit."""
 import json
 import os
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -273,3 +277,28 @@ def test_a_refusal_names_what_changed(drag, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert "params.extra.drag.air: file has 0.05, this run has 0.06" in err
     assert "fitted.extra.drag.air.bounds: file has" in err and "[0.001, 1.0]" in err
+
+
+def test_sigterm_ends_a_fit_as_ctrl_c_does(drag, tmp_path):
+    """A batch scheduler's time limit sends SIGTERM: the command killed silently (the progress
+    was kept, but nothing said so). Now it ends as a Ctrl-C does, with exit status 143 and
+    the hint to resume, the progress file in place."""
+    scene, rec, *_ = drag
+    out = tmp_path / "f.toml"
+    progress = tmp_path / ("f.toml" + fit_checkpoint.SUFFIX)
+    env = {**os.environ, "JAX_ENABLE_X64": "1"}
+    p = subprocess.Popen([sys.executable, "-m", "tuning.cli", "fit", scene, "--data", rec,
+                          "--out", str(out), "--json"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.time() + 120
+        while not progress.exists() and p.poll() is None and time.time() < deadline:
+            time.sleep(0.01)          # the screen's save: the LM program compiles next
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 143, err[-2000:]
+    assert "diffpen fit: terminated; rerun the same command to resume the fit" in err
+    assert progress.exists() and not out.exists()

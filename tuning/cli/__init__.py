@@ -76,7 +76,7 @@ def main(argv=None) -> int:
             from ..distributed import mark_failed
             mark_failed(f"diffpen {argv[0]} exited with status {status}", status)
         return status
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         # long runs write their results atomically as they go: nothing half-written is
         # left, and a sweep or a fit of records with --out resumes where it stopped
         hint = ""
@@ -89,29 +89,45 @@ def main(argv=None) -> int:
                 hint = ("; rerun the same command" + (" without --fresh" if args.fresh else "")
                         + " to resume the fit")
         # a progress bar may hold the line
-        print(("\n" if sys.stderr.isatty() else "") + f"diffpen {argv[0]}: interrupted{hint}",
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(("\n" if sys.stderr.isatty() else "") + f"diffpen {argv[0]}: {what}{hint}",
               file=sys.stderr)
-        return INTERRUPTED
+        return TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
 
 
 #: the exit status of an interrupted command (128 + SIGINT, as a shell reports it)
 INTERRUPTED = 130
 
+#: the exit status of a command ended by SIGTERM (128 + 15)
+TERMINATED = 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM reached the command (a batch scheduler's time limit, ``kill``): it ends as a
+    Ctrl-C does (results written so far kept, the hint to resume), with :data:`TERMINATED`."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated
+
 
 def entry() -> None:
     """The ``diffpen`` command (and ``python -m tuning.cli``): :func:`main`, then exit with
-    its status. An interrupted command (:data:`INTERRUPTED`) runs the exit handlers and ends
-    without tearing its modules down: a Ctrl-C that landed inside JAX's runtime made that
-    teardown crash in jaxlib (exit 139, a segmentation fault, after "interrupted") in about
-    half the interrupted fits on a loaded machine."""
+    its status. SIGTERM is handled as SIGINT is (:class:`Terminated`): under SLURM a job past
+    its time limit gets SIGTERM first, and a sweep or fit of records then says how to
+    resume. An interrupted or terminated command runs the exit handlers and ends without
+    tearing its modules down: a Ctrl-C that landed inside JAX's runtime made that teardown
+    crash in jaxlib (exit 139, a segmentation fault, after "interrupted") in about half the
+    interrupted fits on a loaded machine."""
+    import signal
+    signal.signal(signal.SIGTERM, _on_sigterm)
     status = main()
-    if status == INTERRUPTED:
+    if status in (INTERRUPTED, TERMINATED):
         import atexit
-        import os
         sys.stdout.flush()
         sys.stderr.flush()
         atexit._run_exitfuncs()
-        os._exit(INTERRUPTED)
+        os._exit(status)
     sys.exit(status)
 
 
