@@ -9,7 +9,32 @@ from __future__ import annotations
 import sys
 import time
 
-__all__ = ["Progress"]
+__all__ = ["Progress", "interrupt", "raise_pending", "clear_pending"]
+
+#: interrupts raised by a command's signal handler (:func:`interrupt`) and not yet ended
+_PENDING: list = []
+
+
+def interrupt(exc_type=KeyboardInterrupt):
+    """Raise ``exc_type`` for a signal and remember it until :func:`clear_pending`: a
+    handler raises where the interpreter happens to be, and Python drops an exception raised
+    inside a garbage-collection callback (JAX registers one, which runs often while a
+    command starts), so a Ctrl-C there was lost and the run went on. :meth:`Progress.update`
+    raises it again (:func:`raise_pending`)."""
+    _PENDING.append(exc_type)
+    raise exc_type
+
+
+def raise_pending() -> None:
+    """Raise an interrupt :func:`interrupt` raised that has not ended the run (see there);
+    nothing in library use, where no handler records one."""
+    if _PENDING:
+        raise _PENDING[-1]
+
+
+def clear_pending() -> None:
+    """The run ended (interrupted, or finished before a lost interrupt could be raised)."""
+    _PENDING.clear()
 
 
 class Progress:
@@ -58,7 +83,9 @@ class Progress:
 
     def update(self, i: int, value=None, force: bool = False) -> None:
         """Report that ``i`` of ``total`` units are done (``value``: the current loss, or
-        the fraction done for ``value="done"``)."""
+        the fraction done for ``value="done"``). Raises a command's interrupt that an
+        earlier raise lost (:func:`interrupt`): every long loop reports here."""
+        raise_pending()
         if not self.enabled:
             return
         self._pending = (i, value)

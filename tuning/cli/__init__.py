@@ -12,6 +12,8 @@ import importlib
 import os
 import sys
 
+from ..progress import clear_pending, interrupt
+
 #: subcommand -> (module, one-line help)
 COMMANDS = {
     "fit": ("tuning.cli.fit", "fit contact stiffness and damping to targets or a measured "
@@ -61,26 +63,32 @@ def build_parser(available=None) -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    wanted = None
-    if argv and argv[0] in COMMANDS:
-        wanted = {argv[0]}          # import only the subcommand asked for
-    parser = build_parser(wanted)
-    args = parser.parse_args(argv)
-    if not getattr(args, "_run", None):
-        parser.print_help()
-        return 2
+    args = None
     try:
+        wanted = None
+        if argv and argv[0] in COMMANDS:
+            wanted = {argv[0]}          # import only the subcommand asked for
+        parser = build_parser(wanted)
+        args = parser.parse_args(argv)
+        if not getattr(args, "_run", None):
+            parser.print_help()
+            return 2
         status = int(args._run(args) or 0)
+        clear_pending()             # an interrupt lost too late to stop the run
         if status != 0:
             # in a cluster, the others stop at once instead of waiting for this process
             from ..distributed import mark_failed
             mark_failed(f"diffpen {argv[0]} exited with status {status}", status)
         return status
     except KeyboardInterrupt as exc:
+        clear_pending()
         # long runs write their results atomically as they go: nothing half-written is
         # left, and a sweep or a fit of records with --out resumes where it stopped
         hint = ""
-        if argv[0] == "sweep":
+        command = "diffpen " + argv[0] if argv else "diffpen"
+        if args is None:                # still importing or reading the command line
+            pass
+        elif argv[0] == "sweep":
             hint = "; rerun the same command to resume the sweep"
         elif argv[0] == "fit" and getattr(args, "out", None):
             # a fit of records (--out needs them) keeps its progress beside --out
@@ -90,7 +98,7 @@ def main(argv=None) -> int:
                         + " to resume the fit")
         # a progress bar may hold the line
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
-        print(("\n" if sys.stderr.isatty() else "") + f"diffpen {argv[0]}: {what}{hint}",
+        print(("\n" if sys.stderr.isatty() else "") + f"{command}: {what}{hint}",
               file=sys.stderr)
         return TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
 
@@ -108,19 +116,26 @@ class Terminated(KeyboardInterrupt):
 
 
 def _on_sigterm(signum, frame):
-    raise Terminated
+    interrupt(Terminated)
+
+
+def _on_sigint(signum, frame):
+    interrupt(KeyboardInterrupt)
 
 
 def entry() -> None:
     """The ``diffpen`` command (and ``python -m tuning.cli``): :func:`main`, then exit with
-    its status. SIGTERM is handled as SIGINT is (:class:`Terminated`): under SLURM a job past
-    its time limit gets SIGTERM first, and a sweep or fit of records then says how to
-    resume. An interrupted or terminated command runs the exit handlers and ends without
+    its status. SIGTERM is handled as SIGINT is (:class:`Terminated`): under SLURM a job
+    past its time limit gets SIGTERM first, and a sweep or fit of records then says how to
+    resume. Both handlers raise through :func:`tuning.progress.interrupt`, so a Ctrl-C that
+    Python dropped (raised inside a garbage-collection callback) is raised again at the next
+    progress report. An interrupted or terminated command runs the exit handlers and ends without
     tearing its modules down: a Ctrl-C that landed inside JAX's runtime made that teardown
     crash in jaxlib (exit 139, a segmentation fault, after "interrupted") in about half the
     interrupted fits on a loaded machine."""
     import signal
     signal.signal(signal.SIGTERM, _on_sigterm)
+    signal.signal(signal.SIGINT, _on_sigint)
     status = main()
     if status in (INTERRUPTED, TERMINATED):
         import atexit
