@@ -246,8 +246,9 @@ def test_diffpen_fit_out_audit_cases(drag, tmp_path, capsys, monkeypatch):
 def test_a_refusal_names_what_changed(drag, tmp_path, capsys, monkeypatch):
     """A rerun against another fit's progress names the changed entry itself: the record file
     whose contents changed, a start value, the bounds as the scene file gives them (their
-    values were cut to 120 characters, the same on both sides); and a fit whose records the
-    scene file names ([fit] data) is told how to resume too."""
+    values were cut to 120 characters, the same on both sides); the same records and scene
+    copied to another folder resume (they were refused by their paths); and a fit whose
+    records the scene file names ([fit] data) is told how to resume too."""
     scene, rec, *_ = drag
     copy = tmp_path / "p.csv"
     copy.write_text(open(rec).read())
@@ -269,7 +270,20 @@ def test_a_refusal_names_what_changed(drag, tmp_path, capsys, monkeypatch):
     copy.write_text("\n".join(lines) + "\n")
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert f"data_contents.{os.path.realpath(copy)}: file has" in err
+    assert "data.1:p.csv: file has" in err
+    # the same records from another folder resume (the key holds names and contents)
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / "p.csv").write_text(open(rec).read())
+    (moved / "p.toml").write_text(sfile.read_text())
+    copy.write_text(open(rec).read())
+    assert main(["fit", str(moved / "p.toml"), "--out", str(out), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["resumed"] > 0
+    _interrupt_after(monkeypatch, 3)
+    monkeypatch.setattr(tf, "_run_stages", _raising_keyboard(tf._run_stages))
+    assert main(argv) == 130
+    monkeypatch.undo()
+    capsys.readouterr()
     copy.write_text(open(rec).read())
     sfile.write_text(text.replace("c = 0.05", "c = 0.06") + 'data = ["p.csv"]\nmaxiter = 3\n'
                      + "[fit.bounds]\n\"extra.drag.air\" = [0.001, 1.0]\n")

@@ -164,11 +164,13 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
 
 
 def _progress_key(data, estimate, max_frames) -> dict:
-    """What ``diffpen fit`` adds to its progress key: the record files in order, each file's
-    contents (a changed file is named), the start-state estimate and its frame cap."""
+    """What ``diffpen fit`` adds to its progress key: the record files in order by name and
+    contents (a changed file is named, ``data.3:toss_026.csv``; not by folder, so a fit whose
+    records moved, or that resumes from another working folder, still resumes), the
+    start-state estimate and its frame cap."""
     from .fit_checkpoint import file_digest
-    paths = [os.path.realpath(p) for p in data]
-    return {"data": paths, "data_contents": {p: file_digest(p) for p in paths},
+    return {"data": {f"{i + 1}:{os.path.basename(p)}": file_digest(p)
+                     for i, p in enumerate(data)},
             "first_state": estimate, "flight_frames": max_frames}
 
 
