@@ -308,3 +308,20 @@ def test_empty_cell_hint_only_where_a_sample_may_be_missing(tmp_path):
     with pytest.raises(RecordError, match=r"write a decimal number \(or leave the cell empty "
                                           r"for a missing sample\)"):
         read_record(_write(tmp_path, GOOD.replace("0.0200,0.12", "0.0200,abc")))
+
+
+def test_write_record_follows_a_symbolic_link(tmp_path):
+    """write_record wrote through its own temporary file and os.replace: a symbolic link was
+    replaced by a plain file, its target left as it was. It writes through tuning.io's
+    atomic_write now: the target gets the record, the link stays, no temporary file is left."""
+    (tmp_path / "real").mkdir()
+    target = tmp_path / "real" / "rec.csv"
+    target.write_text("old\n")
+    link = tmp_path / "rec.csv"
+    link.symlink_to(target)
+    t = np.arange(4) * 0.01
+    pos = np.column_stack([t, 2 * t, 1.0 - t])
+    write_record(str(link), Record(str(link), t, {"body": BodyRecord(pos)}))
+    assert link.is_symlink()
+    np.testing.assert_array_equal(read_record(str(target)).bodies["body"].position, pos)
+    assert sorted(os.listdir(tmp_path / "real")) == ["rec.csv"]

@@ -34,8 +34,9 @@ SUFFIX = ".fit-progress.json"
 
 
 def checkpoint_path(out: str) -> str:
-    """The checkpoint of a fit that writes ``out``: ``out`` + :data:`SUFFIX`, beside it."""
-    return os.fspath(out) + SUFFIX
+    """The checkpoint of a fit that writes ``out``: ``out`` + :data:`SUFFIX`, beside the file
+    ``out`` names (a symbolic link is followed to its target)."""
+    return os.path.realpath(os.fspath(out)) + SUFFIX
 
 
 def _leaves(tree) -> dict:

@@ -36,13 +36,12 @@ import datetime
 import math
 import os
 import re
-import tempfile
 import tomllib
 
 import numpy as np
 
 from .fit import FitError
-from .io import plain_mode
+from .io import atomic_write
 
 __all__ = ["write_fitted", "dumps_toml"]
 
@@ -348,14 +347,8 @@ def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> s
                  for p in items]
         fit["data"] = items if isinstance(fit["data"], list) else items[0]
     text = dumps_toml(doc)
-    # a symbolic link is followed: its target is replaced and the link kept (os.replace onto
-    # the link itself made it a plain file and left its target as it was)
-    target = os.path.realpath(out)
-    fd, tmp = tempfile.mkstemp(prefix=".fitted-", suffix=".toml", dir=os.path.dirname(target))
-    try:
-        plain_mode(tmp)          # a scene file like any other (mkstemp makes it owner-only)
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(text)
+
+    def check(tmp):                  # the written file reads back as fitted
         try:
             after = _leaf_values(load_scene_file(tmp))
         except FitError as exc:
@@ -365,8 +358,6 @@ def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> s
         if bad:
             raise FitError(f"writing the fitted values into {out} reads back with "
                            f"{'; '.join(bad)}; {out} is not written.")
-        os.replace(tmp, target)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    # a symbolic link is followed: its target is replaced and the link kept (tuning.io)
+    atomic_write(out, lambda fh: fh.write(text.encode("utf-8")), check=check)
     return out

@@ -149,12 +149,13 @@ def plain_mode(path) -> None:
     os.chmod(path, 0o666 & ~umask)
 
 
-def atomic_write(path, write: Callable) -> None:
+def atomic_write(path, write: Callable, check: Callable | None = None) -> None:
     """Write a file atomically: ``write(fileobj)`` into a temporary file in the same folder,
     flush and fsync it, then ``os.replace`` it onto ``path``. The file gets the permissions a
     plain ``open(path, "w")`` would give it (``mkstemp`` alone makes it owner-only). The
     parent folder must exist (see :func:`check_output`). A symbolic link is followed: its
-    target is replaced and the link kept."""
+    target is replaced and the link kept. ``check(temporary path)``, when given, reads the
+    written file back before the rename; an exception it raises leaves ``path`` as it was."""
     p = os.path.realpath(os.fspath(path))
     folder = os.path.dirname(p)
     fd, tmp = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=os.path.basename(p), dir=folder)
@@ -164,6 +165,8 @@ def atomic_write(path, write: Callable) -> None:
             write(fh)
             fh.flush()
             os.fsync(fh.fileno())
+        if check is not None:
+            check(tmp)
         os.replace(tmp, p)
     except BaseException:
         if os.path.exists(tmp):

@@ -26,6 +26,7 @@ naming the file, the line and the column, and saying what to change. Nothing is 
 from __future__ import annotations
 
 import csv
+import io
 import dataclasses
 import math
 import os
@@ -34,6 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from .fit import FitError
+from .io import atomic_write
 
 __all__ = ["Record", "BodyRecord", "RecordError", "read_record", "load_records", "read_height_record",
            "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
@@ -505,7 +507,7 @@ def write_record(path, record: Record) -> None:
     """Write ``record`` in the format :func:`read_record` reads (names prefixed, so that a
     one-body record reads back for a scene of several bodies, except for one body named
     ``"body"`` -- a plain header's -- or by an index; missing samples as empty cells),
-    atomically."""
+    atomically (:func:`tuning.io.atomic_write`)."""
     names = list(record.bodies)
     plain = len(names) == 1 and (names[0] == "body" or not isinstance(names[0], str))
     header, blocks = ["t"], [np.asarray(record.t, dtype=float)[:, None]]
@@ -518,13 +520,13 @@ def write_record(path, record: Record) -> None:
             header += [c if plain else f"{name}.{c}" for c in comps]
             blocks.append(np.asarray(a, dtype=float))
     table = np.concatenate(blocks, axis=1)
-    tmp = f"{os.fspath(path)}.tmp-{os.getpid()}"
-    with open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh, lineterminator="\n")     # quotes names such as "cloth[1,2].x"
-        w.writerow(header)
-        for row in table:
-            w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
-    os.replace(tmp, path)
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")        # quotes names such as "cloth[1,2].x"
+    w.writerow(header)
+    for row in table:
+        w.writerow(["" if math.isnan(v) else repr(float(v)) for v in row])
+    text = out.getvalue().encode()
+    atomic_write(path, lambda fh: fh.write(text))
 
 
 def load_records(sf, paths: Sequence[str]):

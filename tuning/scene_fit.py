@@ -88,7 +88,7 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
     _check_out(out, scene_path, data)
     from .fit_checkpoint import checkpoint_path
     from .io import OutputError, OutputLock, check_output, clean_orphans
-    progress = checkpoint_path(os.path.realpath(out))
+    progress = checkpoint_path(out)
     try:
         check_output(progress, what="the fit's progress file", derived_from="--out")
         lock = OutputLock(out, what="--out").acquire()

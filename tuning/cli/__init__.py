@@ -93,7 +93,7 @@ def main(argv=None) -> int:
         elif argv[0] == "fit" and getattr(args, "out", None):
             # a fit of records (--out needs them) keeps its progress beside --out
             from ..fit_checkpoint import checkpoint_path
-            if os.path.exists(checkpoint_path(os.path.realpath(args.out))):
+            if os.path.exists(checkpoint_path(args.out)):
                 hint = ("; rerun the same command" + (" without --fresh" if args.fresh else "")
                         + " to resume the fit")
         # a progress bar may hold the line

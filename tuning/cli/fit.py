@@ -477,7 +477,7 @@ def _run_records(args) -> int:
         # only now, so that a Ctrl-C before the summary still resumes at once)
         from ..fit_checkpoint import checkpoint_path
         try:
-            os.unlink(checkpoint_path(os.path.realpath(out["out"])))
+            os.unlink(checkpoint_path(out["out"]))
         except FileNotFoundError:
             pass
     return status
