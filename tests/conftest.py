@@ -93,3 +93,15 @@ def ball_sim(ball_scene):
     it; a Simulator is frozen anyway)."""
     import diffpen as dp
     return dp.compile(ball_scene, dt=1e-3)
+
+
+@pytest.fixture(scope="session")
+def cube():
+    """The real tosses' cube (0.37 kg, 5 cm half-width, inertia 8e-4 kg m^2) above a board
+    plane named "ground" (offset -2 mm; k 3e3, c 30, friction 0.2), dt 1 ms."""
+    import diffpen as dp
+    scene = dp.Scene()
+    scene.add_material("board", k=3e3, c=30.0, friction=0.2)
+    scene.add_box((0.05, 0.05, 0.05), 0.37, (0.0, 0.0, 0.3), inertia=(8e-4,) * 3)
+    scene.add_plane(material="board", name="ground", offset=-0.002)
+    return dp.compile(scene, 1e-3)

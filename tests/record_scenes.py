@@ -1,7 +1,12 @@
-"""Scene-file texts shared by the record-fit tests (tests/test_trajfit.py,
-tests/test_first_state.py, tests/test_fit_resume.py): a box hung on two anchored springs
-(group "hang", ``{k}`` N/m and ``{c}`` N s/m to fill in), and a particle thrown through air
-with drag (group "air", fitted from 0.05)."""
+"""Scene-file texts and a record maker shared by the record-fit tests (test_trajfit,
+test_records, test_record_batch, test_fit_command, test_first_state, test_fit_resume): a box
+hung on two anchored springs (group "hang", ``{k}`` N/m and ``{c}`` N s/m to fill in), a
+particle thrown through air with drag (group "air", fitted from 0.05), a four-node rope, and
+:func:`record_file`, which writes a scene file and a record of it at given values."""
+from tuning import trajfit as tf
+from tuning.records import write_record
+from tuning.scenefile import load_scene_file
+
 
 BOX = """
 dt = 1e-3
@@ -45,3 +50,36 @@ group = "air"
 [fit]
 params = ["extra.drag.air"]
 """
+
+
+#: a rope of four nodes (node 0 pinned), spring group "rope.stretch" at ``{k}`` N/m and
+#: ``{c}`` N s/m to fill in, both fitted
+ROPE = """
+dt = 1e-3
+[[ropes]]
+n = 4
+start = [0.0, 0.0, 1.0]
+end = [0.3, 0.0, 1.0]
+mass = 0.3
+k = {k}
+c = {c}
+pinned = [0]
+[fit]
+params = ["springs.rope.stretch.k", "springs.rope.stretch.c"]
+"""
+
+
+def record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
+                 noise, seed):
+    """Write the scene (start values) and a record of the truth made by ``integrator`` at
+    ``dt``; returns (scene path, record path)."""
+    scene = tmp_path / f"{name}.toml"
+    scene.write_text(text)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile(integrator=integrator, dt=dt)
+    params = tf.with_leaves(sf.params(sim), truth)
+    ids = {b: sf.names[b] for b in bodies}
+    rec = tf.synthetic_record(sim, params, duration, every, ids, noise=noise, seed=seed)
+    path = tmp_path / f"{name}.csv"
+    write_record(str(path), rec)
+    return str(scene), str(path)

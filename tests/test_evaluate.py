@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from tuning import evaluate as ev
+from tuning import pose
 from tuning import trajfit as tf
 from tuning.cli import main
 from tuning.records import write_record
@@ -335,3 +336,19 @@ def test_cli_evaluate_refuses_a_plot_folder_another_run_is_writing(
     err = capsys.readouterr().err
     assert "being written by another process" in err and "Traceback" not in err
     assert os.listdir(plots) == []
+
+
+def test_rotation_angle_is_accurate_near_zero_in_float32():
+    """Regression: the angle was 2 arccos(|q_sim . q_data|), which reads identical float32
+    orientations as up to 0.056 deg apart (mean 0.009 deg). Now 2 atan2(|v|, |w|) of the
+    relative quaternion: 0 for identical ones, and right for small and large angles."""
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(1000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q32 = jnp.asarray(q, jnp.float32)
+    assert float(jnp.max(jnp.degrees(pose.rotation_angle(q32, q32)))) < 1e-3
+    for angle in (1e-3, 0.3, 2.5):
+        turn = np.array([np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0])
+        other = np.asarray(pose.qmul(jnp.asarray(q), jnp.asarray(turn)))
+        got = np.asarray(pose.rotation_angle(jnp.asarray(q), jnp.asarray(other)))
+        np.testing.assert_allclose(got, angle, rtol=1e-6)

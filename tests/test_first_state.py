@@ -3,10 +3,14 @@ that accelerate at row 0: the rate and angular acceleration of a body on springs
 integrator's velocity lag applied to velocity columns and to the bodies a record does not
 observe, on records the simulator made itself."""
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import diffpen as dp
 from diffpen.rigid import inertia_diagonal
+from tuning import first_state as first_state_mod
+from tuning import pose
 from tuning import trajfit as tf
 from tuning.first_state import flight_frames, torque_free
 from tuning.pose import exp_quat, qmul, rotmat
@@ -304,3 +308,171 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones(h
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tf.prepare(sim, [both], bodies={"a": a, "b": b})
+
+
+def test_first_state_removes_the_finite_difference_bias(cube):
+    """A gravity parabola through the first flight frames gives the exact start velocity;
+    row 0 with a biased velocity column keeps the bias."""
+    t = np.arange(12) / 148.0
+    v0 = np.array([0.3, -0.2, 0.5])
+    w = np.array([1.0, -2.0, 3.0])
+    pos = np.array([0.0, 0.0, 0.3]) + v0 * t[:, None] + 0.5 * np.array(cube.scene.gravity) * \
+        t[:, None] ** 2
+    quat = np.array([pose.qmul(pose.exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
+    vel = np.tile(v0 + np.array([0, 0, 0.023]), (12, 1))
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="fit")
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    np.testing.assert_allclose(om, w, atol=1e-9)
+    np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="record")
+    assert v[2] - v0[2] == pytest.approx(0.023)
+
+
+@pytest.mark.parametrize("integrator", ["semi_implicit_euler", "verlet"])
+def test_a_record_of_the_simulator_itself_starts_from_its_own_velocity(integrator):
+    """A ball dropped from rest, recorded by the simulator (no velocity columns) and fitted
+    from the truth: the parabola through the first frames gave the continuous-time start
+    velocity, -g h / 2 off the state semi-implicit Euler steps from, and the fit moved k by
+    -2.3% and c by -1.3% away from the truth. Verlet traces the parabola from v itself."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("board", k=2e3, c=8.0)
+    scene.add_sphere(radius=0.05, mass=0.2, position=(0.0, 0.0, 0.3))
+    scene.add_plane(material="board")
+    sim = dp.compile(scene, 1e-3, integrator=integrator)
+    truth = sim.params()
+    rec = tf.synthetic_record(sim, truth, 0.6, 5e-3, {"ball": 0}, velocities=False)
+    b = tf.prepare(sim, [rec], bodies={"ball": 0}, estimate="fit")
+    # the state the record stepped from: at rest less the lag (semi-implicit Euler)
+    lag = 0.5 * sim.dt * 9.81 if integrator == "semi_implicit_euler" else 0.0
+    np.testing.assert_allclose(np.asarray(b.start.velocity)[0, 0], [0.0, 0.0, lag],
+                               atol=1e-9)
+    if integrator == "semi_implicit_euler":
+        free = [tf.Free("contact.board.k", 10.0, 1e5), tf.Free("contact.board.c", 0.01, 100.0)]
+        r = tf.fit_records(sim, truth, b, free, horizons=(None,))
+        assert r.values["contact.board.k"] == pytest.approx(2e3, rel=1e-6)
+        assert r.values["contact.board.c"] == pytest.approx(8.0, rel=1e-6)
+
+
+def test_first_state_uses_the_flight_frames_only(cube):
+    """first_state(estimate="fit", max_frames=N) fits at most N frames and stops before the
+    body comes within the margin of a plane: a parabola that bounces at frame 12 is
+    recovered exactly with a cap of 30 frames (the frames after the bounce are left out),
+    and with noise more flight frames give a closer start velocity (mean error over 20
+    seeded records)."""
+    g = np.array(cube.scene.gravity)
+    t = np.arange(30) / 148.0
+    v0 = np.array([0.4, 0.1, -0.2])
+    flight = np.array([0.0, 0.0, 0.0994]) + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
+    pos = flight.copy()
+    pos[12:, 2] = 2 * pos[12, 2] - pos[12:, 2]                # a bounce at frame 12
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (30, 1))
+    # the lowest face (0.05 below the centre) comes within 5 mm of the plane (offset
+    # -0.002) at frame 12: frames 0-11 are the flight
+    assert flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
+    p, v, _, _ = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=30)
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    high = flight + np.array([0.0, 0.0, 0.5])                 # no plane in reach: 30 frames
+    assert flight_frames(cube.scene, 0, high, quat, 0.005) == 30
+    rng = np.random.default_rng(0)
+    err = {10: [], 20: []}
+    for _ in range(20):
+        noisy = high + 5e-4 * rng.standard_normal(high.shape)
+        for m in err:
+            _, v, _, _ = tf.first_state(cube.scene, 0, t, noisy, quat, estimate="fit",
+                                        max_frames=m)
+            err[m].append(np.linalg.norm(v - v0))
+    assert np.mean(err[20]) < 0.6 * np.mean(err[10])
+
+
+@pytest.fixture(scope="module")
+def flat_box():
+    """A 20 x 5 x 2.5 cm box 2 m up (no plane), compiled for rk4 at 0.1 ms; the tests set
+    its spin in the start state (Simulator.state_from). Shared: never mutate it."""
+    scene = dp.Scene()
+    scene.add_box((0.1, 0.05, 0.025), 0.5, (0.0, 0.0, 2.0),
+                  orientation=(0.9, 0.3, 0.2, 0.1), velocity=(0.6, 0.1, 1.0),
+                  angular_velocity=(0.0, 0.0, 0.0))
+    return dp.compile(scene, 1e-4, integrator="rk4")
+
+
+@pytest.mark.parametrize("rates, frames", [((3.0, 8.0, 2.0), 20), ((10.0, 30.0, 5.0), 40)])
+def test_first_state_fits_torque_free_rotation(flat_box, rates, frames):
+    """Regression: for a body with unequal principal moments the "fit" estimate took the
+    angular velocity as constant in free flight; a 20 x 5 x 2.5 cm box turning at (3, 8, 2)
+    rad/s (body frame) came out 22% off in x after 20 frames (2.39 against 3.06 rad/s in
+    the world frame) and a rollout from it 4.4 deg off. Now its torque-free motion is fitted
+    (Euler's equations) over a growing window of frames (at (10, 30, 5) rad/s over 40 frames
+    a fit over all frames at once, started from their mean rate, ended at (68, 18, -8)
+    against (9.3, 24.2, 18.8) rad/s): on frames of a diffpen rk4 rollout (0.1 ms steps, no
+    plane in reach) the start angular velocity and orientation come out to 1e-6 (1e-5 at
+    32 rad/s). Both cases roll out the one compiled box (``flat_box``) from a start state
+    spinning at the rates."""
+    sim = flat_box
+    scene = sim.scene
+    q0 = np.array(scene.bodies[0].orientation)
+    w_world = pose.rotmat(q0) @ np.array(rates)
+    start = sim.state_from(body=0, angular_velocity=w_world, frame="world")
+    traj = sim.rollout(sim.params(), 40 * 50, start, save_every=50)
+    t = np.concatenate([[0.0], np.asarray(traj.time)])
+    pos = np.concatenate([[scene.bodies[0].position], np.asarray(traj.position[:, 0])])
+    quat = np.concatenate([[q0], np.asarray(traj.orientation[:, 0])])
+    p, v, q, om = tf.first_state(scene, 0, t[:frames + 1], pos[:frames + 1],
+                                 quat[:frames + 1], estimate="fit", max_frames=frames)
+    tol = 1e-6 if frames == 20 else 1e-5         # the integrators' own error at 32 rad/s
+    np.testing.assert_allclose(om, w_world, rtol=tol, atol=tol)
+    assert pose.rotation_angle(jnp.asarray(q), jnp.asarray(q0)) < tol
+    np.testing.assert_allclose(v, [0.6, 0.1, 1.0], atol=1e-9)
+    if frames != 20:
+        return
+    # the integrator alone: the same frames from the exact start, and its invariants
+    inertia = dp.rigid.inertia_diagonal(scene.bodies[0])
+    wb = pose.rotmat(q0).T @ w_world
+    qs = first_state_mod.torque_free(q0, wb, inertia, t[1:])
+    np.testing.assert_allclose(np.abs(np.sum(qs * quat[1:], axis=-1)), 1.0, atol=1e-12)
+    long = first_state_mod.torque_free(np.tile(q0, (2, 1)), np.stack([wb, 2 * wb]), inertia,
+                                       np.linspace(0.05, 1.0, 20))
+    assert long.shape == (2, 20, 4)
+    # world angular momentum R I R^T w is constant: rebuild w from two close samples
+    for j, w_start in enumerate([wb, 2 * wb]):
+        L0 = pose.rotmat(q0) @ (inertia * w_start)
+        qa, qm, qb = first_state_mod.torque_free(q0, w_start, inertia,
+                                                 [0.5 - 1e-5, 0.5, 0.5 + 1e-5])
+        w_w = pose.rotvec(pose.qmul(qb, pose.qconj(qa))) / 2e-5
+        L = pose.rotmat(qm) @ (inertia * (pose.rotmat(qm).T @ w_w))
+        np.testing.assert_allclose(L, L0, rtol=1e-5)
+        assert long[j].shape == (20, 4)
+
+
+def test_first_state_of_a_body_starting_on_a_plane_is_not_a_parabola(cube):
+    """Regression: a body that starts on a plane (a box sliding on the ground) got the
+    gravity parabola of free flight over 3 frames under the "fit" estimate, which lifted
+    its start velocity by about g t / 2 per frame (+0.05 m/s at 200 Hz). Now it gets the
+    quadratic of a body that is not in flight: on a slide decelerating at mu g, exact."""
+    t = np.arange(12) / 200.0
+    v0, a = np.array([1.0, 0.3, 0.0]), -0.2 * 9.81 * np.array([1.0, 0.3, 0.0]) / 1.044
+    pos = np.array([0.0, 0.0, 0.048]) + v0 * t[:, None] + 0.5 * a * t[:, None] ** 2
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (12, 1))
+    assert flight_frames(cube.scene, 0, pos, quat, 0.005) == 0
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit")
+    np.testing.assert_allclose(v, v0, atol=1e-9)
+    np.testing.assert_allclose(p, pos[0], atol=1e-12)
+    np.testing.assert_allclose(om, 0.0, atol=1e-12)
+
+
+def test_first_state_of_a_fast_spin_does_not_wrap(cube):
+    """Regression: the "fit" estimate fitted a line to the rotation vectors since row 0,
+    which wrap past pi: a cube turning at 30 rad/s over 20 frames at 148 Hz (3.9 rad) came
+    out at (-8.8, -11.8, 0) rad/s instead of (18, 24, 0). Now the rate comes from the turns
+    between consecutive frames: exact, with sign-flipped quaternions too."""
+    t = np.arange(20) / 148.0
+    g = np.array(cube.scene.gravity)
+    w = 30.0 * np.array([0.6, 0.8, 0.0])
+    pos = np.array([0.0, 0.0, 3.0]) + np.array([0.3, 0.0, 1.0]) * t[:, None] + \
+        0.5 * g * t[:, None] ** 2
+    quat = np.array([pose.qmul(pose.exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
+    quat[::3] *= -1.0
+    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=20)
+    np.testing.assert_allclose(om, w, atol=1e-9)
+    np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)

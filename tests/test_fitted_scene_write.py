@@ -8,6 +8,7 @@ import tomllib
 
 import pytest
 
+from tuning import trajfit as tf
 from tuning.errors import FitError
 from tuning.fitted_scene import dumps_toml, write_fitted
 from tuning.scenefile import load_scene_file, param_leaves
@@ -265,3 +266,45 @@ def test_unknown_leaf_is_refused_and_nothing_written(tmp_path):
         write_fitted(str(src), {"extra.plastic.bar": 1.5}, str(out))
     assert not out.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["s.toml"]
+
+
+def test_write_fitted_places_every_kind_of_leaf(tmp_path):
+    """Materials (k, c, friction), a named plane's offset, a cloth's spring groups and drag
+    are written where the file declares them and read back equal."""
+    from tuning.fitted_scene import write_fitted
+    src = tmp_path / "s.toml"
+    src.write_text("""
+[materials.board]
+k = 1e4
+c = 100.0
+friction = 0.2
+[[boxes]]
+name = "cube"
+half_extents = [0.05, 0.05, 0.05]
+mass = 0.37
+position = [0.0, 0.0, 0.5]
+material = "board"
+[[planes]]
+name = "ground"
+material = "board"
+[[cloths]]
+nx = 3
+ny = 3
+spacing = 0.1
+mass = 0.1
+origin = [1.0, 0.0, 1.0]
+structural = [100.0, 0.1]
+shear = 50.0
+drag = 0.01
+""")
+    values = {"contact.board.k": 2024.5, "contact.board.c": 25.25,
+              "extra.friction.board": 0.175, "extra.plane_offset.ground": -0.001,
+              "springs.cloth.structural.k": 123.0, "springs.cloth.shear.c": 0.5,
+              "extra.drag.cloth.drag": 0.02}
+    out = tmp_path / "out.toml"
+    write_fitted(str(src), values, str(out))
+    sf = load_scene_file(str(out))
+    params = sf.params(sf.compile())
+    for name, v in values.items():
+        assert float(tf.get_leaf(params, name)) == v
+    assert float(tf.get_leaf(params, "springs.cloth.structural.c")) == 0.1

@@ -1,5 +1,6 @@
 """Motion records (tuning.records): the real cube tosses read as they are, every malformed
-record is refused with its file, line and column, and write/read round-trips."""
+record is refused with its file, line and column, write/read round-trips, and a record's
+columns matched to a scene's bodies (named bodies, builder nodes, pinned bodies)."""
 import glob
 import os
 import re
@@ -7,9 +8,13 @@ import re
 import numpy as np
 import pytest
 
+from tuning import trajfit as tf
 from tuning.records import (BodyRecord, Record, RecordError, read_height_record, read_record,
                             write_record)
+from tuning.scenefile import load_scene_file
 from tuning.sysid import load_csv
+
+from record_scenes import ROPE, record_file
 
 #: the 100 real tosses shipped with the examples (examples/data/cube-toss, with its README
 #: and licence)
@@ -325,3 +330,140 @@ def test_write_record_follows_a_symbolic_link(tmp_path):
     assert link.is_symlink()
     np.testing.assert_array_equal(read_record(str(target)).bodies["body"].position, pos)
     assert sorted(os.listdir(tmp_path / "real")) == ["rec.csv"]
+
+
+def test_a_rigid_body_without_orientation_columns_is_warned_about(tmp_path, cube):
+    """A record with positions only of a box started it silently from the scene file's
+    orientation with no spin (31.9% position error against 1.40% with quaternions)."""
+    from tuning.records import BodyRecord, Record
+    t = np.arange(12) * 5e-3
+    pos = np.stack([np.zeros(12), np.zeros(12), 0.3 - 4.9 * t ** 2], axis=1)
+    rec = Record(path=str(tmp_path / "posonly.csv"), t=t, bodies={"0": BodyRecord(pos)})
+    with pytest.warns(UserWarning, match="no orientation columns .* posonly.csv"):
+        tf.prepare(cube, [rec])
+
+
+def test_a_record_of_a_pinned_body_prepares(tmp_path):
+    """A record that also tracks a rope's pinned end failed ("body 0 is pinned ... takes
+    no velocity"): its estimated velocity went to state_from. A pinned body keeps zero
+    velocity; a zero velocity is accepted."""
+    text = ROPE.format(k=200.0, c=0.3)
+    scene, rec = record_file(tmp_path, text, {}, ["rope[0]", "rope[2]"], "rope",
+                              integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.1,
+                              noise=1e-4, seed=1)
+    sf = load_scene_file(scene)
+    sim = sf.compile()
+    records, bodies = tf.load_records(sf, [rec])
+    for est in ("record", "fit"):
+        batch = tf.prepare(sim, records, bodies=bodies, estimate=est)
+        assert np.all(np.asarray(batch.start.velocity)[0, sf.names["rope[0]"]] == 0.0)
+    sim.state_from(body=sf.names["rope[0]"], velocity=(0.0, 0.0, 0.0))
+
+
+def test_records_may_observe_builder_nodes_beside_named_bodies(tmp_path):
+    """Regression: with a named body in the scene, a record column of a builder's node
+    (rope[3].x, the README's multi-body form) was refused as 'names body rope[3], which the
+    scene does not have'; now it resolves to the node (a node outside the builder is still
+    refused, naming the record)."""
+    scene = tmp_path / "mixed.toml"
+    scene.write_text('dt = 1e-3\nduration = 0.2\n[[boxes]]\nname = "cube"\n'
+                     'half_extents = [0.05, 0.05, 0.05]\nmass = 0.4\n'
+                     'position = [0.0, 0.0, 0.5]\n[[ropes]]\nn = 4\nstart = [0.0, 0.5, 1.0]\n'
+                     'end = [0.3, 0.5, 1.0]\nmass = 0.1\nk = 200.0\nc = 0.2\n'
+                     '[fit]\nparams = ["springs.rope.stretch.k"]\n')
+    sf = load_scene_file(str(scene))
+    good, bad = tmp_path / "good.csv", tmp_path / "bad.csv"
+    for path, node in ((good, "rope[3]"), (bad, "rope[9]")):
+        path.write_text(f"t,cube.x,cube.y,cube.z,{node}.x,{node}.y,{node}.z\n"
+                        "0.0,0.0,0.0,0.5,0.3,0.5,1.0\n0.01,0.0,0.0,0.4995,0.3,0.5,0.9995\n")
+    _, bodies = tf.load_records(sf, [str(good)])
+    assert bodies == {"cube": sf.names["cube"], "rope[3]": sf.body_index("rope[3]")}
+    with pytest.raises(tf.FitError, match="bad.csv: the columns of 'rope\\[9\\]'"):
+        tf.load_records(sf, [str(bad)])
+
+
+SPHERE = ('dt = 1e-3\nduration = 0.1\n[[spheres]]\n{name}radius = 0.05\nmass = 0.2\n'
+          'position = [0.0, 0.0, 0.5]\n')
+
+
+ROPE_ONLY = ('dt = 1e-3\nduration = 0.1\n{pinned}[[ropes]]\nn = 4\nstart = [0.0, 0.0, 1.0]\n'
+             'end = [0.3, 0.0, 1.0]\nmass = 0.4\nk = 300.0\n')
+
+
+PINNED = ('[[spheres]]\nname = "s"\nradius = 0.05\nmass = 0.1\nposition = [5.0, 0.0, 1.0]\n'
+          'pinned = true\n')
+
+
+def _scene_and_records(tmp_path, text, *headers):
+    scene = tmp_path / "scene.toml"
+    scene.write_text(text)
+    paths = []
+    for k, header in enumerate(headers):
+        n = header.count(".x") or 1
+        path = tmp_path / f"rec{k}.csv"
+        path.write_text(f"t,{header}\n" + "".join(
+            f"{0.01 * i}" + ",0.3,0.0,1.0" * n + "\n" for i in range(3)))
+        paths.append(str(path))
+    return load_scene_file(str(scene)), paths
+
+
+def test_record_columns_of_bodies_the_scene_lacks_are_refused(tmp_path):
+    """Regression: in a scene without named bodies, columns a.x, b.x (bodies it does not
+    have) were both mapped onto its only free body. They are refused with the file, line
+    and column; plain x, y, z columns still belong to that body."""
+    sf, (plain, ab) = _scene_and_records(tmp_path, SPHERE.format(name=""), "x,y,z",
+                                         "a.x,a.y,a.z,b.x,b.y,b.z")
+    assert tf.load_records(sf, [plain])[1] == {"body": 0}
+    with pytest.raises(tf.FitError, match=r"rec1.csv, line 1, column 2: 'a.x' names body "
+                                          r"'a', which the scene does not have; named "
+                                          r"bodies: none"):
+        tf.load_records(sf, [ab])
+
+
+@pytest.mark.parametrize("pinned", ["", PINNED])
+def test_node_columns_resolve_with_or_without_named_bodies(tmp_path, pinned):
+    """Regression: rope[-1].x and rope[ 3 ].x (the README's node forms) were refused when the
+    scene had no named body ("the columns name no body and the scene has 3 free bodies")."""
+    sf, paths = _scene_and_records(tmp_path, ROPE_ONLY.format(pinned=pinned),
+                                   *(f"{n}.x,{n}.y,{n}.z" for n in
+                                     ("rope[3]", "rope[-1]", "rope[ 3 ]")))
+    node = sf.body_index("rope[3]")
+    for path, name in zip(paths, ("rope[3]", "rope[-1]", "rope[ 3 ]")):
+        assert tf.load_records(sf, [path])[1] == {name: node}
+
+
+def test_one_body_under_two_names_is_refused(tmp_path):
+    """Regression: rope[3] and rope[-1] (the same node) with different data were accepted,
+    the start state taken from the last. Two names of one body are refused, naming both,
+    within a record and across records; prepare's own body map refuses it too."""
+    sf, (both, three, last) = _scene_and_records(
+        tmp_path, ROPE_ONLY.format(pinned=PINNED),
+        "rope[3].x,rope[3].y,rope[3].z,rope[-1].x,rope[-1].y,rope[-1].z",
+        "rope[3].x,rope[3].y,rope[3].z", "rope[-1].x,rope[-1].y,rope[-1].z")
+    node = sf.body_index("rope[3]")
+    with pytest.raises(tf.FitError, match=r"rec0.csv: the columns rope\[3\].x, ... and "
+                                          rf"rope\[-1\].x, ... observe the same scene body "
+                                          rf"{node}: name each body once"):
+        tf.load_records(sf, [both])
+    with pytest.raises(tf.FitError, match=r"rec2.csv: the columns rope\[-1\].x, ... observe "
+                                          rf"the same scene body {node}, and .*rec1.csv names "
+                                          r"it 'rope\[3\]'"):
+        tf.load_records(sf, [three, last])
+    from tuning.records import read_record
+    rec = read_record(both)
+    with pytest.raises(tf.FitError, match=r"record bodies 'rope\[3\]' and 'rope\[-1\]' both "
+                                          rf"map to body {node}"):
+        tf.prepare(sf.compile(), [rec], bodies={"rope[3]": node, "rope[-1]": node})
+
+
+def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
+    """Regression: with [fit] observe = ["cube"], columns of the scene's body 'ball' were
+    refused as a body 'the scene does not have'."""
+    text = (SPHERE.format(name='name = "ball"\n') + SPHERE.format(name='name = "cube"\n')
+            .replace("0.0, 0.0, 0.5", "1.0, 0.0, 0.5").split("duration = 0.1\n")[1]
+            + '[fit]\nobserve = ["cube"]\nparams = ["contact.default.k"]\n')
+    sf, (path,) = _scene_and_records(tmp_path, text, "cube.x,cube.y,cube.z,ball.x,ball.y,ball.z")
+    with pytest.raises(tf.FitError, match=r"rec0.csv, line 1, column 5: 'ball.x' names body "
+                                          r"'ball', which is not in \[fit\] observe \(cube\); "
+                                          r"add 'ball' to observe or drop its columns"):
+        tf.load_records(sf, [path])

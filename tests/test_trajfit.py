@@ -15,43 +15,11 @@ import diffpen as dp
 from tuning import pose
 from tuning import trajfit as tf
 from tuning.cli import main
-from tuning import first_state as first_state_mod
-from tuning.first_state import flight_frames
 from tuning.records import write_record
 from tuning.scenefile import load_scene_file
 
-from record_scenes import BOX, DRAG
+from record_scenes import BOX, DRAG, ROPE, record_file
 
-ROPE = """
-dt = 1e-3
-[[ropes]]
-n = 4
-start = [0.0, 0.0, 1.0]
-end = [0.3, 0.0, 1.0]
-mass = 0.3
-k = {k}
-c = {c}
-pinned = [0]
-[fit]
-params = ["springs.rope.stretch.k", "springs.rope.stretch.c"]
-"""
-
-
-
-def _record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
-                 noise, seed):
-    """Write the scene (start values) and a record of the truth made by ``integrator`` at
-    ``dt``; returns (scene path, record path)."""
-    scene = tmp_path / f"{name}.toml"
-    scene.write_text(text)
-    sf = load_scene_file(str(scene))
-    sim = sf.compile(integrator=integrator, dt=dt)
-    params = tf.with_leaves(sf.params(sim), truth)
-    ids = {b: sf.names[b] for b in bodies}
-    rec = tf.synthetic_record(sim, params, duration, every, ids, noise=noise, seed=seed)
-    path = tmp_path / f"{name}.csv"
-    write_record(str(path), rec)
-    return str(scene), str(path)
 
 
 def _fit_cli(capsys, argv):
@@ -69,7 +37,7 @@ def rope_record(tmp_path_factory):
     """The path of a record of the ROPE scene's nodes 1-3 at ROPE_TRUTH, made by rk4 at 0.25
     ms: 0.6 s at 5 ms, 0.1 mm of noise. Shared: the tests read it, or copy it beside their
     own scene file."""
-    return _record_file(tmp_path_factory.mktemp("rope"), ROPE.format(k=200.0, c=0.3),
+    return record_file(tmp_path_factory.mktemp("rope"), ROPE.format(k=200.0, c=0.3),
                         ROPE_TRUTH, ["rope[1]", "rope[2]", "rope[3]"], "rope",
                         integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6, noise=1e-4,
                         seed=1)[1]
@@ -88,7 +56,7 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, request, case):
         scene, rec = str(scene), request.getfixturevalue("rope_record")
     else:
         truth = {"springs.hang.k": 400.0, "springs.hang.c": 2.0}
-        scene, rec = _record_file(tmp_path, BOX.format(k=250.0, c=1.0), truth, ["box"], case,
+        scene, rec = record_file(tmp_path, BOX.format(k=250.0, c=1.0), truth, ["box"], case,
                                   integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6,
                                   noise=2e-4, seed=1)
     out_toml = tmp_path / "fitted.toml"
@@ -142,248 +110,6 @@ def test_standard_errors_take_in_the_records_start_state_noise(tmp_path):
     for name, v in truth.items():
         z = (out["fitted"][name] - v) / out["stderr"][name]
         assert abs(z) < 3.0, (name, out["fitted"][name], out["stderr"][name])
-
-
-# --------------------------------------------------------------------------- pieces
-@pytest.fixture(scope="module")
-def cube():
-    scene = dp.Scene()
-    scene.add_material("board", k=3e3, c=30.0, friction=0.2)
-    scene.add_box((0.05, 0.05, 0.05), 0.37, (0.0, 0.0, 0.3), inertia=(8e-4,) * 3)
-    scene.add_plane(material="board", name="ground", offset=-0.002)
-    return dp.compile(scene, 1e-3)
-
-
-def test_first_state_removes_the_finite_difference_bias(cube):
-    """A gravity parabola through the first flight frames gives the exact start velocity;
-    row 0 with a biased velocity column keeps the bias."""
-    t = np.arange(12) / 148.0
-    v0 = np.array([0.3, -0.2, 0.5])
-    w = np.array([1.0, -2.0, 3.0])
-    pos = np.array([0.0, 0.0, 0.3]) + v0 * t[:, None] + 0.5 * np.array(cube.scene.gravity) * \
-        t[:, None] ** 2
-    quat = np.array([pose.qmul(pose.exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
-    vel = np.tile(v0 + np.array([0, 0, 0.023]), (12, 1))
-    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="fit")
-    np.testing.assert_allclose(v, v0, atol=1e-9)
-    np.testing.assert_allclose(p, pos[0], atol=1e-12)
-    np.testing.assert_allclose(om, w, atol=1e-9)
-    np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
-    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, vel, None, estimate="record")
-    assert v[2] - v0[2] == pytest.approx(0.023)
-
-
-@pytest.mark.parametrize("integrator", ["semi_implicit_euler", "verlet"])
-def test_a_record_of_the_simulator_itself_starts_from_its_own_velocity(integrator):
-    """A ball dropped from rest, recorded by the simulator (no velocity columns) and fitted
-    from the truth: the parabola through the first frames gave the continuous-time start
-    velocity, -g h / 2 off the state semi-implicit Euler steps from, and the fit moved k by
-    -2.3% and c by -1.3% away from the truth. Verlet traces the parabola from v itself."""
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    scene.add_material("board", k=2e3, c=8.0)
-    scene.add_sphere(radius=0.05, mass=0.2, position=(0.0, 0.0, 0.3))
-    scene.add_plane(material="board")
-    sim = dp.compile(scene, 1e-3, integrator=integrator)
-    truth = sim.params()
-    rec = tf.synthetic_record(sim, truth, 0.6, 5e-3, {"ball": 0}, velocities=False)
-    b = tf.prepare(sim, [rec], bodies={"ball": 0}, estimate="fit")
-    # the state the record stepped from: at rest less the lag (semi-implicit Euler)
-    lag = 0.5 * sim.dt * 9.81 if integrator == "semi_implicit_euler" else 0.0
-    np.testing.assert_allclose(np.asarray(b.start.velocity)[0, 0], [0.0, 0.0, lag],
-                               atol=1e-9)
-    if integrator == "semi_implicit_euler":
-        free = [tf.Free("contact.board.k", 10.0, 1e5), tf.Free("contact.board.c", 0.01, 100.0)]
-        r = tf.fit_records(sim, truth, b, free, horizons=(None,))
-        assert r.values["contact.board.k"] == pytest.approx(2e3, rel=1e-6)
-        assert r.values["contact.board.c"] == pytest.approx(8.0, rel=1e-6)
-
-
-def test_host_rotation_matrices_are_float64_without_x64():
-    """Regression: tuning.pose.rotmat (first states, body-frame velocities) went through JAX
-    asking for float64; with x64 off JAX warned and truncated it to float32. It now
-    computes on the host, in float64 either way, and equals diffpen's own matrices."""
-    import warnings
-    q = np.array([[0.9, 0.3, 0.1, 0.0], [0.1, -0.7, 0.2, 0.6]])
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    with jax.enable_x64(False), warnings.catch_warnings():
-        warnings.simplefilter("error")
-        R = pose.rotmat(q)
-    assert R.dtype == np.float64
-    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape),
-                               atol=1e-15)
-    np.testing.assert_allclose(R, np.asarray(dp.rigid.quat_to_matrix(jnp.asarray(q))),
-                               atol=1e-15)
-
-
-def test_unequal_lengths_are_masked(cube, caplog):
-    """Records of different lengths in one batch give each record the residuals it gives
-    alone (padding weighs nothing)."""
-    params = cube.params()
-    s = cube.state_from(body=0, position=(0, 0, 0.2), velocity=(0.4, 0, 0),
-                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
-    long = tf.synthetic_record(cube, params, 0.3, 5e-3, {"cube": 0}, state=s, noise=1e-3)
-    short = tf.synthetic_record(cube, params, 0.12, 5e-3, {"cube": 0}, noise=1e-3, seed=3)
-    both = tf.prepare(cube, [long, short], estimate="record")
-    alone = [tf.prepare(cube, [r], estimate="record") for r in (long, short)]
-    p2 = tf.with_leaves(params, {"contact.board.c": 20.0})
-
-    def residuals(b):        # jitted: one compile per batch instead of one per eager op
-        return np.asarray(jax.jit(lambda p: tf.pose_residuals(*tf.simulate(cube, p, b), b))(p2))
-    r_both = residuals(both)
-    # called eagerly, the same batch again reuses its compiled rollout (simulate's observe
-    # function is one object per set of bodies, and the rollout program is keyed by it)
-    first = tf.simulate(cube, p2, both)[0]
-    caplog.clear()
-    with caplog.at_level(logging.WARNING), jax.log_compiles():
-        again = tf.simulate(cube, p2, both)[0]
-    assert not [r for r in caplog.records if r.getMessage().startswith("Compiling")]
-    np.testing.assert_array_equal(np.asarray(again), np.asarray(first))
-    cost_alone = [float(np.sum(residuals(b) ** 2)) for b in alone]
-    # each record weighs 1/R in the batch: the batch cost is the mean of the costs alone
-    assert float(np.sum(r_both ** 2)) == pytest.approx(np.mean(cost_alone), rel=1e-10)
-    assert both.pos_mask[1, len(short.t):].sum() == 0
-    # buckets of similar length give the same loss as one padded batch
-    buckets = tf.prepare_buckets(cube, [long, short], buckets=2, estimate="record")
-    assert [len(b.paths) for b in buckets] == [1, 1] and buckets[0].steps < both.steps
-    r_buckets = np.concatenate([residuals(b) for b in buckets])
-    assert float(np.sum(r_buckets ** 2)) == pytest.approx(float(np.sum(r_both ** 2)),
-                                                          rel=1e-10)
-
-
-def test_plane_offset_is_a_differentiable_parameter(cube):
-    """A named plane's offset is params.extra["plane_offset"][name]: moving it moves the
-    resting box by the same amount, and its gradient matches central differences."""
-    params = cube.params()
-    assert float(params.extra["plane_offset"]["ground"]) == -0.002
-    s = cube.state_from(body=0, position=(0, 0, 0.1))
-
-    def rest_z(off):
-        p = tf.with_leaves(params, {"extra.plane_offset.ground": off})
-        return cube.rollout(p, 400, s).position[-1, 0, 2]
-    z0, z1 = float(rest_z(-0.002)), float(rest_z(0.003))
-    assert z1 - z0 == pytest.approx(0.005, rel=1e-3)
-    g = float(jax.grad(rest_z)(jnp.asarray(0.0)))
-    h = 1e-6
-    fd = (float(rest_z(h)) - float(rest_z(-h))) / (2 * h)
-    assert g == pytest.approx(fd, rel=1e-5)
-    with pytest.raises(dp.SceneError, match="finite"):
-        cube.params(extra={"plane_offset": {"ground": float("nan")}})
-    with pytest.raises(dp.SceneError, match="exists already"):
-        cube.scene.add_plane(name="ground")
-
-
-def test_state_from_under_vmap_matches_a_loop(cube):
-    """state_from sets pose, velocity and BODY-frame angular velocity; vmapped over start
-    states it equals one call per state, and the world angular velocity is R w_body."""
-    q = jnp.array([[1.0, 0, 0, 0], [0.0, 0, 0, 1.0]])
-    wb = jnp.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
-    pos = jnp.array([[0, 0, 0.2], [0.1, 0, 0.3]])
-    many = jax.vmap(lambda p, qq, w: cube.state_from(body=0, position=p, orientation=qq,
-                                                     angular_velocity=w))(pos, q, wb)
-    for i in range(2):
-        one = cube.state_from(body=0, position=pos[i], orientation=q[i],
-                              angular_velocity=wb[i])
-        np.testing.assert_allclose(many.angular_velocity[i], one.angular_velocity)
-    # a half turn about z maps body (1, 2, 3) to world (-1, -2, 3)
-    np.testing.assert_allclose(many.angular_velocity[1, 0], [-1.0, -2.0, 3.0], atol=1e-12)
-    with pytest.raises(dp.SceneError, match="body"):
-        cube.state_from(body=3, position=(0, 0, 0))
-
-
-def test_leaf_names_accept_keystr():
-    assert tf._normalise(".contact['board'].k") == "contact.board.k"
-    assert tf._normalise("springs.rope.stretch.c") == "springs.rope.stretch.c"
-    assert tf.Free("extra.plane_offset.ground", -0.01, 0.01).resolved().log is False
-    assert tf.Free("contact.board.k", 1.0, 1e5).resolved().log is True
-    with pytest.raises(ValueError, match="lo >= 0"):
-        tf.Free("contact.board.k", -1.0, 1.0, log=True).resolved()
-    assert math.isclose(tf.ROT_WEIGHT, 0.5729577951308232)
-
-
-def test_bad_records_fail_before_compiling(tmp_path, capsys):
-    scene = tmp_path / "rope.toml"
-    scene.write_text(ROPE.format(k=200.0, c=0.3))
-    bad = tmp_path / "bad.csv"
-    bad.write_text("t,x,y\n0,1,2\n")
-    assert main(["fit", str(scene), "--data", str(bad), "--json"]) == 2
-    assert "bad.csv" in capsys.readouterr().err
-    assert main(["fit", str(scene), "--data", str(tmp_path / "none.csv")]) == 2
-    capsys.readouterr()
-    # without a scene file --data is the ball's one t,z record
-    assert main(["fit", "--data", str(bad), str(bad)]) == 2
-    assert "one t,z record" in capsys.readouterr().err
-    assert main(["fit", "--out", str(tmp_path / "x.toml")]) == 2
-
-
-def test_a_record_without_a_first_pose_names_its_file_and_body(tmp_path, cube):
-    """The rollout starts from row 0: a record whose first row lacks the position or the
-    orientation is refused with the file, the body and what to do (it said neither)."""
-    from tuning.records import read_record
-    for cells, what in (("0,,,,1,0,0,0", "position (x, y, z)"),
-                        ("0,0,0,0.3,,,,", "orientation (qw, qx, qy, qz)")):
-        path = tmp_path / "late_start.csv"
-        path.write_text("t,x,y,z,qw,qx,qy,qz\n" + cells + "\n0.01,0,0,0.3,1,0,0,0\n"
-                        "0.02,0,0,0.299,1,0,0,0\n")
-        rec = read_record(str(path), ["cube"])
-        with pytest.raises(tf.FitError) as err:
-            tf.prepare(cube, [rec], bodies={"cube": 0}, estimate="record")
-        msg = str(err.value)
-        assert "late_start.csv" in msg and "'cube'" in msg and what in msg, msg
-        assert "Trim the record" in msg
-
-
-def test_readme_snippet_runs_as_written():
-    """The README's vmapped start states with a fitted plane offset run as written."""
-    import pathlib
-    import re
-    text = (pathlib.Path(__file__).resolve().parents[1] / "README.md").read_text()
-    block = re.search(r"## Fitting measured motion.*?```python\n(.*?)```", text, re.S).group(1)
-    env: dict = {}
-    exec(compile(block, "README fitting measured motion", "exec"), env)
-    np.testing.assert_allclose(np.asarray(env["dz"]), 1.0, rtol=1e-3)
-    assert np.all(np.abs(np.asarray(env["z"]) - 0.05) < 1e-3)
-
-
-def test_write_fitted_places_every_kind_of_leaf(tmp_path):
-    """Materials (k, c, friction), a named plane's offset, a cloth's spring groups and drag
-    are written where the file declares them and read back equal."""
-    from tuning.fitted_scene import write_fitted
-    src = tmp_path / "s.toml"
-    src.write_text("""
-[materials.board]
-k = 1e4
-c = 100.0
-friction = 0.2
-[[boxes]]
-name = "cube"
-half_extents = [0.05, 0.05, 0.05]
-mass = 0.37
-position = [0.0, 0.0, 0.5]
-material = "board"
-[[planes]]
-name = "ground"
-material = "board"
-[[cloths]]
-nx = 3
-ny = 3
-spacing = 0.1
-mass = 0.1
-origin = [1.0, 0.0, 1.0]
-structural = [100.0, 0.1]
-shear = 50.0
-drag = 0.01
-""")
-    values = {"contact.board.k": 2024.5, "contact.board.c": 25.25,
-              "extra.friction.board": 0.175, "extra.plane_offset.ground": -0.001,
-              "springs.cloth.structural.k": 123.0, "springs.cloth.shear.c": 0.5,
-              "extra.drag.cloth.drag": 0.02}
-    out = tmp_path / "out.toml"
-    write_fitted(str(src), values, str(out))
-    sf = load_scene_file(str(out))
-    params = sf.params(sf.compile())
-    for name, v in values.items():
-        assert float(tf.get_leaf(params, name)) == v
-    assert float(tf.get_leaf(params, "springs.cloth.structural.c")) == 0.1
 
 
 def test_directions_a_record_cannot_determine_are_reported(cube):
@@ -657,136 +383,12 @@ def test_decay_weighs_early_frames(cube):
                                plain[n_pos:].reshape(T, 3) * w[:, None], rtol=1e-12)
 
 
-def test_first_state_uses_the_flight_frames_only(cube):
-    """first_state(estimate="fit", max_frames=N) fits at most N frames and stops before the
-    body comes within the margin of a plane: a parabola that bounces at frame 12 is
-    recovered exactly with a cap of 30 frames (the frames after the bounce are left out),
-    and with noise more flight frames give a closer start velocity (mean error over 20
-    seeded records)."""
-    g = np.array(cube.scene.gravity)
-    t = np.arange(30) / 148.0
-    v0 = np.array([0.4, 0.1, -0.2])
-    flight = np.array([0.0, 0.0, 0.0994]) + v0 * t[:, None] + 0.5 * g * t[:, None] ** 2
-    pos = flight.copy()
-    pos[12:, 2] = 2 * pos[12, 2] - pos[12:, 2]                # a bounce at frame 12
-    quat = np.tile([1.0, 0.0, 0.0, 0.0], (30, 1))
-    # the lowest face (0.05 below the centre) comes within 5 mm of the plane (offset
-    # -0.002) at frame 12: frames 0-11 are the flight
-    assert flight_frames(cube.scene, 0, pos, quat, 0.005) == 12
-    p, v, _, _ = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=30)
-    np.testing.assert_allclose(v, v0, atol=1e-9)
-    np.testing.assert_allclose(p, pos[0], atol=1e-12)
-    high = flight + np.array([0.0, 0.0, 0.5])                 # no plane in reach: 30 frames
-    assert flight_frames(cube.scene, 0, high, quat, 0.005) == 30
-    rng = np.random.default_rng(0)
-    err = {10: [], 20: []}
-    for _ in range(20):
-        noisy = high + 5e-4 * rng.standard_normal(high.shape)
-        for m in err:
-            _, v, _, _ = tf.first_state(cube.scene, 0, t, noisy, quat, estimate="fit",
-                                        max_frames=m)
-            err[m].append(np.linalg.norm(v - v0))
-    assert np.mean(err[20]) < 0.6 * np.mean(err[10])
-
-
-@pytest.fixture(scope="module")
-def flat_box():
-    """A 20 x 5 x 2.5 cm box 2 m up (no plane), compiled for rk4 at 0.1 ms; the tests set
-    its spin in the start state (Simulator.state_from). Shared: never mutate it."""
-    scene = dp.Scene()
-    scene.add_box((0.1, 0.05, 0.025), 0.5, (0.0, 0.0, 2.0),
-                  orientation=(0.9, 0.3, 0.2, 0.1), velocity=(0.6, 0.1, 1.0),
-                  angular_velocity=(0.0, 0.0, 0.0))
-    return dp.compile(scene, 1e-4, integrator="rk4")
-
-
-@pytest.mark.parametrize("rates, frames", [((3.0, 8.0, 2.0), 20), ((10.0, 30.0, 5.0), 40)])
-def test_first_state_fits_torque_free_rotation(flat_box, rates, frames):
-    """Regression: for a body with unequal principal moments the "fit" estimate took the
-    angular velocity as constant in free flight; a 20 x 5 x 2.5 cm box turning at (3, 8, 2)
-    rad/s (body frame) came out 22% off in x after 20 frames (2.39 against 3.06 rad/s in
-    the world frame) and a rollout from it 4.4 deg off. Now its torque-free motion is fitted
-    (Euler's equations) over a growing window of frames (at (10, 30, 5) rad/s over 40 frames
-    a fit over all frames at once, started from their mean rate, ended at (68, 18, -8)
-    against (9.3, 24.2, 18.8) rad/s): on frames of a diffpen rk4 rollout (0.1 ms steps, no
-    plane in reach) the start angular velocity and orientation come out to 1e-6 (1e-5 at
-    32 rad/s). Both cases roll out the one compiled box (``flat_box``) from a start state
-    spinning at the rates."""
-    sim = flat_box
-    scene = sim.scene
-    q0 = np.array(scene.bodies[0].orientation)
-    w_world = pose.rotmat(q0) @ np.array(rates)
-    start = sim.state_from(body=0, angular_velocity=w_world, frame="world")
-    traj = sim.rollout(sim.params(), 40 * 50, start, save_every=50)
-    t = np.concatenate([[0.0], np.asarray(traj.time)])
-    pos = np.concatenate([[scene.bodies[0].position], np.asarray(traj.position[:, 0])])
-    quat = np.concatenate([[q0], np.asarray(traj.orientation[:, 0])])
-    p, v, q, om = tf.first_state(scene, 0, t[:frames + 1], pos[:frames + 1],
-                                 quat[:frames + 1], estimate="fit", max_frames=frames)
-    tol = 1e-6 if frames == 20 else 1e-5         # the integrators' own error at 32 rad/s
-    np.testing.assert_allclose(om, w_world, rtol=tol, atol=tol)
-    assert pose.rotation_angle(jnp.asarray(q), jnp.asarray(q0)) < tol
-    np.testing.assert_allclose(v, [0.6, 0.1, 1.0], atol=1e-9)
-    if frames != 20:
-        return
-    # the integrator alone: the same frames from the exact start, and its invariants
-    inertia = dp.rigid.inertia_diagonal(scene.bodies[0])
-    wb = pose.rotmat(q0).T @ w_world
-    qs = first_state_mod.torque_free(q0, wb, inertia, t[1:])
-    np.testing.assert_allclose(np.abs(np.sum(qs * quat[1:], axis=-1)), 1.0, atol=1e-12)
-    long = first_state_mod.torque_free(np.tile(q0, (2, 1)), np.stack([wb, 2 * wb]), inertia,
-                                       np.linspace(0.05, 1.0, 20))
-    assert long.shape == (2, 20, 4)
-    # world angular momentum R I R^T w is constant: rebuild w from two close samples
-    for j, w_start in enumerate([wb, 2 * wb]):
-        L0 = pose.rotmat(q0) @ (inertia * w_start)
-        qa, qm, qb = first_state_mod.torque_free(q0, w_start, inertia,
-                                                 [0.5 - 1e-5, 0.5, 0.5 + 1e-5])
-        w_w = pose.rotvec(pose.qmul(qb, pose.qconj(qa))) / 2e-5
-        L = pose.rotmat(qm) @ (inertia * (pose.rotmat(qm).T @ w_w))
-        np.testing.assert_allclose(L, L0, rtol=1e-5)
-        assert long[j].shape == (20, 4)
-
-
-def test_first_state_of_a_body_starting_on_a_plane_is_not_a_parabola(cube):
-    """Regression: a body that starts on a plane (a box sliding on the ground) got the
-    gravity parabola of free flight over 3 frames under the "fit" estimate, which lifted
-    its start velocity by about g t / 2 per frame (+0.05 m/s at 200 Hz). Now it gets the
-    quadratic of a body that is not in flight: on a slide decelerating at mu g, exact."""
-    t = np.arange(12) / 200.0
-    v0, a = np.array([1.0, 0.3, 0.0]), -0.2 * 9.81 * np.array([1.0, 0.3, 0.0]) / 1.044
-    pos = np.array([0.0, 0.0, 0.048]) + v0 * t[:, None] + 0.5 * a * t[:, None] ** 2
-    quat = np.tile([1.0, 0.0, 0.0, 0.0], (12, 1))
-    assert flight_frames(cube.scene, 0, pos, quat, 0.005) == 0
-    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit")
-    np.testing.assert_allclose(v, v0, atol=1e-9)
-    np.testing.assert_allclose(p, pos[0], atol=1e-12)
-    np.testing.assert_allclose(om, 0.0, atol=1e-12)
-
-
-def test_first_state_of_a_fast_spin_does_not_wrap(cube):
-    """Regression: the "fit" estimate fitted a line to the rotation vectors since row 0,
-    which wrap past pi: a cube turning at 30 rad/s over 20 frames at 148 Hz (3.9 rad) came
-    out at (-8.8, -11.8, 0) rad/s instead of (18, 24, 0). Now the rate comes from the turns
-    between consecutive frames: exact, with sign-flipped quaternions too."""
-    t = np.arange(20) / 148.0
-    g = np.array(cube.scene.gravity)
-    w = 30.0 * np.array([0.6, 0.8, 0.0])
-    pos = np.array([0.0, 0.0, 3.0]) + np.array([0.3, 0.0, 1.0]) * t[:, None] + \
-        0.5 * g * t[:, None] ** 2
-    quat = np.array([pose.qmul(pose.exp_quat(w * s), np.array([1.0, 0, 0, 0])) for s in t])
-    quat[::3] *= -1.0
-    p, v, q, om = tf.first_state(cube.scene, 0, t, pos, quat, estimate="fit", max_frames=20)
-    np.testing.assert_allclose(om, w, atol=1e-9)
-    np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
-
-
 def test_a_leaf_the_records_want_at_zero_stops_at_its_span(tmp_path):
     """Regression: a log-space leaf whose best value is 0 (a drag fitted to a record made
     without drag) took Gauss-Newton steps that grow as 1 / value, walked off to 0 and the
     fit crashed in the covariance ("SVD did not converge"). Now a leaf without bounds moves
     at most a factor LOG_SPAN from its start, and the message says it ended at a bound."""
-    scene, rec = _record_file(tmp_path, DRAG, {"extra.drag.air": 0.0}, ["p"], "p",
+    scene, rec = record_file(tmp_path, DRAG, {"extra.drag.air": 0.0}, ["p"], "p",
                               integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.5,
                               noise=0.0, seed=1)
     out = tf.fit_files(scene, [rec], maxiter=30)
@@ -819,7 +421,7 @@ def test_default_growing_horizon_escapes_a_swing_minimum(tmp_path):
     fits 1/8, 1/4 and 1/2 of the longest record first (AUTO_HORIZON): k within 2%.
     ``horizon = []`` keeps the whole records only."""
     truth = {"springs.cloth.structural.k": 400.0, "springs.cloth.structural.c": 0.4}
-    scene, rec = _record_file(tmp_path, CLOTH.format(k=200.0, c=0.2), truth,
+    scene, rec = record_file(tmp_path, CLOTH.format(k=200.0, c=0.2), truth,
                               ["cloth[2,4]", "cloth[4,4]", "cloth[0,4]", "cloth[2,2]"],
                               "cloth", integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.8,
                               noise=1e-4, seed=1)
@@ -871,7 +473,7 @@ def test_first_states_are_computed_once_per_fit(tmp_path, monkeypatch):
     its length buckets estimate them once (a tumbling box's torque-free fit costs 25-110 ms
     a record)."""
     from tuning import record_batch
-    scene, rec = _record_file(tmp_path, BOX.format(k=400.0, c=2.0), {}, ["box"], "box",
+    scene, rec = record_file(tmp_path, BOX.format(k=400.0, c=2.0), {}, ["box"], "box",
                               integrator="rk4", dt=5e-4, every=5e-3, duration=0.1,
                               noise=0.0, seed=0)
     sf = load_scene_file(scene)
@@ -889,343 +491,6 @@ def test_first_states_are_computed_once_per_fit(tmp_path, monkeypatch):
     assert len(calls) == 4                         # without the cache: estimated again
     np.testing.assert_array_equal(np.asarray(one.start.position),
                                   np.asarray(again.start.position))
-
-
-# --------------------------------------------------------------------------- CLI probes
-@pytest.fixture(scope="module")
-def drag_record(tmp_path_factory):
-    """(scene, record) of a particle with air drag 0.08 (rk4, 0.3 s). Shared: the tests
-    read both files and write only under their own tmp_path."""
-    return _record_file(tmp_path_factory.mktemp("drag"), DRAG, {"extra.drag.air": 0.08}, ["p"], "p",
-                        integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.3, noise=0.0,
-                        seed=1)
-
-
-def test_fit_out_is_checked_before_anything_is_fitted(tmp_path, drag_record, monkeypatch):
-    """``--out`` naming a record (it was overwritten with TOML after the fit), a folder (a
-    traceback after the fit) or the scene file itself is refused before compiling."""
-    scene, rec = drag_record
-    before = open(rec).read()
-    monkeypatch.setattr(tf, "levenberg_marquardt", lambda *a, **k: pytest.fail("fitted"))
-    for out, words in [(rec, "ending in .toml"), (str(tmp_path), "is a directory"),
-                       (scene, "is one of the inputs"),
-                       (str(tmp_path / "no" / "f.toml"), "does not exist")]:
-        with pytest.raises(tf.FitError, match=words):
-            tf.fit_files(scene, [rec], out=out, maxiter=1)
-    assert open(rec).read() == before
-
-
-def test_a_fit_whose_scene_cannot_be_written_keeps_its_values(tmp_path, drag_record, capsys,
-                                                              monkeypatch):
-    """A fitted value the writer cannot place used to end the command with an error after
-    the whole fit, the values lost; now the JSON carries them and the exit status is 2."""
-    from tuning import fitted_scene
-
-    def refuse(*a, **k):
-        raise tf.FitError("cannot place the fitted extra.drag.air")
-    monkeypatch.setattr(fitted_scene, "write_fitted", refuse)
-    scene, rec = drag_record
-    capsys.readouterr()
-    assert main(["fit", scene, "--data", rec, "--out", str(tmp_path / "f.toml"),
-                 "--maxiter", "3", "--json"]) == 2
-    io = capsys.readouterr()
-    out = json.loads(io.out)
-    assert out["fitted"]["extra.drag.air"] == pytest.approx(0.08, rel=0.05)
-    assert out["out"] is None and "cannot place" in out["out_error"]
-    assert "cannot place" in io.err
-    assert not (tmp_path / "f.toml").exists()
-
-
-def test_cost_start_is_on_the_whole_records(drag_record):
-    """``cost_start`` was the first stage's cost (a growing horizon's first seconds) while
-    ``cost`` is on the whole records: a fit looked worse than its start."""
-    scene, rec = drag_record
-    grow = tf.fit_files(scene, [rec], horizons=(0.05, None), maxiter=1)
-    whole = tf.fit_files(scene, [rec], horizons=(None,), maxiter=1)
-    assert grow["cost_start"] == pytest.approx(whole["cost_start"], rel=1e-12)
-    assert grow["cost"] <= grow["cost_start"]
-
-
-def test_ball_flags_with_a_scene_file_are_refused(capsys):
-    """--dt, --target-apex, --law, --mass... were ignored silently with a scene file."""
-    import os
-    ball = os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")
-    assert main(["fit", ball, "--target-apex", "0.5", "--dt", "5e-4"]) == 2
-    err = capsys.readouterr().err
-    assert "--dt --target-apex set the built-in ball's fit" in err
-
-
-def test_fit_with_a_plane_offset_reports_what_evaluate_gives(tmp_path):
-    """With first_state = "fit" the flight frames are counted against the planes; the fit
-    estimated them at the start offset and reported errors the written scene did not give
-    (8.897% against diffpen evaluate's 8.925% on two cube tosses). Now "after" is evaluated
-    as the fitted scene file is. Here the cube's lowest corner is 4 cm up: 16 flight frames
-    clear the plane by 5 mm at the start offset, 17 at the fitted one (with noise the two
-    parabolas differ)."""
-    from tuning.evaluate import evaluate_files
-    text = ("dt = 1e-3\n[materials.board]\nk = 3000.0\nc = 30.0\nfriction = 0.2\n"
-            "[[boxes]]\nname = \"cube\"\nhalf_extents = [0.05, 0.05, 0.05]\nmass = 0.37\n"
-            "position = [0.0, 0.0, 0.09]\nvelocity = [0.4, 0.0, 0.0]\n"
-            "angular_velocity = [0.0, 1.0, 0.0]\nmaterial = \"board\"\n"
-            "[[planes]]\nname = \"ground\"\noffset = 0.0\nmaterial = \"board\"\n[fit]\n"
-            "params = [\"extra.plane_offset.ground\"]\n"
-            "first_state = \"fit\"\n")
-    scene, rec = _record_file(tmp_path, text, {"extra.plane_offset.ground": -0.004},
-                              ["cube"], "cube", integrator="semi_implicit_euler", dt=1e-3,
-                              every=5e-3, duration=0.4, noise=2e-4, seed=1)
-    out = tf.fit_files(scene, [rec], out=str(tmp_path / "f.toml"), horizons=(None,),
-                       maxiter=10)
-    assert out["fitted"]["extra.plane_offset.ground"] == pytest.approx(-0.004, abs=5e-4)
-    ev = evaluate_files(str(tmp_path / "f.toml"), [rec])
-    assert ev["position_error_pct"]["mean"] == pytest.approx(
-        out["after"]["position_error_pct"]["mean"], rel=1e-9)
-    assert ev["rotation_error_deg"]["mean"] == pytest.approx(
-        out["after"]["rotation_error_deg"]["mean"], rel=1e-9)
-
-
-def test_fit_with_a_plane_offset_and_record_starts_reports_what_evaluate_gives(tmp_path):
-    """Regression: with first_state = "record" the start's lag also depends on the planes
-    (free flight's gravity, or the frames' slope for a body near a plane), but "after" was
-    re-estimated at the fitted offset only for "fit": a box sliding on the ground, the start
-    offset leaving it 6 mm up and the fitted one on the plane, reported 0.50071% / 0.10887
-    deg where diffpen evaluate of the written scene gave 0.51923% / 0.10786 deg."""
-    from tuning.evaluate import evaluate_files
-    text = ("dt = 5e-4\n[materials.board]\nk = 3000.0\nc = 25.0\nfriction = 0.5\n"
-            "[[boxes]]\nname = \"box\"\nhalf_extents = [0.05, 0.04, 0.03]\nmass = 2.0\n"
-            "position = [0.0, 0.0, 0.032]\nvelocity = [1.2, 0.3, 0.0]\n"
-            "body_angular_velocity = [0.0, 0.0, 2.0]\nmaterial = \"board\"\n"
-            "[[planes]]\nname = \"ground\"\noffset = -0.004\nmaterial = \"board\"\n[fit]\n"
-            "params = [\"extra.plane_offset.ground\"]\nfirst_state = \"record\"\n"
-            "[fit.bounds]\n\"extra.plane_offset.ground\" = [-0.01, 0.01]\n")
-    scene, rec = _record_file(tmp_path, text, {"extra.plane_offset.ground": 0.002}, ["box"],
-                              "box", integrator="semi_implicit_euler", dt=5e-4, every=5e-3,
-                              duration=0.4, noise=2e-4, seed=1)
-    out = tf.fit_files(scene, [rec], out=str(tmp_path / "f.toml"), horizons=(None,),
-                       maxiter=10)
-    assert out["fitted"]["extra.plane_offset.ground"] == pytest.approx(0.002, abs=5e-4)
-    ev = evaluate_files(str(tmp_path / "f.toml"), [rec])
-    for key in ("position_error_pct", "rotation_error_deg"):
-        assert ev[key]["mean"] == pytest.approx(out["after"][key]["mean"], rel=1e-9), key
-
-
-def test_scene_sweep_checks_metric_and_plot_before_computing(tmp_path, drag_record, capsys):
-    scene, rec = drag_record
-    out = tmp_path / "s.npz"
-    assert main(["sweep", scene, "--param", "extra.drag.air", "0.01", "0.1", "--n", "3",
-                 "--data", rec, "--metric", "settling_time", "--out", str(out)]) == 2
-    assert "is not measured by this sweep" in capsys.readouterr().err
-    assert main(["sweep", scene, "--param", "extra.drag.air", "0.01", "0.1", "--n", "3",
-                 "--data", rec, "--plot", str(tmp_path / "p.png"), "--out", str(out)]) == 2
-    assert "over two parameters" in capsys.readouterr().err
-    assert not out.exists()
-
-
-def test_evaluate_plot_must_be_a_folder(tmp_path, drag_record, capsys):
-    scene, rec = drag_record
-    f = tmp_path / "taken.png"
-    f.write_text("x")
-    assert main(["evaluate", scene, "--data", rec, "--plot", str(f)]) == 2
-    assert "is a file" in capsys.readouterr().err
-
-
-ROLLING = """
-dt = 1.25e-4
-[materials.rubber]
-k = 5183.0
-c = 3.045
-friction = 0.598
-[[rigid_spheres]]
-name = "ball"
-radius = 0.05
-mass = 0.3
-position = [0.0, 0.0, 0.3]
-velocity = [1.0, 0.05, 0.5]
-angular_velocity = [0.0, -10.0, 0.0]
-material = "rubber"
-[[planes]]
-name = "ground"
-material = "rubber"
-[fit]
-params = ["extra.friction.rubber"]
-"""
-
-
-def test_a_fit_whose_derivatives_blow_up_is_not_a_result(tmp_path):
-    """A sphere that lands rolling without slip: during the impact its viscous friction
-    (mu f_n / slip_speed, bounded by the safe step at the static load m g only) is past the
-    explicit step's limit for the tangents, so d position / d mu grows to 1e64 while the
-    motion stays bounded. The fit reported standard errors of 1e-128, correlations of
-    +-1 and "reached": true. Now it says the derivatives blew up and is not a result."""
-    scene, rec = _record_file(tmp_path, ROLLING, {}, ["ball"], "ball",
-                              integrator="semi_implicit_euler", dt=1.25e-4, every=5e-3,
-                              duration=0.8, noise=0.0, seed=0)
-    out = tf.fit_files(scene, [rec], horizons=(None,), maxiter=1)
-    assert out["diverged"] and not out["reached"]
-    assert "derivatives blew up" in out["message"]
-    assert math.isnan(out["stderr"]["extra.friction.rubber"])
-
-
-def test_a_rigid_body_without_orientation_columns_is_warned_about(tmp_path, cube):
-    """A record with positions only of a box started it silently from the scene file's
-    orientation with no spin (31.9% position error against 1.40% with quaternions)."""
-    from tuning.records import BodyRecord, Record
-    t = np.arange(12) * 5e-3
-    pos = np.stack([np.zeros(12), np.zeros(12), 0.3 - 4.9 * t ** 2], axis=1)
-    rec = Record(path=str(tmp_path / "posonly.csv"), t=t, bodies={"0": BodyRecord(pos)})
-    with pytest.warns(UserWarning, match="no orientation columns .* posonly.csv"):
-        tf.prepare(cube, [rec])
-
-
-def test_a_record_of_a_pinned_body_prepares(tmp_path):
-    """A record that also tracks a rope's pinned end failed ("body 0 is pinned ... takes
-    no velocity"): its estimated velocity went to state_from. A pinned body keeps zero
-    velocity; a zero velocity is accepted."""
-    text = ROPE.format(k=200.0, c=0.3)
-    scene, rec = _record_file(tmp_path, text, {}, ["rope[0]", "rope[2]"], "rope",
-                              integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.1,
-                              noise=1e-4, seed=1)
-    sf = load_scene_file(scene)
-    sim = sf.compile()
-    records, bodies = tf.load_records(sf, [rec])
-    for est in ("record", "fit"):
-        batch = tf.prepare(sim, records, bodies=bodies, estimate=est)
-        assert np.all(np.asarray(batch.start.velocity)[0, sf.names["rope[0]"]] == 0.0)
-    sim.state_from(body=sf.names["rope[0]"], velocity=(0.0, 0.0, 0.0))
-
-
-def test_rotation_angle_is_accurate_near_zero_in_float32():
-    """Regression: the angle was 2 arccos(|q_sim . q_data|), which reads identical float32
-    orientations as up to 0.056 deg apart (mean 0.009 deg). Now 2 atan2(|v|, |w|) of the
-    relative quaternion: 0 for identical ones, and right for small and large angles."""
-    rng = np.random.default_rng(0)
-    q = rng.normal(size=(1000, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q32 = jnp.asarray(q, jnp.float32)
-    assert float(jnp.max(jnp.degrees(pose.rotation_angle(q32, q32)))) < 1e-3
-    for angle in (1e-3, 0.3, 2.5):
-        turn = np.array([np.cos(angle / 2), np.sin(angle / 2), 0.0, 0.0])
-        other = np.asarray(pose.qmul(jnp.asarray(q), jnp.asarray(turn)))
-        got = np.asarray(pose.rotation_angle(jnp.asarray(q), jnp.asarray(other)))
-        np.testing.assert_allclose(got, angle, rtol=1e-6)
-
-
-def test_records_may_observe_builder_nodes_beside_named_bodies(tmp_path):
-    """Regression: with a named body in the scene, a record column of a builder's node
-    (rope[3].x, the README's multi-body form) was refused as 'names body rope[3], which the
-    scene does not have'; now it resolves to the node (a node outside the builder is still
-    refused, naming the record)."""
-    scene = tmp_path / "mixed.toml"
-    scene.write_text('dt = 1e-3\nduration = 0.2\n[[boxes]]\nname = "cube"\n'
-                     'half_extents = [0.05, 0.05, 0.05]\nmass = 0.4\n'
-                     'position = [0.0, 0.0, 0.5]\n[[ropes]]\nn = 4\nstart = [0.0, 0.5, 1.0]\n'
-                     'end = [0.3, 0.5, 1.0]\nmass = 0.1\nk = 200.0\nc = 0.2\n'
-                     '[fit]\nparams = ["springs.rope.stretch.k"]\n')
-    sf = load_scene_file(str(scene))
-    good, bad = tmp_path / "good.csv", tmp_path / "bad.csv"
-    for path, node in ((good, "rope[3]"), (bad, "rope[9]")):
-        path.write_text(f"t,cube.x,cube.y,cube.z,{node}.x,{node}.y,{node}.z\n"
-                        "0.0,0.0,0.0,0.5,0.3,0.5,1.0\n0.01,0.0,0.0,0.4995,0.3,0.5,0.9995\n")
-    _, bodies = tf.load_records(sf, [str(good)])
-    assert bodies == {"cube": sf.names["cube"], "rope[3]": sf.body_index("rope[3]")}
-    with pytest.raises(tf.FitError, match="bad.csv: the columns of 'rope\\[9\\]'"):
-        tf.load_records(sf, [str(bad)])
-
-
-def test_a_record_fit_refuses_a_method_it_does_not_use(tmp_path):
-    """Regression: [fit] method = "adam" in a scene file with records was silently ignored
-    (the fit ran Levenberg-Marquardt), while --method adam was refused."""
-    from tuning.scene_fit import fit_files
-    scene = tmp_path / "rope.toml"
-    scene.write_text(ROPE.format(k=200.0, c=0.3).replace("[fit]", '[fit]\nmethod = "adam"'))
-    rec = tmp_path / "rope.csv"         # 50 ms of node 1 falling: a record the scene reads
-    rec.write_text("t,rope[1].x,rope[1].y,rope[1].z\n" + "".join(
-        f"{5e-3 * i!r},0.1,0.0,{1.0 - 4.905 * (5e-3 * i) ** 2!r}\n" for i in range(11)))
-    assert tf.load_records(load_scene_file(str(scene)), [str(rec)])[1] == {"rope[1]": 1}
-    with pytest.raises(tf.FitError, match="method = 'adam', but fits to records use"):
-        fit_files(str(scene), [str(rec)])
-
-
-SPHERE = ('dt = 1e-3\nduration = 0.1\n[[spheres]]\n{name}radius = 0.05\nmass = 0.2\n'
-          'position = [0.0, 0.0, 0.5]\n')
-ROPE_ONLY = ('dt = 1e-3\nduration = 0.1\n{pinned}[[ropes]]\nn = 4\nstart = [0.0, 0.0, 1.0]\n'
-             'end = [0.3, 0.0, 1.0]\nmass = 0.4\nk = 300.0\n')
-PINNED = ('[[spheres]]\nname = "s"\nradius = 0.05\nmass = 0.1\nposition = [5.0, 0.0, 1.0]\n'
-          'pinned = true\n')
-
-
-def _scene_and_records(tmp_path, text, *headers):
-    scene = tmp_path / "scene.toml"
-    scene.write_text(text)
-    paths = []
-    for k, header in enumerate(headers):
-        n = header.count(".x") or 1
-        path = tmp_path / f"rec{k}.csv"
-        path.write_text(f"t,{header}\n" + "".join(
-            f"{0.01 * i}" + ",0.3,0.0,1.0" * n + "\n" for i in range(3)))
-        paths.append(str(path))
-    return load_scene_file(str(scene)), paths
-
-
-def test_record_columns_of_bodies_the_scene_lacks_are_refused(tmp_path):
-    """Regression: in a scene without named bodies, columns a.x, b.x (bodies it does not
-    have) were both mapped onto its only free body. They are refused with the file, line
-    and column; plain x, y, z columns still belong to that body."""
-    sf, (plain, ab) = _scene_and_records(tmp_path, SPHERE.format(name=""), "x,y,z",
-                                         "a.x,a.y,a.z,b.x,b.y,b.z")
-    assert tf.load_records(sf, [plain])[1] == {"body": 0}
-    with pytest.raises(tf.FitError, match=r"rec1.csv, line 1, column 2: 'a.x' names body "
-                                          r"'a', which the scene does not have; named "
-                                          r"bodies: none"):
-        tf.load_records(sf, [ab])
-
-
-@pytest.mark.parametrize("pinned", ["", PINNED])
-def test_node_columns_resolve_with_or_without_named_bodies(tmp_path, pinned):
-    """Regression: rope[-1].x and rope[ 3 ].x (the README's node forms) were refused when the
-    scene had no named body ("the columns name no body and the scene has 3 free bodies")."""
-    sf, paths = _scene_and_records(tmp_path, ROPE_ONLY.format(pinned=pinned),
-                                   *(f"{n}.x,{n}.y,{n}.z" for n in
-                                     ("rope[3]", "rope[-1]", "rope[ 3 ]")))
-    node = sf.body_index("rope[3]")
-    for path, name in zip(paths, ("rope[3]", "rope[-1]", "rope[ 3 ]")):
-        assert tf.load_records(sf, [path])[1] == {name: node}
-
-
-def test_one_body_under_two_names_is_refused(tmp_path):
-    """Regression: rope[3] and rope[-1] (the same node) with different data were accepted,
-    the start state taken from the last. Two names of one body are refused, naming both,
-    within a record and across records; prepare's own body map refuses it too."""
-    sf, (both, three, last) = _scene_and_records(
-        tmp_path, ROPE_ONLY.format(pinned=PINNED),
-        "rope[3].x,rope[3].y,rope[3].z,rope[-1].x,rope[-1].y,rope[-1].z",
-        "rope[3].x,rope[3].y,rope[3].z", "rope[-1].x,rope[-1].y,rope[-1].z")
-    node = sf.body_index("rope[3]")
-    with pytest.raises(tf.FitError, match=r"rec0.csv: the columns rope\[3\].x, ... and "
-                                          rf"rope\[-1\].x, ... observe the same scene body "
-                                          rf"{node}: name each body once"):
-        tf.load_records(sf, [both])
-    with pytest.raises(tf.FitError, match=r"rec2.csv: the columns rope\[-1\].x, ... observe "
-                                          rf"the same scene body {node}, and .*rec1.csv names "
-                                          r"it 'rope\[3\]'"):
-        tf.load_records(sf, [three, last])
-    from tuning.records import read_record
-    rec = read_record(both)
-    with pytest.raises(tf.FitError, match=r"record bodies 'rope\[3\]' and 'rope\[-1\]' both "
-                                          rf"map to body {node}"):
-        tf.prepare(sf.compile(), [rec], bodies={"rope[3]": node, "rope[-1]": node})
-
-
-def test_columns_of_a_body_left_out_of_observe_say_so(tmp_path):
-    """Regression: with [fit] observe = ["cube"], columns of the scene's body 'ball' were
-    refused as a body 'the scene does not have'."""
-    text = (SPHERE.format(name='name = "ball"\n') + SPHERE.format(name='name = "cube"\n')
-            .replace("0.0, 0.0, 0.5", "1.0, 0.0, 0.5").split("duration = 0.1\n")[1]
-            + '[fit]\nobserve = ["cube"]\nparams = ["contact.default.k"]\n')
-    sf, (path,) = _scene_and_records(tmp_path, text, "cube.x,cube.y,cube.z,ball.x,ball.y,ball.z")
-    with pytest.raises(tf.FitError, match=r"rec0.csv, line 1, column 5: 'ball.x' names body "
-                                          r"'ball', which is not in \[fit\] observe \(cube\); "
-                                          r"add 'ball' to observe or drop its columns"):
-        tf.load_records(sf, [path])
 
 
 def test_multi_start_screens_past_a_horizon_that_ties(cube):
@@ -1280,22 +545,6 @@ def test_a_leaf_without_effect_on_a_noise_free_record_is_undetermined():
         pytest.approx(1.0)]
 
 
-def test_commands_run_in_the_test_session_leave_the_compilation_cache_off():
-    """Regression: the first in-process ``diffpen`` command (``tuning.cli.main``) turned on
-    its persistent compilation cache in ~/.cache/diffpen for the rest of the pytest worker
-    (every later test program was written there); tests/conftest.py sets DIFFPEN_CACHE=0 for
-    the whole session, and ``setup_jax`` honours it."""
-    import os
-
-    import jax
-
-    from tuning.cli._common import setup_jax
-    assert os.environ.get("DIFFPEN_CACHE") == "0"
-    before = jax.config.jax_compilation_cache_dir
-    setup_jax()
-    assert jax.config.jax_compilation_cache_dir == before
-
-
 HERTZ_BALL = ('law = "hunt_crossley"\nexponent = 1.5\ndt = 1e-3\nduration = 1.0\n'
               '[materials.rubber]\nk = {k}\nc = {c}\n'
               '[[spheres]]\nname = "ball"\nradius = 0.1\nmass = 1.0\nposition = [0.0, 0.0, 1.0]\n'
@@ -1314,7 +563,7 @@ def test_a_hertz_record_fit_counts_the_records_start_energy(tmp_path):
     fit recovers k and c within 2% from a record made by rk4 at 0.25 ms."""
     from tuning.stable import safe_contact_bounds
     truth = {"contact.rubber.k": 1e6, "contact.rubber.c": 4e4}
-    scene, rec = _record_file(tmp_path, HERTZ_BALL.format(k=5e5, c=2e4), truth, ["ball"],
+    scene, rec = record_file(tmp_path, HERTZ_BALL.format(k=5e5, c=2e4), truth, ["ball"],
                               "hertz", integrator="rk4", dt=2.5e-4, every=5e-3, duration=1.0,
                               noise=0.0, seed=0)
     sf = load_scene_file(scene)
