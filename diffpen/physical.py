@@ -98,9 +98,27 @@ def _require(name: str, x, ok, what: str) -> None:
         raise ValueError(f"{name} must be {what}, got {float(np.ravel(bad)[0]):g}.")
 
 
+def _nan_unless(ok, value):
+    """``value`` where ``ok``, NaN elsewhere (traced out-of-range inputs)."""
+    return jnp.where(ok, value, jnp.nan)
+
+
 def _positive(name, x):
     import numpy as np
     _require(name, x, lambda a: np.isfinite(a) & (a > 0.0), "a finite number > 0")
+
+
+def _contact(k, c, mass):
+    """Check a contact's ``k`` (N/m) > 0, ``c`` (N s/m) >= 0 and ``mass`` (kg) > 0 where
+    concrete (ValueError naming the argument); returns where all three are in range (traced
+    values out of range give NaN, not a plausible restitution: NaN k gave e = 0, c < 0
+    gave e > 1)."""
+    import numpy as np
+    _positive("stiffness k (N/m)", k)
+    _require("damping c (N s/m)", c, lambda a: np.isfinite(a) & (a >= 0.0),
+             "a finite number >= 0")
+    _positive("mass (kg)", mass)
+    return (jnp.asarray(k) > 0.0) & (jnp.asarray(c) >= 0.0) & (jnp.asarray(mass) > 0.0)
 
 
 def restitution(k, c, mass, law="linear"):
@@ -111,18 +129,21 @@ def restitution(k, c, mass, law="linear"):
     Poschel 2007), ``g = arccos(zeta) / sqrt(1 - zeta^2)``, continued as ``arccosh(zeta) /
     sqrt(zeta^2 - 1)`` above 1: the contact ends where its force reaches zero, so it always
     lets go (``e(1) = exp(-2) = 0.135``, ``e ~ 1 / (4 zeta^2)`` for large zeta).
-    ``law``: a :class:`diffpen.laws.ContactLaw` or its name.
+    ``law``: a :class:`diffpen.laws.ContactLaw` or its name. Concrete ``k``, ``c``, ``mass``
+    out of range (k, mass not > 0; c < 0; not finite) raise ValueError; traced, give NaN.
     """
-    return jnp.exp(_family(law, "restitution").log_e(damping_ratio(k, c, mass)))
+    ok = _contact(k, c, mass)
+    return _nan_unless(ok, jnp.exp(_family(law, "restitution").log_e(damping_ratio(k, c, mass))))
 
 
 def contact_time(k, c, mass, law="linear"):
     """Contact duration of a ball on a fixed plane, s (no gravity); ``law`` a
     :class:`diffpen.laws.ContactLaw` or its name. linear: ``pi / (w0 sqrt(1 - zeta^2))``,
     inf for ``zeta >= 1`` (it never lets go); no_tension: ``2 g(zeta) / w0`` for every zeta
-    (:func:`restitution`)."""
+    (:func:`restitution`; out-of-range inputs as there)."""
     family = _family(law, "contact_time")
-    return family.w0_time(damping_ratio(k, c, mass)) / natural_frequency(k, mass)
+    ok = _contact(k, c, mass)
+    return _nan_unless(ok, family.w0_time(damping_ratio(k, c, mass)) / natural_frequency(k, mass))
 
 
 def zeta_from_restitution(e, law="linear"):
@@ -218,64 +239,125 @@ def kc_from_time_constant(tau, zeta, mass):
 
 def time_constant(k, c, mass):
     """(time constant tau [s], damping ratio zeta) of (k, c): inverse of
-    :func:`kc_from_time_constant`."""
+    :func:`kc_from_time_constant` (out-of-range inputs as in :func:`restitution`)."""
+    ok = _contact(k, c, mass)
     z = damping_ratio(k, c, mass)
-    return 1.0 / (z * natural_frequency(k, mass)), z
+    return _nan_unless(ok, 1.0 / (z * natural_frequency(k, mass))), _nan_unless(ok, z)
 
 
-def _hc_residual(y, x):
-    # a v_in - ln(1 + a v_in) = -a v_out - ln(1 - a v_out), with x = a v_in, y = a v_out
-    return (-y - jnp.log1p(-y)) - (x - jnp.log1p(x))
+#: e(x) = sum_k _HC_SERIES[k] x^k: the Hunt-Crossley restitution at x = a v_in as a power
+#: series (the reversion of its energy balance x - ln(1 + x) = -e x - ln(1 - e x)),
+#: exact to rounding in float64 for x <= _HC_SERIES_X (its terms fall like 0.07 x^k)
+_HC_SERIES = (
+    1.0, -0.6666666666666666, 0.4444444444444444, -0.32592592592592595,
+    0.25679012345679014, -0.21164021164021163, 0.17984714873603763, -0.15626886145404664,
+    0.1380974154636706, -0.12367106429109173, 0.11194448206924527, -0.10222750667857032,
+    0.09404628321338172, -0.08706478047189273, 0.08103813977135456, -0.07578375581573293,
+    0.07116269936142636,
+)
+_HC_SERIES_X = 0.1
+
+
+def _hc_series(x):
+    """``(e, de/dx)`` of the series :data:`_HC_SERIES` at ``x`` (Horner)."""
+    e, de = jnp.zeros_like(x), jnp.zeros_like(x)
+    for c in reversed(_HC_SERIES):
+        de = de * x + e
+        e = e * x + c
+    return e, de
+
+
+def _hc_balance(x):
+    """``x - ln(1 + x)``: the energy balance's side of the impact speed ``x = a v_in``."""
+    return x - jnp.log1p(x)
+
+
+def _hc_u_residual(u, x):
+    """The Hunt-Crossley energy balance in ``u = -ln(1 - y)`` (``y = a v_out = 1 -
+    exp(-u)``), ``u - y = x - ln(1 + x)``: ``y`` next to 1 (``e x`` of a strongly damped
+    impact, 1 - 2e-9 at e = 0.05) is not a float32 number, ``u`` (20 there) is."""
+    return u + jnp.expm1(-u) - _hc_balance(x)
+
+
+def _bisect(f, lo, hi, iters: int):
+    """The root of ``f``, negative at ``lo`` and positive at ``hi`` (elementwise)."""
+    def body(_, lohi):
+        lo, hi = lohi
+        mid = 0.5 * (lo + hi)
+        neg = f(mid) < 0.0
+        return jnp.where(neg, mid, lo), jnp.where(neg, hi, mid)
+    lo, hi = jax.lax.fori_loop(0, iters, body, (lo, hi))
+    return 0.5 * (lo + hi)
 
 
 def hunt_crossley_restitution(a_vin):
     """Restitution of the Hunt-Crossley law ``F = k d^n (1 + a ddot)`` for ``a * v_in``
-    (dimensionless, >= 0); independent of k, n and m (Hunt & Crossley 1975)."""
-    x = jnp.asarray(a_vin)
-    xs = jax.lax.stop_gradient(x)
+    (dimensionless, >= 0); independent of k, n and m (Hunt & Crossley 1975).
 
-    def body(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        up = _hc_residual(mid, xs) < 0.0
-        return jnp.where(up, mid, lo), jnp.where(up, hi, mid)
-    lo, hi = jax.lax.fori_loop(0, 80, body, (jnp.zeros_like(xs), jnp.ones_like(xs)))
-    y0 = jax.lax.stop_gradient(0.5 * (lo + hi))
-    slope = y0 / (1.0 - y0)                 # d residual / dy
-    y = y0 - (_hc_residual(y0, x) - _hc_residual(y0, xs)) / jnp.where(slope > 0, slope, 1.0)
-    return jnp.where(x > 0, y / jnp.where(x > 0, x, 1.0), 1.0)
+    Up to ``a v_in = 0.1`` the power series of the energy balance (``e = 1 - 2x/3 + 4x^2/9
+    - ...``, slope -2/3 at 0); above it the balance solved for ``u = -ln(1 - a v_out)`` by
+    bisection, with one Newton step outside ``stop_gradient`` for the implicit-function
+    derivative. Accurate to rounding in float32 and float64 at every ``a v_in``. A concrete
+    input that is negative or not finite raises ValueError; traced, it gives NaN.
+    """
+    import numpy as np
+    _require("a * v_in", a_vin, lambda a: np.isfinite(a) & (a >= 0.0),
+             "a finite number >= 0")
+    x = jnp.asarray(a_vin)
+    if not jnp.issubdtype(x.dtype, jnp.inexact):
+        x = x.astype(jnp.result_type(float))
+    small = x <= _HC_SERIES_X
+    e_series, _ = _hc_series(jnp.where(small, x, 0.0))
+    xl = jnp.where(small, 2.0 * _HC_SERIES_X, x)        # the solve's lane, never small
+    xs = jax.lax.stop_gradient(xl)
+    # u - y <= u - 1 + e^-u and u - y = balance(x) <= x: the root lies in (0, x + 1]
+    u0 = jax.lax.stop_gradient(_bisect(lambda u: _hc_u_residual(u, xs), jnp.zeros_like(xs),
+                                       xs + 1.0, 100))
+    u = u0 - _hc_u_residual(u0, xl) / -jnp.expm1(-u0)   # d residual / du = 1 - e^-u
+    e_solved = -jnp.expm1(-u) / xl
+    return _nan_unless(x >= 0.0, jnp.where(small, e_series, e_solved))
 
 
 def hunt_crossley_a_from_restitution(e, v_in):
     """Hunt-Crossley ``a = c / k`` (s/m) giving restitution ``e`` in (0, 1] at impact speed
-    ``v_in`` (m/s) (``e = 1``: ``a = 0``). Concrete inputs out of range raise ValueError."""
+    ``v_in`` (m/s) (``e = 1``: ``a = 0``, slope ``da/de = -3 / (2 v_in)`` there).
+
+    The inverse of :func:`hunt_crossley_restitution`: where ``a v_in <= 0.1`` (``e >=
+    0.937``) Newton's method on its power series; below, bisection on the energy balance
+    in ``u = -ln(1 - e a v_in)``; one Newton step outside ``stop_gradient`` gives the
+    implicit-function derivative. Accurate in float32 and float64 for every e in (0, 1].
+    Concrete inputs out of range raise ValueError; traced, they give NaN.
+    """
     import numpy as np
     _require("restitution e", e, lambda a: np.isfinite(a) & (a > 0.0) & (a <= 1.0),
              "in (0, 1] (0 would need infinite damping)")
     _positive("impact speed v_in (m/s)", v_in)
     e_in = jnp.asarray(e)
-    e = jnp.where(e_in < 1.0, e_in, 0.5)
-    es = jax.lax.stop_gradient(e)
+    if not jnp.issubdtype(e_in.dtype, jnp.inexact):
+        e_in = e_in.astype(jnp.result_type(float))
+    e_split = _hc_series(jnp.asarray(_HC_SERIES_X, e_in.dtype))[0]
+    near = e_in >= e_split
+    # near e = 1: Newton's method on the series from its first term, x = 3 (1 - e) / 2
+    en = jnp.where(near, e_in, 1.0)
+    ens = jax.lax.stop_gradient(en)
+    xn = 1.5 * (1.0 - ens)
+    for _ in range(6):
+        val, slope = _hc_series(xn)
+        xn = jnp.clip(xn - (val - ens) / slope, 0.0, 1.5 * _HC_SERIES_X)
+    xn = jax.lax.stop_gradient(xn)
+    val, slope = _hc_series(xn)
+    xn = xn - (val - en) / slope
+    # below: the balance u - y = balance(y / e) in u, y = 1 - e^-u, between x = 0.05 (below
+    # the root, which is past 0.1 here) and x = 1 / e (y = 1: u - y = balance(x) <= x)
+    ef = jnp.where(near, 0.5, e_in)
+    efs = jax.lax.stop_gradient(ef)
 
-    def resid(x, ee):
-        return _hc_residual(ee * x, x)
-
-    # residual(x) = -e x - ln(1 - e x) - x + ln(1 + x): zero at the solution, x in (0, 1/e)
-    def body(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        neg = resid(mid, es) < 0.0
-        return jnp.where(neg, mid, lo), jnp.where(neg, hi, mid)
-    hi0 = (1.0 - 1e-12) / es
-    lo, hi = jax.lax.fori_loop(0, 200, body, (jnp.full_like(es, 1e-9), hi0))
-    x0 = jax.lax.stop_gradient(0.5 * (lo + hi))
-    dx = jax.grad(resid, argnums=0)
-    slope = jnp.vectorize(dx)(x0, es)
-    x = x0 - resid(x0, e) / slope
-    # near e = 1 (and at it: a = 0) the series of the balance in x = a v_in, whose slope
-    # there is d x / d e = -3/2 (the bisection's branch has none at e = 1 exactly)
-    en = jnp.where(e_in > 1.0 - 1e-3, e_in, 1.0)
-    x0n = 1.5 * (1.0 - en * en) / (1.0 + en ** 3)
-    xn = x0n + 3.0 / (1.0 + en ** 3) * (x0n ** 2 * (1.0 - en ** 4) / 4.0
-                                        - x0n ** 3 * (1.0 + en ** 5) / 5.0)
-    return jnp.where(e_in > 1.0 - 1e-3, xn, x) / v_in
+    def resid(u, ee):
+        return _hc_u_residual(u, -jnp.expm1(-u) / ee)
+    lo = -jnp.log1p(-0.05 * efs)
+    u0 = jax.lax.stop_gradient(_bisect(lambda u: resid(u, efs), lo, 1.0 / efs + 1.0, 200))
+    slope = jnp.vectorize(jax.grad(resid))(u0, efs)
+    u = u0 - resid(u0, ef) / slope
+    xf = -jnp.expm1(-u) / ef
+    ok = (e_in > 0.0) & (e_in <= 1.0) & (jnp.asarray(v_in) > 0.0)
+    return _nan_unless(ok, jnp.where(near, xn, xf) / v_in)
