@@ -17,6 +17,7 @@ registration).
 """
 from __future__ import annotations
 
+import functools
 import math
 import types
 from typing import Callable, NamedTuple
@@ -30,7 +31,8 @@ from .state import State
 
 __all__ = ["Integrator", "kick", "drift", "semi_implicit_euler", "verlet", "rk4", "kick_then_drift",
            "implicit_euler", "backward_euler_amplification", "substepped", "build_step",
-           "resolve", "BUILTIN", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF"]
+           "resolve", "BUILTIN", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF",
+           "implicit_euler_with"]
 
 
 def kick(state: State, acc, h) -> State:
@@ -177,6 +179,9 @@ def rk4(accel_fn: Callable, dt: float):
 #: under ``solver="auto"``; larger scenes use GMRES on Jacobian-vector products.
 DENSE_MAX_DOF = 96
 
+#: the linear solvers of :func:`implicit_euler`
+IMPLICIT_SOLVERS = ("auto", "dense", "gmres", "cg")
+
 
 def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str = "auto",
                    cg_tol: float = 1e-10, cg_maxiter: int | None = None):
@@ -216,7 +221,7 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
     from jax import lax
     from .errors import SceneError
 
-    if solver not in ("auto", "dense", "cg", "gmres"):
+    if solver not in IMPLICIT_SOLVERS:
         raise SceneError(f"implicit_euler solver must be 'auto', 'dense', 'gmres' or 'cg', "
                          f"got {solver!r}.")
     h = dt
@@ -485,6 +490,22 @@ INTEGRATORS = types.MappingProxyType({rec.name: rec for rec in BUILTIN})
 
 #: Names of the built-in integrators that are unconditionally stable on linear springs.
 IMPLICIT = frozenset(rec.name for rec in BUILTIN if not rec.explicit)
+
+def implicit_euler_with(solver: str) -> Integrator:
+    """The ``implicit_euler`` record with its linear solver chosen, for
+    ``diffpen.compile(scene, dt, integrator=implicit_euler_with("gmres"))``: ``"auto"`` (the
+    built-in record's choice: dense up to :data:`DENSE_MAX_DOF` degrees of freedom, GMRES
+    above), ``"dense"``, ``"gmres"`` (matrix-free, on Jacobian-vector products) or ``"cg"``
+    (conjugate gradients: faster, but right only for a symmetric system; dampers with
+    relative motion across their axis make it non-symmetric). The iterative solvers take
+    particle and sphere scenes (rigid bodies solve densely). An unknown solver raises
+    :class:`diffpen.SceneError` here, before anything is compiled."""
+    if solver not in IMPLICIT_SOLVERS:
+        from .errors import SceneError
+        raise SceneError(f"implicit_euler solver must be one of {list(IMPLICIT_SOLVERS)}, "
+                         f"got {solver!r}.")
+    return INTEGRATORS["implicit_euler"]._replace(
+        make=functools.partial(implicit_euler, solver=solver))
 
 
 def kick_then_drift(integrator) -> bool:
