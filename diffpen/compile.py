@@ -248,7 +248,7 @@ class Simulator:
         return _start_state.init_state(self)
 
     def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
-                   orientation=None, angular_velocity=None, frame: str = "body") -> State:
+                   orientation=None, angular_velocity=None, frame: str | None = None) -> State:
         """A start state with the given bodies' pose and velocities replaced.
 
         Pure array updates (no recompilation, no scene rebuild): works under ``jax.jit``,
@@ -260,9 +260,10 @@ class Simulator:
           position: (3,) or (b, 3) centres, m.  velocity: (3,) or (b, 3) m/s, world frame.
           orientation: (4,) or (b, 4) quaternions (w, x, y, z), body to world (normalised
             here); rigid bodies only.
-          angular_velocity: (3,) or (b, 3) rad/s, in the BODY frame (``frame="body"``, as
-            gyroscopes and most pose trackers give it) or the world frame
-            (``frame="world"``); rigid bodies only.
+          angular_velocity: (3,) or (b, 3) rad/s, with ``frame`` saying in which frame:
+            ``frame="body"`` (as gyroscopes and most pose trackers give it) or
+            ``frame="world"`` (as ``add_box`` and ``add_rigid_sphere`` take it); rigid
+            bodies only. ``frame`` has no default: one would silently turn the other's spin.
         Returns: :class:`State` (None arguments leave that part unchanged).
         """
         return _start_state.state_from(self, state, body=body, position=position,

@@ -45,9 +45,14 @@ def _check_rows(name: str, given, width: int, count: int) -> None:
 
 
 def state_from(sim, state: State | None = None, *, body=0, position=None, velocity=None,
-               orientation=None, angular_velocity=None, frame: str = "body") -> State:
+               orientation=None, angular_velocity=None, frame: str | None = None) -> State:
     """``sim.state_from(...)``: see :meth:`diffpen.Simulator.state_from` (arguments, units)."""
-    if frame not in ("body", "world"):
+    if angular_velocity is not None and frame is None:
+        raise SceneError("state_from(angular_velocity=...) needs frame='body' (the body frame, "
+                         "as gyroscopes and the cube records give it) or frame='world' (as "
+                         "add_box and add_rigid_sphere take it): one default would silently "
+                         "turn the other's spin.")
+    if frame not in (None, "body", "world"):
         raise SceneError(f"frame must be 'body' or 'world', got {frame!r}.")
     idx = np.atleast_1d(np.asarray(body))
     if idx.dtype.kind not in "iu" or idx.ndim != 1 or np.any(idx < 0) or np.any(

@@ -47,7 +47,8 @@ def setup(tmp_path_factory):
     for i, (v, w, dur) in enumerate([((0.5, 0.0, 0.0), (3.0, 1.0, 0.0), 0.4),
                                      ((0.0, -0.3, 0.5), (0.0, 2.0, 5.0), 0.24)]):
         s = sim.state_from(body=0, position=(0.0, 0.0, 0.15), velocity=v,
-                           orientation=(0.9, 0.2, 0.3, 0.1), angular_velocity=w)
+                           orientation=(0.9, 0.2, 0.3, 0.1), angular_velocity=w,
+                           frame="body")
         rec = tf.synthetic_record(sim, params, dur, 4e-3, {"cube": 0}, state=s)
         p = d / f"toss_{i}.csv"
         write_record(str(p), rec)

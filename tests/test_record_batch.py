@@ -39,7 +39,8 @@ def test_unequal_lengths_are_masked(cube, caplog):
     alone (padding weighs nothing)."""
     params = cube.params()
     s = cube.state_from(body=0, position=(0, 0, 0.2), velocity=(0.4, 0, 0),
-                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1))
+                        orientation=(0.9, 0.3, 0.1, 0.0), angular_velocity=(2, 0, 1),
+                        frame="body")
     long = tf.synthetic_record(cube, params, 0.3, 5e-3, {"cube": 0}, state=s, noise=1e-3)
     short = tf.synthetic_record(cube, params, 0.12, 5e-3, {"cube": 0}, noise=1e-3, seed=3)
     both = tf.prepare(cube, [long, short], estimate="record")
@@ -98,10 +99,11 @@ def test_state_from_under_vmap_matches_a_loop(cube):
     wb = jnp.array([[1.0, 2.0, 3.0], [1.0, 2.0, 3.0]])
     pos = jnp.array([[0, 0, 0.2], [0.1, 0, 0.3]])
     many = jax.vmap(lambda p, qq, w: cube.state_from(body=0, position=p, orientation=qq,
-                                                     angular_velocity=w))(pos, q, wb)
+                                                     angular_velocity=w,
+                                                     frame="body"))(pos, q, wb)
     for i in range(2):
         one = cube.state_from(body=0, position=pos[i], orientation=q[i],
-                              angular_velocity=wb[i])
+                              angular_velocity=wb[i], frame="body")
         np.testing.assert_allclose(many.angular_velocity[i], one.angular_velocity)
     # a half turn about z maps body (1, 2, 3) to world (-1, -2, 3)
     np.testing.assert_allclose(many.angular_velocity[1, 0], [-1.0, -2.0, 3.0], atol=1e-12)

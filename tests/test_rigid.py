@@ -618,7 +618,7 @@ def test_a_pinned_body_given_a_velocity_under_vmap_stays_in_place():
 
     def run(v, w):
         st = sim.state_from(body=[bx, pin], velocity=v)
-        st = sim.state_from(st, body=[bx], angular_velocity=w)
+        st = sim.state_from(st, body=[bx], angular_velocity=w, frame="body")
         return sim.rollout(sim.params(k=1e4, c=10.0), 100, st, save_every=100).final
     v = jnp.array([[[0.2, 0, 0], [0, 0.3, 0]], [[0.0, 0, 0], [0, 0, 0]]])
     w = jnp.array([[[0.0, 0, 2.0]], [[0.0, 0, 0]]])
@@ -649,7 +649,7 @@ def test_building_and_placing_a_start_state_compiles_nothing(caplog):
     boxes = [scene.add_box((0.1, 0.05, 0.02), 1.0, (0.0, y, 0.5)) for y in (1.0, 2.0)]
     scene.add_plane()
     pose = dict(velocity=(0.0, 0.0, -1.0), orientation=[(1, 0, 0, 0), (0.9, 0.1, 0.0, 0.0)],
-                angular_velocity=[(0.0, 0.0, 0.0), (1.0, 2.0, 3.0)])
+                angular_velocity=[(0.0, 0.0, 0.0), (1.0, 2.0, 3.0)], frame="body")
     where = np.array([(0.6, 1.1, 0.7), (0.0, 2.0, 0.4)])
     with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
         sim = dp.compile(scene, dt=1e-3)

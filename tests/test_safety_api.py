@@ -316,7 +316,7 @@ def test_a_traced_sweep_over_start_spins_flags_the_rows_past_the_spin_limit():
     axis = jnp.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
 
     def one(w):
-        st = bsim.state_from(body=box, angular_velocity=w * axis)
+        st = bsim.state_from(body=box, angular_velocity=w * axis, frame="body")
         tr = bsim.rollout(p, 300, state=st, save_every=300)
         return jnp.isfinite(tr.orientation[-1]).all(), tr.aux["unstable"][-1]
 
@@ -328,7 +328,8 @@ def test_a_traced_sweep_over_start_spins_flags_the_rows_past_the_spin_limit():
     # verlet has no such limit: nothing flagged
     vsim = dp.compile(s, 1e-2, integrator="verlet")
     flags = jax.vmap(lambda w: vsim.rollout(p, 2, state=vsim.state_from(
-        body=box, angular_velocity=w * axis)).aux["unstable"][-1])(jnp.array([1.0, 40.0]))
+        body=box, angular_velocity=w * axis, frame="body")).aux["unstable"][-1])(
+            jnp.array([1.0, 40.0]))
     np.testing.assert_array_equal(flags, [False, False])
 
 
@@ -343,7 +344,8 @@ def test_vmap_over_a_start_spin_alone_runs():
     p = bsim.params()
 
     def final_spin(w):
-        st = bsim.state_from(body=box, angular_velocity=jnp.array([0.0, 0.0, 1.0]) * w)
+        st = bsim.state_from(body=box, angular_velocity=jnp.array([0.0, 0.0, 1.0]) * w,
+                             frame="body")
         return bsim.rollout(p, 20, state=st, save_every=20).angular_velocity[-1, box]
 
     np.testing.assert_allclose(jax.vmap(final_spin)(jnp.array([1.0, 2.0])),
@@ -497,7 +499,10 @@ def test_state_from_checks_shapes_duplicates_and_start_overlaps():
     for kw, words in ((dict(position=(0, 0)), r"position must have shape \(3,\), got shape "
                        r"\(2,\)"),
                       (dict(orientation=(1, 0, 0)), r"orientation must have shape \(4,\)"),
-                      (dict(angular_velocity=(1, 0)), r"angular_velocity must have shape"),
+                      (dict(angular_velocity=(1, 0), frame="body"),
+                       r"angular_velocity must have shape"),
+                      (dict(angular_velocity=(0, 0, 1)), "needs frame='body' .* or "
+                       "frame='world'"),
                       (dict(position="abc"), "position must be numbers, 3 per body"),
                       (dict(position=[[0, 0, 1], [0, 0, 2]]), r"got shape \(2, 3\)"),
                       (dict(position=(0, 0, -0.2)), "box 0 started at .* plane 0 .* raise "
