@@ -100,9 +100,11 @@ def _over(depth, tol):
 
 
 def _refuse(what: str, depth: float, tol: float, fix: str) -> None:
-    raise SceneError(f"{what} overlap by {depth:.4g} m at the start (more than {tol:.3g} m, "
-                     f"{OVERLAP_TOL:.0%} of the smaller size: it starts inside): {fix}; or pass "
-                     "allow_overlap=True to start it compressed on purpose.")
+    limit = (f"more than {tol:.3g} m, {OVERLAP_TOL:.0%} of the smaller size" if tol > 0.0 else
+             "a particle has no size, so any overlap counts")
+    raise SceneError(f"{what} overlap by {depth:.4g} m at the start ({limit}: it starts "
+                     f"inside): {fix}; or pass allow_overlap=True to start it compressed on "
+                     "purpose.")
 
 
 class OverlapIndex:

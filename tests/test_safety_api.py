@@ -56,6 +56,10 @@ def sim():
      ["particle 1", "box 0", "overlap by 0.04 m"]),
     (lambda s: (s.add_particle(1.0, (0.0, 0.0, 0.099)), s.add_box((0.1,) * 3, 1.0, (0, 0, 0))),
      ["box 1", "particle 0", "overlap by 0.001 m"]),
+    # a particle's limit is no overlap at all (the message quoted "more than 0 m, 50% of the
+    # smaller size")
+    (lambda s: (s.add_particle(1.0, (0.0, 0.0, -0.01)), s.add_plane()),
+     ["particle 0", "plane 0", "a particle has no size, so any overlap counts"]),
 ])
 def test_bodies_starting_inside_are_refused_with_the_overlap_and_the_fix(build, words):
     with pytest.raises(dp.SceneError) as exc:
