@@ -114,6 +114,33 @@ def test_output_paths_are_checked_before_computing(tmp_path, bad, words):
     assert not any(f.startswith(".tmp-") for f in os.listdir(tmp_path))
 
 
+def test_a_folder_that_takes_no_files_is_refused_before_computing(monkeypatch, capsys):
+    """Regression: ``diffpen simulate --out /sys/s.npz`` ran the rollout, then failed with a raw
+    ``[Errno 13] Permission denied: '/sys/.tmp-...npz'``: check_output trusted os.access,
+    which passes for root in read-only folders and on filesystems that ignore it (/sys,
+    NFS). Now the folder is probed by creating a file there; os.access is made to pass here
+    as it does for root."""
+    if not os.path.isdir("/sys") or os.access("/sys", os.W_OK) and _can_create("/sys"):
+        pytest.skip("needs /sys, a folder that takes no new files")
+    monkeypatch.setattr(IO.os, "access", lambda *a, **k: True)
+    with pytest.raises(IO.OutputError, match=r"cannot create a file in /sys \("):
+        IO.check_output("/sys/s.npz", what="--out")
+    from tuning.cli import main
+    monkeypatch.setattr(dp, "compile", lambda *a, **k: pytest.fail("compiled before checking"))
+    assert main(["simulate", "ball", "--out", "/sys/s.npz"]) == 2
+    assert "cannot create a file in /sys" in capsys.readouterr().err
+
+
+def _can_create(folder: str) -> bool:
+    try:
+        fd, p = tempfile.mkstemp(dir=folder)
+    except OSError:
+        return False
+    os.close(fd)
+    os.unlink(p)
+    return True
+
+
 def test_points_past_the_safe_step_are_nan_and_counted_in_memory_and_files(evaluate, tmp_path):
     out = str(tmp_path / "s.npz")
     res = run(evaluate, out, {})

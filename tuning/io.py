@@ -63,7 +63,10 @@ def check_output(path, *, what: str = "output", ext: str | None = None,
     Raises :class:`OutputError` naming ``what`` (e.g. ``"--out"``; ``ext``: the file type its
     example name suggests, default by ``what``) when the path is empty, is
     a directory, its parent folder does not exist or is not a folder, or either cannot be
-    written. Nothing is created. ``derived_from``: the option or argument the path's name
+    written. The folder is probed by creating a temporary file there and removing it
+    (:func:`os.access` passes for root in read-only folders and on filesystems that ignore
+    it, and the write then failed after the computation); the output itself is not
+    touched. ``derived_from``: the option or argument the path's name
     follows from (e.g. ``"--out"`` for the ``.csv`` table beside ``--out NAME.npz``): its
     name cannot be given, so a directory or a read-only file there is to be moved or
     removed, or that option changed.
@@ -89,6 +92,13 @@ def check_output(path, *, what: str = "output", ext: str | None = None,
     if not os.access(folder, os.W_OK | os.X_OK):
         raise OutputError(f"{what} {path}: the folder {folder} is not writable; choose "
                           "another path.")
+    try:            # named as atomic_write names its files: clean_orphans finds a leftover
+        fd, probe = tempfile.mkstemp(prefix=TMP_PREFIX, suffix=os.path.basename(p), dir=folder)
+    except OSError as exc:
+        raise OutputError(f"{what} {path}: cannot create a file in {folder} "
+                          f"({exc.strerror}); choose another path.") from None
+    os.close(fd)
+    os.unlink(probe)
     if os.path.exists(p) and not os.access(p, os.W_OK):
         raise OutputError(f"{what} {path} exists and is not writable; " + (
             f"make it writable, move it, or choose another {derived_from}." if derived_from
