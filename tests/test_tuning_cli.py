@@ -206,6 +206,43 @@ def test_an_interrupted_command_ends_without_tearing_its_modules_down(monkeypatc
     assert exc.value.code == 2 and seen == ["handlers", 130]
 
 
+def test_a_dropped_ctrl_c_is_not_printed_and_stays_pending(monkeypatch, capsys):
+    """Regression: a Ctrl-C in a command's first second landed in JAX's garbage-collection
+    callback, where Python drops it and printed a 10-line "Exception ignored in:
+    <function _xla_gc_callback ...>" traceback before "interrupted". The command's
+    handlers (``install_handlers``) keep it quiet and pending; other exceptions Python
+    drops are still printed."""
+    import gc
+    import signal
+    import sys
+
+    import tuning.cli as cli
+    from tuning import progress
+    monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)    # restored after
+    monkeypatch.setattr(signal, "signal", lambda *a: None)
+    cli.install_handlers()
+
+    def callback(phase, info):
+        gc.callbacks.remove(callback)
+        cli._on_sigint(signal.SIGINT, None)          # raised inside the callback: dropped
+    gc.callbacks.append(callback)
+    capsys.readouterr()
+    try:
+        gc.collect()
+        assert "Exception ignored" not in capsys.readouterr().err
+        with pytest.raises(KeyboardInterrupt):
+            progress.raise_pending()
+    finally:
+        progress.clear_pending()
+
+    def failing(phase, info):
+        gc.callbacks.remove(failing)
+        raise ValueError("a real error")
+    gc.callbacks.append(failing)
+    gc.collect()
+    assert "ValueError: a real error" in capsys.readouterr().err
+
+
 def test_sweep_target_needs_a_plot(tmp_path, capsys):
     """--target (a contour on the heatmap) without --plot was ignored silently."""
     from tuning.cli import main as cli_main

@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 import time
 
-__all__ = ["Progress", "interrupt", "raise_pending", "clear_pending"]
+__all__ = ["Progress", "interrupt", "raise_pending", "clear_pending", "pending"]
 
 #: interrupts raised by a command's signal handler (:func:`interrupt`) and not yet ended
 _PENDING: list = []
@@ -30,6 +30,11 @@ def raise_pending() -> None:
     nothing in library use, where no handler records one."""
     if _PENDING:
         raise _PENDING[-1]
+
+
+def pending() -> bool:
+    """Whether an interrupt :func:`interrupt` raised has not ended the run yet."""
+    return bool(_PENDING)
 
 
 def clear_pending() -> None:
@@ -53,6 +58,7 @@ class Progress:
 
     def __init__(self, total: int, label: str = "fit", enabled: bool | None = None, *,
                  value: str = "loss", every: float = 5.0, stream=None):
+        raise_pending()                 # a lost interrupt ends the run before its long loop
         self.total = total
         self.label = label
         self.value = value

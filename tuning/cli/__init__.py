@@ -12,7 +12,7 @@ import importlib
 import os
 import sys
 
-from ..progress import clear_pending, interrupt
+from ..progress import clear_pending, interrupt, pending
 
 #: subcommand -> (module, one-line help)
 COMMANDS = {
@@ -123,6 +123,27 @@ def _on_sigint(signum, frame):
     interrupt(KeyboardInterrupt)
 
 
+def _quiet_unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` of the command: an interrupt its handlers raised where Python
+    cannot pass it on (inside JAX's garbage-collection callback, in a command's first
+    second) is not printed as a 10-line "Exception ignored in: _xla_gc_callback" traceback;
+    it is pending and raised again at the next progress report
+    (:func:`tuning.progress.raise_pending`). Everything else goes to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and pending():
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def install_handlers() -> None:
+    """The command's handlers: SIGTERM and SIGINT raise through
+    :func:`tuning.progress.interrupt` (:class:`Terminated`, ``KeyboardInterrupt``), and an
+    interrupt Python had to drop is not printed (:func:`_quiet_unraisable`)."""
+    import signal
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    signal.signal(signal.SIGINT, _on_sigint)
+    sys.unraisablehook = _quiet_unraisable
+
+
 def entry() -> None:
     """The ``diffpen`` command (and ``python -m tuning.cli``): :func:`main`, then exit with
     its status. SIGTERM is handled as SIGINT is (:class:`Terminated`): under SLURM a job
@@ -133,9 +154,7 @@ def entry() -> None:
     tearing its modules down: a Ctrl-C that landed inside JAX's runtime made that teardown
     crash in jaxlib (exit 139, a segmentation fault, after "interrupted") in about half the
     interrupted fits on a loaded machine."""
-    import signal
-    signal.signal(signal.SIGTERM, _on_sigterm)
-    signal.signal(signal.SIGINT, _on_sigint)
+    install_handlers()
     status = main()
     if status in (INTERRUPTED, TERMINATED):
         import atexit
