@@ -30,6 +30,30 @@ SCRIPT = textwrap.dedent("""
         print(json.dumps({"error": str(exc)}), flush=True)
 """)
 
+# the same through the diffpen command's entry (its signal handlers, exit statuses and
+# messages): a command "probe" joins, then process CLUSTER_SIGNALLED sends itself
+# CLUSTER_SIGNAL while process 0 waits for it in a collective
+SCRIPT_COMMAND = textwrap.dedent("""
+    import json, os, signal, sys, time, types
+    import tuning.cli as cli
+    from tuning import distributed
+
+    def run(args):
+        pid = int(os.environ["CLUSTER_ID"])
+        distributed.join(os.environ["CLUSTER_COORDINATOR"], int(os.environ["CLUSTER_PROCESSES"]),
+                         pid, timeout_s=int(os.environ["CLUSTER_TIMEOUT"]))
+        if str(pid) == os.environ["CLUSTER_SIGNALLED"]:
+            print(json.dumps({"stops_at": time.time()}), flush=True)
+            os.kill(os.getpid(), getattr(signal, os.environ["CLUSTER_SIGNAL"]))
+            time.sleep(30)                      # the handler raises here
+        distributed.check_same("x", b"the same")
+        return 0
+    sys.modules["cluster_probe"] = types.SimpleNamespace(add_arguments=lambda p: None, run=run)
+    cli.COMMANDS["probe"] = ("cluster_probe", "a probe")
+    sys.argv = ["diffpen", "probe"]
+    cli.entry()
+""")
+
 
 def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
     """Three 2-process clusters started together: (devices) process 0 with 2 local devices and
@@ -43,16 +67,20 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
     collective for it (process 0 waited until JAX's 300 s shutdown wait ran out): process 0
     stops at once, naming process 1's error, whatever its --cluster-timeout (30 s here)."""
     runs = {"devices": ([2, 1], [2, 2], 30, None), "nproc": ([1, 1], [2, 3], 30, None),
-            "dies": ([1, 1], [2, 2], 3, "1"), "raises": ([1, 1], [2, 2], 30, None)}
+            "dies": ([1, 1], [2, 2], 3, "1"), "raises": ([1, 1], [2, 2], 30, None),
+            "SIGINT": ([1, 1], [2, 2], 30, None), "SIGTERM": ([1, 1], [2, 2], 30, None)}
     procs = {}
     for name, (devices, counts, timeout, dies) in runs.items():
         coordinator = f"localhost:{free_port()}"
+        command = name.startswith("SIG")
         procs[name] = [subprocess.Popen(
-            [sys.executable, "-c", SCRIPT], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            [sys.executable, "-c", SCRIPT_COMMAND if command else SCRIPT],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             text=True, env=_env(devices[i], CLUSTER_COORDINATOR=coordinator,
                                 CLUSTER_PROCESSES=str(counts[i]), CLUSTER_ID=str(i),
                                 CLUSTER_TIMEOUT=str(timeout), CLUSTER_DIES=dies or "",
-                                CLUSTER_RAISES="1" if name == "raises" else ""))
+                                CLUSTER_RAISES="1" if name == "raises" else "",
+                                CLUSTER_SIGNALLED="1", CLUSTER_SIGNAL=name))
             for i in range(2)]
     # each process's output and the time it ended (the clock of its own exit, not of the
     # others: eight processes importing JAX on a loaded machine take a while to start)
@@ -108,3 +136,17 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
     # well under the 30 s timeout (the old code: Gloo's deadline after it, then JAX's 300 s
     # shutdown wait)
     assert stopped_after("raises") < 20
+    # a diffpen command interrupted (Ctrl-C) or terminated (SIGTERM, as SLURM at its time
+    # limit) on one process: it ends with its own status and line, and the other stops
+    # within seconds naming it. Before, a Ctrl-C hung both processes (the interrupted one
+    # said it ended normally, and waited in JAX's shutdown for the other, which waited in
+    # the collective), and SIGTERM went to JAX's preemption notifier, which logged it and
+    # let the run go on.
+    for sig, status, what in (("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "terminated")):
+        (p0, p1), ((out, err), (_, err1)) = procs[sig], outs[sig]
+        assert p1.returncode == status and f"diffpen probe: {what}" in err1, (sig, err1[-2000:])
+        assert p0.returncode == 2, (sig, err[-3000:])
+        assert "a process of the cluster stopped: process 1 of 2 ended" in err, (sig, err)
+        assert f"(diffpen probe {what})" in err and "process 0 stops too" in err, (sig, err)
+        assert "Traceback" not in err and "Gloo" not in err.split("stopped:")[0], (sig, err)
+        assert stopped_after(sig) < 20, sig

@@ -35,7 +35,7 @@ import numpy as np
 
 __all__ = ["join", "check", "detect", "parse_coordinator", "is_writer", "process_count",
            "from_process_zero", "check_same", "check_local_devices", "jaxpr_digest",
-           "heartbeat_seconds", "mark_failed"]
+           "heartbeat_seconds", "mark_failed", "lost_process"]
 
 # seconds a process may stay silent before the others take it for stopped (at most timeout_s)
 HEARTBEAT_S = 10
@@ -164,7 +164,24 @@ def _initialize(timeout_s, *args) -> None:
     jax.distributed.initialize(*args, initialization_timeout=int(timeout_s),
                                heartbeat_timeout_seconds=2 * silent,
                                shutdown_timeout_seconds=max(int(timeout_s), 300))
+    _keep_signal_handlers()
     _watch_cluster(silent)
+
+
+def _keep_signal_handlers() -> None:
+    """Install again the Python handlers of SIGTERM and SIGINT that were set before joining:
+    ``jax.distributed.initialize`` puts its preemption notifier on SIGTERM, which replaced
+    a ``diffpen`` command's handler (a cluster sweep sent SIGTERM, as SLURM does at its time
+    limit, logged "SIGTERM caught" and ran on to the end). Default handlers are left to JAX.
+    Only from the main thread (where handlers are set)."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        handler = signal.getsignal(sig)
+        if callable(handler) and handler is not signal.default_int_handler:
+            signal.signal(sig, handler)
 
 
 _WATCH_KEY = "diffpen/alive/"
@@ -285,6 +302,41 @@ def _watch_cluster(silent_s: int) -> None:
     _watching.append(True)
     threading.Thread(target=watch, name="diffpen-cluster-watch", daemon=True).start()
     atexit.register(at_exit)
+
+
+#: words of the errors a collective raises when another process of the cluster is gone
+_LOST_PEER = ("Gloo", "Connection closed by peer", "Connection reset by peer",
+              "Broken pipe")
+
+
+def lost_process(error) -> str | None:
+    """In a cluster, when ``error`` (an exception or its text) is a collective's failure
+    because another process is gone (killed, crashed, interrupted: its connection closed;
+    JAX raises it as a ``JaxRuntimeError``, or a ``ValueError`` from a jitted call), one line
+    saying so, naming that process where it said why it ended; else None. The ``diffpen``
+    commands print it instead of the collective's raw error (``UNKNOWN: Gloo AllGather
+    failed: ... Connection closed by peer``), which says neither which process stopped nor
+    what to do."""
+    import jax
+    text = str(error)
+    if not _watching or not any(w in text for w in _LOST_PEER):
+        return None
+    me, n = jax.process_index(), jax.process_count()
+    who = "another process is gone (killed or crashed)"
+    try:
+        from jax._src import distributed as jax_distributed
+        values = dict(jax_distributed.global_state.client.key_value_dir_get(_WATCH_KEY))
+        ended = [(i, values[f"{_WATCH_KEY}{i}"][len("failed:"):]) for i in range(n) if i != me
+                 and str(values.get(f"{_WATCH_KEY}{i}", "")).startswith("failed")]
+        if ended:
+            who = "; ".join(f"process {i} of {n} ended ({why or 'see its standard error'})"
+                            for i, why in ended)
+    except Exception:               # the coordinator itself may be the one gone
+        pass
+    line = (text.strip().splitlines() or [""])[0][:160]
+    return (f"a process of the cluster stopped: {who}, and a collective with it failed "
+            f"({line}); process {me} stops too (exit status {STOPPED_STATUS}): see the "
+            "standard error of the stopped process for why.")
 
 
 def _wait_for_the_others(client, me: int, n: int, limit_s: float) -> None:

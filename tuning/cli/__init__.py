@@ -73,7 +73,13 @@ def main(argv=None) -> int:
         if not getattr(args, "_run", None):
             parser.print_help()
             return 2
-        status = int(args._run(args) or 0)
+        try:
+            status = int(args._run(args) or 0)
+        except Exception as exc:        # a collective failed: another process is gone
+            from ._common import cluster_stopped
+            status = cluster_stopped(argv[0], exc)
+            if status is None:
+                raise
         clear_pending()             # an interrupt lost too late to stop the run
         if status != 0:
             # in a cluster, the others stop at once instead of waiting for this process
@@ -100,7 +106,12 @@ def main(argv=None) -> int:
         what = "terminated" if isinstance(exc, Terminated) else "interrupted"
         print(("\n" if sys.stderr.isatty() else "") + f"{command}: {what}{hint}",
               file=sys.stderr)
-        return TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
+        status = TERMINATED if isinstance(exc, Terminated) else INTERRUPTED
+        # in a cluster, the others stop within seconds instead of waiting for this process
+        # in a collective, and this one ends without waiting for them (both processes hung)
+        from ..distributed import mark_failed
+        mark_failed(f"{command} {what}", status)
+        return status
 
 
 #: the exit status of an interrupted command (128 + SIGINT, as a shell reports it)

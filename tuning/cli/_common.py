@@ -186,8 +186,28 @@ def check_positive(name: str, value) -> None:
 
 
 def fail(cmd: str, message: str) -> int:
+    """Print ``diffpen CMD: error: MESSAGE``; exit status 2. In a cluster, an error that says
+    another process is gone is printed as that (:func:`cluster_stopped`) instead."""
+    stopped = cluster_stopped(cmd, message)
+    if stopped is not None:
+        return stopped
     sys.stderr.write(f"diffpen {cmd}: error: {message}\n")
     return 2
+
+
+def cluster_stopped(cmd: str, error) -> int | None:
+    """In a cluster, when ``error`` (an exception or its text) is a collective's failure
+    because another process is gone: print the line of
+    :func:`tuning.distributed.lost_process` (with how to resume a sweep) and return the
+    stopped status; else None."""
+    from ..distributed import STOPPED_STATUS, lost_process
+    lost = lost_process(error)
+    if lost is None:
+        return None
+    hint = "; rerun the same command on every process to resume the sweep" \
+        if cmd == "sweep" else ""
+    sys.stderr.write(lost[:-1] + hint + ".\n")
+    return STOPPED_STATUS
 
 
 def dump_json(obj) -> None:
