@@ -22,7 +22,7 @@ def run_json(capsys, argv):
     return rc, json.loads(out[0])
 
 
-def test_fit_defaults_json(capsys, tmp_path):
+def test_fit_defaults_json(capsys, tmp_path, monkeypatch):
     pytest.importorskip("matplotlib")
     png = str(tmp_path / "fit.png")
     rc, out = run_json(capsys, ["fit", "--plot", png])
@@ -35,6 +35,19 @@ def test_fit_defaults_json(capsys, tmp_path):
     assert out["zeta"] == pytest.approx(out["c"] / (2 * (out["k"] * 1.0) ** 0.5), rel=1e-12)
     assert abs(a["apex_heights"][0] / t["apex_heights"][0] - 1) < 5e-3
     assert abs(a["settling_time"] / t["settling_time"] - 1) < 1e-2
+    # regression: a figure that could not be written (a full disk) ended the command with a
+    # traceback before the fitted values were printed: they come first now, exit status 2
+    from tuning import plots
+
+    def full_disk(*a, **k):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(plots, "fit_figure", full_disk)
+    rc = main(["fit", "--plot", png, "--json"])
+    captured = capsys.readouterr()
+    again = json.loads(captured.out)
+    assert rc == 2 and again["k"] == out["k"] and again["c"] == out["c"]
+    assert "--plot " + png + " could not be written (OSError: [Errno 28] No space left" \
+        in captured.err and "Traceback" not in captured.err
 
 
 @pytest.mark.parametrize("argv, words", [

@@ -248,9 +248,8 @@ def _run(args) -> int:
            "message": res.message,
            "notes": res.notes, "dt": dt, "law": args.law, "exponent": args.exponent,
            "events": bool(args.events), "zeta": zeta}
-    if args.plot:
-        _plot_targets(args, scene, res, dt)
-    return _print(args, out)
+    return _drawn(args, lambda: _plot_targets(args, scene, res, dt),
+                  lambda: _print(args, out))
 
 
 def _law(args):
@@ -291,14 +290,32 @@ def damping_ratio_or_none(law, k, c, mass) -> float | None:
 
 
 def _report(args, out: dict, plot_fn=None) -> int:
-    if args.plot:
-        if plot_fn is None:
-            import sys
-            sys.stderr.write("diffpen fit: note: --plot is drawn for the built-in ball and "
-                             "--data fits only, not for scene files\n")
-        else:
-            plot_fn(args.plot)
-    return _print(args, out)
+    if args.plot and plot_fn is None:
+        import sys
+        sys.stderr.write("diffpen fit: note: --plot is drawn for the built-in ball and "
+                         "--data fits only, not for scene files\n")
+        return _print(args, out)
+    return _drawn(args, plot_fn and (lambda: plot_fn(args.plot)), lambda: _print(args, out))
+
+
+def _drawn(args, draw, report) -> int:
+    """``draw()`` the --plot figure (when asked for), then ``report()`` the fit (its exit
+    status). A figure that cannot be written (a full disk, a folder that passed the check
+    but takes no file) is said after the fitted values, with exit status 2: it ended the
+    command with a traceback before they were printed, and the fit was lost."""
+    error = None
+    if args.plot and draw is not None:
+        try:
+            draw()
+        except (OSError, RuntimeError, ValueError) as exc:
+            error = (f"--plot {args.plot} could not be written ({type(exc).__name__}: {exc}); "
+                     "the fitted values are printed above")
+    status = report()
+    if error is None:
+        return status
+    import sys
+    sys.stderr.write(f"diffpen fit: error: {error}\n")
+    return 2
 
 
 def _print(args, out: dict) -> int:
@@ -407,13 +424,18 @@ def _run_data(args) -> int:
                           f"{math.hypot(res.noise, res.dt_error):.3g} m (noise and time step). "
                           "Check the units (t in s, z in m), --radius and --mass, and that "
                           "the record is a ball bouncing on the ground")
-    if args.plot:
+    def draw():
         from ..plots import trajectory_fit_figure
         trajectory_fit_figure(args.plot, t, z, res.z_fit, res.history,
                               title=(f"k={res.k:.5g}+-{res.k_stderr:.2g} {ku}, "
                                      if res.k_lower_bound is None else
                                      f"k={res.k:.5g} {ku} (held, lower bound), ")
                                     + f"c={res.c:.5g}+-{res.c_stderr:.2g} {cu}")
+    return _drawn(args, draw, lambda: _print_trajectory(args, out, res, ku, cu))
+
+
+def _print_trajectory(args, out, res, ku, cu) -> int:
+    """The ball trajectory fit's summary (or JSON), its exit status."""
     if args.json:
         dump_json(out)
         return 0 if out["reached"] else 1
