@@ -145,6 +145,15 @@ def test_size_guard_refuses_before_parsing(tmp_path):
     assert len(read_record(path, max_rows=30_000)) == 20000
     with pytest.raises(RecordError, match="is a directory"):
         read_record(str(tmp_path))
+    # regression: /dev/zero reports size 0 and never ends: it was read until the memory ran
+    # out (23.7 GB, killed); a FIFO nobody writes blocked forever
+    fifo = tmp_path / "pipe.csv"
+    os.mkfifo(fifo)
+    for special in ("/dev/zero", str(fifo)):
+        if os.path.exists(special):
+            with pytest.raises(RecordError, match=r"is not a regular file \(a device, pipe "
+                                                  r"or socket\); give a CSV record file"):
+                read_record(special)
     with pytest.raises(RecordError, match="cannot read"):
         read_record(str(tmp_path / "nope.csv"))
 

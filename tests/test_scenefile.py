@@ -521,6 +521,13 @@ def test_binary_and_bom_files(tmp_path):
         load_scene_file(str(tmp_path / "missing.toml"))
     with pytest.raises(SceneFileError, match="is a directory"):
         load_scene_file(str(tmp_path))
+    # regression: /dev/zero (size 0, no end) was read until the memory ran out
+    fifo = tmp_path / "pipe.toml"
+    os.mkfifo(fifo)
+    for special in ("/dev/zero", str(fifo)):
+        if os.path.exists(special):
+            with pytest.raises(SceneFileError, match="is not a regular file"):
+                load_scene_file(special)
 
 
 def test_fit_data_must_be_a_csv_record_and_is_never_quoted(tmp_path, capsys):

@@ -133,6 +133,9 @@ def _read_text(path: str, max_rows: int, max_bytes: int) -> str:
         size = os.path.getsize(path)
         if os.path.isdir(path):
             raise RecordError(f"{path} is a directory; give a CSV record file.")
+        if not os.path.isfile(path):    # /dev/zero has size 0 and no end; a FIFO may block
+            raise RecordError(f"{path} is not a regular file (a device, pipe or socket); give "
+                              "a CSV record file (save a pipe's output to a file first).")
         with open(path, "rb") as fh:
             sample = fh.read(65536)
             if size > max_bytes:

@@ -81,6 +81,11 @@ def read_text_file(path: str, what: str, *, max_bytes: int = MAX_FILE_BYTES) -> 
     try:
         if os.path.isdir(path):
             raise w.error(f"is a directory; give a {what} file.")
+        if os.path.exists(path) and not os.path.isfile(path):
+            # /dev/zero reports size 0 and never ends (read whole, it filled the memory); a
+            # FIFO nobody writes blocks
+            raise w.error(f"is not a regular file (a device, pipe or socket); give a {what} "
+                          "file (save a pipe's output to a file first).")
         size = os.path.getsize(path)
         if size > max_bytes:
             raise w.error(f"is {size / 2**20:.1f} MiB; a {what} file above "
