@@ -279,7 +279,7 @@ def spin_records(tmp_path_factory):
     sim = sf.compile()
     recs = []
     for name, w in (("slow", (0.0, 0.0, 2.0)), ("fast", (3.0, 2.0, 150.0))):
-        s = sim.state_from(body=0, position=(0.0, 0.0, 0.5), angular_velocity=w)
+        s = sim.state_from(body=0, position=(0.0, 0.0, 0.5), angular_velocity=w, frame="body")
         recs.append(str(tmp_path / f"{name}.csv"))
         write_record(recs[-1], tf.synthetic_record(sim, sf.params(sim), 0.05, 5e-3,
                                                    {"box": 0}, state=s))

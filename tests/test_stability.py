@@ -227,7 +227,7 @@ def test_anchored_springs_count_the_tension_gravity_can_hang_on_them():
     rates = [(lambda sim: sim.stability(sim.params()).omega_max)(dp.compile(x, 1e-4))
              for x in (free, weightless)]
     assert rates[0] == pytest.approx(rates[1], rel=1e-12)
-    st = ok.state_from(body=link, angular_velocity=(1e-3, 0.0, 0.0))
+    st = ok.state_from(body=link, angular_velocity=(1e-3, 0.0, 0.0), frame="body")
     tr = ok.rollout(ok.params(), int(0.3 / rep.safe_dt), state=st)
     assert float(np.max(np.abs(np.asarray(tr.angular_velocity)[:, link]))) < 0.1
 

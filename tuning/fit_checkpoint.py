@@ -16,7 +16,6 @@ output (:func:`checkpoint_path`) and removes it once the fitted scene is written
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 
@@ -27,7 +26,7 @@ from .fit import FitError
 from .io import (OutputError, atomic_write, check_output, describe_simulator, key_differences,
                  result_key)
 
-__all__ = ["FitCheckpoint", "fit_key", "file_digest", "checkpoint_path", "SUFFIX"]
+__all__ = ["FitCheckpoint", "fit_key", "checkpoint_path", "SUFFIX"]
 
 #: appended to an output's name for its fit's checkpoint
 SUFFIX = ".fit-progress.json"
@@ -45,15 +44,6 @@ def _leaves(tree) -> dict:
     flat, _ = jax.tree_util.tree_flatten_with_path(tree)
     return {jax.tree_util.keystr(path, simple=True, separator="."): np.asarray(leaf)
             for path, leaf in flat}
-
-
-def file_digest(path: str) -> str:
-    """SHA-256 (16 hex digits) of a file's bytes: a key field that names a changed input."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
 
 
 def fit_key(sim, params, free, arrays, layouts, **options) -> dict:

@@ -55,6 +55,16 @@ def version() -> str:
         return "unknown"
 
 
+def file_digest(path: str) -> str:
+    """SHA-256 (16 hex digits) of a file's bytes: a key field that names a changed input, and
+    what tells two record files with the same contents apart from two records."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
+
+
 # --------------------------------------------------------------------------- paths
 def check_output(path, *, what: str = "output", ext: str | None = None,
                  derived_from: str | None = None) -> str:

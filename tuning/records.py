@@ -532,6 +532,24 @@ def write_record(path, record: Record) -> None:
     atomic_write(path, lambda fh: fh.write(text))
 
 
+def _refuse_duplicates(paths: Sequence[str]) -> None:
+    """Raise :class:`FitError` when a record file is given twice, or two files hold the same
+    bytes: it would count twice, silently (its weight in a fit, its own cluster in the
+    standard errors, twice in evaluate's means; overlapping shell patterns such as
+    ``toss_0*.csv toss_00*.csv`` repeat files)."""
+    from .io import file_digest
+    seen: dict = {}
+    for i, p in enumerate(paths):
+        j, first = seen.setdefault(file_digest(p), (i, p))
+        if j != i:
+            same = os.path.realpath(p) == os.path.realpath(first)
+            raise FitError(f"{p} is {'the same file as' if same else 'a copy of'} {first}: a "
+                           "record given twice counts twice (its weight in a fit, in the "
+                           "standard errors and in the means); give each record once "
+                           "(overlapping patterns such as toss_0*.csv toss_00*.csv repeat "
+                           "files).")
+
+
 def load_records(sf, paths: Sequence[str]):
     """Read record files for scene file ``sf`` (:class:`tuning.scenefile.SceneFile`).
 
@@ -547,6 +565,7 @@ def load_records(sf, paths: Sequence[str]):
     named = [n for n in sf.names if "[" not in n]
     observe = list(sf.spec.observe) if sf.spec is not None and sf.spec.observe else named
     records = [read_record(p, body_names=observe, scene_names=named) for p in paths]
+    _refuse_duplicates(paths)
     bodies, first = {}, {}                  # first: scene body -> (record body, record path)
     for rec in records:
         for name in rec.bodies:

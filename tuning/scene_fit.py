@@ -168,7 +168,7 @@ def _progress_key(data, estimate, max_frames) -> dict:
     contents (a changed file is named, ``data.3:toss_026.csv``; not by folder, so a fit whose
     records moved, or that resumes from another working folder, still resumes), the
     start-state estimate and its frame cap."""
-    from .fit_checkpoint import file_digest
+    from .io import file_digest
     return {"data": {f"{i + 1}:{os.path.basename(p)}": file_digest(p)
                      for i, p in enumerate(data)},
             "first_state": estimate, "flight_frames": max_frames}
