@@ -257,7 +257,7 @@ def evaluate_files(scene_path: str, data, *, estimate: str | None = None,
     ``estimate`` /
     ``max_frames``: the first-state estimate and its frame cap
     (:func:`tuning.first_state.first_state`); None: the scene file's ``[fit] first_state`` /
-    ``flight_frames``, else ``"record"`` / ``FLIGHT_FRAMES`` (20)."""
+    ``flight_frames``, else ``"record"`` / ``FLIGHT_FRAMES`` (1000: the whole first flight)."""
     import os
 
     from .scenefile import load_scene_file

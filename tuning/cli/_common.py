@@ -175,7 +175,8 @@ def add_start_state_arguments(p, scope: str = "") -> None:
     p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
                    metavar="N", help="with --first-state fit: at most N first frames of free "
                    "flight in the fitted parabola (it stops earlier where a body comes within "
-                   "5 mm of a plane; default 20, or the scene file's [fit] flight_frames)")
+                   "5 mm of a plane; default 1000, in practice the whole first flight, or the "
+                   "scene file's [fit] flight_frames)")
 
 def check_positive(name: str, value) -> None:
     if value is None:
