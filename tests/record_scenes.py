@@ -69,6 +69,26 @@ params = ["springs.rope.stretch.k", "springs.rope.stretch.c"]
 """
 
 
+#: a 1 kg ball of radius 0.1 m dropped from 1 m onto a rubber plane, its contact k and c
+#: fitted (from 7000, 15); add its records with data = [...]
+BALL_FIT = """
+dt = 1e-3
+[materials.rubber]
+k = 7000.0
+c = 15.0
+[[spheres]]
+name = "ball"
+radius = 0.1
+mass = 1.0
+position = [0.0, 0.0, 1.0]
+material = "rubber"
+[[planes]]
+material = "rubber"
+[fit]
+params = ["contact.rubber.k", "contact.rubber.c"]
+"""
+
+
 def record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
                  noise, seed):
     """Write the scene (start values) and a record of the truth made by ``integrator`` at

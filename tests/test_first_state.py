@@ -18,7 +18,7 @@ from tuning.record_batch import lag_start, start_states
 from tuning.records import BodyRecord, Record
 from tuning.scenefile import load_scene_file
 
-from record_scenes import BOX as BOX_TEMPLATE
+from record_scenes import BALL_FIT, BOX as BOX_TEMPLATE
 
 # the box of tests/test_trajfit.py (k 400, c 2), released at rest on two anchored springs
 BOX = BOX_TEMPLATE.format(k=400.0, c=2.0)
@@ -478,22 +478,6 @@ def test_first_state_of_a_fast_spin_does_not_wrap(cube):
     np.testing.assert_allclose(abs(q @ quat[0]), 1.0, atol=1e-12)
 
 
-BALL = """
-dt = 1e-3
-[materials.rubber]
-k = 7000.0
-c = 15.0
-[[spheres]]
-name = "ball"
-radius = 0.1
-mass = 1.0
-position = [0.0, 0.0, 1.0]
-material = "rubber"
-[[planes]]
-material = "rubber"
-[fit]
-params = ["contact.rubber.k", "contact.rubber.c"]
-"""
 
 
 def test_a_noisy_record_without_velocities_starts_from_its_whole_first_flight(tmp_path):
@@ -508,7 +492,7 @@ def test_a_noisy_record_without_velocities_starts_from_its_whole_first_flight(tm
     rec.write_text("t,x,y,z\n" + "".join(f"{float(a)!r},0,0,{float(b)!r}\n"
                                          for a, b in zip(t, z)))
     scene = tmp_path / "ball.toml"
-    scene.write_text(BALL)
+    scene.write_text(BALL_FIT)
     out = fit_files(str(scene), [str(rec)])
     for leaf, truth in (("contact.rubber.k", 1e4), ("contact.rubber.c", 20.0)):
         value, err = out["fitted"][leaf], out["stderr"][leaf]

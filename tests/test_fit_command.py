@@ -214,3 +214,36 @@ def test_commands_run_in_the_test_session_leave_the_compilation_cache_off():
     before = jax.config.jax_compilation_cache_dir
     setup_jax()
     assert jax.config.jax_compilation_cache_dir == before
+
+
+def test_a_ball_scene_file_with_records_is_one_fit_with_or_without_out(tmp_path, capsys):
+    """Regression: a bouncing ball's scene file naming an x,y,z record in [fit] data went to
+    the ball's trajectory fit (its own step, other JSON keys) without --out and to the record
+    fit with it: adding --out moved k by 7%. Now position records always go to the record
+    fit, --out only writes; a t,z height record stays the trajectory fit's, and --out with
+    it says why it cannot write."""
+    from tuning.sysid import synthetic_record
+    from record_scenes import BALL_FIT
+    t, z = synthetic_record(1e4, 20.0, duration=1.3, noise=1e-3)
+    (tmp_path / "xyz.csv").write_text("t,x,y,z\n" + "".join(
+        f"{float(a)!r},0,0,{float(b)!r}\n" for a, b in zip(t, z)))
+    (tmp_path / "tz.csv").write_text("t,z\n" + "".join(
+        f"{float(a)!r},{float(b)!r}\n" for a, b in zip(t, z)))
+    for name in ("xyz", "tz"):
+        (tmp_path / f"{name}.toml").write_text(BALL_FIT + f'data = ["{name}.csv"]\n')
+    plain = _fit_json(capsys, ["fit", str(tmp_path / "xyz.toml")])
+    written = _fit_json(capsys, ["fit", str(tmp_path / "xyz.toml"),
+                                 "--out", str(tmp_path / "f.toml")])
+    assert plain["fitted"] == written["fitted"] and (tmp_path / "f.toml").exists()
+    assert abs(plain["fitted"]["contact.rubber.k"] / 1e4 - 1) < 0.01
+    height = _fit_json(capsys, ["fit", str(tmp_path / "tz.toml")])
+    assert abs(height["k"] / 1e4 - 1) < 0.01
+    assert main(["fit", str(tmp_path / "tz.toml"), "--out", str(tmp_path / "g.toml")]) == 2
+    assert "names t,z height records, which the ball's trajectory fit reads" in \
+        capsys.readouterr().err and not (tmp_path / "g.toml").exists()
+
+
+def _fit_json(capsys, argv):
+    capsys.readouterr()
+    assert main(argv + ["--json"]) == 0
+    return json.loads(capsys.readouterr().out)

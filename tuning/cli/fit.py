@@ -184,7 +184,13 @@ def _run(args) -> int:
     if args.fresh and not args.out:
         raise CLIError("--fresh restarts a fit that --out keeps the progress of: give it with "
                        "SCENE.toml --data FILES... --out FITTED.toml")
-    if args.scene is not None and (args.data or args.out or _records_in_file(args.scene)):
+    in_file = _records_in_file(args.scene) if args.scene is not None and not args.data else None
+    if in_file == "height" and args.out:
+        raise CLIError(f"--out writes the fitted scene of a fit to position records (x, y, z "
+                       f"columns); {args.scene} names t,z height records, which the ball's "
+                       "trajectory fit reads and prints k and c for: drop --out, or give the "
+                       "records x, y, z columns")
+    if args.scene is not None and (args.data or in_file == "positions"):
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
             or args.flight_frames is not None or args.first_state is not None
@@ -461,12 +467,32 @@ def _print_trajectory(args, out, res, ku, cu) -> int:
     return 0 if out["reached"] else 1
 
 
-def _records_in_file(path: str) -> bool:
-    """Whether scene file ``path`` names motion records in [fit] data for a body other than a
-    bouncing ball (those are fitted like --data records)."""
+def _records_in_file(path: str) -> str | None:
+    """What scene file ``path`` names in ``[fit] data``: None (nothing), ``"height"`` (t,z
+    records of a bouncing ball: the ball's trajectory fit reads them) or ``"positions"``
+    (records with position columns, of any body: the record fit reads them, as --data
+    records, with or without --out; a ball's x,y,z records went to the trajectory fit
+    without --out and to the record fit with it, two fits of one file)."""
     from ..scenefile import load_scene_file
     sf = load_scene_file(path)
-    return bool(sf.spec is not None and sf.spec.data and sf.setup.metrics is None)
+    if sf.spec is None or not sf.spec.data:
+        return None
+    if sf.setup.metrics is not None and not any(_position_record(p) for p in sf.spec.data):
+        return "height"
+    return "positions"
+
+
+def _position_record(path: str) -> bool:
+    """Whether the record ``path`` has position columns (``x``, or ``NAME.x``); a t,z height
+    record has none, and one that cannot be read counts as none (the ball's reader then says
+    why, naming its line)."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            header = fh.readline()
+    except OSError:
+        return False
+    cols = [c.strip().strip('"').lower() for c in header.split(",")]
+    return any(c == "x" or c.endswith(".x") for c in cols)
 
 
 def _run_records(args) -> int:
