@@ -162,7 +162,9 @@ def test_ball_height_record_reads_through_the_same_module(tmp_path):
     """The ball's t,z record (diffpen fit --data) goes through tuning.records: the same unit
     hints and binary checks apply (a t,z record in milliseconds used to be fitted to nonsense)."""
     ms = _write(tmp_path, "t,z\n" + "".join(f"{i * 5},{1.0 - 1e-6 * i * i}\n" for i in range(40)))
-    with pytest.raises(RecordError, match="look like milliseconds"):
+    with pytest.raises(RecordError, match=r"look like milliseconds.*a record whose steps "
+                                          r"really are seconds is read in Python with "
+                                          r"check_units=False; the diffpen commands refuse"):
         load_csv(ms)
     mm = _write(tmp_path, "t,z\n" + "".join(f"{i * 0.005},{1000 - i}\n" for i in range(40)),
                 name="mm.csv")

@@ -44,6 +44,10 @@ def err_of(capsys, argv):
     (["sweep", "--plot", "/proc/nope/h.png"], "--plot"),
     (["simulate", "ball", "--steps", "1e9"], "--steps 1000000000 keeps 1000000000 states"),
     (["simulate", "ball", "--steps", "1000000000"], "GiB, more than half"),
+    # a tiny --dt: the step count follows from it (the message blamed --steps, which was not
+    # given, and printed a 300-digit count twice)
+    (["simulate", "ball", "--dt", "1e-300"], "--dt 1e-300 over the scene's 3 s keeps 3e+300 "
+                                             "states"),
     (["simulate", "ball", "--out", "/proc/nope/t.npz"], "does not exist"),
     (["simulate", "ball", "--c", "nan"], "--c must be a finite number"),
     (["fit", "--maxiter", "many"], "--maxiter must be an integer"),

@@ -212,6 +212,23 @@ def test_a_sweep_to_a_file_without_key_is_keyed_by_its_function(tmp_path):
                 evaluate=lambda batch: {"m": batch[:, 0]})
 
 
+@pytest.mark.parametrize("resume", [True, False])
+def test_a_file_that_is_not_a_sweep_is_never_overwritten(tmp_path, resume):
+    """Regression: a text file at the sweep's output was called "another sweep's results"
+    and the message advised --fresh (resume=False), which then overwrote it; its table
+    beside it was already protected. Now it is refused either way, before computing."""
+    out = tmp_path / "x.npz"
+    out.write_text("precious")
+
+    def never(batch):
+        raise AssertionError("computed before checking the output")
+    with pytest.raises(S.SweepError, match="exists and is not a sweep's results file .* "
+                                           "Move it, or choose another output path"):
+        S.sweep(None, PARAMS0, POINTS, NAMES, out=str(out), evaluate=never,
+                key={"case": "foreign"}, resume=resume)
+    assert out.read_text() == "precious"
+
+
 def test_outputs_that_are_inputs_or_each_other_are_refused(tmp_path):
     rec = tmp_path / "rec.csv"
     rec.write_text("t,z\n0,1\n")

@@ -358,6 +358,10 @@ BAD = [
     (BALL.replace("radius = 0.1", 'radius = "0.1"'),
      r"spheres\[0\]\.radius must be a number \(m\), got a string '0.1'; write it without "
      r"quotes, e\.g\. radius = 0\.1"),
+    # an array's element: the fix quotes the element (it said "position = 1")
+    (BALL.replace("position = [0.0, 0.0, 1.0]", 'position = [0.0, 0.0, "1"]'),
+     r"spheres\[0\]\.position\[2\] must be a number, got a string '1'; write it without "
+     r"quotes: 1\."),
     (BALL.replace("mass = 1.0", "mass = true"),
      r"spheres\[0\]\.mass must be a number \(kg\), got a boolean True"),
     (BALL.replace("[[spheres]]", "[spheres]"),
@@ -545,6 +549,20 @@ def test_fit_data_must_be_a_csv_record_and_is_never_quoted(tmp_path, capsys):
     assert main(["fit", str(p)]) == 2
     err = capsys.readouterr().err
     assert "secret.csv, line 1" in err and "SECRET" not in err and "root:x" not in err
+
+
+def test_a_ball_record_the_fit_cannot_use_names_the_scene_and_the_record(tmp_path, capsys):
+    """Regression: a scene file's t,z record with one flight only ended in "the record holds
+    fewer than two flights ...", naming neither the scene file nor the record."""
+    (tmp_path / "rec.csv").write_text("t,z\n" + "".join(
+        f"{i * 0.005!r},{1.0 - 4.905 * (i * 0.005) ** 2!r}\n" for i in range(60)))
+    p = tmp_path / "s.toml"
+    p.write_text(BALL + '[fit]\nparams = ["contact.rubber.k", "contact.rubber.c"]\n'
+                 'data = ["rec.csv"]\n')
+    assert main(["fit", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert f"{p}: [fit] data {tmp_path / 'rec.csv'}: the record holds fewer than two " \
+        "flights" in err, err
 
 
 def test_ball_TOML_is_a_file_not_the_built_in_ball(tmp_path, capsys):

@@ -262,8 +262,9 @@ def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) ->
         if span > MS_SPAN and step >= 1.0:
             raise RecordError(f"{path}, column {col + 1} (t): times span {span:g} with steps of "
                               f"{step:g}: they look like milliseconds, but t is in seconds. "
-                              "Divide t by 1000 (or pass check_units=False if the steps really "
-                              "are seconds).")
+                              "Divide t by 1000 (a record whose steps really are seconds is read "
+                              "in Python with check_units=False; the diffpen commands refuse "
+                              "it).")
 
 
 def _fall(t: np.ndarray, p: np.ndarray, r: int) -> float | None:

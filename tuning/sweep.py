@@ -475,12 +475,22 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
                         f"{csv_path} exists and is not the table of a sweep in {out}: the "
                         "sweep writes its table there, which would overwrite it. Move it, or "
                         "choose another output path (diffpen sweep --out).")
+                old, unreadable = None, None
+                if os.path.exists(out):
+                    try:
+                        old = _read_key(out)
+                    except _Unreadable as exc:
+                        unreadable = exc
+                    else:
+                        if old is None:     # another program's file: never overwritten
+                            raise SweepError(
+                                f"{out} exists and is not a sweep's results file (not an .npz "
+                                "holding a sweep's key): the sweep would overwrite it. Move "
+                                "it, or choose another output path (diffpen sweep --out).")
                 if not (os.path.exists(out) and resume):
                     return None
-                try:
-                    old = _read_key(out)
-                except _Unreadable as exc:
-                    raise SweepError(_unreadable(out, csv_path, exc)) from None
+                if unreadable is not None:
+                    raise SweepError(_unreadable(out, csv_path, unreadable)) from None
                 diff = key_differences(old, full_key)
                 if diff:
                     raise SweepError(

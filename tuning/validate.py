@@ -145,9 +145,12 @@ def number(w: Where, v, *, low: float | None = None, high: float | None = None,
     u = f" ({unit})" if unit else ""
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         name = _leaf(w)
-        fix = (f"; write it without quotes, e.g. {name} = {v}"
+        item = w.key.endswith("]")          # an array's element: quote the element alone
+        fix = ((f"; write it without quotes: {v}" if item else
+                f"; write it without quotes, e.g. {name} = {v}")
                if isinstance(v, str) and _numeric(v) else
-               f"; write a number without quotes, e.g. {name} = 1.0")
+               ("; write a number without quotes, e.g. 1.0" if item else
+                f"; write a number without quotes, e.g. {name} = 1.0"))
         raise w.error(f"must be a number{u}, got {_kind(v)} {_show(v)}{fix}.")
     x = float(v)
     if not math.isfinite(x):

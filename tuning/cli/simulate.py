@@ -66,18 +66,20 @@ def _load(args):
     return get_scene(args.scene)
 
 
-def _check_size(sim, steps: int, write: bool) -> None:
+def _check_size(sim, steps: int, write: bool, given: str) -> None:
     """Refuse a rollout whose saved trajectory cannot fit in memory (every step of every body
     is kept), with the library's own estimate (``diffpen.checks.estimate``, twice over with
     --out), before the rollout is compiled. ``sim``: the simulator, or before compiling a
-    stand-in in the rows layout (the least the library counts)."""
+    stand-in in the rows layout (the least the library counts). ``given``: what set the step
+    count, named in the message (``--steps N``, or ``--dt`` over the scene's duration)."""
     from diffpen.checks import STEP_RATE, estimate, human_bytes, human_time, memory_bytes
     n = max(sim.n_bodies, 1)
     stored, seconds = estimate(sim, steps)
     stored *= 2 if write else 1
     mem = memory_bytes()
     if stored > 0.5 * mem:
-        raise CLIError(f"--steps {steps} keeps {steps} states of {n} bodies: about "
+        count = f"{steps}" if steps < 10 ** 12 else f"{steps:.3g}"    # not 300 digits
+        raise CLIError(f"{given} keeps {count} states of {n} bodies: about "
                        f"{human_bytes(stored)}, more than half of this machine's "
                        f"{human_bytes(mem)} (and about {human_time(seconds)} of compute "
                        f"at ~{STEP_RATE:.0e} body-steps/s): lower --steps or raise --dt")
@@ -100,16 +102,18 @@ def _run(args) -> int:
     setup = _load(args)                       # scene built and validated: nothing compiled yet
     dt = args.dt or setup.dt
     steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
+    given = (f"--steps {steps}" if args.steps else
+             f"--dt {dt:g} over the scene's {setup.steps * setup.dt:g} s")
     # before compiling, as the rows layout; then as the simulator holds it (columns: more)
     _check_size(SimpleNamespace(n_bodies=setup.scene.n_bodies, scene=setup.scene,
                                 dtype=setup.compile_options.get("dtype") or "float64",
-                                columns=False), steps, bool(args.out))
+                                columns=False), steps, bool(args.out), given)
     setup_jax()
     import numpy as np
 
     import diffpen as dp
     sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
-    _check_size(sim, steps, bool(args.out))
+    _check_size(sim, steps, bool(args.out), given)
     if not sim.materials and (args.k is not None or args.c is not None):
         given = " and ".join(f for f, v in (("--k", args.k), ("--c", args.c)) if v is not None)
         raise CLIError(f"{given} set contact materials, but {args.scene} has no contact "

@@ -5,6 +5,7 @@ import os
 
 import diffpen as dp
 
+from ..fit import FitError
 from ..validate import SceneFileError, Where
 from .loader import load_scene_file
 
@@ -44,9 +45,12 @@ def fit_file(path: str, *, progress=False, method: str | None = None, lr: float 
         from ..sysid import fit_trajectory, load_csv
         t, z = load_csv(spec.data[0])
         law = dp.laws.get(sf.setup.law, sf.setup.compile_options.get("exponent", 1.0))
-        res = fit_trajectory(t, z, radius=b.radius, mass=b.mass, law=law,
-                             g=-scene.gravity[2], progress=progress,
-                             maxiter=maxiter or spec.maxiter or 15)
+        try:
+            res = fit_trajectory(t, z, radius=b.radius, mass=b.mass, law=law,
+                                 g=-scene.gravity[2], progress=progress,
+                                 maxiter=maxiter or spec.maxiter or 15)
+        except FitError as exc:     # name the scene file and its record (the message did not)
+            raise FitError(f"{path}: [fit] data {spec.data[0]}: {exc}") from None
         name = os.path.basename(spec.data[0])
         out = {"scene": f"{path}: body {spec.body} fitted to {name}", "k": res.k, "c": res.c,
                "k_stderr": res.k_stderr, "c_stderr": res.c_stderr,
