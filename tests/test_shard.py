@@ -344,6 +344,9 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
     runs = {"chunk": [chunk + ["--chunk", "4"], chunk + ["--chunk", "2"]],
             "out": [ball + ["--out", str(tmp_path / "missing" / "s.npz")],
                     ball + ["--out", str(tmp_path / "s.npz")]],
+            # regression: process 1's own --out was ignored without a word (process 0 wrote)
+            "outs": [ball + ["--out", str(tmp_path / "s.npz")],
+                     ball + ["--out", str(tmp_path / "t.npz")]],
             "json": [ball + ["--out", str(tmp_path / "j.npz")]] * 2}
     procs = {}
     for name, argvs in runs.items():
@@ -359,7 +362,9 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
         kill_left([p for ps in procs.values() for p in ps])
     errors = {"chunk": "processes [1] were given a different chunk (points per call, "
                        "diffpen sweep --chunk) from process 0",
-              "out": f"--out {tmp_path / 'missing' / 's.npz'}: the folder"}
+              "out": f"--out {tmp_path / 'missing' / 's.npz'}: the folder",
+              "outs": "processes [1] were given a different set of output options (--out, "
+                      "--plot, --fresh, --json) from process 0"}
     (j0, j1), ((out0, err0), (out1, err1)) = procs.pop("json"), outs.pop("json")
     assert [j0.returncode, j1.returncode] == [0, 0], err0[-2000:] + err1[-2000:]
     assert json.loads(out0)["points"] == 4 and out1.strip() == ""
@@ -371,3 +376,5 @@ def test_cluster_sweeps_that_cannot_run_stop_every_process(tmp_path):
             assert errors[name] in err, (name, i, err[-2000:])
             assert "backend started before" not in err, (name, i, err[-2000:])
     assert not (tmp_path / "a" / "s.npz").exists() and not (tmp_path / "s.npz").exists()
+    assert "Only process 0 writes: here --out differs" in outs["outs"][1][1]
+    assert not (tmp_path / "t.npz").exists()

@@ -80,7 +80,36 @@ def join_cluster(args, check=None) -> bool:
             if is_writer():
                 raise
             raise CLIError(f"process 0 stopped: {exc}") from None
+    if joined:
+        _same_arguments(args)
     return joined
+
+
+#: the options only process 0 of a cluster acts on (it writes the files and the output)
+_WRITER_OPTIONS = ("out", "plot", "fresh", "json")
+
+
+def _same_arguments(args) -> None:
+    """Every process of a cluster must be given the same output options
+    (:data:`_WRITER_OPTIONS`): only process 0 acts on them, so a process given another
+    ``--out`` was ignored without a word while process 0 wrote its own. The same
+    :class:`CLIError` on every process otherwise, naming on each the options that differ
+    from process 0's. (The options that change the computation are compared by the sweep
+    and the fit themselves, which name them.)"""
+    import json
+
+    from ..distributed import check_same, from_process_zero
+    mine = {k: getattr(args, k) for k in _WRITER_OPTIONS if hasattr(args, k)}
+    zero = from_process_zero(lambda: mine)
+    differ = [k for k in mine if mine.get(k) != zero.get(k)]
+    try:
+        check_same("set of output options (" + ", ".join("--" + k for k in mine) + ")",
+                   json.dumps(mine, sort_keys=True, default=repr).encode())
+    except ValueError as exc:
+        named = ", ".join("--" + k for k in differ)
+        verb = "differs" if len(differ) == 1 else "differ"
+        raise CLIError(f"{exc} Only process 0 writes: here {named} {verb} from process 0's."
+                       if differ else str(exc)) from None
 
 
 def _c_stdout_to_stderr() -> None:

@@ -58,7 +58,8 @@ def add_arguments(p) -> None:
                    help="settling band, m (default 1e-3)")
     p.add_argument("--chunk", type=count("--chunk"), default=None, help="points per vmapped "
                    "call (bounds memory; default 512, 32 with SCENE.toml)")
-    p.add_argument("--out", default="sweep.npz", help="results .npz (a .csv is written "
+    p.add_argument("--out", default="sweep.npz", help="results .npz (default: sweep.npz in "
+                   "the current folder; a .csv is written "
                    "beside it); an interrupted sweep with the same settings resumes from it, "
                    "a file of other settings is refused, and so is a .csv there that is not "
                    "its table")
