@@ -28,12 +28,16 @@ def test_fit_out_is_checked_before_anything_is_fitted(tmp_path, drag_record, mon
     scene, rec = drag_record
     before = open(rec).read()
     monkeypatch.setattr(tf, "levenberg_marquardt", lambda *a, **k: pytest.fail("fitted"))
+    # regression: an existing TOML file that no fit wrote was replaced without a word
+    mine = tmp_path / "mine.toml"
+    mine.write_text('description = "mine"\n')
     for out, words in [(rec, "ending in .toml"), (str(tmp_path), "is a directory"),
                        (scene, "is one of the inputs"),
-                       (str(tmp_path / "no" / "f.toml"), "does not exist")]:
+                       (str(tmp_path / "no" / "f.toml"), "does not exist"),
+                       (str(mine), "exists and is not a scene diffpen fit wrote")]:
         with pytest.raises(tf.FitError, match=words):
             tf.fit_files(scene, [rec], out=out, maxiter=1)
-    assert open(rec).read() == before
+    assert open(rec).read() == before and mine.read_text() == 'description = "mine"\n'
 
 
 def test_a_fit_whose_scene_cannot_be_written_keeps_its_values(tmp_path, drag_record, capsys,

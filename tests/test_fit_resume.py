@@ -13,6 +13,7 @@ import pytest
 
 from tuning import fit_checkpoint
 from tuning import trajfit as tf
+from tuning.fitted_scene import FITTED_MARK
 from tuning.cli import main
 from tuning.io import OutputLock
 from tuning.records import write_record
@@ -191,7 +192,7 @@ def test_diffpen_fit_out_audit_cases(drag, tmp_path, capsys, monkeypatch):
     capsys.readouterr()
     (tmp_path / "real").mkdir()
     target = tmp_path / "real" / "fitted.toml"
-    target.write_text("# old\n")
+    target.write_text(FITTED_MARK + " p.toml\n")       # an earlier fit's output
     link = tmp_path / "link.toml"
     link.symlink_to(target)
     assert main(argv + ["--out", str(link)]) == 0

@@ -43,7 +43,7 @@ import numpy as np
 from .fit import FitError
 from .io import atomic_write
 
-__all__ = ["write_fitted", "dumps_toml"]
+__all__ = ["write_fitted", "dumps_toml", "is_fitted_scene", "FITTED_MARK"]
 
 
 # --------------------------------------------------------------------------- TOML out
@@ -306,6 +306,20 @@ def _differences(before: dict, after: dict, values: dict) -> list[str]:
     return out
 
 
+#: the first line of a fitted scene file (:func:`write_fitted`), by which ``diffpen fit --out``
+#: knows a file it may replace (:func:`is_fitted_scene`)
+FITTED_MARK = "# written by diffpen fit: the fitted values of"
+
+
+def is_fitted_scene(path: str) -> bool:
+    """Whether ``path`` starts with :data:`FITTED_MARK` (a scene :func:`write_fitted` wrote)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.readline(256).decode("utf-8", "replace").startswith(FITTED_MARK)
+    except OSError:
+        return False
+
+
 def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> str:
     """Write ``src`` (a scene file) to ``out`` with the fitted ``values`` (``{dotted leaf
     path: value}``) in place, and check that ``out`` reads back with those values and every
@@ -346,7 +360,7 @@ def write_fitted(src: str, values: dict, out: str, fit: dict | None = None) -> s
         items = [p if os.path.isabs(p) else os.path.relpath(os.path.join(base, p), there)
                  for p in items]
         fit["data"] = items if isinstance(fit["data"], list) else items[0]
-    text = dumps_toml(doc)
+    text = f"{FITTED_MARK} {os.path.basename(src)}\n" + dumps_toml(doc)
 
     def check(tmp):                  # the written file reads back as fitted
         try:

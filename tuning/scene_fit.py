@@ -190,3 +190,8 @@ def _check_out(out: str, scene_path: str, data) -> None:
            for f in inputs):
         raise FitError(f"--out {out} is one of the inputs (the scene file or a record): "
                        "write the fitted scene to a new file.")
+    from .fitted_scene import FITTED_MARK, is_fitted_scene
+    if os.path.exists(p) and not is_fitted_scene(p):
+        raise FitError(f"--out {out} exists and is not a scene diffpen fit wrote (its first "
+                       f"line is not \"{FITTED_MARK} ...\"): the fit would replace it. Move "
+                       "it, or choose another --out.")
