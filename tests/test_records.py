@@ -497,3 +497,23 @@ def test_a_record_given_twice_is_refused(tmp_path):
         assert words in str(exc.value)
     records, bodies = tf.load_records(sf, [a, b])
     assert len(records) == 2
+
+
+def test_a_toss_in_centimetres_below_twenty_up_is_refused(tmp_path):
+    """Regression: only z was held against the 20 m limit, so a cube toss in centimetres that
+    stayed below 20 "m" up (z ~ 14.5, x ~ 22) was read as metres and evaluated at 823%."""
+    lines = open(CUBE[0]).read().splitlines()
+    header = lines[0].split(",")
+    cols = [header.index(c) for c in ("x", "y", "z")]
+    rows = []
+    for line in lines[1:30]:
+        cells = line.split(",")
+        for c in cols:
+            cells[c] = repr(float(cells[c]) * 100.0)
+        rows.append(",".join(cells))
+    path = _write(tmp_path, "\n".join([lines[0], *rows]) + "\n", name="cm.csv")
+    as_read = read_record(path, check_units=False).bodies["body"].position
+    assert np.nanmax(np.abs(as_read[:, 2])) < 20 < np.nanmax(np.abs(as_read))
+    with pytest.raises(RecordError, match=r"column \d+ \(x\): .* m is beyond 20 m .* look like "
+                                          r"centimetres or millimetres"):
+        read_record(path)

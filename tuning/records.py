@@ -457,12 +457,16 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
         if np.isnan(p).all():
             raise RecordError(f"{path}: body {_q(body)} has no position sample; a record needs "
                               "at least one.")
-        if check_units and np.nanmax(np.abs(p[:, 2])) > MM_LIMIT:
+        if check_units and np.nanmax(np.abs(p)) > MM_LIMIT:
+            # any coordinate beyond the limit (z alone let a toss in centimetres through
+            # while it stayed below 20 "m" up: x at 22 was not looked at); the motion is
+            # judged at the top of z
             r = int(np.nanargmax(np.abs(p[:, 2])))
             fall = _fall(t, p, r)
             if fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR:
-                j = groups["position"][2]
-                raise _unit_slip(path, data[r][0], f"{j + 1} ({header[j]})", p[r, 2],
+                rr, k = np.unravel_index(int(np.nanargmax(np.abs(p))), p.shape)
+                j = groups["position"][k]
+                raise _unit_slip(path, data[rr][0], f"{j + 1} ({header[j]})", p[rr, k],
                                  "positions", fall, "read_record")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
