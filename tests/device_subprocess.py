@@ -40,7 +40,26 @@ def kill_left(procs) -> None:
 
 
 def free_port() -> int:
-    """A TCP port on localhost that nothing listens on now."""
+    """A TCP port on localhost that nothing listens on now, below the kernel's ephemeral
+    range: a port the kernel hands out (bind to port 0) could be handed out again, to a
+    running cluster's gloo connections, before the coordinator given it starts listening
+    ("Failed to start RPC server" when several clusters start together)."""
+    import random
+    low = 32768
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as fh:
+            low = int(fh.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        pass
+    rng = random.Random()
+    for _ in range(200):
+        port = rng.randrange(10000, max(10001, low))
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("localhost", port))
+            except OSError:
+                continue
+            return port
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("localhost", 0))
         return s.getsockname()[1]
