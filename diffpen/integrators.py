@@ -491,6 +491,7 @@ INTEGRATORS = types.MappingProxyType({rec.name: rec for rec in BUILTIN})
 #: Names of the built-in integrators that are unconditionally stable on linear springs.
 IMPLICIT = frozenset(rec.name for rec in BUILTIN if not rec.explicit)
 
+
 def implicit_euler_with(solver: str) -> Integrator:
     """The ``implicit_euler`` record with its linear solver chosen, for
     ``diffpen.compile(scene, dt, integrator=implicit_euler_with("gmres"))``: ``"auto"`` (the

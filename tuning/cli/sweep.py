@@ -59,8 +59,8 @@ def add_arguments(p) -> None:
     p.add_argument("--chunk", type=count("--chunk"), default=None, help="points per vmapped "
                    "call (bounds memory; default 512, 32 with SCENE.toml)")
     p.add_argument("--out", default="sweep.npz", help="results .npz (default: sweep.npz in "
-                   "the current folder; a .csv is written "
-                   "beside it); an interrupted sweep with the same settings resumes from it, "
+                   "the current folder; a .csv is written beside it); an interrupted sweep "
+                   "with the same settings resumes from it, "
                    "a file of other settings is refused, and so is a .csv there that is not "
                    "its table")
     p.add_argument("--fresh", action="store_true", help="overwrite an existing --out file "
