@@ -204,9 +204,32 @@ def _never_traced(params):
     ({"apex_heights": [0.1]}, None, {"free": ["contact.steel.k"]}, "unknown parameter"),
     ({"apex_heights": [0.1]}, None, {"free": []}, "nothing to fit"),
     ({"apex_heights": [0.1]}, None, {"bounds": {"contact.default.c": (1.0, 0.5)}}, "bounds"),
+    # regressions: a leaf named twice was fitted twice and the start value reported; a
+    # negative apex ran to the iteration limit; a string of targets ended in a raw ValueError
+    ({"apex_heights": [0.1]}, None, {"free": FREE * 2}, "more than once"),
+    ({"apex_heights": [-0.5]}, None, {}, "must be > 0"),
+    ("apex", None, {}, "targets must be a dict"),
 ])
 def test_bad_input_is_refused_before_tracing(problem, targets, starts, options, match):
     sim, _ = problem
     with pytest.raises(ValueError, match=match) as err:
         fit_batch(_never_traced, sim.params(k=1e4, c=10.0), targets, starts, **options)
     assert isinstance(err.value, F.FitError)
+
+
+def test_best_never_picks_a_row_past_the_safe_step(batch):
+    """Regression: best() ranked rows by loss alone, so a row past its safe step (its
+    metrics not a result, its loss ordinary: 0.776) was picked over a stable row whose apex
+    was missing (loss 1e8). A batch whose every row is past it has no best row."""
+    import dataclasses
+    _, res = batch
+    n = len(res)
+    loss = np.full(n, 1e8)
+    loss[1] = 0.5
+    flagged = np.zeros(n, bool)
+    flagged[1] = True
+    picked = dataclasses.replace(res, loss=loss, unstable=flagged).best()
+    assert picked != 1 and not flagged[picked]
+    assert not res.unstable.any() and res.best() == int(np.argmin(res.loss))
+    with pytest.raises(F.FitError, match="every row of the batch is past its safe step"):
+        dataclasses.replace(res, unstable=np.ones(n, bool)).best()

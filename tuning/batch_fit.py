@@ -72,6 +72,8 @@ class BatchFitResult:
       :func:`tuning.fit.fit` gives for that row).
     devices: devices the batch axis was split over.  seconds: wall time of the call,
       compilation included (a later call with the same layout reuses the program).
+    unstable: (N,) bool, the row's reported point is past its safe step (its metrics are not
+      a result, whatever its loss).
     """
     free: list
     values: np.ndarray
@@ -89,6 +91,7 @@ class BatchFitResult:
     devices: int
     seconds: float
     params0: dp.Params = dataclasses.field(repr=False, default=None)
+    unstable: np.ndarray = None
 
     def __len__(self) -> int:
         return self.values.shape[0]
@@ -100,12 +103,26 @@ class BatchFitResult:
         return P.unflatten(self.params0, flat)
 
     def best(self) -> int:
-        """Index of the row with the lowest loss (the answer of a multi-start fit)."""
-        return int(np.argmin(np.where(np.isfinite(self.loss), self.loss, np.inf)))
+        """Index of the row with the lowest loss among the rows not past their safe step (the
+        answer of a multi-start fit; a row past it kept an ordinary loss and was picked over
+        a stable row whose apex was missing). Raises :class:`FitError` when every row is
+        past its safe step: none is a result."""
+        ok = np.isfinite(self.loss)
+        if self.unstable is not None:
+            ok &= ~np.asarray(self.unstable, bool)
+            if not ok.any() and np.asarray(self.unstable, bool).all():
+                raise FitError("every row of the batch is past its safe step: none is a result; "
+                               "lower the stiffness bounds or the time step.")
+        return int(np.argmin(np.where(ok, self.loss, np.inf)))
 
 
 def _rows(targets, starts) -> tuple[list, list | None]:
     """Targets and starts as equal-length lists of rows (a single dict is shared)."""
+    if not isinstance(targets, dict) and (
+            isinstance(targets, (str, bytes)) or not isinstance(targets, Sequence)
+            or not all(isinstance(row, dict) for row in targets)):
+        raise FitError(f"targets must be a dict {{metric: value or list}} shared by every row, "
+                       f"or a list of such dicts, one per row; got {targets!r:.80}.")
     n_t = None if isinstance(targets, dict) else len(targets)
     n_s = None if starts is None else len(starts)
     if n_t == 0 or n_s == 0:
@@ -277,6 +294,8 @@ class BatchFitter:
                for k, v in tg.items()}
         rel = {k: np.empty(n) for k in tg}
         reached = np.zeros(n, bool)
+        unstable = (np.asarray(out["metrics"]["unstable"]).reshape(n, -1).any(axis=1)
+                    if "unstable" in out["metrics"] else np.zeros(n, bool))
         status = np.asarray(out["status"], int)
         theta, loss = np.asarray(out["theta"], float), np.asarray(out["loss"], float)
         messages = []
@@ -297,7 +316,7 @@ class BatchFitter:
             loss_history=np.asarray(out["history"], float), converged=status == REACHED,
             reached=reached, iterations=np.asarray(out["iterations"], int), status=status,
             messages=messages, devices=int(run.mesh.devices.size), seconds=seconds,
-            params0=self.params0)
+            params0=self.params0, unstable=unstable)
 
 
 def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,

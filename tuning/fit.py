@@ -141,12 +141,6 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
     positive_int("maxiter", maxiter, "the iteration limit")
     positive_int("n_starts", n_starts, "how many start points LM runs from")
-    if free is not None:
-        free = list(free)
-        twice = sorted({p for p in free if free.count(p) > 1})
-        if twice:
-            raise FitError(f"free names {twice} more than once; name each fitted parameter "
-                           f"once.")
     problem = Problem.build(metrics_fn, params0, targets, free=free, bounds=bounds,
                             weights=weights, rtol=rtol, sim=sim, state=state)
     bar = Progress(maxiter, label, progress)

@@ -51,11 +51,19 @@ def normalise_targets(targets: dict) -> dict:
 
     Raises :class:`FitError` for no targets, an empty, non-finite or zero entry (targets are
     compared relatively, ``|achieved - target| / |target|``)."""
+    if not isinstance(targets, dict):
+        raise FitError(f"targets must be a dict {{metric: value or list}}, e.g. "
+                       f"{{'apex_heights': [0.4]}}; got {type(targets).__name__} {targets!r}.")
     if not targets:
         raise FitError("no targets: give at least one, e.g. {'apex_heights': [0.4]}.")
+    from .bounce import BOUNCE_METRICS          # heights, times, depths: all > 0
     out = {}
     for name, val in targets.items():
-        arr = np.atleast_1d(np.asarray(val, dtype=float))
+        try:
+            arr = np.atleast_1d(np.asarray(val, dtype=float))
+        except (TypeError, ValueError):
+            raise FitError(f"target {name!r} must be a number or a list of numbers, got "
+                           f"{val!r}.") from None
         if arr.size == 0:
             raise FitError(f"target {name!r} is empty.")
         if not np.all(np.isfinite(arr)):
@@ -63,6 +71,9 @@ def normalise_targets(targets: dict) -> dict:
         if np.any(arr == 0.0):
             raise FitError(f"target {name!r} has a zero entry; targets are compared relatively "
                            "(|achieved - target| / |target|): give a non-zero value.")
+        if name in BOUNCE_METRICS and np.any(arr < 0.0):    # ran to the iteration limit
+            raise FitError(f"target {name!r} must be > 0 (a height above the plane, a time, "
+                           f"a depth or a ratio), got {val!r}.")
         out[name] = arr
     return out
 
@@ -280,6 +291,10 @@ class FreeLeaves:
         free = list(P.default_free(params0) if free is None else free)
         if not free:
             raise FitError("nothing to fit: 'free' is empty.")
+        twice = sorted({p for p in free if free.count(p) > 1})
+        if twice:                # fit_batch fitted both copies and reported the start value
+            raise FitError(f"free names {twice} more than once; name each fitted parameter "
+                           f"once.")
         for p in free:
             if p not in flat0:
                 raise FitError(f"unknown parameter {p!r}; this scene has {list(flat0)}.")
