@@ -23,7 +23,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .errors import SceneError
-from .scene import Scene
+from .scene import Scene, _all_or_nothing
 
 __all__ = [
     "add_rope", "add_cloth", "add_jelly", "add_crumple_bar", "paper_chain",
@@ -187,6 +187,7 @@ def _drag(scene: Scene, idx: np.ndarray, group: str, c) -> None:
 
 
 # --------------------------------------------------------------------------- rope
+@_all_or_nothing
 def add_rope(scene: Scene, n: int, start: Sequence[float], end: Sequence[float], mass: float,
              k: float, c: float = 0.0, *, pinned: Iterable[int] = (0,),
              bend: tuple[float, float] | float | None = None, drag: float | None = None,
@@ -229,6 +230,7 @@ def add_rope(scene: Scene, n: int, start: Sequence[float], end: Sequence[float],
 
 
 # --------------------------------------------------------------------------- cloth
+@_all_or_nothing
 def add_cloth(scene: Scene, nx: int, ny: int, spacing: float, mass: float, *,
               origin: Sequence[float] = (0.0, 0.0, 0.0),
               axes: tuple[Sequence[float], Sequence[float]] = ((1.0, 0.0, 0.0),
@@ -294,6 +296,7 @@ def add_cloth(scene: Scene, nx: int, ny: int, spacing: float, mass: float, *,
 
 
 # --------------------------------------------------------------------------- jelly
+@_all_or_nothing
 def add_jelly(scene: Scene, nx: int, ny: int, nz: int, spacing: float, mass: float, *,
               origin: Sequence[float] = (0.0, 0.0, 0.0),
               edge: tuple[float, float] | float = (500.0, 0.5),
@@ -348,6 +351,7 @@ def add_jelly(scene: Scene, nx: int, ny: int, nz: int, spacing: float, mass: flo
 
 
 # --------------------------------------------------------------------------- crumple bar
+@_all_or_nothing
 def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[float],
                     mass: float, k: float, c: float = 0.0, *, yield_strain: float = 0.05,
                     width: float | None = None, pinned: Iterable[int] = (),

@@ -36,15 +36,18 @@ _LISTS = ("springs", "plastic_springs", "anchored_springs", "drags")
 
 
 def _all_or_nothing(method):
-    """Run an add_* method so that a refused call (SceneError) leaves the scene as it was:
-    a group it declared before the refusal would make the corrected retry fail. O(groups)
-    per call (copying the element lists made building a 64 x 64 cloth 4x slower)."""
+    """Run an add_* method (or a builder, ``method(scene, ...)``) so that a refused call
+    (SceneError) leaves the scene as it was: a group it declared before the refusal would
+    make the corrected retry fail, and a builder refused halfway (a node inside a fixed
+    sphere, a negative drag) left the nodes added so far. O(groups) per call (copying the
+    element lists made building a 64 x 64 cloth 4x slower)."""
     import functools
 
     @functools.wraps(method)
     def run(self, *args, **kwargs):
         groups = {name: dict(getattr(self, name)) for name in _GROUPS}
         sizes = {name: len(getattr(self, name)) for name in _LISTS}
+        n_bodies = len(self.bodies)
         try:
             return method(self, *args, **kwargs)
         except SceneError:
@@ -52,6 +55,9 @@ def _all_or_nothing(method):
                 setattr(self, name, value)
             for name, n in sizes.items():
                 del getattr(self, name)[n:]
+            for idx in range(len(self.bodies) - 1, n_bodies - 1, -1):
+                self._overlap.forget(idx)           # last added first: popped from its cells
+            del self.bodies[n_bodies:]
             raise
     return run
 

@@ -292,3 +292,25 @@ def test_builder_coordinates_groups_and_the_paper_chain_take_numbers_and_names_o
             call()
     scene, balls = paper_chain(kd=0.0, g=0.0)         # no drag, no gravity: allowed
     assert scene.gravity == (0.0, 0.0, 0.0) and len(balls) == 7
+
+
+def test_a_refused_builder_leaves_the_scene_as_it_was():
+    """Regression: a builder refused halfway left what it had added: add_rope(drag=-0.1)
+    added 5 nodes and 4 springs, then raised, and the corrected retry was refused ("group
+    'rope.stretch' already exists"); a cloth whose node started inside a fixed sphere left
+    the 6 nodes before it. Now the scene is as before, and the retry builds."""
+    scene = dp.Scene()
+    scene.add_plane()
+    ball = scene.add_sphere(0.05, 1.0, (3.0, 0.0, 0.5))
+    with pytest.raises(dp.SceneError, match="must be non-negative"):
+        add_rope(scene, 5, (0, 0, 1), (0.4, 0, 1), 0.5, 100.0, drag=-0.1)
+    assert len(scene.bodies) == 1 and not scene.springs and not scene.spring_groups
+    add_rope(scene, 5, (0, 0, 1), (0.4, 0, 1), 0.5, 100.0, drag=0.1)
+    assert len(scene.bodies) == 6 and len(scene.springs) == 4
+    scene.add_fixed_sphere((0.0, 0.0, 0.5), 0.15)
+    with pytest.raises(dp.SceneError, match="fixed sphere 0"):
+        add_cloth(scene, 4, 4, 0.1, 0.5, origin=(-0.3, -0.1, 0.5))
+    assert len(scene.bodies) == 6 and "cloth.structural" not in scene.spring_groups
+    # the overlap index forgot the refused nodes: a ball where one of them stood is fine
+    scene.add_sphere(0.05, 0.1, (-0.3, -0.1, 0.5))
+    assert scene.bodies[ball].position[0] == 3.0
