@@ -368,6 +368,10 @@ class Scene:
         self._use_spring_group(group, k, c)
         if rest_length is None:
             rest_length = math.dist(self.bodies[a].position, self.bodies[b].position)
+            if not rest_length > 0.0:   # it said "rest_length must be positive", not given
+                raise SceneError(f"plastic spring {a}-{b}: bodies {a} and {b} start at the same "
+                                 "point, so its rest length (their distance) would be 0 and "
+                                 "its strain undefined: move them apart or give rest_length.")
         rest_length = positive("plastic spring rest_length (m)", rest_length)
         self.plastic_springs.append(PlasticSpring(a, b, rest_length, group))
         return len(self.plastic_springs) - 1

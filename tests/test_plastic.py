@@ -213,3 +213,16 @@ def test_stiff_plastic_springs_are_in_the_stability_bound():
     assert rep.stable_dt == pytest.approx(2.0 / math.sqrt(2.0 * 1e6), rel=1e-6)  # 2 / w, w^2 = 2k/m
     with pytest.raises(dp.StabilityError, match="spring group"):
         sim.rollout(sim.params(), 30)
+
+
+def test_a_plastic_spring_between_coincident_bodies_says_why():
+    """Regression: two bodies at one point joined by a plastic spring without a rest length
+    were refused with "rest_length must be positive, got 0.0", an argument not given."""
+    scene = dp.Scene()
+    a = scene.add_particle(0.1, (0.0, 0.0, 1.0))
+    b = scene.add_particle(0.1, (0.0, 0.0, 1.0))
+    with pytest.raises(dp.SceneError, match=f"bodies {a} and {b} start at the same point.*"
+                                            "move them apart or give rest_length"):
+        scene.add_plastic_spring(a, b, k=100.0, yield_strain=0.1)
+    assert not scene.plastic_springs
+    scene.add_plastic_spring(a, b, k=100.0, yield_strain=0.1, rest_length=0.05)

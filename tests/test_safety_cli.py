@@ -44,6 +44,8 @@ def err_of(capsys, argv):
     (["sweep", "--plot", "/proc/nope/h.png"], "--plot"),
     (["simulate", "ball", "--steps", "1e9"], "--steps 1000000000 keeps 1000000000 states"),
     (["simulate", "ball", "--steps", "1000000000"], "GiB, more than half"),
+    # --n 0 said ">= 1", and --n 1 was then refused for another reason
+    (["sweep", "--n", "1"], "--n must be an integer >= 2, got '1'"),
     # a tiny --dt: the step count follows from it (the message blamed --steps, which was not
     # given, and printed a 300-digit count twice)
     (["simulate", "ball", "--dt", "1e-300"], "--dt 1e-300 over the scene's 3 s keeps 3e+300 "

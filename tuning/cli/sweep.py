@@ -42,7 +42,7 @@ def add_arguments(p) -> None:
                    metavar=("KMIN", "KMAX"), help="stiffness range, N/m (default 1e3 1e5)")
     p.add_argument("--c", type=positive("--c"), nargs=2, default=None,
                    metavar=("CMIN", "CMAX"), help="damping range, N s/m (default 1 100)")
-    p.add_argument("--n", type=count("--n"), nargs="+", default=None, metavar="N",
+    p.add_argument("--n", type=count("--n", minimum=2), nargs="+", default=None, metavar="N",
                    help="grid points per axis (one value for all, or one per axis; default "
                    "64, 16 with SCENE.toml)")
     p.add_argument("--radius", type=positive("--radius"), default=None,
