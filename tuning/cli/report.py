@@ -30,7 +30,9 @@ def add_arguments(p) -> None:
     p.add_argument("--tol", type=positive("--tol"),
                    help="accuracy: recommend the cheapest integrator and dt whose relative "
                         "apex-height error on the ball is <= TOL")
-    p.add_argument("--k", type=positive("--k"), default=1e4, help="ball contact k, N/m")
+    p.add_argument("--k", type=positive("--k"), default=1e4, help="ball contact k, N/m "
+                   "(gradients: the last table's ball; the event tables keep their fixed "
+                   "cases)")
     p.add_argument("--c", type=finite("--c"), default=20.0, help="ball contact c, N s/m")
     p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg")
     p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m")
@@ -248,7 +250,9 @@ def _gradients(args) -> int:
         return 0
     print("event metrics (apex heights, contact durations, max penetration) against the "
           "continuous derivatives (event-located DOP853 reference), semi-implicit Euler, "
-          "default smoothing:")
+          "default smoothing, on the report's four fixed balls (the cases of docs/"
+          "gradients.txt; --k, --c, --mass, --radius and --height set the last table's ball "
+          "only):")
     print(event_gradient_table(events))
     print()
     print("the same with each law's event-exact record (diffpen.laws.get(law, events=True)), "
