@@ -539,9 +539,7 @@ def write_record(path, record: Record) -> None:
 
 def _refuse_duplicates(paths: Sequence[str]) -> None:
     """Raise :class:`FitError` when a record file is given twice, or two files hold the same
-    bytes: it would count twice, silently (its weight in a fit, its own cluster in the
-    standard errors, twice in evaluate's means; overlapping shell patterns such as
-    ``toss_0*.csv toss_00*.csv`` repeat files)."""
+    bytes: it counted twice, silently (in a fit, its standard errors and evaluate's means)."""
     from .io import file_digest
     seen: dict = {}
     for i, p in enumerate(paths):
