@@ -207,7 +207,7 @@ def _never_traced(params):
     # regressions: a leaf named twice was fitted twice and the start value reported; a
     # negative apex ran to the iteration limit; a string of targets ended in a raw ValueError
     ({"apex_heights": [0.1]}, None, {"free": FREE * 2}, "more than once"),
-    ({"apex_heights": [-0.5]}, None, {}, "must be > 0"),
+    ({"apex_heights": [-0.5]}, None, {}, "must be positive"),
     ("apex", None, {}, "targets must be a dict"),
 ])
 def test_bad_input_is_refused_before_tracing(problem, targets, starts, options, match):

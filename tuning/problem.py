@@ -72,8 +72,8 @@ def normalise_targets(targets: dict) -> dict:
             raise FitError(f"target {name!r} has a zero entry; targets are compared relatively "
                            "(|achieved - target| / |target|): give a non-zero value.")
         if name in BOUNCE_METRICS and np.any(arr < 0.0):    # ran to the iteration limit
-            raise FitError(f"target {name!r} must be > 0 (a height above the plane, a time, "
-                           f"a depth or a ratio), got {val!r}.")
+            raise FitError(f"target {name!r} must be positive (a height above the plane, a "
+                           f"time, a depth or a ratio), got {val!r}.")
         out[name] = arr
     return out
 
