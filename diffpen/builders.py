@@ -217,13 +217,16 @@ def add_rope(scene: Scene, n: int, start: Sequence[float], end: Sequence[float],
     mass = _pos("rope mass (kg)", mass)
     stretch = _kc("rope (k, c)", (k, c))
     bend = _kc("rope bend", bend)
+    if bend is not None and n < 3:      # it was left out without a word
+        raise SceneError(f"rope bend springs join every second node, and a rope of {n} nodes "
+                         "has none: leave bend out, or give n >= 3.")
     pins = _pins("rope pinned", pinned, (n,))
     velocity = _vec("rope velocity (m/s)", velocity)
     _check_new_groups(scene, [f"{group}.stretch", f"{group}.bend", f"{group}.drag"], group)
     t = np.linspace(0.0, 1.0, n)[:, None]
     idx = _lattice(scene, p0 + t * (p1 - p0), mass / n, pins, velocity, collide)
     _connect(scene, _pairs(idx, [(1,)]), f"{group}.stretch", stretch)
-    if bend is not None and n >= 3:
+    if bend is not None:
         _connect(scene, _pairs(idx, [(2,)]), f"{group}.bend", bend)
     _drag(scene, idx, f"{group}.drag", drag)
     return idx

@@ -222,6 +222,9 @@ def test_cli_simulate_cloth_sag_matches_scipy_static_equilibrium(capsys):
     (lambda s: add_rope(s, 3, (0, 0, 0), (1, 0, 0), 1.0, 10.0, pinned=[True]), "pinned"),
     (lambda s: add_crumple_bar(s, 3, (0, 0, 0), (1, 0, 0), 1.0, 10.0, yield_strain="0.1"),
      "yield_strain"),
+    # bend springs asked for on a rope that has none were left out without a word
+    (lambda s: add_rope(s, 2, (0, 0, 0), (1, 0, 0), 1.0, 10.0, bend=(5.0, 0.1)),
+     "a rope of 2 nodes has none"),
 ])
 def test_builders_refuse_strings_and_bools_as_numbers(build, words):
     """The builders coerced what dp.Scene refuses: bend="50" became (k, c) = (5, 0),
