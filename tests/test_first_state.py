@@ -497,3 +497,54 @@ def test_a_noisy_record_without_velocities_starts_from_its_whole_first_flight(tm
     for leaf, truth in (("contact.rubber.k", 1e4), ("contact.rubber.c", 20.0)):
         value, err = out["fitted"][leaf], out["stderr"][leaf]
         assert abs(value / truth - 1) < 0.01 and abs(value - truth) < 3 * err, (leaf, value, err)
+
+
+BALL_ON_FIXED_SPHERE = """
+dt = 5e-4
+[materials.rubber]
+k = 7000.0
+c = 15.0
+[[spheres]]
+name = "ball"
+radius = 0.05
+mass = 0.5
+position = [0.02, 0.0, 0.5]
+material = "rubber"
+[[fixed_spheres]]
+center = [0.0, 0.0, 0.0]
+radius = 0.2
+material = "rubber"
+[fit]
+params = ["contact.rubber.k", "contact.rubber.c"]
+first_state = "fit"
+"""
+
+
+def test_the_first_flight_ends_at_a_fixed_sphere_too(tmp_path):
+    """Regression: the first flight ended only near a plane, so in a scene whose ball lands
+    on a fixed sphere (no planes) the whole-flight start fitted its parabola through the
+    impact: evaluated at 2784%, k fitted 0.18 (truth 1e4). The flight now ends near fixed
+    spheres too, and in a scene with other bodies to touch it keeps at most
+    UNSEEN_CONTACT_FRAMES."""
+    from tuning.records import write_record
+    from tuning.scene_fit import fit_files
+    scene = tmp_path / "ball.toml"
+    scene.write_text(BALL_ON_FIXED_SPHERE)
+    sf = load_scene_file(str(scene))
+    sim = sf.compile()
+    rec = tf.synthetic_record(sim, tf.with_leaves(sf.params(sim), {
+        "contact.rubber.k": 1e4, "contact.rubber.c": 20.0}), 1.0, 2e-3, {"ball": 0},
+        noise=5e-4, velocities=False)
+    path = tmp_path / "rec.csv"
+    write_record(str(path), rec)
+    pos = rec.bodies["ball"].position
+    n = flight_frames(sf.scene, 0, pos, None, 0.005)
+    gap = np.linalg.norm(pos[:n + 1], axis=1) - 0.25
+    assert 20 < n < len(pos) and gap[n - 1] >= 0.005 > gap[n]
+    out = fit_files(str(scene), [str(path)])
+    assert abs(out["fitted"]["contact.rubber.k"] / 1e4 - 1) < 0.02, out["fitted"]
+    two = dp.Scene()
+    two.add_sphere(0.05, 0.5, (0.0, 0.0, 0.5))
+    two.add_sphere(0.05, 0.5, (1.0, 0.0, 0.5))
+    free = np.column_stack([np.zeros(100), np.zeros(100), 0.5 - 0.001 * np.arange(100)])
+    assert flight_frames(two, 0, free, None, 0.005) == first_state_mod.UNSEEN_CONTACT_FRAMES

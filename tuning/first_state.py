@@ -29,15 +29,25 @@ __all__ = ["first_state", "flight_frames", "torque_free", "FLIGHT_FRAMES"]
 FLIGHT_FRAMES = 1000
 
 
+#: the first flight's frame cap where its end cannot be seen in the record: the scene holds
+#: other bodies this one can touch, whose motion the record need not observe (20, the cap
+#: every flight had before it became the whole flight)
+UNSEEN_CONTACT_FRAMES = 20
+
+
 def flight_frames(scene, index, pos, quat, margin: float) -> int:
-    """How many leading frames body ``index`` is clear of every plane by ``margin`` m.
+    """How many leading frames body ``index`` is clear of every plane and fixed sphere by
+    ``margin`` m.
 
     ``pos``: (T, 3) observed centre, m (NaN where missing); ``quat``: (T, 4) orientations
     or None (then the body's bounding radius is used, as for a frame whose orientation is
     missing). A frame without a position is skipped, not the end of the flight: the count
-    runs to the last frame clear of every plane before the first one that is not."""
+    runs to the last frame clear of every collider before the first one that is not. Where
+    the body can touch other bodies of the scene, whose motion a record need not observe, at
+    most :data:`UNSEEN_CONTACT_FRAMES` (a ball dropped onto a fixed sphere in a scene without
+    planes had its parabola fitted through the impact: 2784% evaluated, k fitted 0.18)."""
     b = scene.bodies[index]
-    if not scene.planes:
+    if not b.collide:
         return len(pos)
     corners = None if b.half_extents is None else box_corners(b.half_extents)
     n = 0
@@ -48,13 +58,17 @@ def flight_frames(scene, index, pos, quat, margin: float) -> int:
             pts = pos[f] + corners @ rotmat(quat[f]).T
             reach = 0.0
         else:
-            pts, reach = pos[f][None], b.radius
-        gap = min(float(np.min(pts @ np.array(pl.normal))) - pl.offset - reach
-                  for pl in scene.planes)
-        if gap < margin:
+            pts, reach = pos[f][None], b.radius      # a box's: its bounding sphere
+        gaps = [float(np.min(pts @ np.array(pl.normal))) - pl.offset - reach
+                for pl in scene.planes]
+        gaps += [float(np.min(np.linalg.norm(pts - np.array(fs.center), axis=1))) - fs.radius
+                 - reach for fs in scene.fixed_spheres]
+        if gaps and min(gaps) < margin:
             break
         n = f + 1
-    return n
+    others = any(j != index and o.collide and (o.radius > 0.0 or b.radius > 0.0)
+                 for j, o in enumerate(scene.bodies))     # two particles never touch
+    return min(n, UNSEEN_CONTACT_FRAMES) if others else n
 
 
 def torque_free(q0, w0, inertia, times, *, max_angle: float = 0.1):
