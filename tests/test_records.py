@@ -517,3 +517,17 @@ def test_a_toss_in_centimetres_below_twenty_up_is_refused(tmp_path):
     with pytest.raises(RecordError, match=r"column \d+ \(x\): .* m is beyond 20 m .* look like "
                                           r"centimetres or millimetres"):
         read_record(path)
+
+
+def test_a_record_far_from_the_origin_in_metres_is_read(tmp_path):
+    """Regression of the check above: x or y beyond 20 m with no fall to judge by (a cube at
+    rest 25 m from a lab frame's origin) was refused as centimetres; only a fall that shows
+    centimetres refuses x or y now (a height beyond 20 m still needs a fall that shows
+    metres)."""
+    rows = "".join(f"{i / 148!r},25.0,0.0,0.0514,1,0,0,0\n" for i in range(40))
+    path = _write(tmp_path, "t,x,y,z,qw,qx,qy,qz\n" + rows, name="far.csv")
+    assert read_record(path).bodies["body"].position[0, 0] == 25.0
+    high = _write(tmp_path, "t,x,y,z\n" + "".join(f"{i / 148!r},0,0,25.0\n" for i in range(40)),
+                  name="high.csv")
+    with pytest.raises(RecordError, match="beyond 20 m and the record shows no free fall"):
+        read_record(high)

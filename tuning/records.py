@@ -36,6 +36,8 @@ import numpy as np
 
 from .fit import FitError
 from .io import atomic_write
+from .record_units import FALL, FALL_FACTOR, MM_LIMIT, MS_SPAN, unit_slip
+from .record_units import fall_rate as _fall
 
 __all__ = ["Record", "BodyRecord", "RecordError", "read_record", "load_records", "read_height_record",
            "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
@@ -54,14 +56,6 @@ DEFAULT_MAX_ROWS = 500_000
 DEFAULT_MAX_BYTES = 256 * 2**20
 #: |q| may differ from 1 by this much (trackers write 6 decimals)
 QUAT_TOL = 1e-3
-#: unit hints: a record spanning more than this with steps of at least 1 looks like milliseconds
-MS_SPAN = 60.0
-#: a height |z| beyond this (m) looks like centimetres or millimetres, unless the record falls
-#: there at about FALL (m/s^2), within a factor FALL_FACTOR: in cm it would fall at 981, in mm
-#: at 9810
-MM_LIMIT = 20.0
-FALL = 9.81
-FALL_FACTOR = 10.0
 
 
 class RecordError(FitError):
@@ -171,14 +165,32 @@ def _read_text(path: str, max_rows: int, max_bytes: int) -> str:
                           "CSV.") from None
 
 
+def _skipped(line: str) -> bool:
+    """A blank or comment (``#``) line, which records may hold anywhere."""
+    s = line.strip()
+    return not s or s[0] == "#"
+
+
+def header_columns(path: str) -> list[str] | None:
+    """The lower-case column names of the record at ``path`` (its first line that is not
+    blank or a comment), without reading the rest; None where it cannot be read."""
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            for line in fh:
+                if not _skipped(line):
+                    return [c.strip().strip('"').lower() for c in line.split(",")]
+    except OSError:
+        pass
+    return None
+
+
 def _rows(path: str, text: str) -> tuple[list[str], int, list[tuple[int, list[str]]]]:
     """(header cells, header line number, [(line number, cells)] of the data rows)."""
     lines = text.splitlines()
     quoted = '"' in text               # plain files are split without the csv module (fast)
     header, hline, data = None, 0, []
     for no, line in enumerate(lines, start=1):
-        s = line.strip()
-        if not s or s[0] == "#":
+        if _skipped(line):
             continue
         if quoted:
             try:
@@ -265,57 +277,6 @@ def _check_times(path: str, t: np.ndarray, data, col: int, check_units: bool) ->
                               "Divide t by 1000 (a record whose steps really are seconds is read "
                               "in Python with check_units=False; the diffpen commands refuse "
                               "it).")
-
-
-def _fall(t: np.ndarray, p: np.ndarray, r: int) -> float | None:
-    """Acceleration magnitude (record units/s^2) of the motion around sample ``r``, the one
-    farthest from 0 in the last column of ``p`` (T, k) (z): a parabola fitted to the run of
-    samples around it that stay beyond the middle of the record's range (a flight's top: no
-    contact with the lowest surface lies in it). None when the record does not show one: fewer
-    than 6 samples there, samples the parabola does not follow (rms misfit above a tenth of
-    their span), or an acceleration within 5 standard errors of 0 (at rest, uniform motion)."""
-    ok = np.isfinite(p).all(axis=1)
-    r = int(np.count_nonzero(ok[:r]))
-    t, p = t[ok], p[ok]
-    u = np.sign(p[r, -1]) * p[:, -1]
-    mid = 0.5 * (u.max() + u.min())
-    a, b = r, r + 1
-    while a > 0 and u[a - 1] > mid:
-        a -= 1
-    while b < len(u) and u[b] > mid:
-        b += 1
-    n = b - a
-    if n < 6:
-        return None
-    s = t[a:b] - t[a:b].mean()
-    A = np.stack([np.ones_like(s), s, s * s], axis=1)
-    coef, *_ = np.linalg.lstsq(A, p[a:b], rcond=None)
-    res = p[a:b] - A @ coef
-    span = float(np.ptp(p[a:b], axis=0).max())
-    rms = math.sqrt(float(np.mean(np.sum(res * res, axis=1))))
-    if not span > 0.0 or rms > 0.1 * span:
-        return None
-    acc = 2.0 * float(np.linalg.norm(coef[2]))
-    err = 2.0 * rms * math.sqrt(n / (n - 3) * float(np.linalg.inv(A.T @ A)[2, 2]))
-    return acc if acc > 5.0 * err else None
-
-
-def _unit_slip(path: str, line: str, col: str, value: float, what: str, fall: float | None,
-               api: str) -> RecordError:
-    """The refusal of a record beyond MM_LIMIT whose motion does not show metres."""
-    head = f"{path}, line {line}, column {col}: {value:g} m is beyond {MM_LIMIT:g} m"
-    if fall is not None and fall > FALL_FACTOR * FALL:
-        return RecordError(f"{head} and the record falls there at about {fall:.0f} per s^2 "
-                           f"({fall / FALL:.0f} g if it were metres): {what} look like "
-                           "centimetres or millimetres, but records are in metres. Divide them by "
-                           "100 or 1000.")
-    shown = "no free fall" if fall is None else f"an acceleration of only {fall:.3g} m/s^2"
-    return RecordError(f"{head} and the record shows {shown} around it to confirm metres (about "
-                       f"{FALL:g} m/s^2 in flight): {what} look like centimetres or "
-                       "millimetres, but records are in metres. Divide them by 100 or 1000; a "
-                       "record that really is in metres is read in Python with "
-                       f"tuning.records.{api}(path, check_units=False) (the diffpen commands "
-                       "refuse it).")
 
 
 # --------------------------------------------------------------------------- records
@@ -458,16 +419,19 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
             raise RecordError(f"{path}: body {_q(body)} has no position sample; a record needs "
                               "at least one.")
         if check_units and np.nanmax(np.abs(p)) > MM_LIMIT:
-            # any coordinate beyond the limit (z alone let a toss in centimetres through
-            # while it stayed below 20 "m" up: x at 22 was not looked at); the motion is
-            # judged at the top of z
+            # judged at the top of z: a height beyond the limit needs a fall that shows
+            # metres; x or y beyond it (a lab frame's far origin) only a fall that shows
+            # centimetres or millimetres (z alone let a toss in centimetres through while it
+            # stayed below 20 "m" up, x at 22)
             r = int(np.nanargmax(np.abs(p[:, 2])))
             fall = _fall(t, p, r)
-            if fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR:
+            high = np.nanmax(np.abs(p[:, 2])) > MM_LIMIT
+            if (fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR) \
+                    if high else (fall is not None and fall > FALL * FALL_FACTOR):
                 rr, k = np.unravel_index(int(np.nanargmax(np.abs(p))), p.shape)
                 j = groups["position"][k]
-                raise _unit_slip(path, data[rr][0], f"{j + 1} ({header[j]})", p[rr, k],
-                                 "positions", fall, "read_record")
+                raise unit_slip(path, data[rr][0], f"{j + 1} ({header[j]})", p[rr, k],
+                                "positions", fall, "read_record")
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 
@@ -506,8 +470,8 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
         r = int(np.argmax(np.abs(z)))
         fall = _fall(t, z[:, None], r)
         if fall is None or not FALL / FALL_FACTOR <= fall <= FALL * FALL_FACTOR:
-            raise _unit_slip(path, data[r][0], f"{iz + 1} (z)", z[r], "heights", fall,
-                             "read_height_record")
+            raise unit_slip(path, data[r][0], f"{iz + 1} (z)", z[r], "heights", fall,
+                            "read_height_record")
     return t, z
 
 

@@ -329,9 +329,10 @@ def _print(args, out: dict) -> int:
         dump_json(out)
         return 0 if out.get("reached", True) else 1
     print(f"diffpen fit: {out['scene']}")
-    if "targets" in out:
-        print("targets:   " + "   ".join(f"{n} = {fmt(v, UNITS.get(n, ''))}"
-                                         for n, v in out["targets"].items()))
+    if "targets" in out:            # metric values, or a record's name (a str: no :g)
+        print("targets:   " + "   ".join(
+            f"{n} = {v if isinstance(v, str) else fmt(v, UNITS.get(n, ''))}"
+            for n, v in out["targets"].items()))
     kse = out.get("k_stderr")
     ku, cu = law_units(out.get("law"), out.get("exponent", 1.0))
     if kse is not None:
@@ -483,16 +484,12 @@ def _records_in_file(path: str) -> str | None:
 
 
 def _position_record(path: str) -> bool:
-    """Whether the record ``path`` has position columns (``x``, or ``NAME.x``); a t,z height
-    record has none, and one that cannot be read counts as none (the ball's reader then says
-    why, naming its line)."""
-    try:
-        with open(path, encoding="utf-8-sig", errors="replace") as fh:
-            header = fh.readline()
-    except OSError:
-        return False
-    cols = [c.strip().strip('"').lower() for c in header.split(",")]
-    return any(c == "x" or c.endswith(".x") for c in cols)
+    """Whether the record ``path`` has position columns (``x``, or ``NAME.x``) in its header
+    (:func:`tuning.records.header_columns`: blank and comment lines before it skipped, as the
+    reader skips them); a t,z height record has none, and one that cannot be read counts as
+    none (the ball's reader then says why, naming its line)."""
+    from ..records import header_columns
+    return any(c == "x" or c.endswith(".x") for c in header_columns(path) or [])
 
 
 def _run_records(args) -> int:
