@@ -44,12 +44,17 @@ def _all_or_nothing(method):
     import functools
 
     @functools.wraps(method)
-    def run(self, *args, **kwargs):
+    def run(*args, **kwargs):
+        # the scene: the method's self, or a builder's first argument, by position or by
+        # name (add_rope(scene=...) must keep working)
+        self = args[0] if args else kwargs.get("scene", kwargs.get("self"))
+        if not isinstance(self, Scene):
+            return method(*args, **kwargs)      # let the call itself say what is wrong
         groups = {name: dict(getattr(self, name)) for name in _GROUPS}
         sizes = {name: len(getattr(self, name)) for name in _LISTS}
         n_bodies = len(self.bodies)
         try:
-            return method(self, *args, **kwargs)
+            return method(*args, **kwargs)
         except SceneError:
             for name, value in groups.items():
                 setattr(self, name, value)

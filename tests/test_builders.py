@@ -317,3 +317,7 @@ def test_a_refused_builder_leaves_the_scene_as_it_was():
     # the overlap index forgot the refused nodes: a ball where one of them stood is fine
     scene.add_sphere(0.05, 0.1, (-0.3, -0.1, 0.5))
     assert scene.bodies[ball].position[0] == 3.0
+    # the scene by keyword, as before the builders restored it (a TypeError naming 'self')
+    nodes = add_rope(scene=scene, n=3, start=(0, 1, 1), end=(0.2, 1, 1), mass=0.3, k=50.0,
+                     group="tether")
+    assert len(nodes) == 3 and "tether.stretch" in scene.spring_groups

@@ -242,6 +242,14 @@ def test_a_ball_scene_file_with_records_is_one_fit_with_or_without_out(tmp_path,
     assert abs(plain["fitted"]["contact.rubber.k"] / 1e4 - 1) < 0.01
     height = _fit_json(capsys, ["fit", str(tmp_path / "tz.toml")])
     assert abs(height["k"] / 1e4 - 1) < 0.01
+    # regression: its text summary crashed on the record's name ("Unknown format code 'g'")
+    assert main(["fit", str(tmp_path / "tz.toml")]) == 0
+    assert "targets:   data = tz.csv" in capsys.readouterr().out
+    # regression: a record whose header follows a comment line went to the height fit
+    (tmp_path / "noted.csv").write_text("# ball, 500 Hz\n" + (tmp_path / "xyz.csv").read_text())
+    (tmp_path / "noted.toml").write_text(BALL_FIT + 'data = ["noted.csv"]\n')
+    noted = _fit_json(capsys, ["fit", str(tmp_path / "noted.toml")])
+    assert noted["fitted"] == plain["fitted"]
     assert main(["fit", str(tmp_path / "tz.toml"), "--out", str(tmp_path / "g.toml")]) == 2
     assert "names t,z height records, which the ball's trajectory fit reads" in \
         capsys.readouterr().err and not (tmp_path / "g.toml").exists()
