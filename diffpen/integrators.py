@@ -232,7 +232,8 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
                 raise SceneError(
                     f"implicit_euler with solver={solver!r} supports particle and sphere "
                     "scenes only (this scene has rotating rigid bodies, solved on generalised "
-                    "coordinates): use solver='dense' or 'auto'.")
+                    "coordinates): use integrator='implicit_euler' or "
+                    "implicit_euler_with('dense').")
             return _rigid_step(accel_fn, h, params, state)
         x0, v0 = state.position, state.velocity
         shape = x0.shape
@@ -499,14 +500,17 @@ def implicit_euler_with(solver: str) -> Integrator:
     above), ``"dense"``, ``"gmres"`` (matrix-free, on Jacobian-vector products) or ``"cg"``
     (conjugate gradients: faster, but right only for a symmetric system; dampers with
     relative motion across their axis make it non-symmetric). The iterative solvers take
-    particle and sphere scenes (rigid bodies solve densely). An unknown solver raises
-    :class:`diffpen.SceneError` here, before anything is compiled."""
+    particle and sphere scenes (rigid bodies solve densely). The record is named
+    ``implicit_euler[SOLVER]`` (plain ``implicit_euler`` for ``"auto"``), so that
+    ``Simulator.integrator`` and the keys of saved sweeps and fits tell the solvers apart. An
+    unknown solver raises :class:`diffpen.SceneError` here, before anything is compiled."""
     if solver not in IMPLICIT_SOLVERS:
         from .errors import SceneError
         raise SceneError(f"implicit_euler solver must be one of {list(IMPLICIT_SOLVERS)}, "
                          f"got {solver!r}.")
+    name = "implicit_euler" if solver == "auto" else f"implicit_euler[{solver}]"
     return INTEGRATORS["implicit_euler"]._replace(
-        make=functools.partial(implicit_euler, solver=solver))
+        name=name, make=functools.partial(implicit_euler, solver=solver))
 
 
 def kick_then_drift(integrator) -> bool:
