@@ -25,8 +25,9 @@ import numpy as np
 from .fit import FitError
 from .io import (OutputError, atomic_write, check_output, describe_simulator, key_differences,
                  result_key)
+from .io import file_digest  # noqa: F401 - its home until tuning.io held it
 
-__all__ = ["FitCheckpoint", "fit_key", "checkpoint_path", "SUFFIX"]
+__all__ = ["FitCheckpoint", "fit_key", "checkpoint_path", "SUFFIX", "file_digest"]
 
 #: appended to an output's name for its fit's checkpoint
 SUFFIX = ".fit-progress.json"

@@ -193,5 +193,6 @@ def _check_out(out: str, scene_path: str, data) -> None:
     from .fitted_scene import FITTED_MARK, is_fitted_scene
     if os.path.exists(p) and not is_fitted_scene(p):
         raise FitError(f"--out {out} exists and is not a scene diffpen fit wrote (its first "
-                       f"line is not \"{FITTED_MARK} ...\"): the fit would replace it. Move "
-                       "it, or choose another --out.")
+                       f"line is not \"{FITTED_MARK} ...\"; fits before that line was added "
+                       "wrote none): the fit would replace it. Move or remove it, or choose "
+                       "another --out.")

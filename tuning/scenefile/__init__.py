@@ -61,7 +61,7 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     method = "lm"                   # "lm", "adam", "sgd";  maxiter = 40;  lr = 0.05 (optax)
     observe = ["cube"]              # bodies the records observe (default: the named bodies)
     first_state = "fit"             # record fits: "record" (row 0) or "fit" (parabola);
-    flight_frames = 20              #   its cap on flight frames (default 20);
+    flight_frames = 20              #   its cap on flight frames (default: the first flight);
     horizon = [0.5, 1.0]            #   growing-horizon stages, s, before the whole records
                                     #   (default 1/8, 1/4, 1/2 of the longest; [] none)
     [fit.bounds]                    # "path" = [lo, hi]
