@@ -100,6 +100,9 @@ def _same_arguments(args) -> None:
 
     from ..distributed import check_same, from_process_zero
     mine = {k: getattr(args, k) for k in _WRITER_OPTIONS if hasattr(args, k)}
+    for k in ("out", "plot"):           # ./s.npz and s.npz are one file
+        if isinstance(mine.get(k), str):
+            mine[k] = os.path.normpath(mine[k])
     zero = from_process_zero(lambda: mine)
     differ = [k for k in mine if mine.get(k) != zero.get(k)]
     try:
