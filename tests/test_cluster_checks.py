@@ -148,5 +148,6 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
         assert p0.returncode == 2, (sig, err[-3000:])
         assert "a process of the cluster stopped: process 1 of 2 ended" in err, (sig, err)
         assert f"(diffpen probe {what})" in err and "process 0 stops too" in err, (sig, err)
+        assert "ended on an error" not in err, (sig, err)      # a signal is no error
         assert "Traceback" not in err and "Gloo" not in err.split("stopped:")[0], (sig, err)
         assert stopped_after(sig) < 20, sig

@@ -261,8 +261,11 @@ def _watch_cluster(silent_s: int) -> None:
                 elif value is not None and value.startswith("failed"):
                     failed_at.setdefault(i, now)  # ended on an error: it will not answer
                     if now - failed_at[i] >= _FAILED_GRACE_S:
-                        _stop(me, f"process {i} of {n} ended on an error "
-                                  f"({value[len('failed:'):] or 'see its standard error'})")
+                        why = value[len("failed:"):] or "see its standard error"
+                        # a Ctrl-C or SIGTERM is no error of the run (diffpen ... interrupted)
+                        how = "ended" if why.endswith(("interrupted", "terminated")) \
+                            else "ended on an error"
+                        _stop(me, f"process {i} of {n} {how} ({why})")
                 elif value != seen[i][0]:
                     seen[i] = (value, now)
                 elif now - seen[i][1] >= silent_s:
