@@ -196,16 +196,10 @@ def _nt_zeta(log_e):
     """The no-tension damping ratio of ``ln e``: bisection, then one Newton step outside
     ``stop_gradient`` (the implicit-function gradient)."""
     target = jax.lax.stop_gradient(log_e)
-
-    def body(_, lohi):
-        lo, hi = lohi
-        mid = 0.5 * (lo + hi)
-        go_up = _nt_log_e(mid) > target   # ln e decreases with zeta
-        return jnp.where(go_up, mid, lo), jnp.where(go_up, hi, mid)
-    lo0 = jnp.zeros_like(target)
     hi0 = jnp.maximum(2.0, 1.0 / jnp.sqrt(jnp.exp(target)))
-    lo, hi = jax.lax.fori_loop(0, 80, body, (lo0, hi0))
-    z0 = jax.lax.stop_gradient(0.5 * (lo + hi))
+    # ln e decreases with zeta: the root of target - ln e(zeta), negative below it
+    z0 = jax.lax.stop_gradient(_bisect(lambda z: target - _nt_log_e(z),
+                                       jnp.zeros_like(target), hi0, 80))
     slope = jnp.vectorize(jax.grad(_nt_log_e))(z0)
     return z0 - (_nt_log_e(z0) - log_e) / slope
 
