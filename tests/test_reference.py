@@ -75,3 +75,17 @@ def test_spring_closed_form_solves_the_ode():
                         t_eval=t, method="DOP853", rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(spring_closed_form(t, k=100.0, c=c, m=1.0, x0=0.1),
                                    sol.y[0], atol=1e-11)
+
+
+def test_reference_derivatives_at_zero_damping_are_one_sided_and_finite():
+    """Regression: at c = 0 the relative step was 0, and d/dc came out 0 / 0 = NaN with a
+    RuntimeWarning. Now a forward difference; for small damping e = 1 - pi zeta, so
+    d apex1 / dc = -2 pi (z0 - r) / (2 sqrt(k m)) = -0.0283 (gravity during the short contact
+    moves it by 3%)."""
+    import warnings
+    from tuning.reports.reference import ball_reference_derivatives
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ref = ball_reference_derivatives(k=1e4, c=0.0, m=1.0, r=0.1, z0=1.0, T=1.2, n=1)
+    assert ref["dc"]["apex"][0] == pytest.approx(-math.pi * 0.9 / 100.0, rel=0.05)   # -0.0291
+    assert ref["dk"]["apex"][0] == pytest.approx(0.0, abs=1e-6)     # undamped: k moves no height

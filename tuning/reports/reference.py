@@ -236,7 +236,8 @@ def ball_reference(**kw) -> BallReference:
 def ball_reference_derivatives(*, k: float, c: float, rel_step: float = 1e-5, n: int = 3,
                                decay: bool = False, **kw) -> dict:
     """Values and derivatives w.r.t. k and c of the reference ball's metrics, by central
-    differences of :class:`BallReference` (relative step ``rel_step``).
+    differences of :class:`BallReference` (relative step ``rel_step``; a parameter at 0, such
+    as ``c = 0``, takes a forward difference of absolute step ``rel_step`` in SI units).
 
     Metrics (arrays of length ``n``): ``apex`` (apex heights of the lowest point above the
     plane, m), ``duration`` (contact durations, s), ``penetration`` (max depth of each
@@ -254,10 +255,13 @@ def ball_reference_derivatives(*, k: float, c: float, rel_step: float = 1e-5, n:
         return out
     out = {"value": metrics(k, c)}
     for name, base in (("dk", k), ("dc", c)):
-        step = rel_step * base
+        step = rel_step * base if base > 0 else rel_step
         up = metrics(k + step, c) if name == "dk" else metrics(k, c + step)
-        dn = metrics(k - step, c) if name == "dk" else metrics(k, c - step)
-        out[name] = {key: (up[key] - dn[key]) / (2.0 * step) for key in up}
+        if base > 0:
+            dn = metrics(k - step, c) if name == "dk" else metrics(k, c - step)
+            out[name] = {key: (up[key] - dn[key]) / (2.0 * step) for key in up}
+        else:       # at 0 (an undamped ball): one-sided, no negative parameter
+            out[name] = {key: (up[key] - out["value"][key]) / step for key in up}
     return out
 
 
