@@ -252,7 +252,8 @@ def add_cloth(scene: Scene, nx: int, ny: int, spacing: float, mass: float, *,
 
     * ``f"{group}.structural"``: (i, j)-(i+1, j) and (i, j)-(i, j+1)  (rest ``spacing``);
     * ``f"{group}.shear"``: both diagonals of every cell  (rest ``sqrt(2) spacing``);
-    * ``f"{group}.bend"``: (i, j)-(i+2, j) and (i, j)-(i, j+2)  (rest ``2 spacing``).
+    * ``f"{group}.bend"``: (i, j)-(i+2, j) and (i, j)-(i, j+2)  (rest ``2 spacing``; a
+      cloth of 2 x 2 nodes has none, and then no bend group in ``params.springs``).
 
     Args:
       nx, ny: nodes along ``axes[0]`` and ``axes[1]``, each >= 2.  spacing: m, > 0.
