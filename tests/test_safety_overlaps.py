@@ -1,0 +1,103 @@
+"""Scenes refuse bodies starting inside colliders or each other (unless asked), with the
+overlap and the move that fixes it; the check looks at neighbours only."""
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.overlap import OverlapIndex
+
+
+# --------------------------------------------------------------------------- overlaps
+@pytest.mark.parametrize("build, words", [
+    # a sphere 5 m below the ground (issue: launched to 460 m)
+    (lambda s: (s.add_plane(), s.add_sphere(0.1, 1.0, (0.0, 0.0, -5.0))),
+     ["plane 0", "overlap by 5.1 m", "move it 5.1 m along the plane's normal"]),
+    # the plane added after the body: the same check
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, -5.0)), s.add_plane()),
+     ["plane 0", "overlap by 5.1 m"]),
+    # coincident spheres never separate
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)), s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))),
+     ["sphere 1", "sphere 0", "centres coincide", "0.2 m apart"]),
+    (lambda s: (s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)), s.add_sphere(0.1, 1.0, (0.05, 0, 1.0))),
+     ["overlap by 0.15 m", "further apart along (1, 0, 0)"]),
+    (lambda s: (s.add_box((0.2, 0.2, 0.2), 1.0, (0.0, 0.0, 1.0)),
+                s.add_sphere(0.05, 1.0, (0.0, 0.0, 1.1))), ["box 0", "out of the box"]),
+    (lambda s: (s.add_sphere(0.05, 1.0, (0.0, 0.0, 1.1)),
+                s.add_box((0.2, 0.2, 0.2), 1.0, (0.0, 0.0, 1.0))), ["box 1", "sphere 0"]),
+    (lambda s: (s.add_plane(), s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.0))),
+     ["box 0", "plane 0", "raise it by 0.1 m"]),
+    (lambda s: (s.add_fixed_sphere((0, 0, 0), 0.5), s.add_particle(1.0, (0.0, 0.0, 0.1))),
+     ["particle 0", "inside fixed sphere 0"]),
+    # a box deep inside a fixed sphere, either added first (issue: accepted, 5500 N at step 1)
+    (lambda s: (s.add_fixed_sphere((0, 0, 0), 0.5), s.add_box((0.1,) * 3, 1.0, (0, 0, 0.05))),
+     ["box 0", "fixed sphere 0", "overlap by 0.55 m", "move it 0.55 m along (0, 0, 1)"]),
+    (lambda s: (s.add_box((0.1,) * 3, 1.0, (0, 0, 0.05)), s.add_fixed_sphere((0, 0, 0), 0.5)),
+     ["box 0", "fixed sphere 0", "overlap by 0.55 m", "move it 0.55 m along (0, 0, 1)"]),
+    # a particle inside a box: any overlap, as against planes and fixed spheres (issue: 4 cm
+    # inside a 0.1 m box was accepted)
+    (lambda s: (s.add_box((0.1,) * 3, 1.0, (0, 0, 0)), s.add_particle(1.0, (0.0, 0.0, 0.06))),
+     ["particle 1", "box 0", "overlap by 0.04 m"]),
+    (lambda s: (s.add_particle(1.0, (0.0, 0.0, 0.099)), s.add_box((0.1,) * 3, 1.0, (0, 0, 0))),
+     ["box 1", "particle 0", "overlap by 0.001 m"]),
+    # a particle's limit is no overlap at all (the message quoted "more than 0 m, 50% of the
+    # smaller size")
+    (lambda s: (s.add_particle(1.0, (0.0, 0.0, -0.01)), s.add_plane()),
+     ["particle 0", "plane 0", "a particle has no size, so any overlap counts"]),
+])
+def test_bodies_starting_inside_are_refused_with_the_overlap_and_the_fix(build, words):
+    with pytest.raises(dp.SceneError) as exc:
+        build(dp.Scene())
+    for w in words:
+        assert w in str(exc.value), (w, str(exc.value))
+    assert "allow_overlap=True" in str(exc.value)
+    build(dp.Scene(allow_overlap=True))             # asked for explicitly: accepted
+
+
+def test_resting_and_pinned_overlaps_pass_and_allow_overlap_is_per_body():
+    scene = dp.Scene()
+    scene.add_plane()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.099))           # resting: 1 mm = m g / k
+    scene.add_sphere(0.1, 1.0, (0.5, 0.0, 0.5), pinned=True)
+    scene.add_sphere(0.1, 1.0, (0.55, 0.0, 0.5), pinned=True)   # two pinned: never evaluated
+    i = scene.add_sphere(0.1, 1.0, (0.0, 0.0, -0.2), allow_overlap=True)
+    assert i == 3
+    scene.add_plane((0.0, 0.0, 1.0), -0.02)       # a later plane skips the allowed body
+    with pytest.raises(dp.SceneError, match="allow_overlap must be True or False"):
+        scene.add_sphere(0.1, 1.0, (3.0, 0.0, 1.0), allow_overlap="yes")
+    # a rejected body leaves no trace in the scene or the index
+    n = scene.n_bodies
+    with pytest.raises(dp.SceneError):
+        scene.add_sphere(0.1, 1.0, (0.0, 0.0, -1.0))
+    assert scene.n_bodies == n
+    scene.add_sphere(0.1, 1.0, (2.0, 0.0, 1.0))
+
+
+def test_boxes_touching_fixed_spheres_and_particles_on_boxes_pass():
+    """The box-fixed-sphere and particle-box checks refuse starts inside only: a box resting
+    on a fixed sphere, a particle on a box face, pinned and allowed bodies pass, and
+    state_from checks a box's start pose against fixed spheres too."""
+    scene = dp.Scene()
+    scene.add_fixed_sphere((0.0, 0.0, 0.0), 0.5)
+    b = scene.add_box((0.1,) * 3, 1.0, (0.0, 0.0, 0.599))       # resting: 1 mm deep
+    scene.add_particle(1.0, (0.0, 0.0, 0.699))                  # on the box's top face
+    scene.add_box((0.1,) * 3, 1.0, (0.0, 0.0, 0.0), pinned=True)
+    scene.add_box((0.1,) * 3, 1.0, (2.0, 0.0, 0.0), allow_overlap=True)
+    scene.add_fixed_sphere((2.0, 0.0, 0.0), 0.3)                # skips the allowed box
+    sim = dp.compile(scene, 1e-3)
+    with pytest.raises(dp.SceneError, match=r"box 0 started at \(0, 0, 0.3\) .* fixed sphere 0 "
+                       r".* move its start 0.3 m along \(0, 0, 1\)"):
+        sim.state_from(body=b, position=(0.0, 0.0, 0.3))
+    sim.state_from(body=b, position=(0.0, 0.0, 0.6))             # touching: fine
+
+
+def test_overlap_check_looks_only_at_neighbours():
+    """A dense lattice: each new sphere is compared with the spheres of its own cells only,
+    never with all earlier bodies (no O(n^2) loop)."""
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    g = np.stack(np.meshgrid(*[np.arange(12)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.21
+    for p in g:
+        scene.add_sphere(0.1, 1.0, tuple(p))
+    idx = scene._overlap
+    assert isinstance(idx, OverlapIndex)
+    counts = [len(idx._near(p, 0.1, scene.n_bodies)) for p in g[::97]]
+    assert max(counts) <= 27 and scene.n_bodies == 1728
