@@ -31,13 +31,18 @@ __all__ = [
 
 
 def natural_frequency(k, mass):
-    """``w0 = sqrt(k / m)``, rad/s."""
-    return jnp.sqrt(k / mass)
+    """``w0 = sqrt(k / m)``, rad/s. Concrete ``k`` (N/m) or ``mass`` (kg) not a finite number
+    > 0 raise ValueError naming it; traced, give NaN."""
+    _positive("stiffness k (N/m)", k)
+    _positive("mass (kg)", mass)
+    ok = (jnp.asarray(k) > 0.0) & (jnp.asarray(mass) > 0.0)
+    return _nan_unless(ok, jnp.sqrt(k / mass))
 
 
 def damping_ratio(k, c, mass):
-    """``zeta = c / (2 sqrt(k m))`` (dimensionless)."""
-    return c / (2.0 * jnp.sqrt(k * mass))
+    """``zeta = c / (2 sqrt(k m))`` (dimensionless). Concrete input out of range (k, mass not
+    > 0; c < 0; not finite) raises ValueError naming the argument; traced, gives NaN."""
+    return _nan_unless(_contact(k, c, mass), c / (2.0 * jnp.sqrt(k * mass)))
 
 
 def _family(law, what: str) -> "_Family":

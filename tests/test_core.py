@@ -210,6 +210,12 @@ def test_overdamped_no_tension_still_lets_go(impact_sims):
     (lambda: physical.kc_from_restitution(0.5, 0.01, -1.0), "mass (kg)"),
     (lambda: physical.kc_from_time_constant(0.01, 0.0, 1.0), "damping ratio zeta"),
     (lambda: physical.hunt_crossley_a_from_restitution(-0.1, 1.0), "restitution e"),
+    # regressions: these two took anything (nan, a negative ratio, inf)
+    (lambda: physical.natural_frequency(-1.0, 1.0), "stiffness k (N/m) must be a finite"),
+    (lambda: physical.natural_frequency(float("nan"), 1.0), "stiffness k (N/m)"),
+    (lambda: physical.natural_frequency(1e4, 0.0), "mass (kg) must be a finite number > 0"),
+    (lambda: physical.damping_ratio(1e4, -5.0, 1.0), "damping c (N s/m) must be"),
+    (lambda: physical.damping_ratio(1e4, 5.0, 0.0), "mass (kg)"),
 ])
 def test_physical_conversions_refuse_out_of_range_values(call, words):
     """Out-of-range inputs gave NaN, inf, a negative c or a bare ZeroDivisionError."""

@@ -109,3 +109,16 @@ def test_traced_out_of_range_values_give_nan():
     assert float(e(1e4, 20.0)) == pytest.approx(float(physical.restitution(1e4, 20.0, 1.0)))
     hc = jax.jit(physical.hunt_crossley_restitution)
     assert np.isnan(float(hc(jnp.nan))) and np.isnan(float(hc(-0.5)))
+
+
+def test_traced_frequency_and_damping_ratio_out_of_range_give_nan():
+    """Regression: damping_ratio gave -0.025 for c = -5 and inf for mass 0 (concrete values
+    now raise, test_core); traced, NaN; in range, the closed forms."""
+    z = jax.jit(lambda k, c, m: physical.damping_ratio(k, c, m))
+    w = jax.jit(lambda k, m: physical.natural_frequency(k, m))
+    assert np.isnan(float(z(1e4, -5.0, 1.0))) and np.isnan(float(z(1e4, 5.0, 0.0)))
+    assert np.isnan(float(w(-1.0, 1.0))) and np.isnan(float(w(1e4, 0.0)))
+    assert float(z(1e4, 20.0, 1.0)) == pytest.approx(0.1, rel=1e-6)
+    assert float(w(1e4, 4.0)) == pytest.approx(50.0, rel=1e-6)
+    g = jax.grad(lambda c: physical.damping_ratio(1e4, c, 1.0))(20.0)
+    assert float(g) == pytest.approx(1.0 / 200.0, rel=1e-6)
