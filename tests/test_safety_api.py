@@ -393,6 +393,31 @@ def test_traced_stability_flag_marks_nan_and_negative_rows(sim):
     assert flags.tolist() == [False, True, True, False, True]
 
 
+def test_traced_flag_marks_bad_values_under_implicit_euler_and_in_extras():
+    """Regression: the flag's NaN / negative test ran for explicit integrators only (an
+    implicit_euler row with k = NaN or -1e4 ended NaN or 2e10 m into the plane, unflagged),
+    and of the extras only finiteness was tested: a negative drag (a particle sped up from
+    1 to 7.4 m/s) and a yield strain outside (0, 1) (a negative rest length) passed
+    unflagged. Concrete values of all of these are refused by sim.params."""
+    imp = dp.compile(ball_scene(), 1e-3, integrator="implicit_euler")
+    run = jax.jit(jax.vmap(lambda k: imp.rollout(imp.params(k=k, c=20.0), 20,
+                                                 save_every=20).aux["unstable"][-1]))
+    assert np.asarray(run(jnp.array([1e4, jnp.nan, -1e4]))).tolist() == [False, True, True]
+    free = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    a = free.add_particle(1.0, (0.0, 0.0, 0.0), pinned=True)
+    b = free.add_particle(1.0, (0.4, 0.0, 0.0), (1.0, 0.0, 0.0))
+    free.add_drag(b, 0.1)
+    free.add_plastic_spring(a, b, k=1000.0, c=0.0, yield_strain=0.05)
+    sim2 = dp.compile(free, 1e-4)
+
+    def flag(drag, strain):
+        p = sim2.params(extra={"drag": {"drag": drag}, "plastic": {"plastic": strain}})
+        return sim2.rollout(p, 10, save_every=10).aux["unstable"][-1]
+    rows = jax.jit(jax.vmap(flag))(jnp.array([0.1, -2.0, 0.1, 0.1, 0.1]),
+                                   jnp.array([0.05, 0.05, 1.5, -0.2, 0.0]))
+    assert np.asarray(rows).tolist() == [False, True, True, True, True]
+
+
 def test_state_from_checks_shapes_duplicates_and_start_overlaps():
     """Regression: state_from broadcast whatever it got (raw JAX broadcasting errors for a
     (2,) position or a (3,) quaternion, 'could not convert string to float' for text),

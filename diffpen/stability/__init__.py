@@ -39,7 +39,8 @@ Traced stability: the same rows and limits are also evaluated inside the traced 
 ``State.aux["unstable"]`` (``FLAG``) whether its step is past the safe step for the
 parameter values it was given; for implicit integrators (no step limit) it records instead
 whether the float dtype cannot resolve the step (:func:`precision_unsafe`, the traced form of
-the float32 refusal). The flag is sticky and saved in ``Trajectory.aux``.
+the float32 refusal); for every integrator also whether a parameter is out of the range that
+concrete values are refused for (:func:`params_out_of_range`). The flag is sticky and saved in ``Trajectory.aux``.
 
 A contact law that stiffens with depth (Hunt-Crossley) is counted at a reference depth: each
 body's radius, or, where the scene lets the start state's energy bound it, the depth at which
@@ -52,13 +53,13 @@ Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps
 :mod:`.gating` (the up-front gate, its cache and the :class:`StabilityReport`), :mod:`.depth`
 (the reference depth from the start energy).
 """
-from .bounds import (FLAG, Analysis, Bound, Rates, precision_unsafe, rates, scene_rates,
-                     unsafe)
+from .bounds import (FLAG, Analysis, Bound, Rates, params_out_of_range, precision_unsafe, rates,
+                     scene_rates, unsafe)
 from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report
 from .modes import (SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt,
                     stable_dt)
 
 __all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH",
            "SAFE_CH", "SAFE_STABLE", "Bound", "Analysis", "Rates", "rates", "scene_rates",
-           "unsafe", "precision_unsafe", "FLAG", "StabilityReport", "report", "gate",
+           "unsafe", "precision_unsafe", "params_out_of_range", "FLAG", "StabilityReport", "report", "gate",
            "GateCache", "MAX_AUTO_SUBSTEPS"]

@@ -15,6 +15,7 @@ from .depth import energy_depth
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "precision_unsafe",
+           "params_out_of_range",
            "FLAG", "IMPLICIT_PRECISION", "RESTING_RESOLUTION"]
 
 #: ``State.aux`` key of the traced stability flag: a bool scalar, True once a rollout ran a
@@ -313,16 +314,17 @@ def unsafe(an: Analysis, params, h=None, energy=None):
     to rounding), else from the spectral radius of its amplification matrix at
     ``h / SAFE_STABLE`` for the modes (K, C), (K, 0) and (0, C). Methods without a step limit
     (implicit) have no such test: for them it is :func:`precision_unsafe` (True when the
-    dtype cannot resolve the step; always False in float64). ``energy``: as :func:`rates`
+    dtype cannot resolve the step; always False in float64). Either way also True where a
+    parameter is out of its range (:func:`params_out_of_range`). ``energy``: as :func:`rates`
     takes it (the value the up-front gate was given).
     """
     import jax
     import jax.numpy as jnp
     rec = an.integrator
-    if not rec.explicit:
-        return precision_unsafe(an, params, h)
-    h = an.inner_dt if h is None else h
     params = jax.lax.stop_gradient(params)
+    if not rec.explicit:
+        return precision_unsafe(an, params, h) | params_out_of_range(params)
+    h = an.inner_dt if h is None else h
     r = rates(an, params, xp=jnp, energy=energy)
     K, C = jnp.max(r.K_row, initial=0.0), jnp.max(r.C_row, initial=0.0)
     Kc, Cc = jnp.max(r.Kc, initial=0.0), jnp.max(r.Cc, initial=0.0)
@@ -346,18 +348,42 @@ def unsafe(an: Analysis, params, h=None, energy=None):
     tie = 1.0 + SAFE_TIE
     bad = bad | ((Kc > 0.0) & (an.contact_wh * tie / jnp.where(Kc > 0.0, wc, 1.0) < h))
     bad = bad | ((Cc > 0.0) & (SAFE_CH * tie / jnp.where(Cc > 0.0, Cc, 1.0) < h))
-    # a NaN or negative stiffness, damping or friction reads as no limit above (every
-    # comparison with NaN is False; a negative value never reaches one): flag it too, and a
-    # parameter that is not finite anywhere else (e.g. a plane offset)
-    signed = jax.tree_util.tree_leaves({k: v for k, v in params.extra.items()
-                                        if k != "friction"})
-    nonneg = jax.tree_util.tree_leaves((params.contact, params.springs,
-                                        params.extra.get("friction", {})))
-    for a in signed + nonneg:
-        a = jnp.asarray(a)
+    return bad | params_out_of_range(params)
+
+
+#: ``Params.extra`` entries of any sign (m), and those within (0, 1) (yield strains); every
+#: other entry (friction, drag) is >= 0, as ``sim.params`` checks concrete values
+#: (``diffpen.params._check_value`` and the terms' own checks). Entries named ``_...`` are a
+#: rollout's step constants: finite only.
+SIGNED_EXTRAS = frozenset({"plane_offset"})
+UNIT_INTERVAL_EXTRAS = frozenset({"plastic"})
+
+
+def params_out_of_range(params):
+    """Traced range check of ``params`` (a bool scalar; tracers welcome): True where a value
+    is not finite, a stiffness, damping, friction or drag is negative, or a yield strain is
+    outside (0, 1): the ranges ``sim.params`` refuses for concrete values. Under ``jit`` or
+    ``vmap`` nothing can be refused, and such a value reads as no limit to the step tests
+    (every comparison with NaN is False; a negative value never reaches one), so the flag
+    carries it."""
+    import jax
+    import jax.numpy as jnp
+
+    def leaves(tree):
+        return [jnp.asarray(a) for a in jax.tree_util.tree_leaves(tree)]
+    bad = jnp.zeros((), bool)
+    for a in leaves((params.contact, params.springs, params.extra)):
         bad = bad | jnp.any(~jnp.isfinite(a))
-    for a in nonneg:
-        bad = bad | jnp.any(jnp.asarray(a) < 0.0)
+    nonneg = [params.contact, params.springs]
+    unit = []
+    for name, v in params.extra.items():
+        if name.startswith("_") or name in SIGNED_EXTRAS:
+            continue
+        (unit if name in UNIT_INTERVAL_EXTRAS else nonneg).append(v)
+    for a in leaves(nonneg):
+        bad = bad | jnp.any(a < 0.0)
+    for a in leaves(unit):
+        bad = bad | jnp.any((a <= 0.0) | (a >= 1.0))
     return bad
 
 
