@@ -78,7 +78,7 @@ CLUSTER_SCRIPT = textwrap.dedent("""
 
     writes = []
     save = sw._save
-    sw._save = lambda *a: (writes.append(jax.process_index()), save(*a))
+    sw._save = lambda *a, **k: (writes.append(jax.process_index()), save(*a, **k))[1]
 
     scene = dp.Scene()
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.15))

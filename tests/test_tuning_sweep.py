@@ -298,3 +298,46 @@ def test_a_float64_batch_sets_float32_params_in_their_own_dtype():
                           batch_map=lambda f: jax.jit(jax.vmap(f)))
     out = ev(jnp.asarray([[1e4 + 0.1, 10.0]], jnp.float64))
     assert out["kc"].dtype == jnp.float32
+
+
+def test_the_table_is_written_once_at_the_end_and_agrees_after_an_interrupt(tmp_path,
+                                                                             monkeypatch):
+    """Regression: the .csv (the whole table in text) was rewritten after every chunk, so a
+    large sweep was quadratic (65536 points: 56 of its 61 s writing, the rollouts ~5 s), and
+    a Ctrl-C nearly always landed inside that write, leaving the .csv a chunk behind the
+    .npz. Now the .npz follows every chunk and the .csv is written when the sweep ends (or
+    every CSV_EVERY_S), and an interrupt that arrives while the pair is written waits for
+    both."""
+    from tuning import progress
+    out = str(tmp_path / "t.npz")
+    csv = str(tmp_path / "t.csv")
+    writes = []
+    real = S.atomic_write
+    monkeypatch.setattr(S, "atomic_write",
+                        lambda path, fn: (writes.append(os.path.basename(path)), real(path, fn)))
+    toy_sweep(out)                                   # 2 chunks
+    assert writes.count("t.npz") == 2 and writes.count("t.csv") == 1
+    table = np.loadtxt(csv, delimiter=",", skiprows=1)
+    twice = open(csv).readline().strip().split(",").index("twice")
+    k = TOY_POINTS[:, 0]
+    np.testing.assert_array_equal(table[:, twice], np.where(k > 6.0, np.nan, 2.0 * k))
+    # a signal while the first chunk's .npz is written: the .csv follows before it ends the
+    # run, so the pair agrees (done: 4 of 8 rows in both)
+    os.remove(out), os.remove(csv)
+    count = []
+
+    def signalled(path, fn):
+        real(path, fn)
+        count.append(path)
+        if len(count) == 1:
+            progress.interrupt(KeyboardInterrupt)   # what the command's SIGINT handler does
+    monkeypatch.setattr(S, "atomic_write", signalled)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            toy_sweep(out)
+    finally:
+        progress.clear_pending()
+    part = S.load_sweep(out)
+    assert part.done.sum() == 4
+    table = np.loadtxt(csv, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(table[:, -1], part.done.astype(float))

@@ -6,13 +6,17 @@ shows that it is alive and how far it is, and a short one prints nothing.
 """
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 
-__all__ = ["Progress", "interrupt", "raise_pending", "clear_pending", "pending"]
+__all__ = ["Progress", "interrupt", "raise_pending", "clear_pending", "pending",
+           "uninterrupted"]
 
 #: interrupts raised by a command's signal handler (:func:`interrupt`) and not yet ended
 _PENDING: list = []
+#: depth of :func:`uninterrupted` blocks now running (an interrupt then waits for their end)
+_HELD = [0]
 
 
 def interrupt(exc_type=KeyboardInterrupt):
@@ -20,9 +24,28 @@ def interrupt(exc_type=KeyboardInterrupt):
     handler raises where the interpreter happens to be, and Python drops an exception raised
     inside a garbage-collection callback (JAX registers one, which runs often while a
     command starts), so a Ctrl-C there was lost and the run went on. :meth:`Progress.update`
-    raises it again (:func:`raise_pending`)."""
+    raises it again (:func:`raise_pending`). Inside :func:`uninterrupted` it is only
+    remembered, and raised where the block ends."""
     _PENDING.append(exc_type)
-    raise exc_type
+    if not _HELD[0]:
+        raise exc_type
+
+
+@contextlib.contextmanager
+def uninterrupted():
+    """A block that a command's Ctrl-C or SIGTERM does not cut short (writing a set of files
+    that must agree, e.g. a sweep's .npz and its .csv): the interrupt is raised where the
+    block ends (only one that arrived inside it: an interrupt already on its way out, with
+    the block in a ``finally``, is not raised twice). Library use, without the command's
+    handlers, is not affected."""
+    before = len(_PENDING)
+    _HELD[0] += 1
+    try:
+        yield
+    finally:
+        _HELD[0] -= 1
+    if not _HELD[0] and len(_PENDING) > before:
+        raise _PENDING[-1]
 
 
 def raise_pending() -> None:

@@ -8,9 +8,9 @@ default; pass ``batch_map=tuning.shard.sharded_map`` to split the batch axis acr
 so memory stays bounded by the chunk. The last chunk is padded to the same shape, so the
 whole sweep compiles once.
 
-After every chunk the results so far are written to ``out`` (``.npz``) and a ``.csv`` beside
-it, each through a temporary file and ``os.replace`` (a crash never leaves a half-written
-file; :mod:`tuning.io`). The file carries a key of everything that determines it
+After every chunk the results so far are written to ``out`` (``.npz``), and a ``.csv`` beside
+it at the end (also of an interrupted run) and every :data:`CSV_EVERY_S` seconds, each through
+a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a key of everything that determines it
 (:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
 finished chunks are read back, not recomputed. Another key is refused with the list of what
 differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
@@ -40,7 +40,7 @@ from . import distributed
 from . import params as P
 from .io import (OutputLock, _plain, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
-from .progress import Progress
+from .progress import Progress, uninterrupted
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
            "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "function_key",
@@ -243,7 +243,24 @@ def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = 
                       metrics=sorted(keys) if keys is not None else "all", fixed=fixed)
 
 
-def _save(out: str, res: SweepResult) -> None:
+#: seconds between rewrites of the .csv during a sweep (at least 10x its write time): after
+#: every chunk, 65536 points took 56 of 61 s writing text. The .npz follows every chunk.
+CSV_EVERY_S = 30.0
+
+
+def _save(out: str, res: SweepResult, csv: bool = True) -> float:
+    """Write the .npz and, with ``csv``, the .csv (each atomic; a command's Ctrl-C waits
+    until both are replaced). Returns the seconds the .csv took (0 without it)."""
+    with uninterrupted():
+        _save_npz(out, res)
+        if not csv:
+            return 0.0
+        t0 = time.perf_counter()
+        _save_csv(out, res)
+        return time.perf_counter() - t0
+
+
+def _save_npz(out: str, res: SweepResult) -> None:
     arrays = {"names": np.array(res.names), "points": res.points, "done": res.done,
               "key": np.array(json.dumps(res.key or {})),
               "shape": np.array(res.shape if res.shape is not None else (), dtype=np.int64)}
@@ -253,6 +270,9 @@ def _save(out: str, res: SweepResult) -> None:
         for i, (k, v) in enumerate(res.axes.items()):
             arrays[f"axis:{k}"] = np.asarray(v)
     atomic_write(out, lambda fh: np.savez(fh, **arrays))
+
+
+def _save_csv(out: str, res: SweepResult) -> None:
     csv_path = os.path.splitext(out)[0] + ".csv"
     cols, header = [res.points[:, i] for i in range(res.points.shape[1])], list(res.names)
     for k, v in res.metrics.items():
@@ -525,40 +545,56 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
     chunk = min(chunk, n)
     n_chunks = -(-n // chunk)
     bar = Progress(n_chunks, "sweep chunks", progress, value="done")
-    for i in range(n_chunks):
-        a, b = i * chunk, min((i + 1) * chunk, n)
-        if res.done[a:b].all():
-            continue
-        batch = points[a:b]
-        if b - a < chunk:     # pad to the compiled batch size
-            batch = np.concatenate([batch, np.repeat(batch[-1:], chunk - (b - a), axis=0)])
-        got = {k: np.asarray(v)[: b - a]
-               for k, v in jax.device_get(evaluate(jnp.asarray(batch))).items()}
-        if finalize is not None:
-            got = {k: np.asarray(v) for k, v in finalize(dict(got), points[a:b]).items()}
-        bad = None
-        if UNSTABLE in got:   # past the safe step: never returned as a result
-            bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)
-        for k, v in got.items():
-            if bad is not None and k != UNSTABLE and v.dtype.kind in "fb" and bad.any():
-                v = np.array(v)        # a blown-up rollout's "settled" is no result either
-                v[bad] = np.nan if v.dtype.kind == "f" else False
-            if k not in res.metrics:
-                res.metrics[k] = np.full((n,) + v.shape[1:], np.nan if v.dtype.kind == "f"
-                                         else 0, dtype=v.dtype)
-            res.metrics[k][a:b] = v
-        res.done[a:b] = True
-        res.evaluated += b - a
-        if UNSTABLE in res.metrics:
-            res.unstable = int(np.sum(res.done & (np.asarray(res.metrics[UNSTABLE])
-                                                  .reshape(n, -1).any(axis=1))))
-        if out:
-            _save(out, res)
-        bar.update(i + 1, float(res.done.mean()))
-        if on_chunk is not None:
-            on_chunk(i, res)
+    csv_at, csv_cost, stale = time.perf_counter(), 0.0, False
+    try:
+        for i in range(n_chunks):
+            a, b = i * chunk, min((i + 1) * chunk, n)
+            if res.done[a:b].all():
+                continue
+            _run_chunk(res, evaluate, points, a, b, chunk, finalize)
+            if out:
+                due = time.perf_counter() - csv_at >= max(CSV_EVERY_S, 10.0 * csv_cost)
+                stale = True        # until the .csv is written (an interrupt may end _save)
+                cost = _save(out, res, csv=due)
+                if due:
+                    csv_at, csv_cost, stale = time.perf_counter(), cost, False
+            bar.update(i + 1, float(res.done.mean()))
+            if on_chunk is not None:
+                on_chunk(i, res)
+    finally:
+        if stale:           # the .npz holds chunks the .csv does not: finished or stopped
+            with uninterrupted():
+                _save_csv(out, res)
     bar.close()
     if out and res.evaluated == 0 and res.done.any():
         # everything was resumed: write the pair again, so that a run killed between
         # replacing the .npz and its .csv does not leave the table a chunk short for good
         _save(out, res)
+
+
+def _run_chunk(res, evaluate, points, a, b, chunk, finalize) -> None:
+    """Evaluate rows ``a:b`` of ``points`` (padded to the compiled ``chunk``) into ``res``."""
+    n = points.shape[0]
+    batch = points[a:b]
+    if b - a < chunk:     # pad to the compiled batch size
+        batch = np.concatenate([batch, np.repeat(batch[-1:], chunk - (b - a), axis=0)])
+    got = {k: np.asarray(v)[: b - a]
+           for k, v in jax.device_get(evaluate(jnp.asarray(batch))).items()}
+    if finalize is not None:
+        got = {k: np.asarray(v) for k, v in finalize(dict(got), points[a:b]).items()}
+    bad = None
+    if UNSTABLE in got:   # past the safe step: never returned as a result
+        bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)
+    for k, v in got.items():
+        if bad is not None and k != UNSTABLE and v.dtype.kind in "fb" and bad.any():
+            v = np.array(v)        # a blown-up rollout's "settled" is no result either
+            v[bad] = np.nan if v.dtype.kind == "f" else False
+        if k not in res.metrics:
+            res.metrics[k] = np.full((n,) + v.shape[1:], np.nan if v.dtype.kind == "f"
+                                     else 0, dtype=v.dtype)
+        res.metrics[k][a:b] = v
+    res.done[a:b] = True
+    res.evaluated += b - a
+    if UNSTABLE in res.metrics:
+        res.unstable = int(np.sum(res.done & (np.asarray(res.metrics[UNSTABLE])
+                                              .reshape(n, -1).any(axis=1))))

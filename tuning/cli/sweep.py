@@ -1,7 +1,7 @@
 """``diffpen sweep``: every (k, c) of a log-spaced grid for the ball scene, or every point of
 a grid over a scene file's parameters (``diffpen sweep SCENE.toml [--param PATH LO HI]
-[--data FILES]``, :mod:`tuning.scene_sweep`), with jax.vmap in chunks; writes .npz + .csv
-atomically after every chunk, resumes an interrupted sweep, and draws a heatmap with the
+[--data FILES]``, :mod:`tuning.scene_sweep`), with jax.vmap in chunks; writes the .npz
+atomically after every chunk and its .csv at the end (:mod:`tuning.sweep`), resumes an interrupted sweep, and draws a heatmap with the
 target contour."""
 from __future__ import annotations
 
