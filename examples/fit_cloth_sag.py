@@ -22,7 +22,7 @@ import optax
 
 import diffpen as dp
 from diffpen.builders import add_cloth
-from tuning.io import save_figure_file
+from _common import HERE, example_pyplot, picture_path, save_figure
 
 GROUP = "cloth.structural"
 
@@ -47,7 +47,8 @@ def main(argv=None) -> int:
     ap.add_argument("--method", choices=("tuning", "adam"), default="tuning",
                     help="tuning.fit (Levenberg-Marquardt on log k, a few iterations) or a "
                          "plain optax Adam loop (gradient descent, ~100 iterations)")
-    ap.add_argument("--out", default="examples/images/fit_cloth_sag.png")
+    ap.add_argument("--out", default=str(HERE / "images" / "fit_cloth_sag.png"),
+                    type=picture_path, help="the picture (default: %(default)s)")
     args = ap.parse_args(argv)
 
     # 800 steps = 1.2 s: the drag settles the sag to ~1e-5 relative by then
@@ -134,15 +135,10 @@ def _fit_adam(sag, target, k0, iters, tol):
 
 
 def _draw(history, losses, target, sag, out, method):
-    try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-        import matplotlib.ticker
-    except ImportError:
-        print("matplotlib is not installed (pip install 'diffpen[plot]'): no picture.")
+    plt = example_pyplot(out)
+    if plt is None:
         return
-    out.parent.mkdir(parents=True, exist_ok=True)
+    import matplotlib.ticker
     ks = np.geomspace(history[:, 0].min() * 0.7, history[:, 0].max() * 1.4, 9)
     sags = np.array([float(sag(k)) for k in ks])
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.4))
@@ -162,9 +158,8 @@ def _draw(history, losses, target, sag, out, method):
                  + ("optax Adam" if method == "adam" else "tuning.fit, Levenberg-Marquardt")
                  + " on log k)")
     fig.tight_layout()
-    save_figure_file(fig, out, dpi=110)
+    save_figure(fig, out, dpi=110)
     plt.close(fig)
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
