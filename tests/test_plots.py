@@ -43,3 +43,20 @@ def test_a_sweep_target_outside_the_grid_says_no_contour_is_drawn(capsys):
     assert _target_drawn(args, [[0.1, 0.9]]) is True and capsys.readouterr().err == ""
     args.plot = None
     assert _target_drawn(args, [[0.1, 0.9]]) is None
+
+
+def test_the_cloth_sag_example_checks_its_picture_path_before_computing(tmp_path,
+                                                                        monkeypatch):
+    """Regression: examples/fit_cloth_sag.py took any --out and created its folder after
+    the fit (by default ./examples/images under the current folder, wherever it ran); now
+    --out is checked first, as in the other examples."""
+    import os
+    import sys
+    here = os.path.join(os.path.dirname(__file__), "..", "examples")
+    monkeypatch.syspath_prepend(here)
+    monkeypatch.chdir(tmp_path)
+    sys.modules.pop("fit_cloth_sag", None)
+    import fit_cloth_sag
+    with pytest.raises(SystemExit) as e:
+        fit_cloth_sag.main(["--out", str(tmp_path / "missing" / "x.png")])
+    assert e.value.code == 2 and os.listdir(tmp_path) == []
