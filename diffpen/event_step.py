@@ -105,8 +105,9 @@ def spring_flow(tau, w2, b):
     d'``: ``(m11, m12, m21, m22, q1, q2)`` with ``d(tau) = m11 d0 + m12 u0 + a q1`` and
     ``d'(tau) = m21 d0 + m22 u0 + a q2`` from ``(d0, u0)`` (m, m/s; ``w2`` 1/s^2, ``b`` 1/s;
     the load ``a`` m/s^2 enters linearly). Elementwise over broadcast arrays."""
-    t = tau * (1.0 / 2 ** _SQUARINGS)
-    t, w2, b = jnp.broadcast_arrays(t, w2, b)
+    dtype = jnp.result_type(tau, w2, b)     # a Python float tau takes the rates' dtype
+    t = jnp.asarray(tau, dtype) * (1.0 / 2 ** _SQUARINGS)
+    t, w2, b = jnp.broadcast_arrays(t, jnp.asarray(w2, dtype), jnp.asarray(b, dtype))
     one, zero = jnp.ones_like(t), jnp.zeros_like(t)
 
     def taylor(i, m):                       # P <- I + (A t / j) P, augmented column with it

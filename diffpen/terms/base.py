@@ -248,7 +248,9 @@ class CompileContext:
         table = {}
         for key, (mat, inv_mass) in enumerate(self.factor_sites):
             k, c = self.contact_kc(params, mat)
-            table[key] = self.law.step_factors(k, c, inv_mass, h)
+            # in the simulator's dtype: numpy's float64 masses made a float32 simulator's
+            # constants float64 where x64 is on (the event-exact step's branches then differed)
+            table[key] = self.law.step_factors(k, c, jnp.asarray(inv_mass, self.dtype), h)
         return params._replace(extra={**params.extra, _factors_key(h): table})
 
     def step_factors(self, params: Params, key: int | None, h):
