@@ -360,14 +360,17 @@ class Simulator:
         with jax.named_scope("rigid_dynamics"):
             return a, self._rigid.alpha(state, tau)
 
-    def step(self, params: Params, state: State) -> State:
-        """Advance ``state`` by one time step ``dt``. Pure; jitted.
-
-        The plain step: its arguments are checked as a rollout's are (the params pytree and
-        its values, the state's shapes, dtypes and finite values; :class:`SceneError`), and
-        params are cast to the simulator's dtype, but no stability gate runs and
-        ``State.aux["unstable"]`` is not set (:meth:`rollout` does both)."""
+    def step(self, params: Params, state: State, *, check_stability: bool = True) -> State:
+        """Advance ``state`` by one time step ``dt``. Pure; jitted. Arguments are checked as
+        a rollout's are (:class:`SceneError`) and params cast to the simulator's dtype; with
+        concrete params the rollout's stability gate runs (:class:`StabilityError` past the
+        safe step of the simulator's substeps, 1 for "auto"; cached per parameter values),
+        unless ``check_stability=False``. Traced params: :meth:`rollout` flags them."""
         _checks.check_step(self, params, state)
+        if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
+            n = self.substeps if isinstance(self.substeps, int) else 1
+            _stability.gate(self.analysis, params, substeps=n, cache=self.gate_cache,
+                            energy=self.start_energy(state, params))
         return self._step_jit(jax.tree_util.tree_map(self._cast, params),
                               _stepping.hold_pins(self, state))
 

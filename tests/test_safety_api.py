@@ -602,3 +602,16 @@ def test_forces_checks_its_step_and_arguments():
         sim.forces(None, s)
     f, _ = sim.forces(p, s, h=1e-3)
     assert np.all(np.isfinite(np.asarray(f)))
+
+
+def test_a_step_past_the_safe_step_is_refused_as_a_rollout_is(sim):
+    """Regression: sim.step ran the params a rollout refuses (k 1e9 at dt 1e-3, safe step
+    1.6e-5 s): 300 steps of a ball dropped from 0.12 m left it at 6 m and 24 m/s upward (50x
+    its energy), a stiff spring reached 1e264 m, with no error and no flag. Now the same
+    StabilityError, unless asked not to check."""
+    p = sim.params(k=1e9, c=20.0)
+    with pytest.raises(dp.StabilityError, match="substeps="):
+        sim.step(p, sim.init_state())
+    assert np.all(np.isfinite(sim.step(p, sim.init_state(), check_stability=False).position))
+    ok = sim.step(sim.params(k=1e4, c=20.0), sim.init_state())
+    assert float(ok.position[0, 2]) < 1.0
