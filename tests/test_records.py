@@ -140,8 +140,11 @@ def test_size_guard_refuses_before_parsing(tmp_path):
     with pytest.raises(RecordError, match=r"about 2\d,\d{3} rows of 4 columns .* limit is "
                                           r"1,000 rows.*max_rows="):
         read_record(path, max_rows=1000)
-    with pytest.raises(RecordError, match=r"MiB.*max_bytes="):
+    with pytest.raises(RecordError, match=r"MiB.*max_bytes=") as e:
         read_record(path, max_bytes=10_000)
+    # regression: "pass max_rows= to read it anyway" was offered to command-line users, whose
+    # commands have no such option
+    assert "the diffpen commands keep the limit" in str(e.value)
     assert len(read_record(path, max_rows=30_000)) == 20000
     with pytest.raises(RecordError, match="is a directory"):
         read_record(str(tmp_path))

@@ -137,15 +137,16 @@ def _read_text(path: str, max_rows: int, max_bytes: int) -> str:
                 raise RecordError(
                     f"{path} is {size / 2**20:.1f} MiB (about {rows:,} rows of {cols} columns); "
                     f"records above {max_bytes / 2**20:.0f} MiB are refused before reading. "
-                    "Downsample it, or pass max_bytes= (and max_rows=) to read it anyway.")
+                    "Downsample it (in Python, read_record(..., max_bytes=, max_rows=) reads it; "
+                    "the diffpen commands keep the limit).")
             rows, cols = _estimate(path, size, sample)
             if rows > 1.2 * max_rows + 10:
                 mem = rows * cols * 8 / 2**20
                 raise RecordError(
                     f"{path} holds about {rows:,} rows of {cols} columns ({mem:.0f} MiB as "
                     f"float64, several times that while parsing); the limit is {max_rows:,} rows. "
-                    "Downsample it (a contact fit rarely needs more than a few kHz), or pass "
-                    "max_rows= to read it anyway.")
+                    "Downsample it: a contact fit rarely needs more than a few kHz (in Python, "
+                    "read_record(..., max_rows=) reads it; the diffpen commands keep the limit).")
             raw = sample + fh.read()
     except RecordError:
         raise
@@ -383,7 +384,8 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
     _check_lengths(path, header, data)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
-                          "it, or pass max_rows= to read it anyway.")
+                          "it (in Python, read_record(..., max_rows=) reads it; the diffpen "
+                          "commands keep the limit).")
     if len(data) < 2:
         raise RecordError(f"{path} has {len(data)} data row(s); a record needs at least 2.")
     t = _column(path, data, it, "t", allow_missing=False)
@@ -458,7 +460,8 @@ def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_
     _check_lengths(path, header, data, allow_missing=False)
     if len(data) > max_rows:
         raise RecordError(f"{path} has {len(data):,} rows; the limit is {max_rows:,}. Downsample "
-                          "it, or pass max_rows= to read it anyway.")
+                          "it (in Python, read_height_record(..., max_rows=) reads it; the "
+                          "diffpen commands keep the limit).")
     it, iz = low.index("t"), low.index("z")
     t = _column(path, data, it, "t", allow_missing=False)
     z = _column(path, data, iz, "z", allow_missing=False)

@@ -38,7 +38,8 @@ class _SizeGuards:
             raise self.root.error(
                 f"describes {n_bodies:,} bodies ({n_nodes:,} of them builder nodes); the limit "
                 f"is {lim['max_bodies']:,} (building and compiling such a scene takes minutes "
-                "and GiB). Make it smaller, or pass max_bodies= to load_scene_file.")
+                "and GiB). Make it smaller (in Python, load_scene_file(..., max_bodies=) reads "
+                "it; the diffpen commands keep the limit).")
         spheres = [e for k in ("spheres", "rigid_spheres") for e in
                    (self.doc.get(k) if isinstance(self.doc.get(k), list) else [])
                    if isinstance(e, dict) and e.get("collide", True) is not False]
@@ -53,10 +54,11 @@ class _SizeGuards:
             raise self.root.error(
                 f"has {ns:,} colliding spheres and {nb:,} boxes: {pairs:,} contact pairs "
                 f"evaluated every step without a broad phase (about {mem:.1f} GiB of pair "
-                f"arrays per step and {build / 60:.0f} min to list them before compiling); the "
+                f"arrays per step and {_duration(build)} to list them before compiling); the "
                 f"limit is {lim['max_dense_pairs']:,}. Add broadphase = {{ kind = \"grid\" }} "
-                "(or { kind = \"aabb\", max_pairs = ... }) at the top level, or pass "
-                "max_dense_pairs= to load_scene_file.")
+                "(or { kind = \"aabb\", max_pairs = ... }) at the top level (in Python, "
+                "load_scene_file(..., max_dense_pairs=) reads it as it is; the diffpen commands "
+                "keep the limit).")
         steps = duration / dt
         per_body = 13 if (n_direct["boxes"] or n_direct["rigid_spheres"]) else 6
         traj = steps * max(n_bodies, 1) * per_body * 8
@@ -69,3 +71,8 @@ class _SizeGuards:
                 f"{human_time(seconds)}. The limits are {lim['max_steps']:,} steps and "
                 f"{human_bytes(lim['max_trajectory_bytes'])}; shorten duration, raise dt, or pass "
                 "max_steps= / max_trajectory_bytes= to load_scene_file.")
+
+
+def _duration(seconds: float) -> str:
+    """``"40 s"`` below two minutes, ``"12 min"`` above (a cost estimate, never "0 min")."""
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
