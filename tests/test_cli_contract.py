@@ -103,3 +103,20 @@ def test_every_example_answers_help_without_running(capsys):
             assert capsys.readouterr().out.startswith("usage:"), path.name
     finally:
         sys.path.remove(str(EXAMPLES))
+
+
+def test_help_states_what_maxiter_bounds_and_the_defaults(capsys):
+    """Regression: `fit --maxiter` bounds the whole fit, each horizon stage or each stage
+    depending on the fit, and --help said only "iteration limit"; report and bench stated no
+    defaults for --k, --c, --mass, --radius, --height, --repeats."""
+    for argv, words in ((["fit", "--help"], ["whole fit for targets", "per horizon stage",
+                                             "default 15", "default 30"]),
+                        (["report", "--help"], ["(default 10000;", "(default 20)",
+                                                "(default 1)", "(default 0.1)",
+                                                "no recommendation"]),
+                        (["bench", "--help"], ["default 5"])):
+        with pytest.raises(SystemExit):
+            main(argv)
+        text = " ".join(capsys.readouterr().out.split())
+        for w in words:
+            assert w in text, (argv, w)

@@ -21,7 +21,8 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
     p.add_argument("--float64", action="store_true", help="also run every case in float64")
     p.add_argument("--repeats", type=int, default=5,
-                   help="timed runs per figure after compilation (median reported)")
+                   help="timed runs per figure after compilation (median reported; default "
+                        "%(default)s)")
 
 
 _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),

@@ -91,7 +91,11 @@ def add_arguments(p) -> None:
                    help="lm (Levenberg-Marquardt, default) or a first-order optax optimiser")
     p.add_argument("--lr", type=positive("--lr"), default=DEFAULT_LR,
                    help="learning rate on log-parameters for adam/sgd (default 0.05)")
-    p.add_argument("--maxiter", type=count("--maxiter"), help="iteration limit")
+    p.add_argument("--maxiter", type=count("--maxiter"),
+                   help="iteration limit: of the whole fit for targets (default 40 with lm, "
+                        "400 with adam/sgd); per horizon stage for records (t,z records: "
+                        "default 15, the last stage twice as many; position records: default "
+                        "30, or the scene file's [fit] maxiter)")
     p.add_argument("--k0", type=positive("--k0"),
                    help="start stiffness, N/m (Hunt-Crossley: N/m^n)")
     p.add_argument("--c0", type=positive("--c0"),

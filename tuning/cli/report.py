@@ -29,15 +29,15 @@ def add_arguments(p) -> None:
                    help="accuracy: write the log-log work-precision diagram here")
     p.add_argument("--tol", type=positive("--tol"),
                    help="accuracy: recommend the cheapest integrator and dt whose relative "
-                        "apex-height error on the ball is <= TOL")
+                        "apex-height error on the ball is <= TOL (default: no recommendation)")
     p.add_argument("--k", type=positive("--k"), default=1e4, help="ball contact k, N/m "
-                   "(gradients: the last table's ball; the event tables keep their fixed "
-                   "cases)")
-    p.add_argument("--c", type=finite("--c"), default=20.0, help="ball contact c, N s/m")
-    p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg")
-    p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m")
+                   "(default %(default)g; gradients: the last table's ball; the event tables "
+                   "keep their fixed cases)")
+    p.add_argument("--c", type=finite("--c"), default=20.0, help="ball contact c, N s/m (default %(default)g)")
+    p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg (default %(default)g)")
+    p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m (default %(default)g)")
     p.add_argument("--height", type=positive("--height"), default=1.0,
-                   help="ball drop height of the centre, m")
+                   help="ball drop height of the centre, m (default %(default)g)")
     p.add_argument("--scenes", nargs="+", default=["ball", "chain"], choices=["ball", "chain"],
                    help="stability: scenes of the matrix")
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"],
@@ -45,7 +45,8 @@ def add_arguments(p) -> None:
     p.add_argument("--integrators", nargs="+", default=None,
                    help="integrators (default: all four)")
     p.add_argument("--repeats", type=count("--repeats"), default=5,
-                   help="accuracy: timed runs per point after compilation (median reported)")
+                   help="accuracy: timed runs per point after compilation (median reported; "
+                        "default %(default)s)")
 
 
 #: the flags each report reads (besides --quick and --json); any other is refused, not ignored

@@ -58,7 +58,9 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     body = 0                        # index or name (bounce fits: the bouncing body)
     plane = 0                       # index or name
     settle_tol = 1e-3               # m
-    method = "lm"                   # "lm", "adam", "sgd";  maxiter = 40;  lr = 0.05 (optax)
+    method = "lm"                   # "lm", "adam", "sgd";  lr = 0.05 (optax)
+    maxiter = 40                    # targets: the whole fit (default 40 lm, 400 optax);
+                                    #   records: per horizon stage (default 30; t,z 15)
     observe = ["cube"]              # bodies the records observe (default: the named bodies)
     first_state = "fit"             # record fits: "record" (row 0) or "fit" (parabola);
     flight_frames = 20              #   its cap on flight frames (default: the first flight);
