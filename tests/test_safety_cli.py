@@ -75,7 +75,7 @@ def err_of(capsys, argv):
     (["fit", "--mass", "1e-300"], "the ball's mass 1e-300 kg is outside 1e-100..1e+100 kg"),
     # read by nothing, accepted without a word
     (["fit", "--lr", "0.1"], "--lr is the learning rate of the optax optimisers"),
-    (["fit", "--loss", "l1"], "--first-state and --loss need a scene file"),
+    (["fit", "--loss", "l1"], "--loss are options of fits to position records"),
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)
@@ -339,5 +339,9 @@ def test_plot_with_a_scene_file_fit_is_refused_before_fitting(capsys, tmp_path):
                      "[[planes]]\nmaterial = \"rubber\"\n[fit]\n"
                      "params = [\"contact.rubber.k\"]\n[fit.targets]\napex_heights = [0.3]\n")
     rc, err = err_of(capsys, ["fit", str(scene), "--plot", str(tmp_path / "y.png")])
-    assert rc == 2 and "not scene-file fits" in err
+    assert rc == 2 and "fit prints its fitted values" in err
     assert not (tmp_path / "y.png").exists()
+    # regression: --out on this target fit said "--out ... need a scene file" (one was given)
+    rc, err = err_of(capsys, ["fit", str(scene), "--out", str(tmp_path / "f.toml")])
+    assert rc == 2 and "need a scene file" not in err
+    assert "is fitted to its [fit] targets or a t,z record" in err

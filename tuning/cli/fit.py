@@ -199,8 +199,14 @@ def _run(args) -> int:
     if (args.out or args.horizon or args.starts or args.keep != 1
             or args.flight_frames is not None or args.first_state is not None
             or args.loss != "l2"):
-        raise CLIError("--out, --horizon, --starts, --keep, --flight-frames, --first-state "
-                       "and --loss need a scene file and --data records")
+        opts = ("--out, --horizon, --starts, --keep, --flight-frames, --first-state and "
+                "--loss are options of fits to position records (diffpen fit SCENE.toml "
+                "--data FILES... with x, y, z columns)")
+        if args.scene is None:
+            raise CLIError(opts + "; the built-in ball takes none of them")
+        raise CLIError(f"{opts}; {args.scene} is fitted to its [fit] targets or a t,z record, "
+                       "a fit that prints the fitted values: drop those options (and copy the "
+                       "values into the file to keep them)")
     if args.scene is None and args.method == "lm" and args.lr != DEFAULT_LR:
         # it was accepted and unused
         raise CLIError("--lr is the learning rate of the optax optimisers (--method adam or "
@@ -212,9 +218,10 @@ def _run(args) -> int:
         args.data = args.data[0]
     if args.scene is not None:
         if args.plot:       # refused before fitting (it was a note after it, and no file)
-            raise CLIError("--plot draws fits of the built-in ball (targets or --data t,z), "
-                           "not scene-file fits; plot a scene file's motion with diffpen "
-                           "evaluate FITTED.toml --data FILES... --plot DIR")
+            raise CLIError("--plot draws fits of the built-in ball (targets or --data t,z); "
+                           f"{args.scene}'s fit prints its fitted values (a scene file fitted "
+                           "to position records is drawn by diffpen evaluate FITTED.toml "
+                           "--data FILES... --plot DIR)")
         from .. import scenefile
         setup_jax()
         return _report(args, *scenefile.fit_file(args.scene, progress=None if not args.json
