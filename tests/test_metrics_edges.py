@@ -146,3 +146,15 @@ def test_a_ball_at_rest_from_the_start_has_decay_time_zero(plain):
     # a ball resting on the plane has no launch flight: its drop height is its energy
     # height, its start height (a first version of the launch rule read nan there)
     assert float(m["drop_height"]) == pytest.approx(-G / 1e4, abs=1e-6)
+
+
+@pytest.mark.parametrize("steps", [1, 2])
+def test_a_rollout_too_short_for_an_apex_has_none(steps):
+    """Regression: a one-step rollout (two samples with the start) raised a raw "zero-size
+    array to reduction operation min" (`diffpen simulate ball --steps 1`); now its metrics
+    are all n/a, as for two steps."""
+    sim = dp.compile(ball(), 1e-3)
+    p = sim.params(k=1e4, c=20.0)
+    m = M.ball_metrics(sim, sim.rollout(p, steps), p)
+    assert np.all(np.isnan(np.asarray(m.apex_heights)))
+    assert not np.any(np.asarray(m.apex_valid))

@@ -95,7 +95,7 @@ def _first(mask):
     reduction over indices: XLA CPU vectorises it, unlike ``argmax`` (about 5x slower on
     batched trajectories)."""
     s = mask.shape[0]
-    return jnp.min(jnp.where(mask, jnp.arange(s), s))
+    return jnp.min(jnp.where(mask, jnp.arange(s), s), initial=s)
 
 
 def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = True):
@@ -117,6 +117,8 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     Returns:
       (heights (n,), valid (n,) bool); heights of missing apexes are nan.
     """
+    if h.shape[0] < 3:                  # no sample has two neighbours: no apex to find
+        return jnp.full((n,), jnp.nan, h.dtype), jnp.zeros((n,), bool)
     hm, h0, hp = h[:-2], h[1:-1], h[2:]
     q = hm - 2.0 * h0 + hp                                   # second difference (< 0 at a top)
     flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
