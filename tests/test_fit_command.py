@@ -259,3 +259,21 @@ def _fit_json(capsys, argv):
     capsys.readouterr()
     assert main(argv + ["--json"]) == 0
     return json.loads(capsys.readouterr().out)
+
+
+def test_a_cold_default_fit_compiles_its_sixteen_programs_and_no_more(tmp_path):
+    """Regression: printing the damping ratio through dp.physical.damping_ratio's eager jax
+    operations added programs to every cold start of `diffpen fit` (25 in its persistent
+    cache instead of 16; each small program costs 5-70 ms to compile). The command, whole,
+    in a fresh process with an empty cache folder."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, DIFFPEN_CACHE="1", DIFFPEN_CACHE_DIR=str(tmp_path / "cache"),
+               JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    out = subprocess.run([sys.executable, "-m", "tuning.cli", "fit", "--json"], env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout)["reached"] is True
+    assert len(os.listdir(tmp_path / "cache")) <= 16, sorted(os.listdir(tmp_path / "cache"))

@@ -303,7 +303,9 @@ def damping_ratio_or_none(law, k, c, mass) -> float | None:
     rec = dp.laws.get(law or "linear")
     if rec.exponent != 1.0 or rec.damping_exponent != 0.0:
         return None
-    return float(dp.physical.damping_ratio(k, c, mass))
+    # dp.physical.damping_ratio's formula on the fitted floats: its eager jax operations (a
+    # check and a select) compiled seven more programs on every cold start of diffpen fit
+    return float(c) / (2.0 * math.sqrt(float(k) * float(mass)))
 
 
 def _report(args, out: dict, plot_fn=None) -> int:
