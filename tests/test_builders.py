@@ -321,3 +321,15 @@ def test_a_refused_builder_leaves_the_scene_as_it_was():
     nodes = add_rope(scene=scene, n=3, start=(0, 1, 1), end=(0.2, 1, 1), mass=0.3, k=50.0,
                      group="tether")
     assert len(nodes) == 3 and "tether.stretch" in scene.spring_groups
+
+
+@pytest.mark.parametrize("make, words", [
+    (lambda sc: sc.chain(dt=0.0), "dt must be a finite number of seconds > 0"),
+    (lambda sc: sc.ball(duration=float("nan")), "duration must be a finite number"),
+    (lambda sc: sc.cloth(n=1), "cloth n must be a whole number of nodes >= 3"),
+])
+def test_built_in_scenes_check_their_timing_and_size(make, words):
+    """Regression: tuning.scenes.chain(dt=0) and cloth(n=1) raised a bare ZeroDivisionError."""
+    from tuning import scenes
+    with pytest.raises(dp.SceneError, match=words):
+        make(scenes)

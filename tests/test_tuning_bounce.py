@@ -245,12 +245,22 @@ def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch, ball_s
     for kw, say in (({"maxiter": 0}, "maxiter"), ({"method": "adam"}, "unknown method"),
                     ({"settle_tol": float("nan")}, "settle_tol"),
                     ({"settle_tol": -1e-3}, "settle_tol"), ({"settle_tol": 0.0}, "settle_tol"),
-                    ({"plane": 2}, "plane 2 is not in the scene")):
+                    ({"plane": 2}, "plane 2 is not in the scene"),
+                    # regressions: "needs about inf / nan steps ... Give dt >= 1.6e-06 s"
+                    ({"dt": 0.0}, "dt must be a finite number of seconds > 0, got 0.0"),
+                    ({"dt": float("nan")}, "dt must be a finite number of seconds > 0")):
         with pytest.raises(FitError, match=say):
             B.fit_bounce(scene, target, **kw)
+    # regression: a quoted target was read as a number (scene files refuse quoted numbers)
+    with pytest.raises(FitError, match="without quotes"):
+        B.fit_bounce(scene, {"apex_heights": ["0.4"]})
+    with pytest.raises(FitError, match="a number or a list of numbers"):
+        B.fit_bounce(scene, {"apex_heights": [True]})
     monkeypatch.undo()
     sim = ball_sim                      # the same ball, compiled
     for kw, say in (({"n_apex": 0}, "n_apex"), ({"body": 3}, "body 3 is not in the scene"),
                     ({"plane": 2}, "plane 2"), ({"settle_tol": float("nan")}, "settle_tol")):
         with pytest.raises(FitError, match=say):
             B.bounce_metrics_fn(sim, 10, **kw)
+    with pytest.raises(FitError, match="steps must be a positive integer"):
+        B.bounce_metrics_fn(sim, 0)             # accepted; failed when first called

@@ -341,3 +341,13 @@ def test_the_table_is_written_once_at_the_end_and_agrees_after_an_interrupt(tmp_
     assert part.done.sum() == 4
     table = np.loadtxt(csv, delimiter=",", skiprows=1)
     np.testing.assert_array_equal(table[:, -1], part.done.astype(float))
+
+
+def test_grid_axes_and_point_counts_are_checked():
+    """Regression: grid_points took NaN and empty axes (a NaN lane, a sweep of nothing),
+    random_points(n=-1) said only "negative dimensions are not allowed"."""
+    for axis in ([1e3, float("nan")], []):
+        with pytest.raises(ValueError, match="axis 'k' must hold finite values"):
+            S.grid_points({"k": axis})
+    with pytest.raises(ValueError, match="n must be a whole number of points >= 0"):
+        S.random_points({"k": (1.0, 10.0)}, -1)

@@ -191,6 +191,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
         raise FitError("bounce metrics need a plane for the body to bounce on.")
     _check_plane(sim.scene, plane)
     positive_int("n_apex", n_apex, "how many bounces are reported")
+    positive_int("steps", steps, "the rollout's length")
     _check_settle_tol(settle_tol)
     t_end = steps * sim.dt
 
@@ -318,6 +319,10 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        "could not be told from one that settled on time. Give a duration of "
                        f"at least {SETTLE_MARGIN:g} x the target, or leave it out (default "
                        "1.4 x the target + 0.2 s).")
+    if not (isinstance(dt, (int, float, np.floating, np.integer)) and not isinstance(dt, bool)
+            and math.isfinite(dt) and dt > 0.0):
+        raise FitError(f"time step dt must be a finite number of seconds > 0, got {dt!r} "
+                       "(default 1e-3 s).")
     ratio = duration / dt
     if not ratio <= MAX_STEPS:
         raise FitError(f"time step dt = {dt:g} s needs about {ratio:.3g} steps for the "

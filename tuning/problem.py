@@ -59,6 +59,11 @@ def normalise_targets(targets: dict) -> dict:
     from .bounce import BOUNCE_METRICS          # heights, times, depths: all > 0
     out = {}
     for name, val in targets.items():
+        if any(isinstance(v, (str, bytes, bool, np.bool_)) for v in np.ravel(
+                np.asarray(val, dtype=object))):         # "0.4" was read as 0.4, True as 1
+            raise FitError(f"target {name!r} must be a number or a list of numbers, got "
+                           f"{val!r}" + (": write it without quotes." if "'" in repr(val)
+                                          or '"' in repr(val) else "."))
         try:
             arr = np.atleast_1d(np.asarray(val, dtype=float))
         except (TypeError, ValueError):

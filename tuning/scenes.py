@@ -9,9 +9,13 @@ run and report it. Add a scene by adding an entry::
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable
 
+import numpy as np
+
 import diffpen as dp
+from diffpen import SceneError
 
 __all__ = ["SceneSetup", "SCENES", "ball_scene", "ball", "chain", "cloth", "get_scene"]
 
@@ -71,6 +75,15 @@ def ball_scene(*, radius: float = 0.1, mass: float = 1.0, height: float = 1.0,
     return scene
 
 
+def _timing(dt, duration) -> None:
+    """A built-in scene's ``dt`` and ``duration`` (s): finite numbers > 0 (a ZeroDivisionError
+    before)."""
+    for name, v in (("dt", dt), ("duration", duration)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(v) and v > 0.0):
+            raise SceneError(f"{name} must be a finite number of seconds > 0, got {v!r}.")
+
+
 def ball(*, radius: float = 0.1, mass: float = 1.0, drop: float = 1.0, k: float = 1e4,
          c: float = 20.0, dt: float = 1e-3, duration: float = 3.0, gravity: float = 9.81,
          settle_tol: float = 1e-3, n_apex: int = 3, law: str = "linear") -> SceneSetup:
@@ -85,6 +98,7 @@ def ball(*, radius: float = 0.1, mass: float = 1.0, drop: float = 1.0, k: float 
     if not drop > radius:
         raise dp.SceneError(f"the ball's centre must start above its radius: drop={drop} m "
                             f"<= radius={radius} m would start in contact. Raise --drop.")
+    _timing(dt, duration)
     scene = ball_scene(radius=radius, mass=mass, height=drop, gravity=gravity)
     steps = max(1, int(round(duration / dt)))
     return SceneSetup(scene=scene, dt=dt, steps=steps, k=k, c=c, law=law, body=0,
@@ -103,6 +117,7 @@ def chain(*, seed: int = 0, dt: float = 0.1, duration: float = 200.0, k: float =
     and ``max_error_vs_equilibrium`` (m). ``k``/``c`` (contact) are unused: no contacts.
     """
     from diffpen.builders import paper_chain, paper_chain_equilibrium
+    _timing(dt, duration)
     scene, balls = paper_chain(seed=seed)
 
     def metrics(sim, traj, params):
@@ -127,6 +142,10 @@ def cloth(*, n: int = 9, size: float = 0.4, mass: float = 0.25, structural: floa
     ``max_speed`` (m/s, fastest node at the end: ~0 once settled). ``k``/``c`` are unused.
     """
     from diffpen.builders import add_cloth
+    _timing(dt, duration)
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 3:
+        raise SceneError(f"cloth n must be a whole number of nodes >= 3 (a centre node between "
+                         f"pinned corners), got {n!r}.")
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     nodes = add_cloth(scene, n, n, size / (n - 1), mass=mass, structural=(structural, 0.05),
                       shear=(10.0, 0.02), bend=(2.0, 0.0), drag=0.05,

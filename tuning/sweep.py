@@ -95,6 +95,10 @@ def grid_points(axes: dict) -> tuple[np.ndarray, tuple]:
 
     Returns (points (N, P), shape)."""
     vals = [np.asarray(v, float).reshape(-1) for v in axes.values()]
+    for name, v in zip(axes, vals):
+        if v.size == 0 or not np.all(np.isfinite(v)):
+            raise ValueError(f"grid_points: axis {name!r} must hold finite values, got "
+                             f"{axes[name]!r}.")
     mesh = np.meshgrid(*vals, indexing="ij")
     return np.stack([m.reshape(-1) for m in mesh], axis=1), tuple(len(v) for v in vals)
 
@@ -103,6 +107,8 @@ def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> n
     """``n`` random points in the box ``bounds = {path: (lo, hi)}`` (log-uniform when ``log``).
 
     Returns (n, P)."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+        raise ValueError(f"random_points: n must be a whole number of points >= 0, got {n!r}.")
     rng = np.random.default_rng(seed)
     cols = []
     for name, (lo, hi) in bounds.items():
