@@ -86,6 +86,7 @@ from .autodiff import grad, value_and_grad  # noqa: E402
 from .compile import Simulator, compile  # noqa: E402
 from .errors import (ContactWarning, NonFiniteError, PerformanceWarning,  # noqa: E402
                      SceneError, StabilityError)
+from .precision import PrecisionWarning  # noqa: E402
 from .integrators import Integrator  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .state import ContactParams, Params, SpringParams, State, Trajectory  # noqa: E402
@@ -96,6 +97,7 @@ __all__ = [
     "Scene", "compile", "Simulator", "Integrator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning", "ContactWarning",
+    "PrecisionWarning",
     "laws", "geometry", "integrators", "physical", "builders", "plastic",
     "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

@@ -187,7 +187,8 @@ class Simulator:
             gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
             contact_wh=contact_law.safe_wh or _stability.SAFE_WH,
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
-                scene, contact_law, passive_terms) else None))
+                scene, contact_law, passive_terms) else None),
+            min_step=_precision.min_resolved_step(scene, self.dtype))
         self.gate_cache = _stability.GateCache()
         self._steps: dict = {}              # substep count -> pure step (built once each)
         self._step_jit = jax.jit(self.step_function())
@@ -407,8 +408,7 @@ class Simulator:
                       observe=None, energy=None):
         self._rollout_traces[0] += 1           # runs only when JAX traces a new program
         params = jax.tree_util.tree_map(self._cast, params)
-        # the traced stability flag: past the safe step for these (possibly traced) values
-        # (energy: the start energy the up-front gate counted, diffpen.stability.depth)
+        # the traced stability flag (energy: the up-front gate's, diffpen.stability.depth)
         if energy is None and self.analysis.depth_exponent is not None:
             # the start state or a named plane's offset is traced: the same energy, traced
             energy = _start_energy.traced(self, params, state)

@@ -615,3 +615,24 @@ def test_a_step_past_the_safe_step_is_refused_as_a_rollout_is(sim):
     assert np.all(np.isfinite(sim.step(p, sim.init_state(), check_stability=False).position))
     ok = sim.step(sim.params(k=1e4, c=20.0), sim.init_state())
     assert float(ok.position[0, 2]) < 1.0
+
+
+def test_a_step_too_short_for_float32_warns():
+    """Regression: in float32 a 10 cm ball dropped from 1 m at dt = 1e-7 s stood still while
+    its velocity grew (its displacement per step rounded away) and fell 1.9% short in 0.2 s,
+    without a word (the far-from-origin check looked at coordinates only); a stiff bead's
+    substeps="auto" picked such a step too. Now a PrecisionWarning naming float64 and the
+    shortest step resolved (6.0e-7 s here); float64 and ordinary steps stay silent."""
+    import warnings
+    scene = ball_scene()
+    for dtype, dt, warns in ((jnp.float32, 1e-7, True), (jnp.float32, 1e-5, False),
+                             (jnp.float64, 1e-7, False)):
+        s = dp.compile(scene, dt, dtype=dtype)
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            s.rollout(s.params(k=1e4, c=20.0), 5, save_every=5)
+        hits = [w for w in got if issubclass(w.category, dp.PrecisionWarning)]
+        assert bool(hits) == warns, (dtype, dt, [str(w.message) for w in got])
+        if warns:
+            assert "dtype=float64" in str(hits[0].message) and "6e-07 s" in str(hits[0].message)
+            assert hits[0].filename == __file__          # points at the caller's rollout

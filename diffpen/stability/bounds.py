@@ -111,6 +111,8 @@ class Analysis(NamedTuple):
       ``diffpen.laws.ContactLaw.safe_wh``).
     depth_exponent: the contact law's n where the start energy may bound the reference depth
       (:func:`diffpen.stability.depth.qualifies`), else None.
+    min_step: the shortest inner step (s) the dtype resolves at the scene's scale
+      (:func:`diffpen.precision.min_resolved_step`; shorter ones warn).
     """
     integrator: Integrator
     dt: float
@@ -124,6 +126,7 @@ class Analysis(NamedTuple):
     gravity: float = 0.0
     contact_wh: float = SAFE_WH
     depth_exponent: float | None = None
+    min_step: float = 0.0
 
     @property
     def inner_dt(self) -> float:

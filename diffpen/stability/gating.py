@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .. import precision as _precision
 from ..errors import SceneError, StabilityError
 from .bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION, Analysis, rates
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, safe_dt, stable_dt
@@ -198,6 +199,13 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     concrete scalar values. ``energy``: as :func:`report` takes it.
     """
     an = _analysis(sim)
+    n = _gate_count(an, params, check, substeps, cache, energy)
+    _precision.warn_step(an.min_step, an.dt / n, an.dtype, stacklevel=4)
+    return n
+
+
+def _gate_count(an, params, check, substeps, cache, energy) -> int:
+    """:func:`gate`'s substep count (and its refusals)."""
     auto = an.substeps == "auto" and substeps is None
     fixed = substeps if substeps is not None else (an.substeps if not auto else None)
     if not an.integrator.explicit:
