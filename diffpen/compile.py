@@ -181,7 +181,8 @@ class Simulator:
         self.substeps = substeps if substeps == "auto" else int(substeps)
         self.analysis = _stability.Analysis(
             integrator=method, dt=dt, substeps=self.substeps, mass=self.mass.astype(float),
-            pinned=self.pinned.copy(), d_ref=np.maximum(self.radius.astype(float), 1e-3),
+            pinned=self.pinned.copy(), d_ref=np.maximum(np.maximum(
+                self.radius.astype(float), _depth.start_depths(scene)), 1e-3),
             bounds=tuple(b for t in self._terms for b in t.bound),
             contact_scale=contact_law.stiffness, dtype=self.dtype,
             gravity=float(np.linalg.norm(np.asarray(scene.gravity, float))),
@@ -189,8 +190,7 @@ class Simulator:
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
                 scene, contact_law, passive_terms) else None),
             min_step=_precision.min_resolved_step(scene, self.dtype))
-        self.gate_cache = _stability.GateCache()
-        self._steps: dict = {}              # substep count -> pure step (built once each)
+        self.gate_cache, self._steps = _stability.GateCache(), {}   # substeps -> pure step
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._search_aux_jit = jax.jit(self._search_aux)
