@@ -505,7 +505,8 @@ def _check_state(sim, state) -> None:
                                  "sim.init_state() and replace values with ._replace().")
             dt = getattr(g, "dtype", None)
             if dt is None or np.dtype(dt) != np.dtype(w.dtype):
-                raise SceneError(f"state.{name} has dtype {dt}, this simulator runs in "
+                got = f"dtype {dt}" if dt is not None else f"no dtype ({type(g).__name__})"
+                raise SceneError(f"state.{name} has {got}, this simulator runs in "
                                  f"{np.dtype(w.dtype).name}: cast it (jnp.asarray(x, "
                                  f"{np.dtype(w.dtype).name})) or start from sim.init_state().")
     for field in ("position", "velocity", "orientation", "angular_velocity"):

@@ -388,7 +388,7 @@ class Scene:
         body = self.bodies[i]
         try:
             q, norm = unit_vector(finite_vec("orientation (w, x, y, z)", orientation, 4))
-            if norm < 1e-12:
+            if norm == 0.0:         # any other finite one is normalised (1e-13 was "zero")
                 raise SceneError("orientation quaternion is zero: give a rotation as "
                                  "(w, x, y, z), e.g. (1, 0, 0, 0) for none.")
             w = vec3("angular_velocity (rad/s)", angular_velocity)

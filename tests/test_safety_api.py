@@ -67,6 +67,10 @@ def test_rollout_refuses_bad_params_state_and_sizes_before_tracing(sim, monkeypa
         sim.rollout(p, 10, s0._replace(position=jnp.zeros((2, 3))))
     with pytest.raises(dp.SceneError, match="state.velocity has dtype"):
         sim.rollout(p, 10, s0._replace(velocity=s0.velocity.astype(jnp.float32)))
+    # regression: a Python float time read "state.time has dtype None"
+    with pytest.raises(dp.SceneError, match=r"state.time has no dtype \(float\), this "
+                                            r"simulator runs in float64: cast it"):
+        sim.rollout(p, 10, s0._replace(time=0.5))
     with pytest.raises(dp.SceneError) as exc:            # names the state, not the time step
         sim.rollout(p, 10, s0._replace(position=s0.position.at[0, 2].set(jnp.nan)))
     assert "start state is not finite: state.position of body 0" in str(exc.value)
@@ -535,6 +539,9 @@ def test_huge_and_tiny_normals_and_quaternions_are_normalised():
     np.testing.assert_allclose(s.planes[1].normal, (h, 0.0, h), rtol=1e-15)
     with pytest.raises(dp.SceneError, match="plane normal must be non-zero"):
         s.add_plane((0.0, 0.0, 0.0))
+    # regression: an orientation of norm 1e-13 was refused as "zero" (normals of 5e-324 pass)
+    s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 3.0), orientation=(1e-13, 1e-13, 0.0, 0.0))
+    np.testing.assert_allclose(s.bodies[1].orientation, (h, h, 0.0, 0.0), rtol=1e-15)
 
 
 def test_rollout_switches_take_true_or_false_only():

@@ -36,6 +36,7 @@ def err_of(capsys, argv):
     (["fit", "--plot", "/proc/nope/x.png"], "--plot /proc/nope/x.png: the folder /proc/nope"),
     (["sweep", "--n", "100000"], "GiB for the results alone"),
     (["sweep", "--n", "100000"], "lower --n"),
+    (["sweep", "--dt", "1e-12"], "or raise --dt"),        # the cause was not among the advice
     (["sweep", "--duration", "1e-6"], "--duration 1e-06 s is only 0 step(s)"),
     (["sweep", "--target", "nan"], "--target must be a finite number"),
     (["sweep", "--n", "1.5"], "--n must be an integer, got '1.5'"),

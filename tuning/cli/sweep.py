@@ -127,7 +127,7 @@ def check_size(points: int, steps: int, chunk: int, memory: float | None = None)
     if live > 0.5 * memory:
         raise CLIError(f"a chunk of {min(chunk, points)} points x {steps} steps needs about "
                        f"{_gib(live)} (this machine has {_gib(memory)}): lower --chunk or "
-                       "--duration")
+                       "--duration, or raise --dt")
     if seconds > 7 * 86400:
         raise CLIError(f"{points} points x {steps} steps would take about {human_time(seconds)}"
                        f" at ~{RATE:.0e} ball-steps/s: lower --n or --duration")
