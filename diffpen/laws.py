@@ -50,6 +50,7 @@ import math
 from typing import Callable
 
 import jax.numpy as jnp
+import numpy as np
 
 from .event_step import (event_step_factors, hunt_crossley_events, linear_events,
                          no_tension_events)
@@ -477,7 +478,11 @@ def get(law, exponent: float = 1.0, centred: bool = False, events: bool = False)
     name's record with its damping at the step window's centre, ``events`` its event-exact
     one-contact record, :mod:`diffpen.event_step`). Raises ValueError naming the choices
     otherwise, and an ``exponent`` other than 1 for any other name, or other than a record's
-    own (it was ignored: a linear law asked for with exponent 2.0 ran linear)."""
+    own (it was ignored: a linear law asked for with exponent 2.0 ran linear), or not a
+    number (``"1.5"`` was read as 1.5, ``True`` as 1)."""
+    if isinstance(exponent, (str, bytes, bool, np.bool_)):
+        raise ValueError(f"exponent must be a number, got {exponent!r}"
+                         + (": write it without quotes." if isinstance(exponent, str) else "."))
     if isinstance(law, ContactLaw):
         if exponent not in (1.0, law.exponent):
             raise ValueError(f"exponent={exponent!r} differs from the contact law record's own "

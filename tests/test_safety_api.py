@@ -45,6 +45,11 @@ def test_dt_and_params_are_not_coerced_and_k_is_a_scalar(sim):
         dp.compile(ball_scene(), "1e-3")
     with pytest.raises(dp.SceneError, match="dt must be a number"):
         dp.compile(ball_scene(), True)
+    # regression: a quoted exponent was read as a number, True as n = 1
+    with pytest.raises(dp.SceneError, match="exponent must be a number, got '1.5': write it"):
+        dp.compile(ball_scene(), 1e-3, law="hunt_crossley", exponent="1.5")
+    with pytest.raises(dp.SceneError, match="exponent must be a number, got True"):
+        dp.compile(ball_scene(), 1e-3, law="hunt_crossley", exponent=True)
     with pytest.raises(dp.SceneError, match="got '1e4': write it without quotes"):
         sim.params(k="1e4", c=1.0)
     with pytest.raises(dp.SceneError, match="must be a number, got True"):
