@@ -153,13 +153,15 @@ def min_resolved_step(scene, dtype) -> float:
     """The shortest inner step (s) at which ``dtype`` resolves the motion of the scene's
     bodies under gravity where they are (:data:`FREEZE_FRACTION`): ``spacing / (2 g
     FREEZE_FRACTION sqrt(L / g))``, ``spacing`` the dtype's spacing of numbers at the scene's
-    farthest coordinate (at least 1 m). 0 without gravity or free bodies. Float32 near 1 m:
-    6.0e-7 s for a 10 cm ball, 1.9e-6 s for a 1 cm one; float64: ~1e-15 s."""
+    farthest coordinate plus its largest body. 0 without gravity or free bodies. Float32, a
+    ball dropped from 1 m: 6.0e-7 s for a 10 cm ball, 1.9e-6 s for a 1 cm one; a 1 mm ball
+    dropped from 5 mm: 2.4e-8 s; float64: ~1e-15 s."""
     g = float(np.linalg.norm(np.asarray(scene.gravity, float)))
     if g == 0.0 or not any(not b.pinned for b in scene.bodies):
         return 0.0
     far, sizes = _extent(scene)
-    spacing = float(np.spacing(np.dtype(dtype).type(max(far, 1.0))))
+    reach = far + max(sizes, default=0.0)   # where the bodies' surfaces are (mm scenes: mm)
+    spacing = float(np.spacing(np.dtype(dtype).type(reach)))
     fall = float(np.sqrt((min(sizes) if sizes else 1.0) / g))
     return spacing / (2.0 * g * FREEZE_FRACTION * fall)
 

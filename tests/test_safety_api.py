@@ -648,3 +648,10 @@ def test_a_step_too_short_for_float32_warns():
         if warns:
             assert "dtype=float64" in str(hits[0].message) and "6e-07 s" in str(hits[0].message)
             assert hits[0].filename == __file__          # points at the caller's rollout
+    # a 1 mm ball dropped from 5 mm near the origin, where float32 resolves ~250x finer than
+    # at 1 m: dt 2e-6 s agrees with float64 to 6e-5 of the radius and does not warn (the
+    # spacing was taken at 1 m at least)
+    small = dp.Scene()
+    small.add_sphere(0.001, 3.3e-5, (0.0, 0.0, 0.005))
+    small.add_plane()
+    assert dp.precision.min_resolved_step(small, np.float32) < 2e-6
