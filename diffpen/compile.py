@@ -110,7 +110,6 @@ class Simulator:
             builtin_terms=builtin_terms)
         exponent = float(contact_law.exponent)
 
-
         self.scene = scene
         self.dt = dt
         self.integrator = method.name
@@ -189,7 +188,8 @@ class Simulator:
             contact_wh=contact_law.safe_wh or _stability.SAFE_WH,
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
                 scene, contact_law, passive_terms) else None),
-            min_step=_precision.min_resolved_step(scene, self.dtype))
+            min_step=_precision.min_resolved_step(scene, self.dtype), extra_ranges=_stability
+            .bounds.extra_ranges(self._extra_defaults, self._extra_checks))
         self.gate_cache, self._steps = _stability.GateCache(), {}   # substeps -> pure step
         self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))

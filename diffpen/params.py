@@ -64,6 +64,10 @@ def _check_value(name: str, v) -> None:
         raise SceneError(f"{name} must be >= 0, got {shown!r}: {why}.")
 
 
+#: the range the traced stability flag holds values of this check to (diffpen.stability.bounds)
+_check_value.traced_range = (0.0, float("inf"), False)
+
+
 #: the names under which :func:`_check_value` sees stiffness and damping values
 _PAIR_KINDS = ("contact k", "contact c", "spring k", "spring c")
 

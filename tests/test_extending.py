@@ -234,3 +234,24 @@ def test_toy_term_material_must_be_in_the_scene(spring_and_ball):
     """A builder declaring a material the scene lacks is refused at compile, naming it."""
     with pytest.raises(dp.SceneError, match="'wall'.*add_material"):
         dp.compile(spring_and_ball, 1e-2, terms=(*dp.terms.BUILTIN, TOY_WALL))
+
+
+def test_a_custom_extra_of_either_sign_does_not_set_the_stability_flag():
+    """Regression: the traced flag held every extra entry but plane offsets to >= 0, so a
+    term whose own check allows a negative value (a wall at x = -0.2 m) set aux["unstable"]
+    on every rollout, concrete or jitted, well inside the safe step. The flag now follows
+    each entry's check: its traced_range, or any finite value for a check without one."""
+    def signed_wall(ctx):
+        term = _toy_wall(ctx)
+        return None if term is None else term._replace(
+            checks={"toy_wall": lambda label, v: None})      # any sign
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_material("wall", k=1e4, c=0.0)
+    scene.add_particle(1.0, (0.0, 0.0, 0.0), (-1.0, 0.0, 0.0))
+    sim = dp.compile(scene, 1e-3, terms=(*dp.terms.BUILTIN, dp.terms.TermBuilder(
+        signed_wall, bound=_toy_wall_bound, materials=lambda ctx: ("wall",))))
+    p = sim.params(extra={"toy_wall": {"x": -0.2}})
+    assert not bool(sim.rollout(p, 50, save_every=50).aux["unstable"][-1])
+    run = jax.jit(lambda x: sim.rollout(sim.params(extra={"toy_wall": {"x": x}}), 50,
+                                        save_every=50).aux["unstable"][-1])
+    assert not bool(run(-0.2)) and bool(run(jnp.nan))

@@ -15,7 +15,7 @@ from .depth import energy_depth
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, SAFE_WH, _spectral_radius_2x2
 
 __all__ = ["Bound", "Analysis", "Rates", "rates", "scene_rates", "unsafe", "precision_unsafe",
-           "params_out_of_range",
+           "params_out_of_range", "extra_ranges",
            "FLAG", "IMPLICIT_PRECISION", "RESTING_RESOLUTION"]
 
 #: ``State.aux`` key of the traced stability flag: a bool scalar, True once a rollout ran a
@@ -113,6 +113,7 @@ class Analysis(NamedTuple):
       (:func:`diffpen.stability.depth.qualifies`), else None.
     min_step: the shortest inner step (s) the dtype resolves at the scene's scale
       (:func:`diffpen.precision.min_resolved_step`; shorter ones warn).
+    extra_ranges: the ``Params.extra`` entries' ranges (:func:`extra_ranges`).
     """
     integrator: Integrator
     dt: float
@@ -127,6 +128,7 @@ class Analysis(NamedTuple):
     contact_wh: float = SAFE_WH
     depth_exponent: float | None = None
     min_step: float = 0.0
+    extra_ranges: tuple = ()
 
     @property
     def inner_dt(self) -> float:
@@ -326,7 +328,7 @@ def unsafe(an: Analysis, params, h=None, energy=None):
     rec = an.integrator
     params = jax.lax.stop_gradient(params)
     if not rec.explicit:
-        return precision_unsafe(an, params, h) | params_out_of_range(params)
+        return precision_unsafe(an, params, h) | params_out_of_range(params, an.extra_ranges)
     h = an.inner_dt if h is None else h
     r = rates(an, params, xp=jnp, energy=energy)
     K, C = jnp.max(r.K_row, initial=0.0), jnp.max(r.C_row, initial=0.0)
@@ -351,24 +353,29 @@ def unsafe(an: Analysis, params, h=None, energy=None):
     tie = 1.0 + SAFE_TIE
     bad = bad | ((Kc > 0.0) & (an.contact_wh * tie / jnp.where(Kc > 0.0, wc, 1.0) < h))
     bad = bad | ((Cc > 0.0) & (SAFE_CH * tie / jnp.where(Cc > 0.0, Cc, 1.0) < h))
-    return bad | params_out_of_range(params)
+    return bad | params_out_of_range(params, an.extra_ranges)
 
 
-#: ``Params.extra`` entries of any sign (m), and those within (0, 1) (yield strains); every
-#: other entry (friction, drag) is >= 0, as ``sim.params`` checks concrete values
-#: (``diffpen.params._check_value`` and the terms' own checks). Entries named ``_...`` are a
-#: rollout's step constants: finite only.
-SIGNED_EXTRAS = frozenset({"plane_offset"})
-UNIT_INTERVAL_EXTRAS = frozenset({"plastic"})
+def extra_ranges(defaults: dict, checks: dict) -> tuple:
+    """``((name, range), ...)`` of a simulator's ``Params.extra`` entries for
+    :func:`params_out_of_range`: each from the check ``sim.params`` runs on it (its
+    ``traced_range``: ``(lo, hi, open)``, or None for any finite value); the default check
+    (``diffpen.params._check_value``) holds values >= 0, a term's own check without a
+    ``traced_range`` any finite value (a custom term's wall position may be negative)."""
+    from ..params import _check_value
+    return tuple((name, getattr(checks.get(name, _check_value), "traced_range", None))
+                 for name in defaults)
 
 
-def params_out_of_range(params):
+def params_out_of_range(params, ranges: tuple = ()):
     """Traced range check of ``params`` (a bool scalar; tracers welcome): True where a value
-    is not finite, a stiffness, damping, friction or drag is negative, or a yield strain is
-    outside (0, 1): the ranges ``sim.params`` refuses for concrete values. Under ``jit`` or
-    ``vmap`` nothing can be refused, and such a value reads as no limit to the step tests
-    (every comparison with NaN is False; a negative value never reaches one), so the flag
-    carries it."""
+    is not finite, a contact's or spring group's stiffness or damping is negative, or an
+    ``extra`` entry is outside its range (``ranges``, :func:`extra_ranges`: friction and drag
+    >= 0, yield strains in (0, 1); entries not named, such as a rollout's ``_...`` step
+    constants, finite only): the ranges ``sim.params`` refuses for concrete values. Under
+    ``jit`` or ``vmap`` nothing can be refused, and such a value reads as no limit to the
+    step tests (every comparison with NaN is False; a negative value never reaches one), so
+    the flag carries it."""
     import jax
     import jax.numpy as jnp
 
@@ -377,16 +384,14 @@ def params_out_of_range(params):
     bad = jnp.zeros((), bool)
     for a in leaves((params.contact, params.springs, params.extra)):
         bad = bad | jnp.any(~jnp.isfinite(a))
-    nonneg = [params.contact, params.springs]
-    unit = []
-    for name, v in params.extra.items():
-        if name.startswith("_") or name in SIGNED_EXTRAS:
-            continue
-        (unit if name in UNIT_INTERVAL_EXTRAS else nonneg).append(v)
-    for a in leaves(nonneg):
+    for a in leaves((params.contact, params.springs)):
         bad = bad | jnp.any(a < 0.0)
-    for a in leaves(unit):
-        bad = bad | jnp.any((a <= 0.0) | (a >= 1.0))
+    for name, rng in ranges:
+        if rng is None or name not in params.extra:
+            continue
+        lo, hi, open_ = rng
+        for a in leaves(params.extra[name]):
+            bad = bad | jnp.any(((a <= lo) | (a >= hi)) if open_ else ((a < lo) | (a > hi)))
     return bad
 
 

@@ -362,6 +362,9 @@ def _check_finite(label: str, v) -> None:
         raise SceneError(f"{label} must be a finite number of metres, got {v!r}.")
 
 
+_check_finite.traced_range = None       # any sign (diffpen.stability.bounds)
+
+
 def _one(bound):
     return () if bound is None else (bound,)
 

@@ -74,6 +74,9 @@ def _check_yield(label: str, value) -> None:
                          f"{value!r}.")
 
 
+_check_yield.traced_range = (0.0, 1.0, True)     # open (diffpen.stability.bounds)
+
+
 def _length_rate(xa, xb, va, vb):
     """Length (m), its rate (m/s) and the unit axis a <- b of ONE spring."""
     delta = xa - xb
