@@ -148,7 +148,9 @@ class Term(NamedTuple):
       value may be a ``{group: scalar}`` dict: such entries of several terms are merged, and
       ``sim.params(extra=...)`` checks each group's value; other values are kept as given).
     checks: ``{extra name: check(label, value)}`` validating concrete values given to
-      ``sim.params`` (raises SceneError); default: a real, finite scalar >= 0.
+      ``sim.params`` (raises SceneError); default: a real, finite scalar >= 0. A check's
+      ``traced_range`` attribute, ``(lo, hi, open)``, is what the traced stability flag holds
+      traced values to (none: any finite value; ``diffpen.stability.extra_ranges``).
     aux: initial ``State.aux`` entries, ``{name: array}`` (e.g. plastic rest lengths, m).
     update: optional ``update(params, state) -> {name: array}``: the ``State.aux`` entries
       recomputed after every step from the new state (e.g. plastic yield).
