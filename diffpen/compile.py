@@ -365,15 +365,13 @@ class Simulator:
         """Advance ``state`` by one time step ``dt``. Pure; jitted. Arguments are checked as
         a rollout's are (:class:`SceneError`) and params cast to the simulator's dtype; with
         concrete params the rollout's stability gate runs (:class:`StabilityError` past the
-        safe step of the simulator's substeps, 1 for "auto"; cached per parameter values),
-        unless ``check_stability=False``. Traced params: :meth:`rollout` flags them."""
+        safe step; "auto" takes the substeps it picks; :func:`diffpen.stability.step_gate`),
+        unless ``check_stability=False`` (then 1 substep for "auto"). Traced params:
+        :meth:`rollout` flags them."""
         _checks.check_step(self, params, state)
-        if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
-            n = self.substeps if isinstance(self.substeps, int) else 1
-            _stability.gate(self.analysis, params, substeps=n, cache=self.gate_cache,
-                            energy=self.start_energy(state, params))
-        return self._step_jit(jax.tree_util.tree_map(self._cast, params),
-                              _stepping.hold_pins(self, state))
+        n = _stability.step_gate(self, params, state) if check_stability else None
+        return _stepping.jitted(self, n)(jax.tree_util.tree_map(self._cast, params),
+                                         _stepping.hold_pins(self, state))
 
     def step_function(self, substeps: int | None = None):
         """The pure (unjitted) step ``step(params, state) -> state`` over ``dt`` in

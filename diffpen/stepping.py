@@ -11,7 +11,7 @@ import numpy as np
 
 from .integrators import build_step, substepped
 
-__all__ = ["build", "hold_pins"]
+__all__ = ["build", "hold_pins", "jitted"]
 
 
 def build(sim, n: int):
@@ -94,3 +94,15 @@ def _searching_step(sim, h: float, inv_mass):
                 aux.update(term.record(aux, found[term.name]))
         return new._replace(aux=aux)
     return step
+
+
+def jitted(sim, n: int | None):
+    """``sim``'s jitted step over ``n`` inner steps (None: its own count, 1 for "auto"),
+    built once per count: what :meth:`~diffpen.Simulator.step` calls."""
+    default = sim.substeps if isinstance(sim.substeps, int) else 1
+    if n is None or n == default:
+        return sim._step_jit
+    key = ("jit", int(n))
+    if key not in sim._steps:
+        sim._steps[key] = jax.jit(sim.step_function(int(n)))
+    return sim._steps[key]

@@ -655,3 +655,27 @@ def test_a_step_too_short_for_float32_warns():
     small.add_sphere(0.001, 3.3e-5, (0.0, 0.0, 0.005))
     small.add_plane()
     assert dp.precision.min_resolved_step(small, np.float32) < 2e-6
+
+
+def test_a_step_loop_gets_the_rollouts_verdict_through_a_bounce_and_auto_substeps():
+    """Regression: sim.step's gate counted the energy of each state it was given, so a Hertz
+    ball (k 1e6 N/m^1.5, dt 1e-3 s) that its rollout steps safely was refused mid-bounce
+    (a touching state has no energy bound: the radius's stiffer bound), and it ran the gate
+    on every call; with substeps="auto" it stepped one substep and told the user to compile
+    with substeps='auto'. Now one verdict per params kept through the contact, and "auto"
+    steps with the count it picks, as a rollout does."""
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.4))
+    scene.add_plane()
+    hertz = dp.compile(scene, 1e-3, law="hunt_crossley", exponent=1.5)
+    p = hertz.params(k=1e6, c=0.0)
+    state, low = hertz.init_state(), 1.0
+    for _ in range(400):                                 # falls, bounces, flies again
+        state = hertz.step(p, state)
+        low = min(low, float(state.position[0, 2]))
+    assert low < 0.1 < float(state.position[0, 2])
+    np.testing.assert_allclose(state.position, hertz.rollout(p, 400).position[-1], rtol=1e-12)
+    auto = dp.compile(ball_scene(), 1e-3, substeps="auto")
+    q = auto.params(k=1e7, c=20.0)
+    one = auto.step(q, auto.init_state())
+    np.testing.assert_allclose(one.position, auto.rollout(q, 1).position[-1], rtol=1e-12)

@@ -55,11 +55,12 @@ Layout: :mod:`.modes` (one oscillator mode: amplification, stable and safe steps
 """
 from .bounds import (FLAG, Analysis, Bound, Rates, params_out_of_range, precision_unsafe, rates,
                      scene_rates, unsafe)
-from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report
+from .gating import MAX_AUTO_SUBSTEPS, GateCache, StabilityReport, gate, report, step_gate
 from .modes import (SAFE_CH, SAFE_STABLE, SAFE_WH, mode_amplification, mode_stable_dt, safe_dt,
                     stable_dt)
 
 __all__ = ["mode_amplification", "mode_stable_dt", "stable_dt", "safe_dt", "SAFE_WH",
            "SAFE_CH", "SAFE_STABLE", "Bound", "Analysis", "Rates", "rates", "scene_rates",
-           "unsafe", "precision_unsafe", "params_out_of_range", "FLAG", "StabilityReport", "report", "gate",
+           "unsafe", "precision_unsafe", "params_out_of_range", "FLAG", "StabilityReport",
+           "report", "gate", "step_gate",
            "GateCache", "MAX_AUTO_SUBSTEPS"]

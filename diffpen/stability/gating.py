@@ -170,6 +170,7 @@ class GateCache:
     def __init__(self, size: int = 1024):
         self.size = size
         self._verdicts: dict = {}
+        self.steps: dict = {}       # step_gate's verdicts: params key -> (energy, substeps)
 
     def get(self, key):
         return None if key is None else self._verdicts.get(key)
@@ -263,6 +264,32 @@ def _implicit_precision(an: Analysis, params, substeps: int) -> None:
         f"(w h)^2 = {K * h * h:.3g} swamps the identity at machine epsilon {eps:.2g} (the "
         f"matrix is singular in rounding). Use dtype=float64, or a step <= {h_ok:.3g} s "
         f"(substeps={n}).", stable_dt=h_ok, substeps=n)
+
+
+def step_gate(sim, params, state) -> int | None:
+    """The gate of ``Simulator.step``: :func:`gate` for concrete ``params`` (None for traced
+    ones, which the step cannot refuse), returning the substep count to step with ("auto":
+    its pick). Once per set of parameter values: a loop of steps pays a look-up. A law that
+    stiffens with depth counts the energy of the state it is given
+    (``Simulator.start_energy``); a later state keeps the verdict when it has no more energy,
+    or none it can count (a body in contact: in a loop of steps that is the energy of the
+    flight before, which the contacts only dissipate; a rollout from the same start counts
+    the same, and a step loop was refused mid-bounce at the radius's bound)."""
+    import jax
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(params)):
+        return None
+    an, cache = sim.analysis, sim.gate_cache
+    energy = sim.start_energy(state, params) if an.depth_exponent is not None else None
+    key = _scalar_key(params)
+    seen = cache.steps.get(key) if key is not None else None
+    if seen is not None and (seen[0] is None or energy is None or energy <= seen[0]):
+        return seen[1]
+    n = gate(an, params, cache=cache, energy=energy)
+    if key is not None:
+        if len(cache.steps) >= cache.size:
+            cache.steps.clear()
+        cache.steps[key] = (energy, n)
+    return n
 
 
 def _scalar_key(params):
