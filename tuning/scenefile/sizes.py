@@ -54,7 +54,7 @@ class _SizeGuards:
             raise self.root.error(
                 f"has {ns:,} colliding spheres and {nb:,} boxes: {pairs:,} contact pairs "
                 f"evaluated every step without a broad phase (about {mem:.1f} GiB of pair "
-                f"arrays per step and {_duration(build)} to list them before compiling); the "
+                f"arrays per step and {human_time(build)} to list them before compiling); the "
                 f"limit is {lim['max_dense_pairs']:,}. Add broadphase = {{ kind = \"grid\" }} "
                 "(or { kind = \"aabb\", max_pairs = ... }) at the top level (in Python, "
                 "load_scene_file(..., max_dense_pairs=) reads it as it is; the diffpen commands "
@@ -69,10 +69,7 @@ class _SizeGuards:
                 f"= {duration:g} s at dt = {dt:g} s is {steps:.3g} steps: a rollout saving "
                 f"every step would hold about {human_bytes(traj)} and run for roughly "
                 f"{human_time(seconds)}. The limits are {lim['max_steps']:,} steps and "
-                f"{human_bytes(lim['max_trajectory_bytes'])}; shorten duration, raise dt, or pass "
-                "max_steps= / max_trajectory_bytes= to load_scene_file.")
+                f"{human_bytes(lim['max_trajectory_bytes'])}; shorten duration or raise dt (in "
+                "Python, load_scene_file(..., max_steps=, max_trajectory_bytes=) reads it; the "
+                "diffpen commands keep the limit).")
 
-
-def _duration(seconds: float) -> str:
-    """``"40 s"`` below two minutes, ``"12 min"`` above (a cost estimate, never "0 min")."""
-    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
