@@ -168,6 +168,37 @@ class OverlapIndex:
                 lst.remove(idx)
         self.allowed.discard(idx)
 
+    def start_pair_depths(self, scene) -> np.ndarray:
+        """(n,) m: each body's deepest start overlap with another colliding body, over the
+        pairs with a body added with ``allow_overlap`` (every other pair is held to
+        :data:`OVERLAP_TOL` of its smaller size); 0 where none."""
+        bodies, out = scene.bodies, np.zeros(len(scene.bodies))
+
+        def deepen(idx, depth):
+            np.maximum.at(out, idx, np.maximum(np.asarray(depth, float), 0.0))
+        for i in sorted(self.allowed):
+            b = bodies[i]
+            if b.kind == "box":
+                near = [j for j in self._near(b.position, b.radius, len(bodies))
+                        if j != i and bodies[j].kind != "box"]
+                if near:
+                    d = _sphere_box_depth(np.array([bodies[j].position for j in near]),
+                                          np.array([bodies[j].radius for j in near]), b)
+                    deepen(near, d), deepen([i] * len(near), d)
+                continue
+            x, r = np.asarray(b.position, float), float(b.radius)
+            near = [j for j in self._near(x, r, len(bodies))
+                    if j != i and bodies[j].kind != "box"]
+            if near:
+                xs = np.array([bodies[j].position for j in near], float)
+                d = np.array([bodies[j].radius for j in near]) + r - np.linalg.norm(
+                    xs - x, axis=1)
+                deepen(near, d), deepen([i] * len(near), d)
+            for j in self.boxes:
+                d = _sphere_box_depth(x[None], np.array([r]), bodies[j])
+                deepen([j], d), deepen([i], d)
+        return out
+
     # ------------------------------------------------------------ checks
     def check_body(self, scene, body, idx: int, allow: bool = False) -> None:
         """Check a new body (not yet in ``scene.bodies``) against planes, fixed spheres,

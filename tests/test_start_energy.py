@@ -439,3 +439,21 @@ def test_a_body_started_deeper_than_its_radius_is_bounded_at_its_start_depth(cen
     z, v = float(traj.position[-1, 0, 2]), float(traj.velocity[-1, 0, 2])
     e0 = 1e6 * depth ** 2.5 / 2.5 + 9.81 * centre
     assert 0.5 * v * v + 9.81 * z < 1.08 * e0
+
+
+def test_a_sphere_started_deep_inside_a_free_body_takes_that_depth():
+    """Regression: start depths counted planes and fixed spheres only: a Hertz sphere (r 2 cm,
+    0.1 kg, k 1e6 N/m^1.5, no gravity) started 0.4 m deep in a free 1e6 kg sphere kept its
+    2 cm radius as reference depth, took 5 auto substeps and left with 10.6% more energy
+    than the contact stored (in the same sphere fixed: 0.4 m, 7 substeps, +5.3%). Now both
+    bodies of the pair take the 0.4 m."""
+    k, n, depth = 1e6, 1.5, 0.4
+    scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    scene.add_sphere(0.5, 1e6, (0.0, 0.0, 0.0), allow_overlap=True)
+    scene.add_sphere(0.02, 0.1, (0.5 + 0.02 - depth, 0.0, 0.0), allow_overlap=True)
+    scene.add_material("default", k=k, c=0.0)
+    sim = dp.compile(scene, 1e-3, law=dp.laws.hunt_crossley(n), substeps="auto")
+    traj = sim.rollout(sim.params(), 400, save_every=400)
+    v = np.asarray(traj.velocity[-1])
+    ke = 0.5 * np.sum(np.array([1e6, 0.1])[:, None] * v * v)
+    assert ke / (k * depth ** (n + 1) / (n + 1)) - 1.0 < 0.06
