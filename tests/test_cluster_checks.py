@@ -151,3 +151,24 @@ def test_clusters_that_cannot_run_stop_every_process_with_a_clear_error():
         assert "ended on an error" not in err, (sig, err)      # a signal is no error
         assert "Traceback" not in err and "Gloo" not in err.split("stopped:")[0], (sig, err)
         assert stopped_after(sig) < 20, sig
+
+
+def test_a_stopping_process_lets_the_files_it_is_writing_finish(monkeypatch, capsys):
+    """Regression: the cluster watcher's stop (another process ended, e.g. on SIGTERM)
+    exited at once, also between a sweep's .npz and its .csv, which then disagreed. It now
+    waits for the block writing them (tuning.progress.uninterrupted), 30 s at most."""
+    import os
+
+    from tuning import distributed
+    from tuning.progress import uninterrupted
+    exits = []
+    monkeypatch.setattr(os, "_exit", lambda code: exits.append((code, time.monotonic())))
+    with uninterrupted():
+        stopper = threading.Thread(target=distributed._stop, args=(0, "a test"))
+        stopper.start()
+        time.sleep(0.3)
+        assert exits == []
+        written = time.monotonic()
+    stopper.join(5.0)
+    assert exits and exits[0][0] == distributed.STOPPED_STATUS and exits[0][1] >= written
+    assert "a process of the cluster stopped: a test" in capsys.readouterr().err

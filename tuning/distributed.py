@@ -29,6 +29,7 @@ import json
 import os
 import pickle
 import sys
+import time
 from typing import Callable
 
 import numpy as np
@@ -218,7 +219,6 @@ def _watch_cluster(silent_s: int) -> None:
     take it for stopped while they finish."""
     import atexit
     import threading
-    import time
 
     import jax
     from jax._src import distributed as jax_distributed
@@ -346,7 +346,6 @@ def _wait_for_the_others(client, me: int, n: int, limit_s: float) -> None:
     """Wait up to ``limit_s`` s until every other process has said that it ended (normally
     or on an error) in the watch's key-value entries; a process stopped by the watch says
     nothing, so the wait then runs to its limit."""
-    import time
     end = time.monotonic() + limit_s
     while time.monotonic() < end:
         try:
@@ -359,9 +358,20 @@ def _wait_for_the_others(client, me: int, n: int, limit_s: float) -> None:
         time.sleep(0.1)
 
 
+#: the longest a stopping process waits for files it is writing (a sweep's .npz and .csv,
+#: :func:`tuning.progress.uninterrupted`) before it exits, s
+_WRITE_GRACE_S = 30.0
+
+
 def _stop(me: int, why: str) -> None:
-    """One line on standard error, then exit with :data:`STOPPED_STATUS` at once (no cleanup:
-    the main thread may be waiting on the stopped process inside a collective)."""
+    """One line on standard error, then exit with :data:`STOPPED_STATUS` (no cleanup: the
+    main thread may be waiting on the stopped process inside a collective), once files
+    being written as a set are written (at most :data:`_WRITE_GRACE_S`: process 0 stopped
+    between a sweep's .npz and its .csv when the others ended on SIGTERM)."""
+    from .progress import held
+    deadline = time.monotonic() + _WRITE_GRACE_S
+    while held() and time.monotonic() < deadline:
+        time.sleep(0.02)
     try:
         sys.stdout.flush()
         sys.stderr.write(f"a process of the cluster stopped: {why}; process {me} stops too "

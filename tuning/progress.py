@@ -11,7 +11,7 @@ import sys
 import time
 
 __all__ = ["Progress", "interrupt", "raise_pending", "clear_pending", "pending",
-           "uninterrupted"]
+           "uninterrupted", "held"]
 
 #: interrupts raised by a command's signal handler (:func:`interrupt`) and not yet ended
 _PENDING: list = []
@@ -29,6 +29,11 @@ def interrupt(exc_type=KeyboardInterrupt):
     _PENDING.append(exc_type)
     if not _HELD[0]:
         raise exc_type
+
+
+def held() -> bool:
+    """Whether an :func:`uninterrupted` block is running (in any thread)."""
+    return bool(_HELD[0])
 
 
 @contextlib.contextmanager
