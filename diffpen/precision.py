@@ -159,7 +159,10 @@ def min_resolved_step(scene, dtype) -> float:
     g = float(np.linalg.norm(np.asarray(scene.gravity, float)))
     if g == 0.0 or not any(not b.pinned for b in scene.bodies):
         return 0.0
-    far, sizes = _extent(scene)
+    far, _ = _extent(scene)
+    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in scene.bodies
+             if not b.pinned]
+    sizes = [s for s in sizes if s > 0.0]     # free bodies: a pinned one never falls
     reach = far + max(sizes, default=0.0)   # where the bodies' surfaces are (mm scenes: mm)
     spacing = float(np.spacing(np.dtype(dtype).type(reach)))
     fall = float(np.sqrt((min(sizes) if sizes else 1.0) / g))

@@ -351,3 +351,7 @@ def test_grid_axes_and_point_counts_are_checked():
             S.grid_points({"k": axis})
     with pytest.raises(ValueError, match="n must be a whole number of points >= 0"):
         S.random_points({"k": (1.0, 10.0)}, -1)
+    with pytest.raises(ValueError, match="at least one axis"):
+        S.grid_points({})                       # "need at least one array to stack"
+    with pytest.raises(ValueError, match="at least one"):
+        S.random_points({}, 3)

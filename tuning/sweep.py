@@ -40,6 +40,7 @@ from . import distributed
 from . import params as P
 from .io import (OutputLock, _plain, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
+from .points import grid_points, random_points  # noqa: F401  (public here too)
 from .progress import Progress, uninterrupted
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
@@ -88,41 +89,6 @@ class SweepResult:
         if index is not None:
             v = v[:, index]
         return v.reshape(self.shape + v.shape[1:])
-
-
-def grid_points(axes: dict) -> tuple[np.ndarray, tuple]:
-    """All combinations of ``axes = {path: values}`` (first axis slowest).
-
-    Returns (points (N, P), shape)."""
-    vals = [np.asarray(v, float).reshape(-1) for v in axes.values()]
-    for name, v in zip(axes, vals):
-        if v.size == 0 or not np.all(np.isfinite(v)):
-            raise ValueError(f"grid_points: axis {name!r} must hold finite values, got "
-                             f"{axes[name]!r}.")
-    mesh = np.meshgrid(*vals, indexing="ij")
-    return np.stack([m.reshape(-1) for m in mesh], axis=1), tuple(len(v) for v in vals)
-
-
-def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> np.ndarray:
-    """``n`` random points in the box ``bounds = {path: (lo, hi)}`` (log-uniform when ``log``).
-
-    Returns (n, P)."""
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-        raise ValueError(f"random_points: n must be a whole number of points >= 0, got {n!r}.")
-    rng = np.random.default_rng(seed)
-    cols = []
-    for name, (lo, hi) in bounds.items():
-        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-            raise ValueError(f"random_points: bounds of {name!r} must be finite with lo < hi, "
-                             f"got ({lo}, {hi}).")
-        if log and lo <= 0.0:
-            raise ValueError(f"random_points: bounds of {name!r} are ({lo}, {hi}); log-uniform "
-                             "points need lo > 0: pass log=False for a signed leaf (e.g. a "
-                             "plane offset) or a lower bound above 0.")
-        u = rng.random(n)
-        cols.append(np.exp(np.log(lo) + u * (np.log(hi) - np.log(lo))) if log
-                    else lo + u * (hi - lo))
-    return np.stack(cols, axis=1)
 
 
 def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
