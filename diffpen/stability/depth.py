@@ -336,20 +336,29 @@ def energy_depth(exponent: float, k, energy, xp=np):
 
 def start_depths(scene) -> np.ndarray:
     """(n,) m: each body's deepest penetration into a plane, fixed sphere or another body at
-    its start pose (a sphere's or particle's centre, a box's corners; 0 where none). A body started deeper
-    than its radius (``allow_overlap=True``) takes this as its reference depth: at the radius
-    the safe step counted a Hertz ball started 0.6 m deep 27x softer than it was, and its
-    launch gained 19% of its energy."""
+    its start pose (a sphere's or particle's centre, a box's corners; 0 where none). A body
+    started deeper than its radius (``allow_overlap=True``) takes this as its reference
+    depth: at the radius the safe step counted a Hertz ball started 0.6 m deep 2.4x softer
+    than it was, and its launch gained 19% of its energy."""
     from ..overlap import box_corners
-    out = np.zeros(len(scene.bodies))
-    for i, b in enumerate(scene.bodies):
+    bodies = scene.bodies
+    out = np.zeros(len(bodies))
+    if not bodies:
+        return out
+    x = np.array([b.position for b in bodies], float)
+    r = np.array([0.0 if b.half_extents else b.radius for b in bodies], float)
+    for pl in scene.planes:             # centres (spheres, particles), one array per plane
+        out = np.maximum(out, r + pl.offset - x @ np.asarray(pl.normal, float))
+    for fs in scene.fixed_spheres:
+        out = np.maximum(out, r + fs.radius - np.linalg.norm(x - np.asarray(fs.center, float),
+                                                                 axis=1))
+    for i, b in enumerate(bodies):      # a box's corners
         if b.half_extents:
-            pts, r = box_corners(b), 0.0
-        else:
-            pts, r = np.asarray(b.position, float)[None], float(b.radius)
-        depth = [r + pl.offset - pts @ np.asarray(pl.normal, float) for pl in scene.planes]
-        depth += [r + fs.radius - np.linalg.norm(pts - np.asarray(fs.center, float), axis=-1)
-                  for fs in scene.fixed_spheres]
-        out[i] = max([0.0] + [float(np.max(d)) for d in depth])
+            c = box_corners(b)
+            depth = [pl.offset - c @ np.asarray(pl.normal, float) for pl in scene.planes]
+            depth += [fs.radius - np.linalg.norm(c - np.asarray(fs.center, float), axis=-1)
+                      for fs in scene.fixed_spheres]
+            out[i] = max([0.0] + [float(np.max(d)) for d in depth])
+    out = np.maximum(out, 0.0)
     index = getattr(scene, "_overlap", None)        # pairs of bodies started inside each other
     return out if index is None else np.maximum(out, index.start_pair_depths(scene))
