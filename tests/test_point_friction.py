@@ -147,3 +147,23 @@ def test_a_particle_on_a_rough_fixed_sphere_slides_or_holds_by_the_slope(mu):
     else:
         v = sim.rollout(sim.params(k=K, c=C), steps=500, save_every=500).velocity[-1, 0]
         assert float(jnp.linalg.norm(v)) < 2 * SLIP
+
+
+def test_a_spring_pressing_a_body_on_a_rough_plane_counts_in_the_safe_step():
+    """Regression: friction's viscous rate below the slip speed was bounded at the weight
+    m g only. A 1 kg ball pressed onto a rough plane (mu 0.5, slip speed 1 cm/s) by a spring
+    of 1000 N passed the gate at dt 4e-4 s ("ok", margin 1.25) and never stopped: its
+    sliding velocity flipped between +0.099 and -0.102 m/s every step. The springs' start
+    tension is counted now: refused there, naming friction; with the substeps it asks for
+    the ball stops (as at dt 1e-5 s)."""
+    scene = dp.Scene()
+    scene.add_material("rough", 1e6, 200.0, friction=0.5, slip_speed=0.01)
+    ball = scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1), velocity=(0.5, 0.0, 0.0))
+    scene.add_plane(material="rough")
+    scene.add_spring(ball, (0.0, 0.0, 0.1 - 10.0), k=100.0, rest_length=0.0)
+    sim = dp.compile(scene, 4e-4)
+    with pytest.raises(dp.StabilityError, match="friction of material 'rough'"):
+        sim.rollout(sim.params(), 10)
+    auto = dp.compile(scene, 4e-4, substeps="auto")
+    v = np.asarray(auto.rollout(auto.params(), 500, save_every=10).velocity[-5:, 0, 0])
+    assert np.all(np.abs(v) < 1e-4), v

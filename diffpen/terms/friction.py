@@ -71,20 +71,49 @@ def row_mu(params, rough, fi, like):
                      + [jnp.zeros_like(like)])[fi]
 
 
-def friction_row(scene, i: int, material: str, levers):
-    """Friction below the slip speed is viscous: ``mu m |g| / s`` (at least 1 g) per body,
-    as a damping rate weight (1/s per unit mu)."""
+def friction_row(scene, i: int, material: str, levers, spring_load: float = 0.0):
+    """Friction below the slip speed is viscous: ``mu f / s`` per body, as a damping rate
+    weight (1/s per unit mu), ``f`` its weight ``m |g|`` (at least 1 g) plus ``spring_load``
+    (N, :func:`spring_loads`)."""
     b, mat = scene.bodies[i], scene.materials[material]
-    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81) + spring_load
     return (i, material, load / mat.slip_speed * _rigid.mobility(scene, i, levers))
+
+
+def spring_loads(scene) -> np.ndarray:
+    """(n,) N: the tension of the springs and anchored springs joined to each body at the
+    start pose (its group's scene stiffness times ``|length - rest|``): a load besides gravity
+    that can press the body onto a rough contact for good (a ball held down by a 1000 N
+    spring: counted at ``m g`` only, its friction chattered at +-0.1 m/s with the gate's
+    "ok"). Counted in full, whatever its direction."""
+    from ..overlap import quat_matrix
+    bodies = scene.bodies
+    out = np.zeros(len(bodies))
+    pos = np.array([b.position for b in bodies], float).reshape(-1, 3)
+
+    def add(a, b, xa, xb, rest, group):
+        f = scene.spring_groups[group].k * abs(float(np.linalg.norm(xa - xb)) - rest)
+        out[a] += f
+        if b is not None:
+            out[b] += f
+    for sp in scene.springs:
+        xb = pos[sp.b] if sp.b is not None else np.asarray(sp.anchor, float)
+        add(sp.a, sp.b, pos[sp.a], xb, sp.rest_length, sp.group)
+    for sp in scene.anchored_springs:
+        def end(i, anchor):
+            return pos[i] + quat_matrix(bodies[i].orientation) @ np.asarray(anchor, float)
+        xb = end(sp.b, sp.anchor_b) if sp.b is not None else np.asarray(sp.anchor_b, float)
+        add(sp.a, sp.b, end(sp.a, sp.anchor_a), xb, sp.rest_length, sp.group)
+    return out
 
 
 def friction_bound(scene, rows):
     """The :class:`diffpen.stability.Bound` of friction rows from :func:`friction_row`,
     each named by its material and slip speed (what to raise where it limits the step)."""
     return Bound.of([(b, name, w, w, f"friction of material {name!r} below its slip speed "
-                     f"{scene.materials[name].slip_speed:g} m/s (a damper of rate "
-                     "mu |g| / slip_speed)") for b, name, w in rows], "friction",
+                     f"{scene.materials[name].slip_speed:g} m/s (a damper of rate mu f / "
+                     "(m slip_speed), f the body's weight and spring tension)")
+                     for b, name, w in rows], "friction",
                     per_mass=False)
 
 
@@ -170,7 +199,8 @@ def _slider_friction_bound(ctx: CompileContext, colliders):
     """Friction's viscous rows of every free, colliding sphere or particle against the rough
     ones of ``colliders`` (planes or fixed spheres)."""
     scene = ctx.scene
-    rows = [friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius))
+    loads = spring_loads(scene)
+    rows = [friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius), loads[i])
             for i in _slider_rows(ctx)
             for col in colliders if scene.materials[col.material].friction > 0.0]
     out = friction_bound(scene, rows)

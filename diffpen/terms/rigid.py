@@ -32,7 +32,7 @@ from .base import (CompileContext, Term, _pair_material, gather, merge_extra, pl
                    plane_offsets, scatter, with_bound)
 from . import friction
 from .friction import (friction_bound, friction_extra, friction_row, rough_rows, row_mu,
-                       smooth_coulomb)
+                       smooth_coulomb, spring_loads)
 from .springs import _spring_axis, _spring_vector
 
 __all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
@@ -299,13 +299,14 @@ def _box_plane_bound(ctx: CompileContext):
     """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
     scene, contact, friction = ctx.scene, [], []
     crowd = plane_crowding([pl.normal for pl in scene.planes])
+    loads = spring_loads(scene)
     for i in _box_rows(ctx):
         b = scene.bodies[i]
         for pl in scene.planes:
             contact.append((i, pl.material, crowd * _face_mobility(b)))
             if scene.materials[pl.material].friction > 0.0:
                 friction.append(friction_row(scene, i, pl.material,
-                                              geometry.box_corners(b.half_extents)))
+                                              geometry.box_corners(b.half_extents), loads[i]))
     return tuple(x for x in (_rows_bound(contact, "contact"),
                              friction_bound(scene, friction)) if x is not None)
 
