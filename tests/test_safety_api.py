@@ -679,3 +679,19 @@ def test_a_step_loop_gets_the_rollouts_verdict_through_a_bounce_and_auto_substep
     q = auto.params(k=1e7, c=20.0)
     one = auto.step(q, auto.init_state())
     np.testing.assert_allclose(one.position, auto.rollout(q, 1).position[-1], rtol=1e-12)
+
+
+def test_a_rigid_body_too_small_for_the_dtype_is_refused_at_compile():
+    """Regression: a box of half extent 1e-20 m in float32 (moments 7e-41 kg m^2, below
+    float32's smallest normal) compiled, ran to NaN at its first step, and the rollout
+    blamed the time step; at 1e-170 m in float64 a raw LinAlgError came out of compile."""
+    for half, dtype, ok in ((1e-20, jnp.float32, False), (1e-170, jnp.float64, False),
+                            (1e-3, jnp.float32, True)):
+        s = dp.Scene()
+        s.add_box((half, half, half), 1.0, (0.0, 0.0, 1.0))
+        s.add_plane()
+        if ok:
+            dp.compile(s, 1e-3, dtype=dtype)
+            continue
+        with pytest.raises(dp.SceneError, match="moments of inertia reach .* smallest normal"):
+            dp.compile(s, 1e-3, dtype=dtype)
