@@ -150,7 +150,7 @@ class Term(NamedTuple):
     checks: ``{extra name: check(label, value)}`` validating concrete values given to
       ``sim.params`` (raises SceneError); default: a real, finite scalar >= 0. A check's
       ``traced_range`` attribute, ``(lo, hi, open)``, is what the traced stability flag holds
-      traced values to (none: any finite value; ``diffpen.stability.extra_ranges``).
+      traced values to (none: any finite value; ``diffpen.stability.bounds.extra_ranges``).
     aux: initial ``State.aux`` entries, ``{name: array}`` (e.g. plastic rest lengths, m).
     update: optional ``update(params, state) -> {name: array}``: the ``State.aux`` entries
       recomputed after every step from the new state (e.g. plastic yield).
