@@ -10,8 +10,8 @@ whole sweep compiles once.
 
 After every chunk the results so far are written to ``out`` (``.npz``), and a ``.csv`` beside
 it at the end (also of an interrupted run) and every :data:`CSV_EVERY_S` seconds, each through
-a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a key of everything that determines it
-(:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
+a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a
+key of everything that determines it (:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
 finished chunks are read back, not recomputed. Another key is refused with the list of what
 differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
 any computing, and temporary files of a killed run are removed.

@@ -40,7 +40,8 @@ Traced stability: the same rows and limits are also evaluated inside the traced 
 parameter values it was given; for implicit integrators (no step limit) it records instead
 whether the float dtype cannot resolve the step (:func:`precision_unsafe`, the traced form of
 the float32 refusal); for every integrator also whether a parameter is out of the range that
-concrete values are refused for (:func:`params_out_of_range`). The flag is sticky and saved in ``Trajectory.aux``.
+concrete values are refused for (:func:`params_out_of_range`). The flag is sticky and saved in
+``Trajectory.aux``.
 
 A contact law that stiffens with depth (Hunt-Crossley) is counted at a reference depth: each
 body's radius, or, where the scene lets the start state's energy bound it, the depth at which
