@@ -144,17 +144,18 @@ def check_coordinates(scene, dtype) -> None:
             "and to the planes matter), or compile with dtype=float64.")
 
 
-def _extent(scene) -> tuple:
+def _extent(scene, free: bool = False) -> tuple:
     """``(far, sizes)``: the scene's farthest coordinate from the origin (m: body positions,
     plane offsets, fixed spheres) and its bodies' positive sizes (radius or smallest half
-    extent, m)."""
+    extent, m; ``free``: of the bodies that are not pinned)."""
     bodies = scene.bodies
     far = float(np.abs(np.array([b.position for b in bodies], dtype=float)).max())
     for pl in scene.planes:
         far = max(far, abs(float(pl.offset)))
     for fs in scene.fixed_spheres:
         far = max(far, float(np.max(np.abs(fs.center))) + float(fs.radius))
-    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in bodies]
+    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in bodies
+             if not (free and b.pinned)]
     return far, [s for s in sizes if s > 0.0]
 
 
@@ -180,10 +181,7 @@ def min_resolved_step(scene, dtype) -> float:
     g = float(np.linalg.norm(np.asarray(scene.gravity, float)))
     if g == 0.0 or not any(not b.pinned for b in scene.bodies):
         return 0.0
-    far, _ = _extent(scene)
-    sizes = [min(b.half_extents) if b.half_extents else b.radius for b in scene.bodies
-             if not b.pinned]
-    sizes = [s for s in sizes if s > 0.0]     # free bodies: a pinned one never falls
+    far, sizes = _extent(scene, free=True)    # sizes of free bodies: a pinned one never falls
     reach = far + max(sizes, default=0.0)   # where the bodies' surfaces are (mm scenes: mm)
     spacing = float(np.spacing(np.dtype(dtype).type(reach)))
     fall = float(np.sqrt((min(sizes) if sizes else 1.0) / g))

@@ -14,7 +14,7 @@ from ..errors import SceneError, StabilityError
 from .bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION, Analysis, rates
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, safe_dt, stable_dt
 
-__all__ = ["StabilityReport", "report", "gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
+__all__ = ["StabilityReport", "report", "gate", "step_gate", "GateCache", "MAX_AUTO_SUBSTEPS"]
 
 #: ``substeps="auto"`` refuses to pick more inner steps than this (the run would be too slow).
 MAX_AUTO_SUBSTEPS = 100_000
@@ -170,17 +170,19 @@ class GateCache:
     def __init__(self, size: int = 1024):
         self.size = size
         self._verdicts: dict = {}
-        self.steps: dict = {}       # step_gate's verdicts: params key -> (energy, substeps)
+        self._steps: dict = {}      # step_gate's verdicts: params key -> (energy, substeps)
 
-    def get(self, key):
-        return None if key is None else self._verdicts.get(key)
+    def get(self, key, step: bool = False):
+        """The verdict for ``key`` (``step``: :func:`step_gate`'s), or None."""
+        return None if key is None else (self._steps if step else self._verdicts).get(key)
 
-    def put(self, key, n: int) -> None:
+    def put(self, key, value, step: bool = False) -> None:
         if key is None:
             return
-        if len(self._verdicts) >= self.size:
-            self._verdicts.clear()
-        self._verdicts[key] = n
+        table = self._steps if step else self._verdicts
+        if len(table) >= self.size:
+            table.clear()
+        table[key] = value
 
     def __len__(self) -> int:
         return len(self._verdicts)
@@ -281,14 +283,11 @@ def step_gate(sim, params, state) -> int | None:
     an, cache = sim.analysis, sim.gate_cache
     energy = sim.start_energy(state, params) if an.depth_exponent is not None else None
     key = _scalar_key(params)
-    seen = cache.steps.get(key) if key is not None else None
+    seen = cache.get(key, step=True)
     if seen is not None and (seen[0] is None or energy is None or energy <= seen[0]):
         return seen[1]
     n = gate(an, params, cache=cache, energy=energy)
-    if key is not None:
-        if len(cache.steps) >= cache.size:
-            cache.steps.clear()
-        cache.steps[key] = (energy, n)
+    cache.put(key, (energy, n), step=True)
     return n
 
 
