@@ -34,14 +34,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import warnings
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, warn
 from .terms.base import CompileContext
 
 __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_overlap",
@@ -379,10 +378,9 @@ def warn_overflow(traj) -> None:
     ``aux["broadphase_overflow"]`` is set."""
     flag = traj.aux.get(OVERFLOW) if isinstance(traj.aux, dict) else None
     if flag is not None and float(np.asarray(flag).reshape(-1)[-1]) > 0.0:
-        warnings.warn("the broad phase overflowed its static capacity: some contacts were "
+        warn("the broad phase overflowed its static capacity: some contacts were "
                       "not evaluated. Raise max_pairs (or Grid "
-                      "max_per_cell), or widen Grid bounds.", BroadPhaseOverflowWarning,
-                      stacklevel=3)
+                      "max_per_cell), or widen Grid bounds.", BroadPhaseOverflowWarning)
 
 
 

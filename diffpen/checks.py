@@ -19,7 +19,6 @@ what to change.
 from __future__ import annotations
 
 import os
-import warnings
 import weakref
 
 import math
@@ -28,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import NonFiniteError, PerformanceWarning, SceneError
+from .errors import NonFiniteError, PerformanceWarning, SceneError, warn
 from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
@@ -446,13 +445,13 @@ def warn_batched_recording(params, state, steps: int, save_every, observe) -> No
         return
     if not (_batched(params) or _batched(state)):
         return
-    warnings.warn(
+    warn(
         f"rollout(steps={steps}) under jax.vmap records every state of every rollout "
         "(no save_every= or observe= given); keeping only the final state or a few numbers "
         "this way is several times slower than stepping. Pass save_every=steps for the "
         "final state, observe=lambda s: ... for what you need at each step, or "
         "save_every=1 to say you want the whole trajectory (and silence this).",
-        PerformanceWarning, stacklevel=3)
+        PerformanceWarning)
 
 
 _SPECS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()

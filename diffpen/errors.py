@@ -1,6 +1,10 @@
 """Exceptions raised by diffpen. Each message says what to change."""
 from __future__ import annotations
 
+import os
+import sys
+import warnings
+
 __all__ = ["SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning",
            "ContactWarning"]
 
@@ -38,3 +42,18 @@ class ContactWarning(UserWarning):
     """A start state that drives a contact past what a penalty spring can hold (two spheres
     closing too fast for their contact: they would pass through each other); the message
     says what to change."""
+
+
+_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
+
+
+def warn(message: str, category: type[Warning]) -> None:
+    """``warnings.warn(message, category)`` attributed to the first frame outside diffpen:
+    the user's line that called into the library, whichever entry point (``rollout``,
+    ``step``, ``forces``, ``dp.compile``) and however deep inside diffpen the warning is
+    raised (a hand-counted ``stacklevel`` pointed ``sim.step``'s warnings at diffpen's own
+    line)."""
+    frame, level = sys._getframe(1), 2
+    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, category, stacklevel=level)

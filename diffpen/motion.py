@@ -9,12 +9,11 @@ rollout runs (concrete states) and flagged inside it (traced ones):
 """
 from __future__ import annotations
 
-import warnings
 
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ContactWarning, StabilityError
+from .errors import ContactWarning, StabilityError, warn
 
 __all__ = ["SPIN_LIMIT", "anisotropy", "spin_anisotropy", "check_spin", "spin_unsafe",
            "tunnelling_table", "check_tunnelling"]
@@ -186,12 +185,12 @@ def check_tunnelling(sim, params, state) -> None:
     if worst is not None:
         ratio, i, other, vn, mat, k, cap, ke = worst
         kind = sim.scene.bodies[i].kind
-        warnings.warn(
+        warn(
             f"{kind} {i} and {other} would meet at {vn:.3g} m/s: their contact (material "
             f"{mat!r}, k = {k:.3g}) stores at most {cap:.3g} J before their centres meet, and "
             f"they bring {ke:.3g} J: if they meet they pass through each other (a penalty "
             f"contact cannot stop them). Raise k above {k * ratio:.3g}, or slow them down.",
-            ContactWarning, stacklevel=3)
+            ContactWarning)
 
 
 def spin_unsafe(sim, state, h: float):

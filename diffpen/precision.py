@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, warn
 
 __all__ = ["check_dtype_range", "check_coordinates", "min_resolved_step", "warn_step",
            "PrecisionWarning", "FAR_COARSER", "FREEZE_FRACTION"]
@@ -188,17 +188,16 @@ def min_resolved_step(scene, dtype) -> float:
     return spacing / (2.0 * g * FREEZE_FRACTION * fall)
 
 
-def warn_step(min_step: float, h: float, dtype, stacklevel: int = 3) -> None:
+def warn_step(min_step: float, h: float, dtype) -> None:
     """Warn (:class:`PrecisionWarning`) when the inner step ``h`` (s) is below ``min_step``
     (:func:`min_resolved_step`)."""
     if h >= min_step:
         return
-    import warnings
     name = np.dtype(dtype).name
-    warnings.warn(
+    warn(
         f"an inner step of {h:.3g} s is too short for {name} at this scene's scale: the first "
         f"steps of a body at rest under gravity move it by less than half the spacing of "
         f"{name} numbers, so it stands still while its velocity grows, and rounding errors "
         "past the integrator's follow (a 10 cm ball in float32 at dt = 1e-7 s fell 1.9% short "
         f"in 0.2 s). Use dtype=float64, or an inner step of at least {min_step:.2g} s.",
-        PrecisionWarning, stacklevel=stacklevel)
+        PrecisionWarning)

@@ -203,7 +203,7 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     """
     an = _analysis(sim)
     n = _gate_count(an, params, check, substeps, cache, energy)
-    _precision.warn_step(an.min_step, an.dt / n, an.dtype, stacklevel=4)
+    _precision.warn_step(an.min_step, an.dt / n, an.dtype)
     return n
 
 
