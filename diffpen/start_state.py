@@ -27,8 +27,9 @@ def init_state(sim) -> State:
 
 
 def _check_rows(name: str, given, width: int, count: int) -> None:
-    """``given`` must be ``width`` numbers, or ``(count, width)`` of them (one row per body):
-    a SceneError naming the argument otherwise (not a broadcasting error from inside JAX)."""
+    """``given`` must be ``width`` finite numbers, or ``(count, width)`` of them (one row per
+    body): a SceneError naming the argument otherwise (not a broadcasting error from inside
+    JAX, nor a NaN from the rollout)."""
     if given is None:
         return
     if isinstance(given, jax.core.Tracer):
@@ -39,6 +40,9 @@ def _check_rows(name: str, given, width: int, count: int) -> None:
         except (TypeError, ValueError):
             raise SceneError(f"{name} must be numbers, {width} per body, got {given!r}.") from None
         shape = arr.shape
+        if not np.all(np.isfinite(arr)):
+            raise SceneError(f"{name} must be finite numbers, got {given!r}: a NaN or inf start "
+                             "value would only show up as a rollout's NaN.")
     if shape not in ((width,), (count, width)) and not (count == 1 and shape == (1, width)):
         want = f"({width},)" + (f" or ({count}, {width}), one row per body" if count > 1 else "")
         raise SceneError(f"{name} must have shape {want}, got shape {shape}.")

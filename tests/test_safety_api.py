@@ -458,6 +458,12 @@ def test_state_from_checks_shapes_duplicates_and_start_overlaps():
         ball.state_from(position=(0.0, 0.0, -0.5))
     free = dp.compile(ball_scene(allow_overlap=True), 1e-3)
     free.state_from(position=(0.0, 0.0, -0.5))              # the scene allows it
+    # regression: a NaN or inf start value was taken, and only the rollout's NaN said so
+    for kw in (dict(position=(0.0, 0.0, float("nan"))), dict(velocity=(float("inf"), 0, 0))):
+        with pytest.raises(dp.SceneError, match="must be finite numbers"):
+            ball.state_from(**kw)
+    with pytest.raises(dp.SceneError, match="angular_velocity must be finite"):
+        box.state_from(body=b, angular_velocity=(0, float("nan"), 0), frame="body")
 
 
 def test_scene_flags_and_group_values_are_not_coerced():
