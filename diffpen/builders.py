@@ -22,6 +22,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
+from .elements import finite_vec
 from .errors import SceneError
 from .scene import Scene, _all_or_nothing
 
@@ -65,16 +66,7 @@ def _nonneg(name: str, value) -> float:
 
 
 def _vec(name: str, value) -> np.ndarray:
-    try:
-        if isinstance(value, (str, bytes)) or any(
-                isinstance(v, (str, bytes, bool, np.bool_)) for v in value):
-            raise ValueError                # numbers only, never coerced ("0", True)
-        arr = np.asarray(value, dtype=float).reshape(-1)
-    except (TypeError, ValueError):
-        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.") from None
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise SceneError(f"{name} must be 3 finite numbers (x, y, z), got {value!r}.")
-    return arr
+    return finite_vec(name, value, 3, "3 numbers (x, y, z)")
 
 
 def _kc(name: str, value) -> tuple[float, float] | None:

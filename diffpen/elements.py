@@ -41,18 +41,24 @@ def finite(name: str, value) -> None:
 
 
 def vec3(name: str, value) -> tuple[float, float, float]:
-    arr = _real_array(name, value, "3 numbers (x, y, z)").reshape(-1)
-    if arr.shape != (3,):
-        raise SceneError(f"{name} must be 3 numbers (x, y, z), got {value!r}.")
-    finite(name, arr)
-    return tuple(float(a) for a in arr)
+    """``value`` as 3 finite floats (x, y, z)."""
+    return tuple(float(a) for a in finite_vec(name, value, 3, "3 numbers (x, y, z)"))
 
 
-def finite_vec(name: str, value, size: int) -> np.ndarray:
-    arr = _real_array(name, value, f"{size} numbers").reshape(-1)
+def finite_vec(name: str, value, size: int, what: str | None = None) -> np.ndarray:
+    """``value`` as a (size,) float array of finite numbers: one flat sequence, nothing
+    coerced (a bool or a string among the numbers is refused, and so is a (1, 3) or (3, 1)
+    array, which had been flattened into a (3,) one)."""
+    what = what or f"{size} numbers"
+    if not isinstance(value, (str, bytes, np.ndarray)) and np.ndim(value) == 1 and any(
+            isinstance(v, (str, bytes, bool, np.bool_)) for v in value):
+        raise SceneError(f"{name} must be {what}, got {value!r}: numbers only (no True, "
+                         "False or text).")
+    arr = _real_array(name, value, what)
     if arr.shape != (size,):
-        raise SceneError(f"{name} must be {size} numbers, got {value!r}.")
-    finite(name, arr)
+        raise SceneError(f"{name} must be {what}, one flat sequence, got {value!r} (shape "
+                         f"{arr.shape}).")
+    finite(name, value)
     return arr
 
 

@@ -31,6 +31,11 @@ def sim():
     (dict(mass=[1.0, 2.0]), "mass (kg) must be one number"),
     (dict(position="0 0 1"), "position (m) must be 3 numbers"),
     (dict(velocity=(1j, 0, 0)), "velocity (m/s) must be 3 numbers"),
+    # regression: a bool among the numbers became 1.0, and a (1, 3) or (3, 1) array was
+    # flattened into a position
+    (dict(position=(True, 0.0, 1.0)), "position (m) must be 3 numbers (x, y, z), got (True"),
+    (dict(position=[[0.0, 0.0, 1.0]]), "one flat sequence"),
+    (dict(velocity=np.zeros((3, 1))), "shape (3, 1)"),
 ])
 def test_scene_numbers_are_not_coerced(kw, words):
     args = dict(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0))
