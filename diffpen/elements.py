@@ -50,7 +50,7 @@ def finite_vec(name: str, value, size: int, what: str | None = None) -> np.ndarr
     coerced (a bool or a string among the numbers is refused, and so is a (1, 3) or (3, 1)
     array, which had been flattened into a (3,) one)."""
     what = what or f"{size} numbers"
-    if not isinstance(value, (str, bytes, np.ndarray)) and np.ndim(value) == 1 and any(
+    if isinstance(value, (list, tuple)) and any(
             isinstance(v, (str, bytes, bool, np.bool_)) for v in value):
         raise SceneError(f"{name} must be {what}, got {value!r}: numbers only (no True, "
                          "False or text).")
