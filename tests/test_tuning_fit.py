@@ -82,10 +82,16 @@ def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog, 
     sim, mfn = short_problem
     p0 = sim.params(k=1e4, c=10.0)
     counts, traces = [], []
+    # regression: the frozen leaves were differentiated too (one forward-mode tangent per
+    # leaf of the params, 2 here for 1 free leaf), then zeroed by the optimiser
+    tangents = []
+    resolve = dp.autodiff.resolve_mode
     for maxiter in (3, 12):
         caplog.clear()
         err = _Terminal()
         monkeypatch.setattr(sys, "stderr", err)
+        monkeypatch.setattr(dp.autodiff, "resolve_mode",
+                            lambda mode, n, *a: (tangents.append(n), resolve(mode, n, *a))[1])
         with caplog.at_level(logging.WARNING), jax.log_compiles():
             res = F.fit(mfn, p0, {"apex_heights": [0.2]}, free=["contact.default.c"],
                         method="optax", optimizer=optax.adam(0.05), maxiter=maxiter,
@@ -99,6 +105,7 @@ def test_optax_loop_compiles_once_and_frozen_params_stay(short_problem, caplog, 
         assert float(res.params.contact["default"].k) == 1e4
         assert res.values["contact.default.c"] != 10.0
     assert traces[0] == traces[1] == 1
+    assert tangents == [1, 1], tangents         # the free leaf only, traced once per fit
     # the iteration function compiles once per fit, however many iterations run; 4x the
     # iterations adds no compile at all (the second fit reuses the small helper programs)
     assert counts[0][1] == counts[1][1] == 1

@@ -7,8 +7,8 @@ residuals, bounds) and hands it to one of two methods:
 
 * ``method="optax"``: any ``optax.GradientTransformation`` on the loss
   ``sum_j w_j ((m_j - t_j) / |t_j|)^2`` (:func:`tuning.optimise.fit_optax`, the loop that
-  :mod:`tuning.batch_fit` runs too); frozen leaves are partitioned out with
-  ``optax.multi_transform`` (``optax.set_to_zero``), so the optimiser never sees them.
+  :mod:`tuning.batch_fit` runs too) on the free leaves only: frozen leaves are constants of
+  the loss, so the optimiser never sees them and nothing differentiates them.
 * ``method="lm"``: Levenberg-Marquardt (:func:`tuning.lm.fit_lm`) on the residual vector with a
   forward-mode (``jax.jacfwd``) Jacobian; for a handful of parameters it needs far fewer
   iterations.

@@ -160,18 +160,17 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
               maxiter: int = 300, progress=None) -> Solution:
     """Run the optax loop on ``problem`` from the host, one jitted iteration per call.
 
-    The optimiser state covers every leaf of the params; optax's partitioning
-    (``optax.multi_transform``) sends the frozen ones to ``optax.set_to_zero``, so only the
-    free leaves ever move. ``optimizer`` acts on log-parameters (default
-    :func:`default_optimizer`). ``progress``: a :class:`tuning.progress.Progress` or None.
+    The optimiser sees the free leaves only, as a dict of their log values keyed by leaf
+    path: the frozen leaves are constants of the loss, neither differentiated nor moved
+    (they had been carried through the optimiser with ``optax.set_to_zero``, and each was
+    one more forward-mode tangent: 7 for a fit of 1 leaf among 7). ``optimizer`` acts on
+    log-parameters (default :func:`default_optimizer`). ``progress``: a :class:`tuning.progress.Progress` or None.
     Returns a :class:`tuning.problem.Solution` at the best point (see the module docstring);
     each iteration evaluates the loss at its point (the first at the start) and then steps, so
     the history has one entry per iteration (:meth:`OptaxLoop.iterations`).
     """
     opt = optimizer if optimizer is not None else default_optimizer()
     leaves, free = problem.leaves, problem.free
-    labels = {p: ("free" if p in free else "frozen") for p in leaves.flat0}
-    tx = optax.multi_transform({"free": opt, "frozen": optax.set_to_zero()}, labels)
     idx = {p: i for i, p in enumerate(free)}
     log_lo, log_hi = leaves.log_lo, leaves.log_hi
     traces = [0]
@@ -183,14 +182,11 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         return jnp.sum(r * r), (r, m)
 
     def project(theta_d):
-        return {p: (jnp.clip(v, log_lo[idx[p]], log_hi[idx[p]]) if p in idx else v)
-                for p, v in theta_d.items()}
+        return {p: jnp.clip(v, log_lo[idx[p]], log_hi[idx[p]]) for p, v in theta_d.items()}
 
-    loop = OptaxLoop(loss_fn, tx, project, tolerances(problem.spec), maxiter,
+    loop = OptaxLoop(loss_fn, opt, project, tolerances(problem.spec), maxiter,
                      settling=settling(problem.spec), history=False)
-    theta_d = {p: jnp.log(jnp.maximum(jnp.asarray(v, float), 1e-300))
-               for p, v in leaves.flat0.items()}
-    theta_d.update({p: jnp.asarray(v) for p, v in zip(free, problem.theta0)})
+    theta_d = {p: jnp.asarray(v) for p, v in zip(free, problem.theta0)}
     c = loop.init(theta_d)
     step = jax.jit(loop.step)
     history, costs = [], []
