@@ -22,7 +22,7 @@ import os
 import jax
 import numpy as np
 
-from .fit import FitError
+from .errors import FitError
 from .io import (OutputError, atomic_write, check_output, describe_simulator, key_differences,
                  result_key)
 from .io import file_digest  # noqa: F401 - its home until tuning.io held it

@@ -40,7 +40,7 @@ import tomllib
 
 import numpy as np
 
-from .fit import FitError
+from .errors import FitError
 from .io import atomic_write
 
 __all__ = ["write_fitted", "dumps_toml", "is_fitted_scene", "FITTED_MARK"]

@@ -26,7 +26,7 @@ from diffpen.params import cast as _cast
 from diffpen.integrators import implicit_euler, kick_then_drift
 
 from .first_state import FLIGHT_FRAMES, first_state
-from .fit import FitError
+from .errors import FitError
 from .pose import body_size
 
 __all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",

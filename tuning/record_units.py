@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from .fit import FitError
+from .errors import FitError
 
 __all__ = ["MS_SPAN", "MM_LIMIT", "FALL", "FALL_FACTOR", "fall_rate", "unit_slip"]
 

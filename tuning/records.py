@@ -34,7 +34,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .fit import FitError
+from .errors import FitError
 from .io import atomic_write
 from .record_units import FALL, FALL_FACTOR, MM_LIMIT, MS_SPAN, unit_slip
 from .record_units import fall_rate as _fall

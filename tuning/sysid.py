@@ -45,7 +45,8 @@ import numpy as np
 
 import diffpen as dp
 
-from .fit import FitError, Progress
+from .errors import FitError
+from .progress import Progress
 from .lm import levenberg_marquardt, residuals_and_jacobian
 from .bounce import law_units
 from .stable import contact_scales, law_c, law_k, safe_contact_bounds

@@ -45,7 +45,8 @@ import numpy as np
 
 import diffpen as dp
 
-from .fit import FitError, Progress
+from .errors import FitError
+from .progress import Progress
 from .lm import levenberg_marquardt, residuals_and_jacobian
 from .first_state import first_state
 from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names, with_leaves

@@ -16,7 +16,7 @@ import os
 
 import diffpen as dp
 
-from .fit import FitError
+from .errors import FitError
 
 __all__ = ["SceneFileError", "Where", "read_text_file", "table", "tables", "number", "integer",
            "boolean", "string", "choice", "vector", "number_list", "path_list", "check_keys",

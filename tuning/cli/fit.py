@@ -410,7 +410,8 @@ def _run_data(args) -> int:
     ku, cu = law_units(args.law, args.exponent)
     if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
-    from ..fit import RESIDUAL_FACTOR, FitError, residual_reached
+    from ..errors import FitError
+    from ..problem import RESIDUAL_FACTOR, residual_reached
     from ..sysid import fit_trajectory, load_csv
     t, z = load_csv(args.data)           # validated before anything is compiled
     setup_jax()

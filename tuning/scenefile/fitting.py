@@ -5,7 +5,7 @@ import os
 
 import diffpen as dp
 
-from ..fit import FitError
+from ..errors import FitError
 from ..validate import SceneFileError, Where
 from .loader import load_scene_file
 
