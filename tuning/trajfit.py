@@ -560,7 +560,7 @@ def check_stable(sim: dp.Simulator, params) -> None:
     """Raise :class:`diffpen.StabilityError` (with the safe step) before any rollout when
     ``sim``'s explicit integrator is past its limit at ``params`` -- the batched rollouts
     run with concrete checks off."""
-    if sim.integrator in dp.integrators.IMPLICIT:
+    if not sim.analysis.integrator.explicit:     # implicit_euler_with(...) records too
         return
     rep = sim.stability(params)
     if not rep.stable:

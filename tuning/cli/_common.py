@@ -210,13 +210,6 @@ def add_start_state_arguments(p, scope: str = "") -> None:
                    "5 mm of a plane; default 1000, in practice the whole first flight, or the "
                    "scene file's [fit] flight_frames)")
 
-def check_positive(name: str, value) -> None:
-    if value is None:
-        return
-    for v in (value if isinstance(value, (list, tuple)) else [value]):
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0.0):
-            raise CLIError(f"{name} must be a finite number > 0, got {v!r}")
-
 
 def fail(cmd: str, message: str) -> int:
     """Print ``diffpen CMD: error: MESSAGE``; exit status 2. In a cluster, an error that says
