@@ -71,8 +71,11 @@ class Simulator:
 
     Attributes:
       scene: the Scene it was built from.  dt: time step, s.  n_bodies: int.
-      law: contact law name.  smoothing: smoothing width used, m.
+      law: contact law name.  contact_law: its :class:`diffpen.laws.ContactLaw` record.
+      exponent: the law's exponent (Hunt-Crossley).  smoothing: smoothing width used, m.
       integrator: the integrator's name.  substeps: int or "auto".
+      dtype: float32 or float64.  unroll: ``lax.scan`` unroll of a rollout's loop.
+      broadphase: the broad phase record (:mod:`diffpen.broadphase`), or None (all pairs).
       materials: contact material names some term reads (``Params.contact`` keys): the
         union of the term builders' declarations, in builder order.
       spring_groups: spring group names (``Params.springs`` keys), declared the same way.
@@ -492,7 +495,9 @@ class Simulator:
             simulator's, or the pick of ``substeps="auto"``). A traced rollout of an "auto"
             simulator needs it.
         Returns:
-          :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3).
+          :class:`Trajectory`; ``position`` has shape (steps // save_every, n_bodies, 3)
+          (with ``observe``: None, and ``observed`` holds what it returned at each saved
+          step).
         """
         given, save_every = save_every, (1 if save_every is None else save_every)
         _checks.check_rollout(self, params, steps, state, save_every, observe)

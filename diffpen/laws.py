@@ -313,8 +313,9 @@ class ContactLaw:
       clamp: 0 for the linear laws (``k d - c vn``), n for Hunt-Crossley (``(k - c vn) d^n``).
       With ``exponent`` and ``pulls`` it states the law's physics for code that writes it out
       independently (the event-located references of :mod:`tuning.reports.reference`).
-    takes_exponent: True when :func:`get` builds the law for a given ``exponent``
-      (``hunt_crossley``); the others have n = 1 fixed, and an exponent given for them is an
+    takes_exponent: True for a family built for a given ``exponent`` (``hunt_crossley``;
+      by name, :func:`get` passes its ``exponent`` on for that name only); the others have
+      n = 1 fixed, and an exponent given for them is an
       error of the caller's (a scene file refuses it).
     step_factors: ``step_factors(k, c, inv_mass, h) -> factors``, what ``centred`` takes as
       its ``factors=`` keyword when given (:func:`exact_step_factors` for the exact

@@ -1,6 +1,8 @@
 """The stability limit of a rollout as tuning reads it, and the contact bounds that keep
-optimisers inside it. Every number here comes from :mod:`diffpen.stability`; nothing re-derives
-the step limit.
+optimisers inside it. The limits' constants come from :mod:`diffpen.stability`; the contact
+bounds (:func:`safe_contact_limits`, :func:`implicit_contact_limits`) are those limits solved
+for the largest k and c at a given step, so a change to a limit there must be made here
+too.
 
 diffpen carries ``State.aux["unstable"]`` (``FLAG``: a sticky bool scalar set inside the traced
 program when a step was past the safe step for the traced parameter values), so

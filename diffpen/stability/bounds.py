@@ -102,7 +102,8 @@ class Analysis(NamedTuple):
     integrator: :class:`diffpen.integrators.Integrator`.  dt: saved step, s.
     substeps: the simulator's inner steps per step (int), or "auto".
     mass: (n,) kg.  pinned: (n,) bool.  d_ref: (n,) m, reference penetration of each body
-      (its radius, at least 1 mm) for contact laws whose stiffness grows with depth.
+      for contact laws whose stiffness grows with depth: its radius, or its start depth
+      where it starts deeper (:func:`diffpen.stability.depth.start_depths`), at least 1 mm.
     bounds: every term's :class:`Bound` blocks, in term order.
     contact_scale: ``contact_scale(k, c, d) -> (k, c)``: the contact law's largest stiffness
       and damping for depths up to d (m) (``diffpen.laws.ContactLaw.stiffness``), or None.
