@@ -543,8 +543,7 @@ class Simulator:
 
 def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
             law: str | laws.ContactLaw = "linear", smoothing: float | str = "auto",
-            exponent: float = 1.0,
-            dtype=None, unroll: int = 1, substeps: int | str = 1,
+            exponent: float = 1.0, dtype=None, unroll: int = 1, substeps: int | str = 1,
             broadphase=None, terms=None, layout: str = "auto") -> Simulator:
     """Compile a scene into a simulator whose step holds only the terms the scene has.
 
@@ -568,8 +567,7 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         (``diffpen.laws``), continuous through contact start and end, so no band is needed.
         A width > 0 selects the smoothed pointwise law instead (no step averaging). Static:
         changing it recompiles.
-      exponent: Hunt-Crossley exponent n (1.5 = Hertz); any other value than 1 with
-        another law is refused.
+      exponent: Hunt-Crossley exponent n (1.5 = Hertz); other laws refuse any but 1.
       dtype: float dtype of the state (default: JAX's default float).
       unroll: ``lax.scan`` unroll factor of rollouts (a speed knob; no effect on results).
       substeps: inner steps of ``dt / substeps`` per step (int >= 1), or ``"auto"``: each
@@ -580,8 +578,8 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
       broadphase: how sphere-sphere and sphere-box pairs are found: None (default) evaluates
         every pair that can move (exact, cost ~ pairs); ``diffpen.broadphase.AABB(max_pairs)``
         prunes them by bounding boxes, ``diffpen.broadphase.Grid(...)`` by a neighbour grid
-        (near-linear cost). Capacities are static; overflow is reported in
-        ``State.aux["broadphase_overflow"]``. Changing it recompiles.
+        (near-linear cost). Static capacities; overflow is reported in
+        ``State.aux["broadphase_overflow"]``.
       terms: the term builders, in force summation order (default ``BUILTIN_TERMS``); e.g.
         ``(*diffpen.terms.BUILTIN, my_builder)`` adds a term made outside the package
         (:class:`diffpen.terms.TermBuilder`: its Term's force, stability bound, extra params
@@ -593,8 +591,7 @@ def compile(scene: Scene, dt: float, *, integrator="semi_implicit_euler",
         recording rollout 1.06x the plain floor against 1.48x in rows); the same values
         up to rounding (XLA may fuse the two layouts differently). Columns need a scene
         whose every force term returns columns (sphere and particle contacts with planes)
-        and an explicit integrator; asked for explicitly
-        otherwise, :class:`SceneError` says what stands in the way.
+        and an explicit integrator; asked for otherwise, :class:`SceneError` says why.
     Returns:
       :class:`Simulator`.
     """
