@@ -164,7 +164,8 @@ def one_contact_per_body(scene, builtin_terms: bool = True) -> bool:
     colliding bodies are spheres or particles (no box corners), at most one pair of them
     can touch (one colliding body and one plane or fixed sphere, or two colliding bodies
     and no plane or fixed sphere), and nothing else pushes or pulls a body (no springs of
-    any kind, no drag, no term from outside ``diffpen.terms.BUILTIN``). There a law named
+    any kind, no drag, no term from outside ``diffpen.terms.BUILTIN``; a rough material's
+    friction is tangential to the contact and leaves its normal motion alone). There a law named
     by a string takes its damping at the step window's centre speed (``diffpen.laws``,
     ``centred``): semi-implicit Euler's velocity lags the position by half a step, and the
     centre speed is rebuilt from the contact's own force and gravity, which is exact for a

@@ -202,7 +202,9 @@ def test_box_corner_gradients_against_the_continuous_system(box_corner_gradients
 
 def test_centred_friction_takes_the_normal_force_contact_plane_applies():
     """With a centred law the rigid sphere's friction recomputed its normal force without the
-    centred damping: it scaled mu by another force than the one applied."""
+    centred damping: it scaled mu by another force than the one applied. Friction is now
+    applied by the contact term from the normal force it computes (one evaluation of the
+    law), so the two are the same force by construction; checked here on its output."""
     scene = dp.Scene()
     scene.add_material("rough", k=1e4, c=20.0, friction=0.5, slip_speed=0.01)
     scene.add_plane(material="rough")
@@ -213,11 +215,10 @@ def test_centred_friction_takes_the_normal_force_contact_plane_applies():
     from diffpen.layout import rows
 
     def fz_ft(sim):
-        # both terms' forces in one compiled program (params and state as its arguments)
-        fz, ft = jax.jit(lambda p, s: (
-            rows(sim.term("contact_plane").force(p, s, h=h)[0])[0, 2],
-            sim.term("friction_sphere_plane").force(p, s, h=h)[0][0]))(params, state)
-        return float(fz), np.asarray(ft)
+        # the contact term's force: normal (z) and friction (x, y) in one compiled program
+        f = jax.jit(lambda p, s: rows(sim.term("contact_plane").force(p, s, h=h)[0])[0])(
+            params, state)
+        return float(f[2]), np.asarray(f)
     fz, ft = fz_ft(sim)
     u = 2.0                                         # slip speed of the contact point, m/s
     expect = 0.5 * fz * u / np.sqrt(u * u + 0.01 ** 2)

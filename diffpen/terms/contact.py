@@ -11,7 +11,8 @@ from .. import broadphase as _bp
 from .. import geometry
 from ..scene import DEFAULT
 from ..stability import Bound
-from .base import (CompileContext, Term, _one, _pair_material, _uniform, gather,
+from . import friction as _friction
+from .base import (CompileContext, Term, _one, _pair_material, _uniform, gather, merge_extra,
                    plane_offset_extra, plane_offsets, scatter, static_dot, static_scale,
                    with_bound)
 
@@ -28,7 +29,11 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     * ``static_normal(collider)`` (planes, ``shape_args = (offset,)``): the normal is a
       constant of the step (``static_dot`` / ``static_scale``) and
       ``d = r - (n . x - offset)``, geometry.sphere_plane with its zeros left out; with
-      ``named`` the offsets of named planes are params (:func:`plane_offsets`)."""
+      ``named`` the offsets of named planes are params (:func:`plane_offsets`).
+
+    Rows whose collider's material has friction also take it here, from the normal force
+    just computed (:func:`diffpen.terms.friction.contact_friction`; the term then returns
+    its torque on rigid spheres, and holds rows, not columns)."""
     scene = ctx.scene
     rows = [(i, j, ctx.material_index[col.material])
             for j, col in enumerate(colliders)
@@ -48,6 +53,16 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
     g_plane = None if normal is None else _uniform(ctx, ctx.normal_gravity(normal, bi))
     g_vec = ctx.const(ctx.scene.gravity)
     site = ctx.factor_site(mi, inv_m)
+    rough = _friction.contact_friction(ctx, bi, [colliders[j].material for j in ci])
+    if rough is not None:
+        extra = merge_extra(rough[0], extra)
+    normals = None if normal is None or rough is None else ctx.const(normal)
+
+    def with_friction(params, state, out, nrm, f):
+        if rough is None:
+            return out, None
+        f_t, tau = rough[1](params, state, nrm, f)
+        return out + f_t, tau
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
@@ -57,13 +72,14 @@ def _collider_contact(ctx: CompileContext, name: str, colliders: list, shape_arg
             off = args[0] if offset_fn is None else offset_fn(params)
             d = radii - (static_dot(normal, x) - off)
             f = ctx.contact_force(d, static_dot(normal, v), k, c, h, inv_m, g_plane, fac)
-            return scatter(static_scale(f, normal, as_columns=True), bi, n), None
+            out = scatter(static_scale(f, normal, as_columns=rough is None), bi, n)
+            return with_friction(params, state, out, normals, f)
         d, nrm = jax.vmap(shape_fn)(x, radii, *args)
         f = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m,
                               geometry.dot(nrm, g_vec), fac)
-        return scatter(f[:, None] * nrm, bi, n), None
+        return with_friction(params, state, scatter(f[:, None] * nrm, bi, n), nrm, f)
     return Term(name, force, step_aware=True, extra=extra, checks=checks,
-                columns=normal is not None)
+                columns=normal is not None and rough is None)
 
 
 def _plane_contact(ctx: CompileContext) -> Term | None:
@@ -202,14 +218,16 @@ def _plane_bound(ctx: CompileContext):
     w = plane_crowding([pl.normal for pl in ctx.scene.planes])
     rows = [(i, pl.material, w, w, f"contact with plane {p} (material {pl.material!r})")
             for i in _movers(ctx) for p, pl in enumerate(ctx.scene.planes)]
-    return _one(Bound.of(rows, "contact", combine="contact"))
+    return (*_one(Bound.of(rows, "contact", combine="contact")),
+            *_friction.contact_friction_bound(ctx, ctx.scene.planes))
 
 
 def _fixed_sphere_bound(ctx: CompileContext):
     rows = [(i, fs.material, 1.0, 1.0,
              f"contact with fixed sphere {s} (material {fs.material!r})")
             for i in _movers(ctx) for s, fs in enumerate(ctx.scene.fixed_spheres)]
-    return _one(Bound.of(rows, "contact", combine="contact"))
+    return (*_one(Bound.of(rows, "contact", combine="contact")),
+            *_friction.contact_friction_bound(ctx, ctx.scene.fixed_spheres))
 
 
 def _sphere_sphere_bound(ctx: CompileContext):

@@ -6,9 +6,11 @@
   :func:`row_mu`: ``mu`` is ``params.extra["friction"][material]``) and friction's rows of
   the stability bounds (:func:`friction_row`, :func:`friction_bound`: its viscous rate
   ``mu |g| / s``), shared with the box corners' friction (:mod:`diffpen.terms.rigid`).
-* ``friction_sphere_plane`` and ``friction_fixed_sphere`` (:data:`TERMS`): spheres (rigid
-  or not) and particles on planes and fixed spheres whose material has friction; rigid
-  spheres also feel its torque. Nothing of it is traced without a rough material.
+* :func:`contact_friction` and :func:`contact_friction_bound`: friction of spheres (rigid or
+  not) and particles on planes and fixed spheres whose material has some, applied by their
+  contact terms (``contact_plane``, ``contact_fixed_sphere``) from the normal force they
+  compute, as the box corners apply theirs; rigid spheres also feel its torque. Nothing of
+  it is traced without a rough material.
 """
 from __future__ import annotations
 
@@ -16,14 +18,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import geometry
 from .. import rigid as _rigid
 from ..stability import Bound
-from .base import (CompileContext, Term, gather, merge_extra, plane_offset_extra, plane_offsets,
-                   scatter, with_bound)
+from .base import CompileContext, gather, scatter
 
 __all__ = ["smooth_coulomb", "rough_rows", "friction_extra", "row_mu", "friction_row",
-           "friction_bound", "TERMS"]
+           "friction_bound", "contact_friction", "contact_friction_bound", "spring_loads"]
 
 
 def smooth_coulomb(v, normal, fn, mu, slip_speed):
@@ -124,80 +124,49 @@ def _slider_rows(ctx: CompileContext) -> list[int]:
             if b.kind in ("sphere", "particle") and b.collide and not b.pinned]
 
 
-def _slider_friction(ctx: CompileContext, name: str, colliders, geometry_of) -> Term | None:
-    """Smooth Coulomb friction of spheres and particles on the rough ones of ``colliders``
-    (planes or fixed spheres). The normal force is the core contact's law (``contact_plane``,
-    ``contact_fixed_sphere``), recomputed for these rows, centred damping included (a
-    sphere's contact point lies on the normal through its centre: effective inverse mass
-    1 / m). A rigid sphere's contact point is ``-radius n`` from its centre: friction there
-    turns it; a sphere that does not rotate (``add_sphere``) or a particle slides, its
-    contact point moving with its centre, and the force goes through the centre.
+def contact_friction(ctx: CompileContext, bi, materials):
+    """Smooth Coulomb friction of the contact rows of a sphere or particle term (bodies
+    ``bi`` (m,) against colliders of ``materials`` (m,)) whose material is rough, from the
+    normal force that term applies (``contact_plane``, ``contact_fixed_sphere``: computed
+    once per step, not again here). A rigid sphere's contact point is ``-radius n`` from
+    its centre: friction there turns it; a sphere that does not rotate (``add_sphere``) or a
+    particle slides, its contact point moving with its centre, and the force goes through
+    the centre.
 
-    ``geometry_of(ctx, cols, bi) -> (contact, extra, checks)``: for the rows' colliders
-    ``cols`` and bodies ``bi``, ``contact(params, x) -> (d (m,), n (m, 3), g_n (m,))`` (depth,
-    unit normal, gravity's separating acceleration) and the term's extra params."""
+    Returns None when no row is rough, else ``(extra, friction)``: the term's
+    ``Params.extra`` defaults (:func:`friction_extra`) and ``friction(params, state, nrm,
+    fn) -> (force (n, 3), torque (n, 3) or None)`` on the bodies, N and N m, from the rows'
+    unit normals ``nrm`` (m, 3) and normal forces ``fn`` (m,) N."""
     scene = ctx.scene
-    rows = [(i, j) for i in _slider_rows(ctx) for j, col in enumerate(colliders)
-            if scene.materials[col.material].friction > 0]
-    if not rows:
+    sel = np.array([r for r, (i, m) in enumerate(zip(bi, materials))
+                    if scene.materials[m].friction > 0.0
+                    and scene.bodies[int(i)].kind in ("sphere", "particle")], dtype=np.int32)
+    if not sel.size:
         return None
-    bi = np.array([r[0] for r in rows], dtype=np.int32)
-    mats = [colliders[r[1]].material for r in rows]
-    mi = np.array([ctx.material_index[m] for m in mats], dtype=np.int32)
-    found = rough_rows(ctx, mats)
+    b = np.asarray(bi, dtype=np.int32)[sel]
+    found = rough_rows(ctx, [materials[r] for r in sel])
     rough, fi, slip = found
-    contact, extra, checks = geometry_of(ctx, [r[1] for r in rows], bi)
-    extra = merge_extra(friction_extra(ctx, found), extra)
-    inv_m = ctx.const(ctx.inv_mass(bi))
-    site = ctx.factor_site(mi, inv_m)       # a law's per-contact step constants, if any
-    turning = np.array([scene.bodies[i].rigid for i in bi])
-    arm = ctx.const(ctx.radius[bi] * turning) if turning.any() else None   # None: none turns
+    turning = np.array([scene.bodies[i].rigid for i in b])
+    arm = ctx.const(ctx.radius[b] * turning) if turning.any() else None   # None: none turns
     n = ctx.n
 
-    def force(params, state, *, h=None):
-        k, c = ctx.contact_kc(params, mi)
-        x, v = gather(state.position, bi, n), gather(state.velocity, bi, n)
-        d, nrm, g_n = contact(params, x)
-        fn = ctx.contact_force(d, geometry.dot(nrm, v), k, c, h, inv_m, g_n,
-                               ctx.step_factors(params, site, h))
-        lever = None if arm is None else -arm[:, None] * nrm     # centre to contact point
-        if lever is not None:
-            v = v + jnp.cross(gather(state.angular_velocity, bi, n), lever)
-        f = jax.vmap(smooth_coulomb)(v, nrm, fn, row_mu(params, rough, fi, fn[0]), slip)
-        tau = None if lever is None else scatter(jnp.cross(lever, f), bi, n)
-        return scatter(f, bi, n), tau
-    return Term(name, force, step_aware=True, extra=extra, checks=checks)
+    def friction(params, state, nrm, fn):
+        with jax.named_scope("friction"):
+            nrm, fn = nrm[sel], fn[sel]
+            v = gather(state.velocity, b, n)
+            lever = None if arm is None else -arm[:, None] * nrm  # centre to contact point
+            if lever is not None:
+                v = v + jnp.cross(gather(state.angular_velocity, b, n), lever)
+            f = jax.vmap(smooth_coulomb)(v, nrm, fn, row_mu(params, rough, fi, fn[0]), slip)
+            tau = None if lever is None else scatter(jnp.cross(lever, f), b, n)
+            return scatter(f, b, n), tau
+    return friction_extra(ctx, found), friction
 
 
-def _plane_geometry(ctx: CompileContext, planes, bi):
-    """:func:`_slider_friction`'s geometry of planes (offsets of named planes are params)."""
-    normals_np = np.array([ctx.scene.planes[p].normal for p in planes], dtype=float)
-    normals, radii = ctx.const(normals_np), ctx.const(ctx.radius[bi])
-    offsets = plane_offsets(ctx, planes)
-    g_n = ctx.const(ctx.normal_gravity(normals_np, bi))
-    extra, checks = plane_offset_extra(ctx, planes)
-
-    def contact(params, x):
-        d, _ = jax.vmap(geometry.sphere_plane)(x, radii, normals, offsets(params))
-        return d, normals, g_n
-    return contact, extra, checks
-
-
-def _fixed_sphere_geometry(ctx: CompileContext, spheres, bi):
-    """:func:`_slider_friction`'s geometry of fixed spheres (normals from their centres)."""
-    fixed = [ctx.scene.fixed_spheres[s] for s in spheres]
-    centers, big = ctx.const([f.center for f in fixed]), ctx.const([f.radius for f in fixed])
-    radii, g_vec = ctx.const(ctx.radius[bi]), ctx.const(ctx.scene.gravity)
-
-    def contact(params, x):
-        d, nrm = jax.vmap(geometry.sphere_sphere)(x, radii, centers, big)
-        return d, nrm, geometry.dot(nrm, g_vec)
-    return contact, {}, {}
-
-
-def _slider_friction_bound(ctx: CompileContext, colliders):
+def contact_friction_bound(ctx: CompileContext, colliders) -> tuple:
     """Friction's viscous rows of every free, colliding sphere or particle against the rough
-    ones of ``colliders`` (planes or fixed spheres)."""
+    ones of ``colliders`` (planes or fixed spheres), for the stability bound of the contact
+    term that applies it (:func:`contact_friction`): ``()`` or ``(Bound,)``."""
     scene = ctx.scene
     loads = spring_loads(scene)
     rows = [friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius), loads[i])
@@ -205,26 +174,3 @@ def _slider_friction_bound(ctx: CompileContext, colliders):
             for col in colliders if scene.materials[col.material].friction > 0.0]
     out = friction_bound(scene, rows)
     return () if out is None else (out,)
-
-
-def _rough_materials(ctx: CompileContext, colliders) -> tuple:
-    """The rough materials of ``colliders`` (planes or fixed spheres: their k, c give the
-    normal force) when some free colliding sphere or particle exists."""
-    if not _slider_rows(ctx):
-        return ()
-    return tuple(dict.fromkeys(col.material for col in colliders
-                               if ctx.scene.materials[col.material].friction > 0.0))
-
-
-#: The friction terms of spheres and particles, planes first, with their stability bounds
-#: and params keys (summed after the box corners, :data:`diffpen.terms.rigid.TERMS`).
-TERMS: tuple = (
-    with_bound(lambda ctx: _slider_friction(ctx, "friction_sphere_plane", ctx.scene.planes,
-                                            _plane_geometry),
-               lambda ctx: _slider_friction_bound(ctx, ctx.scene.planes),
-               materials=lambda ctx: _rough_materials(ctx, ctx.scene.planes)),
-    with_bound(lambda ctx: _slider_friction(ctx, "friction_fixed_sphere",
-                                            ctx.scene.fixed_spheres, _fixed_sphere_geometry),
-               lambda ctx: _slider_friction_bound(ctx, ctx.scene.fixed_spheres),
-               materials=lambda ctx: _rough_materials(ctx, ctx.scene.fixed_spheres)),
-)

@@ -13,9 +13,9 @@ Terms (each written for ONE contact or ONE spring, lifted by ``vmap`` + segment 
 * ``contact_box_fixed_sphere``: boxes against fixed spheres.
 * ``anchored_springs``: the paper's ``Spring_c`` (see :func:`anchored_spring_pair`).
 
-:data:`TERMS` also holds :data:`diffpen.terms.friction.TERMS`, after the box corners (the
-force summation order). Sphere-sphere and sphere-plane contacts of rigid spheres are the
-core's terms: without friction their force passes through the centres and produces no torque.
+Sphere-sphere and sphere-plane contacts of rigid spheres are the core's terms: without
+friction their force passes through the centres and produces no torque (with it, those terms
+apply its torque too, :func:`diffpen.terms.friction.contact_friction`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,6 @@ from ..stability import Bound
 from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
-from . import friction
 from .friction import (friction_bound, friction_extra, friction_row, rough_rows, row_mu,
                        smooth_coulomb, spring_loads)
 from .springs import _spring_axis, _spring_vector
@@ -455,7 +454,6 @@ def _anchored_groups(ctx: CompileContext) -> tuple:
 TERMS: tuple = (
     with_bound(_box_plane_contact, _box_plane_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.planes)),
-    *friction.TERMS,
     with_bound(_box_fixed_sphere_contact, _box_fixed_sphere_bound,
                materials=lambda ctx: _box_collider_materials(ctx, ctx.scene.fixed_spheres)),
     with_bound(_sphere_box_contact, _sphere_box_bound, materials=_sphere_box_materials),
