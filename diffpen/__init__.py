@@ -81,7 +81,7 @@ def _backend_started() -> bool:
 _configure_xla_cpu()
 
 from . import geometry, integrators, laws, physical, stability  # noqa: E402
-from . import autodiff, broadphase, builders, plastic, rigid, rollout, terms  # noqa: E402
+from . import autodiff, broadphase, builders, rigid, rollout, terms  # noqa: E402
 from .autodiff import grad, value_and_grad  # noqa: E402
 from .compile import Simulator, compile  # noqa: E402
 from .errors import (ContactWarning, NonFiniteError, PerformanceWarning,  # noqa: E402

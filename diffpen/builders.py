@@ -362,7 +362,7 @@ def add_crumple_bar(scene: Scene, n: int, start: Sequence[float], end: Sequence[
 
     All members are in group ``group`` (``params.springs[group]`` = (k, c); yield strain
     ``params.extra["plastic"][group]``, in (0, 1)): a member compressed by more than
-    ``yield_strain`` times its initial length shortens for good (see :mod:`diffpen.plastic`).
+    ``yield_strain`` times its initial length shortens for good (see :mod:`diffpen.terms.plastic`).
 
     Args:
       n: stations, >= 2.  start, end: (3,) m.  mass: total kg.  k: N/m.  c: N s/m.

@@ -178,7 +178,7 @@ class Drag:
 @dataclasses.dataclass(frozen=True)
 class PlasticSpring:
     """Spring between bodies ``a`` and ``b`` whose rest length shortens irreversibly when it is
-    compressed by more than ``yield_strain * rest_length`` (see :mod:`diffpen.plastic`).
+    compressed by more than ``yield_strain * rest_length`` (see :mod:`diffpen.terms.plastic`).
     Stiffness and damping come from spring ``group``; the yield strain is per group too."""
     a: int
     b: int

@@ -11,8 +11,8 @@ moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equat
 angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
 ``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
 
-The terms that produce torque (box corners, friction, sphere-box, anchored springs) are
-:mod:`diffpen.terms.rigid`; their public names are still importable from here.
+The terms that produce torque are :mod:`diffpen.terms.rigid` (box corners, sphere-box,
+anchored springs) and :mod:`diffpen.terms.friction` (friction at a rigid sphere's contact).
 """
 from __future__ import annotations
 
@@ -116,16 +116,3 @@ class RigidDynamics:
         rot = quat_to_matrix(gather(state.orientation, idx, self.n))
         alpha = angular_acceleration(rot, w, tau_r, self.inertia, self.inv_inertia)
         return scatter(alpha, idx, self.n)
-
-
-#: Names that moved to :mod:`diffpen.terms.rigid`, still importable from here.
-_MOVED = ("sphere_box_pairs", "corner_plane_pair", "smooth_coulomb",
-          "sphere_box_pair", "anchored_spring_pair", "sphere_box_force", "BOUND_LABEL",
-          "sphere_box_rows", "TERMS")
-
-
-def __getattr__(name):
-    if name in _MOVED:
-        from .terms import rigid as _terms_rigid
-        return getattr(_terms_rigid, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -341,7 +341,7 @@ class Scene:
 
         It acts as a damped spring ``F = -k (l - L) - c dl/dt`` whose rest length ``L`` (m,
         kept in ``State.aux``) shortens irreversibly whenever the compression ``L - l`` exceeds
-        ``yield_strain * L0`` (``L0`` the initial rest length); see :mod:`diffpen.plastic`.
+        ``yield_strain * L0`` (``L0`` the initial rest length); see :mod:`diffpen.terms.plastic`.
         ``k`` (N/m) and ``c`` (N s/m) are the spring group's (``params.springs[group]``), the
         yield strain is ``params.extra["plastic"][group]`` (dimensionless, in (0, 1)).
 

@@ -4,7 +4,7 @@ shorter; the same bar with a yield strain it never reaches bounces back whole.
 Run:  python examples/crumple_bar.py [--quick] [--out examples/images/crumple_bar.png] [--gif]
 
 Top view, no gravity. Members shorten irreversibly when compressed beyond the yield strain
-(diffpen.plastic); the yield strain is a differentiable parameter: ``params.extra["plastic"]``.
+(diffpen.terms.plastic); the yield strain is a differentiable parameter: ``params.extra["plastic"]``.
 """
 from __future__ import annotations
 

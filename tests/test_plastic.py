@@ -19,7 +19,7 @@ import pytest
 import diffpen as dp
 from jaxpr_scopes import traced_scopes
 from diffpen.builders import add_crumple_bar
-from diffpen.plastic import AUX_KEY, rest_update
+from diffpen.terms.plastic import AUX_KEY, rest_update
 
 N, L0, K, EPS, KP, XA = 4, 0.1, 1000.0, 0.05, 100.0, 0.3
 STEPS = 800
