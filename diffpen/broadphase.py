@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import SceneError, warn
+from .geometry import quat_to_matrix
 from .terms.base import CompileContext
 
 __all__ = ["AABB", "Grid", "Pairs", "BroadPhaseOverflowWarning", "aabb", "aabb_overlap",
@@ -299,7 +300,6 @@ def half_widths(ctx: CompileContext, state, idx: np.ndarray, margin: float):
         r = r + sweep
     if not boxes.any():
         return jnp.broadcast_to(r, (len(idx), 3))
-    from .rigid import quat_to_matrix
     half = ctx.const([bodies[i].half_extents if boxes[k] else (0.0, 0.0, 0.0)
                       for k, i in enumerate(idx)])
     rot = quat_to_matrix(state.orientation[idx])

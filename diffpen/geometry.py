@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["dot", "safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "sphere_box",
-           "rotate", "rotate_back"]
+__all__ = ["dot", "safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "quat_to_matrix",
+           "sphere_box", "rotate", "rotate_back"]
 
 
 def dot(a, b):
@@ -53,6 +53,18 @@ def sphere_sphere(xa, ra, xb, rb):
     dist = safe_norm(delta)
     inv = jnp.where(dist > 0.0, 1.0 / jnp.where(dist > 0.0, dist, 1.0), 0.0)
     return ra + rb - dist, delta * inv
+
+
+def quat_to_matrix(q, xp=jnp):
+    """Rotation matrices (..., 3, 3) from unit quaternions q (..., 4) = (w, x, y, z).
+    ``xp=numpy`` evaluates on the host in the input's precision (no JAX dispatch)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def box_corners(half_extents):

@@ -18,6 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import SceneError
+from .geometry import box_corners as geometry_box_corners
+from .geometry import quat_to_matrix
 
 __all__ = ["OVERLAP_TOL", "OverlapIndex", "quat_matrix", "box_corners"]
 
@@ -32,18 +34,15 @@ _MAX_CELLS = 512
 
 
 def quat_matrix(q) -> np.ndarray:
-    """(3, 3) rotation of the unit quaternion ``q = (w, x, y, z)`` (body to world)."""
-    w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """(3, 3) rotation of the unit quaternion ``q = (w, x, y, z)`` (body to world), on the
+    host (:func:`diffpen.geometry.quat_to_matrix` with numpy)."""
+    return quat_to_matrix(np.asarray(q, dtype=float), xp=np)
 
 
 def box_corners(body) -> np.ndarray:
     """(8, 3) world corners of a box body at its initial pose, m."""
-    h = np.asarray(body.half_extents)
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-    return np.asarray(body.position) + (signs * h) @ quat_matrix(body.orientation).T
+    return (np.asarray(body.position)
+            + geometry_box_corners(body.half_extents) @ quat_matrix(body.orientation).T)
 
 
 def _corner_depths(box, plane) -> tuple[np.ndarray, np.ndarray]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from .geometry import rotate, rotate_back
+from .geometry import quat_to_matrix, rotate, rotate_back
 from .terms.base import CompileContext, gather, scatter
 
 __all__ = ["quat_to_matrix", "inertia_diagonal", "mobility", "angular_acceleration",
@@ -27,18 +27,6 @@ __all__ = ["quat_to_matrix", "inertia_diagonal", "mobility", "angular_accelerati
 
 
 # --------------------------------------------------------------------------- kinematics
-def quat_to_matrix(q, xp=jnp):
-    """Rotation matrices (..., 3, 3) from unit quaternions q (..., 4) = (w, x, y, z).
-    ``xp=numpy`` evaluates on the host in the input's precision (no JAX dispatch)."""
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return xp.stack([xp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
 def inertia_diagonal(body) -> np.ndarray:
     """Body-frame principal moments (3,) kg m^2 of a scene ``Body``: its ``inertia`` if
     given, else a solid box ``(m/3)(hy^2 + hz^2), ...`` or a solid sphere ``(2/5) m r^2``."""

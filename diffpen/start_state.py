@@ -10,6 +10,7 @@ import numpy as np
 
 from . import stability as _stability
 from .errors import SceneError
+from .geometry import quat_to_matrix
 from .state import State
 
 
@@ -130,7 +131,6 @@ def state_from(sim, state: State | None = None, *, body=0, position=None, veloci
     if angular_velocity is not None:
         w = rows(angular_velocity, 3)
         if frame == "body":
-            from .rigid import quat_to_matrix
             w = xp.einsum("bij,bj->bi", quat_to_matrix(xp.asarray(q)[idx], xp=xp), w)
         upd["angular_velocity"] = put(s.angular_velocity, w)
     if xp is np:

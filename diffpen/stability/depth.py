@@ -47,7 +47,7 @@ import itertools
 
 import numpy as np
 
-from ..geometry import box_corners
+from ..geometry import box_corners, quat_to_matrix
 
 __all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "energy_bound",
            "energy_depth", "start_depths"]
@@ -267,8 +267,6 @@ def energy_bound(scene, mass, radius, pinned, collide, position, velocity, *,
         q = xp.asarray(orientation, x.dtype)
         w = xp.asarray(angular_velocity, x.dtype)
         ok = ok & xp.all(xp.isfinite(q)) & xp.all(xp.isfinite(w))
-        # imported here: diffpen.rigid imports the terms, which import this package
-        from ..rigid import quat_to_matrix
         rot = quat_to_matrix(q / xp.linalg.norm(q, axis=1, keepdims=True), xp=xp)
     ok_springs, energy = _spring_energy(scene, x, rot, xp, spring_k, plastic_rest)
     ok = ok & ok_springs
