@@ -324,6 +324,11 @@ def test_box_pressed_by_sphere_off_centre_gets_the_contact_torque():
     # contact point (0.3, 0, 0.1): tau = r x F = (0.3, 0, 0.1) x (0, 0, -10) = (0, 3, 0)
     np.testing.assert_allclose(np.asarray(tau[box]), [0.0, 3.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(np.asarray(tau[ball]), 0.0, atol=1e-12)   # frictionless
+    # regression: the sphere-box term summed its forces and torques with XLA scatters
+    # (jax.ops.segment_sum, 4 per step) for its static pairs, which keep a rollout's loop
+    # from compiling into one kernel (diffpen.terms.base.scatter); static row picks now
+    step = jax.make_jaxpr(sim.step_function())(sim.params(k=1000.0, c=0.0), sim.init_state())
+    assert "scatter-add" not in str(step), "a scatter in the sphere-box step"
 
 
 def test_box_on_fixed_sphere_and_rigid_sphere_spin_kept_on_frictionless_plane():

@@ -180,9 +180,14 @@ def sphere_box_force(ctx: CompileContext, k, c, state, si, bi, half, valid=None,
     if valid is not None:
         fm = jnp.where(valid, fm, 0.0)
     f = fm[:, None] * nrm                                  # on the sphere
-    force = jax.ops.segment_sum(f, si, n) - jax.ops.segment_sum(f, bi, n)
-    tau = (jax.ops.segment_sum(jnp.cross(r_s, f), si, n)
-           - jax.ops.segment_sum(jnp.cross(r_b, f), bi, n))
+    # static pairs: static row picks, no XLA scatter (which would keep a rollout's loop
+    # from compiling into one kernel, diffpen.terms.base.scatter); a broad phase's pairs
+    # are traced: a segment sum
+    add = ((lambda vals, idx: scatter(vals, idx, n)) if isinstance(si, np.ndarray)
+           and isinstance(bi, np.ndarray) else
+           (lambda vals, idx: jax.ops.segment_sum(vals, idx, n)))
+    force = add(f, si) - add(f, bi)
+    tau = add(jnp.cross(r_s, f), si) - add(jnp.cross(r_b, f), bi)
     return force, tau
 
 
