@@ -93,6 +93,24 @@ def _fixed_sphere_contact(ctx: CompileContext) -> Term | None:
                              lambda fs: (fs.center, fs.radius), shape_fn=geometry.sphere_sphere)
 
 
+def _gravity_side(pin_a, pin_b, xp=np):
+    """Per pair: how gravity separates it along its normal, ``n . g`` times 1 (b pinned),
+    -1 (a pinned) or 0 (both free: gravity moves both ends alike)."""
+    return xp.where(pin_b & ~pin_a, 1.0, xp.where(pin_a & ~pin_b, -1.0, 0.0))
+
+
+def _sphere_pair_force(ctx: CompileContext, xa, ra, va, xb, rb, vb, k, c, h, inv_m, g_side,
+                       g_vec, factors=None):
+    """The contact force (m, 3) N on sphere ``a`` of each pair (``b`` takes its opposite):
+    centres ``xa``, ``xb`` (m, 3) m, radii (m,) m, velocities (m, 3) m/s, the pair's summed
+    inverse mass (1/kg) and :func:`_gravity_side`; the one pair law of the all-pairs term
+    and the broad phase's."""
+    d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
+    vn = geometry.dot(nrm, va - vb)
+    f = ctx.contact_force(d, vn, k, c, h, inv_m, g_side * geometry.dot(nrm, g_vec), factors)
+    return f[:, None] * nrm
+
+
 def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
     if ctx.broadphase is not None:
         return None                     # diffpen.broadphase builds the pair term instead
@@ -112,19 +130,15 @@ def _sphere_sphere_contact(ctx: CompileContext) -> Term | None:
     ra, rb = ctx.const(ctx.radius[ia]), ctx.const(ctx.radius[ib])
     n = ctx.n
     inv_m = _uniform(ctx, ctx.inv_mass(ia) + ctx.inv_mass(ib))
-    # gravity moves both ends alike unless one is pinned: n . g (a - b) along the pair
-    pin_a, pin_b = ctx.pinned[ia], ctx.pinned[ib]
-    g_side = ctx.const(np.where(pin_b & ~pin_a, 1.0, np.where(pin_a & ~pin_b, -1.0, 0.0)))
+    g_side = ctx.const(_gravity_side(ctx.pinned[ia], ctx.pinned[ib]))
     g_vec = ctx.const(ctx.scene.gravity)
     site = ctx.factor_site(mi, inv_m)
 
     def force(params, state, *, h=None):
         k, c = ctx.contact_kc(params, mi)
-        xa, xb = state.position[ia], state.position[ib]
-        d, nrm = jax.vmap(geometry.sphere_sphere)(xa, ra, xb, rb)
-        vn = geometry.dot(nrm, state.velocity[ia] - state.velocity[ib])
-        f = ctx.contact_force(d, vn, k, c, h, inv_m, g_side * geometry.dot(nrm, g_vec),
-                              ctx.step_factors(params, site, h))[:, None] * nrm
+        x, v = state.position, state.velocity
+        f = _sphere_pair_force(ctx, x[ia], ra, v[ia], x[ib], rb, v[ib], k, c, h, inv_m,
+                               g_side, g_vec, ctx.step_factors(params, site, h))
         return scatter(f, ia, n) - scatter(f, ib, n), None
     return Term("contact_sphere_sphere", force, step_aware=True)
 
@@ -337,15 +351,11 @@ def _broadphase_contact(ctx: CompileContext) -> Term | None:
         tau = None
         if has_ss:
             ss = valid & ~is_box[i] & ~is_box[j]
-            d, nrm = jax.vmap(geometry.sphere_sphere)(state.position[i], radius[i],
-                                                      state.position[j], radius[j])
-            vn = jnp.sum(nrm * (state.velocity[i] - state.velocity[j]), axis=-1)
-            # gravity moves both ends alike unless one is pinned (as contact_sphere_sphere)
-            pa, pb = pinned_all[i], pinned_all[j]
-            g_side = jnp.where(pb & ~pa, 1.0, jnp.where(pa & ~pb, -1.0, 0.0))
-            fm = jnp.where(ss, ctx.contact_force(d, vn, k, c, h, inv_m_all[i] + inv_m_all[j],
-                                                 g_side * geometry.dot(nrm, g_vec)),
-                           0.0)[:, None] * nrm
+            x, v = state.position, state.velocity
+            fm = _sphere_pair_force(ctx, x[i], radius[i], v[i], x[j], radius[j], v[j], k, c,
+                                    h, inv_m_all[i] + inv_m_all[j],
+                                    _gravity_side(pinned_all[i], pinned_all[j], jnp), g_vec)
+            fm = jnp.where(ss[:, None], fm, 0.0)
             f = f + jax.ops.segment_sum(fm, i, n) - jax.ops.segment_sum(fm, j, n)
         if has_sb:
             from .rigid import sphere_box_force
