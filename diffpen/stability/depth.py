@@ -50,7 +50,7 @@ import numpy as np
 from ..geometry import box_corners, quat_to_matrix
 
 __all__ = ["ENERGY_MARGIN", "REST_TOLERANCE", "qualifies", "start_energy", "energy_bound",
-           "energy_depth", "start_depths"]
+           "energy_depth", "start_depths", "start_stretches"]
 
 #: the energy a contact may store, in units of the start's kinetic and potential energy
 ENERGY_MARGIN = 2.0
@@ -152,6 +152,18 @@ def _spring_stretches(scene, x, rot, xp=np, plastic_rest=None):
     if not parts:
         return xp.zeros(0), rest, groups
     return xp.concatenate(parts) - rest, rest, groups
+
+
+def start_stretches(scene) -> np.ndarray:
+    """(springs + anchored springs + plastic springs,) m, in that order: each spring's length
+    less its rest length at the scene's start poses (:func:`_spring_stretches` on the
+    host), what the springs' start tension is counted from (the friction and anchored-spring
+    stability bounds, :mod:`diffpen.terms`)."""
+    bodies = scene.bodies
+    x = np.array([b.position for b in bodies], float).reshape(-1, 3)
+    rot = np.array([quat_to_matrix(np.asarray(b.orientation, float), xp=np) if b.rigid
+                    else np.eye(3) for b in bodies]).reshape(-1, 3, 3)
+    return _spring_stretches(scene, x, rot)[0]
 
 
 def _spring_energy(scene, x, rot, xp=np, spring_k=None, plastic_rest=None):

@@ -20,6 +20,7 @@ import numpy as np
 
 from .. import rigid as _rigid
 from ..stability import Bound
+from ..stability.depth import start_stretches
 from .base import CompileContext, gather, scatter
 
 __all__ = ["smooth_coulomb", "rough_rows", "friction_extra", "row_mu", "friction_row",
@@ -86,24 +87,13 @@ def spring_loads(scene) -> np.ndarray:
     that can press the body onto a rough contact for good (a ball held down by a 1000 N
     spring: counted at ``m g`` only, its friction chattered at +-0.1 m/s with the gate's
     "ok"). Counted in full, whatever its direction."""
-    from ..overlap import quat_matrix
-    bodies = scene.bodies
-    out = np.zeros(len(bodies))
-    pos = np.array([b.position for b in bodies], float).reshape(-1, 3)
-
-    def add(a, b, xa, xb, rest, group):
-        f = scene.spring_groups[group].k * abs(float(np.linalg.norm(xa - xb)) - rest)
-        out[a] += f
-        if b is not None:
-            out[b] += f
-    for sp in scene.springs:
-        xb = pos[sp.b] if sp.b is not None else np.asarray(sp.anchor, float)
-        add(sp.a, sp.b, pos[sp.a], xb, sp.rest_length, sp.group)
-    for sp in scene.anchored_springs:
-        def end(i, anchor):
-            return pos[i] + quat_matrix(bodies[i].orientation) @ np.asarray(anchor, float)
-        xb = end(sp.b, sp.anchor_b) if sp.b is not None else np.asarray(sp.anchor_b, float)
-        add(sp.a, sp.b, end(sp.a, sp.anchor_a), xb, sp.rest_length, sp.group)
+    out = np.zeros(len(scene.bodies))
+    stretch = np.abs(start_stretches(scene))
+    for s, sp in zip(stretch, scene.springs + scene.anchored_springs):  # (plastic ones last)
+        f = scene.spring_groups[sp.group].k * float(s)
+        out[sp.a] += f
+        if sp.b is not None:
+            out[sp.b] += f
     return out
 
 

@@ -27,6 +27,7 @@ from .. import geometry
 from .. import rigid as _rigid
 from ..geometry import rotate
 from ..stability import Bound
+from ..stability.depth import start_stretches
 from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
@@ -349,19 +350,6 @@ def _sphere_box_bound(ctx: CompileContext):
     return () if out is None else (out,)
 
 
-def _start_stretch(scene, sp) -> float:
-    """``| |p_b - p_a| - rest |`` (m) of an anchored spring at the scene's start poses."""
-    def end(i, anchor):
-        if i is None:
-            return np.asarray(anchor, dtype=float)
-        body = scene.bodies[i]
-        rot = (np.asarray(_rigid.quat_to_matrix(np.asarray(body.orientation, float), xp=np))
-               if body.rigid else np.eye(3))
-        return np.asarray(body.position, float) + rot @ np.asarray(anchor, float)
-    return abs(float(np.linalg.norm(end(sp.b, sp.anchor_b) - end(sp.a, sp.anchor_a)))
-               - sp.rest_length)
-
-
 def _tension_mobility(scene, i, lever, stretch: float) -> float:
     """Per unit k (1/kg): the rotational stiffness of a spring's tension ``T = k stretch``
     acting at body-frame lever ``lever`` of body i, ``T |r| / I_min``: turning the body by
@@ -420,10 +408,10 @@ def _anchored_bound(ctx: CompileContext):
     by hand) is not bounded."""
     scene, rows, load = ctx.scene, [], []
     carried = _carried_weights(scene)
-    for sp in scene.anchored_springs:
+    stretch = np.abs(start_stretches(scene))[len(scene.springs):]   # anchored ones next
+    for sp, s0 in zip(scene.anchored_springs, stretch):
         rows += _pair_rows(scene, sp.a, sp.b, sp.group, sp.anchor_a, sp.anchor_b)
         ends = [b for b in (sp.a, sp.b) if b is not None and not scene.bodies[b].pinned]
-        s0 = _start_stretch(scene, sp)
         t_load = 2.0 * max((carried[b] for b in ends), default=0.0)
         both = 2.0 if sp.b is not None else 1.0
         for tension, out, key in ((s0, rows, sp.group), (t_load, load, "gravity")):
