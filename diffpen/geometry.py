@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["dot", "safe_norm", "sphere_plane", "sphere_sphere", "box_corners", "quat_to_matrix",
+__all__ = ["dot", "safe_norm", "safe_unit", "sphere_plane", "sphere_sphere", "box_corners", "quat_to_matrix",
            "sphere_box", "rotate", "rotate_back"]
 
 
@@ -29,6 +29,14 @@ def safe_norm(v, axis=-1, keepdims=False):
     sq = jnp.sum(v * v, axis=axis, keepdims=keepdims)
     pos = sq > 0.0
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
+
+
+def safe_unit(v):
+    """``(v / |v|, |v|)`` of 3-vectors ``v`` (..., 3), with the unit vector 0 and finite
+    gradients where ``v = 0`` (:func:`safe_norm`)."""
+    length = safe_norm(v)
+    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
+    return v * inv[..., None], length
 
 
 def sphere_plane(x, r, normal, offset):
@@ -49,10 +57,8 @@ def sphere_sphere(xa, ra, xb, rb):
     Returns ``(d, n)`` with ``d = ra + rb - |xa - xb|`` and ``n = (xa - xb) / |xa - xb|``
     (``n = 0`` when the centres coincide, so no force and a finite gradient).
     """
-    delta = xa - xb
-    dist = safe_norm(delta)
-    inv = jnp.where(dist > 0.0, 1.0 / jnp.where(dist > 0.0, dist, 1.0), 0.0)
-    return ra + rb - dist, delta * inv
+    n, dist = safe_unit(xa - xb)
+    return ra + rb - dist, n
 
 
 def quat_to_matrix(q, xp=jnp):
@@ -97,15 +103,14 @@ def sphere_box(xs, rs, xb, rot, half):
     local = rotate_back(rot, xs - xb)
     closest = jnp.clip(local, -half, half)
     delta = local - closest
-    dist = safe_norm(delta)
-    inv = jnp.where(dist > 0.0, 1.0 / jnp.where(dist > 0.0, dist, 1.0), 0.0)
+    out, dist = safe_unit(delta)
     # centre inside: push out through the face of least depth
     depth_in = half - jnp.abs(local)
     axis = jnp.argmin(depth_in)
     onehot = jnp.arange(3) == axis
     sign = jnp.where(local[axis] >= 0.0, 1.0, -1.0)
     inside = dist <= 0.0
-    n_local = jnp.where(inside, jnp.where(onehot, sign, 0.0), delta * inv)
+    n_local = jnp.where(inside, jnp.where(onehot, sign, 0.0), out)
     p_local = jnp.where(inside & onehot, sign * half, closest)
     d = jnp.where(inside, rs + jnp.min(depth_in), rs - dist)
     return d, rotate(rot, n_local), xb + rotate(rot, p_local)

@@ -26,12 +26,12 @@ springs traces none of this and carries no ``aux`` entry.
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .. import geometry, laws
 from ..errors import SceneError
 from .base import CompileContext, Term, TermBuilder, _select, scatter
+from .springs import _spring_axis
 
 __all__ = ["rest_update", "AUX_KEY", "TERMS"]
 
@@ -77,15 +77,6 @@ def _check_yield(label: str, value) -> None:
 _check_yield.traced_range = (0.0, 1.0, True)     # open (diffpen.stability.bounds)
 
 
-def _length_rate(xa, xb, va, vb):
-    """Length (m), its rate (m/s) and the unit axis a <- b of ONE spring."""
-    delta = xa - xb
-    length = geometry.safe_norm(delta)
-    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
-    u = delta * inv
-    return length, jnp.dot(u, va - vb), u
-
-
 def _plastic_springs(ctx: CompileContext) -> Term | None:
     springs = ctx.scene.plastic_springs
     if not springs:
@@ -105,8 +96,8 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
     def force(params, state):
         k, c = ctx.spring_kc(params, gi)
         rest = state.aux[AUX_KEY]
-        length, rate, u = jax.vmap(_length_rate)(state.position[ia], state.position[ib],
-                                                 state.velocity[ia], state.velocity[ib])
+        length, rate, u = _spring_axis(state.position[ia] - state.position[ib],
+                                       state.velocity[ia] - state.velocity[ib], 0.0)
         f = laws.spring_force(length - rest, rate, k, c)[:, None] * u
         return scatter(f, ia, n) - scatter(f, ib, n), None
 

@@ -14,9 +14,7 @@ __all__ = ["spring_bands", "BODY_SPRINGS", "WORLD_SPRINGS", "DRAG"]
 
 def _spring_axis(delta, rel_vel, rest):
     """Stretch (m), stretch rate (m/s) and unit axis for ONE spring."""
-    length = geometry.safe_norm(delta)
-    inv = jnp.where(length > 0.0, 1.0 / jnp.where(length > 0.0, length, 1.0), 0.0)
-    u = delta * inv
+    u, length = geometry.safe_unit(delta)
     return length - rest, jnp.sum(u * rel_vel, axis=-1), u
 
 
