@@ -266,20 +266,19 @@ def test_an_iterative_implicit_solve_that_misses_sets_the_flag():
     iterative solve is now checked with one more product, and the rollout's stability flag
     says when it missed; the steps that solve right keep it clear."""
     from diffpen.builders import add_cloth
-    scene = dp.Scene()
-    add_cloth(scene, 4, 4, spacing=0.1, mass=0.16, origin=(-0.15, -0.15, 0.45),
-              structural=(60.0, 0.02), shear=(20.0, 0.01), bend=(1.0, 0.0))
+    scene = dp.Scene()                  # a cloth falling at 1 m/s, 1 cm above a fixed sphere
+    add_cloth(scene, 4, 4, spacing=0.1, mass=0.16, origin=(-0.15, -0.15, 0.3925),
+              velocity=(0.0, 0.0, -1.0), structural=(60.0, 0.02), shear=(20.0, 0.01),
+              bend=(1.0, 0.0))
     scene.add_fixed_sphere((0.0, 0.0, 0.2), 0.2)
     scene.add_plane()
     dense = dp.compile(scene, 5e-4, integrator=integrators.implicit_euler_with("dense"))
     gmres = dp.compile(scene, 5e-4, integrator=integrators.implicit_euler_with("gmres"))
     p = dense.params(k=2e3, c=1.0)
-    start = dense.rollout(p, 224, save_every=224).final       # two steps before contact
-    ref = dense.rollout(p, 6, start)
-    out = gmres.rollout(p, 6, start)
+    ref, out = dense.rollout(p, 12), gmres.rollout(p, 12)
     flag = np.asarray(out.aux["unstable"])
     gap = np.abs(np.asarray(out.position - ref.position)).max(axis=(1, 2))
-    assert not flag[:2].any() and gap[:2].max() < 1e-12       # apart: solved, no flag
-    # past the first contact: where the solve is off, the flag is set (on this jaxlib it is;
-    # where it solves right, nothing is off and the flag may stay clear)
+    assert not flag[:8].any() and gap[:8].max() < 1e-12       # apart: solved, no flag
+    # past the first contact: where the solve is off, the flag is set (on this jaxlib it is:
+    # 2.9e-7 m off after 12 steps; where it solves right the flag may stay clear)
     assert flag[-1] or gap.max() < 1e-9, (flag, gap)
