@@ -309,9 +309,10 @@ def _checked_solve(solve: Callable, matvec: Callable, rhs, tol: float, state: St
 
     dv = solve(rhs)
     bad = jnp.linalg.norm(rhs - matvec(dv)) > limit * jnp.linalg.norm(rhs)
-    flag = state.aux.get("unstable") if isinstance(state.aux, dict) else None
+    from .stability.bounds import FLAG      # (diffpen.stability imports this module)
+    flag = state.aux.get(FLAG) if isinstance(state.aux, dict) else None
     if flag is not None:
-        state = state._replace(aux={**state.aux, "unstable": flag | lax.stop_gradient(bad)})
+        state = state._replace(aux={**state.aux, FLAG: flag | lax.stop_gradient(bad)})
     return dv, state
 
 

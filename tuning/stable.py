@@ -5,7 +5,9 @@ for the largest k and c at a given step, so a change to a limit there must be ma
 too.
 
 diffpen carries ``State.aux["unstable"]`` (``FLAG``: a sticky bool scalar set inside the traced
-program when a step was past the safe step for the traced parameter values), so
+program when a step was past the safe step for the traced parameter values, or when an
+``implicit_euler`` iterative solve missed its system; "past its safe step" below and in the
+modules that read it means either), so
 ``traj.aux["unstable"][-1]`` says whether a rollout can be trusted; it works under ``jit``,
 ``vmap`` and ``grad``. :func:`rollout_unstable` returns it; for a trajectory without the flag
 it falls back to :func:`params_unstable`, the same test (:func:`diffpen.stability.unsafe`)
