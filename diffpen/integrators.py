@@ -32,7 +32,7 @@ from .state import State
 __all__ = ["Integrator", "kick", "drift", "semi_implicit_euler", "verlet", "rk4", "kick_then_drift",
            "implicit_euler", "backward_euler_amplification", "substepped", "build_step",
            "resolve", "BUILTIN", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF",
-           "implicit_euler_with"]
+           "implicit_euler_with", "solves_iteratively"]
 
 
 def kick(state: State, acc, h) -> State:
@@ -183,6 +183,24 @@ DENSE_MAX_DOF = 96
 IMPLICIT_SOLVERS = ("auto", "dense", "gmres", "cg")
 
 
+def solves_iteratively(integrator, ndof: int, *, rigid: bool = False) -> bool:
+    """Whether ``integrator`` (a record or name) solves its implicit system of ``ndof``
+    unknowns (3 x bodies) by GMRES or CG (whose miss sets ``State.aux["unstable"]``, see
+    :func:`_checked_solve`) rather than densely. Rigid-body scenes always solve densely;
+    explicit integrators solve nothing."""
+    rec = integrator if isinstance(integrator, Integrator) else INTEGRATORS.get(integrator)
+    make = getattr(rec, "make", None)
+    base = getattr(make, "func", make)
+    if base is not implicit_euler or rigid:
+        return False
+    return _iterative(getattr(make, "keywords", {}).get("solver", "auto"), ndof)
+
+
+def _iterative(solver: str, ndof: int) -> bool:
+    """Whether implicit_euler's ``solver`` takes GMRES or CG for ``ndof`` unknowns."""
+    return solver in ("cg", "gmres") or (solver == "auto" and ndof > DENSE_MAX_DOF)
+
+
 def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str = "auto",
                    cg_tol: float = 1e-10, cg_maxiter: int | None = None):
     """Linearised backward Euler (Baraff & Witkin 1998), one linear solve per step.
@@ -246,8 +264,7 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
             return accel_fn(params, state._replace(position=x.reshape(shape),
                                                    velocity=v.reshape(shape)))[0].reshape(-1)
         xf, vf = x0.reshape(-1), v0.reshape(-1)
-        use_dense = solver == "dense" or (solver == "auto" and ndof <= DENSE_MAX_DOF)
-        if use_dense:
+        if not _iterative(solver, ndof):
             jx, jv = _jacobians(acc_xv, xf, vf)
             eye = jnp.eye(ndof, dtype=xf.dtype)
             mat = eye - h * jv - (h * h) * jx

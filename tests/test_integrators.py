@@ -283,3 +283,32 @@ def test_an_iterative_implicit_solve_that_misses_sets_the_flag():
     dense = dp.compile(scene, 5e-4, integrator=integrators.implicit_euler_with("dense"))
     gap = np.abs(np.asarray(out.position - dense.rollout(p, 12).position)).max()
     assert gap < 1e-9, (flag, gap)
+
+
+def test_messages_about_the_flag_name_a_missed_iterative_solve():
+    """Regression: the flag also means an iterative implicit solve missed its system (above),
+    but tuning's messages said only "past the safe step" and advised a smaller dt or softer
+    contact, which need not cure a missed solve. Simulators whose implicit_euler takes GMRES
+    or CG now name that cause and its remedy; the others keep their words. Which solver a
+    step takes is one rule (``integrators.solves_iteratively``)."""
+    from diffpen.builders import add_cloth
+    from tuning.stable import solver_miss, unsafe_start
+    cloth = dp.Scene()                                  # 36 particles: 108 unknowns > 96
+    add_cloth(cloth, 6, 6, spacing=0.1, mass=0.36, origin=(0.0, 0.0, 0.5))
+    small = dp.Scene()                                  # one sphere: 3 unknowns
+    small.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.5))
+    iterative = {(name, scene_name): integrators.solves_iteratively(
+        integrators.implicit_euler_with(name) if name != "rk4" else "rk4",
+        3 * len(scene.bodies)) for name in ("auto", "dense", "gmres", "cg", "rk4")
+        for scene_name, scene in (("cloth", cloth), ("small", small))}
+    assert {key for key, it in iterative.items() if it} == {
+        ("auto", "cloth"), ("gmres", "cloth"), ("gmres", "small"), ("cg", "cloth"),
+        ("cg", "small")}
+    assert integrators.solves_iteratively("implicit_euler", 108)
+    assert not integrators.solves_iteratively("implicit_euler", 108, rigid=True)
+    for solver, named in (("auto", True), ("dense", False)):
+        sim = dp.compile(cloth, 1e-3, integrator=integrators.implicit_euler_with(solver))
+        words = str(unsafe_start({"k": 1.0}, sim.dt, sim))
+        assert ("implicit_euler_with('dense')" in words) is named, words
+        assert ("iterative implicit solve missed" in solver_miss(sim)) is named
+    assert solver_miss(dp.compile(small, 1e-3)) == ""

@@ -30,6 +30,7 @@ from .errors import FitError
 from .first_state import FLIGHT_FRAMES
 from .io import save_figure_file
 from .record_batch import ProgramCache, layout_of, typed_params, with_arrays
+from .stable import solver_miss
 from .trajfit import Batch, rotation_angle, simulate
 
 __all__ = ["Evaluation", "evaluator", "evaluate_batch", "plot_records"]
@@ -171,8 +172,8 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
                      "rotation_error_deg": None if re is None else float(re[r]),
                      "unstable": bool(np.isnan(pe[r]))})
     bad = [rec["path"] for rec in recs if rec["unstable"]]
-    message = (f"{len(bad)} of {len(recs)} records ran past the safe step "
-               f"(State.aux['unstable']): their errors are NaN and left out of the summary; "
+    message = (f"{len(bad)} of {len(recs)} records ran past the safe step"
+               f"{solver_miss(sim)} (State.aux['unstable']): their errors are NaN and left out of the summary; "
                f"lower dt or use softer k / smaller c ({bad[:5]})" if bad else "")
     return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
                       np.asarray(pos), None if quat is None else np.asarray(quat), seconds,

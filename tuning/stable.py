@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffpen import stability as _dp_stability
+from diffpen.integrators import solves_iteratively
 from diffpen.stability.bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION
 from diffpen.stability.depth import energy_depth
 
@@ -251,13 +252,27 @@ def law_c(sim, damping: float, k: float, *, state=None, params=None) -> float:
     return damping / contact_scales(sim, k, state=state, params=params)[1]
 
 
-def unsafe_start(start, dt: float | None = None) -> FitError:
+def solver_miss(sim) -> str:
+    """The words messages about ``sim``'s FLAG add for its other cause: ``""`` unless ``sim``
+    solves its implicit steps by GMRES or CG (:func:`diffpen.integrators.solves_iteratively`),
+    whose missed solve sets the flag too and which a smaller step or softer contact may not
+    cure; then a clause naming that cause and its remedy."""
+    if sim is None or not solves_iteratively(sim.analysis.integrator, 3 * sim.n_bodies,
+                                             rigid=sim.scene.has_rotation):
+        return ""
+    return (" (or its iterative implicit solve missed its system: compile with "
+            "integrator=diffpen.integrators.implicit_euler_with('dense'), which solves "
+            "exactly)")
+
+
+def unsafe_start(start, dt: float | None = None, sim=None) -> FitError:
     """The error of a fit whose start point is past the simulator's safe step: ``start`` is
     ``{leaf name: value}`` (None: every candidate start is past it or blows up), ``dt`` the
-    step (s) if known."""
+    step (s) if known, ``sim`` the simulator if known (:func:`solver_miss`)."""
     what = ("every start point blows up or is" if start is None
             else f"the start point {dict(start)} is")
     at = "" if dt is None else f" at dt = {dt:g} s"
-    return FitError(f"{what} past the safe step{at}; past the simulator's safe step no "
-                    "rollout is a result (sim.stability(params) says what limits it): start "
-                    "from softer k / smaller c, or use a smaller dt or more substeps.")
+    return FitError(f"{what} past the safe step{at}{solver_miss(sim)}; past the simulator's "
+                    "safe step no rollout is a result (sim.stability(params) says what limits "
+                    "it): start from softer k / smaller c, or use a smaller dt or more "
+                    "substeps.")

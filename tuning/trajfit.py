@@ -55,7 +55,7 @@ from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotat
 from .records import load_records
 from .record_batch import (Batch, ProgramCache, layout_of, prepare, prepare_buckets, simulate,
                            typed_params, with_arrays)
-from .stable import params_unstable, unsafe_start
+from .stable import params_unstable, solver_miss, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
            "body_size", "first_state", "prepare", "prepare_buckets", "simulate", "pose_residuals",
@@ -334,7 +334,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     bar.close()
     if not runs:
         raise unsafe_start({f.name: float(f.from_x(cands[order[0]][i]))
-                            for i, f in enumerate(free)}, sim.dt)
+                            for i, f in enumerate(free)}, sim.dt, sim)
     # lowest final cost among the stable fits (an unstable one only when all are)
     best = min(runs, key=lambda u: (u[4] > 0, float(u[2] @ u[2])))
     _, x, r, J, n_bad, hist, message, cost_chosen_start = best
@@ -349,8 +349,9 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     if n_bad:   # past the safe step: never a result (tuning.stable)
         cost = math.nan
         message = (f"NOT a result: {n_bad} of {sum(len(b.paths) for b in batches)} records "
-                   "ran past the safe step at the fitted values (State.aux['unstable']); "
-                   f"lower dt or tighten the [fit.bounds] of k / c ({message})")
+                   f"ran past the safe step at the fitted values{solver_miss(sim)} "
+                   "(State.aux['unstable']); lower dt or tighten the [fit.bounds] of k / c "
+                   f"({message})")
     jmax = float(np.max(np.abs(J))) if J.size and np.all(np.isfinite(J)) else math.inf
     diverged = not jmax <= JACOBIAN_LIMIT
     if diverged:
