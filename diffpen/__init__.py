@@ -98,6 +98,6 @@ __all__ = [
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning", "ContactWarning",
     "PrecisionWarning",
-    "laws", "geometry", "integrators", "physical", "builders", "plastic",
+    "laws", "geometry", "integrators", "physical", "builders",
     "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

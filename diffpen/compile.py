@@ -467,7 +467,7 @@ class Simulator:
           params: from :meth:`params`.
           steps: number of steps (static int > 0), a multiple of ``save_every``.
           state: start state (default :meth:`init_state`).
-          save_every: keep one state every this many steps (default 1: every state).
+          save_every: keep one state every this many steps (default None: every state).
             Under ``jax.vmap`` with neither this nor ``observe`` given, a rollout of 64
             steps or more warns (:class:`diffpen.PerformanceWarning`): recording every
             state of every rollout to keep a few numbers is several times slower than

@@ -1,7 +1,8 @@
 """The package's import structure, read from the source (no import needed): diffpen never
 imports tuning, and tuning's modules import each name from the module that defines it, not
 through ``tuning.fit``'s re-exports (importing the record readers loaded optax, the LM
-driver and the whole fitting stack through them)."""
+driver and the whole fitting stack through them); and, imported, every name the packages
+export resolves and the figure functions return what they wrote."""
 import ast
 import pathlib
 
@@ -36,3 +37,34 @@ def test_tuning_imports_names_from_their_defining_modules():
            "tuning.fit" for p, line, module, names in _imports("tuning")
            if module == "tuning.fit" and names & FIT_REEXPORTS]
     assert not bad, bad
+
+
+def test_every_exported_name_resolves():
+    """Regression: ``diffpen.__all__`` still named the ``plastic`` module after it was removed,
+    so ``from diffpen import *`` raised AttributeError. Every name of ``diffpen.__all__`` and
+    ``tuning.__all__`` resolves."""
+    import diffpen
+    import tuning
+    for package in (diffpen, tuning):
+        missing = [n for n in package.__all__ if not hasattr(package, n)]
+        assert not missing, (package.__name__, missing)
+    namespace = {}
+    exec("from diffpen import *", namespace)
+    assert "Scene" in namespace and "terms" in namespace
+
+
+def test_figure_functions_return_the_paths_they_wrote(tmp_path):
+    """Regression: the README says tuning.plots returns the paths it writes; fit_figure,
+    trajectory_fit_figure and heatmap returned None."""
+    import numpy as np
+    from tuning import plots
+    t = np.linspace(0.0, 1.0, 20)
+    z = np.abs(np.sin(6.0 * t))
+    paths = [
+        plots.fit_figure(tmp_path / "fit.png", t, z, targets={"apex1": 0.5},
+                         achieved={"apex1": 0.49}, loss_history=[1.0, 0.1], radius=0.1),
+        plots.trajectory_fit_figure(tmp_path / "traj.png", t, z, z * 0.9, [1.0, 0.5]),
+        plots.heatmap(tmp_path / "map.png", np.geomspace(1e3, 1e4, 3),
+                      np.geomspace(1.0, 10.0, 4), np.ones((3, 4)), metric="apex1")]
+    for name, path in zip(("fit.png", "traj.png", "map.png"), paths):
+        assert path == tmp_path / name and path.stat().st_size > 0

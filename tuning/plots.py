@@ -26,7 +26,7 @@ def require_matplotlib():
 
 def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radius: float,
                settle_tol: float | None = None, rest: float | None = None,
-               title: str = "", evaluations: bool = False) -> None:
+               title: str = "", evaluations: bool = False) -> pathlib.Path:
     """Two panels: the fitted trajectory (lowest point above the surface, m, against s) with
     the apex targets and the settling band, and the loss against the iteration.
 
@@ -60,12 +60,10 @@ def fit_figure(path, t, z, *, targets: dict, achieved: dict, loss_history, radiu
     a2.set_ylabel("loss (sum of squared relative errors)")
     a2.set_title("loss per simulation (search, then LM)" if evaluations
                  else "loss")
-    fig.tight_layout()
-    save_figure_file(fig, path, dpi=120)
-    plt.close(fig)
+    return save_figure(fig, path, dpi=120)
 
 
-def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> None:
+def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> pathlib.Path:
     """Measured record and fitted model (m against s), residuals, and the LM cost."""
     plt = require_matplotlib()
     fig, (a1, a2, a3) = plt.subplots(3, 1, figsize=(9, 8), sharex=False)
@@ -80,9 +78,7 @@ def trajectory_fit_figure(path, t, z, z_fit, history, *, title: str = "") -> Non
     a3.semilogy(np.maximum(np.asarray(history), 1e-300))
     a3.set_xlabel("LM step (all horizons)")
     a3.set_ylabel("cost (m^2)")
-    fig.tight_layout()
-    save_figure_file(fig, path, dpi=120)
-    plt.close(fig)
+    return save_figure(fig, path, dpi=120)
 
 
 def cell_edges(x, log: bool) -> np.ndarray:
@@ -102,7 +98,7 @@ def cell_edges(x, log: bool) -> np.ndarray:
 
 def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
             point: tuple | None = None, title: str = "",
-            labels: tuple = ("k (N/m)", "c (N s/m)"), log: tuple = (True, True)) -> None:
+            labels: tuple = ("k (N/m)", "c (N s/m)"), log: tuple = (True, True)) -> pathlib.Path:
     """A metric over a (k, c) grid on log axes, with the ``target`` contour.
 
     Args:
@@ -131,9 +127,7 @@ def heatmap(path, k, c, values, *, metric: str, target: float | None = None,
     ax.set_xlabel(labels[0])
     ax.set_ylabel(labels[1])
     ax.set_title(title or metric)
-    fig.tight_layout()
-    save_figure_file(fig, path, dpi=120)
-    plt.close(fig)
+    return save_figure(fig, path, dpi=120)
 
 
 # --- figure files (the examples' strips and animations) ---------------------------------------

@@ -44,13 +44,13 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     [[plastic_springs]]             # a, b, k, c, yield_strain in (0, 1), rest_length, group
     [[drag]]                        # bodies (a ref or array of refs; a builder's name means
                                     #   all its nodes), c (N s/m), group
-    [[ropes]]                       # n, start, end, mass, k, c; name ("rope"), pinned [0],
+    [[ropes]]                       # n, start, end, mass, k; c, name ("rope"), pinned [0],
                                     #   bend (k | [k, c] | false), drag, velocity, collide
     [[cloths]]                      # nx, ny, spacing, mass; name ("cloth"), origin, axes,
                                     #   structural, shear, bend, pinned [[i,j],...], drag, ...
     [[jellies]]                     # nx, ny, nz, spacing, mass; name ("jelly"), origin, edge,
                                     #   face, body, pinned [[i,j,l],...], drag, velocity, ...
-    [[crumple_bars]]                # n, start, end, mass, k, c, yield_strain; name ("bar"),
+    [[crumple_bars]]                # n, start, end, mass, k; c, yield_strain, name ("bar"),
                                     #   width, pinned, drag, velocity, collide
 
     [fit]
