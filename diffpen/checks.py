@@ -32,7 +32,7 @@ from .state import Params, State
 
 __all__ = ["compile_arguments", "check_rollout", "check_rollout_options",
            "check_finite_trajectory", "last_state_finite", "check_pairs", "check_params",
-           "check_step",
+           "check_step", "check_state_values", "state_values_ok",
            "estimate", "memory_bytes", "human_bytes", "human_time", "STEP_RATE", "MAX_STEPS",
            "MAX_PAIRS"]
 
@@ -377,10 +377,37 @@ def check_params(sim, params, what: str) -> None:
 
 def check_step(sim, params, state) -> None:
     """Check ``sim.step``'s arguments as :func:`check_rollout` checks a rollout's: the params
-    pytree and its values, the state's type, shapes, dtypes and finite values. Raises
+    pytree and its values, the state's type, shapes and dtypes (a signature seen before is
+    not checked again). The state's values (finite, unit quaternions, pins at rest) are
+    checked by the step's own program instead (:func:`state_values_ok`, read as one bool
+    after the step: a per-step conversion of the state to NumPy cost a third of a small
+    step's time); :func:`check_state_values` then names what is wrong. Raises
     :class:`SceneError` saying what to change."""
     check_params(sim, params, "step")
-    _check_state(sim, state)
+    leaves, tree = jax.tree_util.tree_flatten(state)
+    sig = (tree, tuple((np.shape(v), getattr(v, "dtype", None)) for v in leaves))
+    seen = _SEEN.setdefault(sim, set())
+    if sig not in seen:
+        _check_structure(sim, state)
+        if len(seen) < 64:
+            seen.add(sig)
+
+
+def state_values_ok(sim, state):
+    """Traceable bool scalar: ``state``'s values pass :func:`check_state_values` (finite time,
+    positions and velocities, unit quaternions within 1e-3, pinned bodies at rest)."""
+    ok = jnp.all(jnp.isfinite(jnp.asarray(state.time)))
+    pinned = np.asarray(sim.pinned, bool)
+    for field in ("position", "velocity", "orientation", "angular_velocity"):
+        v = getattr(state, field)
+        if v is None:
+            continue
+        ok &= jnp.all(jnp.isfinite(v))
+        if field == "orientation":
+            ok &= jnp.all(jnp.abs(jnp.linalg.norm(v, axis=-1) - 1.0) <= 1e-3)
+        elif field != "position" and pinned.any():
+            ok &= ~jnp.any(pinned & jnp.any(v != 0.0, axis=-1))
+    return ok
 
 
 def check_rollout(sim, params, steps, state, save_every, observe=None) -> None:
@@ -471,7 +498,17 @@ def _spec(sim):
         return spec
 
 
+#: state signatures (tree and leaf shapes and dtypes) that passed :func:`_check_structure`,
+#: per simulator (at most 64 each)
+_SEEN: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
 def _check_state(sim, state) -> None:
+    _check_structure(sim, state)
+    check_state_values(sim, state)
+
+
+def _check_structure(sim, state) -> None:
     if not isinstance(state, State):
         raise SceneError(f"state must be a diffpen.State (from sim.init_state(), or a saved "
                          f"state), got {type(state).__name__}.")
@@ -509,6 +546,12 @@ def _check_state(sim, state) -> None:
                 raise SceneError(f"state.{name} has {got}, this simulator runs in "
                                  f"{np.dtype(w.dtype).name}: cast it (jnp.asarray(x, "
                                  f"{np.dtype(w.dtype).name})) or start from sim.init_state().")
+
+
+def check_state_values(sim, state) -> None:
+    """Raise :class:`SceneError` naming the first value of a concrete ``state`` that is not
+    finite, a quaternion off unit norm, or a pinned body moving (fields that are jit tracers
+    are left out)."""
     for field in ("position", "velocity", "orientation", "angular_velocity"):
         v = getattr(state, field)
         if v is None or isinstance(v, jax.core.Tracer):

@@ -194,7 +194,6 @@ class Simulator:
             min_step=_precision.min_resolved_step(scene, self.dtype), extra_ranges=_stability
             .bounds.extra_ranges(self._extra_defaults, self._extra_checks))
         self.gate_cache, self._steps = _stability.GateCache(), {}   # substeps -> pure step
-        self._step_jit = jax.jit(self.step_function())
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._search_aux_jit = jax.jit(self._search_aux)
         self._rollout_traces = [0]          # programs traced (rollout_cache_size)
@@ -366,15 +365,16 @@ class Simulator:
 
     def step(self, params: Params, state: State, *, check_stability: bool = True) -> State:
         """Advance ``state`` by one time step ``dt``. Pure; jitted. Arguments are checked as
-        a rollout's are (:class:`SceneError`) and params cast to the simulator's dtype; with
-        concrete params the rollout's stability gate runs (:class:`StabilityError` past the
-        safe step; "auto" takes the substeps it picks; :func:`diffpen.stability.step_gate`),
-        unless ``check_stability=False`` (then 1 substep for "auto"). Traced params:
-        :meth:`rollout` flags them."""
+        a rollout's are (:class:`SceneError`; :func:`diffpen.checks.check_step`), params cast
+        to the simulator's dtype; with concrete params the rollout's stability gate runs
+        (:class:`StabilityError` past the safe step; "auto" takes the substeps it picks),
+        unless ``check_stability=False`` (then 1 substep for "auto")."""
         _checks.check_step(self, params, state)
         n = _stability.step_gate(self, params, state) if check_stability else None
-        return _stepping.jitted(self, n)(jax.tree_util.tree_map(self._cast, params),
-                                         _stepping.hold_pins(self, state))
+        new, ok = _stepping.jitted(self, n)(jax.tree_util.tree_map(self._cast, params), state)
+        if not isinstance(ok, jax.core.Tracer) and not bool(ok):       # called outside a trace
+            _checks.check_state_values(self, state)     # raises, naming what is wrong
+        return new
 
     def step_function(self, substeps: int | None = None):
         """The pure (unjitted) step ``step(params, state) -> state`` over ``dt`` in

@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from .checks import state_values_ok
 from .integrators import build_step, substepped
 
 __all__ = ["build", "hold_pins", "jitted"]
@@ -98,11 +99,14 @@ def _searching_step(sim, h: float, inv_mass):
 
 def jitted(sim, n: int | None):
     """``sim``'s jitted step over ``n`` inner steps (None: its own count, 1 for "auto"),
-    built once per count: what :meth:`~diffpen.Simulator.step` calls."""
-    default = sim.substeps if isinstance(sim.substeps, int) else 1
-    if n is None or n == default:
-        return sim._step_jit
-    key = ("jit", int(n))
+    built once per count: what :meth:`~diffpen.Simulator.step` calls. It takes the state as
+    given and returns ``(new state, ok)``: the step from the state with its pins held
+    (:func:`hold_pins`) and whether the given state's values are valid
+    (:func:`diffpen.checks.state_values_ok`)."""
+    n = int(n) if n is not None else (sim.substeps if isinstance(sim.substeps, int) else 1)
+    key = ("jit", n)
     if key not in sim._steps:
-        sim._steps[key] = jax.jit(sim.step_function(int(n)))
+        step = sim.step_function(n)
+        sim._steps[key] = jax.jit(lambda params, state: (
+            step(params, hold_pins(sim, state)), state_values_ok(sim, state)))
     return sim._steps[key]

@@ -88,3 +88,37 @@ def test_rollout_substeps_auto_points_to_compile(sim):
     with pytest.raises(dp.SceneError) as e:
         sim.rollout(sim.params(k=1e4, c=20.0), 10, substeps="auto")
     assert 'dp.compile(scene, dt, substeps="auto")' in str(e.value)
+
+
+def test_step_checks_values_in_its_own_program(monkeypatch):
+    """sim.step converted the whole state to NumPy before every step to check its values (a
+    third of a small step's time); the step's program now computes one validity flag
+    (``checks.state_values_ok``) and the error is worded only when it is clear. A loop of
+    valid steps, pins and rotation included, never takes that slow path; an invalid state
+    still raises the rollout's error, before the stepped state is returned: a NaN, a pinned
+    body moving, a quaternion off unit norm."""
+    from diffpen import checks
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 1.0), pinned=True)
+    scene.add_box((0.05, 0.05, 0.05), 1.0, (0.3, 0.0, 0.5), angular_velocity=(0.0, 1.0, 2.0))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3)
+    p, s = sim.params(k=1e4, c=20.0), sim.init_state()
+    worded, original = [], checks.check_state_values
+    monkeypatch.setattr(checks, "check_state_values", lambda *a: worded.append(1) or original(*a))
+    for _ in range(5):
+        s = sim.step(p, s)
+    assert not worded and np.all(np.isfinite(np.asarray(s.position)))
+    for bad, words in [
+            (s._replace(velocity=s.velocity.at[1, 0].set(jnp.inf)),
+             "state.velocity of body 1 is"),
+            (s._replace(velocity=s.velocity.at[0, 2].set(1.0)),
+             "state.velocity of body 0 is [0.0, 0.0, 1.0], but that body is pinned"),
+            (s._replace(orientation=s.orientation.at[1].set(jnp.array([1.0, 0.1, 0.0, 0.0]))),
+             "state.orientation of body 1 has norm 1.00499"),
+            (s._replace(time=jnp.asarray(jnp.nan, s.position.dtype)),
+             "the start state's time is nan")]:
+        with pytest.raises(dp.SceneError) as e:
+            sim.step(p, bad)
+        assert words in str(e.value)
+    assert len(worded) == 4
