@@ -305,6 +305,14 @@ def hunt_crossley_restitution(a_vin):
     x = jnp.asarray(a_vin)
     if not jnp.issubdtype(x.dtype, jnp.inexact):
         x = x.astype(jnp.result_type(float))
+    return _hc_restitution(x)
+
+
+@jax.jit
+def _hc_restitution(x):
+    """:func:`hunt_crossley_restitution` of a float array ``x``, compiled once per shape and
+    dtype (run op by op, its bisection's loop was traced and compiled again at every call:
+    ~85 ms a call)."""
     small = x <= _HC_SERIES_X
     e_series, _ = _hc_series(jnp.where(small, x, 0.0))
     xl = jnp.where(small, 2.0 * _HC_SERIES_X, x)        # the solve's lane, never small
@@ -334,6 +342,13 @@ def hunt_crossley_a_from_restitution(e, v_in):
     e_in = jnp.asarray(e)
     if not jnp.issubdtype(e_in.dtype, jnp.inexact):
         e_in = e_in.astype(jnp.result_type(float))
+    return _hc_a_from_restitution(e_in, v_in)
+
+
+@jax.jit
+def _hc_a_from_restitution(e_in, v_in):
+    """:func:`hunt_crossley_a_from_restitution` of a float array ``e_in``, compiled once per
+    shape and dtype (as :func:`_hc_restitution`)."""
     e_split = _hc_series(jnp.asarray(_HC_SERIES_X, e_in.dtype))[0]
     near = e_in >= e_split
     # near e = 1: Newton's method on the series from its first term, x = 3 (1 - e) / 2
