@@ -124,18 +124,23 @@ def test_traced_frequency_and_damping_ratio_out_of_range_give_nan():
     assert float(g) == pytest.approx(1.0 / 200.0, rel=1e-6)
 
 
-def test_hunt_crossley_conversions_compile_once(caplog):
+def test_solved_conversions_compile_once(caplog):
     """Regression: called on concrete numbers, the Hunt-Crossley restitution and its inverse
-    traced and compiled their bisection's loop again at every call (~85 ms a call, 80 s for a
-    Python loop over 1000 targets). A call with new values of the same shape and dtype now
+    and the no_tension damping ratio of a restitution (so its k and c) traced and compiled
+    their bisection's loop again at every call (~85 and ~170 ms a call: minutes for a Python
+    loop over 1000 targets). A call with new values of the same shape and dtype now
     compiles nothing, and gives what a fresh call gives."""
     import logging
     first = (physical.hunt_crossley_restitution(0.3),
-             physical.hunt_crossley_a_from_restitution(0.6, 1.0))
+             physical.hunt_crossley_a_from_restitution(0.6, 1.0),
+             physical.zeta_from_restitution(0.6, "no_tension"),
+             physical.kc_from_restitution(0.6, 0.01, 1.0, "no_tension")[1])
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
         again = (physical.hunt_crossley_restitution(0.31),
-                 physical.hunt_crossley_a_from_restitution(0.61, 1.2))
+                 physical.hunt_crossley_a_from_restitution(0.61, 1.2),
+                 physical.zeta_from_restitution(0.61, "no_tension"),
+                 physical.kc_from_restitution(0.61, 0.01, 1.0, "no_tension")[1])
     compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
     assert compiled == [], compiled
-    assert float(again[0]) < float(first[0]) and float(again[1]) < float(first[1])
+    assert all(float(b) < float(a) for a, b in zip(first, again))
