@@ -372,7 +372,7 @@ class Simulator:
         _checks.check_step(self, params, state)
         n = _stability.step_gate(self, params, state) if check_stability else None
         new, ok = _stepping.jitted(self, n)(jax.tree_util.tree_map(self._cast, params), state)
-        if not isinstance(ok, jax.core.Tracer) and not bool(ok):       # called outside a trace
+        if isinstance(ok, jax.core.Tracer) or not bool(ok):   # traced: its concrete fields
             _checks.check_state_values(self, state)     # raises, naming what is wrong
         return new
 

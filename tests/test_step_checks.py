@@ -109,9 +109,9 @@ def test_step_checks_values_in_its_own_program(monkeypatch):
     for _ in range(5):
         s = sim.step(p, s)
     assert not worded and np.all(np.isfinite(np.asarray(s.position)))
+    bad_v = s._replace(velocity=s.velocity.at[1, 0].set(jnp.inf))
     for bad, words in [
-            (s._replace(velocity=s.velocity.at[1, 0].set(jnp.inf)),
-             "state.velocity of body 1 is"),
+            (bad_v, "state.velocity of body 1 is"),
             (s._replace(velocity=s.velocity.at[0, 2].set(1.0)),
              "state.velocity of body 0 is [0.0, 0.0, 1.0], but that body is pinned"),
             (s._replace(orientation=s.orientation.at[1].set(jnp.array([1.0, 0.1, 0.0, 0.0]))),
@@ -122,3 +122,6 @@ def test_step_checks_values_in_its_own_program(monkeypatch):
             sim.step(p, bad)
         assert words in str(e.value)
     assert len(worded) == 4
+    # a concrete state stepped with traced params (inside the caller's jit) is checked too
+    with pytest.raises(dp.SceneError, match="state.velocity of body 1 is"):
+        jax.jit(lambda k: sim.step(sim.params(k=k, c=20.0), bad_v).position)(1e4)
