@@ -296,7 +296,7 @@ class Simulator:
                 raise SceneError(f"h must be a positive, finite inner step in s (or None for "
                                  f"the instantaneous forces), got {h!r}.")
             h = float(h)
-        out = self._forces_jit(params, state, h=h)
+        out = self._forces_jit(jax.tree_util.tree_map(self._cast, params), state, h=h)
         if self._reporting and all(map(_is_concrete, jax.tree_util.tree_leaves(
                 (params, state)))):
             view = types.SimpleNamespace(aux=self._search_aux_jit(params, state))
@@ -437,9 +437,8 @@ class Simulator:
         combination of steps, save_every, checkpoint, substeps, observe and the shapes and
         dtypes of one rollout's arguments; new values never add one): a test hook for "does
         not recompile". ``jax.vmap`` at a new batch size compiles the batched program again
-        without adding to it (the rollout is traced once per example shape), and the jitted
-        function's own dispatch cache counts host and device arrays of the same shape apart,
-        without compiling anything."""
+        without adding to it (the rollout is traced once per example shape); params are cast
+        to the simulator's dtype first, so Python floats and arrays share one program."""
         return self._rollout_traces[0]
 
     def start_energy(self, state, params: Params | None = None) -> float | None:
@@ -524,8 +523,9 @@ class Simulator:
             if self._tunnel_table is not None and all(map(_is_concrete, (state.position,
                                                                          state.velocity))):
                 _motion.check_tunnelling(self, params, state)
+        typed = jax.tree_util.tree_map(self._cast, params)   # Python floats: no 2nd program
         traj, finite = self._rollout_jit(
-            params, state, steps=int(steps), save_every=int(save_every),
+            typed, state, steps=int(steps), save_every=int(save_every),
             checkpoint=None if checkpoint is None else int(checkpoint), substeps=int(n),
             observe=observe, energy=None if energy is None else jnp.asarray(energy, self.dtype))
         if check_finite:

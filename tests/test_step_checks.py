@@ -125,3 +125,24 @@ def test_step_checks_values_in_its_own_program(monkeypatch):
     # a concrete state stepped with traced params (inside the caller's jit) is checked too
     with pytest.raises(dp.SceneError, match="state.velocity of body 1 is"):
         jax.jit(lambda k: sim.step(sim.params(k=k, c=20.0), bad_v).position)(1e4)
+
+
+def test_python_float_params_share_the_programs_of_arrays(sim, caplog):
+    """Regression: rollout and forces cast params to the simulator's dtype only inside their
+    jitted functions, so params holding Python floats (weak-typed: ``ContactParams(1.1e4,
+    20.0)``, or leaves set by ``tuning.trajfit.with_leaves``) traced and compiled a second
+    program (0.2-0.5 s a rollout) next to the one of arrays; they are cast first now."""
+    import logging
+    p = sim.params(k=1e4, c=20.0)
+    sim.rollout(p, 40)
+    sim.forces(p, sim.init_state())
+    traced = sim.rollout_cache_size()
+    floats = p._replace(contact={"default": ContactParams(1.1e4, 21.0)})
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        traj = sim.rollout(floats, 40)
+        f = sim.forces(floats, sim.init_state())
+    assert [r.getMessage() for r in caplog.records
+            if r.getMessage().startswith("Compiling")] == []
+    assert sim.rollout_cache_size() == traced
+    assert np.all(np.isfinite(np.asarray(traj.position))) and np.all(np.isfinite(np.asarray(f[0])))
