@@ -154,3 +154,30 @@ def test_metric_gradients_match_finite_differences():
     fd = (float(vg(C + h)[0]) - float(vg(C - h)[0])) / (2 * h)
     assert g == pytest.approx(fd, rel=1e-4)
     assert g < 0.0          # more damping, lower bounce
+
+
+def test_scene_metrics_compile_once_per_simulator(caplog, tmp_path):
+    """Regression: the built-in ball scene's and a scene file's ``SceneSetup.metrics`` (what
+    `diffpen simulate` reports) built a new ``jax.jit`` at every call, so each call compiled
+    again (0.8-1.5 s); a second call with new values now compiles nothing and equals the
+    metrics computed directly."""
+    import logging
+
+    from tuning.scenefile import load_scene_file
+    from tuning.scenes import get_scene
+    path = tmp_path / "ball.toml"
+    path.write_text("dt = 1e-3\n[[spheres]]\nradius = 0.1\nmass = 1.0\n"
+                    "position = [0.0, 0.0, 0.5]\n[[planes]]\n")
+    for setup in (get_scene("ball"), load_scene_file(str(path)).setup):
+        sim = dp.compile(setup.scene, 1e-3)
+        runs = [(p, sim.rollout(p, 400)) for p in (sim.params(k=1e4, c=10.0),
+                                                    sim.params(k=1.2e4, c=12.0))]
+        setup.metrics(sim, *runs[0][::-1])
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+            got = setup.metrics(sim, *runs[1][::-1])
+        assert [r.getMessage() for r in caplog.records
+                if r.getMessage().startswith("Compiling")] == []
+        want = M.ball_metrics(sim, runs[1][1], runs[1][0], n_apex=3).apex_heights
+        np.testing.assert_allclose(np.asarray(got["apex_heights"]), np.asarray(want),
+                                   rtol=1e-12)

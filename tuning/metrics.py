@@ -25,14 +25,18 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 import diffpen as dp
 
+from .record_batch import ProgramCache
+
 __all__ = [
     "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",
     "max_penetration", "resting_height", "settling_time", "BallMetrics", "ball_metrics",
+    "ball_metrics_dict",
     "initial_apex", "energy_decay_time", "ball_energy", "plane_offset", "DECAY_TAIL",
 ]
 
@@ -451,3 +455,18 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         contact_durations=dur, max_penetration=max_penetration(h),
         resting_height=rest_z + offset, settling_time=ts, settled=settled,
         drop_height=h_drop, decay_time=decay, decay_valid=decay_valid)
+
+
+#: jitted :func:`ball_metrics` programs by (simulator, options), the last 8
+_BALL_METRICS_JIT = ProgramCache()
+
+
+def ball_metrics_dict(sim, traj, params, **options) -> dict:
+    """:func:`ball_metrics` ``(sim, traj, params, **options)`` run compiled and returned as a
+    dict (:meth:`BallMetrics.as_dict`): one program per simulator, options and trajectory
+    shape, reused by later calls with new values (a ``jax.jit`` built at each call compiled
+    again every time: 0.8-1.5 s a call). ``options`` are :func:`ball_metrics`' static
+    keywords (body, n_apex, settle_tol, plane, decay_cut)."""
+    f = _BALL_METRICS_JIT.get((sim, tuple(sorted(options.items()))), lambda: jax.jit(
+        lambda tr, p: ball_metrics(sim, tr, p, **options)))
+    return f(traj, params).as_dict()

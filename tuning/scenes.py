@@ -48,12 +48,9 @@ class SceneSetup:
 
 def _ball_metrics(settle_tol: float, n_apex: int):
     def metrics(sim, traj, params):
-        import jax
-
-        from .metrics import ball_metrics
-        f = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, body=0, n_apex=n_apex,
-                                               settle_tol=settle_tol))
-        return f(traj, params).as_dict()
+        from .metrics import ball_metrics_dict
+        return ball_metrics_dict(sim, traj, params, body=0, n_apex=n_apex,
+                                 settle_tol=settle_tol)
     return metrics
 
 

@@ -213,10 +213,7 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
 
 def _metrics(body, plane, tol):
     def metrics(sim, traj, params):
-        import jax
-
-        from ..metrics import ball_metrics
-        f = jax.jit(lambda tr, p: ball_metrics(sim, tr, p, body=body, plane=plane, n_apex=3,
-                                               settle_tol=tol))
-        return f(traj, params).as_dict()
+        from ..metrics import ball_metrics_dict
+        return ball_metrics_dict(sim, traj, params, body=body, plane=plane, n_apex=3,
+                                 settle_tol=tol)
     return metrics
