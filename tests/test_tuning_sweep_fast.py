@@ -60,3 +60,21 @@ def test_other_scenes_take_the_generic_path():
     sim = dp.compile(ball(), 1e-3)
     with pytest.raises(ValueError, match="sweeps"):
         ball_fast.ball_sweep_evaluator(sim, STEPS, sim.params(k=1e4, c=10.0), ["gravity"])
+
+
+def test_eager_heights_compile_once(caplog):
+    """Regression: called outside jit, ball_heights ran an eager scan over a new closure and
+    compiled it again at every call (0.1 s a call); a call with new values now compiles
+    nothing and equals the jitted call bit for bit."""
+    import logging
+    sim = dp.compile(ball(), 1e-3)
+    ks, cs = jnp.asarray([2e3, 5e3]), jnp.asarray([2.0, 5.0])
+    ks2, cs2 = jnp.asarray([4e3, 1e4]), jnp.asarray([4.0, 10.0])
+    ball_fast.ball_heights(sim, ks, cs, STEPS)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        z = ball_fast.ball_heights(sim, ks2, cs2, STEPS)
+    assert [r.getMessage() for r in caplog.records
+            if r.getMessage().startswith("Compiling")] == []
+    jitted = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS))(ks2, cs2)
+    np.testing.assert_array_equal(np.asarray(z), np.asarray(jitted))

@@ -17,6 +17,7 @@ anything else takes the generic path.
 """
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import jax
@@ -27,6 +28,7 @@ import diffpen as dp
 from diffpen.integrators import kick_then_drift
 
 from . import params as P
+from .record_batch import ProgramCache
 
 __all__ = ["supports", "ball_heights", "ball_sweep_evaluator"]
 
@@ -73,9 +75,20 @@ def ball_heights(sim: dp.Simulator, k, c, steps: int, *, velocities: bool = Fals
     why = supports(sim)
     if why is not None:
         raise ValueError(why)
+    key = (sim, int(steps), bool(velocities), int(unroll))
+    run = _PROGRAMS.get(key, lambda: jax.jit(functools.partial(
+        _heights, sim, steps=key[1], velocities=key[2], unroll=key[3])))
+    return run(jnp.asarray(k, sim.dtype), jnp.asarray(c, sim.dtype))
+
+
+#: compiled :func:`ball_heights` programs by (simulator, steps, velocities, unroll), the
+#: last 8 (an eager scan over a new closure compiled again at every call: 0.1 s a call)
+_PROGRAMS = ProgramCache()
+
+
+def _heights(sim, k, c, *, steps: int, velocities: bool, unroll: int):
+    """:func:`ball_heights` of (B,) ``k`` and ``c`` of the simulator's dtype."""
     dtype = sim.dtype
-    k = jnp.asarray(k, dtype)
-    c = jnp.asarray(c, dtype)
     law = sim.contact_law         # the simulator's record: its step-averaged force
     width = sim.smoothing
     # NumPy constants, as the compiled step has them: XLA folds them into the arithmetic the
