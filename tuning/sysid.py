@@ -47,6 +47,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .progress import Progress
+from .record_batch import ProgramCache
 from .lm import levenberg_marquardt, residuals_and_jacobian
 from .bounce import law_units
 from .stable import contact_scales, law_c, law_k, safe_contact_bounds
@@ -242,10 +243,16 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
 
 
 # --------------------------------------------------------------------------- model
+#: ball simulators by (radius, mass, z0, v0, g, dt, law), the last 8: a record fit builds
+#: the same ones in choose_dt and in its fit (each built twice compiled its rollouts twice)
+_BALL_SIMS = ProgramCache()
+
+
 def _ball_sim(radius, mass, z0, v0, g, dt, law, t0=0.0):
     from .scenes import ball_scene
-    scene = ball_scene(radius=radius, mass=mass, height=z0, velocity=v0, gravity=g)
-    return dp.compile(scene, dt, law=law)
+    key = tuple(float(x) for x in (radius, mass, z0, v0, g, dt)) + (law,)
+    return _BALL_SIMS.get(key, lambda: dp.compile(ball_scene(
+        radius=radius, mass=mass, height=z0, velocity=v0, gravity=g), dt, law=law))
 
 
 def _model_heights(sim, params, t_data, t0: float, steps: int, z0=None, v0=None,
