@@ -23,6 +23,7 @@ import numpy as np
 from .errors import FitError
 from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
+from .record_batch import ProgramCache
 from .stable import FLAG, unsafe_start
 
 __all__ = ["LMResult", "levenberg_marquardt", "residuals_and_jacobian", "fit_lm",
@@ -187,6 +188,11 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
     return LMResult(x, r, J, hist, it, converged, message)
 
 
+#: compiled residual and Jacobian programs of :func:`fit_lm` by ``Problem.program_key``, the
+#: last 8 (a program built at each call compiled again: 1-2 s a fit)
+_PROGRAMS = ProgramCache()
+
+
 def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
            n_starts: int = 3, search: Callable | None = None,
            progress: Progress | None = None) -> Solution:
@@ -209,21 +215,20 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
     traces, costs = [0], []
     log_lo, log_hi = problem.leaves.log_lo, problem.leaves.log_hi
 
-    def residual(theta):
+    def rj(theta, targets):
         traces[0] += 1
-        return problem.evaluate(theta)
-
-    def rj(theta):
-        r, J, m = residuals_and_jacobian(residual, theta)
+        r, J, m = residuals_and_jacobian(lambda th: problem.evaluate(th, targets), theta)
         if FLAG in m:   # past the safe step: nan residuals, so LM rejects the point
             r = jnp.where(jnp.any(m[FLAG]), jnp.nan, r)
         return r, J, m
-    rj_compiled = jax.jit(rj)
+    # a later fit of an equal problem (new targets or starts) runs the same program
+    rj_compiled = (jax.jit(rj) if problem.program_key is None else
+                   _PROGRAMS.get(problem.program_key, lambda: jax.jit(rj)))
 
     blocked = [0]
 
     def evaluate(theta):
-        out = rj_compiled(theta)
+        out = rj_compiled(theta, problem._tgt)
         r0 = np.asarray(out[0])
         costs.append(float(r0 @ r0))
         if FLAG in out[2] and bool(np.any(np.asarray(out[2][FLAG]))):

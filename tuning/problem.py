@@ -22,6 +22,7 @@ import dataclasses
 import math
 from typing import Callable, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -369,6 +370,10 @@ class Problem:
     leaves: :class:`FreeLeaves`.  x0: (P,) start (SI units, clipped to the box).
     targets: ``{metric: (n,) float array}`` (:func:`normalise_targets`).
     spec: ``(TargetSpec, ...)``.  scalar: metrics whose target was given as a scalar.
+    program_key: what the compiled residual program depends on besides the targets and the
+      free values (the given metrics function, simulator, fitted paths, frozen leaf values
+      and dtypes, target layout), or None where that cannot be told (a start ``state``,
+      array leaves): equal keys may share one compiled program, the targets passed to it.
     """
     metrics_fn: Callable
     leaves: FreeLeaves
@@ -377,6 +382,7 @@ class Problem:
     spec: tuple
     scalar: frozenset
     _tgt: dict = dataclasses.field(repr=False, compare=False)
+    program_key: tuple | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @classmethod
     def build(cls, metrics_fn: Callable, params0, targets: dict, *, free=None,
@@ -389,9 +395,18 @@ class Problem:
         spec = target_spec(targets, weights, rtol)
         leaves = FreeLeaves.build(params0, free, dict(bounds or {}), sim, positive_start=True,
                                   state=state)
+        key = None
+        if state is None:
+            try:
+                key = (metrics_fn, sim, leaves.free, spec, jax.tree_util.tree_structure(params0), tuple(
+                    (p, float(v), str(np.asarray(v).dtype)) for p, v in leaves.flat0.items()
+                    if p not in leaves.free))
+                hash(key)
+            except (TypeError, ValueError):
+                key = None
         return cls(with_flag(metrics_fn, sim, state), leaves,
                    np.clip(leaves.x0, leaves.lo, leaves.hi), targets, spec, scalar,
-                   {k: jnp.asarray(v) for k, v in targets.items()})
+                   {k: jnp.asarray(v) for k, v in targets.items()}, key)
 
     @property
     def free(self) -> tuple:
@@ -403,10 +418,11 @@ class Problem:
         """(P,) log start."""
         return np.log(self.x0)
 
-    def evaluate(self, theta):
-        """``(residuals (m,), metrics)`` at log values ``theta`` (P,) (traceable)."""
+    def evaluate(self, theta, targets: dict | None = None):
+        """``(residuals (m,), metrics)`` at log values ``theta`` (P,) (traceable), against
+        ``targets`` (``{metric: (n,) array}``, traced too) or the problem's own."""
         m = self.metrics_fn(self.leaves.params_of(theta))
-        return residuals(m, self._tgt, self.spec), m
+        return residuals(m, self._tgt if targets is None else targets, self.spec), m
 
     def params_of(self, theta):
         """The :class:`diffpen.Params` at log values ``theta`` (P,)."""
