@@ -330,24 +330,27 @@ def test_residuals_and_jacobian_trace_once_and_equal_separate_passes():
     assert bool(aux["flag"]) == bool(aux_value["flag"])
 
 
-def test_a_later_lm_fit_of_an_equal_problem_compiles_nothing(short_problem, caplog):
-    """Regression: every LM fit built and compiled its residual program again (1-2 s a fit),
-    even with the same metrics function, simulator and frozen leaves and only new targets or
-    starts. A later fit of such a problem runs the compiled program with its own targets; a
-    changed frozen leaf (k here) is a different program, never the old one."""
+@pytest.mark.parametrize("method, program", [("lm", "rj"), ("optax", "step")])
+def test_a_later_fit_of_an_equal_problem_compiles_nothing(short_problem, caplog, method,
+                                                          program):
+    """Regression: every fit built and compiled its residual program (LM) or loop (optax)
+    again (1.6-2.8 s a fit), even with the same metrics function, simulator and frozen leaves
+    and only new targets or starts. A later fit of such a problem runs the compiled program
+    with its own targets; a changed frozen leaf (k here) is a different program, never the
+    old one."""
     sim, mfn = short_problem
 
-    def lm(k, apex):
+    def run(k, apex):
         with caplog.at_level(logging.WARNING), jax.log_compiles():
             caplog.clear()
             res = F.fit(mfn, sim.params(k=k, c=10.0), {"apex_heights": [apex]},
-                        free=["contact.default.c"], method="lm", maxiter=20, sim=sim)
-        return res, _compiles(caplog, "rj")
-    first, _ = lm(1.2e4, 0.2)
-    again, compiled = lm(1.2e4, 0.22)
+                        free=["contact.default.c"], method=method, maxiter=150, sim=sim)
+        return res, _compiles(caplog, program)
+    first, _ = run(1.2e4, 0.2)
+    again, compiled = run(1.2e4, 0.22)
     assert compiled == 0 and again.traces == 0
     assert again.reached and again.achieved["apex_heights"][0] == pytest.approx(0.22, rel=1e-3)
-    other, compiled = lm(1.5e4, 0.22)
+    other, compiled = run(1.5e4, 0.22)
     assert compiled == 1 and other.traces == 1 and other.reached
     assert float(other.params.contact["default"].k) == 1.5e4
     assert other.values["contact.default.c"] != pytest.approx(again.values["contact.default.c"],
