@@ -173,8 +173,9 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
                      "unstable": bool(np.isnan(pe[r]))})
     bad = [rec["path"] for rec in recs if rec["unstable"]]
     message = (f"{len(bad)} of {len(recs)} records ran past the safe step"
-               f"{solver_miss(sim)} (State.aux['unstable']): their errors are NaN and left out of the summary; "
-               f"lower dt or use softer k / smaller c ({bad[:5]})" if bad else "")
+               f"{solver_miss(sim)} (State.aux['unstable']): their errors are NaN and left "
+               f"out of the summary; lower dt or use softer k / smaller c ({bad[:5]})"
+               if bad else "")
     return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
                       np.asarray(pos), None if quat is None else np.asarray(quat), seconds,
                       len(bad), message)

@@ -398,9 +398,10 @@ class Problem:
         key = None
         if state is None:
             try:
-                key = (metrics_fn, sim, leaves.free, spec, jax.tree_util.tree_structure(params0), tuple(
-                    (p, float(v), str(np.asarray(v).dtype)) for p, v in leaves.flat0.items()
-                    if p not in leaves.free))
+                frozen = tuple((p, float(v), str(np.asarray(v).dtype))
+                               for p, v in leaves.flat0.items() if p not in leaves.free)
+                key = (metrics_fn, sim, leaves.free, spec,
+                       jax.tree_util.tree_structure(params0), frozen)
                 hash(key)
             except (TypeError, ValueError):
                 key = None
