@@ -13,8 +13,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["dot", "safe_norm", "safe_unit", "sphere_plane", "sphere_sphere", "box_corners", "quat_to_matrix",
-           "sphere_box", "rotate", "rotate_back"]
+__all__ = ["dot", "safe_norm", "safe_unit", "sphere_plane", "sphere_sphere", "box_corners",
+           "quat_to_matrix", "sphere_box", "rotate", "rotate_back"]
 
 
 def dot(a, b):

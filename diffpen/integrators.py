@@ -24,6 +24,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+from jax import lax
 import numpy as np
 
 from . import layout
@@ -238,7 +239,6 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
     After the solve, ``x' = x + h v'`` and ``q`` turns by ``h w'``. Rigid scenes use the dense
     solve (the iterative solvers are refused there).
     """
-    from jax import lax
     from .errors import SceneError
 
     if solver not in IMPLICIT_SOLVERS:
@@ -314,14 +314,13 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
 
 def _checked_solve(solve: Callable, matvec: Callable, rhs, tol: float, state: State):
     """``(dv, state)``: ``solve(rhs)`` checked with one more product, ``matvec(dv)``. Where its
-    relative residual is past ``max(1e3 tol, sqrt(eps))`` it is refined once (``dv +
-    solve(residual)``), and where that still misses, the state's stability flag
+    relative residual is past ``max(1e3 tol, sqrt(eps))`` the state's stability flag
     (``State.aux["unstable"]``) is set: an iterative solve that returns a wrong answer is
-    never silent. (Seen in JAX 0.10 on CPU: GMRES and CG inside a rollout's ``lax.scan`` of
+    never silent (a refinement step, ``dv + solve(residual)``, was tried and not kept: it
+    also moved right answers). (Seen in JAX 0.10 on CPU: GMRES and CG inside a rollout's ``lax.scan`` of
     two or more steps returned a relative residual of 3.7e-3 at a cloth's first contact,
     against 1e-10 asked, where the same step alone solved to 1e-16; the rollout left its own
     step loop by 2e-4 m and its gradients by up to 5%.)"""
-    from jax import lax
     limit = max(1e3 * tol, float(jnp.finfo(rhs.dtype).eps) ** 0.5)
 
     dv = solve(rhs)
@@ -378,7 +377,6 @@ def substepped(step_fn: Callable, n: int):
     """
     if n == 1:
         return step_fn
-    from jax import lax
 
     def step(params, state: State) -> State:
         def body(s, _):

@@ -333,8 +333,8 @@ def test_residuals_and_jacobian_trace_once_and_equal_separate_passes():
 @pytest.mark.parametrize("method, program", [("lm", "rj"), ("optax", "step")])
 def test_a_later_fit_of_an_equal_problem_compiles_nothing(short_problem, caplog, method,
                                                           program):
-    """Regression: every fit built and compiled its residual program (LM) or loop (optax)
-    again (1.6-2.8 s a fit), even with the same metrics function, simulator and frozen leaves
+    """Regression: every fit built and compiled its residual program (LM) or loop (optax), and
+    optax its ranking of extra starts, again (1.6-2.8 s a fit), even with the same metrics function, simulator and frozen leaves
     and only new targets or starts. A later fit of such a problem runs the compiled program
     with its own targets; a changed frozen leaf (k here) is a different program, never the
     old one."""
@@ -344,11 +344,13 @@ def test_a_later_fit_of_an_equal_problem_compiles_nothing(short_problem, caplog,
         with caplog.at_level(logging.WARNING), jax.log_compiles():
             caplog.clear()
             res = F.fit(mfn, sim.params(k=k, c=10.0), {"apex_heights": [apex]},
-                        free=["contact.default.c"], method=method, maxiter=150, sim=sim)
+                        free=["contact.default.c"], method=method, maxiter=150, sim=sim,
+                        starts=[{"contact.default.c": 14.0}])
         return res, _compiles(caplog, program)
     first, _ = run(1.2e4, 0.2)
     again, compiled = run(1.2e4, 0.22)
-    assert compiled == 0 and again.traces == 0
+    # nothing at all: neither the fit's program nor the ranking of the starts
+    assert compiled == 0 and _compiles(caplog) == 0 and again.traces == 0
     assert again.reached and again.achieved["apex_heights"][0] == pytest.approx(0.22, rel=1e-3)
     other, compiled = run(1.5e4, 0.22)
     assert compiled == 1 and other.traces == 1 and other.reached

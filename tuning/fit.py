@@ -152,17 +152,19 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         points = problem.start_points(starts)   # the same check of the extra starts as LM
         if len(points) > 1:
             # optax runs from one point: the start of lowest cost (stable points first)
-            cost = jax.jit(lambda th: _start_cost(problem, th))
-            best = min(points, key=lambda th: float(cost(jnp.asarray(th))))
+            cost = problem.program("start_cost", lambda: jax.jit(
+                lambda th, tgt: _start_cost(problem, th, tgt)))
+            best = min(points, key=lambda th: float(cost(jnp.asarray(th), problem._tgt)))
             problem = dataclasses.replace(problem, x0=np.exp(np.asarray(best, float)))
         sol = fit_optax(problem, optimizer, maxiter=maxiter, progress=bar)
     bar.close()
     return _result(problem, sol, time.perf_counter() - t_start)
 
 
-def _start_cost(problem: Problem, theta):
-    """Sum of squared residuals at ``theta``; inf past the safe step or where not finite."""
-    r, m = problem.evaluate(theta)
+def _start_cost(problem: Problem, theta, targets):
+    """Sum of squared residuals at ``theta`` against ``targets``; inf past the safe step or
+    where not finite."""
+    r, m = problem.evaluate(theta, targets)
     bad = jnp.any(jnp.asarray(m["unstable"])) if "unstable" in m else False
     c = jnp.sum(r * r)
     return jnp.where(bad | ~jnp.isfinite(c), jnp.inf, c)

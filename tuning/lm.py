@@ -23,7 +23,6 @@ import numpy as np
 from .errors import FitError
 from .problem import Problem, Solution, target_slices, tolerances
 from .progress import Progress
-from .record_batch import ProgramCache
 from .stable import FLAG, unsafe_start
 
 __all__ = ["LMResult", "levenberg_marquardt", "residuals_and_jacobian", "fit_lm",
@@ -188,11 +187,6 @@ def levenberg_marquardt(res_and_jac: Callable, x0, lo, hi, *,
     return LMResult(x, r, J, hist, it, converged, message)
 
 
-#: compiled residual and Jacobian programs of :func:`fit_lm` by ``Problem.program_key``, the
-#: last 8 (a program built at each call compiled again: 1-2 s a fit)
-_PROGRAMS = ProgramCache()
-
-
 def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
            n_starts: int = 3, search: Callable | None = None,
            progress: Progress | None = None) -> Solution:
@@ -221,9 +215,7 @@ def fit_lm(problem: Problem, *, maxiter: int = 50, starts: list | None = None,
         if FLAG in m:   # past the safe step: nan residuals, so LM rejects the point
             r = jnp.where(jnp.any(m[FLAG]), jnp.nan, r)
         return r, J, m
-    # a later fit of an equal problem (new targets or starts) runs the same program
-    rj_compiled = (jax.jit(rj) if problem.program_key is None else
-                   _PROGRAMS.get(problem.program_key, lambda: jax.jit(rj)))
+    rj_compiled = problem.program("lm", lambda: jax.jit(rj))
 
     blocked = [0]
 

@@ -32,7 +32,6 @@ import diffpen as dp
 
 from .errors import FitError
 from .problem import Problem, Solution, tolerances
-from .record_batch import ProgramCache
 from .stable import FLAG
 
 __all__ = ["default_optimizer", "settling", "OptaxLoop", "fit_optax", "RUNNING", "REACHED",
@@ -157,11 +156,6 @@ class OptaxLoop:
                          jnp.where(c["status"] == REACHED, c["it"] + 1, c["it"]))
 
 
-#: compiled optax loops of :func:`fit_optax` by problem, optimiser, bounds and maxiter, the
-#: last 8 (a loop built at each call compiled again: ~2.8 s a fit)
-_PROGRAMS = ProgramCache()
-
-
 def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None = None, *,
               maxiter: int = 300, progress=None) -> Solution:
     """Run the optax loop on ``problem`` from the host, one jitted iteration per call.
@@ -194,12 +188,9 @@ def fit_optax(problem: Problem, optimizer: optax.GradientTransformation | None =
         loop = OptaxLoop(loss_fn, opt, project, tolerances(problem.spec), maxiter,
                          settling=settling(problem.spec), history=False)
         return loop, jax.jit(loop.step)
-    # a later fit of an equal problem with the same optimiser (the default one, or the same
-    # object), bounds and maxiter runs the same programs with its own targets and start
-    key = None if problem.program_key is None else (
-        problem.program_key, "default" if optimizer is None else optimizer,
-        tuple(log_lo), tuple(log_hi), int(maxiter))
-    loop, step = build() if key is None else _PROGRAMS.get(key, build)
+    # the same optimiser (the default one, or the same object), bounds and maxiter
+    loop, step = problem.program(("optax", "default" if optimizer is None else optimizer,
+                                  tuple(log_lo), tuple(log_hi), int(maxiter)), build)
     theta_d = {p: jnp.asarray(v) for p, v in zip(free, problem.theta0)}
     c = loop.init(theta_d, problem._tgt)
     history, costs = [], []

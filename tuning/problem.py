@@ -28,6 +28,7 @@ import numpy as np
 
 from . import params as P
 from .errors import FitError
+from .record_batch import ProgramCache
 from .stable import FLAG, params_unstable, safe_contact_bounds, safe_contact_limits
 
 __all__ = ["FitError", "TargetSpec", "normalise_targets", "target_spec", "tolerances",
@@ -360,6 +361,10 @@ class FreeLeaves:
         return np.clip(x, self.lo, self.hi)
 
 
+#: compiled fit programs by (``Problem.program_key``, what), the last 16
+_PROGRAMS = ProgramCache(16)
+
+
 @dataclasses.dataclass(frozen=True)
 class Problem:
     """One fitting problem: ``metrics_fn`` at the free leaves of ``leaves`` against
@@ -418,6 +423,16 @@ class Problem:
     def theta0(self) -> np.ndarray:
         """(P,) log start."""
         return np.log(self.x0)
+
+    def program(self, what, build: Callable):
+        """The compiled program ``what`` (a hashable tag of the method and its own static
+        settings) of this problem: ``build()``'s, kept for later problems of the same
+        :attr:`program_key` (a later fit with new targets or starts runs it, the targets
+        passed as an argument; a program built at each fit compiled again: 1.6-2.8 s), or
+        built afresh where the key is None."""
+        if self.program_key is None:
+            return build()
+        return _PROGRAMS.get((self.program_key, what), build)
 
     def evaluate(self, theta, targets: dict | None = None):
         """``(residuals (m,), metrics)`` at log values ``theta`` (P,) (traceable), against
