@@ -100,6 +100,7 @@ _SQUARINGS = 4
 _NEWTON = 4
 
 
+@jax.jit
 def spring_flow(tau, w2, b):
     """The damped spring's motion over a time ``tau`` s (either sign), ``d'' = a - w2 d - b
     d'``: ``(m11, m12, m21, m22, q1, q2)`` with ``d(tau) = m11 d0 + m12 u0 + a q1`` and
@@ -176,6 +177,7 @@ def _entry_time(x, U, a, h):
     return jnp.clip(-2.0 * xn / _safe(den, den > 0.0), 0.0, h)
 
 
+@jax.jit
 def event_step_factors(k, c, inv_mass, h):
     """The spring's motion a step back and a step ahead, ``(spring_flow(-h), spring_flow(h))``
     for ``w2 = k inv_mass``, ``b = c inv_mass``: per-contact constants of a rollout, which it
@@ -289,6 +291,7 @@ def _events_force(next_depth, d, vn, k, c, h, inv_mass, accel, factors, pointwis
     return jnp.where(heavy, jnp.where(free, 0.0, force), pointwise)
 
 
+@jax.jit
 def linear_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """The linear law's event-exact one-contact force (N): ``m (a - (X_{n+1} - d_n - h
     u_n) / h^2)``, ``X_{n+1}`` the continuous motion's depth at the next step time through
@@ -395,6 +398,7 @@ def _no_tension_next(x, u, w2, b, a, h, flows):
     return jax.lax.cond(jnp.all(apart), lambda _: (x_free, apart), not_apart, None)
 
 
+@jax.jit
 def no_tension_events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
     """:func:`linear_events` for the no_tension law (``F = max(k d - c vn, 0)`` in contact):
     the force whose step lands on the continuous motion through contact start, release and
@@ -534,6 +538,7 @@ def hunt_crossley_events(exponent: float, force):
     c)``: the law's pointwise force, what a contact without inertia (``inv_mass`` 0) takes."""
     nxt = _hc_next(float(exponent))
 
+    @jax.jit
     def events(d, vn, k, c, h, lag, inv_mass, accel, factors=None):
         return _events_force(nxt, d, vn, k, c, h, inv_mass, accel, None, force(d, vn, k, c),
                              flows=False)

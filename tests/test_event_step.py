@@ -543,3 +543,24 @@ def test_event_exact_records_run_in_a_float32_simulator_with_x64_on(law):
         assert traj.position.dtype == dtype
         z[dtype] = np.asarray(traj.position[:, 0, 2], float)
     np.testing.assert_allclose(z[jnp.float32], z[jnp.float64], atol=2e-5)
+
+
+def test_event_records_called_directly_compile_once(caplog):
+    """The event-exact record's force and its step factors, called outside a jit (a user
+    checking one contact): each call compiled its Newton and Taylor loops again (0.7-1.3 s a
+    call; audit12). A call with new values of the same shapes now compiles nothing, and gives
+    what the rollout's record gives."""
+    import logging
+    law = laws.linear(events=True)
+    d, vn = jnp.array([1e-3, -2e-3, 5e-4]), jnp.array([-1.0, -0.5, 0.3])
+
+    def call(k):
+        factors = law.step_factors(k, 20.0, 1.0, 1e-3)
+        return law.centred_force(d, vn, k, 20.0, 1e-3, 5e-4, 1.0, G, factors=factors)
+    first = call(1e4)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        again = call(1.1e4)
+    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert compiled == [], compiled
+    assert float(again[0]) > float(first[0]) > 0.0 and float(again[1]) == 0.0
