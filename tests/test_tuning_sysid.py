@@ -47,6 +47,24 @@ def test_recovers_k_and_c_with_covering_standard_errors(record, monkeypatch):
     assert len(res.horizons) >= 2          # grown bounce by bounce
 
 
+def test_a_later_record_fit_compiles_nothing(record, caplog):
+    """A second record fitted in the same process at the same step (another ball's drop,
+    another noise draw) runs the programs the first fit compiled: the simulators were keyed
+    on the record's start height and the residual program closed over the record (2.3 s a
+    record, now 0.1 s)."""
+    import logging
+    t, z = record
+    rng = np.random.default_rng(5)
+    S.fit_trajectory(t, z, radius=0.1, mass=1.0, dt=2e-4, maxiter=1, grow=False)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), S.jax.log_compiles():
+        res = S.fit_trajectory(t, 0.98 * z + 1e-3 * rng.standard_normal(z.shape), radius=0.1,
+                               mass=1.0, dt=2e-4, maxiter=1, grow=False)
+    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert compiled == [], compiled
+    assert res.events.z0 == pytest.approx(0.98, abs=5e-3)
+
+
 def _write(tmp_path, text):
     p = tmp_path / "rec.csv"
     p.write_text(text)

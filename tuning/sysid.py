@@ -12,10 +12,8 @@ columns ``t,z``. Pipeline (each step is a public function):
    standard error (the parabolas' timing at the record's noise).
 3. :func:`first_guess` turns the median restitution and contact time into (k, c) with the
    closed forms of :mod:`diffpen.physical` (a few percent off: gravity acts during contact).
-   A record that does not resolve the contact time (durations not above 3 standard errors,
-   e.g. a hard contact) gives k at that resolution: the smallest stiffness consistent with
-   the record, a lower bound, which :func:`fit_trajectory` then holds (fitting c only) and
-   reports as such.
+   A record that does not resolve the contact time (durations not above 3 standard errors)
+   gives k at that resolution, a lower bound, which :func:`fit_trajectory` holds (fitting c).
 4. :func:`choose_dt` picks the time step from the data: the simulated trajectory at dt and
    at dt/2 must agree far below the noise (the model's own discretisation error otherwise
    dominates the misfit); it warns when it cannot.
@@ -23,13 +21,14 @@ columns ``t,z``. Pipeline (each step is a public function):
    (simulation resampled onto the record's times by linear interpolation) over a horizon
    grown bounce by bounce -- the least-squares landscape over many bounces is rugged, so the
    fit follows the record one bounce at a time -- and reports standard errors from the
-   Gauss-Newton covariance ``s^2 (J^T J)^-1`` with an autodiff (forward-mode) Jacobian,
-   plus in quadrature the shift of the parameters towards the continuous-time model
-   (Richardson: twice the change on halving dt). Over many bounces the model at a finite dt
-   is rough at the 0.1% scale, so on long records these errors are a lower bound.
+   Gauss-Newton covariance ``s^2 (J^T J)^-1`` (forward-mode Jacobian), plus in quadrature
+   the parameters' shift towards the continuous-time model (Richardson: twice the change on
+   halving dt). On long records these errors are a lower bound (the model at a finite dt is
+   rough at the 0.1% scale over many bounces).
 
 The horizon is a weight mask passed to one compiled residual/Jacobian function, so growing
-it never recompiles.
+it never recompiles; the record is an argument too (a later record of the same layout and law
+compiles nothing).
 """
 from __future__ import annotations
 
@@ -243,31 +242,32 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
 
 
 # --------------------------------------------------------------------------- model
-#: ball simulators by (radius, mass, z0, v0, g, dt, law), the last 8: a record fit builds
-#: the same ones in choose_dt and in its fit (each built twice compiled its rollouts twice)
-_BALL_SIMS = ProgramCache()
+#: ball simulators by (radius, mass, g, dt, law) and the fit's residual programs by
+#: (simulator, steps, every, k held), the last 8 of each: shared by choose_dt, the fit and
+#: later records' fits (the start height and velocity are the rollouts' state)
+_BALL_SIMS, _FIT_PROGRAMS = ProgramCache(), ProgramCache()
 
 
-def _ball_sim(radius, mass, z0, v0, g, dt, law, t0=0.0):
+def _ball_sim(radius, mass, g, dt, law):
     from .scenes import ball_scene
-    key = tuple(float(x) for x in (radius, mass, z0, v0, g, dt)) + (law,)
+    key = tuple(float(x) for x in (radius, mass, g, dt)) + (law,)
     return _BALL_SIMS.get(key, lambda: dp.compile(ball_scene(
-        radius=radius, mass=mass, height=z0, velocity=v0, gravity=g), dt, law=law))
+        radius=radius, mass=mass, gravity=g), dt, law=law))
 
 
-def _model_heights(sim, params, t_data, t0: float, steps: int, z0=None, v0=None,
-                   every: int = 0):
-    """Simulated centre height at the record's times, m.
-
-    ``every > 0``: the record is uniform with interval ``every * dt`` starting at ``t0``, so
-    saved samples fall on the record's times (no interpolation, ``steps // every`` saves);
-    otherwise every step is saved and linearly interpolated onto ``t_data``.
-    ``z0``, ``v0`` override the start height (m) and vertical velocity (m/s).
-    """
+def _start(sim, z0, v0):
+    """The ball's state at centre height ``z0`` (m), rising at ``v0`` (m/s)."""
     s0 = sim.init_state()
-    if z0 is not None:
-        s0 = s0._replace(position=s0.position.at[0, 2].set(z0),
-                         velocity=s0.velocity.at[0, 2].set(v0))
+    return s0._replace(position=s0.position.at[0, 2].set(z0),
+                       velocity=s0.velocity.at[0, 2].set(v0))
+
+
+def _model_heights(sim, params, t_data, t0, steps: int, z0, v0, every: int = 0):
+    """Simulated centre height at the record's times, m, from centre height ``z0`` (m) and
+    vertical velocity ``v0`` (m/s) at ``t0`` (s). ``every > 0``: the record is uniform with
+    interval ``every * dt`` from ``t0``, so saved samples fall on its times (``steps //
+    every`` saves); otherwise every step is saved and interpolated onto ``t_data``."""
+    s0 = _start(sim, z0, v0)
     if every:
         traj = sim.rollout(params, steps, s0, save_every=every, check_finite=False)
         return jnp.concatenate([s0.position[None, 0, 2], traj.position[:, 0, 2]])
@@ -275,6 +275,20 @@ def _model_heights(sim, params, t_data, t0: float, steps: int, z0=None, v0=None,
     ts = jnp.concatenate([jnp.zeros((1,), traj.time.dtype), traj.time]) + t0
     zs = jnp.concatenate([s0.position[None, 0, 2], traj.position[:, 0, 2]])
     return jnp.interp(t_data, ts, zs)
+
+
+def _fit_program(sim, steps: int, every: int, held: bool):
+    """The fit's weighted residuals (m) and their Jacobian, ``rj(theta, w, td, zd, t0,
+    log_k)``, theta = (log k, log c, z0, v0) (without log k where ``held``: ``log_k``): one
+    program per simulator, layout and held k, the record its arguments."""
+    def residuals(theta, w, td, zd, t0, log_k):
+        theta = jnp.concatenate([log_k[None], theta]) if held else theta
+        p = sim.params(k=jnp.exp(theta[0]), c=jnp.exp(theta[1]))
+        return w * (_model_heights(sim, p, td, t0, steps, theta[2], theta[3], every) - zd)
+
+    def rj(theta, *record):
+        return residuals_and_jacobian(lambda th: (residuals(th, *record), None), theta)[:2]
+    return _FIT_PROGRAMS.get((sim, steps, every, held), lambda: jax.jit(rj))
 
 
 def _uniform_step(t) -> float | None:
@@ -298,41 +312,35 @@ def _layout(t, dt: float):
 
 def choose_dt(t, *, radius, mass, z0, v0, k, c, g=9.81, law="linear", noise=1e-3,
               dt=None, w0dt: float = 0.02, max_halvings: int = 3, match_c: bool = False):
-    """Time step for fitting the record, from the data.
-
-    Start from the record's sample interval divided so that ``w0 dt <= w0dt`` (w0 of the first
-    guess), then halve until the simulated heights at ``dt`` and ``dt / 2`` differ by less
-    than a sixth of the noise (rms over the record). A ``dt`` given by the user is only
-    checked. ``match_c``: compare the two after matching their restitution (the difference
-    less its least-squares multiple of the heights' change with ``c``), for a fit in which k
-    is held and the fitted c absorbs the step's own restitution error (most of the
-    difference between dt and dt/2 at one c, for a contact of a few steps).
-    Returns ``(dt, discretisation_rms, warning or None)``.
-    """
+    """Time step for fitting the record, from the data: from the record's sample interval
+    divided so that ``w0 dt <= w0dt`` (w0 of the first guess), halved until the simulated
+    heights at ``dt`` and ``dt / 2`` differ by less than a sixth of the noise (rms over the
+    record). A ``dt`` given by the user is only checked. ``match_c``: compare the two after
+    matching their restitution (the difference less its least-squares multiple of the
+    heights' change with ``c``), for a fit in which k is held and c absorbs the step's own
+    restitution error (most of the difference for a contact of a few steps). Returns
+    ``(dt, discretisation_rms, warning or None)``."""
     t = np.asarray(t, float)
     # w0 of the law's stiffness at the depth the start's energy allows (k itself if linear)
-    pre = _ball_sim(radius, mass, z0, v0, g, 1e-3, law)
-    w0 = math.sqrt(k * contact_scales(pre, k, state=pre.init_state())[0] / mass)
+    pre = _ball_sim(radius, mass, g, 1e-3, law)
+    w0 = math.sqrt(k * contact_scales(pre, k, state=_start(pre, z0, v0))[0] / mass)
+    tries = max_halvings if dt is None else 0
     if dt is None:
         step = float(np.median(np.diff(t)))
         dt = step / max(1, math.ceil(step * w0 / w0dt))
-        tries = max_halvings
-    else:
-        tries = 0
     td = jnp.asarray(t)
-    msg = None
     for i in range(tries + 1):
-        sims = [_ball_sim(radius, mass, z0, v0, g, h, law) for h in (dt, dt / 2)]
+        sims = [_ball_sim(radius, mass, g, h, law) for h in (dt, dt / 2)]
         zz = []
         for s in sims:
             st, every = _layout(t, s.dt)
-            zz.append(np.asarray(_model_heights(s, s.params(k=k, c=c), td, t[0], st,
-                                                every=every)))
+            zz.append(np.asarray(_model_heights(s, s.params(k=k, c=c), td, t[0], st, z0, v0,
+                                                every)))
         diff = zz[0] - zz[1]
         if match_c:
             st, every = _layout(t, sims[1].dt)
             dc = np.asarray(_model_heights(sims[1], sims[1].params(k=k, c=c * 1.001), td,
-                                           t[0], st, every=every)) - zz[1]
+                                           t[0], st, z0, v0, every)) - zz[1]
             diff = diff - dc * float(diff @ dc) / max(float(dc @ dc), 1e-300)
         err = float(np.sqrt(np.mean(diff ** 2)))
         if err <= noise / 6.0:
@@ -421,8 +429,8 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     # a law whose stiffness grows with depth (Hunt-Crossley: k N/m^n, c N s/m^(n+1)) takes
     # the closed forms' N/m and N s/m at the depth the record's start energy allows, as
     # its safe step counts it (tuning.stable.law_k, law_c); the linear laws keep them
-    pre = _ball_sim(radius, mass, ev.z0, ev.v0, g, 1e-3, law)
-    start = pre.init_state()
+    pre = _ball_sim(radius, mass, g, 1e-3, law)
+    start = _start(pre, ev.z0, ev.v0)
     ku, cu = law_units(pre.contact_law)
     kg, cg = kg_lin, cg_lin
     convert = dp.laws.get(law).closed_form is None     # the linear closed forms: N/m, N s/m
@@ -466,7 +474,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
         notes.append("WARNING: " + warn)
     notes.append(f"dt = {dt:.4g} s (model discretisation {dt_err * 1e3:.3g} mm rms vs noise "
                  f"{noise * 1e3:.3g} mm)")
-    sim = _ball_sim(radius, mass, ev.z0, ev.v0, g, dt, law)
+    sim = _ball_sim(radius, mass, g, dt, law)
     steps, every = _layout(t, dt)
     td = jnp.asarray(t)
     zd = jnp.asarray(z)
@@ -479,16 +487,10 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     def full(theta):        # log_k: the held k, set with the bounds below
         return theta if f0 == 0 else jnp.concatenate([jnp.full((1,), log_k), theta])
 
-    def residuals(theta, w):
-        theta = full(theta)
-        p = sim.params(k=jnp.exp(theta[0]), c=jnp.exp(theta[1]))
-        zs = _model_heights(sim, p, td, t[0], steps, theta[2], theta[3], every)
-        return w * (zs - zd)
+    program = _fit_program(sim, steps, every, bool(f0))
 
-    @jax.jit
     def rj(theta, w):
-        r, J, _ = residuals_and_jacobian(lambda th: (residuals(th, w), None), theta)
-        return r, J
+        return program(theta, w, td, zd, *jnp.asarray([t[0], log_k], td.dtype))
 
     # Horizons: through the end of each flight (the next landing), then the whole record.
     ends = [x for x in ev.landing[1:] if np.isfinite(x)] if grow else []
@@ -538,7 +540,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     # 2 (z_dt/2 - z_dt). It is added to the statistical error in quadrature, so the standard
     # errors cover the model's dependence on dt as well as the noise.
     x = np.asarray(full(jnp.asarray(x)))
-    sim2 = _ball_sim(radius, mass, ev.z0, ev.v0, g, dt / 2, law)
+    sim2 = _ball_sim(radius, mass, g, dt / 2, law)
     steps2, every2 = _layout(t, dt / 2)
     p_fit = sim.params(k=float(np.exp(x[0])), c=float(np.exp(x[1])))
     z_half = _model_heights(sim2, sim2.params(k=float(np.exp(x[0])), c=float(np.exp(x[1]))),
@@ -584,12 +586,13 @@ def synthetic_record(k: float, c: float, *, radius: float = 0.1, mass: float = 1
     """A record of a ball dropped from rest at centre height ``drop`` (m): centre heights at
     ``rate`` Hz for ``duration`` s, simulated with a fine step ``dt`` (s) and Gaussian noise
     of std ``noise`` (m). Returns ``(t (N,), z (N,))``."""
-    sim = _ball_sim(radius, mass, drop, 0.0, g, dt, law)
+    sim = _ball_sim(radius, mass, g, dt, law)
     every = int(round(1.0 / (rate * dt)))
     if abs(every * dt * rate - 1.0) > 1e-9:
         raise ValueError(f"1/rate = {1 / rate} s must be a multiple of dt = {dt} s.")
     n = int(round(duration * rate))
-    traj = sim.rollout(sim.params(k=k, c=c), n * every, sim.init_state(), save_every=every)
+    traj = sim.rollout(sim.params(k=k, c=c), n * every, _start(sim, drop, 0.0),
+                       save_every=every)
     t = np.concatenate([[0.0], np.asarray(traj.time)])[:n]
     zc = np.concatenate([[drop], np.asarray(traj.position)[:, 0, 2]])[:n]
     rng = np.random.default_rng(seed)
