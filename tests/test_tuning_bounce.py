@@ -37,6 +37,34 @@ def test_default_fit_reaches_targets(ball_sim):
     assert float(m.settling_time) == pytest.approx(res.achieved["settling_time"], rel=1e-9)
 
 
+def test_a_later_fit_of_an_equal_scene_compiles_nothing(caplog):
+    """fit_bounce compiled a new simulator from its scene at every call (2.5-4 s a fit): a
+    second fit of an equal scene (another Scene object) at the same step, with new targets of
+    the same rollout length, now runs the programs the first compiled."""
+    import logging
+    targets = {"apex_heights": [0.35], "contact_durations": [0.03]}
+    first = B.fit_bounce(ball_scene(), targets, maxiter=2, duration=1.2)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        again = B.fit_bounce(ball_scene(), {"apex_heights": [0.3], "contact_durations": [0.031]},
+                             maxiter=2, duration=1.2)
+    compiled = [r.getMessage() for r in caplog.records if r.getMessage().startswith("Compiling")]
+    assert compiled == [], compiled
+    assert again.achieved["apex_heights"][0] < first.achieved["apex_heights"][0]
+
+
+def test_compiled_shares_the_simulators_of_equal_scenes_only():
+    from tuning.compiled import compiled
+    a, b = ball_scene(), ball_scene()
+    sim = compiled(a, 1e-3)
+    assert compiled(b, 1e-3) is sim and compiled(b, 2e-3) is not sim
+    assert compiled(b, 1e-3, law="no_tension") is not sim
+    b.add_sphere(radius=0.1, mass=1.0, position=(0.5, 0.0, 1.0))     # changed: not shared
+    assert compiled(b, 1e-3).n_bodies == 2
+    a.add_plane(offset=-1.0)            # the simulator holds a copy of the scene it compiled
+    assert len(sim.scene.planes) == 1 and compiled(ball_scene(), 1e-3) is sim
+
+
 def test_a_hertz_ball_fit_takes_the_laws_units():
     """Regression: the bounce fit (``diffpen fit --law hunt_crossley``) capped k at the
     linear accuracy limit ``(0.25 / dt)^2 m`` and started from the linear closed forms, in

@@ -19,24 +19,18 @@ import numpy as np
 
 import diffpen as dp
 
+from .compiled import compiled
 from .errors import FitError, positive_int
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
-from .stable import (FLAG, contact_scales, law_c, law_k, rollout_unstable,
+from .record_batch import ProgramCache
+from .stable import (contact_scales, law_c, law_k, law_units, rollout_unstable,
                      safe_contact_bounds)
+from .bounce_start import apex_settle_search, event_search
 from .step_error import step_error_note, step_restitution_error
 
 __all__ = ["BOUNCE_METRICS", "EVENT_TARGETS", "check_bounce_targets", "bounce_metrics_fn",
            "first_guess_bounce", "fit_bounce", "step_restitution_error", "law_units"]
-
-
-def law_units(law, exponent: float = 1.0) -> tuple[str, str]:
-    """Units of a contact law's k and c (``law`` a record or a name, ``exponent`` for
-    ``"hunt_crossley"``): ``F = k d^n - c vn d^m`` has k in N/m^n and c in N s/m^(m+1) (N/m
-    and N s/m for the linear laws)."""
-    rec = dp.laws.get(law or "linear", exponent)
-    n, m = float(rec.exponent), float(rec.damping_exponent)
-    return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
 
 
 #: Metrics a bounce fit can target, with their default relative tolerances.
@@ -67,13 +61,9 @@ BOUNCE_METRICS = {"apex_heights": 1e-3, "settling_time": 5e-3, "contact_duration
 
 #: Targets that name events of the rollout: a rebound (apex, restitution) or the end of a
 #: contact. Where the model does not have them their metric is nan, with no gradient that
-#: leads to them: :func:`fit_bounce` starts where they occur (:func:`_event_search`).
+#: leads to them: :func:`fit_bounce` starts where they occur
+#: (:func:`tuning.bounce_start.event_search`).
 EVENT_TARGETS = ("apex_heights", "restitution", "contact_durations")
-
-#: The event search's step: c times this (or k divided by it) per step, for at most
-#: ``EVENT_STEPS`` steps (0.7^40 ~ 6e-7: c from any start down to its lower bound).
-EVENT_STEP = 0.7
-EVENT_STEPS = 40
 
 
 def _fall_time(h0: float, v0: float, g: float) -> float:
@@ -180,7 +170,6 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     (:func:`tuning.stable.rollout_unstable`): fits report such a point as not reached and
     sweeps return NaN for it.
     """
-    from .metrics import ball_metrics
     # checked here, not when the function is first traced (an empty jnp.stack, an index
     # error)
     if isinstance(body, bool) or not isinstance(body, (int, np.integer)) \
@@ -193,6 +182,16 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     positive_int("n_apex", n_apex, "how many bounces are reported")
     positive_int("steps", steps, "the rollout's length")
     _check_settle_tol(settle_tol)
+    key = (sim, steps, body, plane, n_apex, float(settle_tol), save_every, decay_cut)
+    return _METRICS_FNS.get(key, lambda: _bounce_metrics(sim, steps, *key[2:]))
+
+
+#: the last 8 bounce metrics functions (equal arguments, the same function: fits share programs)
+_METRICS_FNS = ProgramCache()
+
+
+def _bounce_metrics(sim, steps, body, plane, n_apex, settle_tol, save_every, decay_cut):
+    from .metrics import ball_metrics
     t_end = steps * sim.dt
 
     def metrics_fn(params):
@@ -242,8 +241,9 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
 
     Checks the targets against the scene first (:func:`check_bounce_targets`), then compiles,
     starts from the closed-form first guess (:func:`first_guess_bounce`; with apex and
-    settling-time targets, :func:`_apex_settle_search` scans k with c solved for the apex and
-    bisects the settling time along that curve), and runs :func:`fit`. Targets that name
+    settling-time targets, :func:`tuning.bounce_start.apex_settle_search` scans k with c
+    solved for the apex and bisects the settling time along that curve), and runs
+    :func:`fit`. Targets that name
     events (:data:`EVENT_TARGETS`: a rebound, the end of a contact) start where the model has
     them: at a start without them c is lowered (or k raised) step by step until they occur
     (the notes say so); an absent event counts as a residual of
@@ -268,8 +268,11 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
       method: ``"lm"`` (default) or ``"optax"`` (with ``optimizer``).
       maxiter: default 40 (lm) or 400 (optax).
       rtol: per-metric relative tolerances (default :data:`BOUNCE_METRICS`).
-      duration: rollout length, s (default: covers the targets with margin; for a
-        decay-time target :data:`DECAY_MARGIN` x the target + 0.2 s).
+      duration: rollout length, s (default: covers the targets with margin, for a
+        decay-time target :data:`DECAY_MARGIN` x the target + 0.2 s, rounded up to one of 8
+        step counts per octave). A later call on an equal scene with the same ``dt``, law
+        and ``compile_kw`` reuses its simulator (:func:`tuning.compiled.compiled`), and with
+        the same step count its compiled fit: another target set then compiles nothing.
       progress: False (default): print nothing; None or True: progress on stderr (a bar on a
         terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
@@ -338,7 +341,11 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        + ("(duration)" if given else "the targets need") +
                        f": at least {MIN_STEPS} are needed to resolve the fall and the "
                        f"bounces. Give dt <= {duration / MIN_STEPS:.3g} s (default 1e-3 s).")
-    sim = dp.compile(scene, dt, law=law, **compile_kw)
+    if not given:           # one of 8 lengths per octave (at most 12.5% longer): fits of
+        unit = 1 << max(steps.bit_length() - 4, 0)     # nearby targets share their programs
+        steps = -(-steps // unit) * unit
+        duration = steps * dt
+    sim = compiled(scene, dt, law=law, **compile_kw)    # an equal earlier call's simulator
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
                             settle_tol=settle_tol, decay_cut="bound")
     # Accuracy limit of the explicit step: w0 dt <= 0.25 (docs/physics-notes.md section 4);
@@ -348,9 +355,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     # exp(-zeta pi / sqrt(1 - zeta^2)), semi-implicit Euler, the default law): at
     # w0 dt = 0.05, -0.07% at zeta 0.1, -0.78% at 0.3, -2.98% at 0.5; at w0 dt = 0.25, -3.2%
     # at zeta 0.3 and -13.3% at 0.5 (laws.linear(centred=True): within 0.01-0.9% in the same
-    # cases). So the error at the fitted point is measured after the fit
-    # (step_restitution_error) and noted above step_error.STEP_ERROR_NOTE. A start above the limit is
-    # lowered BEFORE the first guess, so c is guessed for the k actually used.
+    # cases). So the error at the fitted point is measured after the fit and noted above
+    # step_error.STEP_ERROR_NOTE. A start above the limit is lowered BEFORE the first guess.
     # A law whose stiffness grows with depth (Hunt-Crossley: k N/m^n, c N s/m^(n+1)) takes
     # these limits and the linear closed forms at its stiffness and damping at the depth the
     # drop's energy allows (tuning.stable.law_k / law_c, as the safe step counts them).
@@ -419,7 +425,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
            if k in targets or (isinstance(rtol, dict) and k in rtol)}
     search = None
     if starts is not None and method == "lm" and free == [kpath, cpath]:
-        search = _apex_settle_search([math.log(s[kpath]) for s in starts],
+        search = apex_settle_search([math.log(s[kpath]) for s in starts],
                                      [math.log(s[cpath]) for s in starts])
         notes[-1] += ("; along the curve where the first apex is met (Newton on c), the "
                       "settling time is matched by bisection on k")
@@ -429,7 +435,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
     if need and search is None and set(free) <= {kpath, cpath}:
         # a start without the targeted events (no rebound; a contact that does not end) has
         # no gradient towards them: start where they occur (c lowered step by step)
-        look = _event_search(free, {kpath: kk, cpath: cc}, need, tg, notes, kpath=kpath,
+        look = event_search(free, {kpath: kk, cpath: cc}, need, tg, notes, kpath=kpath,
                              cpath=cpath)
         if method == "lm":      # with the fit's own compiled function
             search, n_starts = look, (1 if starts is None else n_starts)
@@ -444,8 +450,8 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                 params0 = sim.params(contact={mat: (kk, cc)})
     res = fit(mfn, params0, dict(targets), free=free,
               bounds={p: bounds[p] for p in free if p in bounds},
-              weights=weights, rtol=tol, method=method, optimizer=optimizer,
-              maxiter=(40 if method == "lm" else 400) if maxiter is None else maxiter, progress=progress,
+              weights=weights, rtol=tol, method=method, optimizer=optimizer, progress=progress,
+              maxiter=(40 if method == "lm" else 400) if maxiter is None else maxiter,
               label="diffpen fit", starts=starts, search=search, n_starts=n_starts)
     res.notes = notes + res.notes
     # the law record the fit's simulator resolved (a name takes centred damping on a scene
@@ -465,135 +471,3 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                              f"{duration:g} s rollout (energy left at its end): give a "
                              f"longer duration")
     return res
-
-
-def _event_search(free, values: dict, need: dict, tg: dict, notes: list, *, kpath: str,
-                  cpath: str):
-    """Start search for targets that name events (:data:`EVENT_TARGETS`):
-    ``run(evaluate, slices, log_lo, log_hi) -> [theta]``, the ``search`` of
-    :func:`tuning.fit.fit` (``evaluate(theta) -> (r, J, metrics)``; only the metrics are
-    read, so a forward rollout will do).
-
-    At a point where a targeted event is absent (nan: the ball does not rebound, or a contact
-    does not end within the rollout) the residuals have no gradient towards it. From the
-    start (``values``: ``{kpath: k, cpath: c}``; ``free`` the fitted ones, in order), c is
-    multiplied by :data:`EVENT_STEP` step by step (k divided by it once c is at its bound
-    or not fitted) until every event ``need`` (``{metric: count}``) names occurs. When only
-    later ones are missing and the first bounce is above its target (flights too long for
-    the rollout), c is raised (k lowered) instead. Returns [] when the start has the events
-    (or no step found them), else the first point that has them; ``notes`` say which.
-    """
-    def absent(m):
-        out = []
-        for name, count in need.items():
-            v = np.atleast_1d(np.asarray(m[name], dtype=float))[:count]
-            out += [f"{name}[{i}]" for i in np.nonzero(~np.isfinite(v))[0]]
-        return out
-
-    def usable(m):     # every targeted event, in a rollout inside its safe step
-        return not absent(m) and not (FLAG in m and bool(np.any(np.asarray(m[FLAG]))))
-
-    def at(x):
-        v = dict(values)
-        v.update({p: float(math.exp(t)) for p, t in zip(free, x)})
-        return f"k = {v[kpath]:.4g} N/m, c = {v[cpath]:.4g} N s/m"
-
-    def run(evaluate, slices, lo, hi):
-        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-        x = np.clip(np.log([values[p] for p in free]), lo, hi)
-        m = evaluate(x)[2]
-        gone = absent(m)
-        if not gone:
-            return []
-        start = at(x)
-        more = True        # more rebound: less damping (or a stiffer contact)
-        first = [n for n in ("apex_heights", "restitution") if n in need]
-        if first and not any(g.endswith("[0]") for g in gone):
-            a = float(np.atleast_1d(np.asarray(m[first[0]], dtype=float))[0])
-            more = not a > float(tg[first[0]][0])
-        step = math.log(1.0 / EVENT_STEP) * (1.0 if more else -1.0)
-        moves = ([(free.index(cpath), -step, "c " + ("lowered" if more else "raised"))]
-                 if cpath in free else [])
-        if kpath in free:
-            moves.append((free.index(kpath), step, "k " + ("raised" if more else "lowered")))
-        done, steps = [], 0
-        for j, d, what in moves:
-            while steps < EVENT_STEPS:
-                new = float(np.clip(x[j] + d, lo[j], hi[j]))
-                if new == x[j]:
-                    break
-                x = x.copy()
-                x[j] = new
-                steps += 1
-                if what not in done:
-                    done.append(what)
-                if usable(evaluate(x)[2]):
-                    notes.append(f"start: {', '.join(gone)} absent at {start} (the ball does "
-                                 "not rebound, or a contact does not end, within the rollout: "
-                                 f"no gradient leads there); {' then '.join(done)} step by "
-                                 f"step (x{EVENT_STEP:g}, {steps} step"
-                                 f"{'s' if steps > 1 else ''}) to {at(x)}, where the targeted "
-                                 "events occur")
-                    return [x]
-        notes.append(f"start: {', '.join(gone)} absent at {start}; "
-                     + (f"{' then '.join(done)} step by step to {at(x)}" if done else
-                        "k and c at their bounds") +
-                     " found no point where every targeted event occurs, so the fit starts "
-                     "where it was and such events are reported as nan")
-        return []
-    return run
-
-
-def _apex_settle_search(log_ks, log_cs, *, newton: int = 6, bisect: int = 10):
-    """Start search for (k, c) from a first-apex (or first-restitution) and a settling-time
-    target.
-
-    The settling time is piecewise continuous in (k, c): it jumps whenever a small bounce's
-    apex crosses the settling band. A local method stalls at those jumps, so: on a scan over
-    k, c is solved by Newton so that the first apex is met exactly (smooth in c); along that
-    curve the settling-time residual is bracketed between scan points and bisected in log k.
-    A bracket holds either a root or a jump; every bracket's end point is returned, best
-    first, for Levenberg-Marquardt to polish.
-    """
-    def run(evaluate, slices, lo, hi):
-        # the first apex, or the first restitution where no apex is targeted (the same
-        # curve: both fix the first rebound)
-        ia = slices["apex_heights" if "apex_heights" in slices else "restitution"].start
-        js = slices["settling_time"].start
-
-        def on_curve(lk, lc):
-            r = None
-            for _ in range(newton):
-                r, J, _ = evaluate(np.array([lk, lc]))
-                r, J = np.asarray(r), np.asarray(J)
-                if not np.all(np.isfinite(r)) or abs(r[ia]) < 1e-5 or J[ia, 1] == 0.0:
-                    break
-                lc = float(np.clip(lc - np.clip(r[ia] / J[ia, 1], -0.5, 0.5), lo[1], hi[1]))
-            return lc, r
-
-        pts = []
-        for lk, lc in zip(log_ks, log_cs):
-            lk = float(np.clip(lk, lo[0], hi[0]))
-            if pts:   # warm start: same damping ratio as the previous point on the curve
-                lc = pts[-1][1] + 0.5 * (lk - pts[-1][0])
-            lc, r = on_curve(lk, float(np.clip(lc, lo[1], hi[1])))
-            if r is not None and np.all(np.isfinite(r)):
-                pts.append((lk, lc, r))
-        out = []
-        for (ka, ca, ra), (kb, cb, rb) in zip(pts[:-1], pts[1:]):
-            if np.sign(ra[js]) == np.sign(rb[js]):
-                continue
-            for _ in range(bisect):
-                km = 0.5 * (ka + kb)
-                cm, rm = on_curve(km, 0.5 * (ca + cb))
-                if not np.all(np.isfinite(rm)):
-                    break
-                if np.sign(rm[js]) == np.sign(ra[js]):
-                    ka, ca, ra = km, cm, rm
-                else:
-                    kb, cb, rb = km, cm, rm
-            out += [(float(ra @ ra), ka, ca), (float(rb @ rb), kb, cb)]
-        out += [(float(r @ r), k, c) for k, c, r in pts]
-        out.sort()
-        return [np.array([k, c]) for _, k, c in out[:6]]
-    return run

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from diffpen import laws as _dp_laws
 from diffpen import stability as _dp_stability
 from diffpen.integrators import solves_iteratively
 from diffpen.stability.bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION
@@ -30,7 +31,7 @@ from diffpen.stability.depth import energy_depth
 from .errors import FitError
 
 __all__ = ["FLAG", "rollout_unstable", "params_unstable", "contact_unstable",
-           "unsafe_start", "start_energy", "contact_scales", "law_k", "law_c",
+           "unsafe_start", "start_energy", "contact_scales", "law_k", "law_c", "law_units",
            "safe_contact_limits", "safe_contact_bounds", "implicit_contact_limits"]
 
 #: key of the flag in ``State.aux`` / ``Trajectory.aux``
@@ -218,6 +219,15 @@ def contact_scales(sim, k: float, *, state=None, params=None) -> tuple[float, fl
     ``state`` (:func:`start_energy`; never deeper than the bodies' largest radius, which is
     the depth without a state or for ``k`` 0)."""
     return _scales_at(sim.analysis, k, *_reference(sim, state, params))
+
+
+def law_units(law, exponent: float = 1.0) -> tuple[str, str]:
+    """Units of a contact law's k and c (``law`` a record or a name, ``exponent`` for
+    ``"hunt_crossley"``): ``F = k d^n - c vn d^m`` has k in N/m^n and c in N s/m^(m+1) (N/m
+    and N s/m for the linear laws)."""
+    rec = _dp_laws.get(law or "linear", exponent)
+    n, m = float(rec.exponent), float(rec.damping_exponent)
+    return ("N/m" if n == 1.0 else f"N/m^{n:g}", "N s/m" if m == 0.0 else f"N s/m^{m + 1:g}")
 
 
 def law_k(sim, stiffness: float, *, state=None, params=None) -> float:

@@ -48,8 +48,7 @@ from .errors import FitError
 from .progress import Progress
 from .record_batch import ProgramCache
 from .lm import levenberg_marquardt, residuals_and_jacobian
-from .bounce import law_units
-from .stable import contact_scales, law_c, law_k, safe_contact_bounds
+from .stable import contact_scales, law_c, law_k, law_units, safe_contact_bounds
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
            "fit_trajectory", "TrajectoryFit", "synthetic_record", "RecordEvents"]

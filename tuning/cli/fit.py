@@ -12,7 +12,7 @@ import os
 import sys
 import time
 
-from ..bounce import law_units  # noqa: F401  (the units this command prints)
+from ..stable import law_units  # noqa: F401  (the units this command prints)
 from ._common import (CLIError, add_start_state_arguments, count, dump_json, fail, fmt,
                       law_name, positive, setup_jax)
 
