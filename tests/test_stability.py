@@ -31,6 +31,26 @@ def test_closed_form_limits():
     assert math.isinf(stability.mode_stable_dt("implicit_euler", K, C))
 
 
+def test_a_mode_limit_takes_few_amplification_evaluations():
+    """The stability gate of rk4 and Verlet rollouts finds each new parameter value's mode
+    limit on the host: it bisected 60 times with a LAPACK eigensolve each (10 ms a mode,
+    13-20 ms a rollout; audit12). Now grids of the closed-form 2x2 radius: a handful of
+    evaluations, the same limits (the undamped closed forms to 1e-12, a damped one against
+    the eigenvalues of the amplification matrix just below and just above it)."""
+    from diffpen.integrators import resolve
+    from diffpen.stability.modes import _mode_stable_dt
+    for name, undamped in (("rk4", 2.0 * math.sqrt(2.0)), ("verlet", 2.0)):
+        rec, calls = resolve(name), []
+        counted = rec._replace(amplification=lambda K, C, h, a=rec.amplification: (
+            calls.append(1), a(K, C, h))[1])
+        assert _mode_stable_dt(counted, 4.0e6, 0.0) == pytest.approx(undamped / 2e3, rel=1e-12)
+        h = _mode_stable_dt(counted, 3.7e6, 850.0)
+        assert len(calls) <= 30, len(calls)
+        radius = [np.max(np.abs(np.linalg.eigvals(rec.amplification(3.7e6, 850.0, x))))
+                  for x in (h * (1 - 1e-9), h * (1 + 1e-9))]
+        assert radius[0] <= 1.0 + 1e-9 < radius[1], radius
+
+
 @pytest.mark.parametrize("integrator", EXPLICIT + ["implicit_euler"])
 def test_amplification_matrix_is_the_jax_step(integrator):
     K, C, h = 900.0, 7.0, 3e-3
