@@ -242,7 +242,7 @@ def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
     of another record of the same layout (here the damping fixture's: 0.15 s at 5 ms, the
     cube, c free), from another start, compiles nothing, and gives what a program compiled
     afresh gives."""
-    from tuning.record_batch import ProgramCache
+    from tuning.compiled import ProgramCache
     s = cube.state_from(body=0, position=(0.0, 0.0, 0.08), velocity=(-0.2, 0.1, -0.4),
                         orientation=(0.9, 0.1, 0.3, 0.2), angular_velocity=(-1.0, 2.0, 0.5),
                         frame="body")

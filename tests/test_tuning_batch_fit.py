@@ -1,6 +1,7 @@
 """Batched fits: each row equals the single fit, a batch reaches its apex targets, the batch
 axis is split over 4 (forced host) devices with the single-device result, bad input is refused
 before anything is traced."""
+import logging
 import math
 import textwrap
 
@@ -89,13 +90,21 @@ def test_batch_reaches_apex_targets(problem, batch):
         assert apex == pytest.approx(target, rel=1e-3)
 
 
-def test_a_row_that_never_settled_is_not_reached_as_in_the_single_fit(problem):
+def test_a_row_that_never_settled_is_not_reached_as_in_the_single_fit(problem, caplog):
     """Regression: a barely damped ball does not settle within the 0.5 s rollout, so its
     settling time reads 0.5 s (the rollout's end), within 1e-3 of the target 0.4998 s: the
     row stopped as converged and was reported reached; the single fit says NOT reached."""
     sim, mfn = problem
     p0, tg = sim.params(k=1e4, c=2.0), {"settling_time": 0.4998}
     res = fit_batch(mfn, p0, [tg], free=FREE, maxiter=3)
+    # a later call with equal arguments and a new target runs the fitter built above (each
+    # call built and compiled a new one: 3-4 s)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        again = fit_batch(mfn, sim.params(k=1e4, c=2.0), [{"settling_time": 0.45}], free=FREE,
+                          maxiter=3)
+    assert [r for r in caplog.records if r.getMessage().startswith("Compiling")] == []
+    assert again.targets["settling_time"][0, 0] == 0.45
     single = F.fit(mfn, p0, tg, free=FREE, method="optax", maxiter=3)
     assert res.achieved["settling_time"][0, 0] == pytest.approx(STEPS * DT)
     assert not single.reached and not single.converged

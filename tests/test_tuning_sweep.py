@@ -196,6 +196,25 @@ def test_a_sweep_without_key_is_keyed_by_the_metrics_its_evaluator_keeps(tmp_pat
     assert res.evaluated == 4 and np.isfinite(res.metrics["twice"][:6]).all()
 
 
+def _jit_vmap(f):
+    import jax
+    return jax.jit(jax.vmap(f))
+
+
+def test_a_later_sweep_of_the_same_problem_compiles_nothing(caplog):
+    """A sweep without evaluate= built and compiled a new evaluator at every call (~2 s on
+    the ball): a later sweep with equal arguments now runs the first one's program."""
+    import logging
+    import jax
+    S.sweep(toy, toy_params(), TOY_POINTS, TOY_NAMES, chunk=4, batch_map=_jit_vmap)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="jax"), jax.log_compiles():
+        res = S.sweep(toy, toy_params(), 1.5 * TOY_POINTS, TOY_NAMES, chunk=4,
+                      batch_map=_jit_vmap)
+    assert [r for r in caplog.records if r.getMessage().startswith("Compiling")] == []
+    np.testing.assert_array_equal(res.metrics["twice"][:4], 3.0 * TOY_POINTS[:4, 0])
+
+
 def test_points_past_the_safe_step_are_not_settled(tmp_path):
     """Points past the safe step had their float metrics NaN but kept the bool 'settled' of
     the blown-up rollout, in memory, the .npz and the .csv."""

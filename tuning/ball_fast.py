@@ -28,7 +28,7 @@ import diffpen as dp
 from diffpen.integrators import kick_then_drift
 
 from . import params as P
-from .record_batch import ProgramCache
+from .compiled import ProgramCache
 
 __all__ = ["supports", "ball_heights", "ball_sweep_evaluator"]
 

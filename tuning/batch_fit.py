@@ -39,6 +39,7 @@ import diffpen as dp
 
 from . import distributed
 from . import params as P
+from .compiled import ProgramCache, frozen_key
 from .errors import FitError, positive_int
 from .fit import at_bounds, result_message
 from .optimise import (LIMIT, MESSAGES, NON_FINITE, REACHED, RUNNING, OptaxLoop,
@@ -326,8 +327,9 @@ def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
     ``fit_batch(metrics_fn, params0, targets, starts, **options)`` is
     ``BatchFitter(metrics_fn, params0, **options)(targets, starts)``; see :class:`BatchFitter`
     for the options (``free``, ``bounds``, ``weights``, ``rtol``, ``optimizer``,
-    ``learning_rate``, ``maxiter``, ``mesh``, ``sim``, ``state``). Build a :class:`BatchFitter` once to run
-    several batches of the same layout without recompiling.
+    ``learning_rate``, ``maxiter``, ``mesh``, ``sim``, ``state``). A later call with equal
+    arguments (the same metrics function, equal ``params0`` and options) reuses the fitter
+    built first: new targets or starts of the same layout compile nothing.
 
     Args:
       metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``.
@@ -340,4 +342,12 @@ def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
       different layouts or counts, non-finite or zero targets, unknown parameters, a
       non-positive learning rate or iteration limit: before anything is compiled.
     """
-    return BatchFitter(metrics_fn, params0, **options)(targets, starts)
+    key = frozen_key(metrics_fn, params0, options)      # one fitter for equal arguments:
+    if key is None:                                     # a later call compiles nothing
+        return BatchFitter(metrics_fn, params0, **options)(targets, starts)
+    return _FITTERS.get(key, lambda: BatchFitter(metrics_fn, params0, **options))(targets,
+                                                                                   starts)
+
+
+#: fitters :func:`fit_batch` built, by their arguments (values), the last 8
+_FITTERS = ProgramCache()

@@ -23,7 +23,7 @@ from .compiled import compiled
 from .errors import FitError, positive_int
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
-from .record_batch import ProgramCache
+from .compiled import ProgramCache
 from .stable import (contact_scales, law_c, law_k, law_units, rollout_unstable,
                      safe_contact_bounds)
 from .bounce_start import apex_settle_search, event_search

@@ -29,7 +29,8 @@ import diffpen as dp
 from .errors import FitError
 from .first_state import FLIGHT_FRAMES
 from .io import save_figure_file
-from .record_batch import ProgramCache, layout_of, typed_params, with_arrays
+from .compiled import ProgramCache
+from .record_batch import layout_of, typed_params, with_arrays
 from .stable import solver_miss
 from .trajfit import Batch, rotation_angle, simulate
 

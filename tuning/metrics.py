@@ -31,7 +31,7 @@ import numpy as np
 
 import diffpen as dp
 
-from .record_batch import ProgramCache
+from .compiled import ProgramCache
 
 __all__ = [
     "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",

@@ -28,7 +28,7 @@ import numpy as np
 
 from . import params as P
 from .errors import FitError
-from .record_batch import ProgramCache
+from .compiled import ProgramCache
 from .stable import FLAG, params_unstable, safe_contact_bounds, safe_contact_limits
 
 __all__ = ["FitError", "TargetSpec", "normalise_targets", "target_spec", "tolerances",

@@ -10,7 +10,6 @@ the frames do not fall on steps).
 """
 from __future__ import annotations
 
-import collections
 import dataclasses
 import functools
 import math
@@ -30,7 +29,7 @@ from .errors import FitError
 from .pose import body_size
 
 __all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",
-           "layout_of", "with_arrays", "typed_params", "ProgramCache"]
+           "layout_of", "with_arrays", "typed_params"]
 
 
 @dataclasses.dataclass
@@ -109,25 +108,6 @@ def typed_params(params, dtype):
     argument, and a Python-number leaf (``with_leaves(params, {name: 12.0})``, weakly typed)
     would compile it once more."""
     return jax.tree_util.tree_map(lambda v: _cast(dtype, v), params)
-
-
-class ProgramCache:
-    """The last ``keep`` compiled programs over batch layouts, by key (a key holds its
-    simulator, so a program outlives no more than ``keep`` others): :meth:`get` returns the
-    cached one or builds it."""
-
-    def __init__(self, keep: int = 8):
-        self.keep = int(keep)
-        self._programs: collections.OrderedDict = collections.OrderedDict()
-
-    def get(self, key, build):
-        if key in self._programs:
-            self._programs.move_to_end(key)
-            return self._programs[key]
-        program = self._programs[key] = build()
-        while len(self._programs) > self.keep:
-            self._programs.popitem(last=False)
-        return program
 
 
 def with_arrays(layout: Batch, arrays: dict) -> Batch:

@@ -38,6 +38,7 @@ import diffpen as dp
 
 from . import distributed
 from . import params as P
+from .compiled import ProgramCache, frozen_key
 from .io import (OutputLock, _plain, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
 from .points import grid_points, random_points  # noqa: F401  (public here too)
@@ -123,6 +124,19 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     except AttributeError:   # a batch_map whose result takes no attributes
         pass
     return evaluate
+
+
+#: evaluators :func:`sweep` built, by their arguments (values), the last 8
+_EVALUATORS = ProgramCache()
+
+
+def _shared_evaluator(metrics_fn, params0, names, keys, batch_map) -> Callable:
+    """:func:`make_evaluator`, or the one built for equal arguments by an earlier sweep
+    (each sweep without ``evaluate=`` compiled a new one: ~2 s)."""
+    def build():
+        return make_evaluator(metrics_fn, params0, names, keys, batch_map)
+    key = frozen_key(metrics_fn, params0, names, keys, batch_map)
+    return build() if key is None else _EVALUATORS.get(key, build)
 
 
 def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
@@ -497,8 +511,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
             res = distributed.from_process_zero(prepare)
             if res is not None:
                 res.shape, res.axes = shape, axes
-        if evaluate is None:
-            evaluate = make_evaluator(metrics_fn, params0, names, keys, batch_map)
+        if evaluate is None:    # an earlier sweep's of the same problem (one compile)
+            evaluate = _shared_evaluator(metrics_fn, params0, names, keys, batch_map)
         if res is None:
             res = SweepResult(list(names), points, {}, np.zeros(n, bool), shape, axes)
         res.key = full_key

@@ -46,7 +46,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .progress import Progress
-from .record_batch import ProgramCache
+from .compiled import ProgramCache
 from .lm import levenberg_marquardt, residuals_and_jacobian
 from .stable import contact_scales, law_c, law_k, law_units, safe_contact_bounds
 

@@ -53,8 +53,9 @@ from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names,
 from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
 from .records import load_records
-from .record_batch import (Batch, ProgramCache, layout_of, prepare, prepare_buckets, simulate,
-                           typed_params, with_arrays)
+from .compiled import ProgramCache
+from .record_batch import (Batch, layout_of, prepare, prepare_buckets, simulate, typed_params,
+                           with_arrays)
 from .stable import params_unstable, solver_miss, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
