@@ -299,15 +299,28 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones(h
         tf.prepare(sim, [rec], bodies={"a": a})              # where the scene puts it
     body = rec.bodies["a"]
     lifted = Record("lifted.csv", rec.t, {"a": BodyRecord(body.position + [0.0, 0.0, 0.1])})
-    with pytest.warns(UserWarning, match=r"far from the scene file's positions: lifted.csv "
-                                         r"\(100 mm\)"):
+    with pytest.warns(UserWarning, match=r"far from the scene file.s positions or velocities: "
+                                         r"lifted.csv \(100 mm\)"):
         tf.prepare(sim, [lifted], bodies={"a": a})
+    # ... or moving otherwise: a rope observed at 3 nodes, swung at -1 m/s from a scene file
+    # at +0.3 m/s, fitted k 15% off with no word (audit13)
+    swung = Record("swung.csv", rec.t, {"a": BodyRecord(body.position + np.outer(
+        rec.t - rec.t[0], [0.5, 0.0, 0.0]))})
+    with pytest.warns(UserWarning, match=r"positions or velocities: swung.csv \(velocity "
+                                         r"0.5 m/s off\)"):
+        tf.prepare(sim, [swung], bodies={"a": a})
     # every body observed: nothing starts from the scene file, no warning
     both = Record("both.csv", rec.t, {"a": BodyRecord(body.position + [0.0, 0.0, 0.1]),
                                       "b": BodyRecord(body.position - [0.0, 0.0, 0.2])})
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tf.prepare(sim, [both], bodies={"a": a, "b": b})
+    # ... unless far beyond the bodies' size: a record in cm (a box on world-anchored springs
+    # blew up and the fit blamed dt)
+    cm = Record("cm.csv", rec.t, {n: BodyRecord(100.0 * r.position)
+                                  for n, r in both.bodies.items()})
+    with pytest.warns(UserWarning, match=r"more than 10 times their size .*: cm.csv .* metres"):
+        tf.prepare(sim, [cm], bodies={"a": a, "b": b})
 
 
 def test_first_state_removes_the_finite_difference_bias(cube):

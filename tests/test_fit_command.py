@@ -276,3 +276,17 @@ def test_a_cold_default_fit_compiles_its_sixteen_programs_and_no_more(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     assert json.loads(out.stdout)["reached"] is True
     assert len(os.listdir(tmp_path / "cache")) <= 16, sorted(os.listdir(tmp_path / "cache"))
+
+
+def test_a_record_too_short_to_fit_is_refused_before_it_is_run(tmp_path, monkeypatch):
+    """Regression: a 2-row record of a box on springs fitted k 65% and c 17x off, reported
+    determined, exit 0 (its start velocity came from the same 2 frames; audit13)."""
+    from tuning import scene_fit
+    scene = tmp_path / "rope.toml"
+    scene.write_text(ROPE.format(k=200.0, c=0.3))
+    rec = tmp_path / "short.csv"
+    rec.write_text("t,rope[1].x,rope[1].y,rope[1].z\n0.0,0.1,0.0,1.0\n0.005,0.1,0.0,0.9999\n")
+    monkeypatch.setattr(scene_fit, "prepare", lambda *a, **k: pytest.fail("prepared"))
+    with pytest.raises(tf.FitError, match=r"too short to fit: .*short.csv \(2 rows\).* at "
+                                          r"least 6 rows"):
+        scene_fit.fit_files(str(scene), [str(rec)])

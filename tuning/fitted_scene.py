@@ -3,11 +3,12 @@ where the file declares it, checked by reading the result back.
 
 Where a leaf goes (dotted params paths, see :mod:`tuning.scenefile`):
 
-* ``contact.M.k`` / ``contact.M.c`` / ``extra.friction.M`` / ``extra.slip_speed.M``:
-  ``[materials.M]`` k / c / friction / slip_speed (the table is added when the material took
-  the top-level k, c). When the file has no top-level ``k`` / ``c``, the loader uses the
-  defaults k = 1e4 N/m and c = 10 N s/m; they are then written explicitly with those values,
-  so that the written file reads back the same whatever those defaults become;
+* ``contact.M.k`` / ``contact.M.c`` / ``extra.friction.M``: ``[materials.M]`` k / c /
+  friction (the table is added when the material took the top-level k, c; slip speed is a
+  compile-time constant, not a leaf). When the file has no top-level ``k`` / ``c``, the
+  loader uses the defaults k = 1e4 N/m and c = 10 N s/m; they are then written explicitly
+  with those values, so that the written file reads back the same whatever those defaults
+  become;
 * ``extra.plane_offset.NAME``: the ``offset`` of the ``[[planes]]`` entry named NAME;
 * ``springs.G.k`` / ``.c``: wherever spring group G is declared, in the loader's order: a
   ``[spring_groups.G]`` table, else the builder that makes it (a rope's ``k`` / ``c`` for
@@ -260,7 +261,7 @@ def _place(doc: dict, path: str, value: float, sf) -> None:
         return
     if parts[0] == "extra" and len(parts) >= 3:
         kind, name = parts[1], ".".join(parts[2:])
-        if kind in ("friction", "slip_speed"):
+        if kind == "friction":
             _material(doc, path, name)[kind] = value
             return
         if kind == "plane_offset":

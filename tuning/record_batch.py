@@ -119,6 +119,12 @@ def with_arrays(layout: Batch, arrays: dict) -> Batch:
 #: body's size) from the scene file's start, in a scene with bodies the record does not
 #: observe, make :func:`prepare` warn: those start at the scene file's pose.
 MOVED_START = 0.01
+#: ... or move faster than this (m/s) against the scene file's start velocities
+MOVED_SPEED = 0.1
+#: Observed bodies whose first pose lies farther than this many times the largest observed
+#: body's size from the scene file's start make :func:`prepare` warn of the records' units
+#: (a record in cm of a box on world-anchored springs blew up, the fit blaming dt)
+FAR_START = 10.0
 
 
 def _body_map(scene, records, bodies):
@@ -155,9 +161,9 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     ``estimate``). ``cache``: a dict that keeps the first states across calls on the same
     record objects (a tumbling box's torque-free fit takes 25-110 ms a record), e.g. the
     evaluation batch and the fit's buckets of one fit. ``scene``: the scene the first
-    states are estimated against (default ``sim.scene``; e.g. with fitted plane offsets). ``bodies``: ``{record body name:
-    scene body index}``; default: the only
-    free body for one-body records, else names that are indices. Bodies a record does not
+    states are estimated against (default ``sim.scene``; e.g. with fitted plane offsets).
+    ``bodies``: ``{record body name: scene body index}``; default: the only free body for
+    one-body records, else names that are indices. Bodies a record does not
     observe start from the scene file's state, their velocities moved by the integrator's
     lag as the observed ones' are (:func:`first_state`), their accelerations taken by
     :func:`simulate` at the parameters it rolls out (``Batch.lagged``): a fit moves them
@@ -188,7 +194,7 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
     quat = np.tile(np.array([1.0, 0, 0, 0]), (R, T, B, 1))
     qmask = np.zeros((R, T, B))
     times = np.zeros((R, T))
-    starts, blind, moved = [], [], []
+    starts, blind, moved, far = [], [], [], []
     free = np.array([not b.pinned for b in scene.bodies])
     lagged = np.zeros((R, scene.n_bodies), bool)
     s_init = sim.init_state()
@@ -246,25 +252,40 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
         seen = [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]
         rest = free.copy()
         rest[seen] = False
-        if rest.any() and seen:
-            # the unobserved bodies start where the scene file puts them: say so when the
-            # record moves the observed ones far from there (their links then start stretched)
-            shift = np.max(np.linalg.norm(np.asarray(state.position)[seen]
-                                          - np.asarray(s_init.position)[seen], axis=1))
-            if shift > max(MOVED_START, 0.1 * float(np.min(size))):
-                moved.append(f"{os.path.basename(rec.path)} ({shift * 1e3:.3g} mm)")
+        if seen:
+            base = os.path.basename(rec.path)
+            shift, speed = (np.max(np.linalg.norm(np.asarray(getattr(state, f))[seen]
+                                                  - np.asarray(getattr(s_init, f))[seen],
+                                                  axis=1)) for f in ("position", "velocity"))
+            if shift > FAR_START * float(np.max(size)):
+                far.append(f"{base} ({shift:.3g} m)")
+            # the unobserved bodies start where and as the scene file puts them: say so when
+            # the record starts the observed ones far from there or moving otherwise (their
+            # links then start stretched, or moving against them: a rope's k 15% off)
+            if rest.any() and shift > max(MOVED_START, 0.1 * float(np.min(size))):
+                moved.append(f"{base} ({shift * 1e3:.3g} mm)")
+            if rest.any() and speed > MOVED_SPEED:
+                moved.append(f"{base} (velocity {speed:.3g} m/s off)")
         if lag:
             lagged[r] = True
             lagged[r, [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]] = False
         starts.append(state)
     if moved:
         warnings.warn(f"{len(moved)} record(s) start their observed bodies far from the scene "
-                      f"file's positions: {', '.join(moved[:5])}"
+                      f"file's positions or velocities: {', '.join(moved[:5])}"
                       + (", ..." if len(moved) > 5 else "") + ". The bodies a record does "
-                      "not observe start where the scene file puts them, so "
-                      "the springs or contacts joining them to the observed ones start "
-                      "strained; place the scene file's bodies at the records' first pose, or "
-                      "observe them.", stacklevel=2)
+                      "not observe start where and as the scene file puts them, so the "
+                      "springs or contacts joining them to the observed ones start strained "
+                      "or moving against them (the fitted values absorb it); place the scene "
+                      "file's bodies at the records' first pose and velocity (one scene file "
+                      "per way of starting), or observe them.", stacklevel=2)
+    if far:
+        warnings.warn(f"{len(far)} record(s) start their observed bodies more than "
+                      f"{FAR_START:g} times their size from the scene file's positions: "
+                      f"{', '.join(far[:5])}" + (", ..." if len(far) > 5 else "") + ". Check "
+                      "that the records are in metres and in the scene's frame: the planes, "
+                      "fixed spheres and anchored springs stay where the scene file puts "
+                      "them.", stacklevel=2)
     if blind:
         warnings.warn(f"{len(blind)} record(s) have no orientation columns (qw, qx, qy, qz) "
                       f"for a rigid body: {', '.join(blind[:5])}"

@@ -39,8 +39,8 @@ from .io import atomic_write
 from .record_units import FALL, FALL_FACTOR, MM_LIMIT, MS_SPAN, unit_slip
 from .record_units import fall_rate as _fall
 
-__all__ = ["Record", "BodyRecord", "RecordError", "read_record", "load_records", "read_height_record",
-           "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
+__all__ = ["Record", "BodyRecord", "RecordError", "read_record", "load_records",
+           "read_height_record", "write_record", "GROUPS", "DEFAULT_MAX_ROWS", "DEFAULT_MAX_BYTES"]
 
 #: column groups of one body: name -> component suffixes (in array order)
 GROUPS = {
@@ -311,7 +311,9 @@ def _parse_header(path: str, header: list[str], hline: int, body_names, scene_na
         if names is not None and len(names) > 1:
             raise RecordError(f"{path}, line {hline}: the columns carry no body name but the "
                               f"scene observes {len(names)} bodies "
-                              f"({', '.join(names[:10])}); write NAME.x, NAME.y, ... for each.")
+                              f"({', '.join(names[:10])}); write NAME.x, NAME.y, ... for each, "
+                              "or name the one body it observes in the scene file's [fit] "
+                              "observe = [\"NAME\"].")
         default = names[0] if names else "body"
     cols: dict = {}
     for j, h in enumerate(header):
@@ -404,7 +406,7 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                 raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
                                   f"the {group.replace('_', ' ')} of this row is incomplete; "
                                   "fill every component or leave them all empty (a missing "
-                                  "sample).")
+                                  "sample; NaN reads as empty).")
             arrays[group] = a
         q = arrays.get("quaternion")
         if q is not None:

@@ -21,6 +21,10 @@ from .trajfit import (AUTO_HORIZON, check_stable, fit_records, free_from_spec,
 __all__ = ["fit_files"]
 
 
+#: Fewest rows a fitted record has (the start-state estimate takes up to 5 frames)
+MIN_FIT_ROWS = 6
+
+
 def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
               estimate: str | None = None, loss: str = "l2", horizons=None,
               maxiter: int | None = None, starts: int = 0, keep: int = 1,
@@ -72,6 +76,13 @@ def fit_files(scene_path: str, data: Sequence[str], *, out: str | None = None,
                                       ("flight_frames", max_frames, file_frames)) if v != f}
     data = list(data) if data else list(sf.spec.data or [])
     records, bodies = load_records(sf, data)
+    short = [f"{r.path} ({len(r.t)} rows)" for r in records if len(r.t) < MIN_FIT_ROWS]
+    if short:       # 2 rows fitted k 65% off, reported determined; nothing compiled yet
+        raise FitError(f"records too short to fit: {', '.join(short)}. A fitted record needs "
+                       f"at least {MIN_FIT_ROWS} rows: its start velocity comes from its first "
+                       "5 frames, and the rows after them are what the parameters are fitted "
+                       "to. Use longer records, or leave these out (diffpen evaluate takes "
+                       "them).")
     if horizons is None:
         if sf.spec.horizon is not None:
             horizons = tuple(sf.spec.horizon) + (None,)
