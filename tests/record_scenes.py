@@ -90,16 +90,17 @@ params = ["contact.rubber.k", "contact.rubber.c"]
 
 
 def record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, duration,
-                 noise, seed):
+                 noise, seed, velocities=True):
     """Write the scene (start values) and a record of the truth made by ``integrator`` at
-    ``dt``; returns (scene path, record path)."""
+    ``dt`` (``velocities``: with velocity columns); returns (scene path, record path)."""
     scene = tmp_path / f"{name}.toml"
     scene.write_text(text)
     sf = load_scene_file(str(scene))
     sim = sf.compile(integrator=integrator, dt=dt)
     params = tf.with_leaves(sf.params(sim), truth)
     ids = {b: sf.names[b] for b in bodies}
-    rec = tf.synthetic_record(sim, params, duration, every, ids, noise=noise, seed=seed)
+    rec = tf.synthetic_record(sim, params, duration, every, ids, noise=noise, seed=seed,
+                              velocities=velocities)
     path = tmp_path / f"{name}.csv"
     write_record(str(path), rec)
     return str(scene), str(path)

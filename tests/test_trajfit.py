@@ -13,6 +13,7 @@ import pytest
 
 import diffpen as dp
 from tuning import pose
+from tuning import record_programs
 from tuning import trajfit as tf
 from tuning.cli import main
 from tuning.records import write_record
@@ -259,7 +260,7 @@ def test_a_record_fit_of_a_layout_fitted_before_compiles_nothing(cube,
         again = tf.fit_records(cube, start, batch, free, maxiter=3)
     compiled = [r.getMessage() for r in caplog.records if "XLA compilation" in r.getMessage()]
     assert compiled == [], compiled
-    monkeypatch.setattr(tf, "_PROGRAMS", ProgramCache())      # compiled afresh
+    monkeypatch.setattr(record_programs, "_PROGRAMS", ProgramCache())     # compiled afresh
     fresh = tf.fit_records(cube, start, batch, free, maxiter=3)
     assert again.values == fresh.values and again.cost == fresh.cost
     assert again.cost_start == fresh.cost_start and again.iterations == fresh.iterations

@@ -197,7 +197,8 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
         starts on a plane) a quadratic over ``min(5, T)`` frames, for the positions and for
         the rotation since row 0 (a rate and an angular acceleration: a constant rate put a
         box released at rest on two springs, 5 ms frames, at 5.9 rad/s and its fit k 27%
-        off).
+        off); ``"refine"``: as ``"record"`` (a record fit then refines the velocities with
+        the parameters: :mod:`tuning.start_refine`).
         Finite-difference velocity columns are biased (the cube records' row-0 vertical
         velocity by about +0.023 m/s): ``"fit"`` avoids that bias.
       lag: s, the integrator's velocity lag: ``h / 2`` for semi-implicit and implicit Euler
@@ -217,8 +218,11 @@ def first_state(scene, index, t, pos, quat=None, vel=None, omega_body=None, *,
     Returns:
       ``(position (3,), velocity (3,), orientation (4,) or None, omega_world (3,) or None)``.
     """
-    if estimate not in ("record", "fit"):
-        raise FitError(f"first-state estimate must be 'record' or 'fit', got {estimate!r}.")
+    if estimate not in ("record", "fit", "refine"):
+        raise FitError(f"first-state estimate must be 'record', 'fit' or 'refine', got "
+                       f"{estimate!r}.")
+    if estimate == "refine":            # the estimate a fit then refines (tuning.start_refine)
+        estimate = "record"
     ok = np.all(np.isfinite(pos), axis=1)
     if not ok[0]:
         raise FitError("the first data row has no position (x, y, z): the rollout starts "

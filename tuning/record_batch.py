@@ -119,7 +119,7 @@ def with_arrays(layout: Batch, arrays: dict) -> Batch:
 #: body's size) from the scene file's start, in a scene with bodies the record does not
 #: observe, make :func:`prepare` warn: those start at the scene file's pose.
 MOVED_START = 0.01
-#: ... or move faster than this (m/s) against the scene file's start velocities
+#: ... or move faster than this (m/s, their mean) against the scene file's start velocities
 MOVED_SPEED = 0.1
 #: Observed bodies whose first pose lies farther than this many times the largest observed
 #: body's size from the scene file's start make :func:`prepare` warn of the records' units
@@ -254,9 +254,11 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
         rest[seen] = False
         if seen:
             base = os.path.basename(rec.path)
-            shift, speed = (np.max(np.linalg.norm(np.asarray(getattr(state, f))[seen]
-                                                  - np.asarray(getattr(s_init, f))[seen],
-                                                  axis=1)) for f in ("position", "velocity"))
+            shift = np.max(np.linalg.norm(np.asarray(state.position)[seen]
+                                          - np.asarray(s_init.position)[seen], axis=1))
+            # their mean velocity (a start estimated from noisy frames is off body by body)
+            speed = np.linalg.norm(np.mean(np.asarray(state.velocity)[seen]
+                                           - np.asarray(s_init.velocity)[seen], axis=0))
             if shift > FAR_START * float(np.max(size)):
                 far.append(f"{base} ({shift:.3g} m)")
             # the unobserved bodies start where and as the scene file puts them: say so when
@@ -375,15 +377,21 @@ def _observer(bodies: tuple, rot: bool):
     return observe
 
 
-def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False):
+def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False,
+             offsets=None):
     """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
     batch's bodies at the frame times, each record rolled out from its own start state.
     With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
     (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
-    a result. Pure: jit, grad and jacfwd it."""
+    a result. ``offsets``: start velocity offsets added to every record's observed bodies
+    (:func:`tuning.start_refine.with_start_offsets`). Pure: jit, grad and jacfwd it."""
     from .stable import rollout_unstable
+    from .start_refine import with_start_offsets
     idx = batch.bodies
     rot = sim.scene.has_rotation and batch.has_rotation
+    start = start_states(sim, params, batch)
+    if offsets is not None:
+        start = with_start_offsets(sim, start, batch, offsets, sim.scene.has_rotation)
     observe = _observer(tuple(int(i) for i in np.asarray(idx).reshape(-1)), bool(rot))
 
     def one(state, index, frac):
@@ -401,8 +409,7 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
         qb = jnp.where(jnp.sum(qa * qb, -1, keepdims=True) < 0, -qb, qb)
         qi = qa + f * (qb - qa)
         return (pos, qi / jnp.linalg.norm(qi, axis=-1, keepdims=True)) + bad
-    return jax.vmap(one)(start_states(sim, params, batch), jnp.asarray(batch.index),
-                         jnp.asarray(batch.frac))
+    return jax.vmap(one)(start, jnp.asarray(batch.index), jnp.asarray(batch.frac))
 
 
 def start_states(sim: dp.Simulator, params, batch: Batch):

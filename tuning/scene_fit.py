@@ -10,6 +10,7 @@ import copy
 import dataclasses
 import os
 import time
+import warnings
 from typing import Sequence
 
 from .errors import FitError
@@ -130,13 +131,15 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
                     cache=first_states)
     ev_fn = evaluator(sim, batch)
     before = evaluate_batch(sim, params, batch, fn=ev_fn)
-    buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
-                              max_frames=max_frames, cache=first_states)
+    with warnings.catch_warnings():     # the same records: the batch above said it all
+        warnings.simplefilter("ignore")
+        buckets = prepare_buckets(sim, records, bodies=bodies, estimate=estimate,
+                                  max_frames=max_frames, cache=first_states)
     res = fit_records(sim, params, buckets, free, loss=loss, horizons=horizons,
                       maxiter=maxiter or sf.spec.maxiter or 30, starts=starts, keep=keep,
                       progress=progress, checkpoint=checkpoint, fresh=fresh,
                       checkpoint_key=None if checkpoint is None else _progress_key(
-                          data, estimate, max_frames))
+                          data, estimate, max_frames), refine_start=estimate == "refine")
     moved = {name.split(".", 2)[2]: v for name, v in res.values.items()
              if name.startswith("extra.plane_offset.")}
     if moved:

@@ -39,7 +39,6 @@ import time
 import warnings
 from typing import Sequence
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -47,15 +46,14 @@ import diffpen as dp
 
 from .errors import FitError
 from .progress import Progress
-from .lm import levenberg_marquardt, residuals_and_jacobian
+from .lm import levenberg_marquardt
 from .first_state import first_state
 from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names, with_leaves
 from .fit_errors import parameter_errors
 from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotation_angle
 from .records import load_records
-from .compiled import ProgramCache
-from .record_batch import (Batch, layout_of, prepare, prepare_buckets, simulate, typed_params,
-                           with_arrays)
+from .record_batch import Batch, layout_of, prepare, prepare_buckets, simulate, typed_params
+from .record_programs import programs as _programs
 from .stable import params_unstable, solver_miss, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
@@ -157,7 +155,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                 keep: int = 1, seed: int = 0, spread: float = 3.0,
                 decay: float | None = None,
                 progress: bool | None = False, checkpoint: str | None = None,
-                fresh: bool = False, checkpoint_key: dict | None = None) -> TrajFitResult:
+                fresh: bool = False, checkpoint_key: dict | None = None,
+                refine_start: bool = False) -> TrajFitResult:
     """Fit the ``free`` leaves of ``params`` to all records of ``batch`` (a :class:`Batch`
     or the list :func:`prepare_buckets` makes) jointly.
 
@@ -187,6 +186,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     ``checkpoint_key``: fields the caller adds to the checkpoint's key, so that a refusal
     names what the caller changed (``diffpen fit``: the record files, the start-state
     estimate and its frame cap) and not only the records' arrays that follow from it.
+
+    ``refine_start``: every record's start velocities (and a rigid body's angular velocity)
+    are fitted with the parameters, by variable projection (:mod:`tuning.start_refine`):
+    for records without velocity columns, whose start velocities come from a few noisy
+    frames; their uncertainty enters the standard errors.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
@@ -238,7 +242,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
 
     # the compiled residuals take the params and the records' arrays as arguments: a later
     # fit of the same layout (simulator, leaves, loss, batch shapes) compiles nothing
-    programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay)
+    programs, arrays = _programs(sim, free, batches, rot_weight, loss, decay,
+                                 bool(refine_start))
     params_in = typed_params(params, sim.dtype)
     ck = None
     if checkpoint is not None:
@@ -248,7 +253,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
             rot_weight=rot_weight, horizons=list(horizons), loss=loss, maxiter=maxiter,
             starts=starts if isinstance(starts, (int, np.integer)) else
             [dict(v) for v in starts], keep=keep, seed=seed, spread=spread, decay=decay,
-            **(checkpoint_key or {})), fresh=fresh)
+            **({"refine_start": True} if refine_start else {}), **(checkpoint_key or {})),
+            fresh=fresh)
     saved = ck.state if ck is not None else {}
     resumed = ck.resumed_iterations if ck is not None else 0
 
@@ -479,47 +485,6 @@ def _depth_reference(sim, params, free, lo, batches) -> dict:
           for name, cp in params.contact.items()]
     return dict(state=[b.start for b in batches], params=params,
                 k_min=min(ks) if ks else None)
-
-
-#: compiled record-fit programs by (simulator, leaves, loss settings, batch layouts)
-_PROGRAMS = ProgramCache()
-
-
-def _programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay):
-    """``((res_jac_flag, cost_flag), arrays)``: the jitted ``(params, arrays, x, horizon) ->
-    (r, J, n_unstable)`` and ``-> (cost, n_unstable)`` of :func:`fit_records` for this
-    simulator, these leaves and loss settings and these batches' layout
-    (:func:`tuning.record_batch.layout_of`), reused by later fits of the same layout, and
-    this fit's arrays. ``n_unstable``: records whose rollout went past the safe step."""
-    split = [layout_of(b) for b in batches]
-    key = (sim, tuple((f.name, f.log) for f in free), float(rot_weight), loss,
-           None if decay is None else float(decay), tuple(k for k, _, _ in split))
-    layouts = [lay for _, lay, _ in split]
-    return _PROGRAMS.get(key, lambda: _build_programs(sim, free, layouts, rot_weight, loss,
-                                                       decay)), [a for _, _, a in split]
-
-
-def _build_programs(sim, free, layouts, rot_weight, loss, decay):
-    """:func:`_programs`' pair, compiled on first use."""
-    def resid_flag(params, arrays, x, horizon):
-        p = with_leaves(params, {f.name: f.from_x(x[i]).astype(sim.dtype)
-                                 for i, f in enumerate(free)})
-        bs = [with_arrays(lay, a) for lay, a in zip(layouts, arrays)]
-        out = [simulate(sim, p, b, with_flag=True) for b in bs]
-        r = jnp.concatenate([pose_residuals(o[0], o[1], b, rot_weight=rot_weight,
-                                            horizon=horizon, loss=loss, decay=decay)
-                             for o, b in zip(out, bs)])
-        return r, sum(jnp.count_nonzero(o[2]) for o in out)   # records past the safe step
-
-    @jax.jit
-    def res_jac_flag(params, arrays, x, horizon):
-        return residuals_and_jacobian(lambda xx: resid_flag(params, arrays, xx, horizon), x)
-
-    @jax.jit
-    def cost_flag(params, arrays, x, horizon):
-        r, bad = resid_flag(params, arrays, x, horizon)
-        return jnp.sum(r * r), bad
-    return res_jac_flag, cost_flag
 
 
 def _screen_tied(costs) -> bool:

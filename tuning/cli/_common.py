@@ -199,11 +199,13 @@ def add_start_state_arguments(p, scope: str = "") -> None:
     """``--first-state`` and ``--flight-frames``: how each record's start state is taken
     (``diffpen fit SCENE.toml --data`` and ``diffpen evaluate``). ``scope``: a prefix for the
     help texts, e.g. ``"with SCENE.toml --data: "``."""
-    p.add_argument("--first-state", choices=["record", "fit"], default=None,
+    p.add_argument("--first-state", choices=["record", "fit", "refine"], default=None,
                    help=f"{scope}each record's start state from row 0 and its velocity "
                         "columns (estimated where missing; default, or the scene file's [fit] "
                         "first_state), or fitted to its first frames (a gravity parabola in "
-                        "free flight)")
+                        "free flight); refine: as record, and a fit refines every record's "
+                        "start velocities with the parameters (records without velocity "
+                        "columns; evaluate starts from the estimate)")
     p.add_argument("--flight-frames", type=count("--flight-frames", minimum=3), default=None,
                    metavar="N", help="with --first-state fit: at most N first frames of free "
                    "flight in the fitted parabola (it stops earlier where a body comes within "

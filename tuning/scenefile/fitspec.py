@@ -77,7 +77,8 @@ class _FitTable:
                 if bad:
                     raise (ww / bad[0]).error(f"weights a target that is not given; targets: "
                                               f"{', '.join(targets)}.")
-        first = (V.choice(w / "first_state", fit["first_state"], ["record", "fit"])
+        first = (V.choice(w / "first_state", fit["first_state"],
+                          ["record", "fit", "refine"])
                  if "first_state" in fit else None)
         frames = (V.integer(w / "flight_frames", fit["flight_frames"], low=3)
                   if "flight_frames" in fit else None)
