@@ -63,3 +63,46 @@ def test_a_rope_is_fitted_from_noisy_marker_positions_alone(tmp_path):
         assert out["fitted"][name] == pytest.approx(v, rel=0.01), (name, out["fitted"])
         assert abs(out["fitted"][name] - v) < 3.5 * out["stderr"][name]
     assert out["estimate"] == "refine" and out["undetermined"] == []
+
+
+def test_the_offsets_move_the_observed_unpinned_bodies_only():
+    """A record's offsets move its bodies observed in its first frame that are not pinned;
+    orientation offsets turn the bodies whose first frame has an orientation, shared offsets
+    move every record alike, per-record ones each its own."""
+    import types
+
+    import jax
+    import diffpen as dp
+    from tuning.start_refine import offset_columns, with_start_offsets
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_sphere(0.05, 1.0, (0.0, 0.0, 1.0), pinned=True)
+    scene.add_sphere(0.05, 1.0, (0.5, 0.0, 1.0))
+    scene.add_box((0.1, 0.05, 0.03), 1.0, (1.0, 0.0, 1.0))
+    sim = dp.compile(scene, 1e-3)
+    s0 = sim.init_state()
+    start = jax.tree_util.tree_map(lambda a: jnp.stack([a, a]), s0)
+    seen = np.ones((2, 4, 3))
+    seen[1, 0, 1] = 0.0                 # record 1 starts without body 1
+    turned = np.zeros((2, 4, 3))
+    turned[:, 0, 2] = 1.0               # the box's orientation is measured
+    batch = types.SimpleNamespace(bodies=np.array([0, 1, 2]), pos_mask=seen,
+                                  quat_mask=turned, has_rotation=True)
+    assert offset_columns(batch, True) == 36
+    u = jnp.asarray(np.arange(1.0, 37.0) * 1e-3)
+    out = with_start_offsets(sim, start, batch, u, True)
+    dpos = np.asarray(out.position - start.position)
+    dvel = np.asarray(out.velocity - start.velocity)
+    np.testing.assert_allclose(dpos[0], np.asarray(u[:9]).reshape(3, 3) * [[0], [1], [1]])
+    np.testing.assert_allclose(dpos[1], np.asarray(u[:9]).reshape(3, 3) * [[0], [0], [1]])
+    np.testing.assert_allclose(dvel[0, 2], np.asarray(u[15:18]))
+    dw = np.asarray(out.angular_velocity - start.angular_velocity)
+    assert np.all(dw[:, :2] == 0.0) and np.allclose(dw[:, 2], np.asarray(u[33:36]))
+    q = np.asarray(out.orientation)
+    assert np.all(q[:, :2] == np.asarray(start.orientation)[:, :2])
+    assert not np.allclose(q[:, 2], np.asarray(start.orientation)[:, 2])
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, rtol=1e-12)
+    # per record: each its own
+    per = jnp.stack([u, 2.0 * u])
+    out2 = with_start_offsets(sim, start, batch, per, True)
+    np.testing.assert_allclose(np.asarray(out2.velocity - start.velocity)[1, 2],
+                               2.0 * np.asarray(u[15:18]))

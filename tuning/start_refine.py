@@ -1,26 +1,31 @@
 """Record fits that refine every record's start state with the parameters
-(``fit_records(refine_start=True)``, ``diffpen fit --refine-start``).
+(``fit_records(refine_start=True)``, ``diffpen fit --first-state refine``).
 
 A record's start velocities are estimated from its first frames (:func:`tuning.first_state`:
 the record's velocity columns, or a quadratic over its first 5 frames where the body is not in
-free flight). From noisy marker positions that estimate is off by about the noise over the
-frame interval, and the fit bends the parameters to explain the drift it starts: a rope's
-damping fitted 9-22% off from 0.2 mm noise at 5 ms frames, a crumple bar's yield strain 13%.
-Refined, the start position and velocity and, for a rigid body with orientation columns, its
-orientation and angular velocity (world frame) of every observed body that is not pinned are
-nuisance parameters of each record (row 0's pose is as noisy as the frames after it: on
-springs, its error starts an oscillation whose decay the damping is fitted to), fitted with
-the parameters by variable projection: at each
-evaluation the residuals' derivatives with respect to each record's start offsets are taken
-with those w.r.t. the parameters (one forward-mode pass; the offsets of all records share
-their tangents, since a record's residuals depend on its own start only), each record's
-offsets are eliminated by their own least-squares step, and Levenberg-Marquardt works on what
-is left: ``r - J_s (J_s^T J_s)^-1 J_s^T r`` and the same projection of the parameters'
-Jacobian (Kaufman's). The fit's standard errors then include the start velocities'
-uncertainty, and its parameters do not absorb their estimate's error. The projection is
-taken at the estimated start (the offsets' problem linearised there: exact for the small
-offsets noise makes). The reported accuracy (``diffpen evaluate``) starts from the estimate
-as before.
+free flight), its start pose is row 0's. From noisy marker positions the velocities are off by
+about the noise over the frame interval, and the fit bends the parameters to explain the motion
+that starts: a rope's damping fitted 9-70% off from 0.2 mm noise at 5 ms frames. Refined, the
+start position and velocity and, for a rigid body with orientation columns, its orientation
+and angular velocity (world frame) of every observed body that is not pinned are nuisance
+parameters of each record (row 0's pose is as noisy as the frames after it: on springs, its
+error starts an oscillation whose decay the damping is fitted to), fitted with the parameters
+by variable projection. At each evaluation (parameters ``x``):
+
+1. the residuals' derivatives w.r.t. each record's start offsets at its estimated start (one
+   forward-mode pass; the offsets of all records share their tangents, since a record's
+   residuals depend on its own start only) give each record one Gauss-Newton step of its
+   start (:func:`start_steps`: the estimate's error is not small against the residuals, so
+   the projection is not taken at the estimate itself);
+2. from the moved starts, the derivatives w.r.t. the parameters and the offsets (a second
+   pass) are projected, record by record, off the offsets' columns (:func:`project_starts`):
+   ``r - J_s (J_s^T J_s)^-1 J_s^T r`` and the same of the parameters' Jacobian (Kaufman's
+   variable projection), on which Levenberg-Marquardt fits the parameters alone.
+
+Gauss-Newton on the projected problem is the joint problem (parameters and every record's
+start) with the starts eliminated (the Schur complement), so the fit's standard errors take
+in the starts' uncertainty. The reported accuracy (``diffpen evaluate``) starts from the
+estimate as before.
 """
 from __future__ import annotations
 
