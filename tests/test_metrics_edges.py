@@ -157,3 +157,37 @@ def test_a_rollout_too_short_for_an_apex_has_none():
     m = M.ball_metrics(sim, sim.rollout(p, 1), p)
     assert np.all(np.isnan(np.asarray(m.apex_heights)))
     assert not np.any(np.asarray(m.apex_valid))
+
+
+def test_ball_metrics_refuse_a_ball_on_a_spring(tmp_path):
+    """Regression (audit14): a sphere hung from a world point on a spring, bouncing on a
+    plane: the ball metrics took its resting height and energy from the contact alone (rest
+    0.8 mm off inside a 1 mm band, settling 5.5% late, decay gradients 9-12% off), silently,
+    also from `diffpen simulate`. Now the metrics, the bounce fit and its metrics function
+    refuse it, and a scene file's simulate reports no ball metrics for it."""
+    import diffpen as dp
+    from tuning import bounce as B
+    from tuning.errors import FitError
+    from tuning.metrics import ball_energy, ball_metrics
+    from tuning.scenefile import load_scene_file
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    ball = scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.4))
+    scene.add_plane()
+    scene.add_anchored_spring(ball, None, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), k=20.0, c=0.5,
+                              rest_length=0.5)
+    sim = dp.compile(scene, 1e-3)
+    p = sim.params(k=1e4, c=20.0)
+    traj = sim.rollout(p, 5)
+    for call in (lambda: ball_metrics(sim, traj, p),
+                 lambda: ball_energy(sim, traj.position[:, 0], traj.velocity[:, 0], p)):
+        with pytest.raises(ValueError, match="1 spring.s. attached"):
+            call()
+    with pytest.raises(FitError, match="free sphere bouncing on a plane"):
+        B.bounce_metrics_fn(sim, 100)
+    with pytest.raises(FitError, match="free sphere bouncing on a plane"):
+        B.fit_bounce(scene, {"apex_heights": [0.2], "settling_time": 2.0})
+    path = tmp_path / "spring_ball.toml"
+    path.write_text('dt = 1e-3\nduration = 0.1\n[[spheres]]\nname = "ball"\nradius = 0.1\n'
+                    'mass = 1.0\nposition = [0.0, 0.0, 0.4]\n[[planes]]\n[[springs]]\n'
+                    'a = "ball"\nb = [0.0, 0.0, 1.0]\nk = 20.0\nc = 0.5\nrest_length = 0.5\n')
+    assert load_scene_file(str(path)).setup.metrics is None

@@ -21,6 +21,7 @@ import diffpen as dp
 
 from .compiled import compiled
 from .errors import FitError, positive_int
+from .metrics import check_ball_model
 from .fit import FitResult, fit
 from .problem import FreeLeaves, normalise_targets
 from .compiled import ProgramCache
@@ -100,6 +101,7 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
     if not 0 <= body < scene.n_bodies:
         raise FitError(f"body {body} is not in the scene ({scene.n_bodies} bodies).")
     _check_plane(scene, plane)
+    _check_ball(scene, body)
     _check_settle_tol(settle_tol)
     b = scene.bodies[body]
     pl = scene.planes[plane]
@@ -147,6 +149,13 @@ def check_bounce_targets(scene: dp.Scene, targets: dict, *, body: int = 0, plane
             "h0": h0, "v0": v0, "material": pl.material}
 
 
+def _check_ball(scene: dp.Scene, body: int) -> None:
+    try:        # springs or drag on the body: not the ball the metrics model
+        check_ball_model(scene, body)
+    except ValueError as exc:
+        raise FitError(str(exc)) from None
+
+
 def _check_plane(scene: dp.Scene, plane) -> None:
     """``plane``: an index into ``scene.planes``, else :class:`FitError`."""
     if isinstance(plane, bool) or not isinstance(plane, (int, np.integer)) \
@@ -179,6 +188,7 @@ def bounce_metrics_fn(sim, steps: int, *, body: int = 0, plane: int = 0, n_apex:
     if not sim.scene.planes:
         raise FitError("bounce metrics need a plane for the body to bounce on.")
     _check_plane(sim.scene, plane)
+    _check_ball(sim.scene, body)
     positive_int("n_apex", n_apex, "how many bounces are reported")
     positive_int("steps", steps, "the rollout's length")
     _check_settle_tol(settle_tol)

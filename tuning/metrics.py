@@ -36,7 +36,7 @@ from .compiled import ProgramCache
 __all__ = [
     "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",
     "max_penetration", "resting_height", "settling_time", "BallMetrics", "ball_metrics",
-    "ball_metrics_dict",
+    "ball_metrics_dict", "ball_model_gaps", "check_ball_model",
     "initial_apex", "energy_decay_time", "ball_energy", "plane_offset", "DECAY_TAIL",
 ]
 
@@ -325,7 +325,9 @@ def ball_energy(sim, position, velocity, params, *, body: int = 0, plane: int = 
     """Mechanical energy above static rest of a sphere on a plane, J, per sample:
     ``m v^2 / 2 + m g (h - h_rest) + (E_c(d) - E_c(d_rest))`` with the contact law's elastic
     energy ``E_c`` (:attr:`diffpen.laws.ContactLaw.energy`). position, velocity: (S, 3).
-    Heights are above the plane's offset in ``params`` (:func:`plane_offset`)."""
+    Heights are above the plane's offset in ``params`` (:func:`plane_offset`). Raises
+    ValueError for a body the model leaves things out of (:func:`ball_model_gaps`)."""
+    check_ball_model(sim.scene, body)
     pl = sim.scene.planes[plane]
     radius, mass = float(sim.radius[body]), float(sim.mass[body])
     n = np.asarray(pl.normal, float)
@@ -381,6 +383,28 @@ class BallMetrics(NamedTuple):
         return {name: conv(getattr(self, name)) for name in self._fields}
 
 
+def ball_model_gaps(scene: dp.Scene, body: int) -> list:
+    """What the ball metrics (:func:`ball_metrics`: a free sphere on a plane under gravity)
+    leave out of ``body``'s motion in ``scene``, in words: springs (plain, anchored,
+    plastic) attached to it, drag on it; empty where the model holds."""
+    springs = sum(int(body in (s.a, s.b)) for group in (
+        scene.springs, scene.anchored_springs, scene.plastic_springs) for s in group)
+    drags = sum(int(d.body == body) for d in scene.drags)
+    return ([f"{springs} spring(s) attached"] if springs else []) + (
+        [f"drag on it ({drags})"] if drags else [])
+
+
+def check_ball_model(scene, body: int) -> None:
+    """Raise ValueError naming what :func:`ball_model_gaps` finds on ``body``."""
+    gaps = ball_model_gaps(scene, body)
+    if gaps:
+        raise ValueError(f"ball metrics model a free sphere bouncing on a plane, and body "
+                         f"{body} has {' and '.join(gaps)}: its resting height and energy "
+                         "would leave them out (a sphere hung on a spring settled 5% late, "
+                         "silently). Fit such a scene to records (diffpen fit SCENE.toml "
+                         "--data), or compute the metrics it needs from its trajectory.")
+
+
 def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_tol: float = 1e-3,
                  plane: int = 0, state0=None, decay_cut: str = "nan") -> BallMetrics:
     """All metrics of ``body`` (a sphere) bouncing on plane ``plane`` of ``sim``'s scene.
@@ -400,6 +424,8 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         :func:`tuning.bounce.fit_bounce`).
     Returns:
       :class:`BallMetrics`.
+    Raises: ValueError for a body the model leaves forces out of (:func:`ball_model_gaps`:
+      springs, drag), before anything is traced.
     """
     if decay_cut not in ("nan", "bound"):
         raise ValueError(f"decay_cut must be 'nan' or 'bound', got {decay_cut!r}.")
@@ -411,6 +437,7 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         raise ValueError(f"n_apex must be a positive integer (bounces reported), got "
                          f"{n_apex!r}.")
     scene = sim.scene
+    check_ball_model(scene, body)
     pl = scene.planes[plane]
     radius = float(sim.radius[body])
     mass = float(sim.mass[body])

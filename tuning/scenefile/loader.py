@@ -9,6 +9,7 @@ import tomllib
 import diffpen as dp
 
 from .. import validate as V
+from ..metrics import ball_model_gaps
 from ..scenes import SceneSetup
 from ..validate import SceneFileError, Where
 from .advice import file_advice
@@ -163,7 +164,8 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
         body = spec.body if spec else 0
         plane = spec.plane if spec else 0
         ball_like = (scene.planes and scene.bodies[body].radius > 0
-                     and scene.bodies[body].kind == "sphere" and not scene.bodies[body].rigid)
+                     and scene.bodies[body].kind == "sphere" and not scene.bodies[body].rigid
+                     and not ball_model_gaps(scene, body))     # springs, drag: not a ball
         sf.setup = SceneSetup(
             scene=scene, dt=dt, steps=max(1, round(duration / dt)), k=k, c=c, law=law,
             body=body if scene.planes else None,
