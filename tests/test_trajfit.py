@@ -69,6 +69,13 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, request, case):
     assert out["after"]["position_error_pct"]["mean"] < out["before"]["position_error_pct"][
         "mean"]
     assert out["undetermined"] == []
+    if case == "box_springs":
+        # the step's own error is reported and in the standard errors (audit13: a confident
+        # error 10-400x below the real one): c moves about -1.25% towards dt -> 0
+        shift = out["step_shift"]["springs.hang.c"]
+        assert -0.04 < shift / truth["springs.hang.c"] < -0.005, out["step_shift"]
+        assert out["stderr"]["springs.hang.c"] >= abs(shift)
+        assert out["stderr_noise"]["springs.hang.c"] < out["stderr"]["springs.hang.c"]
     # the written scene holds the fitted values
     sf = load_scene_file(str(out_toml))
     got = sf.params(sf.compile())

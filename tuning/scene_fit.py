@@ -8,10 +8,14 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 import os
 import time
 import warnings
 from typing import Sequence
+
+import jax.numpy as jnp
+import numpy as np
 
 from .errors import FitError
 from .first_state import FLIGHT_FRAMES
@@ -162,6 +166,19 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
         except (ValueError, OSError) as exc:     # the fit is kept: its values are reported
             out_error = f"could not write --out {out}: {exc}"
     summary = res.as_dict()
+    shift = _step_shift(sf, sim, res, free, records, bodies, estimate, max_frames, loss)
+    if shift is not None:
+        summary["stderr_noise"] = dict(res.stderr)
+        summary["step_shift"] = shift
+        summary["stderr"] = {n: math.hypot(e, shift[n]) if math.isfinite(e) else e
+                             for n, e in res.stderr.items()}
+        over = [n for n, e in res.stderr.items() if abs(shift[n]) > max(e, 0.0)]
+        if over:
+            summary["message"] += (
+                "; the time step moves " + ", ".join(
+                    f"{n} by {shift[n]:+.3g}" for n in over) + " (towards dt -> 0, more "
+                "than its noise error; in the standard errors): refit with a smaller dt "
+                "for values that do not depend on it")
     summary.update({
         "scene": scene_path, "records": len(records), "bodies": bodies, "estimate": estimate,
         "flight_frames": max_frames,
@@ -175,6 +192,37 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
     if out_error:
         summary["out_error"] = out_error
     return summary
+
+
+def _step_shift(sf, sim, res, free, records, bodies, estimate, max_frames, loss):
+    """How far the fitted values move towards the continuous model (dt -> 0), ``{leaf:
+    shift}`` in the leaves' units: one Gauss-Newton step on the change of the residuals at
+    the fitted values when the step is halved, twice it (Richardson: the integrators' error
+    is first order in dt through contacts), ``-J^+ 2 (r_{dt/2} - r_dt)``; None where a
+    rollout at either step is past its safe step or the residuals are not finite. Without
+    it the standard errors covered only the records' noise: noise-free records of a chain
+    fitted its damping 9.6% off at dt = 1 ms, 9 errors away."""
+    from .pose import ROT_WEIGHT
+    from .record_batch import typed_params
+    from .record_programs import programs
+    x = np.array([f.to_x(res.values[f.name]) for f in free], float)
+    out = []
+    for s in (sim, sf.compile(dt=sim.dt / 2)):
+        with warnings.catch_warnings():     # the fit's own batches warned already
+            warnings.simplefilter("ignore")
+            buckets = prepare_buckets(s, records, bodies=bodies, estimate=estimate,
+                                      max_frames=max_frames)
+        (rj, _), arrays = programs(s, free, buckets, ROT_WEIGHT, loss, None,
+                                   estimate == "refine")
+        r, J, bad = (np.asarray(a) for a in rj(typed_params(res.params, s.dtype), arrays,
+                                                jnp.asarray(x), jnp.asarray(np.inf)))
+        if int(bad) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
+            return None
+        out.append((r, J))
+    (r1, J1), (r2, _) = out
+    step = -np.linalg.lstsq(J1, 2.0 * (r2 - r1), rcond=None)[0]
+    return {f.name: float(f.from_x(x[i] + step[i]) - res.values[f.name])
+            for i, f in enumerate(free)}
 
 
 def _progress_key(data, estimate, max_frames) -> dict:

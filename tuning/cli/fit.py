@@ -557,6 +557,11 @@ def _print_records(args, out: dict) -> int:
           f"({out['estimate']} first state, {args.loss} pose loss)")
     for name, v in out["fitted"].items():
         print(f"fitted:    {name} = {v:.6g} +- {out['stderr'][name]:.2g}")
+    if out.get("step_shift"):
+        print("time step: towards dt -> 0 the values move by " + ", ".join(
+            f"{d:+.2g} ({n})" for n, d in out["step_shift"].items()) + " (in the errors "
+            "above, with the records' noise: " + ", ".join(
+                f"{e:.2g}" for e in out["stderr_noise"].values()) + ")")
     names = list(out["fitted"])
     if len(names) > 1:
         print("correlations:")
