@@ -77,6 +77,7 @@ def err_of(capsys, argv):
     # read by nothing, accepted without a word
     (["fit", "--lr", "0.1"], "--lr is the learning rate of the optax optimisers"),
     (["fit", "--loss", "l1"], "--loss are options of fits to position records"),
+    (["fit", "--no-step-check"], "--no-step-check and --loss are options of fits to position"),
 ])
 def test_bad_input_exits_2_before_computing(capsys, no_compile, argv, words):
     rc, err = err_of(capsys, argv)

@@ -13,7 +13,7 @@ import pytest
 
 import diffpen as dp
 from tuning import pose
-from tuning import record_programs
+from tuning import record_programs, scene_fit
 from tuning import trajfit as tf
 from tuning.cli import main
 from tuning.records import write_record
@@ -45,7 +45,7 @@ def rope_record(tmp_path_factory):
 
 
 @pytest.mark.parametrize("case", ["rope", "box_springs"])
-def test_record_fit_recovers_parameters(tmp_path, capsys, request, case):
+def test_record_fit_recovers_parameters(tmp_path, capsys, request, case, monkeypatch):
     """diffpen fit SCENE.toml --data REC.csv recovers spring k and c within 2% from a record
     made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise; the box's
     c within 3%: the fit integrator's own step error moves it by +1.25% on the noise-free
@@ -61,7 +61,9 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, request, case):
                                   integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6,
                                   noise=2e-4, seed=1)
     out_toml = tmp_path / "fitted.toml"
+    monkeypatch.setattr(scene_fit, "STEP_CHECK", case == "box_springs")   # the default: on
     out = _fit_cli(capsys, ["fit", scene, "--data", rec, "--out", str(out_toml)])
+    assert ("step_shift" in out) == (case == "box_springs")
     for name, v in truth.items():
         rel = 0.03 if name == "springs.hang.c" else 0.02
         assert out["fitted"][name] == pytest.approx(v, rel=rel), (name, out["fitted"])

@@ -60,6 +60,10 @@ def add_arguments(p) -> None:
                    "instead of resuming the progress kept beside it (needed when that "
                    "progress is of a fit with other settings)")
     add_start_state_arguments(p, "with SCENE.toml --data: ")
+    p.add_argument("--no-step-check", action="store_true", help="with SCENE.toml --data: "
+                   "leave out the time step's error (step_shift: the residuals at dt / 2, "
+                   "one more compile and evaluation); the standard errors then cover the "
+                   "records' noise only")
     p.add_argument("--loss", choices=["l2", "l1"], default="l2",
                    help="with SCENE.toml --data: squared pose error (default) or its norm")
     p.add_argument("--horizon", type=positive("--horizon"), nargs="+", metavar="S",
@@ -198,9 +202,9 @@ def _run(args) -> int:
         return _run_records(args)
     if (args.out or args.horizon or args.starts or args.keep != 1
             or args.flight_frames is not None or args.first_state is not None
-            or args.loss != "l2"):
-        opts = ("--out, --horizon, --starts, --keep, --flight-frames, --first-state and "
-                "--loss are options of fits to position records (diffpen fit SCENE.toml "
+            or args.loss != "l2" or args.no_step_check):
+        opts = ("--out, --horizon, --starts, --keep, --flight-frames, --first-state, "
+                "--no-step-check and --loss are options of fits to position records (diffpen fit SCENE.toml "
                 "--data FILES... with x, y, z columns)")
         if args.scene is None:
             raise CLIError(opts + "; the built-in ball takes none of them")
@@ -524,7 +528,7 @@ def _run_records(args) -> int:
                         loss=args.loss, horizons=horizons, maxiter=args.maxiter,
                         starts=args.starts, keep=args.keep, max_frames=args.flight_frames,
                         progress=False if args.json else None, fresh=args.fresh,
-                        keep_progress=True)
+                        keep_progress=True, step_check=False if args.no_step_check else None)
     except OSError as exc:          # e.g. a full disk while saving the fit's progress
         where = f" ({exc.filename})" if exc.filename else ""
         raise CLIError(f"{exc.strerror or exc}{where}"
