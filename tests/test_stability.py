@@ -609,3 +609,20 @@ def test_implicit_euler_refuses_a_resting_depth_its_dtype_cannot_resolve():
         with pytest.raises(dp.StabilityError, match="wrong or NaN gradients"):
             light.rollout(light.params(k=k, c=0.4 * np.sqrt(k * 1e-4)), 10)
     light.rollout(light.params(k=1e4, c=0.4), 10)
+
+
+def test_a_friction_limit_says_it_counts_bodies_that_never_touch():
+    """audit13: a box hung on springs 0.66 m above a rough floor made the fit and evaluate
+    refuse dt = 1 ms, the limit set by friction it never feels; the limit still counts
+    every body that can touch the material, and its words now say so and how to leave such
+    a body out."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("floor", k=1e4, c=10.0, friction=0.3)
+    box = scene.add_box((0.1, 0.05, 0.04), 1.2, (0.0, 0.0, 0.5))
+    scene.add_anchored_spring(box, None, (0.0, 0.0, 0.04), (0.0, 0.0, 0.9), k=250.0, c=1.0,
+                              rest_length=0.3)
+    scene.add_plane(material="floor", offset=-0.2)
+    sim = dp.compile(scene, 1e-3)
+    rep = sim.stability(sim.params())
+    assert not rep.stable and "friction of material 'floor'" in rep.limiting
+    assert "whether or not it reaches it" in rep.limiting and "collide = false" in rep.limiting

@@ -102,7 +102,9 @@ def friction_bound(scene, rows):
     each named by its material and slip speed (what to raise where it limits the step)."""
     return Bound.of([(b, name, w, w, f"friction of material {name!r} below its slip speed "
                      f"{scene.materials[name].slip_speed:g} m/s (a damper of rate mu f / "
-                     "(m slip_speed), f the body's weight and spring tension)")
+                     "(m slip_speed), f the body's weight and spring tension, counted for "
+                     "every body that can touch the material, whether or not it reaches it: "
+                     "one that never does can take collide = false)")
                      for b, name, w in rows], "friction",
                     per_mass=False)
 
