@@ -374,3 +374,21 @@ def test_grid_axes_and_point_counts_are_checked():
         S.grid_points({})                       # "need at least one array to stack"
     with pytest.raises(ValueError, match="at least one"):
         S.random_points({}, 3)
+
+
+def test_cache_keys_are_values_with_their_types():
+    """The keys of the sweeps' and batched fits' caches (tuning.compiled.frozen_key): equal
+    values give equal keys; values a program would treat differently do not (an int leaf
+    casts the batch to int, -0.0 is not 0.0 to every operation); traced values give none."""
+    import jax
+    from tuning.compiled import frozen_key
+    p = toy_params()
+    assert frozen_key(p, ["a"], {"x": 1.0}) == frozen_key(toy_params(), ["a"], {"x": 1.0})
+    assert frozen_key(1) != frozen_key(1.0) != frozen_key(True)
+    assert frozen_key(-0.0) != frozen_key(0.0) and frozen_key(np.float32(1)) != frozen_key(1.0)
+    assert frozen_key(["a"]) != frozen_key(("a",)) and frozen_key([1]) != frozen_key([[1]])
+    assert frozen_key(np.zeros(2)) != frozen_key(np.zeros(3))
+    assert frozen_key([{1, 2}]) is None                       # unhashable
+    seen = []
+    jax.jit(lambda x: seen.append(frozen_key(x)) or x)(1.0)
+    assert seen == [None]

@@ -69,8 +69,8 @@ def compiled(scene: dp.Scene, dt: float, **compile_kw) -> dp.Simulator:
 
 def frozen_key(*parts):
     """A hashable key of ``parts`` by value: dicts (sorted), lists and tuples taken apart,
-    NumPy and JAX arrays and Params leaves by dtype, shape and bytes (equal values, equal key;
-    -0.0 and 0.0 differ), pytrees (``diffpen.Params``) by structure and leaves, anything else
+    NumPy and JAX arrays and Params leaves by dtype, shape and bytes, Python numbers by type and
+    bits (equal values, equal key; -0.0 and 0.0, 1 and 1.0 differ), pytrees (``diffpen.Params``) by structure and leaves, anything else
     as itself (functions and simulators by identity). None where a part is traced or
     unhashable: the caller then builds afresh."""
     def freeze(x):
@@ -84,6 +84,10 @@ def frozen_key(*parts):
         if hasattr(x, "_fields"):       # a NamedTuple pytree (Params, ContactParams, ...)
             leaves, tree = jax.tree_util.tree_flatten(x)
             return ("tree", tree) + tuple(freeze(v) for v in leaves)
+        if isinstance(x, float):            # -0.0 == 0.0 and nan != nan: by bits
+            return ("float", x.hex())
+        if isinstance(x, (bool, int, complex)):
+            return (type(x).__name__, repr(x))  # 1 == 1.0 == True, not as leaves' dtypes
         hash(x)
         return x
     try:
