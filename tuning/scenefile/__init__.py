@@ -62,7 +62,8 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     maxiter = 40                    # targets: the whole fit (default 40 lm, 400 optax);
                                     #   records: per horizon stage (default 30; t,z 15)
     observe = ["cube"]              # bodies the records observe (default: the named bodies)
-    first_state = "fit"             # record fits: "record" (row 0) or "fit" (parabola);
+    first_state = "fit"             # record fits: "record" (row 0), "fit" (parabola) or
+                                    #   "refine" (row 0, refined with the parameters);
     flight_frames = 20              #   its cap on flight frames (default: the first flight);
     horizon = [0.5, 1.0]            #   growing-horizon stages, s, before the whole records
                                     #   (default 1/8, 1/4, 1/2 of the longest; [] none)
