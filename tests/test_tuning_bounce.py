@@ -292,3 +292,25 @@ def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch, ball_s
             B.bounce_metrics_fn(sim, 10, **kw)
     with pytest.raises(FitError, match="steps must be a positive integer"):
         B.bounce_metrics_fn(sim, 0)             # accepted; failed when first called
+
+
+def test_the_default_rollout_length_is_rounded_within_the_step_cap(monkeypatch):
+    """The default rollout length is rounded up to one of 8 per octave so that nearby
+    targets share a program, but never past MAX_STEPS (audit15: 990,000 steps rounded to
+    1,048,576 against the stated cap of 1,000,000)."""
+    seen = []
+
+    def capture(sim, steps, **kw):
+        seen.append(steps)
+        raise KeyboardInterrupt
+    monkeypatch.setattr(B, "bounce_metrics_fn", capture)
+    target = {"apex_heights": [0.55]}
+    with pytest.raises(KeyboardInterrupt):
+        B.fit_bounce(ball_scene(), target, dt=1e-3)
+    assert seen[0] % 128 == 0                       # 8 per octave: a multiple of 2^(n - 3)
+    info = B.check_bounce_targets(ball_scene(), target)
+    duration = 1.3 * (info["t_fall"] + 2.0 * math.sqrt(2.0 * 0.55 / info["g"])) + 0.3
+    assert 0 <= seen[0] - duration / 1e-3 < 0.125 * seen[0]
+    with pytest.raises(KeyboardInterrupt):
+        B.fit_bounce(ball_scene(), target, dt=duration / 990_000)
+    assert 990_000 <= seen[1] <= B.MAX_STEPS

@@ -353,7 +353,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        f"bounces. Give dt <= {duration / MIN_STEPS:.3g} s (default 1e-3 s).")
     if not given:           # one of 8 lengths per octave (at most 12.5% longer): fits of
         unit = 1 << max(steps.bit_length() - 4, 0)     # nearby targets share their programs
-        steps = -(-steps // unit) * unit
+        steps = min(-(-steps // unit) * unit, max(steps, MAX_STEPS))    # never past the cap
         duration = steps * dt
     sim = compiled(scene, dt, law=law, **compile_kw)    # an equal earlier call's simulator
     mfn = bounce_metrics_fn(sim, steps, body=body, plane=plane, n_apex=n_apex,
