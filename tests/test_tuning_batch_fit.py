@@ -6,6 +6,7 @@ import math
 import textwrap
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -242,3 +243,28 @@ def test_best_never_picks_a_row_past_the_safe_step(batch):
     assert not res.unstable.any() and res.best() == int(np.argmin(res.loss))
     with pytest.raises(F.FitError, match="every row of the batch is past its safe step"):
         dataclasses.replace(res, unstable=np.ones(n, bool)).best()
+
+
+SCALE = {"value": 1.0}
+
+
+def _scaled(p):         # reads a module-level value that a test changes between fits
+    return {"apex_heights": SCALE["value"] * jnp.sqrt(p.contact["default"].k) / 100.0}
+
+
+def test_a_cached_fitter_is_not_reused_for_a_function_that_changed(problem, monkeypatch):
+    """Regression (audit15): fit_batch and sweep reused the program an earlier call compiled
+    for the same metrics function object even after a global it reads changed (a refit gave
+    the old answer); their caches now hold what the function computes (its jaxpr)."""
+    from tuning.sweep import sweep
+    sim, _ = problem
+    p0 = sim.params(k=1e4, c=10.0)
+    kw = dict(free=["contact.default.k"], maxiter=200, learning_rate=0.05)
+    monkeypatch.setitem(SCALE, "value", 1.0)
+    first = fit_batch(_scaled, p0, {"apex_heights": [1.2]}, **kw)
+    swept = sweep(_scaled, p0, [[1e4]], ["contact.default.k"]).metrics["apex_heights"]
+    monkeypatch.setitem(SCALE, "value", 2.0)
+    again = fit_batch(_scaled, p0, {"apex_heights": [1.2]}, **kw)
+    assert again.values[0, 0] == pytest.approx(first.values[0, 0] / 4.0, rel=1e-2)
+    twice = sweep(_scaled, p0, [[1e4]], ["contact.default.k"]).metrics["apex_heights"]
+    assert float(twice[0]) == pytest.approx(2.0 * float(swept[0]), rel=1e-12)

@@ -392,3 +392,20 @@ def test_cache_keys_are_values_with_their_types():
     seen = []
     jax.jit(lambda x: seen.append(frozen_key(x)) or x)(1.0)
     assert seen == [None]
+
+
+GAIN = {"value": 1.0}
+
+
+def _gained(p):
+    return {"twice": GAIN["value"] * p.contact["default"].k}
+
+
+def test_the_function_key_sees_a_changed_global(monkeypatch):
+    """Regression (audit15): JAX keeps the trace of a function it traced before, globals'
+    values and all, so a sweep's key of its metrics (what a rerun into the same out= is
+    checked against) stayed that of the first trace in a process after a global changed."""
+    monkeypatch.setitem(GAIN, "value", 1.0)
+    first = S.function_key(_gained, toy_params())
+    monkeypatch.setitem(GAIN, "value", 2.0)
+    assert S.function_key(_gained, toy_params()) != first

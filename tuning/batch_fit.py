@@ -342,11 +342,18 @@ def fit_batch(metrics_fn: Callable, params0: dp.Params, targets,
       different layouts or counts, non-finite or zero targets, unknown parameters, a
       non-positive learning rate or iteration limit: before anything is compiled.
     """
-    key = frozen_key(metrics_fn, params0, options)      # one fitter for equal arguments:
-    if key is None:                                     # a later call compiles nothing
-        return BatchFitter(metrics_fn, params0, **options)(targets, starts)
-    return _FITTERS.get(key, lambda: BatchFitter(metrics_fn, params0, **options))(targets,
-                                                                                   starts)
+    fitter = BatchFitter(metrics_fn, params0, **options)    # the options checked, then
+    rows, first = _rows(targets, starts)                   # the batch: before any trace
+    fitter._targets(rows)
+    fitter._starts(first, len(rows))
+    # one fitter for equal arguments and for what metrics_fn computes now (its jaxpr: a
+    # function whose globals changed is another program): a later call compiles nothing
+    try:
+        now = distributed.jaxpr_digest(jax.make_jaxpr(lambda p: metrics_fn(p))(params0))
+    except Exception:       # noqa: BLE001 - not traceable here: the fit says why
+        now = None
+    key = None if now is None else frozen_key(metrics_fn, now, params0, options)
+    return (fitter if key is None else _FITTERS.get(key, lambda: fitter))(targets, starts)
 
 
 #: fitters :func:`fit_batch` built, by their arguments (values), the last 8

@@ -132,10 +132,16 @@ _EVALUATORS = ProgramCache()
 
 def _shared_evaluator(metrics_fn, params0, names, keys, batch_map) -> Callable:
     """:func:`make_evaluator`, or the one built for equal arguments by an earlier sweep
-    (each sweep without ``evaluate=`` compiled a new one: ~2 s)."""
+    (each sweep without ``evaluate=`` compiled a new one: ~2 s). The key holds what
+    ``metrics_fn`` computes now (:func:`function_key`, one trace): a function whose
+    globals or closure changed since is another program, not the stale one."""
     def build():
         return make_evaluator(metrics_fn, params0, names, keys, batch_map)
-    key = frozen_key(metrics_fn, params0, names, keys, batch_map)
+    try:
+        now = function_key(metrics_fn, params0)
+    except Exception:       # noqa: BLE001 - not traceable here: built afresh, errors and all
+        return build()
+    key = frozen_key(metrics_fn, now, params0, names, keys, batch_map)
     return build() if key is None else _EVALUATORS.get(key, build)
 
 
@@ -144,7 +150,9 @@ def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
     ``params0`` (the operations, the scene's constants, dt and step counts as literals) and of
     the arrays it closes over. A sweep written to ``out`` without ``key=`` stores it, so that
     a rerun with another scene, dt, duration or metric is refused, not mixed in."""
-    return distributed.jaxpr_digest(jax.make_jaxpr(metrics_fn)(params0)).hex()
+    # traced through a new function object: JAX keeps the trace of a function it traced
+    # before, with the values its globals had then
+    return distributed.jaxpr_digest(jax.make_jaxpr(lambda p: metrics_fn(p))(params0)).hex()
 
 
 def _data(v) -> bool:
