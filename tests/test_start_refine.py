@@ -31,6 +31,16 @@ def test_the_projection_is_the_joint_problem_with_the_starts_eliminated():
                                                      jnp.asarray(js), record, n_rec))
     np.testing.assert_allclose(-np.linalg.lstsq(jpp, rp, rcond=None)[0], step[:P], rtol=1e-9)
     np.testing.assert_allclose(np.linalg.inv(jpp.T @ jpp), cov, rtol=1e-9)
+    # the standard errors: the joint problem's, its noise estimated with the starts' offsets
+    # fitted too (audit15: m - p degrees of freedom, not m - p - the offsets)
+    import types
+    from tuning.fit_errors import parameter_errors
+    free = [types.SimpleNamespace(name=n, log=False) for n in ("a", "b")]
+    rp_cost = float(rp @ rp)
+    se, _, _ = parameter_errors(jpp, rp, rp_cost, free, {"a": 1.0, "b": 1.0}, None,
+                                nuisance=n_rec * S)
+    s2 = rp_cost / (len(r) - P - n_rec * S)
+    np.testing.assert_allclose([se["a"], se["b"]], np.sqrt(np.diag(cov) * s2), rtol=1e-9)
     # the starts' own steps at fixed parameters: each record's least squares
     got = np.asarray(start_steps(jnp.asarray(r), jnp.asarray(js), record, n_rec))
     for i in range(n_rec):
@@ -72,7 +82,7 @@ def test_the_offsets_move_the_observed_unpinned_bodies_only():
 
     import jax
     import diffpen as dp
-    from tuning.start_refine import offset_columns, with_start_offsets
+    from tuning.start_refine import active_offsets, offset_columns, with_start_offsets
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     scene.add_sphere(0.05, 1.0, (0.0, 0.0, 1.0), pinned=True)
     scene.add_sphere(0.05, 1.0, (0.5, 0.0, 1.0))
@@ -87,6 +97,7 @@ def test_the_offsets_move_the_observed_unpinned_bodies_only():
     batch = types.SimpleNamespace(bodies=np.array([0, 1, 2]), pos_mask=seen,
                                   quat_mask=turned, has_rotation=True)
     assert offset_columns(batch, True) == 36
+    assert active_offsets(sim, batch) == 6 * 3 + 6 * 2     # positions seen 3x, the box turned 2x
     u = jnp.asarray(np.arange(1.0, 37.0) * 1e-3)
     out = with_start_offsets(sim, start, batch, u, True)
     dpos = np.asarray(out.position - start.position)

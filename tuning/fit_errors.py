@@ -40,7 +40,7 @@ def record_sandwich(inv, J, r, rows):
     return inv @ (g.T @ g) @ inv * (R / (R - 1.0))
 
 
-def parameter_errors(J, r, cost: float, free, values: dict, rows):
+def parameter_errors(J, r, cost: float, free, values: dict, rows, nuisance: int = 0):
     """``(stderr, corr, undetermined)`` at a fitted point.
 
     Args:
@@ -48,6 +48,9 @@ def parameter_errors(J, r, cost: float, free, values: dict, rows):
       cost: ``r @ r`` (NaN when the point is not a result).
       free: the p fitted leaves (``.name``, ``.log``).  values: ``{name: fitted value}``.
       rows: (m,) int, the record of each residual (None: no sandwich).
+      nuisance: parameters fitted besides the p and eliminated from ``J`` (the records'
+        start offsets of :mod:`tuning.start_refine`): degrees of freedom the noise estimate
+        loses too.
     Returns:
       stderr ``{name: float}`` in the leaf's own units (inf where undetermined), corr (p, p)
       (NaN rows and columns where undetermined), undetermined: a list of
@@ -68,7 +71,7 @@ def parameter_errors(J, r, cost: float, free, values: dict, rows):
     undetermined = [{"eigenvalue_ratio": float(ev[i] / max(ev[-1], 1e-300)),
                      "direction": {names[j]: float(evec[j, i]) for j in range(p)}}
                     for i in range(p) if loose_dirs[i]]
-    s2 = cost / max(m - p, 1)
+    s2 = cost / max(m - p - int(nuisance), 1)
     # no error for parameters the records do not depend on at all, nor for those with an
     # entry above 0.1 in an undetermined direction's unit vector (only a combination of
     # them is determined: pinv below keeps the determined part alone, which would give

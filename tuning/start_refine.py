@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["offset_columns", "with_start_offsets", "start_steps", "project_starts"]
+__all__ = ["offset_columns", "active_offsets", "with_start_offsets", "start_steps",
+           "project_starts"]
 
 
 def offset_columns(batch, rotating: bool) -> int:
@@ -41,6 +42,17 @@ def offset_columns(batch, rotating: bool) -> int:
     and velocity) and 6 more per body (orientation and angular velocity) where the batch has
     orientations and the scene rotates."""
     return len(np.asarray(batch.bodies)) * (12 if rotating and batch.has_rotation else 6)
+
+
+def active_offsets(sim, batch) -> int:
+    """How many start offsets the records of ``batch`` fit in all (the masks of
+    :func:`with_start_offsets`): 6 per record and body observed in its first frame and not
+    pinned, 6 more where that frame has its orientation and the scene rotates."""
+    moving = np.array([not sim.scene.bodies[int(i)].pinned for i in np.asarray(batch.bodies)])
+    n = 6 * int(np.sum((np.asarray(batch.pos_mask)[:, 0, :] > 0) & moving))
+    if sim.scene.has_rotation and batch.has_rotation:
+        n += 6 * int(np.sum((np.asarray(batch.quat_mask)[:, 0, :] > 0) & moving))
+    return n
 
 
 def _turned(q, theta):

@@ -54,6 +54,7 @@ from .pose import ROT_WEIGHT, body_size, pose_residuals, residual_records, rotat
 from .records import load_records
 from .record_batch import Batch, layout_of, prepare, prepare_buckets, simulate, typed_params
 from .record_programs import programs as _programs
+from .start_refine import active_offsets
 from .stable import params_unstable, solver_miss, unsafe_start
 
 __all__ = ["Free", "Batch", "TrajFitResult", "leaf_names", "get_leaf", "with_leaves",
@@ -410,7 +411,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
         first += b.pos.shape[0]
     rows = np.concatenate(rows)
     stderr, corr, undetermined = parameter_errors(
-        J, r, cost, free, values, rows if len(rows) == len(r) else None)
+        J, r, cost, free, values, rows if len(rows) == len(r) else None,
+        sum(active_offsets(sim, b) for b in batches) if refine_start else 0)
     if diverged:
         stderr = {name: math.nan for name in stderr}
         corr = np.full_like(corr, np.nan)
