@@ -315,12 +315,34 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones(h
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         tf.prepare(sim, [both], bodies={"a": a, "b": b})
-    # ... unless far beyond the bodies' size: a record in cm (a box on world-anchored springs
-    # blew up and the fit blamed dt)
+    # ... unless far beyond the bodies' size in a scene tied to the world: a record in cm (a
+    # box on world-anchored springs blew up and the fit blamed dt); a free pair is the same
+    # pair anywhere (audit15: a ball 3 m along an infinite floor warned)
     cm = Record("cm.csv", rec.t, {n: BodyRecord(100.0 * r.position)
                                   for n, r in both.bodies.items()})
-    with pytest.warns(UserWarning, match=r"more than 10 times their size .*: cm.csv .* metres"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         tf.prepare(sim, [cm], bodies={"a": a, "b": b})
+    import diffpen as dp
+    hung = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    ball = hung.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
+    hung.add_anchored_spring(ball, None, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), k=60.0, c=0.1,
+                             rest_length=0.25)
+    hung_sim = dp.compile(hung, 1e-3)
+    with pytest.warns(UserWarning, match=r"more than 10 times their size .*: cm.csv .* metres"):
+        tf.prepare(hung_sim, [Record("cm.csv", rec.t, {"a": BodyRecord(
+            100.0 * body.position)})], bodies={"a": ball})
+    floor = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    ball = floor.add_sphere(0.03, 0.3, (0.0, 0.0, 0.7))
+    floor.add_plane()
+    floor_sim = dp.compile(floor, 1e-3)
+    along = Record("along.csv", rec.t, {"a": BodyRecord(body.position + [3.0, 0.0, 0.0])})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tf.prepare(floor_sim, [along], bodies={"a": ball})
+    with pytest.warns(UserWarning, match=r"more than 10 times their size"):
+        tf.prepare(floor_sim, [Record("up.csv", rec.t, {"a": BodyRecord(
+            body.position + [0.0, 0.0, 3.0])})], bodies={"a": ball})
 
 
 def test_first_state_removes_the_finite_difference_bias(cube):

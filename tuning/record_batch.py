@@ -154,6 +154,19 @@ def _body_map(scene, records, bodies):
     return {n: bodies[n] for n in names}
 
 
+def _far(scene, moves, limit: float) -> bool:
+    """Whether the observed bodies' moves from the scene file's start (B, 3 m) can matter
+    beyond ``limit`` m: any move, in a scene tied to the world besides its planes (springs to
+    world points, fixed spheres, pinned bodies), else a move across some plane (a ball
+    started 3 m along an infinite floor is the same ball)."""
+    tied = (any(sp.b is None for sp in scene.springs + scene.anchored_springs)
+            or scene.fixed_spheres or any(b.pinned for b in scene.bodies))
+    if tied:
+        return float(np.max(np.linalg.norm(moves, axis=1))) > limit
+    return any(float(np.max(np.abs(moves @ np.asarray(pl.normal, float)))) > limit
+               for pl in scene.planes)
+
+
 def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             estimate: str = "record", max_frames: int = FLIGHT_FRAMES,
             cache: dict | None = None, scene=None) -> Batch:
@@ -259,7 +272,8 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             # their mean velocity (a start estimated from noisy frames is off body by body)
             speed = np.linalg.norm(np.mean(np.asarray(state.velocity)[seen]
                                            - np.asarray(s_init.velocity)[seen], axis=0))
-            if shift > FAR_START * float(np.max(size)):
+            if _far(scene, np.asarray(state.position)[seen] - np.asarray(s_init.position)[seen],
+                    FAR_START * float(np.max(size))):
                 far.append(f"{base} ({shift:.3g} m)")
             # the unobserved bodies start where and as the scene file puts them: say so when
             # the record starts the observed ones far from there or moving otherwise (their
