@@ -49,6 +49,12 @@ def test_a_mode_limit_takes_few_amplification_evaluations():
         radius = [np.max(np.abs(np.linalg.eigvals(rec.amplification(3.7e6, 850.0, x))))
                   for x in (h * (1 - 1e-9), h * (1 + 1e-9))]
         assert radius[0] <= 1.0 + 1e-9 < radius[1], radius
+    # an overdamped mode at rk4's limit, both eigenvalues near 1: the radius's closed form
+    # cancelled there and passed a step of radius 1 + 2.0e-9 (audit15)
+    rk4 = resolve("rk4")
+    for K, C in ((1.0, 1e6), (1e-12, 1.0), (3.0, 1e4)):
+        h = _mode_stable_dt(rk4, K, C)
+        assert np.max(np.abs(np.linalg.eigvals(rk4.amplification(K, C, h)))) <= 1.0 + 1.01e-9
 
 
 @pytest.mark.parametrize("integrator", EXPLICIT + ["implicit_euler"])

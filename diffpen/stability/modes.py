@@ -37,7 +37,10 @@ def _spectral_radius_2x2(M, xp):
     """Spectral radius of (..., 2, 2) matrices from their trace and determinant (traceable)."""
     tr = M[..., 0, 0] + M[..., 1, 1]
     det = M[..., 0, 0] * M[..., 1, 1] - M[..., 0, 1] * M[..., 1, 0]
-    disc = tr * tr - 4.0 * det
+    # tr^2 - 4 det without its cancellation where both eigenvalues are near 1 (an
+    # overdamped mode at rk4's limit: the radius read 1 + 1e-9 against 1 + 2e-9)
+    half = M[..., 0, 0] - M[..., 1, 1]
+    disc = half * half + 4.0 * M[..., 0, 1] * M[..., 1, 0]
     root = xp.sqrt(xp.abs(disc))
     real = 0.5 * xp.maximum(xp.abs(tr + root), xp.abs(tr - root))
     return xp.where(disc >= 0.0, real, xp.sqrt(xp.abs(det)))
