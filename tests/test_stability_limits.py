@@ -1,0 +1,51 @@
+"""The step limits' own computation: the rk4 and Verlet mode limits (a grid search of the
+closed-form 2x2 spectral radius) and the words a friction limit uses."""
+import math
+
+import numpy as np
+import pytest
+
+import diffpen as dp
+
+
+def test_a_mode_limit_takes_few_amplification_evaluations():
+    """The stability gate of rk4 and Verlet rollouts finds each new parameter value's mode
+    limit on the host: it bisected 60 times with a LAPACK eigensolve each (10 ms a mode,
+    13-20 ms a rollout; audit12). Now grids of the closed-form 2x2 radius: a handful of
+    evaluations, the same limits (the undamped closed forms to 1e-12, a damped one against
+    the eigenvalues of the amplification matrix just below and just above it)."""
+    from diffpen.integrators import resolve
+    from diffpen.stability.modes import _mode_stable_dt
+    for name, undamped in (("rk4", 2.0 * math.sqrt(2.0)), ("verlet", 2.0)):
+        rec, calls = resolve(name), []
+        counted = rec._replace(amplification=lambda K, C, h, a=rec.amplification: (
+            calls.append(1), a(K, C, h))[1])
+        assert _mode_stable_dt(counted, 4.0e6, 0.0) == pytest.approx(undamped / 2e3, rel=1e-12)
+        h = _mode_stable_dt(counted, 3.7e6, 850.0)
+        assert len(calls) <= 30, len(calls)
+        radius = [np.max(np.abs(np.linalg.eigvals(rec.amplification(3.7e6, 850.0, x))))
+                  for x in (h * (1 - 1e-9), h * (1 + 1e-9))]
+        assert radius[0] <= 1.0 + 1e-9 < radius[1], radius
+    # an overdamped mode at rk4's limit, both eigenvalues near 1: the radius's closed form
+    # cancelled there and passed a step of radius 1 + 2.0e-9 (audit15)
+    rk4 = resolve("rk4")
+    for K, C in ((1.0, 1e6), (1e-12, 1.0), (3.0, 1e4)):
+        h = _mode_stable_dt(rk4, K, C)
+        assert np.max(np.abs(np.linalg.eigvals(rk4.amplification(K, C, h)))) <= 1.0 + 1.01e-9
+
+
+def test_a_friction_limit_says_it_counts_bodies_that_never_touch():
+    """audit13: a box hung on springs 0.66 m above a rough floor made the fit and evaluate
+    refuse dt = 1 ms, the limit set by friction it never feels; the limit still counts
+    every body that can touch the material, and its words now say so and how to leave such
+    a body out."""
+    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    scene.add_material("floor", k=1e4, c=10.0, friction=0.3)
+    box = scene.add_box((0.1, 0.05, 0.04), 1.2, (0.0, 0.0, 0.5))
+    scene.add_anchored_spring(box, None, (0.0, 0.0, 0.04), (0.0, 0.0, 0.9), k=250.0, c=1.0,
+                              rest_length=0.3)
+    scene.add_plane(material="floor", offset=-0.2)
+    sim = dp.compile(scene, 1e-3)
+    rep = sim.stability(sim.params())
+    assert not rep.stable and "friction of material 'floor'" in rep.limiting
+    assert "whether or not it reaches it" in rep.limiting and "collide = false" in rep.limiting
