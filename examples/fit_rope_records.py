@@ -10,7 +10,11 @@ Marquardt over a growing horizon). The held-out swing is then evaluated with the
 scene file and give the columns ``NAME.x, NAME.y, NAME.z`` (``rope[3].x`` for a builder's
 node).
 
-Run:  python examples/fit_rope_records.py [--out DIR]
+With ``--markers`` the records hold positions only (no velocity columns, as marker systems
+record), and the fit refines each record's start state with the parameters
+(``--first-state refine``, :mod:`tuning.start_refine`).
+
+Run:  python examples/fit_rope_records.py [--out DIR] [--markers]
 """
 from __future__ import annotations
 
@@ -51,8 +55,9 @@ TRUTH = {"springs.rope.stretch.k": 400.0, "springs.rope.stretch.c": 0.6}
 SWINGS = (0.0, 0.5, -1.0, 0.8)           # sideways start speeds, m/s; the last is held out
 
 
-def make_records(folder: str) -> list:
-    """One record per swing: rk4 at 0.25 ms, 5 ms frames, 0.2 mm noise, 1 s."""
+def make_records(folder: str, velocities: bool = True) -> list:
+    """One record per swing: rk4 at 0.25 ms, 5 ms frames, 0.2 mm noise, 1 s (``velocities``:
+    with velocity columns)."""
     paths = []
     for i, vy in enumerate(SWINGS):
         path = os.path.join(folder, f"swing{i}.toml")
@@ -62,7 +67,8 @@ def make_records(folder: str) -> list:
         sim = sf.compile(integrator="rk4", dt=2.5e-4)
         params = tf.with_leaves(sf.params(sim), TRUTH)
         bodies = {name: sf.names[name] for name in sf.spec.observe}
-        rec = synthetic_record(sim, params, 1.0, 5e-3, bodies, noise=2e-4, seed=i)
+        rec = synthetic_record(sim, params, 1.0, 5e-3, bodies, noise=2e-4, seed=i,
+                               velocities=velocities)
         csv = os.path.join(folder, f"swing{i}.csv")
         write_record(csv, rec)
         paths.append(csv)
@@ -73,15 +79,18 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     ap.add_argument("--out", default=None, help="folder for the scene, records and fitted "
                     "scene (default: a temporary folder)")
+    ap.add_argument("--markers", action="store_true", help="records of positions only, "
+                    "fitted with the start states refined (--first-state refine)")
     args = ap.parse_args(argv)
     folder = args.out or tempfile.mkdtemp(prefix="rope-records-")
     os.makedirs(folder, exist_ok=True)
-    records = make_records(folder)
+    records = make_records(folder, velocities=not args.markers)
     scene = os.path.join(folder, "rope.toml")          # the scene the fit starts from
     with open(scene, "w") as fh:
         fh.write(SCENE.format(vy=0.0))
     fitted = os.path.join(folder, "rope_fitted.toml")
-    out = fit_files(scene, records[:-1], out=fitted)
+    out = fit_files(scene, records[:-1], out=fitted,
+                    estimate="refine" if args.markers else None)
     print(f"fitted {out['records']} records in {out['fit_seconds']:.1f} s "
           f"({out['iterations']} LM iterations, horizons {out['horizons']}):")
     for name, v in out["fitted"].items():
