@@ -31,7 +31,8 @@ def test_recovers_k_and_c_with_covering_standard_errors(record, monkeypatch):
     3.5 s)."""
     t, z = record
     built, compile_ = [], S.dp.compile
-    monkeypatch.setattr(S, "_BALL_SIMS", S.ProgramCache())       # none kept from before
+    from tuning import compiled
+    monkeypatch.setattr(compiled, "_SIMS", S.ProgramCache())      # none kept from before
     monkeypatch.setattr(S.dp, "compile", lambda scene, dt, **kw: built.append(
         (scene.bodies[0].position, scene.bodies[0].velocity, dt)) or compile_(scene, dt, **kw))
     res = S.fit_trajectory(t, z, radius=0.1, mass=1.0)

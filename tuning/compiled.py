@@ -69,10 +69,11 @@ def compiled(scene: dp.Scene, dt: float, **compile_kw) -> dp.Simulator:
 
 def frozen_key(*parts):
     """A hashable key of ``parts`` by value: dicts (sorted), lists and tuples taken apart,
-    NumPy and JAX arrays and Params leaves by dtype, shape and bytes, Python numbers by type and
-    bits (equal values, equal key; -0.0 and 0.0, 1 and 1.0 differ), pytrees (``diffpen.Params``) by structure and leaves, anything else
-    as itself (functions and simulators by identity). None where a part is traced or
-    unhashable: the caller then builds afresh."""
+    NumPy and JAX arrays and Params leaves by dtype, shape and bytes, Python numbers by type
+    and bits (equal values, equal key; -0.0 and 0.0, 1 and 1.0 differ), pytrees
+    (``diffpen.Params``) by structure and leaves, anything else as itself (functions and
+    simulators by identity). None where a part is traced or unhashable: the caller then
+    builds afresh."""
     def freeze(x):
         if isinstance(x, dict):
             return ("dict",) + tuple((k, freeze(v)) for k, v in sorted(x.items(), key=repr))

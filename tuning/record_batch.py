@@ -27,6 +27,7 @@ from diffpen.integrators import implicit_euler, kick_then_drift
 from .first_state import FLIGHT_FRAMES, first_state
 from .errors import FitError
 from .pose import body_size
+from .start_refine import with_start_offsets
 
 __all__ = ["Batch", "prepare", "prepare_buckets", "simulate", "start_states", "lag_start",
            "layout_of", "with_arrays", "typed_params"]
@@ -267,13 +268,12 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
         rest[seen] = False
         if seen:
             base = os.path.basename(rec.path)
-            shift = np.max(np.linalg.norm(np.asarray(state.position)[seen]
-                                          - np.asarray(s_init.position)[seen], axis=1))
+            moves = np.asarray(state.position)[seen] - np.asarray(s_init.position)[seen]
+            shift = np.max(np.linalg.norm(moves, axis=1))
             # their mean velocity (a start estimated from noisy frames is off body by body)
             speed = np.linalg.norm(np.mean(np.asarray(state.velocity)[seen]
                                            - np.asarray(s_init.velocity)[seen], axis=0))
-            if _far(scene, np.asarray(state.position)[seen] - np.asarray(s_init.position)[seen],
-                    FAR_START * float(np.max(size))):
+            if _far(scene, moves, FAR_START * float(np.max(size))):
                 far.append(f"{base} ({shift:.3g} m)")
             # the unobserved bodies start where and as the scene file puts them: say so when
             # the record starts the observed ones far from there or moving otherwise (their
@@ -397,10 +397,9 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
     batch's bodies at the frame times, each record rolled out from its own start state.
     With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
     (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
-    a result. ``offsets``: start velocity offsets added to every record's observed bodies
+    a result. ``offsets``: start-state offsets added to every record's observed bodies
     (:func:`tuning.start_refine.with_start_offsets`). Pure: jit, grad and jacfwd it."""
     from .stable import rollout_unstable
-    from .start_refine import with_start_offsets
     idx = batch.bodies
     rot = sim.scene.has_rotation and batch.has_rotation
     start = start_states(sim, params, batch)

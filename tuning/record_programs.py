@@ -2,7 +2,7 @@
 residuals of all records' pose loss, their forward-mode Jacobian and the count of rollouts
 past the safe step, with the params and the records' arrays as arguments, so that a later fit
 of the same layout (simulator, leaves, loss settings, batch shapes) compiles nothing; with
-``refine`` the records' start velocities projected out (:mod:`tuning.start_refine`).
+``refine`` the records' start states projected out (:mod:`tuning.start_refine`).
 """
 from __future__ import annotations
 
@@ -41,8 +41,7 @@ def programs(sim: dp.Simulator, free, batches, rot_weight, loss, decay, refine=F
 
 
 def _build(sim, free, layouts, rot_weight, loss, decay, refine=False):
-    """:func:`programs`' pair, compiled on first use (``refine``: the records' start
-    velocities projected out, :mod:`tuning.start_refine`)."""
+    """:func:`programs`' pair, compiled on first use."""
     rot = sim.scene.has_rotation
     n_off = max(offset_columns(lay, rot) for lay in layouts) if refine else 0
 

@@ -212,21 +212,21 @@ def _step_shift(sf, sim, res, free, records, bodies, estimate, max_frames, loss)
     from .pose import ROT_WEIGHT
     from .record_batch import typed_params
     from .record_programs import programs
+    r1, J1 = res.residuals, res.jacobian        # the fit's own, at dt
+    if res.unstable or not (np.all(np.isfinite(r1)) and np.all(np.isfinite(J1))):
+        return None
     x = np.array([f.to_x(res.values[f.name]) for f in free], float)
-    out = []
-    for s in (sim, sf.compile(dt=sim.dt / 2)):
-        with warnings.catch_warnings():     # the fit's own batches warned already
-            warnings.simplefilter("ignore")
-            buckets = prepare_buckets(s, records, bodies=bodies, estimate=estimate,
-                                      max_frames=max_frames)
-        (rj, _), arrays = programs(s, free, buckets, ROT_WEIGHT, loss, None,
-                                   estimate == "refine")
-        r, J, bad = (np.asarray(a) for a in rj(typed_params(res.params, s.dtype), arrays,
-                                                jnp.asarray(x), jnp.asarray(np.inf)))
-        if int(bad) or not (np.all(np.isfinite(r)) and np.all(np.isfinite(J))):
-            return None
-        out.append((r, J))
-    (r1, J1), (r2, _) = out
+    half = sf.compile(dt=sim.dt / 2)
+    with warnings.catch_warnings():     # the fit's own batches warned already
+        warnings.simplefilter("ignore")
+        buckets = prepare_buckets(half, records, bodies=bodies, estimate=estimate,
+                                  max_frames=max_frames)
+    (rj, _), arrays = programs(half, free, buckets, ROT_WEIGHT, loss, None,
+                               estimate == "refine")
+    r2, _, bad = (np.asarray(a) for a in rj(typed_params(res.params, half.dtype), arrays,
+                                             jnp.asarray(x), jnp.asarray(np.inf)))
+    if int(bad) or not np.all(np.isfinite(r2)):
+        return None
     step = -np.linalg.lstsq(J1, 2.0 * (r2 - r1), rcond=None)[0]
     return {f.name: float(f.from_x(x[i] + step[i]) - res.values[f.name])
             for i, f in enumerate(free)}

@@ -46,7 +46,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .progress import Progress
-from .compiled import ProgramCache
+from .compiled import ProgramCache, compiled
 from .lm import levenberg_marquardt, residuals_and_jacobian
 from .stable import contact_scales, law_c, law_k, law_units, safe_contact_bounds
 
@@ -241,17 +241,16 @@ def first_guess(events: RecordEvents, mass: float, *, law: str = "linear",
 
 
 # --------------------------------------------------------------------------- model
-#: ball simulators by (radius, mass, g, dt, law) and the fit's residual programs by
-#: (simulator, steps, every, k held), the last 8 of each: shared by choose_dt, the fit and
+#: the fit's residual programs by (simulator, steps, every, k held), the last 8: shared by
 #: later records' fits (the start height and velocity are the rollouts' state)
-_BALL_SIMS, _FIT_PROGRAMS = ProgramCache(), ProgramCache()
+_FIT_PROGRAMS = ProgramCache()
 
 
 def _ball_sim(radius, mass, g, dt, law):
+    """The ball's simulator, shared by choose_dt, the fit and later records' fits
+    (:func:`tuning.compiled.compiled`: the start is each rollout's own state)."""
     from .scenes import ball_scene
-    key = tuple(float(x) for x in (radius, mass, g, dt)) + (law,)
-    return _BALL_SIMS.get(key, lambda: dp.compile(ball_scene(
-        radius=radius, mass=mass, gravity=g), dt, law=law))
+    return compiled(ball_scene(radius=radius, mass=mass, gravity=g), dt, law=law)
 
 
 def _start(sim, z0, v0):

@@ -108,6 +108,8 @@ class TrajFitResult:
       ran from (with multi-start, the chosen one of ``starts``; else ``cost_start``).
     resumed: LM iterations taken from a checkpoint (``fit_records(checkpoint=...)``), 0 for
       a fit run whole; ``iterations`` and ``history`` count them too.
+    residuals, jacobian: (m,) and (m, p) at the fitted values over the whole records (in
+      fitting space; projected off the start offsets with ``refine_start``).
     """
     params: dp.Params
     names: list
@@ -127,6 +129,8 @@ class TrajFitResult:
     diverged: bool = False
     cost_chosen_start: float | None = None
     resumed: int = 0
+    residuals: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    jacobian: np.ndarray | None = dataclasses.field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         return {"fitted": self.values, "stderr": self.stderr,
@@ -188,10 +192,11 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     names what the caller changed (``diffpen fit``: the record files, the start-state
     estimate and its frame cap) and not only the records' arrays that follow from it.
 
-    ``refine_start``: every record's start velocities (and a rigid body's angular velocity)
-    are fitted with the parameters, by variable projection (:mod:`tuning.start_refine`):
-    for records without velocity columns, whose start velocities come from a few noisy
-    frames; their uncertainty enters the standard errors.
+    ``refine_start``: every record's start state (observed bodies' positions and velocities,
+    with orientations their orientation and angular velocity) is fitted with the
+    parameters, by variable projection (:mod:`tuning.start_refine`): for records without
+    velocity columns, whose start velocities come from a few noisy frames; its uncertainty
+    enters the standard errors.
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
@@ -429,7 +434,8 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
                          [None if h is None else float(h) for h in horizons], it_all, hist,
                          time.perf_counter() - t0, message, unstable=n_bad,
                          starts=start_info, diverged=diverged,
-                         cost_chosen_start=cost_chosen_start, resumed=resumed)
+                         cost_chosen_start=cost_chosen_start, resumed=resumed,
+                         residuals=r, jacobian=J)
 
 
 def _run_stages(ci, cands, horizons, lo, hi, maxiter, res_jac, whole_cost, bar, it_all,
