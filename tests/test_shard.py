@@ -76,9 +76,10 @@ CLUSTER_SCRIPT = textwrap.dedent("""
     from tuning.batch_fit import BatchFitter
     from tuning.shard import sharded_map
 
+    import tuning.sweep_files as files
     writes = []
-    save = sw._save
-    sw._save = lambda *a, **k: (writes.append(jax.process_index()), save(*a, **k))[1]
+    write = files.atomic_write     # every file a sweep writes (.npz and .csv)
+    files.atomic_write = lambda *a, **k: (writes.append(jax.process_index()), write(*a, **k))[1]
 
     scene = dp.Scene()
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.15))
@@ -224,8 +225,9 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
     assert alone["evaluated"] == [9, 0]
     for i, r in enumerate(procs):
         assert r["joined"] and r["processes"] == 2 and r["devices"] == 4
-        # three chunks, then the fully resumed rerun writes the pair once more; process 0 only
-        assert r["writes"] == ([0, 0, 0, 0] if i == 0 else [])
+        # process 0 only (after its chunks, as often as their cost allows, and at the end;
+        # then the fully resumed rerun writes the pair once more)
+        assert (r["writes"] and set(r["writes"]) == {0}) if i == 0 else r["writes"] == []
         assert r["evaluated"] == [9, 0] and r["done"]            # the rerun resumed everything
         assert r["raised"] == "ZeroDivisionError"
         assert "processes [1] were given a different sweep" in r["differ"]
@@ -245,7 +247,7 @@ def test_two_processes_gather_the_single_process_results(tmp_path):
         assert r["mismatch"] == procs[0]["mismatch"]
         for key in ("z", "v", "again_z", "heights", "scene_apex"):
             assert r[key] == alone[key], key                     # bit for bit (exact floats)
-        assert r["scene_writes"] == ([0, 0, 0] if i == 0 else [])
+        assert (set(r["scene_writes"]) == {0} if i == 0 else r["scene_writes"] == [])
         for n in ("4", "3"):
             assert r["fits"][n].pop("devices") == 4 and alone["fits"][n]["devices"] == 1
             r["fits"][n]["devices"] = 1

@@ -331,8 +331,9 @@ def test_the_table_is_written_once_at_the_end_and_agrees_after_an_interrupt(tmp_
     out = str(tmp_path / "t.npz")
     csv = str(tmp_path / "t.csv")
     writes = []
-    real = S.atomic_write
-    monkeypatch.setattr(S, "atomic_write",
+    import tuning.sweep_files as files
+    real = files.atomic_write
+    monkeypatch.setattr(files, "atomic_write",
                         lambda path, fn: (writes.append(os.path.basename(path)), real(path, fn)))
     toy_sweep(out)                                   # 2 chunks
     assert writes.count("t.npz") == 2 and writes.count("t.csv") == 1
@@ -350,7 +351,7 @@ def test_the_table_is_written_once_at_the_end_and_agrees_after_an_interrupt(tmp_
         count.append(path)
         if len(count) == 1:
             progress.interrupt(KeyboardInterrupt)   # what the command's SIGINT handler does
-    monkeypatch.setattr(S, "atomic_write", signalled)
+    monkeypatch.setattr(files, "atomic_write", signalled)
     try:
         with pytest.raises(KeyboardInterrupt):
             toy_sweep(out)

@@ -22,11 +22,13 @@ of killed runs, and the key of everything that determines a result.
 from __future__ import annotations
 
 import errno
+import functools
 import glob
 import hashlib
 import json
 import math
 import os
+import sys
 import tempfile
 from typing import Callable
 
@@ -35,6 +37,7 @@ import numpy as np
 __all__ = ["OutputError", "check_output", "check_plot", "check_distinct", "PLOT_TYPES",
            "atomic_write", "save_figure_file", "OutputLock", "clean_orphans",
            "result_key", "key_digest", "key_differences", "describe_simulator", "version",
+           "source_digest", "runtime",
            "TMP_PREFIX"]
 
 #: prefix of the temporary files of :func:`atomic_write` (``.tmp-XXXX<basename>``)
@@ -53,6 +56,40 @@ def version() -> str:
         return _v("diffpen")
     except Exception:  # noqa: BLE001 - a plain checkout without metadata
         return "unknown"
+
+
+@functools.lru_cache(maxsize=None)
+def source_digest() -> str:
+    """SHA-256 (16 hex digits) of the Python source of the ``diffpen`` and ``tuning``
+    packages this process imported (every ``.py`` file under them, by relative path and
+    bytes; a few ms). Part of every result key beside :func:`version`: the version number
+    stays the same while the code changes (an editable install, a ``git pull``), and a
+    resumed sweep or fit would otherwise mix rows computed by two versions of the physics."""
+    import diffpen
+    h = hashlib.sha256()
+    for pkg in (diffpen, sys.modules[__package__]):
+        root = os.path.dirname(os.path.abspath(pkg.__file__))
+        files = []
+        for folder, dirs, names in os.walk(root):
+            dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+            files += [os.path.join(folder, n) for n in names if n.endswith(".py")]
+        for path in sorted(files):
+            h.update(os.path.relpath(path, os.path.dirname(root)).encode() + b"\0")
+            with open(path, "rb") as fh:
+                h.update(hashlib.sha256(fh.read()).digest())
+    return h.hexdigest()[:16]
+
+
+def runtime() -> dict:
+    """``{"jax": ..., "jaxlib": ..., "backend": ...}``: what compiles and runs the programs
+    (part of every result key: another XLA, or a GPU instead of the CPU, rounds differently)."""
+    import jax
+    try:
+        import jaxlib
+        lib = jaxlib.__version__
+    except Exception:  # noqa: BLE001 - jaxlib is a dependency of jax
+        lib = "unknown"
+    return {"jax": jax.__version__, "jaxlib": lib, "backend": jax.default_backend()}
 
 
 def file_digest(path: str) -> str:
@@ -328,11 +365,15 @@ def _plain(v):
 
 
 def result_key(**fields) -> dict:
-    """A canonical, JSON-safe key of the fields that determine a result; adds ``version``.
+    """A canonical, JSON-safe key of the fields that determine a result; adds ``version``,
+    ``source`` (:func:`source_digest`: the code that computed it) and ``runtime``
+    (:func:`runtime`: jax, jaxlib and the backend).
 
     Arrays longer than 16 values are stored as their SHA-256 digest."""
     key = {k: _plain(v) for k, v in fields.items()}
     key.setdefault("version", version())
+    key.setdefault("source", source_digest())
+    key.setdefault("runtime", runtime())
     return dict(sorted(key.items()))
 
 
@@ -350,7 +391,13 @@ def key_differences(old: dict | None, new: dict) -> list:
         return ["the file has no key (written by an older version or another program)"]
     out = []
     _differences("", old, new, out)
-    return out
+    return [line + _WHY.get(line.split(":")[0].split(".")[0], "") for line in out]
+
+
+#: what a difference in these key fields means, added to its line
+_WHY = {"source": " (the diffpen or tuning code changed since the file was written: resuming "
+                  "would mix results of two versions of the code)",
+        "runtime": " (another jax, jaxlib or device computes it, rounding differently)"}
 
 
 def _differences(name: str, a, b, out: list) -> None:

@@ -3,7 +3,8 @@
 A grid over any leaves of the scene's parameters (``[fit] params`` over ``[fit.bounds]`` by
 default, or ``axes`` given explicitly; log-spaced for positive leaves, linear for signed ones
 such as plane offsets), evaluated with :func:`tuning.sweep.sweep` (chunks of one vmapped
-call, written atomically after every chunk, resumable, split over devices and processes):
+call, written atomically as they finish, resumable, split over devices and processes; sizes
+that cannot fit refused first, :func:`check_size`):
 
 * with records (``data``, or the file's ``[fit] data``): every point rolls every record out
   open loop from its first state (:mod:`tuning.evaluate`) and keeps the mean and the median
@@ -48,6 +49,43 @@ UNSTABLE_RECORDS = "unstable_records"
 #: what a sweep without records keeps per point (the bounce of the [fit] body)
 BOUNCE_METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
                   "restitution")
+
+
+#: float columns a point keeps beyond its swept values (metrics, flags), in memory, the .npz
+#: and the .csv table
+METRIC_COLUMNS = 8
+
+
+def check_size(sim, points: int, steps: int, records: int, chunk: int, swept: int) -> None:
+    """Refuse a sweep that cannot fit, before its points are made or anything is compiled
+    (:class:`tuning.sweep.SweepError`, saying what to lower): the results (``points`` x the
+    swept and metric columns, held in memory, the .npz and the .csv) or one chunk's rollouts
+    (``chunk`` points x ``records`` (at least 1) rollouts of ``steps`` steps, each counted as
+    :func:`diffpen.checks.estimate` counts a saved trajectory) past half this machine's
+    memory, or more than a week of compute at :data:`diffpen.checks.STEP_RATE`."""
+    from diffpen.checks import STEP_RATE, estimate, human_bytes, human_time, memory_bytes
+
+    from .sweep import SweepError
+    mem = memory_bytes()
+    runs = max(records, 1)
+    rollout, seconds = estimate(sim, steps)
+    seconds *= float(points) * runs
+    results = float(points) * (swept + METRIC_COLUMNS) * 8 * 3
+    live = min(chunk, points) * runs * rollout
+    work = (f"about {human_time(seconds)} of compute ({points:.0f} points x {runs} "
+            f"rollout{'s' if runs > 1 else ''} of {steps} steps of {sim.n_bodies} bodies at "
+            f"~{STEP_RATE:.0e} body-steps/s)")
+    if results > 0.5 * mem:
+        raise SweepError(f"{points:.0f} points need about {human_bytes(results)} for the "
+                         f"results alone (this machine has {human_bytes(mem)}) and {work}: "
+                         "lower n (diffpen sweep --n).")
+    if live > 0.5 * mem:
+        raise SweepError(f"a chunk of {min(chunk, points):.0f} points x {runs} rollouts of "
+                         f"{steps} steps needs about {human_bytes(live)} (this machine has "
+                         f"{human_bytes(mem)}): lower chunk (diffpen sweep --chunk).")
+    if seconds > 7 * 86400:
+        raise SweepError(f"the sweep would take {work}: lower n (diffpen sweep --n), or the "
+                         "records' or the scene's duration.")
 
 
 def sweep_axes(sf, params, axes: Sequence | None, n: Sequence[int]) -> dict:
@@ -152,7 +190,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
       scene_path: a ``.toml`` scene file.  data: record files (default the file's ``[fit]
         data``; none: bounce metrics).  axes: ``[(leaf path, lo, hi), ...]`` or None (the
         ``[fit] params`` over ``[fit.bounds]``).  n: grid points per axis (one for all).
-      out: ``.npz`` (and a ``.csv`` beside it), written atomically after every chunk; a rerun
+      out: ``.npz`` (and a ``.csv`` beside it), written atomically as the chunks finish
+        (:mod:`tuning.sweep_files`); a rerun
         with the same scene file, records, axes and settings resumes it, another sweep's
         file is refused.  chunk: points per vmapped call (bounds memory).
       estimate, max_frames: the records' first-state estimate and its cap on flight frames
@@ -181,12 +220,17 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
     params0 = sf.params(sim)
     grid_axes = sweep_axes(sf, params0, axes, n)
     names = list(grid_axes)
+    n_points = int(np.prod([len(v) for v in grid_axes.values()], dtype=float))
+    records = load_records(sf, data) if data else None
+    steps = (max(int(np.ceil(r.duration / sim.dt)) + 1 for r in records[0]) if data
+             else sf.setup.steps)
+    check_size(sim, n_points, steps, len(data), chunk, len(names))
     points, shape = grid_points(grid_axes)
     key = dict(describe_simulator(sim), scene_file=_digest(scene_path))
     if data:
         from .evaluate import _errors
         from .record_batch import simulate
-        records, bodies = load_records(sf, data)
+        records, bodies = records
         estimate = estimate or (spec.first_state if spec is not None else None) or "record"
         max_frames = max_frames or (spec.flight_frames if spec is not None else None) or \
             FLIGHT_FRAMES

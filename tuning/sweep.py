@@ -8,9 +8,11 @@ default; pass ``batch_map=tuning.shard.sharded_map`` to split the batch axis acr
 so memory stays bounded by the chunk. The last chunk is padded to the same shape, so the
 whole sweep compiles once.
 
-After every chunk the results so far are written to ``out`` (``.npz``), and a ``.csv`` beside
-it at the end (also of an interrupted run) and every :data:`CSV_EVERY_S` seconds, each through
-a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a
+The results so far are written to ``out`` (``.npz``) after every chunk, or, where rewriting
+the whole file costs more than a twentieth of the computing (:data:`NPZ_COST_FACTOR`), after
+the chunks that took 20 times its write time; a ``.csv`` beside it every :data:`CSV_EVERY_S`
+seconds; both at the end, also of an interrupted run (:data:`CSV_ON_STOP_S`). Each is
+written through a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a
 key of everything that determines it (:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
 finished chunks are read back, not recomputed. Another key is refused with the list of what
 differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
@@ -23,9 +25,7 @@ resume) and writes ``out``, and every process returns the same result.
 """
 from __future__ import annotations
 
-import dataclasses
 import hashlib
-import json
 import os
 import time
 from typing import Callable
@@ -38,59 +38,19 @@ import diffpen as dp
 
 from . import distributed
 from . import params as P
+from .code_key import code_key
 from .compiled import ProgramCache, frozen_key
-from .io import (OutputLock, _plain, atomic_write, check_output, clean_orphans,
+from .io import (OutputLock, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
 from .points import grid_points, random_points  # noqa: F401  (public here too)
-from .progress import Progress, uninterrupted
+from .progress import Progress
+from .sweep_files import (CSV_EVERY_S, CSV_ON_STOP_S, NPZ_COST_FACTOR,
+                          UNSTABLE, SweepError, SweepResult, _own_table, _Pair, _read_key,
+                          _save, _unreadable, _Unreadable, load_sweep)
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
            "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "function_key",
-           "UNSTABLE"]
-
-#: name of the optional per-point metric that flags a rollout past its safe step (from
-#: ``traj.aux["unstable"][-1]``); points where it is true are returned as NaN (bool metrics
-#: False) and counted.
-UNSTABLE = "unstable"
-
-
-class SweepError(ValueError):
-    """A sweep that cannot run as asked (e.g. ``out`` holds another sweep's results)."""
-
-
-@dataclasses.dataclass
-class SweepResult:
-    """Results of :func:`sweep`.
-
-    names: swept parameter paths (P,).  points: (N, P) values, SI units.
-    metrics: ``{name: (N, ...) array}`` (nan where not computed or undefined).
-    done: (N,) bool, points computed.  shape: grid shape (for grid sweeps) or None; a grid's
-    metric reshapes to ``shape + metric.shape[1:]``.  axes: per-parameter grid values.
-    seconds: wall time of this call.  evaluated: points computed by this call (the rest were
-    read back from ``out``).  key: the key stored with the results (see :func:`sweep_key`).
-    unstable: points whose rollout went past its safe step (their float metrics are NaN,
-    their bool metrics False).
-    """
-    names: list
-    points: np.ndarray
-    metrics: dict
-    done: np.ndarray
-    shape: tuple | None = None
-    axes: dict | None = None
-    seconds: float = 0.0
-    evaluated: int = 0
-    key: dict | None = None
-    unstable: int = 0
-
-    def grid(self, metric: str, index: int | None = None) -> np.ndarray:
-        """A metric on the grid: shape ``self.shape`` (entry ``index`` of a vector metric)."""
-        if self.shape is None:
-            raise ValueError("not a grid sweep: use .metrics and .points.")
-        v = self.metrics[metric]
-        if index is not None:
-            v = v[:, index]
-        return v.reshape(self.shape + v.shape[1:])
-
+           "UNSTABLE", "CSV_EVERY_S", "NPZ_COST_FACTOR", "CSV_ON_STOP_S"]
 
 def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
                    keys: list | None = None, batch_map: Callable | None = None) -> Callable:
@@ -104,6 +64,7 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     for n in names:
         if n not in flat0:
             raise ValueError(f"unknown parameter {n!r}; this scene has {list(flat0)}.")
+    _once(names)
 
     def one(x):
         flat = dict(flat0)
@@ -124,6 +85,15 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     except AttributeError:   # a batch_map whose result takes no attributes
         pass
     return evaluate
+
+
+def _once(names) -> None:
+    """Refuse a leaf named twice (the last column won: a table then showed values that
+    were not the ones simulated)."""
+    twice = sorted({str(n) for n in names if list(names).count(n) > 1})
+    if twice:
+        raise SweepError(f"names gives {twice} more than once: sweep each leaf in one "
+                         "column of points.")
 
 
 #: evaluators :func:`sweep` built, by their arguments (values), the last 8
@@ -155,63 +125,6 @@ def function_key(metrics_fn: Callable, params0: dp.Params) -> str:
     return distributed.jaxpr_digest(jax.make_jaxpr(lambda p: metrics_fn(p))(params0)).hex()
 
 
-def _data(v) -> bool:
-    """Plain data (numbers, strings, arrays and lists of them): stored by value in a key."""
-    if isinstance(v, np.ndarray):
-        return v.dtype.kind in "biuf"
-    if v is None or isinstance(v, (bool, int, float, str, np.number, np.bool_)):
-        return True
-    if isinstance(v, (list, tuple)):
-        return all(_data(x) for x in v)
-    if isinstance(v, dict):
-        return all(isinstance(k, str) and _data(x) for k, x in v.items())
-    return False
-
-
-def _code_key(fn: Callable) -> str:
-    """``"module.name sha256:..."``: a digest of a Python function's own code (its bytecode,
-    constants and names, those of functions defined in it, and the values of the numbers,
-    strings and arrays it closes over or takes as defaults; of anything else only the type).
-    A sweep written to ``out`` without ``key=`` stores it for ``finalize=``, so that a rerun
-    post-processing its rows another way is refused. What it calls is not followed. Raises
-    :class:`SweepError` for a callable without code of its own (a ``functools.partial``, an
-    object with ``__call__``)."""
-    code = getattr(fn, "__code__", None)
-    if code is None:
-        raise SweepError(f"a sweep written to out= needs key= when finalize= is not a plain "
-                         f"function (got {type(fn).__name__}): say what it does in the key.")
-    h = hashlib.sha256()
-
-    def feed(const):
-        if hasattr(const, "co_code"):                # the function, or one defined inside
-            h.update(const.co_code)
-            h.update(repr(const.co_names).encode())
-            for c in const.co_consts:
-                feed(c)
-        elif isinstance(const, tuple):
-            h.update(b"(")
-            for c in const:
-                feed(c)
-            h.update(b")")
-        elif isinstance(const, frozenset):           # set literals: no stable order
-            h.update(repr(sorted(map(repr, const))).encode())
-        else:
-            h.update(repr(const).encode())
-    feed(code)
-    values = list(getattr(fn, "__defaults__", None) or ())
-    values += sorted((getattr(fn, "__kwdefaults__", None) or {}).items())
-    for cell in getattr(fn, "__closure__", None) or ():
-        try:
-            values.append(cell.cell_contents)
-        except ValueError:                           # a cell not yet filled
-            values.append(None)
-    for v in values:
-        h.update((json.dumps(_plain(v)) if _data(v)
-                  else type(v).__qualname__).encode())
-    name = f"{getattr(fn, '__module__', '')}.{getattr(fn, '__qualname__', type(fn).__name__)}"
-    return f"{name} sha256:{h.hexdigest()[:16]}"
-
-
 def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = None) -> dict:
     """The key a sweep file carries: ``key`` (what determines ``metrics_fn``: scene, law,
     integrator, dt, duration, metric settings; see :func:`tuning.io.describe_simulator`) plus
@@ -237,136 +150,6 @@ def sweep_key(names, points, params0, keys=None, shape=None, key: dict | None = 
                       metrics=sorted(keys) if keys is not None else "all", fixed=fixed)
 
 
-#: seconds between rewrites of the .csv during a sweep (at least 10x its write time): after
-#: every chunk, 65536 points took 56 of 61 s writing text. The .npz follows every chunk.
-CSV_EVERY_S = 30.0
-
-
-def _save(out: str, res: SweepResult, csv: bool = True) -> float:
-    """Write the .npz and, with ``csv``, the .csv (each atomic; a command's Ctrl-C waits
-    until both are replaced). Returns the seconds the .csv took (0 without it)."""
-    with uninterrupted():
-        _save_npz(out, res)
-        if not csv:
-            return 0.0
-        t0 = time.perf_counter()
-        _save_csv(out, res)
-        return time.perf_counter() - t0
-
-
-def _save_npz(out: str, res: SweepResult) -> None:
-    arrays = {"names": np.array(res.names), "points": res.points, "done": res.done,
-              "key": np.array(json.dumps(res.key or {})),
-              "shape": np.array(res.shape if res.shape is not None else (), dtype=np.int64)}
-    for k, v in res.metrics.items():
-        arrays[f"metric:{k}"] = v
-    if res.axes:
-        for i, (k, v) in enumerate(res.axes.items()):
-            arrays[f"axis:{k}"] = np.asarray(v)
-    atomic_write(out, lambda fh: np.savez(fh, **arrays))
-
-
-def _save_csv(out: str, res: SweepResult) -> None:
-    csv_path = os.path.splitext(out)[0] + ".csv"
-    cols, header = [res.points[:, i] for i in range(res.points.shape[1])], list(res.names)
-    for k, v in res.metrics.items():
-        v2 = v.reshape(v.shape[0], -1)
-        for j in range(v2.shape[1]):
-            cols.append(v2[:, j])
-            header.append(k if v2.shape[1] == 1 else f"{k}[{j}]")
-    cols.append(res.done.astype(float))
-    header.append("done")
-    table = np.stack([np.asarray(c, float) for c in cols], axis=1)
-
-    def write_csv(fh):
-        fh.write((",".join(header) + "\n").encode())
-        # 17 significant digits: every float64 reads back as the value simulated
-        np.savetxt(fh, table, delimiter=",", fmt="%.17g")
-    atomic_write(csv_path, write_csv)
-
-
-class _Unreadable(Exception):
-    """A file at a sweep's ``out`` that is a zip archive (or empty) but cannot be read
-    through: truncated, corrupt. Its message says why."""
-
-
-#: how a zip archive (an .npz) starts: a first member, or the end record of an empty one
-_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
-
-
-def _read_head(path: str) -> tuple:
-    """``(key, names)`` of the sweep file at ``path``; ``(None, None)`` for a readable file
-    that is not one (not an .npz, or an .npz without a key: foreign). Raises
-    :class:`_Unreadable` for an empty file or an .npz that cannot be read (truncated,
-    corrupt)."""
-    try:
-        with open(path, "rb") as fh:
-            magic = fh.read(4)
-    except OSError as exc:
-        raise _Unreadable(exc.strerror or str(exc)) from None
-    if not magic:
-        raise _Unreadable("it is empty")
-    if magic not in _ZIP_MAGIC:
-        return None, None                       # not an .npz: another program's file
-    try:
-        with np.load(path, allow_pickle=False) as f:
-            if "key" not in f.files:
-                return None, None
-            key = json.loads(str(f["key"]))
-            names = [str(n) for n in f["names"]]
-    except Exception as exc:  # noqa: BLE001 - zipfile, zlib, numpy and json errors alike
-        raise _Unreadable(f"{type(exc).__name__}: {exc}") from None
-    return (key, names) if isinstance(key, dict) else (None, None)
-
-
-def _read_key(path: str):
-    """The key stored in a sweep file, or None (a readable file that is not a sweep file).
-    Raises :class:`_Unreadable` for a file that cannot be read (truncated, corrupt)."""
-    return _read_head(path)[0]
-
-
-def _own_table(csv_path: str, out: str, names=None) -> bool:
-    """Whether ``csv_path`` is the table :func:`_save` wrote beside the sweep file ``out``:
-    its header is the swept names ... ``done``. The names are those stored in ``out``; when
-    ``out`` cannot be read (truncated, corrupt: it can only be overwritten), ``names`` (this
-    run's swept names), so that ``resume=False`` replaces both files. False when ``out`` is
-    missing or not a sweep file, or the table is not text."""
-    if not os.path.exists(out):
-        return False
-    try:
-        _, names = _read_head(out)
-    except _Unreadable:
-        names = None if names is None else [str(n) for n in names]
-    if names is None:
-        return False
-    try:
-        with open(csv_path, "rb") as fh:
-            header = fh.readline(1 << 16).decode().strip().split(",")
-    except Exception:  # noqa: BLE001 - a table that cannot be read or is not text
-        return False
-    return len(header) > len(names) and header[:len(names)] == names and header[-1] == "done"
-
-
-def _unreadable(out: str, csv_path: str, why) -> str:
-    return (f"{out} cannot be read ({why}): a truncated or corrupt sweep file, so it cannot "
-            f"be resumed. Overwrite it and its table {os.path.basename(csv_path)} with "
-            "resume=False (diffpen sweep --fresh), or choose another output path.")
-
-
-def load_sweep(path: str) -> SweepResult:
-    """Read a sweep written by :func:`sweep` (complete or interrupted)."""
-    with np.load(path, allow_pickle=False) as f:
-        names = [str(n) for n in f["names"]]
-        metrics = {k[7:]: f[k] for k in f.files if k.startswith("metric:")}
-        axes = {k[5:]: f[k] for k in f.files if k.startswith("axis:")} or None
-        shape = tuple(int(s) for s in f["shape"]) or None
-        key = json.loads(str(f["key"])) if "key" in f.files else None
-        res = SweepResult(names, f["points"], metrics, f["done"], shape, axes, key=key)
-    if UNSTABLE in res.metrics:
-        res.unstable = int(np.sum(res.done & (np.asarray(res.metrics[UNSTABLE]) > 0)))
-    return res
-
-
 def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
           chunk: int = 256, out: str | None = None, resume: bool = True,
           key: dict | None = None, keys: list | None = None, shape: tuple | None = None,
@@ -384,8 +167,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       points: (N, P) parameter values, SI units.  names: (P,) leaf paths.
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
       out: ``NAME.npz`` path (any other name raises :class:`SweepError`: the table is
-        written to ``NAME.csv`` beside it); results and table are written atomically after
-        every chunk. The paths are checked before anything is computed (a ``.csv`` there
+        written to ``NAME.csv`` beside it); results and table are written atomically as
+        the chunks finish (see above) and when the sweep ends or stops. The paths are checked before anything is computed (a ``.csv`` there
         that is not the table of the sweep in ``out`` is refused, never overwritten), and an
         exclusive lock (``.<name>.lock`` beside it) keeps a second writer out.
       resume: continue a sweep found at ``out`` when its key equals this sweep's (see
@@ -405,7 +188,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       batch_map: lifts the per-point function to a batch (default
         :func:`tuning.shard.sharded_map`: split over all devices with a ``NamedSharding``;
         ``jax.jit(jax.vmap(f))`` on a single device).
-      on_chunk: ``on_chunk(i_chunk, result)`` after each chunk is saved.
+      on_chunk: ``on_chunk(i_chunk, result)`` after each chunk (its rows are in
+        ``result``; the file holds them once it is next written).
       evaluate: a prebuilt :func:`make_evaluator` (reuse it across sweeps of one problem so
         that they share one compiled program).
       finalize: ``finalize(metrics, points) -> metrics`` on each chunk's host arrays
@@ -424,6 +208,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         raise ValueError(f"points must have shape (N, {len(names)}), got {points.shape}.")
     if points.shape[0] == 0:
         raise SweepError("points is empty: give at least one point.")
+    _once(names)
     if not np.all(np.isfinite(points)):
         raise ValueError("sweep points must be finite.")
     from .scenefile.leaves import leaf_space
@@ -448,7 +233,7 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         p0 = params0 if metrics_fn is not None else getattr(evaluate, "params0", params0)
         key = {"metrics_fn": function_key(fn, p0)}
         if finalize is not None:    # rows post-processed another way are other results
-            key["finalize"] = _code_key(finalize)
+            key["finalize"] = code_key(finalize, SweepError)
     if getattr(evaluate, "keys", None) is not None:     # what a prebuilt evaluator keeps
         keys = evaluate.keys
     full_key = sweep_key(names, points, params0, keys, shape, key)
@@ -539,26 +324,23 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
     chunk = min(chunk, n)
     n_chunks = -(-n // chunk)
     bar = Progress(n_chunks, "sweep chunks", progress, value="done")
-    csv_at, csv_cost, stale = time.perf_counter(), 0.0, False
+    pair = _Pair(out, res) if out else None
+    stopped = True
     try:
         for i in range(n_chunks):
             a, b = i * chunk, min((i + 1) * chunk, n)
             if res.done[a:b].all():
                 continue
             _run_chunk(res, evaluate, points, a, b, chunk, finalize)
-            if out:
-                due = time.perf_counter() - csv_at >= max(CSV_EVERY_S, 10.0 * csv_cost)
-                stale = True        # until the .csv is written (an interrupt may end _save)
-                cost = _save(out, res, csv=due)
-                if due:
-                    csv_at, csv_cost, stale = time.perf_counter(), cost, False
+            if pair is not None:
+                pair.chunk_done()
             bar.update(i + 1, float(res.done.mean()))
             if on_chunk is not None:
                 on_chunk(i, res)
+        stopped = False
     finally:
-        if stale:           # the .npz holds chunks the .csv does not: finished or stopped
-            with uninterrupted():
-                _save_csv(out, res)
+        if pair is not None:    # chunks the files do not hold yet: finished or stopped
+            pair.stop(stopped)
     bar.close()
     if out and res.evaluated == 0 and res.done.any():
         # everything was resumed: write the pair again, so that a run killed between

@@ -1,8 +1,8 @@
 """``diffpen sweep``: every (k, c) of a log-spaced grid for the ball scene, or every point of
 a grid over a scene file's parameters (``diffpen sweep SCENE.toml [--param PATH LO HI]
-[--data FILES]``, :mod:`tuning.scene_sweep`), with jax.vmap in chunks; writes the .npz
-atomically after every chunk and its .csv at the end (:mod:`tuning.sweep`), resumes an interrupted sweep, and draws a heatmap with the
-target contour."""
+[--data FILES]``, :mod:`tuning.scene_sweep`), with jax.vmap in chunks; writes the .npz and
+its .csv atomically as the chunks finish and at the end (:mod:`tuning.sweep_files`), resumes
+an interrupted sweep, and draws a heatmap with the target contour."""
 from __future__ import annotations
 
 import math
