@@ -433,19 +433,18 @@ def semi_implicit_euler_amplification(K, C, h, xp=np):
 
 
 def semi_implicit_euler_stable_dt(K, C, xp=np):
-    """Closed-form limit of semi-implicit Euler: ``K h^2 + 2 C h = 4`` (``2 / C`` without
-    stiffness; ``inf`` for K = C = 0)."""
+    """Closed-form limit of semi-implicit Euler: the root of ``K h^2 + 2 C h = 4``, written
+    ``4 / (C + sqrt(C^2 + 4 K))`` (``2 / C`` without stiffness; ``inf`` for K = C = 0): the
+    textbook ``(-C + sqrt(C^2 + 4 K)) / K`` cancels where ``4 K << C^2`` (a safe step of 0
+    for an overdamped spring) and, with its squares, overflowed in float32 from C ~ 2e19 1/s
+    or K ~ 9e37 1/s^2 (a limit of inf: a traced rollout past it was not flagged); the
+    square root is taken as a ``hypot``, which does not overflow."""
     if xp is np:
-        K, C = float(K), float(C)
-        if K <= 0.0 and C <= 0.0:
-            return math.inf
-        if K <= 0.0:
-            return 2.0 / C
-        return (-C + math.sqrt(C * C + 4.0 * K)) / K
-    safe_k = xp.where(K > 0.0, K, 1.0)
-    root = (-C + xp.sqrt(C * C + 4.0 * K)) / safe_k
-    dashpot = xp.where(C > 0.0, 2.0 / xp.where(C > 0.0, C, 1.0), xp.inf)
-    return xp.where(K > 0.0, root, dashpot)
+        K, C = max(float(K), 0.0), max(float(C), 0.0)
+        den = C + math.hypot(C, 2.0 * math.sqrt(K))
+        return 4.0 / den if den > 0.0 else math.inf
+    K, C = xp.maximum(K, 0.0), xp.maximum(C, 0.0)
+    return 4.0 / (C + xp.hypot(C, 2.0 * xp.sqrt(K)))
 
 
 def verlet_amplification(K, C, h, xp=np):

@@ -167,6 +167,30 @@ def test_a_spring_pressing_a_body_on_a_rough_plane_counts_in_the_safe_step():
     assert np.all(np.abs(v) < 1e-4), v
 
 
+def test_a_spring_stiffened_at_rollout_time_counts_in_the_friction_bound():
+    """Regression (audit17): the springs' tension in friction's bound was taken at the
+    scene's stiffness. The same ball held by a spring of 1 N/m in the scene, given 1000 N/m
+    by the rollout's params (as fits and sweeps do), passed the gate and the traced flag and
+    chattered at +-0.1 m/s for ever. The bound now scales the load by the params' k:
+    refused concrete, flagged traced, and still fine at the scene's own k."""
+    scene = dp.Scene()
+    scene.add_material("rough", 1e6, 200.0, friction=0.5, slip_speed=0.01)
+    ball = scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1), velocity=(0.5, 0.0, 0.0))
+    scene.add_plane(material="rough")
+    scene.add_spring(ball, (0.0, 0.0, 0.1 - 10.0), k=0.1, rest_length=0.0, group="press")
+    sim = dp.compile(scene, 4e-4)
+    stiff = sim.params(springs={"press": (100.0, 0.0)})
+    with pytest.raises(dp.StabilityError, match="friction of material 'rough'"):
+        sim.rollout(stiff, 10)
+    sim.rollout(sim.params(), 10)                              # the scene's own: safe
+
+    @jax.jit
+    def flag(k):
+        p = sim.params(springs={"press": (k, 0.0)})
+        return sim.rollout(p, 10, save_every=10).aux["unstable"][-1]
+    assert bool(flag(100.0)) and not bool(flag(0.1))
+
+
 def _primitive_counts(jaxpr, acc=None) -> dict:
     """How many times each primitive appears in ``jaxpr`` and the jaxprs inside it."""
     from jax.extend.core import ClosedJaxpr, Jaxpr

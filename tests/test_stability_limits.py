@@ -49,3 +49,29 @@ def test_a_friction_limit_says_it_counts_bodies_that_never_touch():
     rep = sim.stability(sim.params())
     assert not rep.stable and "friction of material 'floor'" in rep.limiting
     assert "whether or not it reaches it" in rep.limiting and "collide = false" in rep.limiting
+
+
+def test_the_closed_form_limit_neither_overflows_nor_cancels():
+    """Regression (audit17): semi-implicit Euler's limit ``(-C + sqrt(C^2 + 4 K)) / K``
+    overflowed in float32 (C^2 from C ~ 2e19 1/s, 4 K from K ~ 9e37 1/s^2): a limit of inf,
+    so a traced float32 rollout with a spring damper of 1e20 1/s went NaN with its
+    ``unstable`` flag clear; and it cancelled to 0 for an overdamped spring (``diffpen
+    simulate ball --k 1e-300``: "the safe step is 0 s ... lower that stiffness")."""
+    import jax
+    import jax.numpy as jnp
+
+    from diffpen.integrators import semi_implicit_euler_stable_dt as limit
+    assert limit(1e-300, 1.0) == pytest.approx(2.0, rel=1e-12)
+    assert limit(1e4, 20.0) == pytest.approx((-20.0 + math.sqrt(400.0 + 4e4)) / 1e4, rel=1e-14)
+    assert limit(0.0, 0.0) == math.inf and limit(0.0, 5.0) == pytest.approx(0.4)
+    for k, c in ((1e38, 0.0), (0.0, 1e20), (1e38, 1e20), (1e-30, 1e15)):
+        traced = float(limit(jnp.float32(k), jnp.float32(c), xp=jnp))
+        assert traced == pytest.approx(limit(k, c), rel=1e-5), (k, c)
+    scene = dp.Scene()
+    a = scene.add_particle(1.0, (0.0, 0.0, 1.0), pinned=True)
+    b = scene.add_particle(1.0, (0.3, 0.0, 1.0))
+    scene.add_spring(a, b, k=100.0, c=0.5)
+    sim = dp.compile(scene, dt=1e-3, dtype=jnp.float32)
+    flag = jax.jit(lambda c: sim.rollout(sim.params(spring_k=100.0, spring_c=c), 20,
+                                         save_every=20).aux["unstable"][-1])
+    assert [bool(flag(jnp.float32(c))) for c in (0.5, 1e20, 1e30)] == [False, True, True]

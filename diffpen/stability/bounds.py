@@ -68,6 +68,10 @@ class Bound(NamedTuple):
     labels: (m,) what each row is, in words (names the limit in reports).
     label: one text for all the rows of the block (their per-body sum names the limit), or
       None (then ``labels``).
+    scale: spring groups whose stiffness (``params.springs[g].k``, N/m) multiplies the
+      rows as well, row r's ``scale[scale_key[r]]`` (friction under a spring's load: mu
+      times the tension ``k |stretch|``, ``k_weight`` then per metre of stretch); ``()``
+      for none.  scale_key: (m,) int, or None.
     """
     body: np.ndarray
     param: str
@@ -80,6 +84,8 @@ class Bound(NamedTuple):
     packed: np.ndarray | None = None
     labels: tuple = ()
     label: str | None = None
+    scale: tuple = ()
+    scale_key: np.ndarray | None = None
 
     @staticmethod
     def of(rows, param: str, **kw) -> "Bound | None":
@@ -179,6 +185,18 @@ def _block_values(block: Bound, params, xp):
         (xp.stack(cs) if xp is not np else np.array(cs))
 
 
+def _scale_values(block: Bound, params, xp):
+    """(g,) the stiffness of the spring groups ``block.scale`` (N/m, each the max over any
+    batch axis), or None when some value is abstract (numpy evaluation)."""
+    ks = [params.springs[g].k for g in block.scale]
+    if xp is not np:
+        return xp.stack([xp.max(xp.asarray(k)) for k in ks])
+    vals = [_value(k) for k in ks]
+    if any(v is None for v in vals):
+        return None
+    return np.array([float(np.max(v)) for v in vals])
+
+
 def _at(xp, arr, idx, vals, op):
     if xp is np:
         (np.add if op == "add" else np.maximum).at(arr, idx, vals)
@@ -214,6 +232,11 @@ def rates(an: Analysis, params, *, xp=np, packed: bool = False,
             cv = cast(cv)
         kk = None if kv is None else cast(block.k_weight) * kv[block.key]
         cc = cast(block.c_weight) * cv[block.key]
+        if block.scale:                 # times the springs' stiffness that loads the rows
+            sk = _scale_values(block, params, xp)
+            if sk is None:
+                return None
+            cc = cc * cast(sk)[block.scale_key]
         if block.param == "contact" and an.contact_scale is not None:
             # the law's stiffness and damping at the reference depth, for every contact
             # block (rigid corners too: a Hunt-Crossley k is N/m^n, its c N s/m^(n+1))

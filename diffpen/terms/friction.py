@@ -24,7 +24,7 @@ from ..stability.depth import start_stretches
 from .base import CompileContext, gather, scatter
 
 __all__ = ["smooth_coulomb", "rough_rows", "friction_extra", "row_mu", "friction_row",
-           "friction_bound", "contact_friction", "contact_friction_bound", "spring_loads"]
+           "friction_bound", "contact_friction", "contact_friction_bound", "spring_stretch"]
 
 
 def smooth_coulomb(v, normal, fn, mu, slip_speed):
@@ -72,41 +72,55 @@ def row_mu(params, rough, fi, like):
                      + [jnp.zeros_like(like)])[fi]
 
 
-def friction_row(scene, i: int, material: str, levers, spring_load: float = 0.0):
-    """Friction below the slip speed is viscous: ``mu f / s`` per body, as a damping rate
-    weight (1/s per unit mu), ``f`` its weight ``m |g|`` (at least 1 g) plus ``spring_load``
-    (N, :func:`spring_loads`)."""
+def friction_row(scene, i: int, material: str, levers, stretch: dict | None = None):
+    """Friction below the slip speed is viscous: ``mu f / s`` per body, as damping rate
+    weights (1/s per unit mu). ``f`` is its weight ``m |g|`` (at least 1 g) plus the tension
+    of the springs joined to it: ``stretch`` ``{group: m}`` (:func:`spring_stretch`), each
+    counted at the group's stiffness of the parameters the rollout is given. Returns
+    ``(i, material, weight row, {group: stretch row})``."""
     b, mat = scene.bodies[i], scene.materials[material]
-    load = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81) + spring_load
-    return (i, material, load / mat.slip_speed * _rigid.mobility(scene, i, levers))
+    per_newton = _rigid.mobility(scene, i, levers) / mat.slip_speed
+    weight = b.mass * max(float(np.linalg.norm(scene.gravity)), 9.81)
+    return (i, material, weight * per_newton,
+            {g: x * per_newton for g, x in (stretch or {}).items() if x > 0.0})
 
 
-def spring_loads(scene) -> np.ndarray:
-    """(n,) N: the tension of the springs and anchored springs joined to each body at the
-    start pose (its group's scene stiffness times ``|length - rest|``): a load besides gravity
-    that can press the body onto a rough contact for good (a ball held down by a 1000 N
-    spring: counted at ``m g`` only, its friction chattered at +-0.1 m/s with the gate's
-    "ok"). Counted in full, whatever its direction."""
-    out = np.zeros(len(scene.bodies))
+def spring_stretch(scene) -> list:
+    """Per body ``{group: m}``: the summed ``|length - rest|`` at the start pose of the
+    springs and anchored springs of each group joined to it. Times the group's stiffness,
+    a load besides gravity that can press the body onto a rough contact for good (a ball
+    held down by a 1000 N spring: counted at ``m g`` only, its friction chattered at
+    +-0.1 m/s with the gate's "ok"; counted at the scene's stiffness, a stiffer one given
+    to the rollout chattered the same). Counted in full, whatever its direction."""
+    out = [dict() for _ in scene.bodies]
     stretch = np.abs(start_stretches(scene))
-    for s, sp in zip(stretch, scene.springs + scene.anchored_springs):  # (plastic ones last)
-        f = scene.spring_groups[sp.group].k * float(s)
-        out[sp.a] += f
-        if sp.b is not None:
-            out[sp.b] += f
+    for x, sp in zip(stretch, scene.springs + scene.anchored_springs):  # (plastic ones last)
+        for b in (sp.a, sp.b):
+            if b is not None:
+                out[b][sp.group] = out[b].get(sp.group, 0.0) + float(x)
     return out
 
 
-def friction_bound(scene, rows):
-    """The :class:`diffpen.stability.Bound` of friction rows from :func:`friction_row`,
-    each named by its material and slip speed (what to raise where it limits the step)."""
-    return Bound.of([(b, name, w, w, f"friction of material {name!r} below its slip speed "
-                     f"{scene.materials[name].slip_speed:g} m/s (a damper of rate mu f / "
-                     "(m slip_speed), f the body's weight and spring tension, counted for "
-                     "every body that can touch the material, whether or not it reaches it: "
-                     "one that never does can take collide = false)")
-                     for b, name, w in rows], "friction",
-                    per_mass=False)
+def friction_bound(scene, rows) -> tuple:
+    """The :class:`diffpen.stability.Bound` blocks of friction rows from
+    :func:`friction_row`, each named by its material and slip speed (what to raise where it
+    limits the step): the weight's rows, and the springs' rows scaled by their group's
+    stiffness (``Bound.scale``). ``()`` for no rows."""
+    def label(name):
+        return (f"friction of material {name!r} below its slip speed "
+                f"{scene.materials[name].slip_speed:g} m/s (a damper of rate mu f / "
+                "(m slip_speed), f the body's weight and spring tension, counted for "
+                "every body that can touch the material, whether or not it reaches it: "
+                "one that never does can take collide = false)")
+    weight = Bound.of([(b, name, w, w, label(name)) for b, name, w, _ in rows], "friction",
+                      per_mass=False)
+    loads = [(b, name, w, w, label(name), g) for b, name, _, by in rows
+             for g, w in sorted(by.items())]
+    groups = tuple(dict.fromkeys(r[5] for r in loads))
+    springs = Bound.of([r[:5] for r in loads], "friction", per_mass=False,
+                       scale=groups, scale_key=np.array([groups.index(r[5]) for r in loads],
+                                                        dtype=int)) if loads else None
+    return tuple(x for x in (weight, springs) if x is not None)
 
 
 def _slider_rows(ctx: CompileContext) -> list[int]:
@@ -160,9 +174,8 @@ def contact_friction_bound(ctx: CompileContext, colliders) -> tuple:
     ones of ``colliders`` (planes or fixed spheres), for the stability bound of the contact
     term that applies it (:func:`contact_friction`): ``()`` or ``(Bound,)``."""
     scene = ctx.scene
-    loads = spring_loads(scene)
+    loads = spring_stretch(scene)
     rows = [friction_row(scene, i, col.material, (0.0, 0.0, scene.bodies[i].radius), loads[i])
             for i in _slider_rows(ctx)
             for col in colliders if scene.materials[col.material].friction > 0.0]
-    out = friction_bound(scene, rows)
-    return () if out is None else (out,)
+    return friction_bound(scene, rows)

@@ -32,7 +32,7 @@ from .contact import plane_crowding
 from .base import (CompileContext, Term, _pair_material, gather, merge_extra, plane_offset_extra,
                    plane_offsets, scatter, with_bound)
 from .friction import (friction_bound, friction_extra, friction_row, rough_rows, row_mu,
-                       smooth_coulomb, spring_loads)
+                       smooth_coulomb, spring_stretch)
 from .springs import _spring_axis, _spring_vector
 
 __all__ = ["anchored_spring_pair", "sphere_box_pair", "corner_plane_pair", "smooth_coulomb",
@@ -304,7 +304,7 @@ def _box_plane_bound(ctx: CompileContext):
     """Up to the 4 corners of a face at once (:func:`_face_mobility`), and friction."""
     scene, contact, friction = ctx.scene, [], []
     crowd = plane_crowding([pl.normal for pl in scene.planes])
-    loads = spring_loads(scene)
+    loads = spring_stretch(scene)
     for i in _box_rows(ctx):
         b = scene.bodies[i]
         for pl in scene.planes:
@@ -312,8 +312,8 @@ def _box_plane_bound(ctx: CompileContext):
             if scene.materials[pl.material].friction > 0.0:
                 friction.append(friction_row(scene, i, pl.material,
                                               geometry.box_corners(b.half_extents), loads[i]))
-    return tuple(x for x in (_rows_bound(contact, "contact"),
-                             friction_bound(scene, friction)) if x is not None)
+    bound = _rows_bound(contact, "contact")
+    return ((bound,) if bound is not None else ()) + friction_bound(scene, friction)
 
 
 def _box_fixed_sphere_bound(ctx: CompileContext):
