@@ -368,10 +368,15 @@ class Simulator:
         a rollout's are (:class:`SceneError`; :func:`diffpen.checks.check_step`), params cast
         to the simulator's dtype; with concrete params the rollout's stability gate runs
         (:class:`StabilityError` past the safe step; "auto" takes the substeps it picks),
-        unless ``check_stability=False`` (then 1 substep for "auto")."""
+        unless ``check_stability=False`` (then 1 substep for "auto"). With traced params
+        (your own ``jax.jit`` or ``lax.scan`` of steps) each step sets the state's
+        ``aux["unstable"]`` flag as a rollout does (the bound is evaluated every step there,
+        once per rollout: prefer :meth:`rollout` where you can)."""
         _checks.check_step(self, params, state)
         n = _stability.step_gate(self, params, state) if check_stability else None
-        new, ok = _stepping.jitted(self, n)(jax.tree_util.tree_map(self._cast, params), state)
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(params))
+        new, ok = _stepping.jitted(self, n, flag=traced)(
+            jax.tree_util.tree_map(self._cast, params), state)
         if isinstance(ok, jax.core.Tracer) or not bool(ok):   # traced: its concrete fields
             _checks.check_state_values(self, state)     # raises, naming what is wrong
         return new
@@ -410,17 +415,10 @@ class Simulator:
         self._rollout_traces[0] += 1           # runs only when JAX traces a new program
         params = jax.tree_util.tree_map(self._cast, params)
         # the traced stability flag (energy: the up-front gate's, diffpen.stability.depth)
-        if energy is None and self.analysis.depth_exponent is not None:
-            # the start state or a named plane's offset is traced: the same energy, traced
-            energy = _start_energy.traced(self, params, state)
-        flag = _stability.unsafe(self.analysis, params, h=self.dt / substeps, energy=energy)
+        state = _stepping.flagged(self, params, state, self.dt / substeps, energy, add=True)
         # per-contact step constants of the law (ContactLaw.step_factors), once, outside
         # the loop (a rematerialised step would recompute them and their derivatives)
         params = self.context.with_step_factors(params, self.dt / substeps)
-        flag = flag | _motion.spin_unsafe(self, state, self.dt / substeps)
-        old = state.aux.get(_stability.FLAG)
-        flag = flag if old is None else (jnp.asarray(old, bool) | flag)
-        state = state._replace(aux={**state.aux, _stability.FLAG: flag})
         state = _stepping.hold_pins(self, state)    # pins stay put whatever state says
         view = None
         if self.columns:                    # step in columns, save rows (diffpen.layout)

@@ -97,16 +97,46 @@ def _searching_step(sim, h: float, inv_mass):
     return step
 
 
-def jitted(sim, n: int | None):
+def flagged(sim, params, state, h, energy=None, add: bool = False):
+    """``state`` with its ``aux["unstable"]`` flag or-ed with whether ``params`` (cast) are
+    past the safe step at the inner step ``h`` or its spin past the spin limit: the
+    traced flag of a rollout (once, before its loop) and of a step given traced params
+    (every step). ``energy``: the up-front gate's (else traced from ``state`` where the
+    contact law needs one). A state without the flag gets one only with ``add`` (a step
+    keeps the structure of the state it is given)."""
+    import jax.numpy as jnp
+
+    from . import motion as _motion
+    from . import start_energy as _start_energy
+    from . import stability as _stability
+    old = state.aux.get(_stability.FLAG)
+    if old is None and not add:
+        return state
+    if energy is None and sim.analysis.depth_exponent is not None:
+        # the start state or a named plane's offset is traced: the same energy, traced
+        energy = _start_energy.traced(sim, params, state)
+    flag = _stability.unsafe(sim.analysis, params, h=h, energy=energy)
+    flag = flag | _motion.spin_unsafe(sim, state, h)
+    flag = flag if old is None else (jnp.asarray(old, bool) | flag)
+    return state._replace(aux={**state.aux, _stability.FLAG: flag})
+
+
+def jitted(sim, n: int | None, flag: bool = False):
     """``sim``'s jitted step over ``n`` inner steps (None: its own count, 1 for "auto"),
     built once per count: what :meth:`~diffpen.Simulator.step` calls. It takes the state as
     given and returns ``(new state, ok)``: the step from the state with its pins held
     (:func:`hold_pins`) and whether the given state's values are valid
-    (:func:`diffpen.checks.state_values_ok`)."""
+    (:func:`diffpen.checks.state_values_ok`). With ``flag`` (traced params) the state's
+    ``aux["unstable"]`` flag is set first as a rollout sets it (:func:`flagged`)."""
     n = int(n) if n is not None else (sim.substeps if isinstance(sim.substeps, int) else 1)
-    key = ("jit", n)
+    key = ("jit", n, bool(flag))
     if key not in sim._steps:
         step = sim.step_function(n)
-        sim._steps[key] = jax.jit(lambda params, state: (
-            step(params, hold_pins(sim, state)), state_values_ok(sim, state)))
+
+        def run(params, state):
+            ok = state_values_ok(sim, state)
+            if flag:
+                state = flagged(sim, params, state, sim.dt / n)
+            return step(params, hold_pins(sim, state)), ok
+        sim._steps[key] = jax.jit(run)
     return sim._steps[key]

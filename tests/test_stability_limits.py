@@ -75,3 +75,25 @@ def test_the_closed_form_limit_neither_overflows_nor_cancels():
     flag = jax.jit(lambda c: sim.rollout(sim.params(spring_k=100.0, spring_c=c), 20,
                                          save_every=20).aux["unstable"][-1])
     assert [bool(flag(jnp.float32(c))) for c in (0.5, 1e20, 1e30)] == [False, True, True]
+
+
+def test_steps_of_ones_own_loop_given_traced_params_set_the_flag():
+    """Regression (audit17): ``sim.step`` in a user's own jitted ``lax.scan`` with traced
+    params past the safe step left ``aux["unstable"]`` False (a ball dropped from 0.3 m at
+    k 1e8 N/m ended at 0.89 m moving up); only rollouts set it. Each step given traced
+    params now sets it as a rollout does; safe params keep it clear."""
+    import jax
+
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+
+    @jax.jit
+    def run(k):
+        def body(s, _):
+            return sim.step(sim.params(k=k, c=10.0), s), None
+        return jax.lax.scan(body, sim.init_state(), None, length=30)[0]
+    safe, past = run(1e4), run(1e8)
+    assert not bool(safe.aux["unstable"]) and bool(past.aux["unstable"])
+    assert set(safe.aux) == set(sim.init_state().aux)          # the carry keeps its shape
