@@ -193,6 +193,8 @@ class Simulator:
                 scene, contact_law, passive_terms) else None),
             min_step=_precision.min_resolved_step(scene, self.dtype), extra_ranges=_stability
             .bounds.extra_ranges(self._extra_defaults, self._extra_checks))
+        if contact_law.one_contact == "events":     # a force from positions over h^2
+            _precision.warn_events(scene, self.dtype, self.analysis.inner_dt)
         self.gate_cache, self._steps = _stability.GateCache(), {}   # substeps -> pure step
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._search_aux_jit = jax.jit(self._search_aux)

@@ -18,7 +18,8 @@ import numpy as np
 from .errors import SceneError, warn
 
 __all__ = ["check_dtype_range", "check_coordinates", "min_resolved_step", "warn_step",
-           "PrecisionWarning", "FAR_COARSER", "FREEZE_FRACTION"]
+           "PrecisionWarning", "FAR_COARSER", "FREEZE_FRACTION", "EVENTS_FORCE_ERROR",
+           "events_min_step", "warn_events"]
 
 
 #: how much coarser than at the scene's own scale (1 m or its largest body) the dtype's
@@ -201,3 +202,40 @@ def warn_step(min_step: float, h: float, dtype) -> None:
         "past the integrator's follow (a 10 cm ball in float32 at dt = 1e-7 s fell 1.9% short "
         f"in 0.2 s). Use dtype=float64, or an inner step of at least {min_step:.2g} s.",
         PrecisionWarning)
+
+
+#: the largest rounding error, as a fraction of g, of the force an event-exact contact
+#: record rebuilds each step before :func:`warn_events` warns
+EVENTS_FORCE_ERROR = 1e-3
+
+
+def events_min_step(scene, dtype) -> float:
+    """The shortest inner step (s) at which the event-exact contact records
+    (``diffpen.laws.linear(events=True)`` ...) rebuild their force to
+    :data:`EVENTS_FORCE_ERROR` of g in ``dtype``: each step's force is a second difference of
+    positions over ``h^2`` (``diffpen.event_step``), whose rounding, the dtype's spacing at
+    the scene's farthest coordinate plus its largest body, grows as ``spacing / h^2``:
+    ``sqrt(spacing / (EVENTS_FORCE_ERROR g))`` (g at least 9.81 m/s^2). A 10 cm ball dropped
+    from 0.3 m: 1.7e-3 s in float32 (at 1e-4 s its derivatives were off by up to 64%,
+    13x at 5e-5 s), 2.4e-8 s in float64."""
+    g = max(float(np.linalg.norm(np.asarray(scene.gravity, float))), 9.81)
+    far, sizes = _extent(scene)
+    spacing = float(np.spacing(np.dtype(dtype).type(far + max(sizes, default=0.0))))
+    return float(np.sqrt(spacing / (EVENTS_FORCE_ERROR * g)))
+
+
+def warn_events(scene, dtype, h: float) -> None:
+    """Warn (:class:`PrecisionWarning`) when an event-exact record's inner step ``h`` (s) is
+    below :func:`events_min_step`: its force's rounding error then passes
+    :data:`EVENTS_FORCE_ERROR` of g, and its derivatives, which it exists to give exactly,
+    are off by more."""
+    least = events_min_step(scene, dtype)
+    if h >= least:
+        return
+    name = np.dtype(dtype).name
+    warn(f"an event-exact contact record at an inner step of {h:.3g} s in {name}: it rebuilds "
+         "each step's force from a second difference of positions over h^2, whose rounding "
+         f"here is about {least * least / (h * h) * EVENTS_FORCE_ERROR:.2g} g (a 10 cm ball "
+         "in float32 at dt 1e-4 s: derivatives up to 64% off). Use dtype=float64 (what these "
+         f"records are for), an inner step of at least {least:.2g} s, or the law's default "
+         "record.", PrecisionWarning)
