@@ -121,7 +121,8 @@ class OverlapIndex:
         # clipped to the integers' range: a body 1e39 m out made an invalid cast (its cell
         # then shares the clipped edge cell with any other that far, compared directly)
         def cell(v):
-            return np.clip(np.floor(v / self.h), -2.0 ** 62, 2.0 ** 62).astype(np.int64)
+            with np.errstate(over="ignore", divide="ignore"):   # a tiny cell: clipped too
+                return np.clip(np.floor(v / self.h), -2.0 ** 62, 2.0 ** 62).astype(np.int64)
         return cell(np.asarray(x) - r), cell(np.asarray(x) + r)
 
     def _ncells(self, lo, hi) -> int:

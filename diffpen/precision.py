@@ -33,9 +33,9 @@ def check_dtype_range(scene, dtype) -> None:
     rollout stopped on NaN blaming the time step). Every number of every element (bodies,
     planes, fixed spheres, springs, materials, spring and drag groups, gravity), one array
     per field (10,000 bodies: 0.13 s, against 2.5 s for their compile); nothing to check in
-    float64; and rigid bodies' moments of inertia against its smallest normal number
-    (:func:`_check_inertia`, also in float64). Raises SceneError naming the element and the
-    value."""
+    float64; and bodies' sizes, rigid bodies' moments of inertia and rough materials' slip
+    speeds against its smallest normal number (:func:`_check_inertia`, also in float64).
+    Raises SceneError naming the element and the value."""
     import dataclasses
     _check_inertia(scene, dtype)
     top = float(np.finfo(dtype).max)
@@ -94,7 +94,22 @@ def _check_inertia(scene, dtype) -> None:
     blamed the time step; at 1e-170 m in float64 numpy's eigenvalue solver failed."""
     from .rigid import inertia_diagonal
     tiny = float(np.finfo(dtype).tiny)
+    for name, mat in scene.materials.items():
+        if mat.friction > 0.0 and mat.slip_speed < tiny ** 0.5:     # s^2 underflows to 0
+            raise SceneError(
+                f"material {name!r}'s slip_speed ({mat.slip_speed:.3g} m/s) is below the square "
+                f"root of {np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): "
+                "friction's |v_t|^2 + slip_speed^2 rounds to 0 for a body at rest (0 / 0). "
+                "Raise it (it is the speed below which friction is viscous), or use "
+                "dtype=float64.")
     for i, b in enumerate(scene.bodies):
+        size = min(b.half_extents) if b.half_extents else b.radius
+        if 0.0 < size < tiny ** 0.5:   # audit17: 5e-324 m divided by 0 in the step checks
+            raise SceneError(
+                f"body {i}'s size ({size:.3g} m) is below the square root of "
+                f"{np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): its "
+                "areas and the checks' times round to 0. Rescale the scene (metres to a unit "
+                "where the body is not this small), or use dtype=float64.")
         if not b.rigid or b.pinned:
             continue
         moments = inertia_diagonal(b)

@@ -127,5 +127,28 @@ def test_a_rigid_body_too_small_for_the_dtype_is_refused_at_compile():
         if ok:
             dp.compile(s, 1e-3, dtype=dtype)
             continue
-        with pytest.raises(dp.SceneError, match="moments of inertia reach .* smallest normal"):
+        with pytest.raises(dp.SceneError, match="(moments of inertia reach|size) .* "
+                                                "smallest normal"):
             dp.compile(s, 1e-3, dtype=dtype)
+
+
+def test_a_sphere_too_small_for_the_dtype_is_refused_at_compile():
+    """Regression (audit17): a sphere of radius 5e-324 m (float64) ended in a raw
+    ZeroDivisionError from the step-length check (its fall time rounds to 0), and one of
+    1e-50 m in float32 (0 there) compiled with a PrecisionWarning asking for an inner step
+    of at least 1.9e+148 s. Both are refused, naming the size."""
+    for radius, dtype in ((5e-324, jnp.float64), (1e-50, jnp.float32)):
+        s = dp.Scene()
+        s.add_sphere(radius, 1.0, (0.0, 0.0, 1.0))
+        s.add_plane()
+        with pytest.raises(dp.SceneError, match=r"body 0's size \(.* m\) is below the square "
+                                                "root of .* smallest normal number"):
+            dp.compile(s, 1e-3, dtype=dtype)
+    # a float32 slip speed of 1e-20 m/s: s^2 underflowed, friction was 0 / 0 at rest and the
+    # NaN's message blamed the time step
+    s = dp.Scene()
+    s.add_material("rough", friction=1e-30, slip_speed=1e-20)
+    s.add_sphere(0.1, 1.0, (0.0, 0.0, 0.1))
+    s.add_plane(material="rough")
+    with pytest.raises(dp.SceneError, match="slip_speed .* rounds to 0 for a body at rest"):
+        dp.compile(s, 1e-3, dtype=jnp.float32)
