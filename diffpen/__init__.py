@@ -87,6 +87,7 @@ from .compile import Simulator, compile  # noqa: E402
 from .errors import (ContactWarning, NonFiniteError, PerformanceWarning,  # noqa: E402
                      SceneError, StabilityError)
 from .precision import PrecisionWarning  # noqa: E402
+from .terms.plastic import CollapseWarning  # noqa: E402
 from .integrators import Integrator  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .state import ContactParams, Params, SpringParams, State, Trajectory  # noqa: E402
@@ -97,7 +98,7 @@ __all__ = [
     "Scene", "compile", "Simulator", "Integrator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning", "ContactWarning",
-    "PrecisionWarning",
+    "PrecisionWarning", "CollapseWarning",
     "laws", "geometry", "integrators", "physical", "builders",
     "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

@@ -226,3 +226,33 @@ def test_a_plastic_spring_between_coincident_bodies_says_why():
         scene.add_plastic_spring(a, b, k=100.0, yield_strain=0.1)
     assert not scene.plastic_springs
     scene.add_plastic_spring(a, b, k=100.0, yield_strain=0.1, rest_length=0.05)
+
+
+def test_a_member_crushed_through_its_length_is_flagged_and_warned():
+    """Regression (audit17): crumple members have no volume and the nodes no self-contact:
+    a crumple bar driven into a wall at 2 m/s had members pass through zero length and turn
+    inside out (pushing the wrong way) with no flag and no word. A member crushed below
+    COLLAPSE_FRACTION of its length now sets aux["plastic_collapsed"] (kept) and the rollout
+    warns; at 0.5 m/s the bar crumples without reaching it."""
+    import warnings
+
+    from diffpen.terms.plastic import CollapseWarning
+
+    def hit(v):
+        sc = dp.Scene(gravity=(0.0, 0.0, 0.0))
+        nodes = add_crumple_bar(sc, 6, (0.1, 0.0, 0.5), (0.6, 0.0, 0.5), 1.0, 2000.0, 1.0,
+                                yield_strain=0.05, velocity=(-v, 0.0, 0.0))
+        sc.add_plane(normal=(1.0, 0.0, 0.0), offset=0.0)
+        sim = dp.compile(sc, dt=1e-4, substeps="auto")
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            t = sim.rollout(sim.params(k=1e5, c=10.0), steps=2000, save_every=10)
+        gaps = np.diff(np.asarray(t.position[:, nodes, 0]), axis=1)
+        return (np.asarray(t.aux["plastic_collapsed"]), bool((gaps < 0).any()),
+                [w.category for w in seen])
+    flag, inverted, seen = hit(2.0)
+    assert inverted and flag[-1] == 1.0 and CollapseWarning in seen
+    first = int(np.argmax(flag > 0))
+    assert 0 < first and np.all(flag[first:] == 1.0)            # set once, then kept
+    flag, inverted, seen = hit(0.5)
+    assert not inverted and not flag.any() and CollapseWarning not in seen

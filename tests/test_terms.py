@@ -59,7 +59,7 @@ def test_spring_groups_keep_the_scene_order_and_inert_springs():
     assert dict(term.extra) == {"plastic": {"crumple": 0.1}}
     np.testing.assert_array_equal(term.aux["plastic_rest"], [1.0])
     assert term.update is not None and "plastic" in term.checks
-    assert set(sim.init_state().aux) == {"plastic_rest", "unstable"}
+    assert set(sim.init_state().aux) == {"plastic_rest", "plastic_collapsed", "unstable"}
     with pytest.raises(dp.SceneError, match="yield strain"):
         sim.params(extra={"plastic": {"crumple": 1.5}})
 

@@ -33,10 +33,37 @@ from ..errors import SceneError
 from .base import CompileContext, Term, TermBuilder, _select, scatter
 from .springs import _spring_axis
 
-__all__ = ["rest_update", "AUX_KEY", "TERMS"]
+__all__ = ["rest_update", "AUX_KEY", "COLLAPSED", "COLLAPSE_FRACTION", "TERMS"]
 
 #: ``State.aux`` key of the plastic rest lengths, (m,) metres.
 AUX_KEY = "plastic_rest"
+#: ``State.aux`` key of a 0 / 1 scalar, set to 1 (and kept) once a plastic spring has been crushed
+#: below :data:`COLLAPSE_FRACTION` of its initial rest length: members have no volume and
+#: nodes no self-contact, so a member crushed that far passes through zero length and turns
+#: inside out (its axis flips and it pushes the wrong way) unnoticed; a rollout that sets it
+#: warns (:class:`CollapseWarning`)
+COLLAPSED = "plastic_collapsed"
+#: the shortest length, as a fraction of the initial rest length, a plastic spring may reach
+#: before :data:`COLLAPSED` is set
+COLLAPSE_FRACTION = 0.05
+
+
+class CollapseWarning(UserWarning):
+    """A plastic spring (crumple member) crushed below :data:`COLLAPSE_FRACTION` of its
+    length: past what a model without member volume or self-contact describes."""
+
+
+def warn_collapse(traj) -> None:
+    """Warn when a concrete trajectory's ``aux["plastic_collapsed"]`` is set."""
+    from ..errors import warn
+    flag = traj.aux.get(COLLAPSED) if isinstance(traj.aux, dict) else None
+    if flag is not None and float(np.asarray(flag).reshape(-1)[-1]) > 0.0:
+        warn(f"a plastic spring (crumple member) was crushed below {COLLAPSE_FRACTION:g} of "
+             "its initial length: members have no volume and nodes no self-contact, so past "
+             "that it passes through zero length and turns inside out (a crumple bar hit at "
+             "2 m/s inverted, unflagged). The rollout's aux['plastic_collapsed'] says so; "
+             "stiffen the members (k) or raise the yield strain, or slow the impact.",
+             CollapseWarning)
 
 
 def rest_update(length, rest, rest0, yield_strain, width: float):
@@ -106,12 +133,16 @@ def _plastic_springs(ctx: CompileContext) -> Term | None:
             eps = _select([params.extra["plastic"][g] for g in groups], yi)
             length = geometry.safe_norm(state.position[ia] - state.position[ib])
             new = rest_update(length, state.aux[AUX_KEY], rest0, eps, width)
-        return {AUX_KEY: new}
+            crushed = jax.numpy.any(length < COLLAPSE_FRACTION * rest0)
+            old = state.aux[COLLAPSED]          # 0 or 1 (the aux entries take the float dtype)
+        return {AUX_KEY: new, COLLAPSED: jax.numpy.maximum(
+            old, jax.lax.stop_gradient(crushed).astype(old.dtype))}
 
     return Term("plastic_springs", force,
                 extra={"plastic": {g: ctx.scene.plastic_groups[g] for g in groups}},
                 checks={"plastic": _check_yield},
-                aux={AUX_KEY: np.array([s.rest_length for s in springs])}, update=aux_update)
+                aux={AUX_KEY: np.array([s.rest_length for s in springs]),
+                     COLLAPSED: 0.0}, update=aux_update, report=warn_collapse)
 
 
 def _plastic_groups(ctx: CompileContext) -> tuple:
