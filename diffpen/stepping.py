@@ -12,7 +12,7 @@ import numpy as np
 from .checks import state_values_ok
 from .integrators import build_step, substepped
 
-__all__ = ["build", "hold_pins", "jitted"]
+__all__ = ["build", "hold_pins", "jitted", "flagged"]
 
 
 def build(sim, n: int):
@@ -99,7 +99,8 @@ def _searching_step(sim, h: float, inv_mass):
 
 def flagged(sim, params, state, h, energy=None, add: bool = False):
     """``state`` with its ``aux["unstable"]`` flag or-ed with whether ``params`` (cast) are
-    past the safe step at the inner step ``h`` or its spin past the spin limit: the
+    past the safe step at the inner step ``h``, its spin past the spin limit or its values
+    not finite: the
     traced flag of a rollout (once, before its loop) and of a step given traced params
     (every step). ``energy``: the up-front gate's (else traced from ``state`` where the
     contact law needs one). A state without the flag gets one only with ``add`` (a step
@@ -117,6 +118,9 @@ def flagged(sim, params, state, h, energy=None, add: bool = False):
         energy = _start_energy.traced(sim, params, state)
     flag = _stability.unsafe(sim.analysis, params, h=h, energy=energy)
     flag = flag | _motion.spin_unsafe(sim, state, h)
+    for a in (state.position, state.velocity, state.orientation, state.angular_velocity):
+        if a is not None:       # a traced start state with NaN or inf in it (audit17)
+            flag = flag | ~jnp.all(jnp.isfinite(a))
     flag = flag if old is None else (jnp.asarray(old, bool) | flag)
     return state._replace(aux={**state.aux, _stability.FLAG: flag})
 

@@ -97,3 +97,26 @@ def test_steps_of_ones_own_loop_given_traced_params_set_the_flag():
     safe, past = run(1e4), run(1e8)
     assert not bool(safe.aux["unstable"]) and bool(past.aux["unstable"])
     assert set(safe.aux) == set(sim.init_state().aux)          # the carry keeps its shape
+
+
+def test_a_traced_start_state_that_is_not_finite_sets_the_flag():
+    """Regression (audit17): a start state with NaN in it, given to a rollout under
+    ``jax.jit`` or ``jax.vmap`` (where it cannot be refused up front as a concrete one is),
+    gave a NaN trajectory with ``aux["unstable"]`` clear: a sweep took it for a result."""
+    import jax
+    import jax.numpy as jnp
+
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.3))
+    scene.add_plane()
+    sim = dp.compile(scene, dt=1e-3)
+    params = sim.params(k=1e4, c=10.0)
+
+    @jax.jit
+    @jax.vmap
+    def flag(z):
+        s = sim.init_state()
+        s = s._replace(position=s.position.at[0, 2].set(z))
+        return sim.rollout(params, 10, state=s, save_every=10).aux["unstable"][-1]
+    np.testing.assert_array_equal(flag(jnp.array([0.3, jnp.nan, jnp.inf])),
+                                  [False, True, True])
