@@ -17,12 +17,10 @@ the ``Params.contact`` / ``Params.springs`` keys are the union of the contact ma
 spring groups the builders say they read (asked before any term is built), the
 ``Params.extra`` defaults and the ``State.aux`` entries and updates come from the built
 Terms. Each term carries its stability bound, which :mod:`diffpen.stability` sums; the pure
-rollout is :func:`diffpen.rollout.rollout`.
-Term assembly (which builders run, the params keys they declare, the terms built) lives in
-:mod:`diffpen.assembly`, the step built from the terms in :mod:`diffpen.stepping`, parameter
-building and validation in :mod:`diffpen.params`, start states in
-:mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state``, ``state_from`` and
-``step_function`` delegate to them.
+rollout is :func:`diffpen.rollout.rollout`. Term assembly lives in :mod:`diffpen.assembly`,
+the step built from the terms in :mod:`diffpen.stepping`, parameters in :mod:`diffpen.params`,
+start states in :mod:`diffpen.start_state`; the Simulator's ``params``, ``init_state``,
+``state_from`` and ``step_function`` delegate to them.
 """
 from __future__ import annotations
 
@@ -192,9 +190,9 @@ class Simulator:
             depth_exponent=(float(contact_law.exponent) if _depth.qualifies(
                 scene, contact_law, passive_terms) else None),
             min_step=_precision.min_resolved_step(scene, self.dtype), extra_ranges=_stability
-            .bounds.extra_ranges(self._extra_defaults, self._extra_checks))
-        if contact_law.one_contact == "events":     # a force from positions over h^2
-            _precision.warn_events(scene, self.dtype, self.analysis.inner_dt)
+            .bounds.extra_ranges(self._extra_defaults, self._extra_checks),
+            events_step=(_precision.events_min_step(scene, self.dtype)   # warned in the gate
+                         if contact_law.one_contact == "events" else 0.0))
         self.gate_cache, self._steps = _stability.GateCache(), {}   # substeps -> pure step
         self._forces_jit = jax.jit(self._forces, static_argnames=("h",))
         self._search_aux_jit = jax.jit(self._search_aux)
@@ -370,13 +368,14 @@ class Simulator:
         a rollout's are (:class:`SceneError`; :func:`diffpen.checks.check_step`), params cast
         to the simulator's dtype; with concrete params the rollout's stability gate runs
         (:class:`StabilityError` past the safe step; "auto" takes the substeps it picks),
-        unless ``check_stability=False`` (then 1 substep for "auto"). With traced params
-        (your own ``jax.jit`` or ``lax.scan`` of steps) each step sets the state's
-        ``aux["unstable"]`` flag as a rollout does (the bound is evaluated every step there,
-        once per rollout: prefer :meth:`rollout` where you can)."""
+        unless ``check_stability=False`` (then 1 substep for "auto", and no flag). Traced
+        (your own jitted scan of steps) each step sets ``aux["unstable"]`` as a rollout does
+        (a law stiffening with depth bounds it by the state's energy, every step: a
+        Hunt-Crossley cloth 2.4-4x the step; prefer :meth:`rollout`)."""
         _checks.check_step(self, params, state)
         n = _stability.step_gate(self, params, state) if check_stability else None
-        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(params))
+        traced = check_stability and any(isinstance(x, jax.core.Tracer) for x in
+                                         jax.tree_util.tree_leaves((params, state)))
         new, ok = _stepping.jitted(self, n, flag=traced)(
             jax.tree_util.tree_map(self._cast, params), state)
         if isinstance(ok, jax.core.Tracer) or not bool(ok):   # traced: its concrete fields

@@ -440,6 +440,8 @@ def semi_implicit_euler_stable_dt(K, C, xp=np):
     or K ~ 9e37 1/s^2 (a limit of inf: a traced rollout past it was not flagged); the
     square root is taken as a ``hypot``, which does not overflow."""
     if xp is np:
+        if math.isnan(float(K)) or math.isnan(float(C)):
+            return math.nan             # no limit is known, not "no limit" (inf)
         K, C = max(float(K), 0.0), max(float(C), 0.0)
         den = C + math.hypot(C, 2.0 * math.sqrt(K))
         return 4.0 / den if den > 0.0 else math.inf

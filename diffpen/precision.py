@@ -100,8 +100,8 @@ def _check_inertia(scene, dtype) -> None:
                 f"material {name!r}'s slip_speed ({mat.slip_speed:.3g} m/s) is below the square "
                 f"root of {np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): "
                 "friction's |v_t|^2 + slip_speed^2 rounds to 0 for a body at rest (0 / 0). "
-                "Raise it (it is the speed below which friction is viscous), or use "
-                "dtype=float64.")
+                "Raise it (it is the speed below which friction is viscous)"
+                + (", or use dtype=float64." if np.dtype(dtype).itemsize < 8 else "."))
     for i, b in enumerate(scene.bodies):
         size = min(b.half_extents) if b.half_extents else b.radius
         if 0.0 < size < tiny ** 0.5:   # audit17: 5e-324 m divided by 0 in the step checks
@@ -109,7 +109,8 @@ def _check_inertia(scene, dtype) -> None:
                 f"body {i}'s size ({size:.3g} m) is below the square root of "
                 f"{np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): its "
                 "areas and the checks' times round to 0. Rescale the scene (metres to a unit "
-                "where the body is not this small), or use dtype=float64.")
+                "where the body is not this small)"
+                + (", or use dtype=float64." if np.dtype(dtype).itemsize < 8 else "."))
         if not b.rigid or b.pinned:
             continue
         moments = inertia_diagonal(b)
@@ -239,12 +240,12 @@ def events_min_step(scene, dtype) -> float:
     return float(np.sqrt(spacing / (EVENTS_FORCE_ERROR * g)))
 
 
-def warn_events(scene, dtype, h: float) -> None:
+def warn_events(least: float, h: float, dtype) -> None:
     """Warn (:class:`PrecisionWarning`) when an event-exact record's inner step ``h`` (s) is
-    below :func:`events_min_step`: its force's rounding error then passes
+    below ``least`` (:func:`events_min_step`; the rollout's gate calls it with the step it
+    takes, substeps included): its force's rounding error then passes
     :data:`EVENTS_FORCE_ERROR` of g, and its derivatives, which it exists to give exactly,
     are off by more."""
-    least = events_min_step(scene, dtype)
     if h >= least:
         return
     name = np.dtype(dtype).name

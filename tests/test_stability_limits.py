@@ -64,6 +64,7 @@ def test_the_closed_form_limit_neither_overflows_nor_cancels():
     assert limit(1e-300, 1.0) == pytest.approx(2.0, rel=1e-12)
     assert limit(1e4, 20.0) == pytest.approx((-20.0 + math.sqrt(400.0 + 4e4)) / 1e4, rel=1e-14)
     assert limit(0.0, 0.0) == math.inf and limit(0.0, 5.0) == pytest.approx(0.4)
+    assert math.isnan(limit(math.nan, 1.0)) and math.isnan(limit(1.0, math.nan))
     for k, c in ((1e38, 0.0), (0.0, 1e20), (1e38, 1e20), (1e-30, 1e15)):
         traced = float(limit(jnp.float32(k), jnp.float32(c), xp=jnp))
         assert traced == pytest.approx(limit(k, c), rel=1e-5), (k, c)
@@ -97,6 +98,15 @@ def test_steps_of_ones_own_loop_given_traced_params_set_the_flag():
     safe, past = run(1e4), run(1e8)
     assert not bool(safe.aux["unstable"]) and bool(past.aux["unstable"])
     assert set(safe.aux) == set(sim.init_state().aux)          # the carry keeps its shape
+    params = sim.params(k=1e4, c=10.0)          # concrete params, a traced state (audit18)
+
+    @jax.jit
+    def from_height(z):
+        s = sim.init_state()
+        s = s._replace(position=s.position.at[0, 2].set(z))
+        return jax.lax.scan(lambda s, _: (sim.step(params, s), None), s, None, length=5)[0]
+    assert not bool(from_height(0.3).aux["unstable"])
+    assert bool(from_height(float("nan")).aux["unstable"])
 
 
 def test_a_traced_start_state_that_is_not_finite_sets_the_flag():

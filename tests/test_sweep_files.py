@@ -2,10 +2,13 @@
 the rows, the values a finalize= reads), when the .npz is written, what a stopped or failing
 write leaves, and sizes refused before anything runs."""
 import errno
+import functools
 import os
 import shutil
 import sys
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -28,7 +31,7 @@ def test_a_sweep_written_by_other_code_or_another_jax_is_not_resumed(tmp_path, m
     with pytest.raises(KeyboardInterrupt):
         toy_sweep(out, on_chunk=stop_first, key={"metric": "twice"})
     monkeypatch.setattr(tio, "source_digest", lambda: "0123456789abcdef", raising=False)
-    with pytest.raises(S.SweepError, match="source: file has .*the diffpen or tuning code "
+    with pytest.raises(S.SweepError, match="source: file has .*the diffpen or tuning source "
                                            "changed since the file was written"):
         toy_sweep(out, key={"metric": "twice"})
     monkeypatch.undo()
@@ -38,6 +41,18 @@ def test_a_sweep_written_by_other_code_or_another_jax_is_not_resumed(tmp_path, m
                                            "\"gpu\".*rounding differently"):
         toy_sweep(out, key={"metric": "twice"})
     monkeypatch.undo()
+    import json                                        # a file from before keys held them
+    key = dict(S.load_sweep(out).key)
+    del key["source"], key["runtime"]
+    data = dict(np.load(out))
+    data["key"] = np.array(json.dumps(key))
+    np.savez(out, **data)
+    with pytest.raises(S.SweepError, match=r'runtime: file has "<absent>".*\(the file was '
+                                           r'written before keys held it\)'):
+        toy_sweep(out, key={"metric": "twice"})
+    monkeypatch.undo()
+    with pytest.raises(KeyboardInterrupt):
+        toy_sweep(out, on_chunk=stop_first, key={"metric": "twice"}, resume=False)
     res = toy_sweep(out, key={"metric": "twice"})      # the same code and runtime resume
     assert res.evaluated == 4 and res.done.all()
 
@@ -57,16 +72,18 @@ def test_the_source_digest_follows_every_python_file_of_both_packages(tmp_path, 
         monkeypatch.setitem(sys.modules, "tuning", type(sys)("tuning"))
         sys.modules["tuning"].__file__ = str(tmp_path / "tuning" / "__init__.py")
         try:
-            tio.source_digest.cache_clear()
             return tio.source_digest()
         finally:
             monkeypatch.undo()
-            tio.source_digest.cache_clear()
     here = tio.source_digest()
     assert digest() == here
     (tmp_path / "tuning" / "__pycache__").mkdir()
     (tmp_path / "tuning" / "__pycache__" / "x.pyc").write_bytes(b"\0")
     (tmp_path / "diffpen" / "notes.txt").write_text("x")
+    # audit18: an editor's lock file (a dangling link) made every sweep fail to open it
+    os.symlink("user@host.1234:1700000000", tmp_path / "tuning" / ".#sweep.py")
+    (tmp_path / "tuning" / ".ipynb_checkpoints").mkdir()
+    (tmp_path / "tuning" / ".ipynb_checkpoints" / "sweep-checkpoint.py").write_text("x")
     assert digest() == here
     with open(tmp_path / "diffpen" / "window.py", "a") as fh:
         fh.write("\n# an edit\n")
@@ -111,6 +128,38 @@ def test_a_finalize_is_keyed_by_the_globals_it_reads_and_the_helpers_it_calls(tm
     assert res.evaluated == 4
     k = TOY_POINTS[:, 0]                   # the toy's points above 6 are "unstable": False
     np.testing.assert_array_equal(res.metrics["high"], (0.2 * k > 0.5) & (k <= 6.0))
+
+
+LIMIT = jnp.asarray(0.5)
+
+
+@jax.jit
+def _jitted(v):
+    return v > LIMIT
+
+
+_partial = functools.partial(np.greater, 0.5)
+
+
+def finalize_by_arrays(m, pts):
+    m["high"] = np.asarray(_jitted(m["twice"])) & _partial(m["twice"])
+    return m
+
+
+def test_a_finalize_is_keyed_by_jax_arrays_jitted_helpers_and_partials(monkeypatch):
+    """Regression (audit18): a JAX array global, a helper under jax.jit and a
+    functools.partial's arguments were keyed by their type only: changed, the digest stayed
+    the same and a rerun resumed into the same file."""
+    this = sys.modules[__name__]
+    k0 = code_key(finalize_by_arrays)
+    keys = []
+    for name, value in (("LIMIT", jnp.asarray(0.05)),
+                        ("_partial", functools.partial(np.greater, 0.05)),
+                        ("_jitted", jax.jit(lambda v: v >= LIMIT))):
+        monkeypatch.setattr(this, name, value)
+        keys.append(code_key(finalize_by_arrays))
+        monkeypatch.undo()
+    assert len({k0, *keys}) == 4 and code_key(finalize_by_arrays) == k0
 
 
 def test_a_leaf_swept_twice_is_refused():

@@ -30,10 +30,11 @@ def code_key(fn: Callable, error=ValueError) -> str:
     strings and arrays it closes over, takes as defaults or reads as globals (of anything
     else only the type; of a module its name). The plain functions it reads as globals are
     followed the same way, :data:`DEPTH` calls deep, where they are defined outside the
-    libraries (:data:`_LIBRARIES`, named by module and name). A value reached only as an
-    attribute (``settings.THRESHOLD``) is not followed: give such a function a key of its
-    own. Raises ``error`` for a callable without code of its own (a ``functools.partial``,
-    an object with ``__call__``)."""
+    libraries (:data:`_LIBRARIES`, named by module and name), also under ``jax.jit`` and in a
+    ``functools.partial`` (:func:`_feed_global`). Not covered: a value reached only as an
+    attribute (``settings.THRESHOLD``), an object's state, what a library function does:
+    give such a function a ``key=`` that says it. Raises ``error`` for a callable without
+    code of its own (a ``functools.partial``, an object with ``__call__``)."""
     if getattr(fn, "__code__", None) is None:
         raise error(f"a sweep written to out= needs key= when finalize= is not a plain "
                     f"function (got {type(fn).__name__}): say what it does in the key.")
@@ -53,11 +54,28 @@ def _data(v) -> bool:
     if isinstance(v, (list, tuple)):
         return all(_data(x) for x in v)
     if isinstance(v, dict):
-        return all(isinstance(k, str) and _data(x) for k, x in v.items())
+        return all(isinstance(k, (str, int)) and _data(x) for k, x in v.items())
     return False
 
 
+def _as_data(v):
+    """``v`` as plain data where it holds some: a JAX array as its values, a set as its
+    sorted items, a dict's int keys as text; else ``v``."""
+    import numpy as np
+    if hasattr(v, "__array__") and not isinstance(v, np.ndarray) and not callable(v):
+        try:
+            return np.asarray(v)
+        except Exception:  # noqa: BLE001 - a tracer: not data
+            return v
+    if isinstance(v, (set, frozenset)):
+        return sorted((_as_data(x) for x in v), key=repr)
+    if isinstance(v, dict):
+        return {str(k): _as_data(x) for k, x in v.items()}
+    return v
+
+
 def _feed_value(h, v) -> None:
+    v = _as_data(v)
     h.update((json.dumps(_plain(v)) if _data(v) else type(v).__qualname__).encode())
 
 
@@ -97,22 +115,40 @@ def _feed_function(h, fn: Callable, seen: set, depth: int) -> None:
     for n in dict.fromkeys(names):                   # the globals it reads, in code order
         if n not in glob:
             continue                                 # an attribute's name, or a builtin
-        g = glob[n]
         h.update(n.encode() + b"=")
-        if isinstance(g, types.ModuleType):
-            h.update(g.__name__.encode())
-        elif isinstance(g, types.FunctionType) and not _library(g):
-            if id(g) in seen:
-                h.update(b"<again>")
-            elif depth > 0:
-                _feed_function(h, g, seen, depth - 1)
-            else:
-                h.update(f"{g.__module__}.{g.__qualname__}".encode())
-        elif callable(g) and not _data(g):
-            h.update(f"{getattr(g, '__module__', '')}."
-                     f"{getattr(g, '__qualname__', type(g).__qualname__)}".encode())
+        _feed_global(h, glob[n], seen, depth)
+
+
+def _feed_global(h, g, seen: set, depth: int) -> None:
+    """Feed a global ``g`` a function reads: a module by name; a plain function (also one
+    under ``jax.jit`` or another wrapper that keeps ``__wrapped__``, and the function and
+    arguments of a ``functools.partial``) followed where it is not a library's; anything
+    else by value where it holds data (:func:`_as_data`), else by type."""
+    import functools
+    wrapped = getattr(g, "__wrapped__", None)
+    if isinstance(g, types.ModuleType):
+        h.update(g.__name__.encode())
+    elif isinstance(g, functools.partial):
+        _feed_global(h, g.func, seen, depth)
+        for v in g.args:
+            _feed_value(h, v)
+        for k, v in sorted(g.keywords.items()):
+            h.update(k.encode())
+            _feed_value(h, v)
+    elif not isinstance(g, types.FunctionType) and getattr(wrapped, "__code__", None):
+        _feed_global(h, wrapped, seen, depth)
+    elif isinstance(g, types.FunctionType) and not _library(g):
+        if id(g) in seen:
+            h.update(b"<again>")
+        elif depth > 0:
+            _feed_function(h, g, seen, depth - 1)
         else:
-            _feed_value(h, g)
+            h.update(f"{g.__module__}.{g.__qualname__}".encode())
+    elif callable(g) and not _data(g):
+        h.update(f"{getattr(g, '__module__', '')}."
+                 f"{getattr(g, '__qualname__', type(g).__qualname__)}".encode())
+    else:
+        _feed_value(h, g)
 
 
 def _library(g: Callable) -> bool:

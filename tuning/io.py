@@ -22,7 +22,6 @@ of killed runs, and the key of everything that determines a result.
 from __future__ import annotations
 
 import errno
-import functools
 import glob
 import hashlib
 import json
@@ -58,21 +57,25 @@ def version() -> str:
         return "unknown"
 
 
-@functools.lru_cache(maxsize=None)
 def source_digest() -> str:
     """SHA-256 (16 hex digits) of the Python source of the ``diffpen`` and ``tuning``
-    packages this process imported (every ``.py`` file under them, by relative path and
-    bytes; a few ms). Part of every result key beside :func:`version`: the version number
-    stays the same while the code changes (an editable install, a ``git pull``), and a
-    resumed sweep or fit would otherwise mix rows computed by two versions of the physics."""
+    packages this process imported: every regular ``.py`` file under them (by relative path
+    and bytes; names and folders starting with ``.`` and ``__pycache__`` left out: an
+    editor's lock file, a notebook's checkpoints), read at each call (~4 ms; a module
+    reloaded in a notebook counts). Part of every result key beside :func:`version`: the
+    version number stays the same while the code changes (an editable install, a ``git
+    pull``), and a resumed sweep or fit would otherwise mix rows computed by two versions
+    of the code. Any edit changes it, comments too, and so does a stray ``.py`` file."""
     import diffpen
     h = hashlib.sha256()
     for pkg in (diffpen, sys.modules[__package__]):
         root = os.path.dirname(os.path.abspath(pkg.__file__))
         files = []
         for folder, dirs, names in os.walk(root):
-            dirs[:] = sorted(d for d in dirs if d != "__pycache__")
-            files += [os.path.join(folder, n) for n in names if n.endswith(".py")]
+            dirs[:] = sorted(d for d in dirs if d != "__pycache__" and not d.startswith("."))
+            files += [p for p in (os.path.join(folder, n) for n in names
+                                  if n.endswith(".py") and not n.startswith("."))
+                      if os.path.isfile(p)]
         for path in sorted(files):
             h.update(os.path.relpath(path, os.path.dirname(root)).encode() + b"\0")
             with open(path, "rb") as fh:
@@ -391,12 +394,15 @@ def key_differences(old: dict | None, new: dict) -> list:
         return ["the file has no key (written by an older version or another program)"]
     out = []
     _differences("", old, new, out)
-    return [line + _WHY.get(line.split(":")[0].split(".")[0], "") for line in out]
+    return [line + ((" (the file was written before keys held it)"
+                     if 'file has "<absent>"' in line else _WHY[field])
+                    if field in _WHY else "")
+            for line, field in ((ln, ln.split(":")[0].split(".")[0]) for ln in out)]
 
 
 #: what a difference in these key fields means, added to its line
-_WHY = {"source": " (the diffpen or tuning code changed since the file was written: resuming "
-                  "would mix results of two versions of the code)",
+_WHY = {"source": " (the diffpen or tuning source changed since the file was written, by some "
+                  "edit: resuming could mix results of two versions of the code)",
         "runtime": " (another jax, jaxlib or device computes it, rounding differently)"}
 
 

@@ -9,11 +9,12 @@ so memory stays bounded by the chunk. The last chunk is padded to the same shape
 whole sweep compiles once.
 
 The results so far are written to ``out`` (``.npz``) after every chunk, or, where rewriting
-the whole file costs more than a twentieth of the computing (:data:`NPZ_COST_FACTOR`), after
-the chunks that took 20 times its write time; a ``.csv`` beside it every :data:`CSV_EVERY_S`
-seconds; both at the end, also of an interrupted run (:data:`CSV_ON_STOP_S`). Each is
-written through a temporary file and ``os.replace`` (never half-written; :mod:`tuning.io`). The file carries a
-key of everything that determines it (:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
+the whole file costs more than a twentieth of the computing, after the chunks that took 20
+times its write time; a ``.csv`` beside it every 30 s; both at the end, also of an
+interrupted run (:mod:`tuning.sweep_files`: ``NPZ_COST_FACTOR``, ``CSV_EVERY_S``,
+``CSV_ON_STOP_S``). Each is written through a temporary file and ``os.replace`` (never
+half-written; :mod:`tuning.io`). The file carries a key of everything that determines it
+(:func:`sweep_key`); calling :func:`sweep` again with the same key and ``out`` resumes:
 finished chunks are read back, not recomputed. Another key is refused with the list of what
 differs (``resume=False`` overwrites). One writer per output (a lock), checked paths before
 any computing, and temporary files of a killed run are removed.
@@ -44,13 +45,12 @@ from .io import (OutputLock, atomic_write, check_output, clean_orphans,
                  key_differences, key_digest, result_key)
 from .points import grid_points, random_points  # noqa: F401  (public here too)
 from .progress import Progress
-from .sweep_files import (CSV_EVERY_S, CSV_ON_STOP_S, NPZ_COST_FACTOR,
-                          UNSTABLE, SweepError, SweepResult, _own_table, _Pair, _read_key,
-                          _save, _unreadable, _Unreadable, load_sweep)
+from .sweep_files import (UNSTABLE, SweepError, SweepResult, _own_table, _Pair, _read_key,
+                          _unreadable, _Unreadable, load_sweep)
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
            "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "function_key",
-           "UNSTABLE", "CSV_EVERY_S", "NPZ_COST_FACTOR", "CSV_ON_STOP_S"]
+           "UNSTABLE"]
 
 def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
                    keys: list | None = None, batch_map: Callable | None = None) -> Callable:
@@ -168,9 +168,10 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
       out: ``NAME.npz`` path (any other name raises :class:`SweepError`: the table is
         written to ``NAME.csv`` beside it); results and table are written atomically as
-        the chunks finish (see above) and when the sweep ends or stops. The paths are checked before anything is computed (a ``.csv`` there
-        that is not the table of the sweep in ``out`` is refused, never overwritten), and an
-        exclusive lock (``.<name>.lock`` beside it) keeps a second writer out.
+        the chunks finish (see above) and when the sweep ends or stops. The paths are
+        checked before anything is computed (a ``.csv`` there that is not the table of the
+        sweep in ``out`` is refused, never overwritten), and an exclusive lock
+        (``.<name>.lock`` beside it) keeps a second writer out.
       resume: continue a sweep found at ``out`` when its key equals this sweep's (see
         :func:`sweep_key`); a file with another key raises :class:`SweepError` naming what
         differs, and so does one that cannot be read (truncated, corrupt).
@@ -180,8 +181,9 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
         (:func:`tuning.io.describe_simulator` builds most of it). With ``out`` and no key,
         the key is :func:`function_key` of ``metrics_fn`` (or of the function a
         :func:`make_evaluator` evaluator was built from; any other ``evaluate`` needs a
-        key) and a digest of ``finalize``'s code: a rerun computing anything else is
-        refused, never mixed in.
+        key) and a digest of ``finalize``'s code and what it reads
+        (:func:`tuning.code_key.code_key`, which says what it does not cover): a rerun
+        computing something else is refused.
       keys: metrics to keep (default all; a :func:`make_evaluator` evaluator's own ``keys``
         when it was given some: the key holds the metrics it keeps).
       shape, axes: grid layout (see :func:`grid_points`).
@@ -345,7 +347,8 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
     if out and res.evaluated == 0 and res.done.any():
         # everything was resumed: write the pair again, so that a run killed between
         # replacing the .npz and its .csv does not leave the table a chunk short for good
-        _save(out, res)
+        pair.npz_stale = pair.csv_stale = True
+        pair.write()
 
 
 def _run_chunk(res, evaluate, points, a, b, chunk, finalize) -> None:

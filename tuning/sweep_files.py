@@ -86,14 +86,6 @@ NPZ_COST_FACTOR = 20.0
 CSV_ON_STOP_S = 10.0
 
 
-def _save(out: str, res: SweepResult) -> None:
-    """Write the .npz and the .csv (each atomic; a command's Ctrl-C waits until both are
-    replaced)."""
-    with uninterrupted():
-        _save_npz(out, res)
-        _save_csv(out, res)
-
-
 class _Pair:
     """The .npz and .csv of a running sweep, each rewritten when due (:data:`CSV_EVERY_S`,
     :data:`NPZ_COST_FACTOR`) and both when it ends or stops (:data:`CSV_ON_STOP_S`)."""
@@ -146,8 +138,9 @@ class _Pair:
         self.write(csv=not (stopped and slow))
         if self.csv_stale:
             csv_path = os.path.splitext(self.out)[0] + ".csv"
+            what = ("was left as it was" if os.path.exists(csv_path) else "was not written")
             print(f"sweep stopped: {self.out} holds the {int(self.res.done.sum())} points "
-                  f"done; its table {csv_path} was left as it was (rewriting it takes "
+                  f"done; its table {csv_path} {what} (writing it takes "
                   f"~{max(self.csv_cost, 0.5e-6 * values):.0f} s). Rerun the same sweep: it "
                   "resumes and writes the table.", file=sys.stderr)
 
@@ -224,7 +217,7 @@ def _read_key(path: str):
 
 
 def _own_table(csv_path: str, out: str, names=None) -> bool:
-    """Whether ``csv_path`` is the table :func:`_save` wrote beside the sweep file ``out``:
+    """Whether ``csv_path`` is the table :class:`_Pair` wrote beside the sweep file ``out``:
     its header is the swept names ... ``done``. The names are those stored in ``out``; when
     ``out`` cannot be read (truncated, corrupt: it can only be overwritten), ``names`` (this
     run's swept names), so that ``resume=False`` replaces both files. False when ``out`` is

@@ -121,6 +121,8 @@ class Analysis(NamedTuple):
     min_step: the shortest inner step (s) the dtype resolves at the scene's scale
       (:func:`diffpen.precision.min_resolved_step`; shorter ones warn).
     extra_ranges: the ``Params.extra`` entries' ranges (:func:`extra_ranges`).
+    events_step: an event-exact contact record's shortest inner step in this dtype
+      (:func:`diffpen.precision.events_min_step`; shorter ones warn), or 0 (another law).
     """
     integrator: Integrator
     dt: float
@@ -136,6 +138,7 @@ class Analysis(NamedTuple):
     depth_exponent: float | None = None
     min_step: float = 0.0
     extra_ranges: tuple = ()
+    events_step: float = 0.0
 
     @property
     def inner_dt(self) -> float:

@@ -204,6 +204,8 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     an = _analysis(sim)
     n = _gate_count(an, params, check, substeps, cache, energy)
     _precision.warn_step(an.min_step, an.dt / n, an.dtype)
+    if an.events_step:          # an event-exact record (diffpen.precision.warn_events)
+        _precision.warn_events(an.events_step, an.dt / n, an.dtype)
     return n
 
 
