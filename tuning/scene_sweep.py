@@ -62,7 +62,8 @@ def check_size(sim, points: int, steps: int, records: int, chunk: int, swept: in
     swept and metric columns, held in memory, the .npz and the .csv) or one chunk's rollouts
     (``chunk`` points x ``records`` (at least 1) rollouts of ``steps`` steps, each counted as
     :func:`diffpen.checks.estimate` counts a saved trajectory) past half this machine's
-    memory, or more than a week of compute at :data:`diffpen.checks.STEP_RATE`."""
+    memory; the message gives the compute at :data:`diffpen.checks.STEP_RATE` too (a CPU's
+    rate: no sweep is refused for its time, which a GPU may cut many times)."""
     from diffpen.checks import STEP_RATE, estimate, human_bytes, human_time, memory_bytes
 
     from .sweep import SweepError
@@ -83,9 +84,6 @@ def check_size(sim, points: int, steps: int, records: int, chunk: int, swept: in
         raise SweepError(f"a chunk of {min(chunk, points):.0f} points x {runs} rollouts of "
                          f"{steps} steps needs about {human_bytes(live)} (this machine has "
                          f"{human_bytes(mem)}): lower chunk (diffpen sweep --chunk).")
-    if seconds > 7 * 86400:
-        raise SweepError(f"the sweep would take {work}: lower n (diffpen sweep --n), or the "
-                         "records' or the scene's duration.")
 
 
 def sweep_axes(sf, params, axes: Sequence | None, n: Sequence[int]) -> dict:
