@@ -255,3 +255,51 @@ def test_a_scene_file_sweep_too_large_is_refused_before_it_runs(tmp_path):
         sweep_scene_file(str(scene), (), None, n=[100000], out=None)
     with pytest.raises(S.SweepError, match=r"a chunk of 1000000 points .* lower chunk"):
         sweep_scene_file(str(scene), (), None, n=[1000], chunk=10 ** 6, out=None)
+
+
+CRUMPLE = """
+dt = 1e-4
+gravity = [0.0, 0.0, 0.0]
+[materials.wall]
+k = 1e5
+c = 10.0
+[[crumple_bars]]
+n = 6
+start = [0.1, 0.0, 0.5]
+end = [0.6, 0.0, 0.5]
+mass = 1.0
+k = 2000.0
+c = 1.0
+yield_strain = 0.05
+velocity = [-1.0, 0.0, 0.0]
+[[planes]]
+normal = [1.0, 0.0, 0.0]
+offset = 0.0
+material = "wall"
+[fit]
+params = ["springs.bar.k"]
+"""
+
+
+def test_a_record_sweep_counts_the_points_where_a_crumple_member_collapsed(tmp_path, capsys):
+    """audit18: the collapse flag (a plastic member crushed below 5% of its length, past
+    what the model describes) reached no sweep: a scene-file sweep over a crumple bar
+    returned inverted bars as ordinary errors. Its records sweep now keeps a
+    collapsed_records column (per point, the records whose rollout collapsed) and the
+    command counts those points."""
+    import json
+
+    from record_scenes import record_file
+
+    from tuning.cli import main
+    scene, rec = record_file(tmp_path, CRUMPLE, {"springs.bar.k": 2000.0},
+                             ["bar[0]", "bar[5]"], "crumple", integrator="semi_implicit_euler",
+                             dt=1e-4, every=0.005, duration=0.3, noise=0.0, seed=0)
+    from tuning.scene_sweep import sweep_scene_file
+    res, info = sweep_scene_file(scene, [rec], [("springs.bar.k", 200.0, 2000.0)], n=[2])
+    crushed = np.asarray(res.metrics["collapsed_records"]).reshape(-1)
+    assert list(crushed) == [1, 0]          # the soft bar (k 200 N/m) collapses at 1 m/s
+    capsys.readouterr()
+    assert main(["sweep", scene, "--data", rec, "--param", "springs.bar.k", "200", "2000",
+                 "--n", "2", "--json", "--out", str(tmp_path / "c.npz")]) == 0
+    assert json.loads(capsys.readouterr().out)["points_with_collapsed_records"] == 1

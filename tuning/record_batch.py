@@ -392,13 +392,17 @@ def _observer(bodies: tuple, rot: bool):
 
 
 def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False,
-             offsets=None):
+             offsets=None, with_collapse: bool = False):
     """Positions (R, T, B, 3) m and orientations (R, T, B, 4) (None without rotation) of the
     batch's bodies at the frame times, each record rolled out from its own start state.
     With ``with_flag`` also (R,) bool: the record's rollout went past its safe step
     (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
-    a result. ``offsets``: start-state offsets added to every record's observed bodies
+    a result. With ``with_collapse`` (after it) also (R,) bool: a plastic spring of the
+    record's rollout collapsed (``State.aux["plastic_collapsed"]``,
+    :mod:`diffpen.terms.plastic`; False without plastic springs). ``offsets``: start-state offsets added to every record's observed bodies
     (:func:`tuning.start_refine.with_start_offsets`). Pure: jit, grad and jacfwd it."""
+    from diffpen.terms.plastic import COLLAPSED
+
     from .stable import rollout_unstable
     idx = batch.bodies
     rot = sim.scene.has_rotation and batch.has_rotation
@@ -415,6 +419,9 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
         f = frac[:, None, None].astype(p.dtype)
         pos = pa + f * (pb - pa)
         bad = (rollout_unstable(sim, traj, params),) if with_flag else ()
+        if with_collapse:
+            flag = traj.aux.get(COLLAPSED)
+            bad += (jnp.asarray(False) if flag is None else jnp.asarray(flag)[-1] > 0,)
         if not rot:
             return (pos, None) + bad
         q = jnp.concatenate([state.orientation[idx][None], traj.observed[1]])

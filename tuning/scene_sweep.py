@@ -46,6 +46,10 @@ RECORD_METRICS = ("position_error_pct", "position_error_median", "rotation_error
                   "rotation_error_median")
 #: per point, the records past the scene's safe step, left out of its means and medians
 UNSTABLE_RECORDS = "unstable_records"
+#: per point, how many records' rollouts had a plastic spring collapse (crushed below 5% of
+#: its length, :mod:`diffpen.terms.plastic`: past what the model describes); scenes with
+#: plastic springs only. Their errors are kept, and the command counts these points.
+COLLAPSED_RECORDS = "collapsed_records"
 #: what a sweep without records keeps per point (the bounce of the [fit] body)
 BOUNCE_METRICS = ("apex_heights", "settling_time", "max_penetration", "contact_durations",
                   "restitution")
@@ -225,6 +229,7 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
     check_size(sim, n_points, steps, len(data), chunk, len(names))
     points, shape = grid_points(grid_axes)
     key = dict(describe_simulator(sim), scene_file=_digest(scene_path))
+    plastic = bool(sim.scene.plastic_springs)      # the collapse flag (COLLAPSED_RECORDS)
     if data:
         from .evaluate import _errors
         from .record_batch import simulate
@@ -252,7 +257,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
                 g = jnp.argmin(jnp.sum(jnp.abs(jnp.asarray(table, row.dtype) - row), axis=1))
                 b = dataclasses.replace(batch, start=jax.tree_util.tree_map(
                     lambda a: a[g], starts))
-            pos, quat, bad = simulate(sim, params, b, with_flag=True)
+            pos, quat, bad, *crushed = simulate(sim, params, b, with_flag=True,
+                                                with_collapse=plastic)
             pe, re = _errors(pos, quat, b)
             nan = jnp.asarray(jnp.nan, pe.dtype)
             pe = jnp.where(bad, nan, pe)        # past the safe step: no result (as evaluate)
@@ -261,6 +267,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
                 m.update(zip(("rotation_error_deg", "rotation_error_median"),
                              summary(jnp.where(bad, nan, re))))
             m[UNSTABLE_RECORDS] = jnp.sum(jnp.isnan(pe))
+            if plastic:
+                m[COLLAPSED_RECORDS] = jnp.sum(crushed[0])
             m["unstable"] = ~jnp.any(jnp.isfinite(pe))      # no record has a result
             return m
         if not batch.has_rotation:
@@ -289,7 +297,8 @@ def sweep_scene_file(scene_path: str, data: Sequence[str] = (), axes: Sequence |
             m["settling_time"] = np.where(m["settled"], m["settling_time"], np.nan)
         return m
     res = sweep(metrics_fn, params0, points, names, chunk=chunk, out=out, resume=resume,
-                key=key, keys=kept + ["unstable"] + ([UNSTABLE_RECORDS] if data else []),
+                key=key, keys=kept + ["unstable"] + ([UNSTABLE_RECORDS] if data else [])
+                + ([COLLAPSED_RECORDS] if data and plastic else []),
                 shape=shape, axes=grid_axes,
                 progress=progress, finalize=finalize)
     info = {"axes": grid_axes, "metrics": kept, "records": len(data), "simulator": sim}

@@ -376,6 +376,10 @@ def _run_scene(args) -> int:
                              bool).reshape(left.shape[0], -1).any(axis=1)
         partial = res.done & ~flagged & (left > 0) & (left < info["records"])
         out["points_with_unstable_records"] = int(np.count_nonzero(partial))
+    crushed = np.asarray(res.metrics.get("collapsed_records", np.zeros(0)))
+    if crushed.size:    # a plastic spring collapsed (diffpen.terms.plastic): past the model
+        out["points_with_collapsed_records"] = int(np.count_nonzero(
+            res.done & (crushed.reshape(crushed.shape[0], -1)[:, 0] > 0)))
     if args.json:
         dump_json(out)
         return 0
@@ -393,6 +397,10 @@ def _run_scene(args) -> int:
     if res.unstable:
         print(f"{res.unstable} points are past the scene's safe step: their metrics are NaN "
               "(lower dt in the scene file to compute them)")
+    if out.get("points_with_collapsed_records"):
+        print(f"{out['points_with_collapsed_records']} points crushed a plastic spring of some "
+              "record below 5% of its length (the collapsed_records column), past what the "
+              "model describes (no self-contact): their errors are not to be trusted")
     if out.get("points_with_unstable_records"):
         print(f"{out['points_with_unstable_records']} points left out records whose rollouts "
               f"went past the safe step (up to {int(left[partial].max())} of "
