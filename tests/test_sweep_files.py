@@ -303,3 +303,10 @@ def test_a_record_sweep_counts_the_points_where_a_crumple_member_collapsed(tmp_p
     assert main(["sweep", scene, "--data", rec, "--param", "springs.bar.k", "200", "2000",
                  "--n", "2", "--json", "--out", str(tmp_path / "c.npz")]) == 0
     assert json.loads(capsys.readouterr().out)["points_with_collapsed_records"] == 1
+    # diffpen evaluate (and a scene fit's final evaluation) marks such a record too
+    from tuning.evaluate import evaluate_files
+    soft = tmp_path / "soft.toml"
+    soft.write_text(CRUMPLE.replace("k = 2000.0", "k = 200.0"))
+    out = evaluate_files(str(soft), [rec])
+    assert out["records"][0]["collapsed"] and "crushed a plastic spring" in out["message"]
+    assert not evaluate_files(scene, [rec])["records"][0]["collapsed"]

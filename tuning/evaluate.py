@@ -56,7 +56,9 @@ class Evaluation:
     seconds: wall time of the rollouts (after compilation).
     unstable: records whose rollout went past its safe step (``State.aux["unstable"]``):
       their errors are NaN (``records[i]["unstable"]`` True) and left out of the summary.
-    message: says so when ``unstable`` > 0, else "".
+      ``records[i]["collapsed"]``: a plastic spring of the record's rollout collapsed
+      (``State.aux["plastic_collapsed"]``); its errors are kept.
+    message: says so when ``unstable`` > 0 or a record collapsed, else "".
     """
     position_error_pct: dict
     rotation_error_deg: dict | None
@@ -125,16 +127,19 @@ def evaluator(sim: dp.Simulator, batch: Batch):
     arguments). ``f.lower(params).compile()`` compiles it ahead of a call."""
     key, layout, arrays = layout_of(batch)
 
+    plastic = bool(sim.scene.plastic_springs)
+
     def build():
         @jax.jit
         def f(params, arrays):
             b = with_arrays(layout, arrays)
-            pos, quat, bad = simulate(sim, params, b, with_flag=True)
+            pos, quat, bad, *crushed = simulate(sim, params, b, with_flag=True,
+                                                with_collapse=plastic)
             pe, re = _errors(pos, quat, b)
             nan = jnp.asarray(jnp.nan, pe.dtype)
             pe = jnp.where(bad, nan, pe)            # past the safe step: never a result
             re = None if re is None else jnp.where(bad, nan, re)
-            return pos, quat, pe, re
+            return (pos, quat, pe, re) + tuple(crushed)
         return f
     return _Bound(_PROGRAMS.get((sim, key), build), arrays, sim.dtype)
 
@@ -160,8 +165,9 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
         jax.block_until_ready(fn(params))
         run = fn
     t0 = time.perf_counter()
-    pos, quat, pe, re = jax.block_until_ready(run(params))
+    pos, quat, pe, re, *crushed = jax.block_until_ready(run(params))
     seconds = time.perf_counter() - t0
+    crushed = np.asarray(crushed[0]) if crushed else np.zeros(len(batch.paths), bool)
     pe = np.asarray(pe)
     re = None if re is None else np.asarray(re)
     recs = []
@@ -171,12 +177,18 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
                      "duration_s": float(batch.time[r, n - 1]),
                      "position_error_pct": float(pe[r]),
                      "rotation_error_deg": None if re is None else float(re[r]),
-                     "unstable": bool(np.isnan(pe[r]))})
+                     "unstable": bool(np.isnan(pe[r])), "collapsed": bool(crushed[r])})
     bad = [rec["path"] for rec in recs if rec["unstable"]]
     message = (f"{len(bad)} of {len(recs)} records ran past the safe step"
                f"{solver_miss(sim)} (State.aux['unstable']): their errors are NaN and left "
                f"out of the summary; lower dt or use softer k / smaller c ({bad[:5]})"
                if bad else "")
+    flat = [rec["path"] for rec in recs if rec["collapsed"]]
+    if flat:            # a plastic member crushed below 5% of its length (diffpen.terms.plastic)
+        message += ("; " if message else "") + (
+            f"{len(flat)} of {len(recs)} records crushed a plastic spring below 5% of its "
+            "length (State.aux['plastic_collapsed']: no self-contact, past what the model "
+            f"describes): their errors are not to be trusted ({flat[:5]})")
     return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
                       np.asarray(pos), None if quat is None else np.asarray(quat), seconds,
                       len(bad), message)

@@ -196,6 +196,10 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
         "out": None if out_error else out, "seconds": time.perf_counter() - t0,
         "fit_seconds": res.seconds,
         "reached": not (res.unstable or after.unstable or res.diverged)})
+    crushed = [r["path"] for r in after.records if r.get("collapsed")]
+    if crushed:     # a plastic member crushed below 5% of its length at the fitted values
+        summary["collapsed_records"] = crushed
+        summary["message"] += "; " + after.message.split("; ")[-1]
     if out_error:
         summary["out_error"] = out_error
     return summary

@@ -34,7 +34,7 @@ def run(args) -> int:
     except (CLIError, ValueError, ImportError, OSError) as exc:
         return fail("evaluate", str(exc))
     code = 1 if out.get("unstable") else 0      # records past the safe step: not results
-    if code:
+    if out.get("message"):                      # ... or a crumple member collapsed
         print(f"diffpen evaluate: {out['message']}", file=sys.stderr)
     if args.json:
         dump_json(out)
