@@ -286,16 +286,10 @@ class Scene:
         if b_idx is not None and self.bodies[int(a)].pinned and self.bodies[b_idx].pinned:
             raise SceneError(f"spring joins two pinned bodies ({a}, {b}): it can never act; "
                              "remove it or unpin one end.")
+        self._use_spring_group(group, k, c)
         if rest_length is None:
             rest_length = math.dist(pa, pb)
         rest_length = positive("spring rest_length (m)", rest_length, allow_zero=True)
-        if rest_length > 0.0 and math.dist(pa, pb) == 0.0:
-            # its axis is undefined while the ends coincide: no force, stuck for ever
-            raise SceneError(f"spring from body {a}: its ends start at the same point "
-                             f"{tuple(float(x) for x in pa)} with a rest length of "
-                             f"{rest_length:g} m, so it has no direction and can never push "
-                             "them apart; start the bodies apart (or give rest_length=0).")
-        self._use_spring_group(group, k, c)
         self.springs.append(Spring(int(a), b_idx, anchor, rest_length, group))
         return len(self.springs) - 1
 

@@ -590,19 +590,3 @@ def test_a_step_past_the_safe_step_is_refused_as_a_rollout_is(sim):
     assert np.all(np.isfinite(sim.step(p, sim.init_state(), check_stability=False).position))
     ok = sim.step(sim.params(k=1e4, c=20.0), sim.init_state())
     assert float(ok.position[0, 2]) < 1.0
-
-
-def test_a_spring_of_positive_rest_length_between_coincident_ends_is_refused():
-    """Regression (audit17): two particles at one point joined by a spring of rest length
-    0.1 m compiled and stayed stuck together for ever (its axis is undefined there: no
-    force, and no word). Refused now, before the spring group is declared; a rest length
-    of 0 there is a plain zero-length spring."""
-    s = dp.Scene()
-    a = s.add_particle(1.0, (0.0, 0.0, 1.0))
-    b = s.add_particle(1.0, (0.0, 0.0, 1.0))
-    with pytest.raises(dp.SceneError, match="ends start at the same point .* can never push"):
-        s.add_spring(a, b, k=10.0, rest_length=0.1, group="g")
-    with pytest.raises(dp.SceneError, match="same point"):
-        s.add_spring(a, (0.0, 0.0, 1.0), k=10.0, rest_length=0.1)
-    assert "g" not in s.spring_groups and not s.springs
-    s.add_spring(a, b, k=10.0)
