@@ -368,15 +368,14 @@ class Simulator:
         a rollout's are (:class:`SceneError`; :func:`diffpen.checks.check_step`), params cast
         to the simulator's dtype; with concrete params the rollout's stability gate runs
         (:class:`StabilityError` past the safe step; "auto" takes the substeps it picks),
-        unless ``check_stability=False`` (then 1 substep for "auto", and no flag). Traced
-        (your own jitted scan of steps) each step sets ``aux["unstable"]`` as a rollout does
+        unless ``check_stability=False`` (then 1 substep for "auto", and no flag). In your own
+        jitted scan each step sets ``aux["unstable"]``: from traced params as a rollout does
         (a law stiffening with depth bounds it by the state's energy, every step: a
-        Hunt-Crossley cloth 2.4-4x the step; prefer :meth:`rollout`)."""
+        Hunt-Crossley cloth 2.4-4x the step), else where the state is not finite."""
         _checks.check_step(self, params, state)
-        n = _stability.step_gate(self, params, state) if check_stability else None
-        traced = check_stability and any(isinstance(x, jax.core.Tracer) for x in
-                                         jax.tree_util.tree_leaves((params, state)))
-        new, ok = _stepping.jitted(self, n, flag=traced)(
+        n = _stability.step_gate(self, params, state, check_stability)
+        new, ok = _stepping.jitted(self, n, flag=_stepping.flag_mode(
+            params, state, check_stability))(
             jax.tree_util.tree_map(self._cast, params), state)
         if isinstance(ok, jax.core.Tracer) or not bool(ok):   # traced: its concrete fields
             _checks.check_state_values(self, state)     # raises, naming what is wrong

@@ -97,14 +97,25 @@ def _searching_step(sim, h: float, inv_mass):
     return step
 
 
-def flagged(sim, params, state, h, energy=None, add: bool = False):
+def flag_mode(params, state, check: bool):
+    """What :meth:`~diffpen.Simulator.step` sets in ``aux["unstable"]``: ``"bound"`` for
+    traced params (:func:`flagged`, as a rollout), ``"values"`` for concrete params (the
+    gate checked them) and a traced state (its spin and whether it is finite: cheap), else
+    None."""
+    def traced(tree):
+        return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
+    if not check:
+        return None
+    return "bound" if traced(params) else "values" if traced(state) else None
+
+
+def flagged(sim, params, state, h, energy=None, add: bool = False, bound: bool = True):
     """``state`` with its ``aux["unstable"]`` flag or-ed with whether ``params`` (cast) are
-    past the safe step at the inner step ``h``, its spin past the spin limit or its values
-    not finite: the
-    traced flag of a rollout (once, before its loop) and of a step given traced params
-    (every step). ``energy``: the up-front gate's (else traced from ``state`` where the
-    contact law needs one). A state without the flag gets one only with ``add`` (a step
-    keeps the structure of the state it is given)."""
+    past the safe step at the inner step ``h`` (not without ``bound``), its spin past the
+    spin limit or its values not finite: the traced flag of a rollout (once, before its
+    loop) and of a step in a jitted scan (every step). ``energy``: the up-front gate's (else
+    traced from ``state`` where the contact law needs one). A state without the flag gets
+    one only with ``add`` (a step keeps the structure of the state it is given)."""
     import jax.numpy as jnp
 
     from . import motion as _motion
@@ -113,11 +124,12 @@ def flagged(sim, params, state, h, energy=None, add: bool = False):
     old = state.aux.get(_stability.FLAG)
     if old is None and not add:
         return state
-    if energy is None and sim.analysis.depth_exponent is not None:
-        # the start state or a named plane's offset is traced: the same energy, traced
-        energy = _start_energy.traced(sim, params, state)
-    flag = _stability.unsafe(sim.analysis, params, h=h, energy=energy)
-    flag = flag | _motion.spin_unsafe(sim, state, h)
+    flag = _motion.spin_unsafe(sim, state, h)
+    if bound:
+        if energy is None and sim.analysis.depth_exponent is not None:
+            # the start state or a named plane's offset is traced: the same energy, traced
+            energy = _start_energy.traced(sim, params, state)
+        flag = flag | _stability.unsafe(sim.analysis, params, h=h, energy=energy)
     for a in (state.position, state.velocity, state.orientation, state.angular_velocity):
         if a is not None:       # a traced start state with NaN or inf in it (audit17)
             flag = flag | ~jnp.all(jnp.isfinite(a))
@@ -125,22 +137,22 @@ def flagged(sim, params, state, h, energy=None, add: bool = False):
     return state._replace(aux={**state.aux, _stability.FLAG: flag})
 
 
-def jitted(sim, n: int | None, flag: bool = False):
+def jitted(sim, n: int | None, flag: str | None = None):
     """``sim``'s jitted step over ``n`` inner steps (None: its own count, 1 for "auto"),
     built once per count: what :meth:`~diffpen.Simulator.step` calls. It takes the state as
     given and returns ``(new state, ok)``: the step from the state with its pins held
     (:func:`hold_pins`) and whether the given state's values are valid
-    (:func:`diffpen.checks.state_values_ok`). With ``flag`` (traced params) the state's
-    ``aux["unstable"]`` flag is set first as a rollout sets it (:func:`flagged`)."""
+    (:func:`diffpen.checks.state_values_ok`). With ``flag`` (:func:`flag_mode`) the
+    state's ``aux["unstable"]`` flag is set first (:func:`flagged`)."""
     n = int(n) if n is not None else (sim.substeps if isinstance(sim.substeps, int) else 1)
-    key = ("jit", n, bool(flag))
+    key = ("jit", n, flag)
     if key not in sim._steps:
         step = sim.step_function(n)
 
         def run(params, state):
             ok = state_values_ok(sim, state)
             if flag:
-                state = flagged(sim, params, state, sim.dt / n)
+                state = flagged(sim, params, state, sim.dt / n, bound=flag == "bound")
             return step(params, hold_pins(sim, state)), ok
         sim._steps[key] = jax.jit(run)
     return sim._steps[key]

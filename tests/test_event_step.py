@@ -572,6 +572,11 @@ def test_an_event_exact_record_whose_step_float32_cannot_resolve_warns():
         run(1e-4, jnp.float32)
     with pytest.warns(dp.PrecisionWarning, match="inner step of 0.0005 s in float32"):
         run(2.5e-3, jnp.float32, substeps=5)                  # the step the rollout takes
+    sim = dp.compile(scene, 1e-4, law=rec, dtype=jnp.float32)  # steps (audit19): unchecked,
+    with pytest.warns(dp.PrecisionWarning, match="event-exact"):    # and traced
+        sim.step(sim.params(k=1e4, c=20.0), sim.init_state(), check_stability=False)
+    with pytest.warns(dp.PrecisionWarning, match="event-exact"):
+        jax.jit(lambda k: sim.step(sim.params(k=k, c=20.0), sim.init_state()).time)(1e4)
     with warnings.catch_warnings():
         warnings.simplefilter("error", dp.PrecisionWarning)
         run(1e-4, jnp.float64)

@@ -100,13 +100,20 @@ def test_steps_of_ones_own_loop_given_traced_params_set_the_flag():
     assert set(safe.aux) == set(sim.init_state().aux)          # the carry keeps its shape
     params = sim.params(k=1e4, c=10.0)          # concrete params, a traced state (audit18)
 
+    from diffpen.stepping import flag_mode
+    modes = []
+
     @jax.jit
     def from_height(z):
         s = sim.init_state()
         s = s._replace(position=s.position.at[0, 2].set(z))
+        modes.append(flag_mode(params, s, True))
         return jax.lax.scan(lambda s, _: (sim.step(params, s), None), s, None, length=5)[0]
     assert not bool(from_height(0.3).aux["unstable"])
     assert bool(from_height(float("nan")).aux["unstable"])
+    # audit19: with concrete params (the gate checked them) only the state's own checks run
+    # per step, not the bound (under a law stiffening with depth it cost 2.5-3.6x the step)
+    assert set(modes) == {"values"} and flag_mode(params, sim.init_state(), True) is None
 
 
 def test_a_traced_start_state_that_is_not_finite_sets_the_flag():

@@ -161,6 +161,18 @@ def test_a_finalize_is_keyed_by_jax_arrays_jitted_helpers_and_partials(monkeypat
         monkeypatch.undo()
     assert len({k0, *keys}) == 4 and code_key(finalize_by_arrays) == k0
 
+    def make(limits, table):           # audit19: a list of JAX arrays, a closed-over helper,
+        def helper(v):                 # a dict's int key against its text
+            return v > limits[0]
+
+        def finalize(m, pts):
+            return {"high": helper(m["twice"]) & (table.get(1, 0.0) > 0.0)}
+        return finalize
+    made = [code_key(make(*a)) for a in (([jnp.asarray(0.5)], {1: 0.5}),
+                                         ([jnp.asarray(0.05)], {1: 0.5}),
+                                         ([jnp.asarray(0.5)], {"1": 0.5}))]
+    assert len(set(made)) == 3
+
 
 def test_a_leaf_swept_twice_is_refused():
     """Regression: names with a leaf twice ran, the last column winning: a table then

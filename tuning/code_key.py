@@ -69,8 +69,11 @@ def _as_data(v):
             return v
     if isinstance(v, (set, frozenset)):
         return sorted((_as_data(x) for x in v), key=repr)
-    if isinstance(v, dict):
-        return {str(k): _as_data(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_as_data(x) for x in v]
+    if isinstance(v, dict):         # an int key and its text are told apart
+        return {(k if isinstance(k, str) else f"{type(k).__name__}:{k}"): _as_data(x)
+                for k, x in v.items()}
     return v
 
 
@@ -108,9 +111,10 @@ def _feed_function(h, fn: Callable, seen: set, depth: int) -> None:
         _feed_value(h, v)
     for cell in getattr(fn, "__closure__", None) or ():
         try:
-            _feed_value(h, cell.cell_contents)
+            value = cell.cell_contents
         except ValueError:                           # a cell not yet filled
-            _feed_value(h, None)
+            value = None
+        _feed_global(h, value, seen, depth)          # a helper it closes over: followed
     glob = getattr(fn, "__globals__", None) or {}
     for n in dict.fromkeys(names):                   # the globals it reads, in code order
         if n not in glob:

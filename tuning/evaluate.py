@@ -121,8 +121,10 @@ class _Lowered:
 
 def evaluator(sim: dp.Simulator, batch: Batch):
     """A compiled ``f(params) -> (pos, quat, pos_err (R,), rot_err (R,) or None)`` for the
-    batch (compiled on the first call; new parameter values never recompile, and neither
-    does another batch of the same layout on the same simulator,
+    batch (and a fifth, ``collapsed`` (R,) bool, for a scene with plastic springs: a record
+    whose rollout collapsed one, :mod:`diffpen.terms.plastic`) (compiled on the first call;
+    new parameter values never recompile, and neither does another batch of the same layout
+    on the same simulator,
     :func:`tuning.record_batch.layout_of`: the program takes the batch's arrays as
     arguments). ``f.lower(params).compile()`` compiles it ahead of a call."""
     key, layout, arrays = layout_of(batch)

@@ -58,14 +58,16 @@ def version() -> str:
 
 
 def source_digest() -> str:
-    """SHA-256 (16 hex digits) of the Python source of the ``diffpen`` and ``tuning``
+    """SHA-256 (16 hex digits) of the Python source on disk of the ``diffpen`` and ``tuning``
     packages this process imported: every regular ``.py`` file under them (by relative path
     and bytes; names and folders starting with ``.`` and ``__pycache__`` left out: an
-    editor's lock file, a notebook's checkpoints), read at each call (~4 ms; a module
-    reloaded in a notebook counts). Part of every result key beside :func:`version`: the
-    version number stays the same while the code changes (an editable install, a ``git
-    pull``), and a resumed sweep or fit would otherwise mix rows computed by two versions
-    of the code. Any edit changes it, comments too, and so does a stray ``.py`` file."""
+    editor's lock file, a notebook's checkpoints), read at each call (~4 ms). A file edited
+    on disk counts at once, also where this process still runs the module it imported
+    before the edit (restart or reload it before writing results). Part of every result
+    key beside :func:`version`: the version number stays the same while the code changes (an
+    editable install, a ``git pull``), and a resumed sweep or fit would otherwise mix rows
+    computed by two versions of the code. Any edit changes it, comments too, and so does a
+    stray ``.py`` file."""
     import diffpen
     h = hashlib.sha256()
     for pkg in (diffpen, sys.modules[__package__]):

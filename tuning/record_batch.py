@@ -399,7 +399,8 @@ def simulate(sim: dp.Simulator, params, batch: Batch, *, with_flag: bool = False
     (``State.aux["unstable"]``, :func:`tuning.stable.rollout_unstable`); such poses are not
     a result. With ``with_collapse`` (after it) also (R,) bool: a plastic spring of the
     record's rollout collapsed (``State.aux["plastic_collapsed"]``,
-    :mod:`diffpen.terms.plastic`; False without plastic springs). ``offsets``: start-state offsets added to every record's observed bodies
+    :mod:`diffpen.terms.plastic`; False without plastic springs). ``offsets``: start-state
+    offsets added to every record's observed bodies
     (:func:`tuning.start_refine.with_start_offsets`). Pure: jit, grad and jacfwd it."""
     from diffpen.terms.plastic import COLLAPSED
 

@@ -47,6 +47,8 @@ from .points import grid_points, random_points  # noqa: F401  (public here too)
 from .progress import Progress
 from .sweep_files import (UNSTABLE, SweepError, SweepResult, _own_table, _Pair, _read_key,
                           _unreadable, _Unreadable, load_sweep)
+# read here as before; they are read (and set) in tuning.sweep_files
+from .sweep_files import CSV_EVERY_S, CSV_ON_STOP_S, NPZ_COST_FACTOR  # noqa: F401,E402
 
 __all__ = ["SweepResult", "SweepError", "grid_points", "random_points", "sweep",
            "atomic_write", "load_sweep", "make_evaluator", "sweep_key", "function_key",

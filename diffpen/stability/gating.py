@@ -203,10 +203,17 @@ def gate(sim, params, *, check: bool = True, substeps: int | None = None,
     """
     an = _analysis(sim)
     n = _gate_count(an, params, check, substeps, cache, energy)
-    _precision.warn_step(an.min_step, an.dt / n, an.dtype)
-    if an.events_step:          # an event-exact record (diffpen.precision.warn_events)
-        _precision.warn_events(an.events_step, an.dt / n, an.dtype)
+    warn_precision(an, an.dt / n)
     return n
+
+
+def warn_precision(an, h: float) -> None:
+    """The dtype's warnings for the inner step ``h`` (s): too short to resolve the motion
+    (:func:`diffpen.precision.warn_step`) or, for an event-exact record, its rebuilt force
+    (:func:`diffpen.precision.warn_events`)."""
+    _precision.warn_step(an.min_step, h, an.dtype)
+    if an.events_step:
+        _precision.warn_events(an.events_step, h, an.dtype)
 
 
 def _gate_count(an, params, check, substeps, cache, energy) -> int:
@@ -270,17 +277,21 @@ def _implicit_precision(an: Analysis, params, substeps: int) -> None:
         f"(substeps={n}).", stable_dt=h_ok, substeps=n)
 
 
-def step_gate(sim, params, state) -> int | None:
+def step_gate(sim, params, state, check: bool = True) -> int | None:
     """The gate of ``Simulator.step``: :func:`gate` for concrete ``params`` (None for traced
-    ones, which the step cannot refuse), returning the substep count to step with ("auto":
-    its pick). Once per set of parameter values: a loop of steps pays a look-up. A law that
+    ones, which the step cannot refuse, and without ``check``: then only the dtype's
+    warnings at the simulator's own inner step, :func:`warn_precision`), returning the
+    substep count to step with ("auto": its pick). Once per set of parameter values: a loop
+    of steps pays a look-up. A law that
     stiffens with depth counts the energy of the state it is given
     (``Simulator.start_energy``); a later state keeps the verdict when it has no more energy,
     or none it can count (a body in contact: in a loop of steps that is the energy of the
     flight before, which the contacts only dissipate; a rollout from the same start counts
     the same, and a step loop was refused mid-bounce at the radius's bound)."""
     import jax
-    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(params)):
+    if not check or any(isinstance(v, jax.core.Tracer)
+                        for v in jax.tree_util.tree_leaves(params)):
+        warn_precision(sim.analysis, sim.analysis.inner_dt)
         return None
     an, cache = sim.analysis, sim.gate_cache
     energy = sim.start_energy(state, params) if an.depth_exponent is not None else None
