@@ -94,23 +94,24 @@ def _check_inertia(scene, dtype) -> None:
     blamed the time step; at 1e-170 m in float64 numpy's eigenvalue solver failed."""
     from .rigid import inertia_diagonal
     tiny = float(np.finfo(dtype).tiny)
+
+    def refuse(what: str, why: str, fix: str):
+        """A value below the square root of ``tiny``, where its square rounds to 0."""
+        raise SceneError(f"{what} is below the square root of {np.dtype(dtype).name}'s "
+                         f"smallest normal number ({tiny ** 0.5:.3g}): {why}. {fix}"
+                         + (", or use dtype=float64." if np.dtype(dtype).itemsize < 8
+                            else "."))
     for name, mat in scene.materials.items():
         if mat.friction > 0.0 and mat.slip_speed < tiny ** 0.5:     # s^2 underflows to 0
-            raise SceneError(
-                f"material {name!r}'s slip_speed ({mat.slip_speed:.3g} m/s) is below the square "
-                f"root of {np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): "
-                "friction's |v_t|^2 + slip_speed^2 rounds to 0 for a body at rest (0 / 0). "
-                "Raise it (it is the speed below which friction is viscous)"
-                + (", or use dtype=float64." if np.dtype(dtype).itemsize < 8 else "."))
+            refuse(f"material {name!r}'s slip_speed ({mat.slip_speed:.3g} m/s)",
+                   "friction's |v_t|^2 + slip_speed^2 rounds to 0 for a body at rest (0 / 0)",
+                   "Raise it (it is the speed below which friction is viscous)")
     for i, b in enumerate(scene.bodies):
         size = min(b.half_extents) if b.half_extents else b.radius
         if 0.0 < size < tiny ** 0.5:   # audit17: 5e-324 m divided by 0 in the step checks
-            raise SceneError(
-                f"body {i}'s size ({size:.3g} m) is below the square root of "
-                f"{np.dtype(dtype).name}'s smallest normal number ({tiny ** 0.5:.3g}): its "
-                "areas and the checks' times round to 0. Rescale the scene (metres to a unit "
-                "where the body is not this small)"
-                + (", or use dtype=float64." if np.dtype(dtype).itemsize < 8 else "."))
+            refuse(f"body {i}'s size ({size:.3g} m)",
+                   "its areas and the checks' times round to 0",
+                   "Rescale the scene (metres to a unit where the body is not this small)")
         if not b.rigid or b.pinned:
             continue
         moments = inertia_diagonal(b)

@@ -1,6 +1,10 @@
 """Precision limits and the step's gate: scenes a dtype cannot resolve (far from the origin,
-past float32's range, rigid bodies too small), steps too short for float32, and ``sim.step``
-refusing and picking substeps as a rollout does."""
+past float32's range, rigid bodies too small), steps too short for float32 (also for the
+event-exact records' rebuilt force), and ``sim.step`` refusing and picking substeps as a
+rollout does."""
+import warnings
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -152,3 +156,38 @@ def test_a_sphere_too_small_for_the_dtype_is_refused_at_compile():
     s.add_plane(material="rough")
     with pytest.raises(dp.SceneError, match="slip_speed .* rounds to 0 for a body at rest"):
         dp.compile(s, 1e-3, dtype=jnp.float32)
+
+
+def test_an_event_exact_record_whose_step_float32_cannot_resolve_warns():
+    """Regression (audit17): the event-exact records rebuild each step's force from a second
+    difference of positions over h^2, whose float32 rounding grows as spacing / h^2: a ball
+    at dt 5e-5 s had derivatives off by up to 13x (1e-4 s: 64%) with no word, where the
+    default record stayed within 0.4%. A rollout (or step) whose inner step, substeps
+    included, is past the step float32 resolves to 1e-3 of g warns, naming float64;
+    float64, and float32 at a long enough step, do not."""
+    from diffpen.precision import events_min_step
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 0.2))
+    scene.add_plane()
+    rec = dp.laws.linear(events=True)
+    least = events_min_step(scene, jnp.float32)
+    assert 1e-3 < least < 3e-3 and events_min_step(scene, jnp.float64) < 1e-7
+
+    def run(dt, dtype, law=rec, **kw):
+        sim = dp.compile(scene, dt, law=law, dtype=dtype)
+        sim.rollout(sim.params(k=1e4, c=20.0), 2, **kw)
+    with pytest.warns(dp.PrecisionWarning, match="event-exact contact record at an inner "
+                                                 "step of 0.0001 s in float32.*float64"):
+        run(1e-4, jnp.float32)
+    with pytest.warns(dp.PrecisionWarning, match="inner step of 0.0005 s in float32"):
+        run(2.5e-3, jnp.float32, substeps=5)                  # the step the rollout takes
+    sim = dp.compile(scene, 1e-4, law=rec, dtype=jnp.float32)  # steps (audit19): unchecked,
+    with pytest.warns(dp.PrecisionWarning, match="event-exact"):    # and traced
+        sim.step(sim.params(k=1e4, c=20.0), sim.init_state(), check_stability=False)
+    with pytest.warns(dp.PrecisionWarning, match="event-exact"):
+        jax.jit(lambda k: sim.step(sim.params(k=k, c=20.0), sim.init_state()).time)(1e4)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", dp.PrecisionWarning)
+        run(1e-4, jnp.float64)
+        run(2.5e-3, jnp.float32)
+        run(1e-4, jnp.float32, law="linear")                  # the default record
