@@ -1,7 +1,8 @@
 """Scene-file texts and a record maker shared by the record-fit tests (test_trajfit,
 test_records, test_record_batch, test_fit_command, test_first_state, test_fit_resume): a box
 hung on two anchored springs (group "hang", ``{k}`` N/m and ``{c}`` N s/m to fill in), a
-particle thrown through air with drag (group "air", fitted from 0.05), a four-node rope, and
+particle thrown through air with drag (group "air", fitted from 0.05), a four-node rope, a
+crumple bar hitting a wall, and
 :func:`record_file`, which writes a scene file and a record of it at given values."""
 from tuning import trajfit as tf
 from tuning.records import write_record
@@ -104,3 +105,29 @@ def record_file(tmp_path, text, truth, bodies, name, *, integrator, dt, every, d
     path = tmp_path / f"{name}.csv"
     write_record(str(path), rec)
     return str(scene), str(path)
+
+
+#: a six-node crumple bar (group "bar", k fitted) moving at 1 m/s into a wall plane, no
+#: gravity: at k 200 N/m its members collapse (diffpen.terms.plastic), at 2000 they do not
+CRUMPLE = """
+dt = 1e-4
+gravity = [0.0, 0.0, 0.0]
+[materials.wall]
+k = 1e5
+c = 10.0
+[[crumple_bars]]
+n = 6
+start = [0.1, 0.0, 0.5]
+end = [0.6, 0.0, 0.5]
+mass = 1.0
+k = 2000.0
+c = 1.0
+yield_strain = 0.05
+velocity = [-1.0, 0.0, 0.0]
+[[planes]]
+normal = [1.0, 0.0, 0.0]
+offset = 0.0
+material = "wall"
+[fit]
+params = ["springs.bar.k"]
+"""

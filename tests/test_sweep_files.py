@@ -245,6 +245,11 @@ def test_a_full_disk_names_the_file_and_what_is_kept(tmp_path, monkeypatch):
                                       r".*e\.npz holds the 8 points written before"):
         toy_sweep(out)
     assert S.load_sweep(out).done.all()
+    # every point resumed: the pair is written again, through the same guard (audit18: a
+    # bare "[Errno 28]" there)
+    with pytest.raises(OSError, match=r"could not write .*e\.csv: No space left on device\. "
+                                      r".*e\.npz holds the 8 points written before"):
+        toy_sweep(out)
 
 
 def _toy_params():
@@ -269,30 +274,6 @@ def test_a_scene_file_sweep_too_large_is_refused_before_it_runs(tmp_path):
         sweep_scene_file(str(scene), (), None, n=[1000], chunk=10 ** 6, out=None)
 
 
-CRUMPLE = """
-dt = 1e-4
-gravity = [0.0, 0.0, 0.0]
-[materials.wall]
-k = 1e5
-c = 10.0
-[[crumple_bars]]
-n = 6
-start = [0.1, 0.0, 0.5]
-end = [0.6, 0.0, 0.5]
-mass = 1.0
-k = 2000.0
-c = 1.0
-yield_strain = 0.05
-velocity = [-1.0, 0.0, 0.0]
-[[planes]]
-normal = [1.0, 0.0, 0.0]
-offset = 0.0
-material = "wall"
-[fit]
-params = ["springs.bar.k"]
-"""
-
-
 def test_a_record_sweep_counts_the_points_where_a_crumple_member_collapsed(tmp_path, capsys):
     """audit18: the collapse flag (a plastic member crushed below 5% of its length, past
     what the model describes) reached no sweep: a scene-file sweep over a crumple bar
@@ -301,7 +282,7 @@ def test_a_record_sweep_counts_the_points_where_a_crumple_member_collapsed(tmp_p
     command counts those points."""
     import json
 
-    from record_scenes import record_file
+    from record_scenes import CRUMPLE, record_file
 
     from tuning.cli import main
     scene, rec = record_file(tmp_path, CRUMPLE, {"springs.bar.k": 2000.0},
@@ -322,3 +303,10 @@ def test_a_record_sweep_counts_the_points_where_a_crumple_member_collapsed(tmp_p
     out = evaluate_files(str(soft), [rec])
     assert out["records"][0]["collapsed"] and "crushed a plastic spring" in out["message"]
     assert not evaluate_files(scene, [rec])["records"][0]["collapsed"]
+    from tuning.scene_fit import fit_files            # a fit held to soft members
+    held = tmp_path / "held.toml"
+    held.write_text(CRUMPLE.replace("k = 2000.0", "k = 200.0")
+                    + "[fit.bounds]\n'springs.bar.k' = [150.0, 250.0]\n")
+    fitted = fit_files(str(held), [rec], maxiter=2, step_check=False)
+    assert fitted["collapsed_records"] == [rec]
+    assert "crushed a plastic spring" in fitted["message"]

@@ -185,15 +185,21 @@ def evaluate_batch(sim: dp.Simulator, params, batch: Batch, *, fn=None) -> Evalu
                f"{solver_miss(sim)} (State.aux['unstable']): their errors are NaN and left "
                f"out of the summary; lower dt or use softer k / smaller c ({bad[:5]})"
                if bad else "")
-    flat = [rec["path"] for rec in recs if rec["collapsed"]]
-    if flat:            # a plastic member crushed below 5% of its length (diffpen.terms.plastic)
-        message += ("; " if message else "") + (
-            f"{len(flat)} of {len(recs)} records crushed a plastic spring below 5% of its "
-            "length (State.aux['plastic_collapsed']: no self-contact, past what the model "
-            f"describes): their errors are not to be trusted ({flat[:5]})")
+    crushed = collapse_message(recs)
+    if crushed:
+        message += ("; " if message else "") + crushed
     return Evaluation(_summary(pe), None if re is None else _summary(re), recs,
                       np.asarray(pos), None if quat is None else np.asarray(quat), seconds,
                       len(bad), message)
+
+
+def collapse_message(recs: list) -> str:
+    """What to say of the records (``Evaluation.records``) whose rollout collapsed a plastic
+    spring (crushed below 5% of its length, :mod:`diffpen.terms.plastic`), or ""."""
+    flat = [rec["path"] for rec in recs if rec.get("collapsed")]
+    return (f"{len(flat)} of {len(recs)} records crushed a plastic spring below 5% of its "
+            "length (State.aux['plastic_collapsed']: no self-contact, past what the model "
+            f"describes): their errors are not to be trusted ({flat[:5]})" if flat else "")
 
 
 def plot_records(path: str, batch: Batch, ev: Evaluation, which=None, *,

@@ -131,7 +131,7 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
          maxiter, starts, keep, max_frames, overrides, progress, step_check, fresh=False,
          checkpoint=None) -> dict:
     """:func:`fit_files` once its inputs are read and its output checked and locked."""
-    from .evaluate import evaluate_batch, evaluator
+    from .evaluate import collapse_message, evaluate_batch, evaluator
     t0 = time.perf_counter()
     sim = sf.compile()
     params = sf.params(sim)
@@ -196,10 +196,10 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
         "out": None if out_error else out, "seconds": time.perf_counter() - t0,
         "fit_seconds": res.seconds,
         "reached": not (res.unstable or after.unstable or res.diverged)})
-    crushed = [r["path"] for r in after.records if r.get("collapsed")]
+    crushed = collapse_message(after.records)
     if crushed:     # a plastic member crushed below 5% of its length at the fitted values
-        summary["collapsed_records"] = crushed
-        summary["message"] += "; " + after.message.split("; ")[-1]
+        summary["collapsed_records"] = [r["path"] for r in after.records if r["collapsed"]]
+        summary["message"] += "; " + crushed
     if out_error:
         summary["out_error"] = out_error
     return summary
