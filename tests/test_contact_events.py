@@ -80,11 +80,12 @@ def test_pair_law_zero_just_outside_the_band(law):
     ``d = -|vn| h`` on (step-averaged), for approaching, still and separating contacts."""
     rec = laws.get(law, 1.5 if law == "hunt_crossley" else 1.0)
     w, h = 1e-2, 1e-3
-    d = jnp.array([-0.5 * w, -0.5 * w - 1e-9, -1.0, -1e3] * 3)
-    vn = jnp.repeat(jnp.array([-2.0, 0.0, 3.0]), 4)
-    da = jnp.array([-2.0 * h, -2.0 * h - 1e-9, -1.0, -1e-9, -1.0, -0.1, -3.0 * h,
-                    -3.0 * h - 1e-9, -1.0])
-    va = jnp.repeat(jnp.array([-2.0, 0.0, 3.0]), 3)
+    # numpy inputs (eager jnp.array / jnp.repeat compiled a program each)
+    d = np.array([-0.5 * w, -0.5 * w - 1e-9, -1.0, -1e3] * 3)
+    vn = np.repeat(np.array([-2.0, 0.0, 3.0]), 4)
+    da = np.array([-2.0 * h, -2.0 * h - 1e-9, -1.0, -1e-9, -1.0, -0.1, -3.0 * h,
+                   -3.0 * h - 1e-9, -1.0])
+    va = np.repeat(np.array([-2.0, 0.0, 3.0]), 3)
 
     @jax.jit
     def both(d, vn, da, va):
@@ -381,7 +382,7 @@ def test_centred_damping_on_sphere_pairs_and_fixed_spheres():
             scene.add_fixed_sphere((0.0, 0.0, -10.0), 10.0)
         scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
         sim = dp.compile(scene, 1e-3, law=centred)
-        z.append(np.asarray(sim.rollout(sim.params(k=1e4, c=20.0), 1500).position[:, 0, 2]))
+        z.append(np.asarray(sim.rollout(sim.params(k=1e4, c=20.0), 1500).position)[:, 0, 2])
     assert np.abs(z[0] - z[1]).max() < 1e-12
 
 
@@ -397,9 +398,9 @@ def test_ball_fast_path_applies_the_simulators_law(centred):
     assert supports(sim) is None
     k, c = jnp.array([5e3, 1e4]), jnp.array([10.0, 30.0])
     z = np.asarray(ball_heights(sim, k, c, 900))
-    for i in range(2):
-        want = sim.rollout(sim.params(k=k[i], c=c[i]), 900).position[:, 0, 2]
-        np.testing.assert_array_equal(z[:, i], np.asarray(want))
+    for i in range(2):                  # numpy indexing: no eager programs
+        want = sim.rollout(sim.params(k=np.asarray(k)[i], c=np.asarray(c)[i]), 900).position
+        np.testing.assert_array_equal(z[:, i], np.asarray(want)[:, 0, 2])
 
 
 @pytest.mark.parametrize("law", LAWS)
@@ -556,14 +557,24 @@ def test_half_integer_powers_equal_pow_with_finite_derivatives():
     product rule would have given 0 / 0)."""
     from diffpen.window import _power
     x = np.array([0.0, 1e-9, 3e-4, 0.2, 2.0])
-    for p in (0.5, 1.0, 1.5, 1.7, 2.0, 2.5, 3.5, 4.5):
-        got = jax.jit(jax.vmap(lambda v: (_power(v, p), jax.grad(_power)(v, p),
-                                          jax.grad(jax.grad(_power))(v, p))))(x)
-        want = jax.jit(jax.vmap(lambda v: (v ** p, jax.grad(lambda u: u ** p)(v),
-                                           jax.grad(jax.grad(lambda u: u ** p))(v))))(x)
+    powers = (0.5, 1.0, 1.5, 1.7, 2.0, 2.5, 3.5, 4.5)
+
+    @jax.jit
+    def both(x):
+        """Per power (a static exponent each): ``_power``'s and ``pow``'s values and first
+        and second derivatives at ``x`` (one compiled program for every power)."""
+        out = []
+        for p in powers:
+            got = jax.vmap(lambda v: (_power(v, p), jax.grad(_power)(v, p),
+                                      jax.grad(jax.grad(_power))(v, p)))(x)
+            want = jax.vmap(lambda v: (v ** p, jax.grad(lambda u: u ** p)(v),
+                                       jax.grad(jax.grad(lambda u: u ** p))(v)))(x)
+            out.append((got, want))
+        return out
+    for p, (got, want) in zip(powers, both(x)):
         keep = x > 0 if p < 2.0 else np.ones_like(x, bool)   # pow's own 0 * inf at 0
         for g, w in zip(got, want):
             np.testing.assert_allclose(np.asarray(g)[keep], np.asarray(w)[keep], rtol=1e-13,
-                                       atol=0)
+                                       atol=0, err_msg=f"p = {p}")
         if p >= 2.0:
             assert all(np.isfinite(np.asarray(g)).all() for g in got)

@@ -21,6 +21,35 @@ from scipy.linalg import expm  # noqa: E402
 G = 9.81
 
 
+def _height(state):
+    """The first body's height: the rollouts' ``observe``, one function object for the
+    module (a new one per call traced and compiled the rollout again)."""
+    return state.position[0, 2]
+
+
+@pytest.fixture(scope="module")
+def compiled():
+    """``get(scene, law, record, key=())``: ``scene`` compiled at dt = 1e-3, float64, with
+    ``laws.<law>(<record>=True)``, once per (law, record, key) for the module and shared (a
+    Simulator is frozen), so that the tests of one scene share its compiled rollouts."""
+    sims = {}
+
+    def get(scene, law, record, key=()):
+        if (law, record, key) not in sims:
+            sims[law, record, key] = dp.compile(scene, 1e-3, law=getattr(laws, law)(
+                **{record: True}), dtype=jnp.float64)
+        return sims[law, record, key]
+    return get
+
+
+def _ball03(get, law, record):
+    """The 0.3 kg ball (radius 0.1 m, 0.25 m up) over the plane, from ``get`` (above)."""
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=0.3, position=(0.0, 0.0, 0.25))
+    scene.add_plane()
+    return get(scene, law, record, "0.3 kg ball")
+
+
 @pytest.mark.parametrize("w2, b", [(1e5, 50.0), (1e4, 20.0), (100.0, 1500.0)],
                          ids=["stiff", "quick-start", "overdamped"])
 def test_spring_flow_is_the_matrix_exponential(w2, b):
@@ -114,9 +143,10 @@ def _continuous(z0, v0, k, c, m, r, times, law="linear", n=1.0):
     return np.concatenate(out)
 
 
-@pytest.mark.parametrize("law, c", [(laws.linear, 15.0), (laws.no_tension, 60.0)],
+@pytest.mark.parametrize("law, c", [("linear", 15.0), ("no_tension", 60.0)],
                          ids=["linear", "no_tension"])
-def test_positions_are_samples_of_the_continuous_motion_through_contact_start_and_end(law, c):
+def test_positions_are_samples_of_the_continuous_motion_through_contact_start_and_end(
+        compiled, law, c):
     """The 0.3 kg ball (k 3e4, c 15 linear / 60 no_tension, w h 0.32) dropped onto the plane
     at dt = 1e-3: with ``events=True`` the positions of a rollout (semi-implicit Euler: its
     velocity is the secant of the last step, so the continuous motion starts at
@@ -125,27 +155,23 @@ def test_positions_are_samples_of_the_continuous_motion_through_contact_start_an
     the surface after it), within 1e-10 m; the exact record (exact only inside contact) is
     1e-6 m off or more after the bounce. The batched rollout equals the single ones."""
     m, r, k, h, steps = 0.3, 0.1, 3e4, 1e-3, 400
-    scene = dp.Scene()
-    scene.add_sphere(radius=r, mass=m, position=(0.0, 0.0, 0.25))
-    scene.add_plane()
     times = np.arange(steps + 1) * h
-    want = _continuous(0.25, -G * h / 2, k, c, m, r, times, law().name)
+    want = _continuous(0.25, -G * h / 2, k, c, m, r, times, law)
 
     def heights(sim, k_):
-        return sim.rollout(sim.params(k=k_, c=c), steps,
-                           observe=lambda s: s.position[0, 2]).observed
-    events = dp.compile(scene, h, law=law(events=True), dtype=jnp.float64)
-    exact = dp.compile(scene, h, law=law(exact=True), dtype=jnp.float64)
+        return sim.rollout(sim.params(k=k_, c=c), steps, observe=_height).observed
+    events, exact = _ball03(compiled, law, "events"), _ball03(compiled, law, "exact")
     # one compiled single rollout, for the check against the continuous motion and for the
-    # batched rollout's lanes (a second, eager rollout compiled the same program again)
+    # batched rollout's lanes (a second, eager rollout compiled the same program again),
+    # called with Python floats only (a jax scalar compiled it once more)
     single = jax.jit(lambda k_: heights(events, k_))
     got = np.asarray(single(k))
     assert np.min(got) < r - 1e-3                       # the ball did bounce
     np.testing.assert_allclose(got, want[1:], atol=1e-10, rtol=0)   # states after each step
-    old = np.asarray(jax.jit(lambda k_: heights(exact, k_))(k))
+    old = np.asarray(heights(exact, k))
     assert np.max(np.abs(old - want[1:])) > 1e-6
-    ks = jnp.array([k, 2 * k])
-    batched = np.asarray(jax.jit(jax.vmap(lambda k_: heights(events, k_)))(ks))
+    ks = [k, 2 * k]
+    batched = np.asarray(jax.jit(jax.vmap(lambda k_: heights(events, k_)))(jnp.asarray(ks)))
     for i, ki in enumerate(ks):
         np.testing.assert_allclose(batched[i], np.asarray(single(ki)), rtol=0, atol=1e-12)
 
@@ -165,8 +191,7 @@ def test_event_exact_records_take_steps_up_to_w_h_one():
     want = _continuous(0.25, -G * h / 2, k, c, m, r, np.arange(steps + 1) * h)[1:]
     sim = dp.compile(scene, h, law=laws.linear(events=True), dtype=jnp.float64)
     assert sim.analysis.contact_wh == 1.0
-    got = np.asarray(sim.rollout(sim.params(k=k, c=c), steps,
-                                 observe=lambda s: s.position[0, 2]).observed)
+    got = np.asarray(sim.rollout(sim.params(k=k, c=c), steps, observe=_height).observed)
     assert np.min(got) < r - 4e-3                       # the ball did bounce
     np.testing.assert_allclose(got, want, atol=1e-10, rtol=0)
     with pytest.raises(dp.StabilityError, match="w h <= 1"):
@@ -195,8 +220,7 @@ def test_hunt_crossley_positions_follow_the_continuous_motion():
     def heights(sim, k_):
         # the safe step counts the depth the start's energy bounds (w h 0.40), not the
         # radius (0.69; diffpen.stability.depth)
-        return sim.rollout(sim.params(k=k_, c=c), steps,
-                           observe=lambda s: s.position[0, 2]).observed
+        return sim.rollout(sim.params(k=k_, c=c), steps, observe=_height).observed
     events = dp.compile(scene, h, law=laws.hunt_crossley(1.5, events=True),
                         dtype=jnp.float64)
     centred = dp.compile(scene, h, law=laws.hunt_crossley(1.5, centred=True),
@@ -206,8 +230,8 @@ def test_hunt_crossley_positions_follow_the_continuous_motion():
     assert np.min(got) < r - 3e-3                       # the ball did bounce
     np.testing.assert_allclose(got, want, atol=1e-6, rtol=0)
     assert np.max(np.abs(np.asarray(heights(centred, k)) - want)) > 1e-5
-    ks = jnp.array([k, 2 * k])
-    batched = np.asarray(jax.jit(jax.vmap(lambda k_: heights(events, k_)))(ks))
+    ks = [k, 2 * k]                 # Python floats, as single's first call: no recompile
+    batched = np.asarray(jax.jit(jax.vmap(lambda k_: heights(events, k_)))(jnp.asarray(ks)))
     for i, ki in enumerate(ks):
         np.testing.assert_allclose(batched[i], np.asarray(single(ki)), rtol=0, atol=1e-12)
 
@@ -223,7 +247,7 @@ def test_two_free_spheres_bounce_apart_at_the_closed_form_restitution():
                      velocity=(-0.5, 0.0, 0.0))
     sim = dp.compile(scene, 1e-3, law=laws.linear(events=True), dtype=jnp.float64)
     k, c, m_eff = 3e4, 30.0, 0.75
-    v = np.asarray(sim.rollout(sim.params(k=k, c=c), 200, save_every=200).velocity[-1, :, 0])
+    v = np.asarray(sim.rollout(sim.params(k=k, c=c), 200, save_every=200).velocity)[-1, :, 0]
     zeta = c / (2.0 * np.sqrt(k * m_eff))
     e = np.exp(-np.pi * zeta / np.sqrt(1.0 - zeta ** 2))
     assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 1e-12
@@ -251,13 +275,13 @@ def test_two_free_hertz_spheres_leave_at_the_continuous_restitution():
                      velocity=(-0.5, 0.0, 0.0))
     sim = dp.compile(scene, 1e-3, law=laws.hunt_crossley(1.5, events=True), dtype=jnp.float64)
     v = np.asarray(sim.rollout(sim.params(k=k, c=c), 200, save_every=200,
-                               check_stability=False).velocity[-1, :, 0])
+                               check_stability=False).velocity)[-1, :, 0]
     assert 0.5 < e < 0.99                          # damped: e 0.971
     assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 5e-6
 
 
 @pytest.mark.parametrize("c", [30.0, 150.0])
-def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(c):
+def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(compiled, c):
     """The same pair with ``no_tension(events=True)``: the release (the force reaching 0
     before the surfaces part) is located within the step, and the restitution is
     Schwager & Poschel's closed form (``dp.physical.restitution``) within 1e-12 (the exact
@@ -266,23 +290,20 @@ def test_two_free_spheres_with_no_tension_leave_at_the_closed_form_restitution(c
     scene.add_sphere(radius=0.1, mass=1.0, position=(0.0, 0.0, 0.0), velocity=(1.0, 0.0, 0.0))
     scene.add_sphere(radius=0.1, mass=3.0, position=(0.2031, 0.0, 0.0),
                      velocity=(-0.5, 0.0, 0.0))
-    sim = dp.compile(scene, 1e-3, law=laws.no_tension(events=True), dtype=jnp.float64)
-    v = np.asarray(sim.rollout(sim.params(k=3e4, c=c), 300, save_every=300).velocity[-1, :, 0])
+    sim = compiled(scene, "no_tension", "events", "pair")     # one for both dampings
+    v = np.asarray(sim.rollout(sim.params(k=3e4, c=c), 300, save_every=300).velocity)[-1, :, 0]
     e = float(dp.physical.restitution(3e4, c, 0.75, law="no_tension"))
     assert abs((v[1] - v[0]) / 1.5 / e - 1.0) < 1e-12
 
 
-def test_reverse_mode_equals_forward_mode_through_a_bounce():
+def test_reverse_mode_equals_forward_mode_through_a_bounce(compiled):
     """Reverse-mode (``jax.grad``, the rollout's steps rematerialised, the Newton solve and
     ``lax.cond`` inside) and forward-mode (``jax.jacfwd``) gradients of a loss over a
     bouncing no_tension ball's heights agree to 1e-10 (measured 2e-14, linear too)."""
-    scene = dp.Scene()
-    scene.add_sphere(radius=0.1, mass=0.3, position=(0.0, 0.0, 0.25))
-    scene.add_plane()
-    sim = dp.compile(scene, 1e-3, law=laws.no_tension(events=True), dtype=jnp.float64)
+    sim = _ball03(compiled, "no_tension", "events")
 
     def loss(k, c):
-        z = sim.rollout(sim.params(k=k, c=c), 400, observe=lambda s: s.position[0, 2]).observed
+        z = sim.rollout(sim.params(k=k, c=c), 400, observe=_height).observed
         return jnp.sum(z ** 2)
     rev = np.asarray(jax.jit(jax.grad(loss, (0, 1)))(3e4, 60.0))
     fwd = np.asarray(jax.jit(jax.jacfwd(loss, (0, 1)))(3e4, 60.0))
@@ -321,13 +342,6 @@ def test_hunt_crossley_step_reverse_mode_derivatives_equal_differences():
         np.testing.assert_allclose(rev, fd, rtol=1e-5, atol=1e-6 * np.abs(rev).max())
 
 
-def _lane_ball(law):
-    scene = dp.Scene()
-    scene.add_sphere(radius=0.1, mass=0.3, position=(0.0, 0.0, 0.25))
-    scene.add_plane()
-    return dp.compile(scene, 1e-3, law=law, dtype=jnp.float64)
-
-
 @pytest.mark.parametrize("law, k, c, flow", [
     (laws.linear(events=True), 3e4, 15.0, "spring_flow"),
     (laws.no_tension(events=True), 3e4, 15.0, "spring_flow"),
@@ -351,12 +365,15 @@ def test_batched_records_solve_only_the_lanes_at_a_crossing(monkeypatch, law, k,
         seen.append(jnp.shape(x))
         return original(x, *args)
     monkeypatch.setattr(es, flow, spying)
-    sim = _lane_ball(law)
+    # the 0.3 kg ball, compiled here (not shared: its programs are traced under the patches)
+    scene = dp.Scene()
+    scene.add_sphere(radius=0.1, mass=0.3, position=(0.0, 0.0, 0.25))
+    scene.add_plane()
+    sim = dp.compile(scene, 1e-3, law=law, dtype=jnp.float64)
     ks = k * np.geomspace(0.6, 1.6, 12)
 
     def heights(kk):
-        return sim.rollout(sim.params(k=kk, c=c), 200,
-                           observe=lambda s: s.position[0, 2]).observed
+        return sim.rollout(sim.params(k=kk, c=c), 200, observe=_height).observed
     batched = np.asarray(jax.jit(jax.vmap(heights))(jnp.asarray(ks)))
     one = jax.jit(heights)
     single = np.stack([np.asarray(one(kk)) for kk in ks])
@@ -365,17 +382,17 @@ def test_batched_records_solve_only_the_lanes_at_a_crossing(monkeypatch, law, k,
     assert (2,) in seen, seen
 
 
-def test_batched_record_gradients_by_both_modes():
+def test_batched_record_gradients_by_both_modes(compiled):
     """Derivatives of the gathered batched step (above) are the record's own: reverse mode
     of a batch's summed loss (``jax.grad`` outside ``jax.vmap``; a ``lax.cond``
     differentiated inside a ``custom_jvp`` rule does not transpose there, which broke the
     first form of this change) equals forward mode inside it, for twelve 0.3 kg linear
     balls through their first bounce."""
-    sim = _lane_ball(laws.linear(events=True))
+    sim = _ball03(compiled, "linear", "events")
     ks = 3e4 * np.geomspace(0.6, 1.6, 12)
 
     def loss(kk):
-        z = sim.rollout(sim.params(k=kk, c=15.0), 200, observe=lambda s: s.position[0, 2])
+        z = sim.rollout(sim.params(k=kk, c=15.0), 200, observe=_height)
         return jnp.sum(z.observed ** 2)
     rev = float(jax.jit(jax.grad(lambda s: jnp.sum(jax.vmap(loss)(s * ks))))(1.0))
     fwd = np.asarray(jax.jit(jax.vmap(jax.jacfwd(loss)))(jnp.asarray(ks)))
@@ -392,8 +409,9 @@ def test_crossing_solve_derivatives_are_implicit_and_equal_differences():
     h, im = 1e-3, 1.0 / 0.3
     k, c, a = 3e4, 15.0, 9.81
     # (depth m, secant rate of penetration m/s): entered, left, stayed and leaving ahead
-    x = jnp.array([1e-4, -2e-4, 2e-3, 4e-4])
-    u = jnp.array([0.9, -0.8, 0.3, -0.7])
+    # numpy: the shifted points below are made on the host (eager jnp ops compiled each)
+    x = np.array([1e-4, -2e-4, 2e-3, 4e-4])
+    u = np.array([0.9, -0.8, 0.3, -0.7])
 
     @jax.jit
     def nxt(x, u, k, c):
@@ -405,7 +423,7 @@ def test_crossing_solve_derivatives_are_implicit_and_equal_differences():
     for i, e in enumerate((1e-8, 1e-6, 1e-2, 1e-5)):
         up = [w + e if j == i else w for j, w in enumerate(args)]
         dn = [w - e if j == i else w for j, w in enumerate(args)]
-        fd = np.asarray((nxt(*up) - nxt(*dn)) / (2 * e))
+        fd = (np.asarray(nxt(*up)) - np.asarray(nxt(*dn))) / (2 * e)
         tol = dict(rtol=1e-5, atol=1e-9 * np.abs(fd).max())
         np.testing.assert_allclose(np.diag(fwd[i]) if i < 2 else fwd[i], fd, **tol)
         # reverse mode of the summed depths
@@ -427,7 +445,7 @@ def _oscillator_back(k, c, m, x0, h):
 @pytest.mark.parametrize("law", ["linear", "no_tension"])
 @pytest.mark.parametrize("mass, k, c", [(1.0, 1e4, 20.0), (0.3, 3e4, 15.0), (1.0, 1e4, 300.0)],
                          ids=["quick-start", "w h 0.32", "overdamped"])
-def test_exact_records_step_the_damped_spring_exactly(law, mass, k, c):
+def test_exact_records_step_the_damped_spring_exactly(compiled, law, mass, k, c):
     """``linear(exact=True)`` / ``no_tension(exact=True)``: a ball that stays in contact (the
     window inside, force ``R k d - Q c vn + (1 - R) m g``) is stepped exactly: semi-implicit
     Euler's positions equal the continuous damped oscillation about the resting depth at
@@ -445,12 +463,14 @@ def test_exact_records_step_the_damped_spring_exactly(law, mass, k, c):
     s.add_sphere(radius=0.1, mass=mass, position=(0.0, 0.0, 0.1 - rest - amp),
                  velocity=(0.0, 0.0, -(y[1] - y[0]) / h))
     s.add_plane()
-    make = {"linear": laws.linear, "no_tension": laws.no_tension}[law]
+    # one simulator per mass: the cases of one mass differ only in the ball's start
+    # position and velocity, which each rollout takes as its start state (this scene's)
+    start = dp.compile(s, h, dtype=jnp.float64).init_state()
     off = []
-    for rec in (make(exact=True), make(centred=True)):
-        sim = dp.compile(s, h, law=rec, dtype=jnp.float64)
-        z = np.asarray(sim.rollout(sim.params(k=k, c=c), steps, check_stability=False)
-                       .position[:, 0, 2])
+    for record in ("exact", "centred"):
+        sim = compiled(s, law, record, ("resting ball", mass))
+        z = np.asarray(sim.rollout(sim.params(k=k, c=c), steps, start, check_stability=False)
+                       .position)[:, 0, 2]
         off.append(np.abs(0.1 - z - rest - y[2:]).max() / amp)   # y at t = h, 2h, ...
     assert off[0] < 1e-10 and off[1] > 5e-4, off
 
@@ -467,8 +487,9 @@ def test_exact_step_factors_against_the_roots():
              (1e4, 199.9999, 1.0), (1e4, 200.01, 1.0), (1e4, 0.0, 1.0), (1e8, 20.0, 1.0),
              (1e4, 2e4, 1.0), (1e9, 63245.0, 1.0)]
     k, c, im = (np.array(x) for x in zip(*cases))
-    r, q = (np.asarray(a) for a in jax.jit(laws.exact_step_factors, static_argnums=3)(
-        k, c, im, h))
+    # one jitted function for every call below (op by op, each call compiled ~25 programs)
+    factors = jax.jit(laws.exact_step_factors, static_argnums=3)
+    r, q = (np.asarray(a) for a in factors(k, c, im, h))
     for i, (kk, cc, ii) in enumerate(cases):
         s, w2 = 0.5 * cc * ii, kk * ii
         disc = cmath.sqrt(s * s - w2)
@@ -476,15 +497,15 @@ def test_exact_step_factors_against_the_roots():
         want_r = ((1 - e1) * (1 - e2)).real / (w2 * h * h)
         want_q = (1 - np.exp(-2 * s * h)) / (2 * s * h) if cc else 1.0
         assert r[i] == pytest.approx(want_r, rel=1e-9) and q[i] == pytest.approx(want_q, rel=1e-12)
-    r0, q0 = laws.exact_step_factors(0.0, 20.0, 1.0, h)
+    r0, q0 = factors(0.0, 20.0, 1.0, h)
     assert float(r0) == pytest.approx(float(q0), rel=1e-12)
-    assert [float(a) for a in laws.exact_step_factors(1e4, 20.0, 0.0, h)] == [1.0, 1.0]
+    assert [float(a) for a in factors(1e4, 20.0, 0.0, h)] == [1.0, 1.0]
     grads = jax.jit(jax.vmap(jax.grad(lambda a, b: sum(laws.exact_step_factors(a, b, 1.0, h)),
                                       (0, 1))))(np.array([1e4, 1e4, 0.0, 0.0, 1e4]),
                                                 np.array([200.0, 20.0, 0.0, 20.0, 0.0]))
     assert all(np.isfinite(np.asarray(g)).all() for g in grads)
-    r32 = laws.exact_step_factors(jnp.float32(1e4), jnp.float32(20.0), jnp.float32(1.0), 1e-5)
-    r64 = laws.exact_step_factors(1e4, 20.0, 1.0, 1e-5)
+    r32 = factors(np.float32(1e4), np.float32(20.0), np.float32(1.0), 1e-5)
+    r64 = factors(1e4, 20.0, 1.0, 1e-5)
     np.testing.assert_allclose(np.asarray(r32, float), np.asarray(r64), rtol=1e-6)
 
 
@@ -545,7 +566,7 @@ def test_event_exact_records_run_in_a_float32_simulator_with_x64_on(law):
             warnings.simplefilter("ignore", dp.PrecisionWarning)
             traj = sim.rollout(sim.params(k=1e4, c=20.0), 300)
         assert traj.position.dtype == dtype
-        z[dtype] = np.asarray(traj.position[:, 0, 2], float)
+        z[dtype] = np.asarray(traj.position, float)[:, 0, 2]
     np.testing.assert_allclose(z[jnp.float32], z[jnp.float64], atol=2e-5)
 
 

@@ -383,9 +383,11 @@ def test_decay_weighs_early_frames(cube):
                          0.01 * rng.standard_normal(batch.quat.shape[:-1] + (3,))], axis=-1)
     quat = pose.qmul(batch.quat, dq)
     quat = jnp.asarray(quat / np.linalg.norm(quat, axis=-1, keepdims=True))
-    plain = np.asarray(tf.pose_residuals(pos, quat, batch))
     tau = 0.05
-    weighted = np.asarray(tf.pose_residuals(pos, quat, batch, decay=tau))
+    # both residuals from one jitted program (as a fit traces them): eager jnp operations
+    # would compile a program each
+    plain, weighted = (np.asarray(r) for r in jax.jit(lambda p, q: (
+        tf.pose_residuals(p, q, batch), tf.pose_residuals(p, q, batch, decay=tau)))(pos, quat))
     T = batch.pos.shape[1]
     w = np.exp(-batch.time[0] / (2 * tau))                    # (T,) per frame
     n_pos = T * 3
