@@ -11,7 +11,8 @@ and fixed spheres are tested against all bodies at once with numpy.
 An overlap deeper than ``OVERLAP_TOL`` (one half) times the smaller radius (or half extent) is
 refused: the body starts inside the other one (a particle: any overlap); resting contact (a
 penetration of ``m g / k``) and slightly compressed starts pass. ``allow_overlap=True`` (per body, or for the whole scene) starts
-bodies compressed on purpose.
+bodies compressed on purpose; two spheres at exactly one centre are refused even then (their
+contact has no direction: nothing would ever push them apart).
 """
 from __future__ import annotations
 
@@ -98,12 +99,15 @@ def _over(depth, tol):
     return depth > tol * (1.0 + _SLACK) + 1e-15
 
 
-def _refuse(what: str, depth: float, tol: float, fix: str) -> None:
+def _refuse(what: str, depth: float, tol: float, fix: str, allow: bool = True) -> None:
+    """Raise the overlap's SceneError; ``allow``: offer ``allow_overlap=True`` (not for
+    coincident centres, which it refuses too: :meth:`OverlapIndex._coincident`)."""
     limit = (f"more than {tol:.3g} m, {OVERLAP_TOL:.0%} of the smaller size" if tol > 0.0 else
              "a particle has no size, so any overlap counts")
+    offer = ("; or pass allow_overlap=True to start it compressed on purpose" if allow
+             else "")
     raise SceneError(f"{what} overlap by {depth:.4g} m at the start ({limit}: it starts "
-                     f"inside): {fix}; or pass allow_overlap=True to start it compressed on "
-                     "purpose.")
+                     f"inside): {fix}{offer}.")
 
 
 class OverlapIndex:
@@ -206,6 +210,7 @@ class OverlapIndex:
         if not body.collide:
             return
         if allow:
+            self._coincident(scene, body, idx)
             self.allowed.add(idx)
             if body.kind == "box":
                 self.boxes.append(idx)
@@ -253,8 +258,29 @@ class OverlapIndex:
                                f"they never separate: move them {r + rs[b]:.4g} m apart")
                     _refuse(f"sphere {idx} at {_fmt(x)} (radius {r:.4g} m) and sphere {i} at "
                             f"{_fmt(xs[b])} (radius {rs[b]:.4g} m)", float(depth[b]),
-                            float(tol[b]), fix)
+                            float(tol[b]), fix, allow=dist[b] > 0.0)
         self._insert(idx, x, r)
+
+    def _coincident(self, scene, body, idx: int) -> None:
+        """Refuse a sphere placed with ``allow_overlap`` at exactly the centre of another
+        colliding sphere (the pairs with a sphere-sphere contact): their contact has no
+        direction (:func:`diffpen.geometry.sphere_sphere` gives the normal 0), so no force
+        ever pushes them apart and they stay overlapped, silently. ``allow_overlap`` lets
+        bodies start compressed, which this cannot be."""
+        x, r = np.asarray(body.position, dtype=float), body.radius
+        if body.kind != "sphere" or r <= 0.0:
+            return
+        for i in self._near(x, r, len(scene.bodies)):
+            other = scene.bodies[i]
+            if (other.kind != "sphere" or other.radius <= 0.0 or not other.collide
+                    or (body.pinned and other.pinned)
+                    or np.any(np.asarray(other.position, dtype=float) != x)):
+                continue
+            raise SceneError(
+                f"sphere {idx} at {_fmt(x)} and sphere {i} start at the same centre: their "
+                "contact has no direction, so no force would ever push them apart "
+                "(allow_overlap starts bodies compressed, not coincident): move one of them "
+                "by any distance.")
 
     def _check_box(self, scene, box, idx: int) -> None:
         half = min(box.half_extents)

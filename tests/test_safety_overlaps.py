@@ -49,6 +49,14 @@ def test_bodies_starting_inside_are_refused_with_the_overlap_and_the_fix(build, 
         build(dp.Scene())
     for w in words:
         assert w in str(exc.value), (w, str(exc.value))
+    if "centres coincide" in words:
+        # regression: allow_overlap accepted coincident spheres, which then stayed overlapped
+        # for ever with no force, no gradient and no flag (the contact has no direction)
+        assert "allow_overlap" not in str(exc.value)        # no advice that cannot work
+        with pytest.raises(dp.SceneError, match="start at the same centre: their contact "
+                                                "has no direction"):
+            build(dp.Scene(allow_overlap=True))
+        return
     assert "allow_overlap=True" in str(exc.value)
     build(dp.Scene(allow_overlap=True))             # asked for explicitly: accepted
 
@@ -101,3 +109,27 @@ def test_overlap_check_looks_only_at_neighbours():
     assert isinstance(idx, OverlapIndex)
     counts = [len(idx._near(p, 0.1, scene.n_bodies)) for p in g[::97]]
     assert max(counts) <= 27 and scene.n_bodies == 1728
+
+
+def test_allow_overlap_refuses_only_coincident_sphere_centres():
+    """Regression: with ``allow_overlap`` two spheres at one centre were accepted, and they
+    stayed overlapped for ever (the contact's normal is 0 there: no force, no gradient, no
+    flag). A sphere added with it at another's centre is refused now, either order; a
+    compressed start, a pinned pair, a non-colliding sphere and a particle (which has no
+    contact with spheres) at the same point still pass."""
+    scene = dp.Scene()
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    with pytest.raises(dp.SceneError, match=r"sphere 1 at \(0, 0, 1\) and sphere 0 start at "
+                                            r"the same centre.*move one of them"):
+        scene.add_sphere(0.1, 3.0, (0.0, 0.0, 1.0), allow_overlap=True)
+    assert scene.n_bodies == 1                      # the refused body left no trace
+    scene.add_sphere(0.1, 3.0, (0.0, 0.0, 1.05), allow_overlap=True)     # compressed: fine
+    scene.add_particle(1.0, (0.0, 0.0, 1.0))
+    scene.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0), collide=False, allow_overlap=True)
+    pinned = dp.Scene()
+    pinned.add_sphere(0.1, 1.0, (1.0, 0.0, 1.0), pinned=True)
+    pinned.add_sphere(0.1, 1.0, (1.0, 0.0, 1.0), pinned=True, allow_overlap=True)
+    other = dp.Scene()
+    other.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0), allow_overlap=True)
+    with pytest.raises(dp.SceneError, match="start at the same centre"):
+        other.add_sphere(0.2, 1.0, (0.0, 0.0, 1.0), allow_overlap=True)
