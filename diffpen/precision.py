@@ -126,7 +126,8 @@ def _check_inertia(scene, dtype) -> None:
 def check_coordinates(scene, dtype) -> None:
     """Refuse a scene placed so far from the origin that ``dtype`` cannot resolve its motion
     there: the spacing of representable numbers at its farthest coordinate (body positions,
-    plane offsets, fixed spheres) above 1e-4 of its smallest body or 1% of the static
+    plane offsets, fixed spheres) above 1e-4 of its smallest body or of its shortest spring's
+    rest length (a particle rope far out ran 2% off, unwarned), or 1% of the static
     deflection ``m g / k`` of its declared contact materials, where that is more than
     :data:`FAR_COARSER` times the spacing at the scene's own scale. There a step's
     displacement ``|v| dt`` rounds away (float32: a box sliding at x = 1e4 m never moved while
@@ -144,6 +145,11 @@ def check_coordinates(scene, dtype) -> None:
     limits = []
     if sizes:
         limits.append((1e-4 * min(sizes), f"1e-4 of its smallest body ({min(sizes):.3g} m)"))
+    rests = [float(sp.rest_length) for group in (scene.springs, scene.anchored_springs,
+                                                 scene.plastic_springs)
+             for sp in group if sp.rest_length > 0.0]
+    if rests:       # a rope, cloth or jelly of particles has no body size: its springs' does
+        limits.append((1e-4 * min(rests), f"1e-4 of its shortest spring ({min(rests):.3g} m)"))
     g = float(np.linalg.norm(scene.gravity))
     ks = [m.k for m in scene.materials.values() if m.k]
     free = [b.mass for b in bodies if not b.pinned]

@@ -36,6 +36,20 @@ def test_a_scene_far_from_the_origin_is_refused_where_the_dtype_cannot_resolve_i
     for z in (0.0, 100.0):
         dp.compile(scene(z), 1e-3, dtype=jnp.float32)
     dp.compile(scene(1e4), 1e-3, dtype=jnp.float64)
+    # regression: a rope of particles (no body size, its k given to sim.params only) passed
+    # at x = 1e4 m in float32 and ran 1.9 cm (2% of its swing) off in 1 s, unwarned; its
+    # shortest spring (0.11 m) is the size float32 must resolve there
+    from diffpen import builders
+
+    def rope(x):
+        s = dp.Scene()
+        builders.add_rope(s, 10, (x, 0.0, 1.0), (x + 1.0, 0.0, 1.0), 1.0, 500.0, 0.5)
+        return s
+    with pytest.raises(dp.SceneError, match=r"1e\+04 m from the origin.*float32.*1e-4 of its "
+                                            r"shortest spring \(0\.111 m\)"):
+        dp.compile(rope(1e4), 2e-3, dtype=jnp.float32)
+    for x, dtype in ((0.0, jnp.float32), (100.0, jnp.float32), (1e4, jnp.float64)):
+        dp.compile(rope(x), 2e-3, dtype=dtype)
 
 
 def test_numbers_past_float32s_range_are_refused_by_name(ball_scene):
