@@ -191,3 +191,35 @@ def test_ball_metrics_refuse_a_ball_on_a_spring(tmp_path):
                     'mass = 1.0\nposition = [0.0, 0.0, 0.4]\n[[planes]]\n[[springs]]\n'
                     'a = "ball"\nb = [0.0, 0.0, 1.0]\nk = 20.0\nc = 0.5\nrest_length = 0.5\n')
     assert load_scene_file(str(path)).setup.metrics is None
+
+
+def test_a_bounce_between_two_saved_samples_is_counted():
+    """Regression: a contact shorter than the save interval (a stiff contact, or substeps)
+    left no sample below the surface, so the metrics did not see the bounce: the apexes
+    after it were missed (all nan) or replaced by later, smaller ones caught by a sample
+    (restitution ~0.02 against 0.6). The kink of the free-flight samples now counts it;
+    the contact's duration and depth, which no sample saw, are nan, not a later contact's.
+    Synthetic samples (exact flights, an elastic-ish bounce inside an interval) and a
+    simulated stiff ball (k 1e9 N/m, c 1e4 N s/m, 100 substeps a saved 1 ms step)."""
+    dts, e, h0 = 0.01, 0.8, 0.45
+    tc = math.sqrt(2 * h0 / G)                     # first impact, between two samples
+    t = np.arange(0.0, 0.7, dts)                    # up to the next landing
+    assert np.min(np.abs(t - tc)) > 0.2 * dts
+    v_out = e * G * tc
+    h = np.where(t < tc, h0 - 0.5 * G * t ** 2, v_out * (t - tc) - 0.5 * G * (t - tc) ** 2)
+    assert np.all(h > 0.0)                         # no sample in contact
+    apex, valid = M.apex_heights(h, 1, free_fall=G * dts ** 2)
+    assert bool(valid[0]) and abs(float(apex[0]) / (v_out ** 2 / (2 * G)) - 1) < 1e-9
+    assert np.all(np.isnan(np.asarray(M.apex_heights(h, 1)[0])))     # the old reading
+    assert np.flatnonzero(np.asarray(M.hidden_contacts(h, G * dts ** 2))).tolist() in (
+        [int(tc // dts)], [int(tc // dts) + 1], [int(tc // dts), int(tc // dts) + 1])
+    sim = dp.compile(ball(), 1e-3, substeps=100)
+    p = sim.params(k=1e9, c=1e4)
+    f = jax.jit(lambda p: M.ball_metrics(sim, sim.rollout(p, 1600), p))
+    m = f(p)
+    e_cf = dp.physical.restitution(1e9, 1e4, 1.0)
+    apex = np.asarray(m.apex_heights)
+    assert np.all(np.asarray(m.apex_valid)), apex
+    np.testing.assert_allclose(apex[0], 0.9 * e_cf ** 2, rtol=0.01)
+    np.testing.assert_allclose(np.asarray(m.restitution)[:2], e_cf, rtol=0.01)
+    assert np.all(np.isnan(np.asarray(m.contact_durations))) and math.isnan(m.max_penetration)

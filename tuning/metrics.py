@@ -34,7 +34,8 @@ import diffpen as dp
 from .compiled import ProgramCache
 
 __all__ = [
-    "height_above_plane", "apex_heights", "restitutions", "crossings", "contact_durations",
+    "height_above_plane", "apex_heights", "hidden_contacts", "restitutions", "crossings",
+    "contact_durations",
     "max_penetration", "resting_height", "settling_time", "BallMetrics", "ball_metrics",
     "ball_metrics_dict", "ball_model_gaps", "check_ball_model",
     "initial_apex", "energy_decay_time", "ball_energy", "plane_offset", "DECAY_TAIL",
@@ -102,7 +103,29 @@ def _first(mask):
     return jnp.min(jnp.where(mask, jnp.arange(s), s), initial=s)
 
 
-def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = True):
+def _kinks(h, free_fall, flight_gap):
+    """(S - 2,) bool, :func:`hidden_contacts` at the middle samples ``1 .. S - 2``."""
+    hm, h0, hp = h[:-2], h[1:-1], h[2:]
+    flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
+    rounding = 16.0 * jnp.finfo(h.dtype).eps * jnp.abs(h0)       # q's, a few times over
+    return flying & (hm - 2.0 * h0 + hp > rounding - 0.5 * free_fall)
+
+
+def hidden_contacts(h, free_fall, flight_gap: float = 0.0):
+    """(S,) bool: True at sample ``i`` where a contact happened between samples ``i - 1`` and
+    ``i + 1`` although all three are in free flight (``h > flight_gap``): a contact shorter
+    than the save interval (a stiff contact, or ``substeps``), seen as an upward kink of the
+    samples. In free flight under gravity the second difference ``h[i+1] - 2 h[i] + h[i-1]``
+    of uniform samples is ``-free_fall`` (``g dt_s^2``, m; exactly, as a parabola); a contact
+    can only push, so a second difference above ``-free_fall / 2`` (plus rounding) is one."""
+    out = jnp.zeros(h.shape, bool)
+    if h.shape[0] < 3:
+        return out
+    return out.at[1:-1].set(_kinks(h, free_fall, flight_gap))
+
+
+def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = True,
+                 free_fall=None):
     """The first ``n`` apex heights of free flights, m.
 
     An apex is a saved sample ``i`` with ``h[i-1] <= h[i] > h[i+1]`` whose two neighbours are
@@ -118,6 +141,11 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
       after_contact: count only apexes after the first contact that starts after the first
         sample (bounce apexes; the default): a body that starts in contact (launched from
         the surface) has its launch flight left out, as no bounce has happened yet.
+      free_fall: ``g dt_s^2`` (m; ``dt_s`` the save interval), the second difference of
+        free-flight samples: with it, contacts shorter than the save interval count as
+        contacts (:func:`hidden_contacts`; before, the first bounce apexes reported were
+        those after the first contact a sample caught, or none), and three samples around
+        such a contact are no apex. None: only sampled contacts count.
     Returns:
       (heights (n,), valid (n,) bool); heights of missing apexes are nan.
     """
@@ -127,10 +155,14 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     q = hm - 2.0 * h0 + hp                                   # second difference (< 0 at a top)
     flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
     is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
+    entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
+    if free_fall is not None:
+        kink = _kinks(h, free_fall, flight_gap)
+        is_top = is_top & ~kink
+        entry = jnp.minimum(entry, _first(kink) + 1)   # hidden around sample i: triples from i
     if after_contact:
         # since the first contact that starts after t = 0 (one in progress at t = 0 is the
         # launch, not a bounce)
-        entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
         touched = jnp.arange(h.shape[0] - 2) >= entry
         is_top = is_top & touched
     q_safe = jnp.where(is_top, q, -1.0)
@@ -453,9 +485,13 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     n = jnp.asarray(pl.normal, dtype=h.dtype)
     v0n = jnp.dot(s0.velocity[body], n)
     gap = 0.5 * sim.smoothing
-    apex, valid = apex_heights(h, n_apex, flight_gap=gap)
+    # free-flight samples' second difference: contacts shorter than the save interval (a
+    # stiff contact, substeps) are found by their kink (hidden_contacts)
+    free_fall = g * (t[1] - t[0]) ** 2
+    apex, valid = apex_heights(h, n_apex, flight_gap=gap, free_fall=free_fall)
     # starting in contact (launched from the surface), the launch flight's apex
-    launch, launched = apex_heights(h, 1, flight_gap=gap, after_contact=False)
+    launch, launched = apex_heights(h, 1, flight_gap=gap, after_contact=False,
+                                    free_fall=free_fall)
     h_energy = initial_apex(h[0], v0n, g)
     # (no launch flight, e.g. at rest on the plane: the energy height, as before)
     h_drop = jnp.where((h[0] <= gap) & launched[0], launch[0], h_energy)
@@ -464,6 +500,17 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     centre = h + radius                                          # centre height above plane
     ts, settled = settling_time(t, centre, rest_z, settle_tol)
     dur, _ = contact_durations(t, h, n_apex, flight=True)
+    # a contact no sample caught has no duration or depth, and the sampled ones after it are
+    # not the bounces their rank says: theirs are nan (the first contact is the deepest)
+    if h.shape[0] >= 3:
+        kink = _kinks(h, free_fall, gap)
+        t_hidden = jnp.min(jnp.where(kink, t[1:-1], jnp.inf))
+        down, _ = crossings(t, h, 0.0, n_apex, -1, flight=True)    # contact_durations' own
+        dur = jnp.where(down < t_hidden, dur, jnp.nan)
+        depth = jnp.where(jnp.isfinite(t_hidden) & ~(down[0] < t_hidden), jnp.nan,
+                          max_penetration(h))
+    else:
+        depth = max_penetration(h)
     if traj.velocity is not None:
         vel = jnp.concatenate([s0.velocity[None, body], traj.velocity[:, body]])
         e = ball_energy(sim, pos, vel, params, body=body, plane=plane)
@@ -479,7 +526,7 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
         decay_valid = jnp.zeros((), bool)
     return BallMetrics(
         apex_heights=apex, apex_valid=valid, restitution=restitutions(apex, h_drop),
-        contact_durations=dur, max_penetration=max_penetration(h),
+        contact_durations=dur, max_penetration=depth,
         resting_height=rest_z + offset, settling_time=ts, settled=settled,
         drop_height=h_drop, decay_time=decay, decay_valid=decay_valid)
 
