@@ -35,7 +35,20 @@ def test_recovers_k_and_c_with_covering_standard_errors(record, monkeypatch):
     monkeypatch.setattr(compiled, "_SIMS", S.ProgramCache())      # none kept from before
     monkeypatch.setattr(S.dp, "compile", lambda scene, dt, **kw: built.append(
         (scene.bodies[0].position, scene.bodies[0].velocity, dt)) or compile_(scene, dt, **kw))
+    # regression: unlike the scene files' record fits it gave no float32 warning (and its
+    # step-error part of the standard errors was 10x the float64 one there, unsaid)
+    precisions = []
+    monkeypatch.setattr(S, "warn_record_precision", precisions.append)
     res = S.fit_trajectory(t, z, radius=0.1, mass=1.0)
+    assert [np.dtype(d) for d in precisions] == [np.dtype(np.float64)]
+    import warnings
+
+    from tuning.lm import warn_record_precision
+    with pytest.warns(UserWarning, match=r"less reliable in float32.*counts the rounding"):
+        warn_record_precision(np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_record_precision(np.float64)
     assert built and len(set(built)) == len(built), built
     assert abs(res.k / K_TRUE - 1) < 0.02 and abs(res.c / C_TRUE - 1) < 0.02
     # the reported standard errors cover the truth (95 % interval)

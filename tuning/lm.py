@@ -56,6 +56,22 @@ def precision_ftol(ftol: float, dtype) -> float:
     return max(float(ftol), FTOL_EPS * eps)
 
 
+def warn_record_precision(dtype, stacklevel: int = 3) -> None:
+    """Warn that a fit to records is less reliable in ``dtype`` when it is narrower than
+    float64: its Jacobians are noisy (a fit can stop at a worse point), and a step-error
+    estimate of its standard errors counts the rounding as step error (about 10x the
+    float64 figure on a bouncing ball's record)."""
+    dt = np.dtype(dtype)
+    if dt.itemsize < 8:
+        import warnings
+        warnings.warn(f"record fits are less reliable in {dt.name} (its Jacobians are noisy: "
+                      "a fit can stop at a worse point, and its time step's part of the "
+                      "standard errors counts the rounding): enable float64 with "
+                      "jax.config.update('jax_enable_x64', True) before building the "
+                      "simulator (the diffpen command always runs float64).",
+                      stacklevel=stacklevel)
+
+
 @dataclasses.dataclass
 class LMResult:
     """Levenberg-Marquardt outcome on a flat parameter vector ``x`` (log space)."""

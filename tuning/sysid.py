@@ -47,7 +47,7 @@ import diffpen as dp
 from .errors import FitError
 from .progress import Progress
 from .compiled import ProgramCache, compiled
-from .lm import levenberg_marquardt, residuals_and_jacobian
+from .lm import levenberg_marquardt, residuals_and_jacobian, warn_record_precision
 from .stable import contact_scales, law_c, law_k, law_units, safe_contact_bounds
 
 __all__ = ["load_csv", "save_csv", "record_events", "first_guess", "choose_dt",
@@ -473,6 +473,7 @@ def fit_trajectory(t, z, *, radius: float, mass: float, g: float = 9.81,
     notes.append(f"dt = {dt:.4g} s (model discretisation {dt_err * 1e3:.3g} mm rms vs noise "
                  f"{noise * 1e3:.3g} mm)")
     sim = _ball_sim(radius, mass, g, dt, law)
+    warn_record_precision(sim.dtype)
     steps, every = _layout(t, dt)
     td = jnp.asarray(t)
     zd = jnp.asarray(z)

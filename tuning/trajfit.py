@@ -36,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import warnings
 from typing import Sequence
 
 import jax.numpy as jnp
@@ -46,7 +45,7 @@ import diffpen as dp
 
 from .errors import FitError
 from .progress import Progress
-from .lm import levenberg_marquardt
+from .lm import levenberg_marquardt, warn_record_precision
 from .first_state import first_state
 from .free_leaves import Free, _normalise, free_from_spec, get_leaf, leaf_names, with_leaves
 from .fit_errors import parameter_errors
@@ -200,11 +199,7 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
-    if np.dtype(sim.dtype).itemsize < 8:
-        warnings.warn(f"record fits are less reliable in {np.dtype(sim.dtype).name} (its "
-                      "Jacobians are noisy: a fit can stop at a worse point): enable float64 "
-                      "with jax.config.update('jax_enable_x64', True) before building the "
-                      "simulator (the diffpen command always runs float64).", stacklevel=2)
+    warn_record_precision(sim.dtype)
     free = [f.resolved() for f in free]
     if not free:
         raise FitError("nothing to fit: name at least one params leaf in [fit].")
