@@ -103,29 +103,34 @@ def _first(mask):
     return jnp.min(jnp.where(mask, jnp.arange(s), s), initial=s)
 
 
-def _kinks(h, free_fall, flight_gap):
+def _kinks(h, free_fall, flight_gap, scale=0.0):
     """(S - 2,) bool, :func:`hidden_contacts` at the middle samples ``1 .. S - 2``."""
     hm, h0, hp = h[:-2], h[1:-1], h[2:]
     flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
-    rounding = 16.0 * jnp.finfo(h.dtype).eps * jnp.abs(h0)       # q's, a few times over
+    # the rounding of q, a few times over: of the positions the heights come from (their
+    # size is about the height plus ``scale``), not of the heights near the ground
+    rounding = 16.0 * jnp.finfo(h.dtype).eps * (jnp.abs(h0) + scale)
     return flying & (hm - 2.0 * h0 + hp > rounding - 0.5 * free_fall)
 
 
-def hidden_contacts(h, free_fall, flight_gap: float = 0.0):
+def hidden_contacts(h, free_fall, flight_gap: float = 0.0, scale=0.0):
     """(S,) bool: True at sample ``i`` where a contact happened between samples ``i - 1`` and
     ``i + 1`` although all three are in free flight (``h > flight_gap``): a contact shorter
     than the save interval (a stiff contact, or ``substeps``), seen as an upward kink of the
     samples. In free flight under gravity the second difference ``h[i+1] - 2 h[i] + h[i-1]``
     of uniform samples is ``-free_fall`` (``g dt_s^2``, m; exactly, as a parabola); a contact
-    can only push, so a second difference above ``-free_fall / 2`` (plus rounding) is one."""
+    can only push, so a second difference above ``-free_fall / 2`` (plus rounding) is one.
+    ``scale``: m, what the positions add to the heights (the radius plus the plane's
+    ``|offset|``), whose rounding the heights carry (float32 at a save step of 2e-5 s saw
+    kinks in the last millimetre of a fall without it)."""
     out = jnp.zeros(h.shape, bool)
     if h.shape[0] < 3:
         return out
-    return out.at[1:-1].set(_kinks(h, free_fall, flight_gap))
+    return out.at[1:-1].set(_kinks(h, free_fall, flight_gap, scale))
 
 
 def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = True,
-                 free_fall=None):
+                 free_fall=None, scale=0.0):
     """The first ``n`` apex heights of free flights, m.
 
     An apex is a saved sample ``i`` with ``h[i-1] <= h[i] > h[i+1]`` whose two neighbours are
@@ -145,7 +150,8 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
         free-flight samples: with it, contacts shorter than the save interval count as
         contacts (:func:`hidden_contacts`; before, the first bounce apexes reported were
         those after the first contact a sample caught, or none), and three samples around
-        such a contact are no apex. None: only sampled contacts count.
+        such a contact are no apex. None: only sampled contacts count. ``scale``: as
+        :func:`hidden_contacts` takes it.
     Returns:
       (heights (n,), valid (n,) bool); heights of missing apexes are nan.
     """
@@ -157,7 +163,7 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
     entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
     if free_fall is not None:
-        kink = _kinks(h, free_fall, flight_gap)
+        kink = _kinks(h, free_fall, flight_gap, scale)
         is_top = is_top & ~kink
         entry = jnp.minimum(entry, _first(kink) + 1)   # hidden around sample i: triples from i
     if after_contact:
@@ -488,10 +494,11 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     # free-flight samples' second difference: contacts shorter than the save interval (a
     # stiff contact, substeps) are found by their kink (hidden_contacts)
     free_fall = g * (t[1] - t[0]) ** 2
-    apex, valid = apex_heights(h, n_apex, flight_gap=gap, free_fall=free_fall)
+    scale = radius + jnp.abs(offset)
+    apex, valid = apex_heights(h, n_apex, flight_gap=gap, free_fall=free_fall, scale=scale)
     # starting in contact (launched from the surface), the launch flight's apex
     launch, launched = apex_heights(h, 1, flight_gap=gap, after_contact=False,
-                                    free_fall=free_fall)
+                                    free_fall=free_fall, scale=scale)
     h_energy = initial_apex(h[0], v0n, g)
     # (no launch flight, e.g. at rest on the plane: the energy height, as before)
     h_drop = jnp.where((h[0] <= gap) & launched[0], launch[0], h_energy)
@@ -503,7 +510,7 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     # a contact no sample caught has no duration or depth, and the sampled ones after it are
     # not the bounces their rank says: theirs are nan (the first contact is the deepest)
     if h.shape[0] >= 3:
-        kink = _kinks(h, free_fall, gap)
+        kink = _kinks(h, free_fall, gap, scale)
         t_hidden = jnp.min(jnp.where(kink, t[1:-1], jnp.inf))
         down, _ = crossings(t, h, 0.0, n_apex, -1, flight=True)    # contact_durations' own
         dur = jnp.where(down < t_hidden, dur, jnp.nan)
