@@ -261,26 +261,39 @@ class OverlapIndex:
                             float(tol[b]), fix, allow=dist[b] > 0.0)
         self._insert(idx, x, r)
 
-    def _coincident(self, scene, body, idx: int) -> None:
+    def _coincident(self, scene, body, idx: int, dtype=float) -> None:
         """Refuse a sphere placed with ``allow_overlap`` at exactly the centre of another
-        colliding sphere (the pairs with a sphere-sphere contact): their contact has no
-        direction (:func:`diffpen.geometry.sphere_sphere` gives the normal 0), so no force
-        ever pushes them apart and they stay overlapped, silently. ``allow_overlap`` lets
-        bodies start compressed, which this cannot be."""
-        x, r = np.asarray(body.position, dtype=float), body.radius
-        if body.kind != "sphere" or r <= 0.0:
+        colliding sphere (the pairs with a sphere-sphere contact), its coordinates rounded to
+        ``dtype``: their contact has no direction (:func:`diffpen.geometry.sphere_sphere`
+        gives the normal 0), so no force ever pushes them apart and they stay overlapped,
+        silently. ``allow_overlap`` lets bodies start compressed, which this cannot be."""
+        def at(b):
+            return np.asarray(np.asarray(b.position, dtype=float), dtype=dtype)
+        x, r = at(body), body.radius
+        if body.kind != "sphere" or r <= 0.0 or not body.collide:
             return
-        for i in self._near(x, r, len(scene.bodies)):
+        for i in self._near(np.asarray(body.position, dtype=float), r, len(scene.bodies)):
             other = scene.bodies[i]
-            if (other.kind != "sphere" or other.radius <= 0.0 or not other.collide
-                    or (body.pinned and other.pinned)
-                    or np.any(np.asarray(other.position, dtype=float) != x)):
+            if (i == idx or other.kind != "sphere" or other.radius <= 0.0
+                    or not other.collide or (body.pinned and other.pinned)
+                    or np.any(at(other) != x)):
                 continue
+            apart = float(np.linalg.norm(np.subtract(body.position, other.position)))
+            same = ("start at the same centre" if apart == 0.0 else
+                    f"start {apart:.3g} m apart, the same centre in {np.dtype(dtype).name}")
             raise SceneError(
-                f"sphere {idx} at {_fmt(x)} and sphere {i} start at the same centre: their "
+                f"sphere {idx} at {_fmt(body.position)} and sphere {i} {same}: their "
                 "contact has no direction, so no force would ever push them apart "
                 "(allow_overlap starts bodies compressed, not coincident): move one of them "
-                "by any distance.")
+                "by any distance" + ("." if apart == 0.0 else " that dtype resolves, or use "
+                                     "float64."))
+
+    def check_coincident(self, scene, dtype) -> None:
+        """At compile: :meth:`_coincident` for every sphere added with ``allow_overlap``, in
+        the simulator's ``dtype`` (two centres 1e-9 m apart are one in float32)."""
+        allowed = (range(len(scene.bodies)) if scene.allow_overlap else sorted(self.allowed))
+        for i in allowed:
+            self._coincident(scene, scene.bodies[i], i, dtype)
 
     def _check_box(self, scene, box, idx: int) -> None:
         half = min(box.half_extents)

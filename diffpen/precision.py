@@ -132,10 +132,13 @@ def check_coordinates(scene, dtype) -> None:
     :data:`FAR_COARSER` times the spacing at the scene's own scale. There a step's
     displacement ``|v| dt`` rounds away (float32: a box sliding at x = 1e4 m never moved while
     friction stopped its velocity; a ball resting on a plane at z = 1e4 m froze, reading
-    -0.3 m/s). Raises SceneError: move the scene near the origin, or use float64."""
+    -0.3 m/s). Raises SceneError: move the scene near the origin, or use float64. Also
+    refuses spheres placed with ``allow_overlap`` whose centres are one in ``dtype``
+    (:meth:`diffpen.overlap.OverlapIndex.check_coincident`)."""
     bodies = scene.bodies
     if not bodies:
         return
+    scene._overlap.check_coincident(scene, dtype)
     far, sizes = _extent(scene)
     scale = max([1.0] + sizes)
     dt = np.dtype(dtype).type

@@ -133,3 +133,12 @@ def test_allow_overlap_refuses_only_coincident_sphere_centres():
     other.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0), allow_overlap=True)
     with pytest.raises(dp.SceneError, match="start at the same centre"):
         other.add_sphere(0.2, 1.0, (0.0, 0.0, 1.0), allow_overlap=True)
+    # the same in the simulator's dtype (review): 1e-9 m apart is one centre in float32, a
+    # refusal at compile; float64 resolves it, and those spheres part
+    import jax.numpy as jnp
+    near = dp.Scene()
+    near.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0))
+    near.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0 + 1e-9), allow_overlap=True)
+    with pytest.raises(dp.SceneError, match="1e-09 m apart, the same centre in float32"):
+        dp.compile(near, 1e-3, dtype=jnp.float32)
+    dp.compile(near, 1e-3, dtype=jnp.float64)
