@@ -103,14 +103,22 @@ def _first(mask):
     return jnp.min(jnp.where(mask, jnp.arange(s), s), initial=s)
 
 
-def _kinks(h, free_fall, flight_gap, scale=0.0):
-    """(S - 2,) bool, :func:`hidden_contacts` at the middle samples ``1 .. S - 2``."""
+def _triples(h, flight_gap):
+    """``(h0, q, flying)`` of the middle samples ``1 .. S - 2`` (S - 2,): each sample, the
+    second difference around it, and whether it and its two neighbours are in free flight
+    (``h > flight_gap``)."""
     hm, h0, hp = h[:-2], h[1:-1], h[2:]
     flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
+    return h0, hm - 2.0 * h0 + hp, flying
+
+
+def _kinks(h, free_fall, flight_gap, scale=0.0):
+    """(S - 2,) bool, :func:`hidden_contacts` at the middle samples ``1 .. S - 2``."""
+    h0, q, flying = _triples(h, flight_gap)
     # the rounding of q, a few times over: of the positions the heights come from (their
     # size is about the height plus ``scale``), not of the heights near the ground
     rounding = 16.0 * jnp.finfo(h.dtype).eps * (jnp.abs(h0) + scale)
-    return flying & (hm - 2.0 * h0 + hp > rounding - 0.5 * free_fall)
+    return flying & (q > rounding - 0.5 * free_fall)
 
 
 def hidden_contacts(h, free_fall, flight_gap: float = 0.0, scale=0.0):
@@ -157,9 +165,8 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     """
     if h.shape[0] < 3:                  # no sample has two neighbours: no apex to find
         return jnp.full((n,), jnp.nan, h.dtype), jnp.zeros((n,), bool)
-    hm, h0, hp = h[:-2], h[1:-1], h[2:]
-    q = hm - 2.0 * h0 + hp                                   # second difference (< 0 at a top)
-    flying = (hm > flight_gap) & (h0 > flight_gap) & (hp > flight_gap)
+    hm, hp = h[:-2], h[2:]
+    h0, q, flying = _triples(h, flight_gap)                 # q < 0 at a top
     is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
     entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
     if free_fall is not None:
