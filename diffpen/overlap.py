@@ -258,7 +258,7 @@ class OverlapIndex:
                                f"they never separate: move them {r + rs[b]:.4g} m apart")
                     _refuse(f"sphere {idx} at {_fmt(x)} (radius {r:.4g} m) and sphere {i} at "
                             f"{_fmt(xs[b])} (radius {rs[b]:.4g} m)", float(depth[b]),
-                            float(tol[b]), fix, allow=dist[b] > 0.0)
+                            float(tol[b]), fix, allow=bool(np.all(dist[bad] > 0.0)))
         self._insert(idx, x, r)
 
     def _coincident(self, scene, body, idx: int, dtype=float) -> None:
