@@ -31,14 +31,20 @@ def _height(state):
 def compiled():
     """``get(scene, law, record, key=())``: ``scene`` compiled at dt = 1e-3, float64, with
     ``laws.<law>(<record>=True)``, once per (law, record, key) for the module and shared (a
-    Simulator is frozen), so that the tests of one scene share its compiled rollouts."""
+    Simulator is frozen), so that the tests of one scene share its compiled rollouts. A key
+    given a scene that differs from its first one in more than the bodies' start positions
+    and velocities (which a caller passing its own start state may vary) is an error."""
+    import dataclasses
     sims = {}
 
     def get(scene, law, record, key=()):
+        bodies = ([dataclasses.replace(b, position=(0.0,) * 3, velocity=(0.0,) * 3)
+                   for b in scene.bodies], scene.planes, scene.gravity)
         if (law, record, key) not in sims:
-            sims[law, record, key] = dp.compile(scene, 1e-3, law=getattr(laws, law)(
-                **{record: True}), dtype=jnp.float64)
-        return sims[law, record, key]
+            sims[law, record, key] = (dp.compile(scene, 1e-3, law=getattr(laws, law)(
+                **{record: True}), dtype=jnp.float64), bodies)
+        assert sims[law, record, key][1] == bodies, f"{key!r} was compiled for another scene"
+        return sims[law, record, key][0]
     return get
 
 
