@@ -126,8 +126,9 @@ def _check_inertia(scene, dtype) -> None:
 def check_coordinates(scene, dtype) -> None:
     """Refuse a scene placed so far from the origin that ``dtype`` cannot resolve its motion
     there: the spacing of representable numbers at its farthest coordinate (body positions,
-    plane offsets, fixed spheres) above 1e-4 of its smallest body or of its shortest spring's
-    rest length (a particle rope far out ran 2% off, unwarned), or 1% of the static
+    plane offsets, fixed spheres) above 1e-4 of its smallest body or of its shortest spring
+    (its rest length, or its start length if that is 0: a particle rope far out ran 2% off,
+    unwarned), or 1% of the static
     deflection ``m g / k`` of its declared contact materials, where that is more than
     :data:`FAR_COARSER` times the spacing at the scene's own scale. There a step's
     displacement ``|v| dt`` rounds away (float32: a box sliding at x = 1e4 m never moved while
@@ -148,9 +149,9 @@ def check_coordinates(scene, dtype) -> None:
     limits = []
     if sizes:
         limits.append((1e-4 * min(sizes), f"1e-4 of its smallest body ({min(sizes):.3g} m)"))
-    rests = [float(sp.rest_length) for group in (scene.springs, scene.anchored_springs,
-                                                 scene.plastic_springs)
-             for sp in group if sp.rest_length > 0.0]
+    rests = [_spring_length(scene, sp) for group in (scene.springs, scene.anchored_springs,
+                                                     scene.plastic_springs) for sp in group]
+    rests = [r for r in rests if r > 0.0]
     if rests:       # a rope, cloth or jelly of particles has no body size: its springs' does
         limits.append((1e-4 * min(rests), f"1e-4 of its shortest spring ({min(rests):.3g} m)"))
     g = float(np.linalg.norm(scene.gravity))
@@ -169,6 +170,15 @@ def check_coordinates(scene, dtype) -> None:
             "displacement |v| dt would round away there (bodies freeze while their velocity "
             "changes). Move the scene near the origin (only positions relative to each other "
             "and to the planes matter), or compile with dtype=float64.")
+
+
+def _spring_length(scene, sp) -> float:
+    """A spring's length scale, m: its rest length, else (a zero-length spring) the distance
+    between its ends at the start (0 for an anchored spring between body-frame points)."""
+    if sp.rest_length > 0.0 or not hasattr(sp, "anchor"):
+        return float(sp.rest_length)
+    end = scene.bodies[sp.b].position if sp.b is not None else sp.anchor
+    return float(np.linalg.norm(np.subtract(scene.bodies[sp.a].position, end)))
 
 
 def _extent(scene, free: bool = False) -> tuple:

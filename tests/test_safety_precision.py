@@ -50,6 +50,13 @@ def test_a_scene_far_from_the_origin_is_refused_where_the_dtype_cannot_resolve_i
         dp.compile(rope(1e4), 2e-3, dtype=jnp.float32)
     for x, dtype in ((0.0, jnp.float32), (100.0, jnp.float32), (1e4, jnp.float64)):
         dp.compile(rope(x), 2e-3, dtype=dtype)
+    chain = dp.Scene()                  # springs of rest length 0: their start length counts
+    for i in range(3):
+        chain.add_particle(1.0, (1e4 + 0.1 * i, 0.0, 1.0), pinned=i == 0)
+    chain.add_spring(0, 1, k=500.0, c=0.5, rest_length=0.0)
+    chain.add_spring(1, 2, rest_length=0.0)
+    with pytest.raises(dp.SceneError, match=r"shortest spring \(0\.1 m\)"):
+        dp.compile(chain, 2e-3, dtype=jnp.float32)
 
 
 def test_numbers_past_float32s_range_are_refused_by_name(ball_scene):
