@@ -78,3 +78,25 @@ def test_eager_heights_compile_once(caplog):
             if r.getMessage().startswith("Compiling")] == []
     jitted = jax.jit(lambda k, c: ball_fast.ball_heights(sim, k, c, STEPS))(ks2, cs2)
     np.testing.assert_array_equal(np.asarray(z), np.asarray(jitted))
+
+
+def test_a_sweep_whose_metrics_cannot_say_unstable_warns():
+    """Regression (audit22): a user's metrics function without an "unstable" entry had its
+    points past the safe step returned as results (a ball swept to k 1e8 N/m at dt 1 ms
+    ended 85 m up) and ``result.unstable`` 0, without a word. It warns now, once, naming the
+    entry; with the entry (or False where nothing can go unstable) it is silent."""
+    import warnings
+    sim = dp.compile(ball(), 1e-3)
+    p0 = sim.params(k=1e4, c=10.0)
+    pts = np.array([[1e3], [1e4], [1e5]])
+    names = ["contact.default.k"]
+    double = lambda p: {"k2": 2.0 * p.contact["default"].k}                    # noqa: E731
+    with pytest.warns(UserWarning, match="no 'unstable' entry") as seen:
+        res = sw.sweep(double, p0, pts, names, chunk=2, progress=False)
+    assert len([w for w in seen if "unstable" in str(w.message)]) == 1
+    np.testing.assert_allclose(res.metrics["k2"], 2.0 * pts[:, 0])
+    flagged = lambda p: {**double(p), "unstable": jnp.asarray(False)}          # noqa: E731
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sw.sweep(flagged, p0, pts, names, chunk=2, progress=False,
+                 batch_map=lambda f: jax.jit(jax.vmap(f)))

@@ -164,7 +164,8 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
       metrics_fn: traceable ``params -> {metric: scalar or (n,) array}``. A metric named
         ``"unstable"`` (e.g. ``traj.aux["unstable"][-1]``) marks points whose rollout went
         past its safe step: their other float metrics are NaN, their bool metrics (e.g.
-        ``settled``) False, and they are counted in ``result.unstable``.
+        ``settled``) False, and they are counted in ``result.unstable``. Without one (nor
+        a ``finalize`` adding it) the sweep warns: nothing is checked.
       params0: :class:`diffpen.Params` giving the leaves that are not swept.
       points: (N, P) parameter values, SI units.  names: (P,) leaf paths.
       chunk: points per call (bounds memory; the last chunk is padded, never recompiled).
@@ -353,6 +354,18 @@ def _run_chunks(res, evaluate, points, chunk, out, progress, on_chunk, finalize)
         pair.write()
 
 
+def _warn_unchecked() -> None:
+    """Warn (once per sweep, at its first chunk) that its metrics hold no ``"unstable"``
+    entry: rows past the safe step would be returned as results (a ball swept to k 1e8 N/m
+    at dt 1 ms ended 85 m up, counted stable)."""
+    import warnings
+    warnings.warn("the sweep's metrics hold no 'unstable' entry, so a point whose rollout "
+                  "went past its safe step is returned as a result and result.unstable "
+                  "counts nothing: return traj.aux['unstable'][-1] as 'unstable' "
+                  "(tuning.stable.rollout_unstable), or False where nothing can go unstable.",
+                  UserWarning, stacklevel=5)
+
+
 def _run_chunk(res, evaluate, points, a, b, chunk, finalize) -> None:
     """Evaluate rows ``a:b`` of ``points`` (padded to the compiled ``chunk``) into ``res``."""
     n = points.shape[0]
@@ -366,6 +379,8 @@ def _run_chunk(res, evaluate, points, a, b, chunk, finalize) -> None:
     bad = None
     if UNSTABLE in got:   # past the safe step: never returned as a result
         bad = np.asarray(got[UNSTABLE]).reshape(b - a, -1).any(axis=1)
+    elif res.evaluated == 0:          # this run's first chunk
+        _warn_unchecked()
     for k, v in got.items():
         if bad is not None and k != UNSTABLE and v.dtype.kind in "fb" and bad.any():
             v = np.array(v)        # a blown-up rollout's "settled" is no result either
