@@ -181,6 +181,7 @@ def test_a_fully_resumed_sweep_writes_its_table_again(evaluate, tmp_path):
     assert open(table).read() == full
 
 
+@pytest.mark.filterwarnings("ignore:the sweep's metrics hold no")
 def test_a_sweep_to_a_file_without_key_is_keyed_by_its_function(tmp_path):
     """With out= and no key=, a rerun of another computation (another dt, scene, metric)
     resumed into the same file and mixed its rows with the old ones."""

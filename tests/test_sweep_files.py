@@ -182,6 +182,7 @@ def test_a_leaf_swept_twice_is_refused():
         S.sweep(lambda p: {}, None, np.ones((3, 2)), TOY_NAMES * 2)
 
 
+@pytest.mark.filterwarnings("ignore:the sweep's metrics hold no")
 def test_a_costly_results_file_is_written_as_often_as_its_cost_allows(tmp_path, monkeypatch):
     """Regression: the whole .npz was rewritten after every chunk, so a sweep of many points
     spent most of its time writing (1e6 points: 0.18 s a chunk against 0.006 s of

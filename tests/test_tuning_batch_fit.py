@@ -252,6 +252,7 @@ def _scaled(p):         # reads a module-level value that a test changes between
     return {"apex_heights": SCALE["value"] * jnp.sqrt(p.contact["default"].k) / 100.0}
 
 
+@pytest.mark.filterwarnings("ignore:the sweep's metrics hold no")
 def test_a_cached_fitter_is_not_reused_for_a_function_that_changed(problem, monkeypatch):
     """Regression (audit15): fit_batch and sweep reused the program an earlier call compiled
     for the same metrics function object even after a global it reads changed (a refit gave
