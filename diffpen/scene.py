@@ -290,6 +290,15 @@ class Scene:
         if rest_length is None:
             rest_length = math.dist(pa, pb)
         rest_length = positive("spring rest_length (m)", rest_length, allow_zero=True)
+        if (b_idx is not None and rest_length > 0.0 and tuple(pa) == tuple(pb)
+                and tuple(self.bodies[int(a)].velocity) == tuple(self.bodies[b_idx].velocity)):
+            # no refusal: another force (a contact, another spring) may part them first
+            from .errors import warn
+            warn(f"spring {len(self.springs)} joins bodies {a} and {b_idx}, which start at one "
+                 "point with one velocity: it has no direction there, so it pushes them "
+                 f"apart (to its rest length {rest_length:.4g} m) only once something else "
+                 "moves one of them; start them apart if it should act from the start.",
+                 UserWarning)
         self.springs.append(Spring(int(a), b_idx, anchor, rest_length, group))
         return len(self.springs) - 1
 

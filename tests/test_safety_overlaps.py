@@ -150,3 +150,24 @@ def test_allow_overlap_refuses_only_coincident_sphere_centres():
     with pytest.raises(dp.SceneError, match="1e-09 m apart, the same centre in float32"):
         dp.compile(near, 1e-3, dtype=jnp.float32)
     dp.compile(near, 1e-3, dtype=jnp.float64)
+
+
+def test_a_spring_between_two_bodies_at_one_point_warns():
+    """audit17: two particles at one point joined by a spring of rest length 0.1 m stayed
+    together for ever, without a word (the spring has no direction there). Not refused (a
+    contact or another spring may part them first): it warns. Ends apart, ends that move
+    apart (other velocities), a zero rest length and a world anchor at the body are silent."""
+    import warnings
+    scene = dp.Scene()
+    for v in ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1.0, 0.0, 0.0)):
+        scene.add_particle(1.0, (0.0, 0.0, 1.0), velocity=v)
+    scene.add_particle(1.0, (0.0, 0.0, 1.2))
+    with pytest.warns(UserWarning, match=r"spring 0 joins bodies 0 and 1, which start at one "
+                                         r"point with one velocity.*rest length 0\.1 m"):
+        scene.add_spring(0, 1, k=100.0, c=1.0, rest_length=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene.add_spring(0, 2, rest_length=0.1)       # they move apart at once
+        scene.add_spring(1, 2, rest_length=0.0)
+        scene.add_spring(0, 3, rest_length=0.1)
+        scene.add_spring(1, (0.0, 0.0, 1.0), rest_length=0.1)   # gravity parts it
