@@ -175,7 +175,8 @@ def check_coordinates(scene, dtype) -> None:
 def _spring_length(scene, sp) -> float:
     """A spring's length scale, m: its rest length, else (a zero-length spring) the distance
     between its ends at the start (0 for an anchored spring between body-frame points)."""
-    if sp.rest_length > 0.0 or not hasattr(sp, "anchor"):
+    from .elements import Spring
+    if sp.rest_length > 0.0 or not isinstance(sp, Spring):
         return float(sp.rest_length)
     end = scene.bodies[sp.b].position if sp.b is not None else sp.anchor
     return float(np.linalg.norm(np.subtract(scene.bodies[sp.a].position, end)))

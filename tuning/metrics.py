@@ -165,12 +165,18 @@ def apex_heights(h, n: int, *, flight_gap: float = 0.0, after_contact: bool = Tr
     """
     if h.shape[0] < 3:                  # no sample has two neighbours: no apex to find
         return jnp.full((n,), jnp.nan, h.dtype), jnp.zeros((n,), bool)
+    kink = None if free_fall is None else _kinks(h, free_fall, flight_gap, scale)
+    return _apexes(h, n, flight_gap, after_contact, kink)
+
+
+def _apexes(h, n: int, flight_gap, after_contact: bool, kink):
+    """:func:`apex_heights` of ``h`` (S >= 3 samples) given its kink mask (:func:`_kinks`,
+    or None: only sampled contacts count), which :func:`ball_metrics` computes once."""
     hm, hp = h[:-2], h[2:]
     h0, q, flying = _triples(h, flight_gap)                 # q < 0 at a top
     is_top = flying & (hm <= h0) & (h0 > hp) & (q < 0.0)
     entry = _first((h[1:] <= flight_gap) & (h[:-1] > flight_gap)) + 1
-    if free_fall is not None:
-        kink = _kinks(h, free_fall, flight_gap, scale)
+    if kink is not None:
         is_top = is_top & ~kink
         entry = jnp.minimum(entry, _first(kink) + 1)   # hidden around sample i: triples from i
     if after_contact:
@@ -275,13 +281,18 @@ def contact_durations(t, h, n: int, *, level: float = 0.0, flight: bool = False)
 
     Returns: (durations (n,), valid (n,) bool).
     """
+    down, up, valid = _contacts(t, h, n, level, flight)
+    return jnp.where(valid, up - down, jnp.nan), valid
+
+
+def _contacts(t, h, n: int, level, flight: bool):
+    """``(starts (n,), ends (n,), valid (n,))`` of :func:`contact_durations`' contacts, s."""
     down, vd = crossings(t, h, level, n, -1, flight=flight)
     up, vu = crossings(t, h, level, n + 1, +1, flight=flight)
     # starting in contact, the first upward crossing ends the contact in progress
     start_in = h[0] < level
     up, vu = jnp.where(start_in, up[1:], up[:-1]), jnp.where(start_in, vu[1:], vu[:-1])
-    valid = vd & vu
-    return jnp.where(valid, up - down, jnp.nan), valid
+    return down, up, vd & vu
 
 
 def max_penetration(h):
@@ -500,12 +511,13 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     gap = 0.5 * sim.smoothing
     # free-flight samples' second difference: contacts shorter than the save interval (a
     # stiff contact, substeps) are found by their kink (hidden_contacts)
-    free_fall = g * (t[1] - t[0]) ** 2
-    scale = radius + jnp.abs(offset)
-    apex, valid = apex_heights(h, n_apex, flight_gap=gap, free_fall=free_fall, scale=scale)
+    enough = h.shape[0] >= 3            # samples with two neighbours: apexes and kinks
+    kink = _kinks(h, g * (t[1] - t[0]) ** 2, gap, radius + jnp.abs(offset)) if enough \
+        else None
+    nothing = (jnp.full((n_apex,), jnp.nan, h.dtype), jnp.zeros((n_apex,), bool))
+    apex, valid = _apexes(h, n_apex, gap, True, kink) if enough else nothing
     # starting in contact (launched from the surface), the launch flight's apex
-    launch, launched = apex_heights(h, 1, flight_gap=gap, after_contact=False,
-                                    free_fall=free_fall, scale=scale)
+    launch, launched = _apexes(h, 1, gap, False, kink) if enough else nothing
     h_energy = initial_apex(h[0], v0n, g)
     # (no launch flight, e.g. at rest on the plane: the energy height, as before)
     h_drop = jnp.where((h[0] <= gap) & launched[0], launch[0], h_energy)
@@ -513,13 +525,12 @@ def ball_metrics(sim, traj, params, *, body: int = 0, n_apex: int = 3, settle_to
     rest_z = resting_height(k, mass, g, radius, law=sim.contact_law, width=sim.smoothing)
     centre = h + radius                                          # centre height above plane
     ts, settled = settling_time(t, centre, rest_z, settle_tol)
-    dur, _ = contact_durations(t, h, n_apex, flight=True)
+    down, up, ok = _contacts(t, h, n_apex, 0.0, True)      # contact_durations(flight=True)
+    dur = jnp.where(ok, up - down, jnp.nan)
     # a contact no sample caught has no duration or depth, and the sampled ones after it are
     # not the bounces their rank says: theirs are nan (the first contact is the deepest)
-    if h.shape[0] >= 3:
-        kink = _kinks(h, free_fall, gap, scale)
+    if enough:
         t_hidden = jnp.min(jnp.where(kink, t[1:-1], jnp.inf))
-        down, _ = crossings(t, h, 0.0, n_apex, -1, flight=True)    # contact_durations' own
         dur = jnp.where(down < t_hidden, dur, jnp.nan)
         depth = jnp.where(jnp.isfinite(t_hidden) & ~(down[0] < t_hidden), jnp.nan,
                           max_penetration(h))
