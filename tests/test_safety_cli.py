@@ -34,7 +34,7 @@ def err_of(capsys, argv):
 
 @pytest.mark.parametrize("argv, words", [
     (["fit", "--plot", "/proc/nope/x.png"], "--plot /proc/nope/x.png: the folder /proc/nope"),
-    (["sweep", "--n", "100000"], "GiB for the results alone"),
+    (["sweep", "--n", "100000"], "TiB for the results alone"),
     (["sweep", "--n", "100000"], "lower --n"),
     (["sweep", "--dt", "1e-12"], "or raise --dt"),        # the cause was not among the advice
     (["sweep", "--duration", "1e-6"], "--duration 1e-06 s is only 0 step(s)"),

@@ -68,26 +68,19 @@ def check_size(sim, points: int, steps: int, records: int, chunk: int, swept: in
     :func:`diffpen.checks.estimate` counts a saved trajectory) past half this machine's
     memory; the message gives the compute at :data:`diffpen.checks.STEP_RATE` too (a CPU's
     rate: no sweep is refused for its time, which a GPU may cut many times)."""
-    from diffpen.checks import STEP_RATE, estimate, human_bytes, human_time, memory_bytes
+    from diffpen.checks import STEP_RATE, estimate, human_time
 
-    from .sweep import SweepError
-    mem = memory_bytes()
+    from .sweep_files import refuse_oversized
     runs = max(records, 1)
     rollout, seconds = estimate(sim, steps)
     seconds *= float(points) * runs
-    results = float(points) * (swept + METRIC_COLUMNS) * 8 * 3
-    live = min(chunk, points) * runs * rollout
     work = (f"about {human_time(seconds)} of compute ({points:.0f} points x {runs} "
             f"rollout{'s' if runs > 1 else ''} of {steps} steps of {sim.n_bodies} bodies at "
             f"~{STEP_RATE:.0e} body-steps/s)")
-    if results > 0.5 * mem:
-        raise SweepError(f"{points:.0f} points need about {human_bytes(results)} for the "
-                         f"results alone (this machine has {human_bytes(mem)}) and {work}: "
-                         "lower n (diffpen sweep --n).")
-    if live > 0.5 * mem:
-        raise SweepError(f"a chunk of {min(chunk, points):.0f} points x {runs} rollouts of "
-                         f"{steps} steps needs about {human_bytes(live)} (this machine has "
-                         f"{human_bytes(mem)}): lower chunk (diffpen sweep --chunk).")
+    refuse_oversized(points, float(points) * (swept + METRIC_COLUMNS) * 8 * 3,
+                     f"a chunk of {min(chunk, points):.0f} points x {runs} rollouts of "
+                     f"{steps} steps", min(chunk, points) * runs * rollout, work,
+                     "lower n (diffpen sweep --n).", "lower chunk (diffpen sweep --chunk).")
 
 
 def sweep_axes(sf, params, axes: Sequence | None, n: Sequence[int]) -> dict:

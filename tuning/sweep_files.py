@@ -35,6 +35,26 @@ class SweepWriteError(SweepError, OSError):
     what the files on disk hold."""
 
 
+def refuse_oversized(points: float, results: float, chunk: str, live: float, work: str,
+                     lower_n: str, lower_chunk: str, *, error=SweepError,
+                     memory: float | None = None) -> None:
+    """Refuse a sweep that cannot fit, before anything is made or compiled: ``results``
+    (bytes of the ``points`` points' rows, held in memory, the .npz and the .csv) or ``live``
+    (bytes of one chunk's arrays; ``chunk`` says what a chunk is, e.g. "a chunk of 1024
+    points x 2000 steps") past half of ``memory`` (default: this machine's). The message
+    gives ``work`` (the compute, in words) and what to lower (``lower_n``, ``lower_chunk``).
+    No sweep is refused for its time alone, which a faster device may cut many times.
+    Raises ``error`` (:class:`SweepError`; the CLI passes its own)."""
+    from diffpen.checks import human_bytes, memory_bytes
+    mem = memory_bytes() if memory is None else memory
+    if results > 0.5 * mem:
+        raise error(f"{points:.0f} points need about {human_bytes(results)} for the results "
+                    f"alone (this machine has {human_bytes(mem)}) and {work}: {lower_n}")
+    if live > 0.5 * mem:
+        raise error(f"{chunk} needs about {human_bytes(live)} (this machine has "
+                    f"{human_bytes(mem)}): {lower_chunk}")
+
+
 @dataclasses.dataclass
 class SweepResult:
     """Results of :func:`sweep`.

@@ -106,32 +106,22 @@ CHUNK_BYTES = 64
 COLUMNS = 18
 
 
-def _gib(b: float) -> str:
-    return f"{b / 2 ** 30:.3g} GiB"
-
-
 def check_size(points: int, steps: int, chunk: int, memory: float | None = None) -> dict:
-    """Estimates of a sweep's memory and time; raises CLIError when it cannot fit."""
-    from diffpen.checks import human_time, memory_bytes
-    memory = memory_bytes() if memory is None else memory
+    """Estimates of a sweep's memory and time; raises CLIError when it cannot fit
+    (:func:`tuning.sweep_files.refuse_oversized`, as a scene file's sweep)."""
+    from diffpen.checks import human_time
+
+    from ..sweep_files import refuse_oversized
     results = points * COLUMNS * 8 * 3            # in memory, the .npz and the .csv table
     live = min(chunk, points) * steps * CHUNK_BYTES
     seconds = points * steps / RATE
-    est = {"points": points, "steps": steps, "result_bytes": results, "chunk_bytes": live,
-           "seconds": seconds}
-    if results > 0.5 * memory:
-        raise CLIError(f"{points} points need about {_gib(results)} for the results alone "
-                       f"(this machine has {_gib(memory)}) and about {human_time(seconds)} of "
-                       f"compute ({points} points x {steps} steps at ~{RATE:.0e} ball-steps/s):"
-                       " lower --n")
-    if live > 0.5 * memory:
-        raise CLIError(f"a chunk of {min(chunk, points)} points x {steps} steps needs about "
-                       f"{_gib(live)} (this machine has {_gib(memory)}): lower --chunk or "
-                       "--duration, or raise --dt")
-    if seconds > 7 * 86400:
-        raise CLIError(f"{points} points x {steps} steps would take about {human_time(seconds)}"
-                       f" at ~{RATE:.0e} ball-steps/s: lower --n or --duration")
-    return est
+    refuse_oversized(points, results, f"a chunk of {min(chunk, points)} points x {steps} steps",
+                     live, f"about {human_time(seconds)} of compute ({points} points x {steps}"
+                     f" steps at ~{RATE:.0e} ball-steps/s)", "lower --n",
+                     "lower --chunk or --duration, or raise --dt", error=CLIError,
+                     memory=memory)
+    return {"points": points, "steps": steps, "result_bytes": results, "chunk_bytes": live,
+            "seconds": seconds}
 
 
 def _run(args) -> int:
