@@ -29,19 +29,52 @@ class SpringParams(NamedTuple):
     c: Any
 
 
-class Params(NamedTuple):
+def _own_empty_dicts(base, names: tuple):
+    """``base`` (a NamedTuple) whose fields ``names`` (dicts), when left out, each get a new
+    empty dict: a shared ``{}`` default would be one dict for every instance, so that
+    ``State(t, x, v).aux["key"] = value`` changed every later state's default (a field
+    given, None included, is kept as given: ``None`` in a ``jax.vmap`` axes spec)."""
+    fields = base._fields
+
+    class Fresh(base):
+        __slots__ = ()
+
+        def __new__(cls, *args, **kwargs):
+            given = set(fields[:len(args)]) | set(kwargs)
+            for name in names:
+                if name not in given:
+                    kwargs[name] = {}
+            return base.__new__(cls, *args, **kwargs)
+    return Fresh
+
+
+class _ParamsFields(NamedTuple):
+    contact: dict
+    springs: dict
+    extra: dict = None
+
+
+class Params(_own_empty_dicts(_ParamsFields, ("extra",))):
     """Differentiable parameters of a compiled scene.
 
     contact: ``{material name: ContactParams}`` for every material some contact pair uses.
     springs: ``{group name: SpringParams}`` for every spring group in the scene.
-    extra: ``{name: value}`` for terms added by extensions (empty for the core terms).
+    extra: ``{name: value}`` for terms added by extensions (default: a new empty dict; empty
+      for the core terms).
     """
-    contact: dict
-    springs: dict
-    extra: dict = {}
+    __slots__ = ()
 
 
-class State(NamedTuple):
+class _StateFields(NamedTuple):
+    time: Any
+    position: Any
+    velocity: Any
+    orientation: Any = None
+    angular_velocity: Any = None
+    aux: dict = None
+
+
+class State(_own_empty_dicts(_StateFields, ("aux",))):
     """Simulation state.
 
     time: scalar, s.
@@ -53,17 +86,23 @@ class State(NamedTuple):
     aux: a dict of what terms carry between steps (e.g. plastic rest lengths, the broad
       phase's overflow flag) and ``"unstable"``: a bool scalar, set (and kept) by a rollout
       whose step is past the safe step for its parameter values (:mod:`diffpen.stability`;
-      computed inside the traced program, so it works under jit, vmap and grad).
+      computed inside the traced program, so it works under jit, vmap and grad). Default:
+      a new empty dict.
     """
+    __slots__ = ()
+
+
+class _TrajectoryFields(NamedTuple):
     time: Any
     position: Any
     velocity: Any
     orientation: Any = None
     angular_velocity: Any = None
-    aux: dict = {}
+    aux: dict = None
+    observed: Any = None
 
 
-class Trajectory(NamedTuple):
+class Trajectory(_own_empty_dicts(_TrajectoryFields, ("aux",))):
     """States saved by a rollout; the leading axis of every field is the saved step.
 
     time: (n_saved,) s, the time after each saved step.
@@ -76,13 +115,7 @@ class Trajectory(NamedTuple):
       ``observe`` function (then position, velocity, orientation and angular_velocity are
       None: only what was asked for is stored); else None.
     """
-    time: Any
-    position: Any
-    velocity: Any
-    orientation: Any = None
-    angular_velocity: Any = None
-    aux: dict = {}
-    observed: Any = None
+    __slots__ = ()
 
     @property
     def final(self) -> State:

@@ -507,3 +507,22 @@ def test_an_integrator_record_steps_like_its_name():
     a = by_name.rollout(by_name.params(k=1e4, c=20.0), 800, save_every=800).position
     b = by_record.rollout(by_record.params(k=1e4, c=20.0), 800, save_every=800).position
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_left_out_dict_fields_are_new_dicts_per_instance():
+    """Regression: ``State.aux``, ``Trajectory.aux`` and ``Params.extra`` defaulted to one
+    shared ``{}``, so writing into one state's aux changed every later state's default. Each
+    now gets its own; a field given (None included, as in a vmap axes spec) is kept."""
+    z = np.zeros((1, 3))
+    first = dp.State(0.0, z, z)
+    first.aux["mark"] = 1.0
+    assert dp.State(0.0, z, z).aux == {}
+    assert dp.State(0.0, z, z, aux=None).aux is None
+    traj = dp.Trajectory(np.zeros(1), z[None], z[None])
+    traj.aux["mark"] = 1.0
+    assert dp.Trajectory(np.zeros(1), z[None], z[None]).aux == {}
+    params = dp.Params({}, {})
+    params.extra["mark"] = 1.0
+    assert dp.Params({}, {}).extra == {} and dp.Params({}, {}, None).extra is None
+    leaves, tree = jax.tree_util.tree_flatten(first)
+    assert jax.tree_util.tree_unflatten(tree, leaves).aux == {"mark": 1.0}
