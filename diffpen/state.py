@@ -8,6 +8,7 @@
 """
 from __future__ import annotations
 
+import collections
 from typing import Any, NamedTuple
 
 __all__ = ["ContactParams", "SpringParams", "Params", "State", "Trajectory"]
@@ -29,32 +30,31 @@ class SpringParams(NamedTuple):
     c: Any
 
 
-def _own_empty_dicts(base, names: tuple):
-    """``base`` (a NamedTuple) whose fields ``names`` (dicts), when left out, each get a new
-    empty dict: a shared ``{}`` default would be one dict for every instance, so that
+def _own_empty_dicts(name: str, fields: tuple, required: int, dicts: tuple):
+    """A namedtuple base of ``fields`` (the first ``required`` of them required, the others
+    None by default) whose fields ``dicts``, when left out, each get a new empty dict: a
+    shared ``{}`` default would be one dict for every instance, so that
     ``State(t, x, v).aux["key"] = value`` changed every later state's default (a field
     given, None included, is kept as given: ``None`` in a ``jax.vmap`` axes spec)."""
-    fields = base._fields
+    base = collections.namedtuple(name, fields, defaults=(None,) * (len(fields) - required))
 
     class Fresh(base):
         __slots__ = ()
 
         def __new__(cls, *args, **kwargs):
             given = set(fields[:len(args)]) | set(kwargs)
-            for name in names:
-                if name not in given:
-                    kwargs[name] = {}
+            for field in dicts:
+                if field not in given:
+                    kwargs[field] = {}
             return base.__new__(cls, *args, **kwargs)
     return Fresh
 
 
-class _ParamsFields(NamedTuple):
-    contact: dict
-    springs: dict
-    extra: dict = None
+_STATE_FIELDS = ("time", "position", "velocity", "orientation", "angular_velocity", "aux")
 
 
-class Params(_own_empty_dicts(_ParamsFields, ("extra",))):
+class Params(_own_empty_dicts("Params", ("contact", "springs", "extra"), 2,
+                              ("extra",))):
     """Differentiable parameters of a compiled scene.
 
     contact: ``{material name: ContactParams}`` for every material some contact pair uses.
@@ -65,16 +65,7 @@ class Params(_own_empty_dicts(_ParamsFields, ("extra",))):
     __slots__ = ()
 
 
-class _StateFields(NamedTuple):
-    time: Any
-    position: Any
-    velocity: Any
-    orientation: Any = None
-    angular_velocity: Any = None
-    aux: dict = None
-
-
-class State(_own_empty_dicts(_StateFields, ("aux",))):
+class State(_own_empty_dicts("State", _STATE_FIELDS, 3, ("aux",))):
     """Simulation state.
 
     time: scalar, s.
@@ -92,17 +83,8 @@ class State(_own_empty_dicts(_StateFields, ("aux",))):
     __slots__ = ()
 
 
-class _TrajectoryFields(NamedTuple):
-    time: Any
-    position: Any
-    velocity: Any
-    orientation: Any = None
-    angular_velocity: Any = None
-    aux: dict = None
-    observed: Any = None
-
-
-class Trajectory(_own_empty_dicts(_TrajectoryFields, ("aux",))):
+class Trajectory(_own_empty_dicts("Trajectory", _STATE_FIELDS + ("observed",), 3,
+                                  ("aux",))):
     """States saved by a rollout; the leading axis of every field is the saved step.
 
     time: (n_saved,) s, the time after each saved step.
