@@ -76,6 +76,7 @@ laws (``smoothing > 0``).
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from .window import window_mean, window_moments
@@ -85,6 +86,25 @@ __all__ = ["linear_centred", "no_tension_centred", "hunt_crossley_centred",
 
 
 # --------------------------------------------------------------------------- damping at the window's centre
+@jax.custom_jvp
+def _quotient(num, den):
+    """``num / den``, with the derivative ``(dnum - q dden) / den`` (``q`` the quotient): one
+    division by ``den`` for both tangents. Autodiff of ``num / den`` takes
+    ``dnum / den - num dden den^-2``, whose extra power and products XLA kept apart from the
+    step's other work under ``jax.vmap``: reverse-mode gradients of 1024 batched balls with
+    the centred record took 82-100 ms against 44-56 ms with this rule (the same values, the
+    same derivatives to rounding)."""
+    return num / den
+
+
+@_quotient.defjvp
+def _quotient_jvp(primals, tangents):
+    num, den = primals
+    dnum, dden = tangents
+    q = num / den
+    return q, (dnum - q * dden) / den
+
+
 def linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     """Step average of the linear law with its damping at the window centre's speed
     ``vc = vn + lag (F inv_mass + accel)``: ``F = k mean - c frac vc`` solved for ``F``,
@@ -96,7 +116,7 @@ def linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     depth)."""
     frac, mean = window_mean(d, vn, h)
     cf = c * frac
-    return (k * mean - cf * (vn + lag * accel)) / (1.0 + cf * (lag * inv_mass))
+    return _quotient(k * mean - cf * (vn + lag * accel), 1.0 + cf * (lag * inv_mass))
 
 
 _HALVINGS = 10
@@ -232,8 +252,8 @@ def hunt_crossley_centred(exponent: float):
         +0.05%). (A pointwise ``d^n`` for ``F0`` costs less, 0.8x, with the same values but
         derivatives of apexes 2-3 up to 12% off over impact phases, against 4.6%.)"""
         _, pw = window_mean(d, vn, h, exponent)
-        f0 = (jnp.maximum(k - c * (vn + lag * accel), 0.0) * pw
-              / (1.0 + (c * lag * inv_mass) * pw))
+        f0 = _quotient(jnp.maximum(k - c * (vn + lag * accel), 0.0) * pw,
+                       1.0 + (c * lag * inv_mass) * pw)
         a = f0 * inv_mass + accel
         vc = vn + lag * a
         mean, moment = window_moments(d, vc, h, exponent)
@@ -253,4 +273,4 @@ def no_tension_centred(d, vn, k, c, h, lag, inv_mass, accel):
     frac, mean = window_mean(d - t, vn, h)
     cf = c * frac
     f0 = k * mean - cf * (jnp.minimum(vn, 0.0) + lag * accel)
-    return jnp.maximum(f0 / (1.0 + cf * (lag * inv_mass)), 0.0)
+    return jnp.maximum(_quotient(f0, 1.0 + cf * (lag * inv_mass)), 0.0)
