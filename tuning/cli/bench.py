@@ -29,7 +29,7 @@ _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),
             ("compile_s", "{:.2f}"), ("forward_s", "{:.3g}"), ("steps_per_s", "{:.3g}"),
             ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("grad_mode", "{}"),
             ("reverse_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
-            ("grad_vs_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
+            ("grad_vs_floor", "{:.2f}"), ("vs_band_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
             ("stepping_per_s", "{:.3g}"), ("stepping_vs_floor", "{:.2f}"),
             ("natural_vs_floor", "{:.2f}"),
             ("memory_bytes", "{:.3g}"),
@@ -72,8 +72,12 @@ def run(args) -> int:
         if args.quick:
             print("\n--quick: CI-sized runs (batch <= 256, fewer steps; the batch and steps "
                   "columns say what ran), not the full-size figures the case names stand for.")
-        print("\nvs_floor: forward time / minimal hand-written lax.scan (hard contact; for the "
-              "ball, scalar z and v per ball); "
+        print("\nvs_floor: forward time / a plain hand-written lax.scan of the same physics "
+              "(tuning.reports.floors: for the ball scalar z and v per ball, hard contact; for "
+              "spring networks x, y, z arrays, a gather per spring and a segment_sum per node); "
+              "vs_band_floor (spring networks): forward time / the same hand-written in "
+              "diffpen's own lattice layout (dense slices added in place), the fastest form "
+              "found; "
               "vs_numpy: forward time / vectorised NumPy (< 1 is faster); steps_per_s counts "
               "ball-steps (batch x steps) for batched balls, sphere-steps (spheres x steps) "
               "for the sphere cases, steps otherwise; grad_s uses "

@@ -11,10 +11,15 @@ For every standard scene this measures, after compilation and as the median of s
   (per batch element under ``vmap`` for batched scenes), and ``grad_over_forward``;
 * ``memory_bytes``: XLA's memory analysis of the compiled forward and gradient executables
   (arguments + outputs + temporaries; the peak a device must hold);
-* ``floor_s`` / ``vs_floor``: a minimal hand-written ``lax.scan`` of the same physics with a
-  hard ``max(d, 0)`` contact and no generality (the speed of light for this model in JAX); for
-  the ball, the plain floor :func:`tuning.reports.floors.plain_ball_floor`: scalar ``z`` and ``v`` per ball, so a
-  batch is one vector per component;
+* ``floor_s`` / ``vs_floor``: a plain hand-written ``lax.scan`` of the same physics with no
+  generality (:mod:`tuning.reports.floors`): for the ball, scalar ``z`` and ``v`` per ball
+  and a hard ``max(d, 0)`` contact, so a batch is one vector per component; for the spring
+  networks, x, y and z as separate arrays, a gather of each spring's ends and a
+  ``segment_sum`` of the forces per node;
+* spring networks only: ``band_floor_s`` / ``vs_band_floor``: the same physics hand-written
+  in diffpen's own lattice layout (dense slices added in place,
+  :func:`tuning.reports.floors.network_floor`), the fastest form found: what diffpen's
+  generality costs on top of its layout;
 * ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
 * ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
   rollout returning only its final state (nothing recorded), against the floor doing the
@@ -41,7 +46,7 @@ import diffpen as dp
 from diffpen import builders
 
 from ..scenes import ball_scene
-from .floors import G, network_floor, plain_ball_floor
+from .floors import G, network_floor, plain_ball_floor, plain_network_floor
 from .timing import interleaved_times, median_time, memory_bytes
 
 __all__ = ["Case", "CASES", "run_case", "run", "sphere_scaling", "gradient_memory",
@@ -154,11 +159,15 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
             p = sim.params(springs=springs)
             return sim.rollout(p, steps=n_steps, state=state, save_every=n_steps).position[-1]
 
-        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = network_floor(
+        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = plain_network_floor(
             sim, p0, n_steps, dtype)
+        band_final = network_floor(sim, p0, n_steps, dtype)[0]
 
         def floor_kc(k, c):
             return floor_final(kvec * k, cvec * c, state.position, state.velocity)
+
+        def band_floor_kc(k, c):
+            return band_final(kvec * k, cvec * c, state.position, state.velocity)
 
         def loss(fn):
             return lambda k, c: jnp.sum(fn(k, c)[:, 2])
@@ -194,6 +203,7 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
         grads = _gradients(loss(fwd_kc), loss(floor_kc) if has_only_springs else None,
                            batched=False)
         return dict(forward=jax.jit(fwd_kc), floor=jax.jit(floor_kc) if has_only_springs else None,
+                    band_floor=jax.jit(band_floor_kc) if has_only_springs else None,
                     numpy=numpy_final if has_only_springs else None, **grads,
                     args=args, work=n_steps, steps=n_steps, batch=1,
                     bodies=sim.n_bodies, springs=len(ia))
@@ -331,7 +341,8 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
     with_floor_grad = with_floor and spec.get("floor_grad") is not None
     t = interleaved_times({"forward": spec["forward"], "grad": spec["grad"],
                            "floor": spec["floor"] if with_floor else None,
-                           "floor_grad": spec["floor_grad"] if with_floor_grad else None},
+                           "floor_grad": spec["floor_grad"] if with_floor_grad else None,
+                           "band_floor": spec.get("band_floor") if with_floor else None},
                           args, repeats=repeats)
     fwd, grad = t["forward"], t["grad"]
     # reverse mode is shown for comparison only: one timed run when a forward takes > 0.2 s
@@ -350,6 +361,8 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
             out[key] = spec[key]
     if with_floor:
         out.update(floor_s=t["floor"], vs_floor=fwd / t["floor"])
+    if "band_floor" in t:
+        out.update(band_floor_s=t["band_floor"], vs_band_floor=fwd / t["band_floor"])
     if with_floor_grad:
         out.update(floor_grad_s=t["floor_grad"], grad_vs_floor=grad / t["floor_grad"])
     if spec.get("stepping") is not None:

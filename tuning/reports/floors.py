@@ -1,8 +1,14 @@
 """The hand-written floors the benchmarks compare diffpen with: the plainest fast JAX an
 expert would write for the same physics, with no generality. The ball's is a ``lax.scan`` of
 scalar height and velocity per ball with a hard ``max(d, 0)`` contact; the spring networks'
-evaluates lattice springs on dense slices added back in place. Independent of diffpen's step
-(they read a compiled simulator's scene and parameters only)."""
+(:func:`plain_network_floor`) keeps x, y and z as separate arrays, gathers each spring's ends
+and sums the forces per node with ``jax.ops.segment_sum``. Independent of diffpen's step
+(they read a compiled simulator's scene and parameters only).
+
+:func:`network_floor` is a second reference for the spring networks, not a plain one: it
+writes lattice springs on dense slices added back in place, diffpen's own layout
+(:func:`diffpen.terms.spring_bands`), the fastest form found; diffpen over it is the cost of
+diffpen's generality on top of that layout."""
 from __future__ import annotations
 
 import jax
@@ -11,7 +17,7 @@ import numpy as np
 
 import diffpen as dp
 
-__all__ = ["G", "plain_ball_floor", "network_floor"]
+__all__ = ["G", "plain_ball_floor", "plain_network_floor", "network_floor"]
 
 #: gravity of the benchmark scenes, m/s^2
 G = 9.81
@@ -40,30 +46,86 @@ def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
 
 
 
-def network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
-    """Hand-written floor for spring networks: per-spring k and c, symplectic Euler, gravity,
-    drag, pinned nodes; no contact (the network scenes have none). Lattice springs (one index
-    offset per family) use dense slices added back in place (``lax.dynamic_update_slice``),
-    the fastest way found to write them in JAX; the other springs a gather and, per node, a
-    sum of static row picks."""
-    from diffpen.terms import spring_bands
+def _network_parts(sim: dp.Simulator, params: dp.Params, dtype):
+    """What both network floors read from a simulator: the springs' ends, rest lengths and
+    groups, each group's (k, c), inverse masses, gravity and drag per node."""
     springs = [s for s in sim.scene.springs if s.b is not None]
     ia = np.array([s.a for s in springs])
     ib = np.array([s.b for s in springs])
-    rest_np = np.array([s.rest_length for s in springs])
+    rest = np.array([s.rest_length for s in springs])
     group = [s.group for s in springs]
     names = sorted(set(group))
     gi = np.array([names.index(g) for g in group])
-    free = jnp.asarray((~sim.pinned)[:, None], dtype)
-    inv_m = jnp.asarray(np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None], dtype)
-    grav = jnp.asarray(sim.scene.gravity, dtype) * free
-    dt, n = sim.dt, sim.n_bodies
-    drag = [d for d in sim.scene.drags if not sim.pinned[d.body]]
+    n = sim.n_bodies
+    inv_m = np.where(sim.pinned, 0.0, 1.0 / sim.mass)
+    grav = np.asarray(sim.scene.gravity)[None, :] * (~sim.pinned)[:, None]
     drag_c = np.zeros(n)
-    for d in drag:
-        drag_c[d.body] += sim.scene.drag_groups[d.group]
-    drag_c = jnp.asarray(drag_c[:, None], dtype)
-    has_drag = bool(drag)
+    for d in sim.scene.drags:
+        if not sim.pinned[d.body]:
+            drag_c[d.body] += sim.scene.drag_groups[d.group]
+    kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
+    cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
+    return ia, ib, rest, gi, names, inv_m, grav, drag_c, kvec, cvec
+
+
+def plain_network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
+    """The plain floor for spring networks: per-spring k and c (``k (L - rest) + c rate``
+    along the spring), symplectic Euler, gravity, drag, pinned nodes; no contact (the network
+    scenes have none). x, y and z are separate (n,) arrays; each step gathers every spring's
+    two ends and sums the spring forces per node with ``jax.ops.segment_sum``: what an expert
+    writes first, with no knowledge of the lattice. Returns ``(final, kvec, cvec, meta)``
+    as :func:`network_floor`: ``final(kvec, cvec, x0, v0) -> (n, 3)`` positions (m) after
+    ``steps`` steps."""
+    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = _network_parts(
+        sim, params, dtype)
+    n, dt = sim.n_bodies, sim.dt
+    rest = jnp.asarray(rest_np, dtype)
+    inv_m = jnp.asarray(inv_m_np, dtype)
+    grav = [jnp.asarray(grav_np[:, j], dtype) for j in range(3)]
+    drag = jnp.asarray(drag_np, dtype)
+    has_drag = bool(np.any(drag_np))
+
+    def final(kv, cv, x0, v0):
+        k, c = kv[gi], cv[gi]
+
+        def step(s, _):
+            x, v = s            # each a tuple of three (n,) arrays
+            dx = [x[j][ia] - x[j][ib] for j in range(3)]
+            dv = [v[j][ia] - v[j][ib] for j in range(3)]
+            length = jnp.sqrt(dx[0] * dx[0] + dx[1] * dx[1] + dx[2] * dx[2])
+            u = [d / length for d in dx]
+            rate = u[0] * dv[0] + u[1] * dv[1] + u[2] * dv[2]
+            f = -k * (length - rest) - c * rate
+            new_v, new_x = [], []
+            for j in range(3):
+                fj = f * u[j]
+                force = (jax.ops.segment_sum(fj, ia, n) - jax.ops.segment_sum(fj, ib, n))
+                if has_drag:
+                    force = force - drag * v[j]
+                vj = v[j] + dt * (force * inv_m + grav[j])
+                new_v.append(vj)
+                new_x.append(x[j] + dt * vj)
+            return (tuple(new_x), tuple(new_v)), None
+        split = [tuple(a[:, j] for j in range(3)) for a in (x0, v0)]
+        (x, _), _ = jax.lax.scan(step, tuple(split), None, length=steps)
+        return jnp.stack(x, -1)
+    return final, kvec, cvec, (ia, ib, rest_np, gi, names)
+
+
+def network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
+    """Hand-written spring-network reference in diffpen's own layout (not a plain floor:
+    :func:`plain_network_floor` is): the same physics, with lattice springs (one index offset
+    per family, :func:`diffpen.terms.spring_bands`) on dense slices added back in place
+    (``lax.dynamic_update_slice``), the fastest way found to write them in JAX; the other
+    springs a gather and, per node, a sum of static row picks."""
+    from diffpen.terms import spring_bands
+    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = _network_parts(
+        sim, params, dtype)
+    inv_m = jnp.asarray(inv_m_np[:, None], dtype)
+    grav = jnp.asarray(grav_np, dtype)
+    dt, n = sim.dt, sim.n_bodies
+    drag_c = jnp.asarray(drag_np[:, None], dtype)
+    has_drag = bool(np.any(drag_np))
     bands, other = spring_bands(ia, ib)
     dense = []
     for d, lo, hi, ids in bands:             # slot j holds the spring from lo + j to lo + j + d
@@ -112,7 +174,4 @@ def network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
             return (x + dt * v, v), None
         (x, _), _ = jax.lax.scan(step, (x0, v0), None, length=steps)
         return x
-
-    kvec = jnp.asarray([params.springs[g].k for g in names], dtype)
-    cvec = jnp.asarray([params.springs[g].c for g in names], dtype)
     return final, kvec, cvec, (ia, ib, rest_np, gi, names)
