@@ -172,3 +172,27 @@ def test_a_stopping_process_lets_the_files_it_is_writing_finish(monkeypatch, cap
     stopper.join(5.0)
     assert exits and exits[0][0] == distributed.STOPPED_STATUS and exits[0][1] >= written
     assert "a process of the cluster stopped: a test" in capsys.readouterr().err
+
+
+def test_a_second_process_zero_is_refused_before_joining():
+    """Regression: two processes given process id 0 (or a coordinator port another program
+    listens on) both aborted inside JAX's coordination service with a C++ stack trace and no
+    word of the cause. Process 0 now checks that its coordinator port is free before JAX
+    starts its service and raises a ValueError that says what to change. Here the test
+    holds the port, as a first process 0 would."""
+    import socket
+    port = free_port()
+    holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    holder.bind(("", port))
+    holder.listen()
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", SCRIPT], capture_output=True, text=True, timeout=120,
+            env=_env(1, CLUSTER_ID="0", CLUSTER_COORDINATOR=f"localhost:{port}",
+                     CLUSTER_PROCESSES="2", CLUSTER_TIMEOUT="5"))
+    finally:
+        holder.close()
+    assert run.returncode == 0, run.stderr[-2000:]
+    error = json.loads(run.stdout.strip().splitlines()[-1])["error"]
+    assert f"port {port}" in error and "process id 0 too" in error
+    assert "waits up to" not in run.stderr          # refused before it waited

@@ -131,6 +131,8 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
     if given:
         if num_processes == 1:
             return False
+        if int(process_id) == 0:
+            _check_port_free(coordinator)
         _say_waiting(f"process {int(process_id)} of {int(num_processes)}", timeout_s,
                      f"the coordinator {coordinator} (every process needs the same coordinator "
                      f"and number of processes, and its own id in 0..{int(num_processes) - 1})")
@@ -145,6 +147,28 @@ def join(coordinator: str | None = None, num_processes: int | None = None,
     _initialize(timeout_s)
     _check_joined(timeout_s)
     return True
+
+
+def _check_port_free(coordinator: str) -> None:
+    """Process 0 hosts the coordinator on its port: refuse, with a ``ValueError`` that says
+    what to change, a port another program already listens on (e.g. a second process given
+    ``process_id=0``), before JAX starts its coordination service. (Two processes 0 made both
+    abort inside JAX with a C++ stack trace and no word of the cause.) A port in TIME_WAIT
+    from a run that just ended is free (``SO_REUSEADDR``, as JAX's server binds)."""
+    import socket
+    port = parse_coordinator(coordinator)[1]
+    probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        probe.bind(("", port))
+    except OSError as exc:
+        raise ValueError(
+            f"process 0 hosts the coordinator on port {port}, but that port is in use "
+            f"({exc.strerror}): another process was given process id 0 too (give each "
+            "process its own id, 0 on the coordinator's host only), or another program "
+            "listens there (choose another port in --coordinator).") from None
+    finally:
+        probe.close()
 
 
 def heartbeat_seconds(timeout_s) -> int:
