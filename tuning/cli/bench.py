@@ -29,7 +29,8 @@ _COLUMNS = [("case", "{}"), ("dtype", "{}"), ("batch", "{}"), ("steps", "{}"),
             ("compile_s", "{:.2f}"), ("forward_s", "{:.3g}"), ("steps_per_s", "{:.3g}"),
             ("grad_s", "{:.3g}"), ("grad_over_forward", "{:.2f}"), ("grad_mode", "{}"),
             ("reverse_over_forward", "{:.2f}"), ("vs_floor", "{:.2f}"),
-            ("grad_vs_floor", "{:.2f}"), ("vs_band_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
+            ("grad_vs_floor", "{:.2f}"), ("reverse_vs_floor", "{:.2f}"),
+            ("vs_band_floor", "{:.2f}"), ("vs_numpy", "{:.3f}"),
             ("stepping_per_s", "{:.3g}"), ("stepping_vs_floor", "{:.2f}"),
             ("natural_vs_floor", "{:.2f}"),
             ("memory_bytes", "{:.3g}"),
@@ -82,7 +83,8 @@ def run(args) -> int:
               "ball-steps (batch x steps) for batched balls, sphere-steps (spheres x steps) "
               "for the sphere cases, steps otherwise; grad_s uses "
               "diffpen.value_and_grad's choice (grad_mode), reverse_over_forward is reverse "
-              "mode's time over the forward time; stepping_per_s (ball cases) is the rate of "
+              "mode's time over the forward time, reverse_vs_floor over the floor's reverse "
+              "mode; stepping_per_s (ball cases) is the rate of "
               "the same rollout returning only its final state, stepping_vs_floor its time over "
               "the floor doing the same; natural_vs_floor: the time of "
               "sim.rollout(...).position[-1, 0, 2] (every state recorded) over the floor's "

@@ -20,6 +20,9 @@ For every standard scene this measures, after compilation and as the median of s
   in diffpen's own lattice layout (dense slices added in place,
   :func:`tuning.reports.floors.network_floor`), the fastest form found: what diffpen's
   generality costs on top of its layout;
+* ``floor_grad_s`` / ``grad_vs_floor`` and ``floor_grad_reverse_s`` / ``reverse_vs_floor``:
+  the floor's gradient taken as diffpen's (``grad_s``) and in reverse mode (``grad_reverse_s``),
+  timed in turns with diffpen's;
 * ``numpy_s`` / ``vs_numpy``: the same physics in vectorised NumPy;
 * ball cases only: ``stepping_s`` / ``stepping_per_s`` / ``stepping_vs_floor``: the same
   rollout returning only its final state (nothing recorded), against the floor doing the
@@ -56,14 +59,15 @@ __all__ = ["Case", "CASES", "run_case", "run", "sphere_scaling", "gradient_memor
 def _gradients(loss: Callable, floor_loss: Callable | None, *, batched: bool) -> dict:
     """Jitted gradients of ``loss(k, c)`` w.r.t. (k, c): ``grad`` with
     ``diffpen.value_and_grad`` (its automatic choice: forward mode for these two scalars),
-    ``grad_reverse`` with reverse mode, and ``floor_grad`` of the floor's loss the same way
-    as ``grad`` (so ``grad_vs_floor`` compares like with like). Per batch row under ``vmap``
-    when ``batched``."""
+    ``grad_reverse`` with reverse mode, and ``floor_grad`` / ``floor_grad_reverse`` of the
+    floor's loss the same two ways (so ``grad_vs_floor`` and ``reverse_vs_floor`` compare
+    like with like). Per batch row under ``vmap`` when ``batched``."""
     def make(fn, mode):
         g = dp.value_and_grad(fn, (0, 1), mode=mode)
         return jax.jit(jax.vmap(g) if batched else g)
     return dict(grad=make(loss, "auto"), grad_reverse=make(loss, "reverse"),
                 floor_grad=None if floor_loss is None else make(floor_loss, "auto"),
+                floor_grad_reverse=None if floor_loss is None else make(floor_loss, "reverse"),
                 grad_mode=dp.autodiff.resolve_mode("auto", 2))
 
 
@@ -345,9 +349,16 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
                            "band_floor": spec.get("band_floor") if with_floor else None},
                           args, repeats=repeats)
     fwd, grad = t["forward"], t["grad"]
-    # reverse mode is shown for comparison only: one timed run when a forward takes > 0.2 s
-    grad_rev = median_time(spec["grad_reverse"], *args,
-                           repeats=1 if fwd > 0.2 else max(1, repeats // 2))
+    # reverse mode is shown for comparison: beside the floor's reverse mode in turns where
+    # there is one, else one timed run when a forward takes > 0.2 s
+    floor_rev = spec.get("floor_grad_reverse") if with_floor_grad else None
+    if floor_rev is not None:
+        tr = interleaved_times({"rev": spec["grad_reverse"], "floor_rev": floor_rev}, args,
+                               repeats=max(3, repeats // 2))
+        grad_rev = tr["rev"]
+    else:
+        grad_rev = median_time(spec["grad_reverse"], *args,
+                               repeats=1 if fwd > 0.2 else max(1, repeats // 2))
     # quick: a CI-sized run of the case (batch <= 256, fewer steps): the row says so, so that
     # nothing reading the JSON by case name takes it for the full-size figures
     out = dict(case=name, quick=bool(quick), dtype=np.dtype(dtype).name, batch=spec["batch"],
@@ -365,6 +376,9 @@ def run_case(name: str, *, dtype=jnp.float32, quick: bool = False, repeats: int 
         out.update(band_floor_s=t["band_floor"], vs_band_floor=fwd / t["band_floor"])
     if with_floor_grad:
         out.update(floor_grad_s=t["floor_grad"], grad_vs_floor=grad / t["floor_grad"])
+    if floor_rev is not None:
+        out.update(floor_grad_reverse_s=tr["floor_rev"],
+                   reverse_vs_floor=grad_rev / tr["floor_rev"])
     if spec.get("stepping") is not None:
         # the same rollout returning only the final state: the workload of stepping-rate
         # figures (a simulator advancing its state, nothing recorded), e.g. the peers' anchors
