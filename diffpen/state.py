@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import collections
+import inspect
 from typing import Any, NamedTuple
 
 __all__ = ["ContactParams", "SpringParams", "Params", "State", "Trajectory"]
@@ -47,6 +48,12 @@ def _own_empty_dicts(name: str, fields: tuple, required: int, dicts: tuple):
                 if field not in given:
                     kwargs[field] = {}
             return base.__new__(cls, *args, **kwargs)
+    # what help() and editors show: the fields, their defaults ({} for the dicts)
+    kind = inspect.Parameter.POSITIONAL_OR_KEYWORD
+    Fresh.__signature__ = inspect.Signature(
+        [inspect.Parameter(f, kind) for f in fields[:required]]
+        + [inspect.Parameter(f, kind, default={} if f in dicts else None)
+           for f in fields[required:]])
     return Fresh
 
 

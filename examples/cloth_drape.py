@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     top = x[-1, nodes[n // 2, n // 2]]
     r = np.linalg.norm(x - np.array([0.0, 0.0, R]), axis=2)       # (saved, nodes)
     print(f"centre node at z = {top[2]:.4f} m (sphere top {2 * R} m); deepest sphere "
-          f"penetration {max(0.0, R - r.min()) * 1e3:.2f} mm over the run "
+          f"penetration {max(0.0, R - r.min()) * 1e3:.2f} mm over the saved frames "
           f"({max(0.0, R - r[-1].min()) * 1e3:.2f} mm at the end); corner z = "
           f"{x[-1, nodes[0, 0], 2]:.3f} m")
     _draw(x, nodes, t, pathlib.Path(args.out), args.gif)

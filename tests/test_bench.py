@@ -67,14 +67,14 @@ class _Sleeper:
 def known_case(monkeypatch, clock):
     """A case whose every workload has a known cost, so that each reported figure has a known
     value: forward 4 U, floor 1 U, gradient 6 U, floor gradient 2 U, reverse mode 8 U, the
-    floor's reverse mode 5 U, stepping 3 U, the natural code 5 U, the floor's stepping 1 U,
-    NumPy 2 U."""
+    floor's reverse mode 5 U, the band-layout floor 7 U, stepping 3 U, the natural code 5 U,
+    the floor's stepping 1 U, NumPy 2 U."""
     def build(dtype, quick):
         def s(units):
             return _Sleeper(clock, units)
         return dict(forward=s(4), floor=s(1), grad=s(6), floor_grad=s(2), grad_reverse=s(8),
                     floor_grad_reverse=s(5), grad_mode="forward", stepping=s(3), natural=s(5),
-                    floor_stepping=s(1),
+                    floor_stepping=s(1), band_floor=s(7),
                     numpy=lambda: clock.sleep(2 * U), args=(jnp.ones(()), jnp.ones(())),
                     work=1000, steps=10, batch=100)
     monkeypatch.setitem(bench.CASES, "known", bench.Case("known", build))
@@ -86,6 +86,7 @@ def test_ratios_are_those_of_the_workloads_they_name(known_case):
     # workloads (or of one workload with itself) is off by 1.5x at least
     expect = dict(forward_s=4 * U, floor_s=U, grad_s=6 * U, floor_grad_s=2 * U,
                   grad_reverse_s=8 * U, floor_grad_reverse_s=5 * U, reverse_vs_floor=1.6,
+                  band_floor_s=7 * U, vs_band_floor=4 / 7,
                   stepping_s=3 * U, natural_s=5 * U,
                   floor_stepping_s=U, numpy_s=2 * U, vs_floor=4.0, grad_vs_floor=3.0,
                   grad_over_forward=1.5, reverse_over_forward=2.0, stepping_vs_floor=3.0,

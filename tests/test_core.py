@@ -526,3 +526,5 @@ def test_left_out_dict_fields_are_new_dicts_per_instance():
     assert dp.Params({}, {}).extra == {} and dp.Params({}, {}, None).extra is None
     leaves, tree = jax.tree_util.tree_flatten(first)
     assert jax.tree_util.tree_unflatten(tree, leaves).aux == {"mark": 1.0}
+    import inspect                            # help() shows the fields and their defaults
+    assert str(inspect.signature(dp.Params)) == "(contact, springs, extra={})"

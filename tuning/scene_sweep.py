@@ -66,8 +66,8 @@ def check_size(sim, points: int, steps: int, records: int, chunk: int, swept: in
     swept and metric columns, held in memory, the .npz and the .csv) or one chunk's rollouts
     (``chunk`` points x ``records`` (at least 1) rollouts of ``steps`` steps, each counted as
     :func:`diffpen.checks.estimate` counts a saved trajectory) past half this machine's
-    memory; the message gives the compute at :data:`diffpen.checks.STEP_RATE` too (a CPU's
-    rate: no sweep is refused for its time, which a GPU may cut many times)."""
+    memory; the results' message gives the compute at :data:`diffpen.checks.STEP_RATE` too
+    (a CPU's rate: no sweep is refused for its time, which a GPU may cut many times)."""
     from diffpen.checks import STEP_RATE, estimate, human_time
 
     from .sweep_files import refuse_oversized

@@ -41,8 +41,9 @@ def refuse_oversized(points: float, results: float, chunk: str, live: float, wor
     """Refuse a sweep that cannot fit, before anything is made or compiled: ``results``
     (bytes of the ``points`` points' rows, held in memory, the .npz and the .csv) or ``live``
     (bytes of one chunk's arrays; ``chunk`` says what a chunk is, e.g. "a chunk of 1024
-    points x 2000 steps") past half of ``memory`` (default: this machine's). The message
-    gives ``work`` (the compute, in words) and what to lower (``lower_n``, ``lower_chunk``).
+    points x 2000 steps") past half of ``memory`` (default: this machine's). The results'
+    message gives ``work`` (the compute, in words) too; each says what to lower
+    (``lower_n``, ``lower_chunk``).
     No sweep is refused for its time alone, which a faster device may cut many times.
     Raises ``error`` (:class:`SweepError`; the CLI passes its own)."""
     from diffpen.checks import human_bytes, memory_bytes

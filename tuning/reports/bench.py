@@ -49,7 +49,7 @@ import diffpen as dp
 from diffpen import builders
 
 from ..scenes import ball_scene
-from .floors import G, network_floor, plain_ball_floor, plain_network_floor
+from .floors import G, network_floor, network_parts, plain_ball_floor, plain_network_floor
 from .timing import interleaved_times, median_time, memory_bytes
 
 __all__ = ["Case", "CASES", "run_case", "run", "sphere_scaling", "gradient_memory",
@@ -163,8 +163,7 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
             p = sim.params(springs=springs)
             return sim.rollout(p, steps=n_steps, state=state, save_every=n_steps).position[-1]
 
-        floor_final, kvec, cvec, (ia, ib, rest, gi, names) = plain_network_floor(
-            sim, p0, n_steps, dtype)
+        floor_final, kvec, cvec, _ = plain_network_floor(sim, p0, n_steps, dtype)
         band_final = network_floor(sim, p0, n_steps, dtype)[0]
 
         def floor_kc(k, c):
@@ -177,10 +176,13 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
             return lambda k, c: jnp.sum(fn(k, c)[:, 2])
         args = (jnp.asarray(1.0, dtype), jnp.asarray(1.0, dtype))
         npdt = np.dtype(dtype)
+        # the same springs, masses, gravity and drag as the floors read (network_parts)
+        ia, ib, rest, gi, _, inv_m, grav, drag_c, _, _ = network_parts(sim, p0, dtype)
         kn = np.asarray(kvec, npdt)[gi]
         cn = np.asarray(cvec, npdt)[gi]
-        inv_m = np.where(sim.pinned, 0.0, 1.0 / sim.mass)[:, None].astype(npdt)
-        grav = (np.asarray(scene.gravity) * (~sim.pinned)[:, None]).astype(npdt)
+        inv_m = inv_m[:, None].astype(npdt)
+        grav = grav.astype(npdt)
+        drag_np = drag_c[:, None].astype(npdt)
         x0, v0 = np.asarray(state.position, npdt), np.asarray(state.velocity, npdt)
         rest_n = np.asarray(rest, npdt)
         n = sim.n_bodies
@@ -200,10 +202,6 @@ def _network_case(make_scene: Callable[[], dp.Scene], steps: int, quick_steps: i
                 x = x + dt * v
             return x
         has_only_springs = set(sim.terms) <= {"springs", "drag"}
-        drag_np = np.zeros((n, 1), npdt)
-        for d in scene.drags:
-            if not sim.pinned[d.body]:
-                drag_np[d.body] += scene.drag_groups[d.group]
         grads = _gradients(loss(fwd_kc), loss(floor_kc) if has_only_springs else None,
                            batched=False)
         return dict(forward=jax.jit(fwd_kc), floor=jax.jit(floor_kc) if has_only_springs else None,

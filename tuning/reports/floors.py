@@ -1,7 +1,8 @@
-"""The hand-written floors the benchmarks compare diffpen with: the plainest fast JAX an
-expert would write for the same physics, with no generality. The ball's is a ``lax.scan`` of
-scalar height and velocity per ball with a hard ``max(d, 0)`` contact; the spring networks'
-(:func:`plain_network_floor`) keeps x, y and z as separate arrays, gathers each spring's ends
+"""The hand-written floors the benchmarks compare diffpen with: the plain JAX an expert
+would write first for the same physics, with no generality (for the ball the fastest form
+of it measured; for spring networks diffpen is faster than it, see ``network_floor``). The
+ball's is a ``lax.scan`` of scalar height and velocity per ball with a hard ``max(d, 0)``
+contact; the spring networks' (:func:`plain_network_floor`) keeps x, y and z as separate arrays, gathers each spring's ends
 and sums the forces per node with ``jax.ops.segment_sum``. Independent of diffpen's step
 (they read a compiled simulator's scene and parameters only).
 
@@ -17,7 +18,7 @@ import numpy as np
 
 import diffpen as dp
 
-__all__ = ["G", "plain_ball_floor", "plain_network_floor", "network_floor"]
+__all__ = ["G", "plain_ball_floor", "plain_network_floor", "network_floor", "network_parts"]
 
 #: gravity of the benchmark scenes, m/s^2
 G = 9.81
@@ -46,7 +47,7 @@ def plain_ball_floor(k, c, *, steps: int, dt: float = 1e-3, radius: float = 0.1,
 
 
 
-def _network_parts(sim: dp.Simulator, params: dp.Params, dtype):
+def network_parts(sim: dp.Simulator, params: dp.Params, dtype):
     """What both network floors read from a simulator: the springs' ends, rest lengths and
     groups, each group's (k, c), inverse masses, gravity and drag per node."""
     springs = [s for s in sim.scene.springs if s.b is not None]
@@ -76,7 +77,7 @@ def plain_network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype)
     writes first, with no knowledge of the lattice. Returns ``(final, kvec, cvec, meta)``
     as :func:`network_floor`: ``final(kvec, cvec, x0, v0) -> (n, 3)`` positions (m) after
     ``steps`` steps."""
-    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = _network_parts(
+    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = network_parts(
         sim, params, dtype)
     n, dt = sim.n_bodies, sim.dt
     rest = jnp.asarray(rest_np, dtype)
@@ -119,7 +120,7 @@ def network_floor(sim: dp.Simulator, params: dp.Params, steps: int, dtype):
     (``lax.dynamic_update_slice``), the fastest way found to write them in JAX; the other
     springs a gather and, per node, a sum of static row picks."""
     from diffpen.terms import spring_bands
-    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = _network_parts(
+    ia, ib, rest_np, gi, names, inv_m_np, grav_np, drag_np, kvec, cvec = network_parts(
         sim, params, dtype)
     inv_m = jnp.asarray(inv_m_np[:, None], dtype)
     grav = jnp.asarray(grav_np, dtype)
