@@ -3,8 +3,8 @@ would write first for the same physics, with no generality (for the ball the fas
 of it measured; for spring networks diffpen is faster than it, see ``network_floor``). The
 ball's is a ``lax.scan`` of scalar height and velocity per ball with a hard ``max(d, 0)``
 contact; the spring networks' (:func:`plain_network_floor`) keeps x, y and z as separate
-arrays, gathers each spring's ends and sums the forces per node with ``jax.ops.segment_sum``. Independent of diffpen's step
-(they read a compiled simulator's scene and parameters only).
+arrays, gathers each spring's ends and sums the forces per node with ``jax.ops.segment_sum``.
+Independent of diffpen's step (they read a compiled simulator's scene and parameters only).
 
 :func:`network_floor` is a second reference for the spring networks, not a plain one: it
 writes lattice springs on dense slices added back in place, diffpen's own layout
