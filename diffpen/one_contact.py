@@ -93,7 +93,7 @@ def _quotient(num, den):
     ``dnum / den - num dden den^-2``, whose extra power and products XLA kept apart from the
     step's other work under ``jax.vmap``: reverse-mode gradients of 1024 batched balls with
     the centred linear record took 82-100 ms against 44-56 ms with this rule, with the plain
-    no_tension record (its clamp offset ``c vn / k``) 200-364 ms against 113-133 ms (the same
+    no_tension record (its clamp offset ``c vn / k``) 208-221 ms against 86-92 ms (the same
     values, the same derivatives to rounding). The centred records' forces and no_tension's
     offset take it."""
     return num / den

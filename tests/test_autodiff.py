@@ -276,8 +276,8 @@ def test_contact_force_derivatives_take_their_quotients_once(law):
     speed) and no_tension's clamp offset ``c vn / k`` were differentiated as ``dnum / den -
     num dden / den^2``, whose ``den ** -2`` and extra products XLA kept apart from the step's
     other work under ``jax.vmap``: reverse-mode gradients of 1024 batched balls took 82-100 ms
-    with the centred linear record (44-56 ms after) and 200-364 ms with the plain no_tension
-    one (113-133 ms after; one process, float32; README "Performance and scale"). Each
+    with the centred linear record (44-56 ms after) and 208-221 ms with the plain no_tension
+    one (86-92 ms after; float32; README "Performance and scale"). Each
     quotient now has its own derivative ``(dnum - q dden) / den``: fewer negative powers in
     the gradient, and the first and second derivatives are autodiff's of the plain quotient
     (float64)."""
