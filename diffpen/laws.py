@@ -54,8 +54,8 @@ import numpy as np
 
 from .event_step import (event_step_factors, hunt_crossley_events, linear_events,
                          no_tension_events)
-from .one_contact import (_quotient, exact_step_factors, hunt_crossley_centred, linear_centred,
-                          linear_exact, no_tension_centred, no_tension_exact)
+from .one_contact import (exact_step_factors, hunt_crossley_centred, linear_centred,
+                          linear_exact, no_tension_centred, no_tension_exact, quotient)
 from .window import window_mean
 
 __all__ = [
@@ -251,7 +251,7 @@ def _no_tension_averaged(d, vn, k, c, h):
     the force is ``k (d(s) - d*)`` where ``d(s) > t = max(0, d*)``, ``d* = c vn / k``, and 0
     elsewhere: ``k mean(d - t) + max(-c vn, 0) frac(d - t)``."""
     kp = k > 0.0
-    t = _quotient(jnp.maximum(c * vn, 0.0), jnp.where(kp, k, 1.0))   # k = 0: t times 0
+    t = quotient(jnp.maximum(c * vn, 0.0), jnp.where(kp, k, 1.0))   # k = 0: t times 0
     frac, mean = window_mean(d - t, vn, h)
     return k * mean + jnp.maximum(-c * vn, 0.0) * frac
 

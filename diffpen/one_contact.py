@@ -82,12 +82,11 @@ import jax.numpy as jnp
 from .window import window_mean, window_moments
 
 __all__ = ["linear_centred", "no_tension_centred", "hunt_crossley_centred",
-           "exact_step_factors", "linear_exact", "no_tension_exact"]
+           "exact_step_factors", "linear_exact", "no_tension_exact", "quotient"]
 
 
-# --------------------------------------------------------------------------- damping at the window's centre
 @jax.custom_jvp
-def _quotient(num, den):
+def quotient(num, den):
     """``num / den``, with the derivative ``(dnum - q dden) / den`` (``q`` the quotient): one
     division by ``den`` for both tangents. Autodiff of ``num / den`` takes
     ``dnum / den - num dden den^-2``, whose extra power and products XLA kept apart from the
@@ -99,7 +98,7 @@ def _quotient(num, den):
     return num / den
 
 
-@_quotient.defjvp
+@quotient.defjvp
 def _quotient_jvp(primals, tangents):
     num, den = primals
     dnum, dden = tangents
@@ -107,6 +106,7 @@ def _quotient_jvp(primals, tangents):
     return q, (dnum - q * dden) / den
 
 
+# --------------------------------------------------------------------------- damping at the window's centre
 def linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     """Step average of the linear law with its damping at the window centre's speed
     ``vc = vn + lag (F inv_mass + accel)``: ``F = k mean - c frac vc`` solved for ``F``,
@@ -118,7 +118,7 @@ def linear_centred(d, vn, k, c, h, lag, inv_mass, accel):
     depth)."""
     frac, mean = window_mean(d, vn, h)
     cf = c * frac
-    return _quotient(k * mean - cf * (vn + lag * accel), 1.0 + cf * (lag * inv_mass))
+    return quotient(k * mean - cf * (vn + lag * accel), 1.0 + cf * (lag * inv_mass))
 
 
 _HALVINGS = 10
@@ -254,7 +254,7 @@ def hunt_crossley_centred(exponent: float):
         +0.05%). (A pointwise ``d^n`` for ``F0`` costs less, 0.8x, with the same values but
         derivatives of apexes 2-3 up to 12% off over impact phases, against 4.6%.)"""
         _, pw = window_mean(d, vn, h, exponent)
-        f0 = _quotient(jnp.maximum(k - c * (vn + lag * accel), 0.0) * pw,
+        f0 = quotient(jnp.maximum(k - c * (vn + lag * accel), 0.0) * pw,
                        1.0 + (c * lag * inv_mass) * pw)
         a = f0 * inv_mass + accel
         vc = vn + lag * a
@@ -271,8 +271,8 @@ def no_tension_centred(d, vn, k, c, h, lag, inv_mass, accel):
     ``F0 = k mean - c frac min(vn, 0)`` (the linear law's form while approaching;
     continuous at ``vn = 0``)."""
     kp = k > 0.0
-    t = _quotient(jnp.maximum(c * vn, 0.0), jnp.where(kp, k, 1.0))
+    t = quotient(jnp.maximum(c * vn, 0.0), jnp.where(kp, k, 1.0))
     frac, mean = window_mean(d - t, vn, h)
     cf = c * frac
     f0 = k * mean - cf * (jnp.minimum(vn, 0.0) + lag * accel)
-    return jnp.maximum(_quotient(f0, 1.0 + cf * (lag * inv_mass)), 0.0)
+    return jnp.maximum(quotient(f0, 1.0 + cf * (lag * inv_mass)), 0.0)
