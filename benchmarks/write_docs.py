@@ -53,6 +53,11 @@ def main(argv=None) -> int:
         ap.error(f"{args.out} has no {missing} to keep: rerun those sections too.")
     rows, scaling, memory = old.get("cases"), old.get("sphere_scaling"), old.get("gradient_memory")
     load = dict(old.get("load") or {})
+    # which code and day each section was measured on (sections kept keep theirs)
+    runs = dict(old.get("runs") or {})
+    this_run = _this_run()
+    for section in args.only:
+        runs[section] = this_run
     if "cases" in args.only:
         load["cases_start"] = os.getloadavg()
         rows = bench.run(list(bench.CASES), dtypes=(jnp.float32,), repeats=args.repeats,
@@ -84,11 +89,29 @@ def main(argv=None) -> int:
     doc = dict(machine=f"{os.cpu_count()}-core {platform.machine()}, CPU only",
                jax=jax.__version__, load=load, cases=rows, sphere_scaling=scaling,
                gradient_memory=memory, scale_table=table,
-               newton_peer=peer)
+               newton_peer=peer, runs=runs)
 
     atomic_write(args.out, lambda fh: fh.write(json.dumps(doc, indent=1).encode()))
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
+
+
+def _this_run() -> dict:
+    """``{"date": UTC date, "commit": git HEAD, "clean": no uncommitted change}`` of the code
+    measured (commit and clean None outside a git checkout)."""
+    import datetime
+    import subprocess
+    here = os.path.dirname(os.path.abspath(__file__))
+
+    def git(*cmd):
+        try:
+            return subprocess.run(["git", *cmd], cwd=here, capture_output=True, text=True,
+                                  timeout=10, check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return None
+    status = git("status", "--porcelain", "--untracked-files=no")
+    return dict(date=datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"),
+                commit=git("rev-parse", "HEAD"), clean=None if status is None else not status)
 
 
 if __name__ == "__main__":
