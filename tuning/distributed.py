@@ -154,14 +154,21 @@ def _check_port_free(coordinator: str) -> None:
     what to change, a port another program already listens on (e.g. a second process given
     ``process_id=0``), before JAX starts its coordination service. (Two processes 0 made both
     abort inside JAX with a C++ stack trace and no word of the cause.) A port in TIME_WAIT
-    from a run that just ended is free (``SO_REUSEADDR``, as JAX's server binds)."""
+    from a run that just ended is free (``SO_REUSEADDR``, as JAX's server binds); any other
+    failure to bind the probe (no IPv4, a privileged port) is left to JAX's own bind."""
+    import errno
     import socket
     port = parse_coordinator(coordinator)[1]
-    probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        probe = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    except OSError:             # no IPv4 here: nothing to check with; JAX binds as it can
+        return
     try:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         probe.bind(("", port))
     except OSError as exc:
+        if exc.errno != errno.EADDRINUSE:   # not a port in use: JAX's own bind says why
+            return
         raise ValueError(
             f"process 0 hosts the coordinator on port {port}, but that port is in use "
             f"({exc.strerror}): another process was given process id 0 too (give each "
