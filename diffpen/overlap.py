@@ -290,7 +290,10 @@ class OverlapIndex:
 
     def check_coincident(self, scene, dtype) -> None:
         """At compile: :meth:`_coincident` for every sphere added with ``allow_overlap``, in
-        the simulator's ``dtype`` (two centres 1e-9 m apart are one in float32)."""
+        the simulator's ``dtype`` (two centres 1e-9 m apart are one in float32). Nothing to
+        do in float64: adding each sphere checked it at float64's resolution."""
+        if np.finfo(dtype).eps <= np.finfo(float).eps:
+            return
         allowed = (range(len(scene.bodies)) if scene.allow_overlap else sorted(self.allowed))
         for i in allowed:
             self._coincident(scene, scene.bodies[i], i, dtype)
