@@ -60,7 +60,7 @@ def test_event_gradients_match_the_continuous_derivative_at_the_default_dt(at_de
     assert _err(dk[0], ref["dk"][0]) < 0.025 and _err(dc[0], ref["dc"][0]) < 0.025
     assert np.all(_err(dk[apex], ref["dk"][apex]) < 0.15)
     assert np.all(_err(dc[apex], ref["dc"][apex]) < 0.15)
-    assert np.all(_err(dk[dur], ref["dk"][dur]) < 0.025 if case.law == "linear" else 0.06)
+    assert np.all(_err(dk[dur], ref["dk"][dur]) < (0.025 if case.law == "linear" else 0.06))
     i = idx["penetration"]
     assert _err(dk[i], ref["dk"][i]) < 0.01 and _err(dc[i], ref["dc"][i]) < 0.07
     assert np.all(np.sign(dk[apex]) == np.sign(ref["dk"][apex]))

@@ -68,3 +68,32 @@ def test_figure_functions_return_the_paths_they_wrote(tmp_path):
                       np.geomspace(1.0, 10.0, 4), np.ones((3, 4)), metric="apex1")]
     for name, path in zip(("fit.png", "traj.png", "map.png"), paths):
         assert path == tmp_path / name and path.stat().st_size > 0
+
+
+def _constant_arm_conditions(tree):
+    """``(line, source)`` of every condition ``A if C else CONST`` (or ``CONST if C else A``)
+    that an ``assert`` tests, directly or as ``np.all``/``np.any``'s argument: Python reads
+    ``assert x < a if c else b`` as ``(x < a) if c else b``, and a constant arm makes the
+    check always pass (or always fail) on that branch."""
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Assert):
+            continue
+        tests = [node.test] + [a for m in ast.walk(node.test) if isinstance(m, ast.Call)
+                               and getattr(m.func, "attr", None) in ("all", "any")
+                               for a in m.args]
+        for t in tests:
+            if isinstance(t, ast.IfExp) and isinstance(t.body, ast.Compare) \
+                    and isinstance(t.orelse, ast.Constant):
+                yield node.lineno, ast.unparse(node.test)
+
+
+def test_no_assert_checks_only_one_branch_of_a_condition():
+    """Regression: tests/test_event_gradients.py asserted ``np.all(err < 0.025 if linear
+    else 0.06)``, always true for no_tension's contact durations (parenthesise the bound)."""
+    bad = [f"{p.relative_to(ROOT)}:{line}: {src}"
+           for p in sorted((ROOT / "tests").glob("*.py"))
+           for line, src in _constant_arm_conditions(ast.parse(p.read_text(), str(p)))]
+    assert not bad, bad
+    # the pattern is found where it occurs
+    old = "assert np.all(_err(d, r) < 0.025 if law == 'linear' else 0.06)"
+    assert list(_constant_arm_conditions(ast.parse(old)))
