@@ -22,7 +22,7 @@ import diffpen as dp
 from .compiled import compiled
 from .errors import FitError, positive_int
 from .metrics import check_ball_model
-from .fit import FitResult, fit
+from .fit import FitResult, check_method, fit
 from .problem import FreeLeaves, normalise_targets
 from .compiled import ProgramCache
 from .stable import (contact_scales, law_c, law_k, law_units, rollout_unstable,
@@ -287,8 +287,7 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
         terminal, else a line every 5 s; what the ``diffpen`` command passes).
     Returns: :class:`FitResult` (``notes`` lists what was held fixed and why).
     """
-    if method not in ("lm", "optax"):       # before anything is compiled or run
-        raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
+    check_method(method)                    # before anything is compiled or run
     if maxiter is not None:
         positive_int("maxiter", maxiter, "the iteration limit")
     info = check_bounce_targets(scene, targets, body=body, plane=plane, settle_tol=settle_tol)

@@ -91,6 +91,18 @@ class FitResult:
 
 
 # --------------------------------------------------------------------------- fit
+def check_method(method) -> None:
+    """Refuse a ``method`` other than ``"lm"`` and ``"optax"``, saying how to ask for Adam or
+    SGD (the ``diffpen`` command's ``--method adam|sgd``): ``method="optax"`` with
+    ``optimizer=`` (default :func:`tuning.optimise.default_optimizer`, Adam)."""
+    if method in ("lm", "optax"):
+        return
+    hint = (f" For {method}, use method='optax', optimizer=optax.{method.lower()}(lr) (the "
+            "default optimizer is Adam with a decaying step)."
+            if isinstance(method, str) and method.lower() in ("adam", "sgd") else "")
+    raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.{hint}")
+
+
 def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
         bounds: dict | None = None, weights: dict | None = None, rtol=1e-3,
         method: str = "optax", optimizer: optax.GradientTransformation | None = None,
@@ -137,8 +149,7 @@ def fit(metrics_fn: Callable, params0: dp.Params, targets: dict, *, free=None,
     Returns:
       :class:`FitResult`.
     """
-    if method not in ("lm", "optax"):
-        raise FitError(f"unknown method {method!r}; use 'optax' or 'lm'.")
+    check_method(method)
     positive_int("maxiter", maxiter, "the iteration limit")
     positive_int("n_starts", n_starts, "how many start points LM runs from")
     problem = Problem.build(metrics_fn, params0, targets, free=free, bounds=bounds,
