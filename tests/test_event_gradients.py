@@ -98,13 +98,22 @@ def test_centred_damping_values_within_half_a_percent(case):
     assert _err(dk[0], ref["dk"][0]) < 0.01 and _err(dc[0], ref["dc"][0]) < 0.01
 
 
-def _record_derivatives(case, law):
+def _record_derivatives(case, law, fd_steps=()):
     """Values and derivatives w.r.t. k and c of ``case``'s apexes 1-3 and contact durations
-    1-3 with the contact record ``law`` at dt = 1e-3 (float64, :func:`event_metrics_fn`)."""
+    1-3 with the contact record ``law`` at dt = 1e-3 (float64, :func:`event_metrics_fn`);
+    with ``fd_steps``, also ``{step: (fk, fc)}``, their central differences at those relative
+    steps of k and c (the values the same compiled program gives: nothing more compiles)."""
     f, _ = event_metrics_fn(case, 1e-3, record=law)
     jac = jax.jit(jax.jacfwd(lambda k, c: (lambda y: (y, y))(f(k, c)), (0, 1), has_aux=True))
     (dk, dc), val = jax.tree_util.tree_map(np.asarray, jac(case.k, case.c))
-    return val[:6], dk[:6], dc[:6]
+
+    def value(k, c):
+        return np.asarray(jac(k, c)[1])[:6]
+    fd = {s: ((value(case.k * (1 + s), case.c) - value(case.k * (1 - s), case.c))
+              / (2 * s * case.k),
+              (value(case.k, case.c * (1 + s)) - value(case.k, case.c * (1 - s)))
+              / (2 * s * case.c)) for s in fd_steps}
+    return (val[:6], dk[:6], dc[:6]) + ((fd,) if fd_steps else ())
 
 
 def test_exact_record_derivatives_match_the_continuous_ones():
@@ -236,13 +245,20 @@ def test_event_exact_record_derivatives_equal_the_continuous_ones(case, tol):
     37% off on d apex 3 / dc and 52% on d duration 2 / dc; over eight phases the exact record
     up to 87% and 246%, the centred record 161% and 573%; no_tension: under 2e-6, the exact
     record up to 8.8% on d duration 3 / dc at this phase; Hertz: up to 0.16% over six phases,
-    the centred record up to 3% and 6%)."""
+    the centred record up to 3% and 6%). Their own central differences at relative steps 1e-2
+    and 1e-3 of k and c agree with their derivatives within 2% (issue 12's item 4, which the
+    default record does not meet there: up to 7% on the quick-start ball's apexes, 52% on the
+    0.3 kg ball's; measured with these records: <= 0.1%)."""
     from diffpen import laws
-    val, dk, dc = _record_derivatives(case, laws.get(case.law, case.exponent, events=True))
+    val, dk, dc, fd = _record_derivatives(case, laws.get(case.law, case.exponent, events=True),
+                                          fd_steps=(1e-2, 1e-3))
     ref = reference(case)
     assert np.all(_err(val, ref["value"][:6]) < tol), val / ref["value"][:6] - 1
     assert np.all(_err(dk, ref["dk"][:6]) < tol), dk / ref["dk"][:6] - 1
     assert np.all(_err(dc, ref["dc"][:6]) < tol), dc / ref["dc"][:6] - 1
+    for s, (fk, fc) in fd.items():
+        assert np.all(_err(fk, dk) < 0.02) and np.all(_err(fc, dc) < 0.02), (s, fk / dk - 1,
+                                                                             fc / dc - 1)
 
 
 def test_gradient_report_rows_of_the_event_exact_records_beside_the_default():
