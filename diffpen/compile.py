@@ -68,7 +68,9 @@ class Simulator:
     :func:`compile`; its attributes cannot be reassigned.
 
     Attributes:
-      scene: the Scene it was built from.  dt: time step, s.  n_bodies: int.
+      scene: a copy of the Scene it was built from (:meth:`diffpen.Scene.snapshot`: edits
+        of that Scene after compiling reach neither the simulator nor its start state;
+        compile again to simulate them).  dt: time step, s.  n_bodies: int.
       law: contact law name.  contact_law: its :class:`diffpen.laws.ContactLaw` record.
       exponent: the law's exponent (Hunt-Crossley).  smoothing: smoothing width used, m.
       integrator: the integrator's name.  substeps: int or "auto".
@@ -111,7 +113,9 @@ class Simulator:
             builtin_terms=builtin_terms)
         exponent = float(contact_law.exponent)
 
-        self.scene = scene
+        # a copy: bodies or materials added to ``scene`` later would otherwise reach
+        # init_state() and the checks without reaching the compiled step
+        self.scene = scene = scene.snapshot()
         self.dt = dt
         self.integrator = method.name
         self.law = contact_law.name

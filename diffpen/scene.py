@@ -9,6 +9,7 @@ Units: SI (metres, kilograms, seconds, newtons).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from typing import Sequence
@@ -101,6 +102,25 @@ class Scene:
         self.plastic_groups: dict[str, float] = {}       # group -> default yield strain
         #: width, in strain, of the smooth onset of plastic flow (static; 0 = hard yield)
         self.plastic_smoothing: float = 1e-3
+
+    def snapshot(self) -> "Scene":
+        """A copy of this scene that later edits of it do not reach: what
+        :func:`diffpen.compile` keeps as ``Simulator.scene``, so that a body, spring or
+        material added or changed after compiling cannot give ``sim.init_state()`` (or
+        anything else read from the scene) a shape or value the compiled step was not built
+        for. Its containers are new; the frozen elements in them are shared, the mutable
+        ones (materials, spring groups, the overlap index) copied."""
+        new = copy.copy(self)
+        for name, value in vars(self).items():
+            if isinstance(value, list):
+                setattr(new, name, list(value))
+            elif isinstance(value, dict):
+                setattr(new, name, {k: copy.copy(v) for k, v in value.items()})
+        ov = new._overlap = copy.copy(self._overlap)
+        ov.cells = {cell: list(ids) for cell, ids in self._overlap.cells.items()}
+        ov.big, ov.boxes = list(ov.big), list(ov.boxes)
+        ov.allowed = set(ov.allowed)
+        return new
 
     # ----------------------------------------------------------------- bodies
     def _add_body(self, kind, mass, radius, position, velocity, pinned, material, collide,

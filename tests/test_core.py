@@ -496,6 +496,27 @@ def test_simulator_is_frozen_and_forces_compile_once(ball_sim, caplog):
     np.testing.assert_allclose(np.asarray(f)[0, 2], 2e4 * 0.05, rtol=1e-2)
 
 
+def test_editing_a_scene_after_compiling_does_not_reach_the_simulator():
+    """Regression: ``Simulator.scene`` was the caller's Scene, so a sphere added after
+    compiling gave ``sim.init_state()`` two bodies against the step's one, and a rollout from
+    that state ran the new sphere with the first one's mass and radius (through the plane).
+    The simulator keeps a snapshot: its start state, materials and checks are the compiled
+    scene's; the edited scene compiles into a simulator of its own."""
+    scene = drop_scene(z0=0.5)
+    sim = dp.compile(scene, 1e-3)
+    scene.add_sphere(radius=0.2, mass=3.0, position=(1.0, 0.0, 0.3))
+    scene.materials["default"].k = 123.0
+    assert sim.scene is not scene and len(sim.scene.bodies) == 1
+    assert sim.init_state().position.shape == (1, 3) == sim.rollout(
+        sim.params(k=1e4, c=20.0), 5, state=sim.init_state()).position.shape[1:]
+    assert sim.scene.materials["default"].k != 123.0
+    with pytest.raises(dp.SceneError):
+        sim.rollout(sim.params(k=1e4, c=20.0), 5,
+                    state=dp.compile(scene, 1e-3).init_state())
+    # the snapshot's overlap index is its own: adding to the edited scene leaves it alone
+    assert {i for ids in sim.scene._overlap.cells.values() for i in ids} == {0}
+
+
 def test_an_integrator_record_steps_like_its_name():
     """Passing the built-in record INTEGRATORS["semi_implicit_euler"] instead of its name
     dropped the velocity lag of the centred laws (a ball 7 mm apart)."""
