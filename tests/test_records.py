@@ -104,6 +104,12 @@ GOOD = _rows()
     ("t,qw,qx,qy,qz\n0,1,0,0,0\n0.1,1,0,0,0\n", "has no position columns"),
     (GOOD.replace("0.0200,0.12", "0.0200,abc"), r"line 4, column 2 \(x\): 'abc' is not a number"),
     (GOOD.replace("0.0200,0.12", "0.0200,inf"), r"line 4, column 2 \(x\): 'inf' is not finite"),
+    # regression: a finite cell too large for the errors' squares (diffpen evaluate reported
+    # null errors with exit status 0, diffpen fit advised a smaller dt)
+    (GOOD.replace("0.0200,0.12", "0.0200,1e308"), r"line 4, column 2 \(x\): 1e\+308 m is "
+                                                  r"beyond the 1e\+06 m"),
+    ("t,x,y,z,vx,vy,vz\n0,0,0,1,0,0,0\n0.1,0,0,1,0,-2e7,0\n",
+     r"line 3, column 6 \(vy\): -2e\+07 m/s is beyond"),
     (GOOD.replace("0.0200,", ","), r"line 4, column 1 \(t\): a value is required"),
     (GOOD.replace("0.0200,", "0.0100,"), r"line 4, column 1 \(t\): times must strictly increase"),
     (GOOD.replace("0.0200,0.12", "0.0200,"), r"line 4, column 2 \(x\): the position of this "

@@ -56,6 +56,11 @@ DEFAULT_MAX_ROWS = 500_000
 DEFAULT_MAX_BYTES = 256 * 2**20
 #: |q| may differ from 1 by this much (trackers write 6 decimals)
 QUAT_TOL = 1e-3
+#: positions (m), velocities (m/s) and angular velocities (rad/s) of a record must be within
+#: this of 0 (a scene file's coordinates: 1e6 m): a cell of 1e308 passed and overflowed the
+#: errors to NaN (``diffpen evaluate`` then reported null errors with exit status 0)
+MAX_MAGNITUDE = {"position": 1e6, "velocity": 1e6, "angular_velocity": 1e6}
+_UNIT = {"position": "m", "velocity": "m/s", "angular_velocity": "rad/s"}
 
 
 class RecordError(FitError):
@@ -407,6 +412,15 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                                   f"the {group.replace('_', ' ')} of this row is incomplete; "
                                   "fill every component or leave them all empty (a missing "
                                   "sample; NaN reads as empty).")
+            big = np.nonzero(np.abs(np.nan_to_num(a)) > MAX_MAGNITUDE.get(group, np.inf))
+            if big[0].size:
+                r, k = int(big[0][0]), int(big[1][0])
+                j = idx[k]
+                raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                                  f"{a[r, k]:g} {_UNIT[group]} is beyond the "
+                                  f"{MAX_MAGNITUDE[group]:g} {_UNIT[group]} a record's "
+                                  f"{group.replace('_', ' ')} may reach; check this cell (or "
+                                  "leave it empty for a missing sample).")
             arrays[group] = a
         q = arrays.get("quaternion")
         if q is not None:
