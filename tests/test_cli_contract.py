@@ -120,3 +120,14 @@ def test_help_states_what_maxiter_bounds_and_the_defaults(capsys):
         text = " ".join(capsys.readouterr().out.split())
         for w in words:
             assert w in text, (argv, w)
+
+
+@pytest.mark.parametrize("flags", [["--keep", "3"], ["--starts", "2", "--keep", "5"]])
+def test_fit_refuses_a_keep_beyond_its_starts(flags, capsys, monkeypatch):
+    """Regression: --keep without enough --starts was clamped to the starts there are (3
+    without --starts ran one LM fit, 5 with --starts 2 ran three) without a word."""
+    import tuning.trajfit as trajfit
+    monkeypatch.setattr(trajfit, "fit_records",
+                        lambda *a, **k: pytest.fail("fitted despite the --keep"))
+    assert main(["fit", CUBE, "--data", str(TOSS), *flags]) == 2
+    assert "--keep" in capsys.readouterr().err
