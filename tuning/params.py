@@ -10,6 +10,7 @@ and rebuilds the pytree with :func:`unflatten`.
 from __future__ import annotations
 
 import jax
+import numpy as np
 
 __all__ = ["flatten", "unflatten", "paths", "default_free", "key_name", "path_name",
            "leaf_paths"]
@@ -38,9 +39,17 @@ def flatten(params) -> dict:
 
 def unflatten(template, flat: dict):
     """A pytree like ``template`` with the leaves named in ``flat`` replaced (the other
-    leaves kept)."""
-    return jax.tree_util.tree_map_with_path(
-        lambda path, leaf: flat.get(path_name(path), leaf), template)
+    leaves kept), each in its template leaf's dtype where that leaf has one (a float32
+    simulator's fitted params stay float32: a fit's float64 values made them a mix)."""
+    def put(path, leaf):
+        name = path_name(path)
+        if name not in flat:
+            return leaf
+        value, dtype = flat[name], getattr(leaf, "dtype", None)
+        if dtype is None:
+            return value
+        return value.astype(dtype) if hasattr(value, "astype") else np.asarray(value, dtype)
+    return jax.tree_util.tree_map_with_path(put, template)
 
 
 def paths(params) -> list[str]:
