@@ -79,6 +79,13 @@ def _scalar_loss(fun: Callable, has_aux: bool):
     return loss
 
 
+def _like_primals(g: tuple, diff: tuple) -> tuple:
+    """Each gradient leaf in its primal's dtype, as ``jax.grad`` gives it (the tangents of a
+    float32 simulator's loss are float32; a Python float argument's gradient under x64 came
+    out float32 in forward mode and float64 in reverse mode)."""
+    return jax.tree_util.tree_map(lambda t, x: t.astype(jnp.result_type(x)), g, diff)
+
+
 def _pack(val, aux, g, single: bool, has_aux):
     g = g[0] if single else g
     return ((val, aux), g) if has_aux else (val, g)
@@ -97,7 +104,10 @@ def _forward(loss: Callable, argnums: tuple[int, ...], single: bool, has_aux: bo
         return (val, aux), dval
     basis = jnp.eye(flat.size, dtype=flat.dtype)
     (val, aux), dflat = jax.vmap(one_tangent, out_axes=(None, 0))(basis)
-    return _pack(val, aux, unravel(dflat), single, has_aux)
+    # the loss's tangents are in its dtype: a float32 loss of a float64 input (under x64)
+    # made unravel refuse them
+    g = _like_primals(unravel(dflat.astype(flat.dtype)), tuple(args[i] for i in argnums))
+    return _pack(val, aux, g, single, has_aux)
 
 
 def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has_aux: bool,
@@ -135,7 +145,8 @@ def _forward_batched(loss: Callable, argnums: tuple[int, ...], single: bool, has
         return (val, aux), dval           # dval: (batch,)
     basis = jnp.eye(n, dtype=flat0.dtype)
     (val, aux), dflat = jax.vmap(one_tangent, out_axes=(None, 0))(basis)   # (n, batch)
-    g = jax.vmap(unravel)(dflat.T)
+    g = _like_primals(jax.vmap(unravel)(dflat.T.astype(flat0.dtype)),
+                      tuple(row0[i] for i in argnums))
     out = _pack(val, aux, g, single, has_aux)
     out_batched = jax.tree_util.tree_map(lambda _: True, out)
     return out, out_batched

@@ -106,6 +106,28 @@ def test_matches_jax_value_and_grad_conventions():
     np.testing.assert_allclose(aux["twice"], ref_aux["twice"])
 
 
+def test_gradients_come_in_their_inputs_dtypes_in_every_mode():
+    """Regression: a loss computed in float32 (a float32 simulator's) differentiated w.r.t.
+    a Python float (float64 under x64) gave a float32 gradient in forward mode and a float64
+    one in reverse mode and from ``jax.grad``, so ``mode="auto"`` changed the dtype at its
+    threshold; with a float32 argument beside it, forward mode raised ("unravel function
+    given array of dtype float32, but expected dtype float64"). Every mode, batched or not,
+    now gives ``jax.grad``'s dtypes."""
+    x32 = jnp.linspace(0.0, 1.0, 4, dtype=jnp.float32)
+
+    def f(k, a):
+        return jnp.sum(jnp.sin(jnp.asarray(k, jnp.float32) * x32) * a)
+    a32 = jnp.asarray(0.5, jnp.float32)
+    ref = jax.grad(f, (0, 1))(1.3, a32)
+    assert [r.dtype for r in ref] == [jnp.float64, jnp.float32]
+    for mode in ("forward", "reverse", "auto"):
+        got = dp.grad(f, (0, 1), mode=mode)(1.3, a32)
+        assert [g.dtype for g in got] == [r.dtype for r in ref], mode
+        batched = jax.vmap(dp.grad(f, (0, 1), mode=mode), in_axes=(0, None))(
+            jnp.asarray([1.3, 0.2]), a32)
+        assert [g.dtype for g in batched] == [r.dtype for r in ref], mode
+
+
 def test_auto_mode_threshold():
     assert dp.autodiff.resolve_mode("auto", 2) == "forward"
     assert dp.autodiff.resolve_mode("auto", dp.autodiff.MAX_FORWARD + 1) == "reverse"
