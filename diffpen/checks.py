@@ -81,6 +81,9 @@ def _int(name: str, v) -> int:
         hint = ""
         if isinstance(v, float) and v.is_integer() and v > 0:
             hint = f" (use {name}={int(v)})"
+        elif hasattr(v, "shape"):           # a JAX or NumPy array: static, so a Python int
+            hint = f" ({name} is static, the compiled loop's length: pass a Python int, e.g. " \
+                   f"int({name}))"
         raise SceneError(f"{name} must be a positive int, got {v!r}{hint}.")
     if v <= 0:
         raise SceneError(f"{name} must be a positive int, got {v!r}.")

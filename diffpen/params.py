@@ -208,9 +208,14 @@ def _validate(sim, params: Params) -> None:
     same("contact", params.contact, sim.materials)
     same("springs", params.springs, sim.spring_groups)
     same("extra", params.extra, sim._extra_defaults)
-    for kind, tree, owner in (("contact", params.contact, "material"),
-                              ("spring", params.springs, "group")):
+    for kind, tree, owner, record in (("contact", params.contact, "material", ContactParams),
+                                      ("spring", params.springs, "group", SpringParams)):
         for name, pair in tree.items():
+            if not isinstance(pair, record):    # a plain (k, c) tuple failed inside the step
+                raise SceneError(
+                    f"params.{'contact' if kind == 'contact' else 'springs'}[{name!r}] is a "
+                    f"{type(pair).__name__}; it must be a diffpen.{record.__name__}: write "
+                    f"dp.{record.__name__}(k, c), or build params with sim.params(...).")
             _check_value(f"{kind} k of {owner} {name!r} (N/m)", pair[0])
             _check_value(f"{kind} c of {owner} {name!r} (N s/m)", pair[1])
     for name, default in sim._extra_defaults.items():

@@ -66,8 +66,11 @@ class Params(_own_empty_dicts("Params", ("contact", "springs", "extra"), 2,
 
     contact: ``{material name: ContactParams}`` for every material some contact pair uses.
     springs: ``{group name: SpringParams}`` for every spring group in the scene.
-    extra: ``{name: value}`` for terms added by extensions (default: a new empty dict; empty
-      for the core terms).
+    extra: ``{name: value}`` of the other terms' parameters: the built-in ones keep
+      ``"friction"`` ``{material: mu}``, ``"drag"`` ``{group: c}`` (N s/m),
+      ``"plane_offset"`` ``{plane name: offset}`` (m) and ``"plastic"`` ``{group: yield
+      strain}`` where the scene has them, extension terms their own (default: a new empty
+      dict).
     """
     __slots__ = ()
 

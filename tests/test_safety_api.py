@@ -123,6 +123,12 @@ def test_rollout_checks_params_edited_with_replace(sim):
             assert w in str(e.value)
     with pytest.raises(dp.SceneError, match="params.contact has"):
         sim.rollout(p._replace(contact={}), 10)
+    # regression: a plain (k, c) tuple failed inside the traced force ("'tuple' object has no
+    # attribute 'k'"); and a concrete JAX array as steps was refused without saying why
+    with pytest.raises(dp.SceneError, match=r"is a tuple; .*dp\.ContactParams\(k, c\)"):
+        sim.rollout(dp.Params(contact={"default": (1e4, 20.0)}, springs={}), 10)
+    with pytest.raises(dp.SceneError, match=r"static, the compiled loop.s length: pass a Python int"):
+        sim.rollout(p, jnp.asarray(10))
 
 
 def test_unknown_extra_keys_are_refused():
