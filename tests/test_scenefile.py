@@ -229,10 +229,10 @@ def test_every_element_kind_builds_the_python_api_scene(all_file):
     sim = sf.compile()
     assert sim.integrator == "semi_implicit_euler" and sim.smoothing == 1e-4
     # and the compiled parameters equal the API scene's (a material without k and c takes
-    # the top-level ones; this file gives none, so the documented 1e4 N/m and 10 N s/m)
+    # the top-level ones; this file gives none, so the documented 1e4 N/m and 20 N s/m)
     sim_api = dp.compile(api, 5e-4, smoothing=1e-4)
     pa = param_leaves(sf.params(sim))
-    pb = param_leaves(sim_api.params(contact={"default": (1e4, 10.0)}))
+    pb = param_leaves(sim_api.params(contact={"default": (1e4, 20.0)}))
     assert pa.keys() == pb.keys()
     for key in pa:
         assert float(pa[key]) == float(pb[key]), key
@@ -323,3 +323,20 @@ apex_heights = [0.3]
     assert sf.planes == {"wall": 0, "ground": 1}
     assert sf.spec.body == 0 and sf.spec.plane == 1 and sf.spec.observe == ["ball", "cube"]
     assert sf.setup.metrics is not None                # the ball bounces: bounce metrics
+
+
+def test_a_scene_file_ball_without_k_or_c_is_the_built_in_ball(tmp_path):
+    """Regression: a material giving neither k nor c took c = 10 N s/m from a scene file and
+    20 from the built-in ball (tuning.scenes.ball): the same ball bounced to 0.65 m against
+    0.47 m and did not settle."""
+    import inspect
+
+    from tuning.scenes import ball
+    defaults = inspect.signature(ball).parameters
+    path = tmp_path / "ball.toml"
+    path.write_text('dt = 1e-3\n[[spheres]]\nradius = 0.1\nmass = 1.0\n'
+                    'position = [0.0, 0.0, 1.0]\n[[planes]]\n', encoding="utf-8")
+    sf = load_scene_file(str(path))
+    p = sf.params(sf.compile())
+    assert float(p.contact["default"].k) == defaults["k"].default
+    assert float(p.contact["default"].c) == defaults["c"].default

@@ -363,13 +363,13 @@ def test_material_without_k_c_takes_the_top_level_or_default_not_another_materia
         tmp_path, first_a):
     """Regression: a material without k / c took the first declared material's, so the
     result depended on the order of [materials.*]; it takes the top-level k / c, else the
-    documented defaults k = 1e4 N/m, c = 10 N s/m."""
+    documented defaults k = 1e4 N/m, c = 20 N s/m."""
     p = tmp_path / "m.toml"
     p.write_text(_two_materials(first_a))
     sf = load_scene_file(str(p))
-    assert (sf.setup.k, sf.setup.c) == (1e4, 10.0)
+    assert (sf.setup.k, sf.setup.c) == (1e4, 20.0)
     leaves = param_leaves(sf.params(sf.compile()))
-    assert (float(leaves["contact.b.k"]), float(leaves["contact.b.c"])) == (1e4, 10.0)
+    assert (float(leaves["contact.b.k"]), float(leaves["contact.b.c"])) == (1e4, 20.0)
     p.write_text(_two_materials(first_a, top="k = 3e3\nc = 2.0\n"))
     sf = load_scene_file(str(p))
     leaves = param_leaves(sf.params(sf.compile()))
