@@ -417,3 +417,20 @@ def test_fit_with_event_exact_steps(capsys, tmp_path):
     data.write_text("t,z\n0,1\n0.01,0.999\n0.02,0.998\n")
     assert main(["fit", "--data", str(data), "--events"]) == 2
     assert "does not read --events" in capsys.readouterr().err
+
+
+def test_a_decay_time_target_from_the_flag_and_from_a_scene_file(capsys, tmp_path):
+    """Regression: the energy-decay time (the settling measure smooth in k and c) was a target
+    of tuning.bounce.fit_bounce only: a scene file's [fit.targets] refused decay_time and the
+    command had no flag. --target-decay and decay_time = S now fit it, to the same values."""
+    rc, flag = run_json(capsys, ["fit", "--target-decay", "0.5", "--k0", "1e4"])
+    assert rc == 0 and flag["reached"], flag
+    assert flag["achieved"]["decay_time"] == pytest.approx(0.5, rel=2e-3)
+    scene = tmp_path / "ball.toml"
+    scene.write_text("dt = 1e-3\n[[spheres]]\nradius = 0.1\nmass = 1.0\n"
+                     "position = [0.0, 0.0, 1.0]\n[[planes]]\n[fit.targets]\n"
+                     "decay_time = 0.5\n", encoding="utf-8")
+    rc, toml = run_json(capsys, ["fit", str(scene)])
+    assert rc == 0 and toml["reached"], toml
+    assert toml["fitted"]["contact.default.k"] == pytest.approx(flag["k"], rel=1e-6)
+    assert toml["fitted"]["contact.default.c"] == pytest.approx(flag["c"], rel=1e-6)

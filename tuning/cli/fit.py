@@ -40,6 +40,9 @@ def add_arguments(p) -> None:
                         f"bounce (default {DEFAULT_APEX} with the default settling target)")
     p.add_argument("--target-settle", type=positive("--target-settle"), metavar="S",
                    help=f"settling time, s (default {DEFAULT_SETTLE} when no target is given)")
+    p.add_argument("--target-decay", type=positive("--target-decay"), metavar="S",
+                   help="energy-decay time int E dt / E(0), s: a settling measure smooth in k "
+                        "and c (tuning.metrics; the rollout covers 8 x S + 0.2 s)")
     p.add_argument("--target-contact", type=positive("--target-contact"), metavar="S",
                    help="duration of the first contact, s: the time the ball overlaps the "
                    "plane (lowest point below the surface); with --law no_tension the force "
@@ -129,6 +132,8 @@ def _targets(args) -> dict:
         tg["settling_time"] = args.target_settle
     if args.target_contact:
         tg["contact_durations"] = [args.target_contact]
+    if args.target_decay:
+        tg["decay_time"] = args.target_decay
     if not tg:
         tg = {"apex_heights": [DEFAULT_APEX], "settling_time": DEFAULT_SETTLE}
     return tg
@@ -146,7 +151,8 @@ def _check_plot(args) -> None:
 #: The built-in ball's flags and their defaults: a scene file has its own values.
 BALL_FLAGS = {"radius": 0.1, "mass": 1.0, "drop": 1.0, "settle_tol": 1e-3, "law": "linear",
               "dt": None, "k0": None, "c0": None, "target_apex": None,
-              "target_settle": None, "target_contact": None, "events": False,
+              "target_settle": None, "target_contact": None, "target_decay": None,
+              "events": False,
               "exponent": 1.0}
 
 
@@ -417,7 +423,8 @@ def _plot_targets(args, scene, res, dt) -> None:
 
 def _run_data(args) -> int:
     ku, cu = law_units(args.law, args.exponent)
-    if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact)):
+    if any(v is not None for v in (args.target_apex, args.target_settle, args.target_contact,
+                                   args.target_decay)):
         raise CLIError("--data fits a measured trajectory; drop the --target-* flags")
     from ..errors import FitError
     from ..problem import RESIDUAL_FACTOR, residual_reached

@@ -120,7 +120,7 @@ class _FitTable:
                 out[key] = V.number_list(w / key, v, low=0.0, low_open=True, high=1.0)
             else:
                 out[key] = V.number(w / key, v, low=0.0, low_open=True,
-                                    unit="s" if key == "settling_time" else "m")
+                                    unit="m" if key == "max_penetration" else "s")
         return out
 
     def fit_params(self, w, fit, sf, k, c):

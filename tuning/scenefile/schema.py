@@ -30,7 +30,7 @@ TOP = {"description", "gravity", "dt", "duration", "law", "exponent", "integrato
 FIT = {"body", "plane", "params", "bounds", "space", "settle_tol", "targets", "data", "method",
        "maxiter", "lr", "weights", "observe", "first_state", "flight_frames", "horizon"}
 TARGETS = {"apex_heights", "settling_time", "contact_durations", "restitution",
-           "max_penetration"}
+           "max_penetration", "decay_time"}
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 _NODE = re.compile(r"^([A-Za-z_][A-Za-z0-9_\-]*)\[\s*(-?\d+(?:\s*,\s*-?\d+)*)\s*\]$")
 
