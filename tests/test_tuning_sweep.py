@@ -72,6 +72,10 @@ def test_interrupted_sweep_resumes(problem, tmp_path):
     with pytest.raises(S.SweepError, match="points"):
         S.sweep(None, sim.params(k=1e4, c=10.0), points[:3], NAMES, chunk=5, keys=keys,
                 out=out, evaluate=ev)
+    # another chunk size: refused, saying how to resume (before, only "chunk: file has 5")
+    with pytest.raises(S.SweepError, match="to resume it, give its chunk size again"):
+        S.sweep(None, sim.params(k=1e4, c=10.0), points, NAMES, chunk=4, keys=keys,
+                out=out, evaluate=ev)
     res2 = S.sweep(None, sim.params(k=1e4, c=10.0), points[:3], NAMES, chunk=5, keys=keys,
                    out=out, evaluate=ev, resume=False)
     assert res2.evaluated == 3

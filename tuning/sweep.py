@@ -300,7 +300,11 @@ def sweep(metrics_fn: Callable, params0: dp.Params, points, names: list, *,
                     raise SweepError(
                         f"{out} holds another sweep's results, so it cannot be resumed: "
                         + "; ".join(diff) + ". Overwrite it with resume=False (diffpen sweep "
-                        "--fresh) or choose another output path.")
+                        "--fresh) or choose another output path"
+                        + (" (to resume it, give its chunk size again: the points of "
+                           "one sweep are computed in equal batches, so that a resumed "
+                           "sweep equals one uninterrupted run bit for bit)"
+                           if any(d.startswith("chunk") for d in diff) else "") + ".")
                 try:                    # its key is intact; a member may still be corrupt
                     return load_sweep(out)
                 except Exception as exc:  # noqa: BLE001 - zipfile, zlib and numpy errors

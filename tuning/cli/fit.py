@@ -58,7 +58,8 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="FITTED.toml", help="with SCENE.toml --data: write the "
                    "scene with the fitted values; the fit's progress is kept beside it "
                    "(FITTED.toml.fit-progress.json, removed once FITTED.toml is written), so "
-                   "an interrupted fit resumes when the same command runs again")
+                   "an interrupted fit resumes when the same command runs again; a "
+                   "FITTED.toml already there is replaced once the fit ends (atomically)")
     p.add_argument("--fresh", action="store_true", help="with --out: start the fit afresh "
                    "instead of resuming the progress kept beside it (needed when that "
                    "progress is of a fit with other settings)")
