@@ -7,6 +7,9 @@ def test_cli_refuses_bad_input(capsys):
     assert main(["report", "stability", "--integrators", "euler"]) == 2
     assert "unknown integrator" in capsys.readouterr().err
     assert main(["report", "accuracy", "--height", "0.05"]) == 2
+    # the drop height takes fit's and sweep's name too (report had --height only)
+    assert main(["report", "accuracy", "--drop", "0.05"]) == 2
+    assert "--drop (--height) must be above --radius" in capsys.readouterr().err
 
 
 def test_cli_bench_refuses_bad_input(capsys):

@@ -36,8 +36,9 @@ def add_arguments(p) -> None:
     p.add_argument("--c", type=finite("--c"), default=20.0, help="ball contact c, N s/m (default %(default)g)")
     p.add_argument("--mass", type=positive("--mass"), default=1.0, help="ball mass, kg (default %(default)g)")
     p.add_argument("--radius", type=positive("--radius"), default=0.1, help="ball radius, m (default %(default)g)")
-    p.add_argument("--height", type=positive("--height"), default=1.0,
-                   help="ball drop height of the centre, m (default %(default)g)")
+    p.add_argument("--drop", "--height", dest="height", type=positive("--drop"), default=1.0,
+                   help="ball drop height of the centre, m, as diffpen fit's and sweep's "
+                        "--drop (--height: the same; default %(default)g)")
     p.add_argument("--scenes", nargs="+", default=["ball", "chain"], choices=["ball", "chain"],
                    help="stability: scenes of the matrix")
     p.add_argument("--dtypes", nargs="+", default=["float32", "float64"],
@@ -87,8 +88,8 @@ def run(args) -> int:
         return fail("report", "--c must be > 0 for the gradients report: its central "
                               "differences step c both ways, and a negative c is refused")
     if args.height <= args.radius:
-        return fail("report", "--height must be above --radius (the ball starts above the "
-                              "plane)")
+        return fail("report", "--drop (--height) must be above --radius (the ball starts "
+                              "above the plane)")
     if args.plot:
         from ..io import OutputError, check_plot
         try:
@@ -252,7 +253,7 @@ def _gradients(args) -> int:
     print("event metrics (apex heights, contact durations, max penetration) against the "
           "continuous derivatives (event-located DOP853 reference), semi-implicit Euler, "
           "default smoothing, on the report's four fixed balls (the cases of docs/"
-          "gradients.txt; --k, --c, --mass, --radius and --height set the last table's ball "
+          "gradients.txt; --k, --c, --mass, --radius and --drop set the last table's ball "
           "only):")
     print(event_gradient_table(events))
     print()
