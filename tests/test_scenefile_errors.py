@@ -135,6 +135,9 @@ BAD = [
      r"fit says nothing to fit: add a \[fit.targets\] table, data = \"record.csv\", or "
      r"params"),
     (BALL + FIT.replace("[fit]", '[fit]\ndata = "r.csv"'), r"fit has both \[fit.targets\] and data"),
+    # regression: tuning.fit's method name was refused without saying what a file takes
+    (BALL + FIT.replace("[fit]", '[fit]\nmethod = "optax"'),
+     r"fit\.method 'optax' is tuning\.fit's name .* \"adam\" or \"sgd\""),
     # regression: a typo of a plane's name was told to be an integer
     (BALL.replace("[[planes]]", '[[planes]]\nname = "ground"') + FIT.replace(
         "[fit]", '[fit]\nplane = "grnd"'),

@@ -25,7 +25,8 @@ def grid_points(axes: dict) -> tuple[np.ndarray, tuple]:
 def random_points(bounds: dict, n: int, *, log: bool = True, seed: int = 0) -> np.ndarray:
     """``n`` random points in the box ``bounds = {path: (lo, hi)}`` (log-uniform when ``log``).
 
-    Returns (n, P)."""
+    Returns (n, P): the points only (they have no grid shape; :func:`grid_points` returns
+    ``(points, shape)``)."""
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0 or not bounds:
         raise ValueError(f"random_points: n must be a whole number of points >= 0, got {n!r}."
                          if bounds else "random_points: give at least one {path: (lo, hi)}.")

@@ -60,6 +60,10 @@ class _FitTable:
                 V.string(wj, x)
                 refs.body(wj, x)
                 observe.append(x)
+        if fit.get("method") == "optax":    # the Python API's name: say what a file takes
+            raise (w / "method").error("'optax' is tuning.fit's name for any optax optimiser; "
+                                       "a scene file names it: \"adam\" or \"sgd\" (with "
+                                       "lr), or \"lm\".")
         method = V.choice(w / "method", fit.get("method", "lm"), ["lm", "adam", "sgd"])
         maxiter = (V.integer(w / "maxiter", fit["maxiter"], low=1) if "maxiter" in fit
                    else None)
