@@ -356,3 +356,18 @@ def test_rotation_angle_is_accurate_near_zero_in_float32():
         other = np.asarray(pose.qmul(jnp.asarray(q), jnp.asarray(turn)))
         got = np.asarray(pose.rotation_angle(jnp.asarray(q), jnp.asarray(other)))
         np.testing.assert_allclose(got, angle, rtol=1e-6)
+
+
+def test_a_scene_file_past_its_safe_step_is_named_in_the_refusal(setup, tmp_path, capsys,
+                                                                 monkeypatch):
+    """Regression: `diffpen evaluate` (and fit) of a scene file whose start parameters are
+    past the safe step said "the scene's integrator ... is unstable" without naming the
+    file, unlike every other scene-file error."""
+    _, paths, *_ = setup
+    stiff = tmp_path / "stiff.toml"
+    stiff.write_text(CUBE.replace("k = 3000.0", "k = 3e9"), encoding="utf-8")
+    _no_rollout(monkeypatch, "rolled out past the safe step")
+    capsys.readouterr()
+    assert main(["evaluate", str(stiff), "--data", *paths]) == 2
+    err = capsys.readouterr().err
+    assert f"{stiff}: the scene's integrator 'semi_implicit_euler' is unstable" in err, err

@@ -368,7 +368,7 @@ def _evaluate(sf, scene_path, records, bodies, estimate, max_frames, plot, files
         FLIGHT_FRAMES
     sim = sf.compile()
     params = sf.params(sim)
-    check_stable(sim, params)
+    check_stable(sim, params, sf.path)
     batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames)
     fn = evaluator(sim, batch)
     t0 = time.perf_counter()

@@ -135,7 +135,7 @@ def _fit(sf, scene_path, free, records, bodies, data, *, out, estimate, loss, ho
     t0 = time.perf_counter()
     sim = sf.compile()
     params = sf.params(sim)
-    check_stable(sim, params)
+    check_stable(sim, params, sf.path)
     first_states = {}                   # shared by the evaluation batch and the fit's buckets
     batch = prepare(sim, records, bodies=bodies, estimate=estimate, max_frames=max_frames,
                     cache=first_states)

@@ -533,16 +533,17 @@ def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
 
 
 # --------------------------------------------------------------------------- scene files
-def check_stable(sim: dp.Simulator, params) -> None:
+def check_stable(sim: dp.Simulator, params, path: str | None = None) -> None:
     """Raise :class:`diffpen.StabilityError` (with the safe step) before any rollout when
     ``sim``'s explicit integrator is past its limit at ``params`` -- the batched rollouts
-    run with concrete checks off."""
+    run with concrete checks off. ``path``: the scene file, named in the message."""
     if not sim.analysis.integrator.explicit:     # implicit_euler_with(...) records too
         return
     rep = sim.stability(params)
     if not rep.stable:
         raise dp.StabilityError(
-            f"the scene's integrator {sim.integrator!r} is unstable at dt = {sim.dt:g} s for "
+            (f"{path}: " if path else "")
+            + f"the scene's integrator {sim.integrator!r} is unstable at dt = {sim.dt:g} s for "
             f"its start parameters (stable step {rep.stable_dt:.3g} s, set by "
             f"{rep.limiting or 'the springs and contacts'}): lower dt in the scene file or "
             "start from softer k / smaller c.", stable_dt=rep.safe_dt,
