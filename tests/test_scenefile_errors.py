@@ -135,6 +135,10 @@ BAD = [
      r"fit says nothing to fit: add a \[fit.targets\] table, data = \"record.csv\", or "
      r"params"),
     (BALL + FIT.replace("[fit]", '[fit]\ndata = "r.csv"'), r"fit has both \[fit.targets\] and data"),
+    # regression: a body observed twice was kept twice (its residuals counted double)
+    (BALL.replace("[[spheres]]", '[[spheres]]\nname = "ball"') + FIT.replace(
+        "[fit]", '[fit]\nobserve = ["ball", "ball"]'),
+     r"fit\.observe\[1\] names 'ball' a second time \(or another name of the same body\)"),
     # regression: tuning.fit's method name was refused without saying what a file takes
     (BALL + FIT.replace("[fit]", '[fit]\nmethod = "optax"'),
      r"fit\.method 'optax' is tuning\.fit's name .* \"adam\" or \"sgd\""),

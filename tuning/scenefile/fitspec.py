@@ -58,7 +58,9 @@ class _FitTable:
             for j, x in enumerate(items):
                 wj = w / "observe" / j if isinstance(o, list) else w / "observe"
                 V.string(wj, x)
-                refs.body(wj, x)
+                if refs.body(wj, x) in [refs.body(wj, y) for y in observe]:
+                    raise wj.error(f"names {x!r} a second time (or another name of the same "
+                                   "body): list each observed body once.")
                 observe.append(x)
         if fit.get("method") == "optax":    # the Python API's name: say what a file takes
             raise (w / "method").error("'optax' is tuning.fit's name for any optax optimiser; "
