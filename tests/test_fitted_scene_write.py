@@ -155,15 +155,15 @@ def test_plastic_springs_yield_strain(tmp_path, group, values):
 
 # --------------------------------------------------------------------------- 3: default k, c
 def test_default_material_keeps_the_defaults(tmp_path):
-    """Without top-level k / c the default material takes the defaults (1e4 N/m, 10 N s/m),
+    """Without top-level k / c the default material takes the defaults (1e4 N/m, 20 N s/m),
     not the first material's: fitting that material's k and c must not move contact.default,
     and the written file states the defaults."""
     text = (RUN + "[materials.rubber]\nk = 2e3\nc = 20.0\n" + BALLS
             + '[[fixed_spheres]]\ncenter = [3.0, 0.0, 0.5]\nradius = 0.2\n'
               'material = "rubber"\n[[planes]]\n')
     before, doc = _roundtrip(tmp_path, text, {"contact.rubber.k": 2e4, "contact.rubber.c": 5.0})
-    assert before["contact.default.k"] == 1e4 and before["contact.default.c"] == 10.0
-    assert (doc["k"], doc["c"]) == (1e4, 10.0)
+    assert before["contact.default.k"] == 1e4 and before["contact.default.c"] == 20.0
+    assert (doc["k"], doc["c"]) == (1e4, 20.0)
 
 
 def test_materials_without_their_own_k_keep_it(tmp_path):
