@@ -6,7 +6,7 @@ Where a leaf goes (dotted params paths, see :mod:`tuning.scenefile`):
 * ``contact.M.k`` / ``contact.M.c`` / ``extra.friction.M``: ``[materials.M]`` k / c /
   friction (the table is added when the material took the top-level k, c; slip speed is a
   compile-time constant, not a leaf). When the file has no top-level ``k`` / ``c``, the
-  loader uses the defaults k = 1e4 N/m and c = 10 N s/m; they are then written explicitly
+  loader uses the defaults k = 1e4 N/m and c = 20 N s/m; they are then written explicitly
   with those values, so that the written file reads back the same whatever those defaults
   become;
 * ``extra.plane_offset.NAME``: the ``offset`` of the ``[[planes]]`` entry named NAME;

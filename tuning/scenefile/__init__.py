@@ -16,7 +16,7 @@ The schema (SI units; every table is optional except one body; unknown keys are 
     broadphase = { kind = "grid" }  # or { kind = "aabb", max_pairs = 4096 }; also margin,
                                     # cell_size, max_per_cell, bounds = [[x0,y0,z0],[x1,y1,z1]]
     k = 1e4                         # contact k (N/m) and c (N s/m) of every material that
-    c = 10.0                        #   does not give its own (defaults 1e4 and 10.0)
+    c = 20.0                        #   does not give its own (defaults 1e4 and 20.0)
     allow_overlap = false           # bodies may start overlapping (also per body, plane and
                                     #   fixed sphere), where the library checks overlaps
 
