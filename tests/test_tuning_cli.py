@@ -434,3 +434,15 @@ def test_a_decay_time_target_from_the_flag_and_from_a_scene_file(capsys, tmp_pat
     assert rc == 0 and toml["reached"], toml
     assert toml["fitted"]["contact.default.k"] == pytest.approx(flag["k"], rel=1e-6)
     assert toml["fitted"]["contact.default.c"] == pytest.approx(flag["c"], rel=1e-6)
+
+
+def test_simulate_takes_a_duration_as_fit_and_sweep_do(capsys):
+    """Regression: `diffpen simulate` took the rollout's length as --steps only, where fit,
+    sweep and scene files take a duration in seconds; --duration S is now the same rollout
+    as --steps S / dt, and giving both is refused."""
+    rc, by_duration = run_json(capsys, ["simulate", "ball", "--duration", "0.25"])
+    rc2, by_steps = run_json(capsys, ["simulate", "ball", "--steps", "250"])
+    assert rc == rc2 == 0 and by_duration["steps"] == 250
+    assert by_duration["max_penetration"] == by_steps["max_penetration"]
+    assert main(["simulate", "ball", "--duration", "0.25", "--steps", "3"]) == 2
+    assert "give one" in capsys.readouterr().err

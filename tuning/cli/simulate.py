@@ -16,6 +16,9 @@ def add_arguments(p) -> None:
     p.add_argument("--c", type=finite("--c"), help="contact damping, N s/m (every material)")
     p.add_argument("--steps", type=count("--steps", None), help="number of steps (default: the "
                    "scene's)")
+    p.add_argument("--duration", type=positive("--duration"), metavar="S",
+                   help="simulated time, s, as fit and sweep take it (default: the scene's; "
+                        "or give --steps)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default: the scene's)")
     p.add_argument("--law", type=law_name,
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default: the "
@@ -88,6 +91,8 @@ def _check_size(sim, steps: int, write: bool, given: str) -> None:
 def _run(args) -> int:
     if args.steps is not None and args.steps < 1:
         raise CLIError("--steps must be a positive integer")
+    if args.steps is not None and args.duration is not None:
+        raise CLIError("--steps and --duration both set the rollout's length: give one")
     if args.c is not None and not args.c >= 0.0:
         raise CLIError("--c must be >= 0 (N s/m)")
     if args.out:
@@ -101,9 +106,11 @@ def _run(args) -> int:
                            "a NumPy .npz archive)")
     setup = _load(args)                       # scene built and validated: nothing compiled yet
     dt = args.dt or setup.dt
-    steps = args.steps or max(1, int(round(setup.steps * setup.dt / dt)))
+    duration = args.duration if args.duration is not None else setup.steps * setup.dt
+    steps = args.steps or max(1, int(round(duration / dt)))
     given = (f"--steps {steps}" if args.steps else
-             f"--dt {dt:g} over the scene's {setup.steps * setup.dt:g} s")
+             f"--dt {dt:g} over --duration {duration:g} s" if args.duration is not None else
+             f"--dt {dt:g} over the scene's {duration:g} s")
     # before compiling, as the rows layout; then as the simulator holds it (columns: more)
     _check_size(SimpleNamespace(n_bodies=setup.scene.n_bodies, scene=setup.scene,
                                 dtype=setup.compile_options.get("dtype") or "float64",
