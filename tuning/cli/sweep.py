@@ -26,7 +26,9 @@ def add_arguments(p) -> None:
     p.add_argument("scene", nargs="?", metavar="SCENE.toml", help="sweep a scene file's "
                    "parameters instead of the built-in ball: its [fit] params over "
                    "[fit.bounds], or --param; against --data records (position and rotation "
-                   "errors), else the bounce of its [fit] body")
+                   "errors), else the bounce of its [fit] body (the built-in ball sweeps "
+                   "the linear law: for another law or integrator write the ball as a scene "
+                   "file, law = \"no_tension\" ...)")
     p.add_argument("--param", nargs=3, action="append", metavar=("PATH", "LO", "HI"),
                    help="with SCENE.toml: a parameter leaf (e.g. contact.board.k) and its "
                    "range; repeat for more axes (log-spaced for positive leaves, linear for "
