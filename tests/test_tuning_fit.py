@@ -359,12 +359,21 @@ def test_a_later_fit_of_an_equal_problem_compiles_nothing(short_problem, caplog,
                                                               rel=1e-3)
 
 
-def test_a_float32_fit_returns_float32_params():
+def test_a_float32_fit_returns_float32_params(short_problem):
     """Regression: the fitted leaves of a float32 simulator's fit were put back as the
-    optimiser's float64 values (``FitResult.params``: k float32, c float64)."""
+    optimiser's float64 values (``FitResult.params``: k float32, c float64). An int leaf of
+    a hand-built Params still takes the fit's floats (cast to int it never moved)."""
     sim = dp.compile(ball_scene(drop=0.6), 1e-3, dtype=jnp.float32)
     mfn = B.bounce_metrics_fn(sim, 300, n_apex=1)
     res = F.fit(mfn, sim.params(k=1e4, c=10.0), {"apex_heights": [0.2]},
                 free=["contact.default.c"], method="lm", maxiter=1)
     assert {np.dtype(x.dtype) for x in jax.tree_util.tree_leaves(res.params)} == {
         np.dtype(np.float32)}
+    sim, mfn = short_problem
+    p_int = dp.Params(contact={"default": ContactParams(np.int64(10000), np.int64(10))},
+                      springs={})
+    res = F.fit(mfn, p_int, {"apex_heights": [0.2]}, free=["contact.default.c"], method="lm",
+                maxiter=1)
+    assert res.values["contact.default.c"] != pytest.approx(10.0, rel=1e-3)
+    assert float(res.params.contact["default"].c) == pytest.approx(
+        res.values["contact.default.c"], rel=1e-6)

@@ -39,15 +39,15 @@ def flatten(params) -> dict:
 
 def unflatten(template, flat: dict):
     """A pytree like ``template`` with the leaves named in ``flat`` replaced (the other
-    leaves kept), each in its template leaf's dtype where that leaf has one (a float32
+    leaves kept), each in its template leaf's float dtype where that leaf has one (a float32
     simulator's fitted params stay float32: a fit's float64 values made them a mix)."""
     def put(path, leaf):
         name = path_name(path)
         if name not in flat:
             return leaf
         value, dtype = flat[name], getattr(leaf, "dtype", None)
-        if dtype is None:
-            return value
+        if dtype is None or not np.issubdtype(dtype, np.inexact):
+            return value            # an int leaf (a hand-built Params) takes the fit's floats
         return value.astype(dtype) if hasattr(value, "astype") else np.asarray(value, dtype)
     return jax.tree_util.tree_map_with_path(put, template)
 

@@ -71,9 +71,9 @@ def make_evaluator(metrics_fn: Callable, params0: dp.Params, names: list,
     def one(x):
         flat = dict(flat0)
         for i, n in enumerate(names):
-            # in the leaf's own dtype: a float64 batch set into float32 params made what
-            # the metrics compute from them (a resting height from k) float64
-            flat[n] = x[i].astype(jnp.result_type(flat0[n]))
+            flat[n] = x[i]
+        # unflatten puts each in its leaf's own float dtype: a float64 batch set into float32
+        # params made what the metrics compute from them (a resting height from k) float64
         m = metrics_fn(P.unflatten(params0, flat))
         return {k: jnp.asarray(v) for k, v in m.items()
                 if keys is None or k in keys or k == UNSTABLE}
