@@ -68,9 +68,8 @@ class Simulator:
     :func:`compile`; its attributes cannot be reassigned.
 
     Attributes:
-      scene: a copy of the Scene it was built from (:meth:`diffpen.Scene.snapshot`: edits
-        of that Scene after compiling reach neither the simulator nor its start state;
-        compile again to simulate them).  dt: time step, s.  n_bodies: int.
+      scene: a copy of the Scene it was built from (:meth:`diffpen.Scene.snapshot`; compile
+        again to simulate later edits of it).  dt: time step, s.  n_bodies: int.
       law: contact law name.  contact_law: its :class:`diffpen.laws.ContactLaw` record.
       exponent: the law's exponent (Hunt-Crossley).  smoothing: smoothing width used, m.
       integrator: the integrator's name.  substeps: int or "auto".
@@ -113,9 +112,7 @@ class Simulator:
             builtin_terms=builtin_terms)
         exponent = float(contact_law.exponent)
 
-        # a copy: bodies or materials added to ``scene`` later would otherwise reach
-        # init_state() and the checks without reaching the compiled step
-        self.scene = scene = scene.snapshot()
+        self.scene = scene = scene.snapshot()   # later edits of ``scene`` do not reach it
         self.dt = dt
         self.integrator = method.name
         self.law = contact_law.name
@@ -208,7 +205,7 @@ class Simulator:
                                     static_argnames=("steps", "save_every", "checkpoint",
                                                      "substeps", "observe"))
         with jax.ensure_compile_time_eval():            # concrete even if compiled in a trace
-            self._init = self.init_state()              # arrays are immutable: shared
+            self._init = _start_state.init_state(self)  # arrays are immutable: shared
         self._frozen = True
 
     def __setattr__(self, name, value):
@@ -252,7 +249,7 @@ class Simulator:
         ``aux`` holds the terms' entries (plastic rest lengths, the broad-phase overflow
         flag) and ``aux["unstable"]`` (False), the traced stability flag a rollout sets
         (:mod:`diffpen.stability`)."""
-        return _start_state.init_state(self)
+        return self._init._replace(aux=dict(self._init.aux))   # the compiled scene's, own aux
 
     def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
                    orientation=None, angular_velocity=None, frame: str | None = None) -> State:

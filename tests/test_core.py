@@ -515,6 +515,11 @@ def test_editing_a_scene_after_compiling_does_not_reach_the_simulator():
                     state=dp.compile(scene, 1e-3).init_state())
     # the snapshot's overlap index is its own: adding to the edited scene leaves it alone
     assert {i for ids in sim.scene._overlap.cells.values() for i in ids} == {0}
+    # and the start state is the compiled one's even where the snapshot itself is edited
+    sim.scene.add_sphere(radius=0.2, mass=3.0, position=(1.0, 0.0, 0.3))
+    assert sim.init_state().position.shape == (1, 3)
+    sim.init_state().aux["unstable"] = "written"        # each call: its own aux dict
+    assert not isinstance(sim.init_state().aux["unstable"], str)
 
 
 def test_an_integrator_record_steps_like_its_name():
