@@ -131,3 +131,10 @@ def test_fit_refuses_a_keep_beyond_its_starts(flags, capsys, monkeypatch):
                         lambda *a, **k: pytest.fail("fitted despite the --keep"))
     assert main(["fit", CUBE, "--data", str(TOSS), *flags]) == 2
     assert "--keep" in capsys.readouterr().err
+    # the library refuses it too, first thing (nothing is read or compiled)
+    from tuning.fit import FitError
+    monkeypatch.undo()
+    with pytest.raises(FitError, match=r"keep = 3: LM runs from the best `keep` of the 1 "):
+        trajfit.fit_records(None, None, None, [], keep=3)
+    with pytest.raises(FitError, match=r"of the 3 start point"):
+        trajfit.fit_records(None, None, None, [], starts=2, keep=5)

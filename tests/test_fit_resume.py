@@ -202,11 +202,11 @@ def test_diffpen_fit_out_audit_cases(drag, tmp_path, capsys, monkeypatch):
 
     out = tmp_path / "f.toml"
     progress = tmp_path / ("f.toml" + fit_checkpoint.SUFFIX)
-    from tuning.cli import fit as cli_fit
+    from tuning.cli import record_fit_report
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
-    monkeypatch.setattr(cli_fit, "dump_json", interrupted)     # after f.toml is written
+    monkeypatch.setattr(record_fit_report, "dump_json", interrupted)  # after f.toml is written
     assert main(argv + ["--out", str(out)]) == 130
     assert "rerun the same command to resume the fit" in capsys.readouterr().err
     assert out.exists() and progress.exists()

@@ -1,14 +1,19 @@
 """Record fits that refine each record's start state with the parameters
 (``diffpen fit --first-state refine``, :mod:`tuning.start_refine`): the projection against
 the joint least-squares problem, the offsets against the bodies they move, and a rope fitted
-from noisy marker positions alone."""
+from noisy marker positions alone, and a box on anchored springs within 2% where row 0's
+pose moved its damping 3%."""
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from tuning import scene_fit
+from tuning.cli import main
 from tuning.start_refine import project_starts, start_steps
 
-from record_scenes import ROPE, record_file
+from record_scenes import BOX, ROPE, record_file
 
 
 def test_the_projection_is_the_joint_problem_with_the_starts_eliminated():
@@ -117,3 +122,22 @@ def test_the_offsets_move_the_observed_unpinned_bodies_only():
     out2 = with_start_offsets(sim, start, batch, per, True)
     np.testing.assert_allclose(np.asarray(out2.velocity - start.velocity)[1, 2],
                                2.0 * np.asarray(u[15:18]))
+
+
+def test_a_refined_start_recovers_the_hung_box_within_two_percent(tmp_path, capsys,
+                                                                 monkeypatch):
+    """Issue 14's item 7 for the box on anchored springs: from row 0's noisy pose the
+    damping is fitted to the oscillation that pose's error starts, c -3.1% ... +3.3% over
+    noise seeds 1-5 (this record's seed 2: +3.32%, k -0.21%). ``--first-state refine`` fits
+    each record's start with k and c: k -0.48 ... -0.53%, c -0.76 ... -0.86% over the same
+    five seeds (the fit integrator's own step error; measured), held here to 2%."""
+    truth = {"springs.hang.k": 400.0, "springs.hang.c": 2.0}
+    scene, rec = record_file(tmp_path, BOX.format(k=250.0, c=1.0), truth, ["box"], "box2",
+                             integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6,
+                             noise=2e-4, seed=2)
+    monkeypatch.setattr(scene_fit, "STEP_CHECK", False)
+    capsys.readouterr()
+    assert main(["fit", scene, "--data", rec, "--first-state", "refine", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for name, v in truth.items():
+        assert out["fitted"][name] == pytest.approx(v, rel=0.02), (name, out["fitted"])

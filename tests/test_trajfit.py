@@ -50,7 +50,7 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, request, case, monkeyp
     made by rk4 at a quarter of the fit's step (semi-implicit Euler), with noise; the box's
     c within 3%: the fit integrator's own step error moves it by +1.25% on the noise-free
     record (+0.6% at half the step), this record's noise by another +1.1% (other seeds: -3.1%
-    ... +3.3%; a refined start recovers it within 2%, the test below)."""
+    ... +3.3%; a refined start recovers it within 2%: tests/test_start_refine.py)."""
     if case == "rope":
         truth = ROPE_TRUTH
         scene = tmp_path / "rope.toml"
@@ -86,23 +86,6 @@ def test_record_fit_recovers_parameters(tmp_path, capsys, request, case, monkeyp
     for name in truth:
         assert float(tf.get_leaf(got, name)) == pytest.approx(out["fitted"][name], rel=1e-12)
     assert set(truth) <= set(leaves)
-
-
-def test_a_refined_start_recovers_the_hung_box_within_two_percent(tmp_path, capsys,
-                                                                 monkeypatch):
-    """Issue 14's item 7 for the box on anchored springs: from row 0's noisy pose the
-    damping is fitted to the oscillation that pose's error starts, c -3.1% ... +3.3% over
-    noise seeds 1-5 (this record's seed 2: +3.32%, k -0.21%). ``--first-state refine`` fits
-    each record's start with k and c: k -0.48 ... -0.53%, c -0.76 ... -0.86% over the same
-    five seeds (the fit integrator's own step error; measured), held here to 2%."""
-    truth = {"springs.hang.k": 400.0, "springs.hang.c": 2.0}
-    scene, rec = record_file(tmp_path, BOX.format(k=250.0, c=1.0), truth, ["box"], "box2",
-                             integrator="rk4", dt=2.5e-4, every=5e-3, duration=0.6,
-                             noise=2e-4, seed=2)
-    monkeypatch.setattr(scene_fit, "STEP_CHECK", False)
-    out = _fit_cli(capsys, ["fit", scene, "--data", rec, "--first-state", "refine"])
-    for name, v in truth.items():
-        assert out["fitted"][name] == pytest.approx(v, rel=0.02), (name, out["fitted"])
 
 
 def test_standard_errors_take_in_the_records_start_state_noise(tmp_path):

@@ -199,6 +199,13 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
+    n_starts = 1 + (starts if isinstance(starts, (int, np.integer)) else len(starts))
+    if isinstance(keep, bool) or not isinstance(keep, (int, np.integer)) \
+            or not 1 <= keep <= max(n_starts, 1):
+        # it was clamped to the starts there are, without a word
+        raise FitError(f"keep = {keep!r}: LM runs from the best `keep` of the {n_starts} "
+                       "start point(s) (the given values and `starts` more); give 1 ... "
+                       f"{n_starts}, or more starts.")
     warn_record_precision(sim.dtype)
     free = [f.resolved() for f in free]
     if not free:
