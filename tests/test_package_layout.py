@@ -71,20 +71,24 @@ def test_figure_functions_return_the_paths_they_wrote(tmp_path):
 
 
 def _constant_arm_conditions(tree):
-    """``(line, source)`` of every condition ``A if C else CONST`` (or ``CONST if C else A``)
-    that an ``assert`` tests, directly or as ``np.all``/``np.any``'s argument: Python reads
-    ``assert x < a if c else b`` as ``(x < a) if c else b``, and a constant arm makes the
-    check always pass (or always fail) on that branch."""
+    """``(line, source)`` of every assert that holds a condition ``A if C else K`` (or ``K if C
+    else A``) whose one arm is a comparison and the other a constant (a number, a negative
+    one, True...), anywhere in the assert (inside ``and``/``or``, ``np.all(...)``): Python
+    reads ``assert x < a if c else b`` as ``(x < a) if c else b``, and the constant arm makes
+    the check always pass (or always fail) on that branch. A bound held in a name (``else
+    tol``) is not seen."""
+    def constant(node):
+        return isinstance(node, ast.Constant) or (isinstance(node, ast.UnaryOp)
+                                                  and isinstance(node.operand, ast.Constant))
     for node in ast.walk(tree):
         if not isinstance(node, ast.Assert):
             continue
-        tests = [node.test] + [a for m in ast.walk(node.test) if isinstance(m, ast.Call)
-                               and getattr(m.func, "attr", None) in ("all", "any")
-                               for a in m.args]
-        for t in tests:
-            if isinstance(t, ast.IfExp) and isinstance(t.body, ast.Compare) \
-                    and isinstance(t.orelse, ast.Constant):
+        for t in ast.walk(node.test):
+            if isinstance(t, ast.IfExp) and any(
+                    isinstance(a, ast.Compare) and constant(b)
+                    for a, b in ((t.body, t.orelse), (t.orelse, t.body))):
                 yield node.lineno, ast.unparse(node.test)
+                break
 
 
 def test_no_assert_checks_only_one_branch_of_a_condition():
@@ -94,6 +98,9 @@ def test_no_assert_checks_only_one_branch_of_a_condition():
            for p in sorted((ROOT / "tests").glob("*.py"))
            for line, src in _constant_arm_conditions(ast.parse(p.read_text(), str(p)))]
     assert not bad, bad
-    # the pattern is found where it occurs
-    old = "assert np.all(_err(d, r) < 0.025 if law == 'linear' else 0.06)"
-    assert list(_constant_arm_conditions(ast.parse(old)))
+    # the pattern is found where it occurs, in each of its forms
+    for old in ("assert np.all(_err(d, r) < 0.025 if law == 'linear' else 0.06)",
+                "assert 0.06 if law == 'linear' else err < 0.025",
+                "assert ok and (err < 0.025 if linear else -1)"):
+        assert list(_constant_arm_conditions(ast.parse(old))), old
+    assert not list(_constant_arm_conditions(ast.parse("assert x < (1 if c else 2)")))
