@@ -127,7 +127,8 @@ def test_rollout_checks_params_edited_with_replace(sim):
     # attribute 'k'"); and a concrete JAX array as steps was refused without saying why
     with pytest.raises(dp.SceneError, match=r"is a tuple; .*dp\.ContactParams\(k, c\)"):
         sim.rollout(dp.Params(contact={"default": (1e4, 20.0)}, springs={}), 10)
-    with pytest.raises(dp.SceneError, match=r"static, the compiled loop.s length: pass a Python int"):
+    with pytest.raises(dp.SceneError, match=r"static, the compiled loop.s length: pass a "
+                                            r"Python int"):
         sim.rollout(p, jnp.asarray(10))
 
 

@@ -271,7 +271,8 @@ def test_bad_bounce_options_are_refused_before_anything_runs(monkeypatch, ball_s
     scene = ball_scene()
     monkeypatch.setattr(dp, "compile", lambda *a, **k: pytest.fail("compiled"))
     target = {"apex_heights": [0.55]}
-    for kw, say in (({"maxiter": 0}, "maxiter"), ({"method": "adam"}, r"unknown method.*optimizer=optax\.adam"),
+    for kw, say in (({"maxiter": 0}, "maxiter"),
+                    ({"method": "adam"}, r"unknown method.*optimizer=optax\.adam"),
                     ({"settle_tol": float("nan")}, "settle_tol"),
                     ({"settle_tol": -1e-3}, "settle_tol"), ({"settle_tol": 0.0}, "settle_tol"),
                     ({"plane": 2}, "plane 2 is not in the scene"),

@@ -42,7 +42,8 @@ def add_arguments(p) -> None:
                    help=f"settling time, s (default {DEFAULT_SETTLE} when no target is given)")
     p.add_argument("--target-decay", type=positive("--target-decay"), metavar="S",
                    help="energy-decay time int E dt / E(0), s: a settling measure smooth in k "
-                        "and c (tuning.metrics; the rollout covers 8 x S + 0.2 s)")
+                        "and c (tuning.metrics; the rollout covers tuning.bounce.DECAY_MARGIN "
+                        "(8) x S + 0.2 s)")
     p.add_argument("--target-contact", type=positive("--target-contact"), metavar="S",
                    help="duration of the first contact, s: the time the ball overlaps the "
                    "plane (lowest point below the surface); with --law no_tension the force "
