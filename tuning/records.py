@@ -57,8 +57,9 @@ DEFAULT_MAX_BYTES = 256 * 2**20
 #: |q| may differ from 1 by this much (trackers write 6 decimals)
 QUAT_TOL = 1e-3
 #: positions (m), velocities (m/s) and angular velocities (rad/s) of a record must be within
-#: this of 0 (a scene file's coordinates: 1e6 m): a cell of 1e308 passed and overflowed the
-#: errors to NaN (``diffpen evaluate`` then reported null errors with exit status 0)
+#: this of 0 (a scene file's coordinates: 1e6 m), whatever ``check_units``: a cell of 1e308
+#: passed and overflowed the errors to NaN (``diffpen evaluate`` then reported null errors
+#: with exit status 0)
 MAX_MAGNITUDE = {"position": 1e6, "velocity": 1e6, "angular_velocity": 1e6}
 _UNIT = {"position": "m", "velocity": "m/s", "angular_velocity": "rad/s"}
 
@@ -412,15 +413,6 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                                   f"the {group.replace('_', ' ')} of this row is incomplete; "
                                   "fill every component or leave them all empty (a missing "
                                   "sample; NaN reads as empty).")
-            big = np.nonzero(np.abs(np.nan_to_num(a)) > MAX_MAGNITUDE.get(group, np.inf))
-            if big[0].size:
-                r, k = int(big[0][0]), int(big[1][0])
-                j = idx[k]
-                raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
-                                  f"{a[r, k]:g} {_UNIT[group]} is beyond the "
-                                  f"{MAX_MAGNITUDE[group]:g} {_UNIT[group]} a record's "
-                                  f"{group.replace('_', ' ')} may reach; check this cell (or "
-                                  "leave it empty for a missing sample).")
             arrays[group] = a
         q = arrays.get("quaternion")
         if q is not None:
@@ -450,8 +442,25 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                 j = groups["position"][k]
                 raise unit_slip(path, data[rr][0], f"{j + 1} ({header[j]})", p[rr, k],
                                 "positions", fall, "read_record")
+        _check_magnitudes(path, header, data, groups, arrays)   # after the unit slips
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
+
+
+def _check_magnitudes(path, header, data, groups, arrays) -> None:
+    """Refuse a value beyond :data:`MAX_MAGNITUDE` (whatever ``check_units``: no scene
+    reaches it), naming file, line and column."""
+    for group, a in arrays.items():
+        big = np.nonzero(np.abs(np.nan_to_num(a)) > MAX_MAGNITUDE.get(group, np.inf))
+        if big[0].size:
+            r, k = int(big[0][0]), int(big[1][0])
+            j = groups[group][k]
+            raise RecordError(f"{path}, line {data[r][0]}, column {j + 1} ({header[j]}): "
+                              f"{a[r, k]:g} {_UNIT[group]} is beyond the "
+                              f"{MAX_MAGNITUDE[group]:g} {_UNIT[group]} a record's "
+                              f"{group.replace('_', ' ')} may reach (a scene's coordinates "
+                              "stop there too); check this cell (or leave it empty for a "
+                              "missing sample).")
 
 
 def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_ROWS,
