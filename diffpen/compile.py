@@ -249,7 +249,7 @@ class Simulator:
         ``aux`` holds the terms' entries (plastic rest lengths, the broad-phase overflow
         flag) and ``aux["unstable"]`` (False), the traced stability flag a rollout sets
         (:mod:`diffpen.stability`)."""
-        return self._init._replace(aux=dict(self._init.aux))   # the compiled scene's, own aux
+        return jax.tree_util.tree_map(jnp.copy, self._init)  # the compiled one's, copied
 
     def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
                    orientation=None, angular_velocity=None, frame: str | None = None) -> State:
