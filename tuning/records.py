@@ -414,6 +414,7 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                                   "fill every component or leave them all empty (a missing "
                                   "sample; NaN reads as empty).")
             arrays[group] = a
+        _check_magnitudes(path, header, data, groups, arrays)
         q = arrays.get("quaternion")
         if q is not None:
             n = np.linalg.norm(q, axis=1)
@@ -442,14 +443,14 @@ def read_record(path, body_names=None, *, scene_names=None, max_rows: int = DEFA
                 j = groups["position"][k]
                 raise unit_slip(path, data[rr][0], f"{j + 1} ({header[j]})", p[rr, k],
                                 "positions", fall, "read_record")
-        _check_magnitudes(path, header, data, groups, arrays)   # after the unit slips
         bodies[body] = BodyRecord(**arrays)
     return Record(path=path, t=t, bodies=bodies)
 
 
 def _check_magnitudes(path, header, data, groups, arrays) -> None:
     """Refuse a value beyond :data:`MAX_MAGNITUDE` (whatever ``check_units``: no scene
-    reaches it), naming file, line and column."""
+    reaches it), naming file, line and column; before the unit-slip check, which would take
+    one absurd height cell of a record in metres for a record in millimetres."""
     for group, a in arrays.items():
         big = np.nonzero(np.abs(np.nan_to_num(a)) > MAX_MAGNITUDE.get(group, np.inf))
         if big[0].size:
@@ -460,7 +461,9 @@ def _check_magnitudes(path, header, data, groups, arrays) -> None:
                               f"{MAX_MAGNITUDE[group]:g} {_UNIT[group]} a record's "
                               f"{group.replace('_', ' ')} may reach (a scene's coordinates "
                               "stop there too); check this cell (or leave it empty for a "
-                              "missing sample).")
+                              "missing sample)"
+                              + ("; a record in millimetres or centimetres needs its "
+                                 "positions in metres" if group == "position" else "") + ".")
 
 
 def read_height_record(path, *, min_rows: int = 20, max_rows: int = DEFAULT_MAX_ROWS,
