@@ -113,7 +113,8 @@ GOOD = _rows()
     # one absurd height cell of a record in metres: the cell, not "centimetres" (the
     # unit-slip check ran first)
     ("t,x,y,z\n" + "".join(f"{i * 0.01:.2f},0,0,{1e308 if i == 4 else 1.0}\n"
-                           for i in range(8)), r"line 6, column 4 \(z\): 1e\+308 m is beyond"),
+                           for i in range(8)),
+     r"line 6, column 4 \(z\): 1e\+308 m is beyond the 1e\+06 m"),
     (GOOD.replace("0.0200,", ","), r"line 4, column 1 \(t\): a value is required"),
     (GOOD.replace("0.0200,", "0.0100,"), r"line 4, column 1 \(t\): times must strictly increase"),
     (GOOD.replace("0.0200,0.12", "0.0200,"), r"line 4, column 2 \(x\): the position of this "
