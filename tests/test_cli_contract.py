@@ -134,7 +134,11 @@ def test_fit_refuses_a_keep_beyond_its_starts(flags, capsys, monkeypatch):
     # the library refuses it too, first thing (nothing is read or compiled)
     from tuning.fit import FitError
     monkeypatch.undo()
-    with pytest.raises(FitError, match=r"keep = 3: LM runs from the best `keep` of the 1 "):
+    with pytest.raises(FitError, match=r"keep = 3: LM runs from the best `keep` .* of the 1 "):
         trajfit.fit_records(None, None, None, [], keep=3)
     with pytest.raises(FitError, match=r"of the 3 start point"):
         trajfit.fit_records(None, None, None, [], starts=2, keep=5)
+    with pytest.raises(FitError, match=r"starts = -1: give a count >= 0"):
+        trajfit.fit_records(None, None, None, [], starts=-1, keep=2)
+    with pytest.raises(FitError, match=r"a whole number"):
+        trajfit.fit_records(None, None, None, [], keep=2.0)

@@ -199,13 +199,18 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
+    if isinstance(starts, (int, np.integer)):
+        if starts < 0:
+            raise FitError(f"starts = {starts}: give a count >= 0 or a list of start values.")
+    else:
+        starts = list(starts)           # a generator is read once
     n_starts = 1 + (starts if isinstance(starts, (int, np.integer)) else len(starts))
     if isinstance(keep, bool) or not isinstance(keep, (int, np.integer)) \
-            or not 1 <= keep <= max(n_starts, 1):
+            or not 1 <= keep <= n_starts:
         # it was clamped to the starts there are, without a word
-        raise FitError(f"keep = {keep!r}: LM runs from the best `keep` of the {n_starts} "
-                       "start point(s) (the given values and `starts` more); give 1 ... "
-                       f"{n_starts}, or more starts.")
+        raise FitError(f"keep = {keep!r}: LM runs from the best `keep` (a whole number) of "
+                       f"the {n_starts} start point(s) (the given values and `starts` more); "
+                       f"give 1 ... {n_starts}, or more starts.")
     warn_record_precision(sim.dtype)
     free = [f.resolved() for f in free]
     if not free:
@@ -512,9 +517,7 @@ def _screen_tied(costs) -> bool:
 
 def _start_points(free, x0, lo, hi, starts, seed, spread) -> list:
     """Extra start points of :func:`fit_records` in fitting space (see its ``starts``)."""
-    if isinstance(starts, (int, np.integer)):
-        if starts < 0:
-            raise FitError(f"starts = {starts}: give a count >= 0 or a list of start values.")
+    if isinstance(starts, (int, np.integer)):          # >= 0: fit_records checked it
         rng = np.random.default_rng(seed)
         half = np.array([math.log(spread) if f.log else (
             0.1 * (hi[i] - lo[i]) if np.isfinite(hi[i] - lo[i]) else 0.01)
