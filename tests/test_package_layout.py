@@ -72,7 +72,8 @@ def test_figure_functions_return_the_paths_they_wrote(tmp_path):
 
 def _constant_arm_conditions(tree):
     """``(line, source)`` of every assert that holds a condition ``A if C else K`` (or ``K if C
-    else A``) whose one arm is a comparison and the other a constant (a number, a negative
+    else A``) whose one arm is a check (a comparison, a call such as ``np.allclose(...)``, an
+    ``and``/``or``) and the other a constant (a number, a negative
     one, True...), anywhere in the assert (inside ``and``/``or``, ``np.all(...)``): Python
     reads ``assert x < a if c else b`` as ``(x < a) if c else b``, and the constant arm makes
     the check always pass (or always fail) on that branch. A bound held in a name (``else
@@ -85,7 +86,7 @@ def _constant_arm_conditions(tree):
             continue
         for t in ast.walk(node.test):
             if isinstance(t, ast.IfExp) and any(
-                    isinstance(a, ast.Compare) and constant(b)
+                    isinstance(a, (ast.Compare, ast.Call, ast.BoolOp)) and constant(b)
                     for a, b in ((t.body, t.orelse), (t.orelse, t.body))):
                 yield node.lineno, ast.unparse(node.test)
                 break
@@ -101,6 +102,7 @@ def test_no_assert_checks_only_one_branch_of_a_condition():
     # the pattern is found where it occurs, in each of its forms
     for old in ("assert np.all(_err(d, r) < 0.025 if law == 'linear' else 0.06)",
                 "assert 0.06 if law == 'linear' else err < 0.025",
-                "assert ok and (err < 0.025 if linear else -1)"):
+                "assert ok and (err < 0.025 if linear else -1)",
+                "assert np.allclose(a, b) if exact else True"):
         assert list(_constant_arm_conditions(ast.parse(old))), old
     assert not list(_constant_arm_conditions(ast.parse("assert x < (1 if c else 2)")))
