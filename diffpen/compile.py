@@ -249,7 +249,8 @@ class Simulator:
         ``aux`` holds the terms' entries (plastic rest lengths, the broad-phase overflow
         flag) and ``aux["unstable"]`` (False), the traced stability flag a rollout sets
         (:mod:`diffpen.stability`)."""
-        return jax.tree_util.tree_map(jnp.copy, self._init)  # the compiled one's, copied
+        # new arrays (a donated one deleted the default start); host copies: jnp.copy compiles
+        return jax.tree_util.tree_map(lambda a: jax.device_put(np.array(a)), self._init)
 
     def state_from(self, state: State | None = None, *, body=0, position=None, velocity=None,
                    orientation=None, angular_velocity=None, frame: str | None = None) -> State:
