@@ -446,3 +446,17 @@ def test_simulate_takes_a_duration_as_fit_and_sweep_do(capsys):
     assert by_duration["max_penetration"] == by_steps["max_penetration"]
     assert main(["simulate", "ball", "--duration", "0.25", "--steps", "3"]) == 2
     assert "give one" in capsys.readouterr().err
+
+
+def test_simulate_takes_hunt_crossleys_exponent_as_fit_does(capsys):
+    """Regression: `diffpen simulate` took --law hunt_crossley but not its exponent (fit took
+    --exponent), so a Hertz ball could not be simulated from the command line."""
+    argv = ["simulate", "ball", "--law", "hunt_crossley", "--duration", "0.6"]
+    rc, hertz = run_json(capsys, argv + ["--exponent", "1.5", "--k", "1e6", "--c", "3e4"])
+    rc1, n_one = run_json(capsys, argv + ["--k", "3e4", "--c", "3e3"])
+    assert rc == rc1 == 0 and hertz["exponent"] == 1.5 and n_one["exponent"] == 1.0
+    # Hertz at k 1e6 N/m^1.5 stores the 0.9 m fall's energy undamped at (5/2 m g h / k)^(2/5)
+    # = 13.7 mm (the linear law at 1e6 N/m: 4.2 mm); its damping takes a little of it
+    assert 0.010 < hertz["max_penetration"] < 0.0137, hertz["max_penetration"]
+    assert main(["simulate", "ball", "--exponent", "1.5"]) == 2
+    assert "is read by law='hunt_crossley' only" in capsys.readouterr().err

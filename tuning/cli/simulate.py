@@ -23,6 +23,9 @@ def add_arguments(p) -> None:
     p.add_argument("--law", type=law_name,
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default: the "
                         "scene's)")
+    p.add_argument("--exponent", type=positive("--exponent"), metavar="N",
+                   help="with --law hunt_crossley: its exponent n (1.5: Hertz; default: the "
+                        "scene's), as diffpen fit takes it")
     p.add_argument("--out", metavar="FILE.npz", help="write time, position and velocity")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
@@ -119,7 +122,10 @@ def _run(args) -> int:
     import numpy as np
 
     import diffpen as dp
-    sim = dp.compile(setup.scene, dt, **{**setup.compile_options, "law": args.law or setup.law})
+    options = {**setup.compile_options, "law": args.law or setup.law}
+    if args.exponent is not None:       # dp.compile refuses it for a law that does not read it
+        options["exponent"] = args.exponent
+    sim = dp.compile(setup.scene, dt, **options)
     _check_size(sim, steps, bool(args.out), given)
     if not sim.materials and (args.k is not None or args.c is not None):
         given = " and ".join(f for f, v in (("--k", args.k), ("--c", args.c)) if v is not None)
@@ -145,7 +151,7 @@ def _run(args) -> int:
     except dp.StabilityError as exc:
         raise CLIError(_stability_advice(str(exc), args)) from None
     out = {"scene": args.scene, "description": setup.description, "dt": dt, "steps": steps,
-           "duration": steps * dt, "law": sim.law,
+           "duration": steps * dt, "law": sim.law, "exponent": sim.exponent,
            "k": ks.pop() if len(ks) == 1 else None, "c": cs.pop() if len(cs) == 1 else None,
            "n_bodies": sim.n_bodies}
     if len(contact) > 1:
