@@ -460,3 +460,13 @@ def test_simulate_takes_hunt_crossleys_exponent_as_fit_does(capsys):
     assert 0.010 < hertz["max_penetration"] < 0.0137, hertz["max_penetration"]
     assert main(["simulate", "ball", "--exponent", "1.5"]) == 2
     assert "is read by law='hunt_crossley' only" in capsys.readouterr().err
+
+
+def test_simulate_takes_an_integrator(capsys):
+    """Regression: no command chose the integrator (scene files and dp.compile did); `diffpen
+    simulate --integrator NAME` now does and reports it, and an unknown name is refused with
+    the list."""
+    rc, out = run_json(capsys, ["simulate", "ball", "--integrator", "rk4", "--duration", "0.1"])
+    assert rc == 0 and out["integrator"] == "rk4"
+    assert main(["simulate", "ball", "--integrator", "euler"]) == 2
+    assert "unknown integrator 'euler'; choose one of" in capsys.readouterr().err

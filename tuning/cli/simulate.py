@@ -26,6 +26,9 @@ def add_arguments(p) -> None:
     p.add_argument("--exponent", type=positive("--exponent"), metavar="N",
                    help="with --law hunt_crossley: its exponent n (1.5: Hertz; default: the "
                         "scene's), as diffpen fit takes it")
+    p.add_argument("--integrator", metavar="NAME",
+                   help="semi_implicit_euler, verlet, rk4 or implicit_euler (default: the "
+                        "scene's; a scene file's integrator = ...)")
     p.add_argument("--out", metavar="FILE.npz", help="write time, position and velocity")
     p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
@@ -125,6 +128,8 @@ def _run(args) -> int:
     options = {**setup.compile_options, "law": args.law or setup.law}
     if args.exponent is not None:       # dp.compile refuses it for a law that does not read it
         options["exponent"] = args.exponent
+    if args.integrator is not None:     # an unknown name: dp.compile's SceneError lists them
+        options["integrator"] = args.integrator
     sim = dp.compile(setup.scene, dt, **options)
     _check_size(sim, steps, bool(args.out), given)
     if not sim.materials and (args.k is not None or args.c is not None):
@@ -152,6 +157,7 @@ def _run(args) -> int:
         raise CLIError(_stability_advice(str(exc), args)) from None
     out = {"scene": args.scene, "description": setup.description, "dt": dt, "steps": steps,
            "duration": steps * dt, "law": sim.law, "exponent": sim.exponent,
+           "integrator": sim.integrator,
            "k": ks.pop() if len(ks) == 1 else None, "c": cs.pop() if len(cs) == 1 else None,
            "n_bodies": sim.n_bodies}
     if len(contact) > 1:
