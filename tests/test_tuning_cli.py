@@ -460,6 +460,10 @@ def test_simulate_takes_hunt_crossleys_exponent_as_fit_does(capsys):
     assert 0.010 < hertz["max_penetration"] < 0.0137, hertz["max_penetration"]
     assert main(["simulate", "ball", "--exponent", "1.5"]) == 2
     assert "is read by law='hunt_crossley' only" in capsys.readouterr().err
+    # the text says the law's exponent and its units (k was printed in N/m for any law)
+    assert main(argv + ["--exponent", "1.5", "--k", "1e6", "--c", "3e4"]) == 0
+    text = capsys.readouterr().out
+    assert "hunt_crossley (n 1.5) law" in text and "k=1e+06 N/m^1.5, c=30000 N s/m^2.5" in text
 
 
 def test_simulate_takes_an_integrator(capsys):

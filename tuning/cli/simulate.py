@@ -179,18 +179,21 @@ def _run(args) -> int:
         dump_json(out)
         return 0
     print(f"diffpen simulate: {setup.description or args.scene}")
+    from ..stable import law_units
+    ku, cu = law_units(sim.contact_law)         # Hunt-Crossley: N/m^n, N s/m^(n+1)
     if "materials" in out:
-        kc = "; ".join(f"{name}: k={v['k']:g} N/m, c={v['c']:g} N s/m"
+        kc = "; ".join(f"{name}: k={v['k']:g} {ku}, c={v['c']:g} {cu}"
                        for name, v in out["materials"].items())
     elif sim.materials:
-        kc = f"k={out['k']:g} N/m, c={out['c']:g} N s/m"
+        kc = f"k={out['k']:g} {ku}, c={out['c']:g} {cu}"
     else:
         kc = ""
     centred = ", damping at the step's centre" if sim.contact_law.centred is not None else ""
-    print(f"  {steps} steps of dt={dt:g} s ({steps * dt:g} s), {sim.law} law{centred}"
-          + (f", {kc}" if kc else ""))
-    skip = {"scene", "description", "dt", "steps", "duration", "law", "k", "c", "n_bodies",
-            "out", "materials"}
+    law = sim.law + (f" (n {sim.exponent:g})" if sim.contact_law.takes_exponent else "")
+    print(f"  {steps} steps of dt={dt:g} s ({steps * dt:g} s), {sim.integrator}, {law} "
+          f"law{centred}" + (f", {kc}" if kc else ""))
+    skip = {"scene", "description", "dt", "steps", "duration", "law", "exponent", "integrator",
+            "k", "c", "n_bodies", "out", "materials"}
     for key, val in out.items():
         if key not in skip:
             print(f"  {key}: {fmt(val)}")
