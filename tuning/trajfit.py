@@ -43,7 +43,7 @@ import numpy as np
 
 import diffpen as dp
 
-from .errors import FitError
+from .errors import FitError, check_starts_keep
 from .progress import Progress
 from .lm import levenberg_marquardt, warn_record_precision
 from .first_state import first_state
@@ -199,18 +199,9 @@ def fit_records(sim: dp.Simulator, params, batch, free: Sequence[Free], *,
     """
     if loss not in ("l2", "l1"):
         raise FitError(f"loss must be 'l2' or 'l1', got {loss!r}.")
-    if isinstance(starts, (int, np.integer)):
-        if starts < 0:
-            raise FitError(f"starts = {starts}: give a count >= 0 or a list of start values.")
-    else:
+    if not isinstance(starts, (int, np.integer)):
         starts = list(starts)           # a generator is read once
-    n_starts = 1 + (starts if isinstance(starts, (int, np.integer)) else len(starts))
-    if isinstance(keep, bool) or not isinstance(keep, (int, np.integer)) \
-            or not 1 <= keep <= n_starts:
-        # it was clamped to the starts there are, without a word
-        raise FitError(f"keep = {keep!r}: LM runs from the best `keep` (a whole number) of "
-                       f"the {n_starts} start point(s) (the given values and `starts` more); "
-                       f"give 1 ... {n_starts}, or more starts.")
+    check_starts_keep(starts, keep)
     warn_record_precision(sim.dtype)
     free = [f.resolved() for f in free]
     if not free:

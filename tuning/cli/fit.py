@@ -197,11 +197,8 @@ def _run(args) -> int:
                        f"with it (got --law {args.law})")
     if args.exponent < 1.0:
         raise CLIError(f"--exponent must be >= 1 (Hertz: 1.5), got {args.exponent:g}")
-    if args.keep != 1 and args.keep > args.starts + 1:
-        # trajfit would clamp it to the starts there are, without a word
-        raise CLIError(f"--keep {args.keep} runs LM from the {args.keep} best of the start "
-                       f"values and the --starts {args.starts} more drawn around them: give "
-                       f"--starts {args.keep - 1} or more, or a smaller --keep")
+    from ..errors import check_starts_keep    # before anything is read or compiled
+    check_starts_keep(args.starts, args.keep, ("--starts", "--keep"))
     if args.fresh and not args.out:
         raise CLIError("--fresh restarts a fit that --out keeps the progress of: give it with "
                        "SCENE.toml --data FILES... --out FITTED.toml")
