@@ -3,7 +3,7 @@ behind the README's "Gradients outside the one-contact ball" table (the sphere p
 chain of particles on springs, the sliding particle; the box rows came from a planar
 rigid-body reference not shipped here).
 
-    python benchmarks/gradients_beyond_ball.py [spheres] [chain] [slide]
+    python benchmarks/gradients_beyond_ball.py [spheres] [chain] [slide] [--integrator NAME]
 
 Each case is a diffpen scene with the library's defaults (``dp.compile(scene, dt)``, the
 linear law named) and a scipy DOP853 reference of the same model at rtol 1e-12 that stops at
@@ -12,6 +12,8 @@ The continuous derivative is the reference's central difference at a relative st
 Printed per metric, parameter and dt (1e-3, 3e-4, 1e-4 s): the jax derivative
 (``jax.jacfwd``), the library's own central differences at relative steps 1e-2, 1e-3, 1e-4,
 the continuous derivative and the jax one's relative error against it. float64. Needs scipy.
+``--integrator verlet`` (or ``rk4``, any name of ``diffpen.integrators.INTEGRATORS``)
+compiles the scenes with that integrator instead of the default semi-implicit Euler.
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 DTS = (1e-3, 3e-4, 1e-4)
 RTOL = dict(method="DOP853", rtol=1e-12, atol=1e-14)
+INTEGRATOR = "semi_implicit_euler"          # --integrator NAME
 
 
 def compare(name, metrics, params, simulated, reference) -> None:
@@ -103,7 +106,7 @@ def pair_simulated(b):
         scene = dp.Scene(gravity=(0.0, 0.0, 0.0))
         scene.add_sphere(radius=RADIUS, mass=M1, position=tuple(xa), velocity=(V1, 0, 0))
         scene.add_sphere(radius=RADIUS, mass=M2, position=tuple(xb), velocity=(V2, 0, 0))
-        sim = dp.compile(scene, dt)
+        sim = dp.compile(scene, dt, integrator=INTEGRATOR)
         steps = int(round(T_PAIR / dt))
         t0, r1, v0 = pair_entry(b)
 
@@ -183,7 +186,7 @@ def chain_simulated(dt):
     for i in range(N - 1):
         scene.add_spring(i, i + 1, group="rope")
     scene.add_plane()
-    sim = dp.compile(scene, dt)
+    sim = dp.compile(scene, dt, integrator=INTEGRATOR)
     rows = [int(round(t / dt)) - 1 for t in T_CHAIN]
 
     def f(p):
@@ -241,7 +244,7 @@ def slide_simulated(dt):
     scene.add_material("rough", k=1e4, c=20.0, friction=0.3, slip_speed=SLIP)
     scene.add_particle(mass=M_SLIDE, position=(0.0, 0.0, Z_SLIDE), velocity=(V_SLIDE, 0, 0))
     scene.add_plane(material="rough")
-    sim = dp.compile(scene, dt)
+    sim = dp.compile(scene, dt, integrator=INTEGRATOR)
     steps = int(round(T_SLIDE / dt))
 
     def f(p):
@@ -251,7 +254,14 @@ def slide_simulated(dt):
 
 
 def main() -> None:
-    cases = sys.argv[1:] or ["spheres", "chain", "slide"]
+    global INTEGRATOR
+    args = sys.argv[1:]
+    if "--integrator" in args:
+        at = args.index("--integrator")
+        INTEGRATOR = args[at + 1]
+        del args[at:at + 2]
+    print(f"integrator: {INTEGRATOR}")
+    cases = args or ["spheres", "chain", "slide"]
     if "spheres" in cases:
         for b, label in ((0.0, "spheres head-on"), (0.1, "spheres at 60 deg")):
             compare(label, ["duration", "vA_x", "vA_y", "restitution"],
