@@ -157,7 +157,7 @@ class Simulator:
             _broadphase.check(broadphase, ctx)
         self.context = ctx
         self.broadphase = broadphase
-        self._rigid = rigid.RigidDynamics(ctx) if scene.has_rotation else None
+        self._rigid = rigid.RigidDynamics(ctx, method) if scene.has_rotation else None
         # (n, 3) body-frame principal moments, kg m^2 (0: no rotation), for the start energy
         self._moments = np.array([rigid.inertia_diagonal(b) if b.rigid else np.zeros(3)
                                   for b in bodies]).reshape(-1, 3)
@@ -233,7 +233,7 @@ class Simulator:
           springs: ``{group: (k, c)}`` per spring group (overrides ``spring_k``/``spring_c``).
           extra: parameters of extension terms.
         Values not given come from the scene's material / spring group defaults. Values may be
-        floats, arrays or tracers; they are cast to the simulator's dtype.
+        floats, 0-d arrays or tracers; they are cast to the simulator's dtype.
         Returns: :class:`diffpen.Params`.
         """
         return _params.build(self, k, c, contact=contact, spring_k=spring_k,
@@ -400,16 +400,15 @@ class Simulator:
         stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
         Params must be concrete (not jit tracers): inside jit the rollout's
         ``State.aux["unstable"]`` flag says the same. ``state``: the start state a rollout
-        would take (default the scene's), whose energy bounds the depth of a contact law
-        that stiffens with depth (:mod:`diffpen.stability.depth`), as the rollout counts it.
-        """
+        would take (default the scene's): its energy bounds a law stiffening with depth
+        (:mod:`diffpen.stability.depth`), its spin has a limit (:mod:`diffpen.motion`)."""
         _checks.check_params(self, params, "sim.stability")
-        rep = _stability.report(self.analysis, params, energy=self.start_energy(
-            self._init if state is None else state, params))
+        state = self._init if state is None else state
+        rep = _stability.report(self.analysis, params, energy=self.start_energy(state, params))
         if rep is None:
             raise SceneError("sim.stability(params) needs concrete parameter values, not "
                              "jit tracers.")
-        return rep
+        return _motion.with_spin(self, rep, state)     # a start spin's limit, if tighter
 
     # ------------------------------------------------------------------ rollout
     def _rollout_impl(self, params, state, steps, save_every, checkpoint=None, substeps=1,

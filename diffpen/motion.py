@@ -1,9 +1,10 @@
 """Limits of a start state's motion that the step-size check cannot see, checked before a
 rollout runs (concrete states) and flagged inside it (traced ones):
 
-* spin: semi-implicit Euler steps Euler's equations explicitly, so a fast spin of a body
-  with unequal moments gains energy until it turns NaN (:data:`SPIN_LIMIT`,
-  :func:`check_spin`, :func:`spin_unsafe` for the traced ``aux["unstable"]`` flag);
+* spin: a fast spin of a body with unequal moments turns more per step than an integrator
+  steps accurately (verlet and rk4 step Euler's gyroscopic term explicitly and gain energy
+  until it turns NaN) (:data:`SPIN_LIMITS`, :func:`check_spin`, :func:`spin_unsafe` for the
+  traced ``aux["unstable"]`` flag);
 * impacts: bodies closing faster than their penalty contact can stop before their centres
   meet pass through each other (:func:`check_tunnelling`, a :class:`ContactWarning`).
 """
@@ -15,17 +16,25 @@ import numpy as np
 
 from .errors import ContactWarning, StabilityError, warn
 
-__all__ = ["SPIN_LIMIT", "anisotropy", "spin_anisotropy", "check_spin", "spin_unsafe",
+__all__ = ["SPIN_LIMIT", "SPIN_LIMITS", "anisotropy", "spin_anisotropy", "spin_limit",
+           "spin_step", "check_spin", "with_spin", "spin_unsafe",
            "tunnelling_table", "check_tunnelling"]
 
 
 #: Largest start spin that semi-implicit Euler is allowed to step, as ``kappa |w| h`` (rad per
 #: inner step ``h``, scaled by the body's inertia anisotropy ``kappa = max |I_j - I_k| / I_i``,
-#: 0 for a sphere or a cube, 1 for moments 1:2:3). It integrates Euler's equations
-#: explicitly, which grows a spinning body's energy by about ``0.16 (kappa |w| h)^2`` per
-#: step (over 5000 steps, worst of three spin axes: +2% at 0.005, +8% at 0.01, +42% at 0.02,
-#: x2.5 at 0.03, NaN from 0.05 to 0.1); verlet and rk4 stay within 0.4% at |w| h = 0.3.
+#: 0 for a sphere or a cube, 1 for moments 1:2:3). It carries each body's angular momentum
+#: (:meth:`diffpen.rigid.RigidDynamics.transport`), which no spin turns NaN; the limit is
+#: accuracy: over 5000 free steps of a 1:2:3 box spun about four axes the energy stays within
+#: 0.05% at 0.05, 0.73% at 0.1, 17% at 0.2. (Before, the gyroscopic term stepped explicitly
+#: gained energy every step: +45% at 0.02, NaN from 0.04.)
 SPIN_LIMIT = 0.05
+
+#: The spin limit of each integrator that has one, by its step factory's name: where 5000 free
+#: steps of that box keep its energy within about 0.3%. verlet steps the gyroscopic term
+#: explicitly (0.34% at 0.05, 1-4% at 0.1, NaN from 0.2); rk4 0.28% at 0.2, 5-15% at 0.5, NaN
+#: from 2-2.5. implicit Euler solves it implicitly and has none.
+SPIN_LIMITS = {"semi_implicit_euler": SPIN_LIMIT, "verlet": 0.05, "rk4": 0.2}
 
 
 def anisotropy(inertia) -> float:
@@ -44,42 +53,86 @@ def spin_anisotropy(scene) -> np.ndarray:
                      for b in scene.bodies])
 
 
-def _kick_drift(sim) -> bool:
-    """The simulator steps as semi-implicit Euler (by its record's step, not its name)."""
-    from .integrators import kick_then_drift
+def _stepper(sim) -> str | None:
+    """The key of :data:`SPIN_LIMITS` the simulator's integrator steps as, by its record's
+    step factory (a renamed record steps the same), or None (implicit Euler, an integrator
+    made outside the package)."""
+    from . import integrators as _integrators
     rec = getattr(getattr(sim, "analysis", None), "integrator", None)
-    return kick_then_drift(rec if rec is not None else sim.integrator)
+    make = _integrators.resolve(rec if rec is not None else sim.integrator).make
+    return {_integrators.semi_implicit_euler: "semi_implicit_euler",
+            _integrators.verlet: "verlet", _integrators.rk4: "rk4"}.get(make)
 
 
-def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
-    """The inner steps a concrete start state needs so that no rigid body spins faster than
-    :data:`SPIN_LIMIT` (``kappa |w| h``) under semi-implicit Euler: ``substeps`` when it is
-    enough; else, with ``auto``, the count that is, and otherwise :class:`StabilityError`
-    saying which dt, substeps or integrator would step it."""
+def spin_limit(sim) -> float | None:
+    """The spin limit (``kappa |w| h``, :data:`SPIN_LIMITS`) of the simulator's integrator,
+    or None where it has none."""
+    return SPIN_LIMITS.get(_stepper(sim))
+
+
+def spin_step(sim, state):
+    """``(h_max, body, speed, kappa, limit)``: the largest inner step (s) at which a concrete,
+    unbatched start ``state`` spins within the simulator's spin limit (``kappa |w| h <=
+    limit``, :data:`SPIN_LIMITS`), the body that sets it, its ``|w|`` (rad/s) and anisotropy;
+    None where nothing limits it (no spinning body with unequal moments, an integrator
+    without a limit, a traced or batched state)."""
     from .checks import _batched
     from .params import _is_concrete
     w = getattr(state, "angular_velocity", None)
     kappa = getattr(sim, "_spin_kappa", None)
-    if (w is None or kappa is None or not kappa.any() or not _kick_drift(sim)
-            or not _is_concrete(w) or _batched(state)):
-        return substeps
-    h = sim.dt / substeps
+    if (w is None or kappa is None or not kappa.any() or not _is_concrete(w)
+            or _batched(state)):
+        return None
+    limit = spin_limit(sim)
+    if limit is None:
+        return None
     speed = np.linalg.norm(np.asarray(w, dtype=float).reshape(-1, 3), axis=-1)
-    rate = kappa * speed * h
-    if not rate.size or not np.isfinite(rate).all() or rate.max() <= SPIN_LIMIT:
-        return substeps
+    rate = kappa * speed
+    if not rate.size or not np.isfinite(rate).all() or rate.max() <= 0.0:
+        return None
     b = int(np.argmax(rate))
-    need = int(np.ceil(rate[b] / SPIN_LIMIT)) * substeps
+    return limit / rate[b], b, float(speed[b]), float(kappa[b]), limit
+
+
+def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
+    """The inner steps a concrete start state needs so that no rigid body spins faster than
+    its integrator's spin limit (``kappa |w| h``, :data:`SPIN_LIMITS`): ``substeps`` when it
+    is enough; else, with ``auto``, the count that is, and otherwise :class:`StabilityError`
+    saying which dt, substeps or integrator would step it."""
+    found = spin_step(sim, state)
+    h = sim.dt / substeps
+    if found is None or h <= found[0]:
+        return substeps
+    h_max, b, speed, kappa, limit = found
+    need = int(np.ceil(h / h_max)) * substeps
     if auto:
         return need
+    why = ("Semi-implicit Euler keeps the angular momentum but not the energy at such a "
+           "turn per step" if _stepper(sim) == "semi_implicit_euler" else
+           f"{sim.integrator} steps the gyroscopic term explicitly and gains energy at such "
+           "a turn per step, until it turns NaN")
+    other = "" if limit >= SPIN_LIMITS["rk4"] else \
+        f", or integrator='rk4' (to kappa |w| h = {SPIN_LIMITS['rk4']})"
     raise StabilityError(
-        f"body {b} spins at |w| = {speed[b]:.4g} rad/s with inertia anisotropy kappa = "
-        f"{kappa[b]:.3g}: kappa |w| h = {rate[b]:.3g} per step of {h:.3g} s. Semi-implicit "
-        "Euler steps the gyroscopic term explicitly and grows such a spin's energy until it "
-        f"turns NaN (above {SPIN_LIMIT}). Use dt <= {SPIN_LIMIT / (kappa[b] * speed[b]):.3g} s, "
-        f"substeps={need} (or substeps='auto'), or integrator='verlet' or 'rk4' (stable to "
-        "about |w| h = 0.3).",
-        stable_dt=SPIN_LIMIT / (kappa[b] * speed[b]), substeps=need)
+        f"body {b} spins at |w| = {speed:.4g} rad/s with inertia anisotropy kappa = "
+        f"{kappa:.3g}: kappa |w| h = {kappa * speed * h:.3g} per step of {h:.3g} s, past "
+        f"{sim.integrator}'s spin limit {limit}. {why}. Use dt <= {h_max:.3g} s, "
+        f"substeps={need} (or substeps='auto'){other}.", stable_dt=h_max, substeps=need)
+
+
+def with_spin(sim, report, state):
+    """``report`` (a :class:`diffpen.stability.StabilityReport`) with the start spin's limit
+    (:func:`spin_step`) where it is the tighter one: its ``safe_dt``, ``safe_margin``,
+    ``safe``, ``substeps_needed`` and ``limiting`` then say so."""
+    found = spin_step(sim, state)
+    if found is None or found[0] >= report.safe_dt or not report.stable:
+        return report           # (an unstable step's limit is said first)
+    h_max, b, speed, kappa, limit = found
+    return report._replace(
+        safe_dt=h_max, safe_margin=h_max / report.inner_dt, safe=h_max >= report.inner_dt,
+        substeps_needed=max(1, int(np.ceil(report.dt / h_max))),
+        limiting=f"body {b}'s spin (|w| = {speed:.4g} rad/s, inertia anisotropy kappa = "
+                 f"{kappa:.3g}): {sim.integrator}'s spin limit kappa |w| h <= {limit}")
 
 
 def tunnelling_table(scene):
@@ -162,8 +215,10 @@ def check_tunnelling(sim, params, state) -> None:
             return
         k = k_of(mat)
         cap = float(law.energy(reach, k))
-        if ke > cap and (worst is None or ke / cap > worst[0]):
-            worst = (ke / cap, a, other, vn, mat, k, cap, ke)
+        ratio = ke / cap if cap > 0.0 else np.inf          # k = 0 stores nothing
+        if ke > cap and (worst is None or ratio > worst[0]):
+            # the stiffness that stores ke (every law's energy is linear in k)
+            worst = (ratio, a, other, vn, mat, k, cap, ke, ke / float(law.energy(reach, 1.0)))
 
     def reduced(ma, mb):
         inv = (1.0 / ma if np.isfinite(ma) else 0.0) + np.where(
@@ -183,27 +238,28 @@ def check_tunnelling(sim, params, state) -> None:
         for c in np.nonzero(ke > 0.0)[0]:
             consider(ke[c], vn[c], fmats[c], reach[c], int(fidx[a]), f"fixed sphere {c}")
     if worst is not None:
-        ratio, i, other, vn, mat, k, cap, ke = worst
+        ratio, i, other, vn, mat, k, cap, ke, k_need = worst
         kind = sim.scene.bodies[i].kind
         warn(
             f"{kind} {i} and {other} would meet at {vn:.3g} m/s: their contact (material "
             f"{mat!r}, k = {k:.3g}) stores at most {cap:.3g} J before their centres meet, and "
             f"they bring {ke:.3g} J: if they meet they pass through each other (a penalty "
-            f"contact cannot stop them). Raise k above {k * ratio:.3g}, or slow them down.",
+            f"contact cannot stop them). Raise k above {k_need:.3g}, or slow them down.",
             ContactWarning)
 
 
 def spin_unsafe(sim, state, h: float):
     """Traced counterpart of :func:`check_spin`: a bool scalar, True when a rigid body of the
-    (possibly traced, e.g. vmapped) start ``state`` spins past :data:`SPIN_LIMIT`
-    (``kappa |w| h``) under semi-implicit Euler, ``h`` the inner step in s. It joins the
+    (possibly traced, e.g. vmapped) start ``state`` spins past its integrator's spin limit
+    (``kappa |w| h``, :data:`SPIN_LIMITS`), ``h`` the inner step in s. It joins the
     rollout's ``State.aux["unstable"]`` flag, so a sweep over start spins marks the rows a
-    concrete rollout would refuse (they end NaN)."""
+    concrete rollout would refuse."""
     w = getattr(state, "angular_velocity", None)
     kappa = getattr(sim, "_spin_kappa", None)
-    if w is None or kappa is None or not kappa.any() or not _kick_drift(sim):
+    limit = None if w is None or kappa is None or not kappa.any() else spin_limit(sim)
+    if limit is None:
         return jnp.zeros((), bool)
     w = jnp.asarray(w)
     speed = jnp.sqrt(jnp.sum(w * w, axis=-1))
     rate = jnp.asarray(kappa, speed.dtype) * speed * h
-    return jnp.any(rate > SPIN_LIMIT) | jnp.any(~jnp.isfinite(rate))
+    return jnp.any(rate > limit) | jnp.any(~jnp.isfinite(rate))

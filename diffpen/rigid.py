@@ -11,6 +11,16 @@ moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equat
 angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
 ``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
 
+Under semi-implicit Euler (a kick, then a drift) a body with unequal moments steps its
+angular momentum instead (:meth:`RigidDynamics.transport`): the kick adds ``h I_w^-1 tau``
+only, and the body is turned over the step at the mean of that speed and the speed its
+angular momentum ``L = I_w w`` has at the turned orientation, then given that momentum's
+speed, ``w' = I_w(q')^-1 L``. Without torque ``L`` is kept to rounding and ``|w| <= |L| /
+I_min``, so no spin grows without bound (the gyroscopic term stepped explicitly gains energy
+every step: a box of moments near 1:2:3 spun off its axes at ``kappa |w| h`` 0.04 turned NaN
+within 5000 steps). Bodies with equal moments (a cube, a sphere) have no gyroscopic term and
+step as before.
+
 The terms that produce torque are :mod:`diffpen.terms.rigid` (box corners, sphere-box,
 anchored springs) and :mod:`diffpen.terms.friction` (friction at a rigid sphere's contact).
 """
@@ -74,11 +84,15 @@ def angular_acceleration(rot, w, tau, inertia, inv_inertia):
 class RigidDynamics:
     """Static rigid-body data of a compiled scene and the angular acceleration.
 
-    Built by ``diffpen.compile`` only when the scene has rigid bodies.
-    Attributes: ``index`` (r,) int, the free rigid bodies; ``inertia`` (r, 3) kg m^2.
+    Built by ``diffpen.compile`` only when the scene has rigid bodies, with its integrator
+    (a kick-then-drift one carries the angular momentum of bodies with unequal moments:
+    :meth:`transport`). Attributes: ``index`` (r,) int, the free rigid bodies; ``inertia``
+    (r, 3) kg m^2; ``carried`` the bodies whose angular momentum the step carries.
     """
 
-    def __init__(self, ctx: CompileContext):
+    def __init__(self, ctx: CompileContext, integrator=None):
+        from .integrators import kick_then_drift
+        momentum = integrator is not None and kick_then_drift(integrator)
         bodies = ctx.scene.bodies
         self.n = ctx.n
         self.index = np.array([i for i, b in enumerate(bodies) if b.rigid and not b.pinned],
@@ -87,6 +101,12 @@ class RigidDynamics:
         self.inertia = ctx.const(inertia)
         self.inv_inertia = ctx.const(1.0 / inertia) if inertia.size else self.inertia
         self._const = ctx.const
+        # the free rigid bodies whose angular momentum the step carries (momentum: a
+        # kick-then-drift integrator; only unequal moments have a gyroscopic term)
+        unequal = np.array([np.ptp(m) > 1e-12 * np.max(m) for m in inertia], dtype=bool)
+        self.carried = self.index[unequal] if momentum else self.index[:0]
+        self._carried_inertia = ctx.const(inertia[unequal]) if momentum else None
+        self._gyroscopic = ~unequal if momentum and unequal.any() else None
 
     def init(self, bodies):
         """Initial orientations (n, 4) and world angular velocities (n, 3) rad/s; bodies that
@@ -102,5 +122,42 @@ class RigidDynamics:
         w = gather(state.angular_velocity, idx, self.n)
         tau_r = jnp.zeros_like(w) if tau is None else gather(tau, idx, self.n)
         rot = quat_to_matrix(gather(state.orientation, idx, self.n))
-        alpha = angular_acceleration(rot, w, tau_r, self.inertia, self.inv_inertia)
+        if self._gyroscopic is None:
+            alpha = angular_acceleration(rot, w, tau_r, self.inertia, self.inv_inertia)
+        else:       # the carried bodies' gyroscopic term is the transport's (below)
+            ang_mom = rotate(rot, self.inertia * rotate_back(rot, w))
+            gyro = jnp.where(self._gyroscopic[:, None], jnp.cross(w, ang_mom), 0.0)
+            alpha = rotate(rot, self.inv_inertia * rotate_back(rot, tau_r - gyro))
         return scatter(alpha, idx, self.n)
+
+    def transport(self, before, after, h: float):
+        """``after`` (the state a kick-then-drift step of ``h`` s made from ``before``) with
+        each carried body (unequal moments) turned and spinning as its angular momentum
+        says. The kick gave it ``L = I_w(q) w`` (``w`` the kicked speed, ``q`` the
+        orientation before); the drift turned it at ``w`` to ``q1``, where that momentum
+        spins it at ``w1 = I_w(q1)^-1 L``; the body is turned again from ``q`` at the mean
+        ``(w + w1) / 2`` to ``q'`` and given ``w' = I_w(q')^-1 L`` (rad/s). Without torque
+        ``L`` is kept to rounding (so ``|w| <= |L| / I_min``) and the energy to second order:
+        a 1:2:3-like box (0.05 x 0.1 x 0.15 m) spun off its axes for 5000 steps at ``kappa |w|
+        h`` 0.01 / 0.04 / 0.3 / 3 keeps it within 0.0007% / 0.04% / 8% / 5% (turned at ``w``
+        alone: 8.5% / 140% / 140% / 140%, the bound ``|L|^2 / 2 I``; the explicit gyroscopic
+        term: +7% / NaN / NaN / NaN). :meth:`alpha` leaves the gyroscopic term out for these
+        bodies."""
+        from .integrators import quat_integrate
+        idx = self.carried
+        if idx.size == 0:
+            return after
+        moments = self._carried_inertia
+
+        def spin(q, ang_mom):                  # I_w(q)^-1 L
+            rot = quat_to_matrix(q)
+            return rotate(rot, rotate_back(rot, ang_mom) / moments)
+        w = gather(after.angular_velocity, idx, self.n)
+        q0 = gather(before.orientation, idx, self.n)
+        rot0 = quat_to_matrix(q0)
+        ang_mom = rotate(rot0, moments * rotate_back(rot0, w))
+        w1 = spin(gather(after.orientation, idx, self.n), ang_mom)
+        q = quat_integrate(q0, 0.5 * (w + w1), h)
+        return after._replace(orientation=after.orientation.at[idx].set(q),
+                              angular_velocity=after.angular_velocity.at[idx].set(
+                                  spin(q, ang_mom)))

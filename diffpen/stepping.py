@@ -26,7 +26,7 @@ def build(sim, n: int):
     if sim._searching:
         inner = _searching_step(sim, h, inv_mass)
     else:
-        inner = build_step(method, _accel_at(sim, h), h, inv_mass=inv_mass)
+        inner = _carrying(sim, build_step(method, _accel_at(sim, h), h, inv_mass=inv_mass), h)
     if sim._aux_updates:
         inner = _with_aux_updates(inner, sim._aux_updates)
     return substepped(inner, n)
@@ -48,6 +48,19 @@ def hold_pins(sim, state):
     if state.angular_velocity is not None:
         state = state._replace(angular_velocity=jnp.where(held, 0.0, state.angular_velocity))
     return state
+
+
+def _carrying(sim, step, h: float):
+    """``step`` followed by the rigid bodies' angular-momentum transport where the simulator
+    carries it (a kick-then-drift integrator and a body with unequal moments:
+    :meth:`diffpen.rigid.RigidDynamics.transport`); ``step`` itself otherwise."""
+    rigid = sim._rigid
+    if rigid is None or rigid.carried.size == 0:
+        return step
+
+    def carried(params, state):
+        return rigid.transport(state, step(params, state), h)
+    return carried
 
 
 def _accel_at(sim, h: float):
@@ -88,7 +101,7 @@ def _searching_step(sim, h: float, inv_mass):
             # the very objects the step got: the integrator evaluates at its start state
             return sim.acceleration(p, s, found if (s is state and p is params) else None,
                                     h=h)
-        new = build_step(method, accel, h, inv_mass=inv_mass)(params, state)
+        new = _carrying(sim, build_step(method, accel, h, inv_mass=inv_mass), h)(params, state)
         aux = dict(new.aux)
         for term in searching:
             if term.record is not None:

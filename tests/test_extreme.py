@@ -168,3 +168,20 @@ def test_the_impact_warning_takes_the_paths_and_covers_particles(pair_sim):
     sim = dp.compile(s, dt=1e-3)
     with pytest.warns(dp.ContactWarning, match="particle 0 and fixed sphere 0 would meet"):
         sim.rollout(sim.params(k=1e3, c=0.0), 10)
+
+
+def test_the_impact_warning_at_k_zero_names_the_stiffness_that_stops_them(pair_sim):
+    """At k = 0 (accepted) the warning said "Raise k above nan", after two numpy
+    RuntimeWarnings (0 J of storable energy divided into the impact's, audit33)."""
+    import warnings
+
+    sim = pair_sim
+    start = _pair_start(sim, [(-0.5, 0.0, 0.0), (0.5, 0.0, 0.0)],
+                        [(50.0, 0.0, 0.0), (-50.0, 0.0, 0.0)])
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        sim.rollout(sim.params(k=0.0, c=0.0), 2, start)
+    # 0.5 mu v^2 = 0.5 * 0.5 * 100^2 = 2500 J = k (0.2 m)^2 / 2 at k = 1.25e5
+    assert [str(w.message) for w in seen if not issubclass(w.category, dp.ContactWarning)] == []
+    text = " ".join(str(w.message) for w in seen)
+    assert "stores at most 0 J" in text and "Raise k above 1.25e+05" in text

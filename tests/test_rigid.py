@@ -104,12 +104,15 @@ def spinning():
 
 
 def test_free_spinning_box_conserves_energy_and_momentum(spinning):
-    """Symplectic Euler on Euler's equations drifts at first order: < 0.2% in 1 s at
-    dt = 1e-3 (w = 4 rad/s), halving with dt."""
+    """Semi-implicit Euler carries the angular momentum of a body with unequal moments
+    (diffpen.rigid.RigidDynamics.transport): kept to rounding; the energy drifts at second
+    order, < 1e-6 in 1 s at dt = 1e-3 (w = 4 rad/s), a quarter of it at half the step. With
+    the gyroscopic term stepped explicitly both drifted at first order (0.2% and 0.1% at dt
+    1e-3, halving with dt)."""
     _, _, _, e1, l1 = spinning[1e-3]
     _, _, _, e2, l2 = spinning[5e-4]
-    assert e1 < 2e-3 and l1 < 1e-3
-    assert 0.4 < e2 / e1 < 0.6 and 0.4 < l2 / l1 < 0.6
+    assert e1 < 1e-6 and l1 < 1e-12 and l2 < 1e-12
+    assert 0.2 < e2 / e1 < 0.3
     traj = spinning[5e-4][0]
     np.testing.assert_allclose(np.linalg.norm(np.asarray(traj.orientation), axis=-1), 1.0,
                                atol=1e-12)
@@ -174,8 +177,10 @@ def test_off_centre_anchored_spring_force_and_torque_match_hand_computation(anch
 
 
 def test_anchored_spring_pair_conserves_energy_and_angular_momentum():
-    """Undamped, no gravity: translational + rotational + spring energy and the total angular
-    momentum about the origin stay constant (to the integrator's first-order drift)."""
+    """Undamped, no gravity: translational + rotational + spring energy stays constant to the
+    integrator's first-order drift (0.14% at dt 2e-4), and the total angular momentum about
+    the origin to rounding: semi-implicit Euler carries each box's angular momentum through
+    its turn (4.3e-4 with the gyroscopic term stepped explicitly)."""
     scene, _ = _two_boxes(0.0)
     sim = dp.compile(scene, dt=2e-4)
     traj = sim.rollout(sim.params(), steps=5000, save_every=50)
@@ -200,7 +205,7 @@ def test_anchored_spring_pair_conserves_energy_and_angular_momentum():
         mom.append(ang)
     energy, mom = np.array(energy), np.array(mom)
     assert np.ptp(energy) / energy.mean() < 5e-3
-    assert np.abs(mom - mom[0]).max() / np.linalg.norm(mom[0]) < 5e-3
+    assert np.abs(mom - mom[0]).max() / np.linalg.norm(mom[0]) < 1e-10
     # energy really moves between the parts (the spring does act)
     assert np.ptp(np.linalg.norm(np.asarray(traj.angular_velocity[:, 0]), axis=-1)) > 0.1
 

@@ -1,0 +1,113 @@
+"""Fast spins of rigid bodies: the start spin's limit per integrator (refused concrete,
+flagged traced, reported by sim.stability) and semi-implicit Euler's carried angular
+momentum (diffpen.motion, diffpen.rigid.RigidDynamics.transport)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffpen as dp
+from diffpen.geometry import quat_to_matrix
+
+
+def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
+    """A box spinning at 300 rad/s (0.3 rad per 1 ms step) under semi-implicit Euler came
+    back with NaN orientations and no error (only positions were checked). It is refused
+    past the spin limit, and stepped past it (check_stability=False) it stays finite with its
+    angular momentum: the step carries it (it turned NaN with the gyroscopic term stepped
+    explicitly, and so did the substeps and verlet the error offered, audit33)."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+              inertia=(1.0, 2.0, 3.0))
+    bsim = dp.compile(s, 1e-3)
+    with pytest.raises(dp.StabilityError, match=r"spins at \|w\| = 300.3 rad/s.*kappa = 1.*"
+                       r"spin limit 0.05.*substeps=7.*integrator='rk4'"):
+        bsim.rollout(bsim.params(), 400)
+    past = bsim.rollout(bsim.params(), 400, check_stability=False)
+    inertia = np.array([1.0, 2.0, 3.0])
+
+    def momentum(tr):
+        rot = quat_to_matrix(np.asarray(tr.orientation)[:, 0], xp=np)
+        w_body = np.einsum("tji,tj->ti", rot, np.asarray(tr.angular_velocity)[:, 0])
+        return np.einsum("tij,tj->ti", rot, inertia * w_body)
+    mom = momentum(past)
+    assert np.isfinite(mom).all()
+    np.testing.assert_allclose(mom, np.broadcast_to([300.0, 20.0, 30.0], mom.shape), rtol=1e-12)
+    # the fix it names steps it: 7 substeps; "auto" picks them
+    seven = bsim.rollout(bsim.params(), 400, substeps=7)
+    auto = dp.compile(s, 1e-3, substeps="auto")
+    np.testing.assert_array_equal(auto.rollout(auto.params(), 400).orientation,
+                                  seven.orientation)
+    # traced params never raise (the rollout's aux flag is the traced check)
+    sp = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    sp.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+               inertia=(1.0, 2.0, 3.0))
+    sp.add_plane(offset=-10.0)
+    psim = dp.compile(sp, 1e-3)
+    with pytest.raises(dp.StabilityError):
+        psim.rollout(psim.params(k=1e4, c=20.0), 5)
+    jax.jit(lambda p: psim.rollout(p, 5).position)(psim.params(k=1e4, c=20.0))
+    # verlet and rk4 step the gyroscopic term explicitly: refused past their own limits
+    # (verlet's 0.05: this spin turned NaN; rk4's 0.2), and sim.stability says so
+    for name, need in (("verlet", 7), ("rk4", 2)):
+        other = dp.compile(s, 1e-3, integrator=name)
+        with pytest.raises(dp.StabilityError, match=rf"{name}'s spin limit.*substeps={need}"):
+            other.rollout(other.params(), 400)
+        report = other.stability(other.params())
+        assert report.substeps_needed == need and not report.safe
+        assert "spin" in report.limiting
+        assert np.isfinite(other.rollout(other.params(), 400, substeps=need).orientation).all()
+    # equal moments (a cube) have no gyroscopic term: the same spin is stepped exactly
+    c = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    c.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0))
+    csim = dp.compile(c, 1e-3)
+    w = csim.rollout(csim.params(), 400).angular_velocity
+    np.testing.assert_allclose(w[-1, 0], [300.0, 10.0, 10.0], rtol=1e-12)
+
+
+def test_a_traced_sweep_over_start_spins_flags_the_rows_past_the_spin_limit():
+    """Under jit(vmap) over start spins, rows past SPIN_LIMIT ended NaN with
+    aux["unstable"] False (the traced flag had no spin term), while a concrete rollout of the
+    same start refuses it."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    box = s.add_box((0.1, 0.2, 0.3), 1.0, (0.0, 0.0, 0.0), inertia=(1.0, 2.0, 3.0))
+    s.add_plane(offset=-10.0)
+    bsim = dp.compile(s, 1e-2)
+    p = bsim.params(k=100.0, c=0.0)
+    axis = jnp.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+
+    def one(w):
+        st = bsim.state_from(body=box, angular_velocity=w * axis, frame="body")
+        tr = bsim.rollout(p, 300, state=st, save_every=300)
+        return jnp.isfinite(tr.orientation[-1]).all(), tr.aux["unstable"][-1]
+
+    # kappa = 1, h = 0.01: kappa |w| h = 0.01, 0.04 (inside 0.05), 0.1, 0.4 (past it)
+    finite, flag = jax.jit(jax.vmap(one))(jnp.array([1.0, 4.0, 10.0, 40.0]))
+    np.testing.assert_array_equal(flag, [False, False, True, True])
+    assert bool(np.all(finite))         # the step carries the angular momentum: no NaN
+    # verlet and rk4 flag past their own limits (0.05 and 0.2)
+    for name, flags in (("verlet", [False, True, True]), ("rk4", [False, False, True])):
+        vsim = dp.compile(s, 1e-2, integrator=name)
+        got = jax.vmap(lambda w: vsim.rollout(p, 2, state=vsim.state_from(
+            body=box, angular_velocity=w * axis, frame="body")).aux["unstable"][-1])(
+                jnp.array([1.0, 10.0, 40.0]))
+        np.testing.assert_array_equal(got, flags)
+
+
+def test_vmap_over_a_start_spin_alone_runs():
+    """vmap over state_from(angular_velocity=...) of a free box crashed with a raw
+    TracerBoolConversionError: its positions do not depend on the spin, so they came back
+    concrete while the angular velocities were tracers, and the finite check tested only
+    the positions for concreteness."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    box = s.add_box((0.1, 0.2, 0.3), 1.0, (0.0, 0.0, 1.0))
+    bsim = dp.compile(s, 1e-3)
+    p = bsim.params()
+
+    def final_spin(w):
+        st = bsim.state_from(body=box, angular_velocity=jnp.array([0.0, 0.0, 1.0]) * w,
+                             frame="body")
+        return bsim.rollout(p, 20, state=st, save_every=20).angular_velocity[-1, box]
+
+    np.testing.assert_allclose(jax.vmap(final_spin)(jnp.array([1.0, 2.0])),
+                               [[0.0, 0.0, 1.0], [0.0, 0.0, 2.0]], atol=1e-12)
