@@ -46,3 +46,34 @@ def test_gradients_report_refuses_a_rollout_past_the_safe_step(capsys):
     assert main(["report", "gradients", "--quick", "--k", "1e7"]) == 2
     err = capsys.readouterr().err
     assert "past the safe step" in err and "lower --k or --c" in err
+
+
+def test_stability_report_progress_is_lines_off_a_terminal(capsys, monkeypatch):
+    """`diffpen report stability` wrote `\\r{i}/{n} cases` itself: off a terminal a log got
+    one 4 kB line (audit32). It reports through tuning.progress: a line every 5 s there (a
+    short run none), a bar on a terminal."""
+    import tuning.progress as progress
+    import tuning.reports.extreme as extreme
+    cases = ["a", "b", "c"]
+
+    def matrix(cs, progress=None):
+        for i, _ in enumerate(cs):
+            progress(i + 1, len(cs), {})
+        return []
+    monkeypatch.setattr(extreme, "extreme_cases", lambda **kw: cases)
+    monkeypatch.setattr(extreme, "stability_matrix", matrix)
+    monkeypatch.setattr(extreme, "summarize_matrix", lambda rows: {"ok": 3})
+    assert main(["report", "stability", "--quick"]) == 0
+    assert "\r" not in capsys.readouterr().err
+    # each update a line when they are 5 s apart
+    monkeypatch.setattr(progress.Progress, "__init__", _every(progress.Progress.__init__))
+    assert main(["report", "stability", "--quick"]) == 0
+    lines = capsys.readouterr().err.splitlines()
+    assert [ln.split(" (")[0] for ln in lines] == [
+        f"diffpen report stability {i}/3 {100 * i / 3:.1f}% done" for i in (1, 2, 3)]
+
+
+def _every(init):
+    def patched(self, *a, **kw):
+        init(self, *a, **{**kw, "every": 0.0})
+    return patched

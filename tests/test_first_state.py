@@ -309,6 +309,12 @@ def test_observed_bodies_far_from_the_scene_start_warn_for_the_unobserved_ones(h
     with pytest.warns(UserWarning, match=r"positions or velocities: swung.csv \(velocity "
                                          r"0.5 m/s off\)"):
         tf.prepare(sim, [swung], bodies={"a": a})
+    # both at once: one record, counted once (the message said "2 record(s)" for it, audit32)
+    moved = Record("moved.csv", rec.t, {"a": BodyRecord(swung.bodies["a"].position
+                                                        + [0.0, 0.0, 0.1])})
+    with pytest.warns(UserWarning, match=r"^1 record\(s\) start .* moved.csv \(100 mm, "
+                                         r"velocity 0.5 m/s off\)\. "):
+        tf.prepare(sim, [moved], bodies={"a": a})
     # every body observed: nothing starts from the scene file, no warning
     both = Record("both.csv", rec.t, {"a": BodyRecord(body.position + [0.0, 0.0, 0.1]),
                                       "b": BodyRecord(body.position - [0.0, 0.0, 0.2])})

@@ -361,6 +361,11 @@ def test_fit_gives_a_damping_ratio_only_for_laws_that_have_one(capsys):
     assert fitcli.law_units("no_tension") == ("N/m", "N s/m")
     fitcli._print(argparse.Namespace(json=False), dict(out, zeta=0.25, law="linear"))
     assert "(damping ratio 0.25)" in capsys.readouterr().out
+    # an unsettled settling time's error is no number ("3.84 s (inf% off)", audit32)
+    fitcli._print(argparse.Namespace(json=False), dict(
+        out, achieved={"settling_time": 3.84}, rel_error={"settling_time": float("inf")}))
+    text = capsys.readouterr().out
+    assert "settling_time = 3.84 s (not settled within the rollout" in text and "inf%" not in text
 
 
 def test_fit_takes_hunt_crossleys_exponent(capsys):
@@ -395,6 +400,18 @@ def test_simulate_past_the_safe_step_gives_advice_this_command_can_follow(capsys
     assert main(["simulate", scene, "--dt", "0.05"]) == 2
     err = capsys.readouterr().err
     assert 'set substeps = 10 (or "auto") or integrator = "implicit_euler"' in err, err
+
+
+def test_simulate_without_a_practical_step_names_the_scene_files_key(capsys, tmp_path):
+    """Where no substep count is practical the advice kept the library's Python
+    (integrator='implicit_euler') and named no file (audit33)."""
+    scene = tmp_path / "tiny.toml"
+    scene.write_text("[[spheres]]\nradius = 0.1\nmass = 1e-300\nposition = [0, 0, 1]\n"
+                     "[[planes]]\n")
+    assert main(["simulate", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "no practical step" in err and "integrator='" not in err
+    assert f'set integrator = "implicit_euler" at the top of {scene}' in err
 
 
 def test_fit_with_event_exact_steps(capsys, tmp_path):
@@ -474,3 +491,23 @@ def test_simulate_takes_an_integrator(capsys):
     assert rc == 0 and out["integrator"] == "rk4"
     assert main(["simulate", "ball", "--integrator", "euler"]) == 2
     assert "unknown integrator 'euler'; choose one of" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("line, says", [
+    ("velocity = [0, 0, -1e300]", "spheres[0].velocity = [0, 0, -1e+300] has a component beyond"
+     " 1e+06 m/s"),
+    ("mass = 1e300", "spheres[0].mass must be <= 1e+12 (kg), got 1e+300"),
+])
+def test_scene_files_refuse_speeds_and_masses_no_simulation_reports(tmp_path, capsys, line,
+                                                                    says):
+    """A scene file's velocity of 1e300 m/s or mass of 1e300 kg passed (positions beyond 1e6
+    m were refused): `diffpen simulate` exited 0 reporting max_penetration null, or a decay
+    time of 0 s marked valid (audit33). Refused naming the field; nothing is written."""
+    scene = tmp_path / "big.toml"
+    body = {"velocity": "mass = 1.0", "mass": "velocity = [0, 0, 0]"}[line.split(" ")[0]]
+    scene.write_text(f"[[spheres]]\nradius = 0.1\n{body}\nposition = [0, 0, 1]\n{line}\n"
+                     "[[planes]]\n")
+    out = tmp_path / "t.npz"
+    assert main(["simulate", str(scene), "--json", "--out", str(out)]) == 2
+    assert says in capsys.readouterr().err
+    assert not out.exists()

@@ -305,6 +305,12 @@ def test_an_unsettled_settling_time_is_not_reached_and_the_message_says_why():
         else:       # LM did not stop as if the targets were met (it did, at iteration 0)
             assert "within its tolerance" not in res.message, res.message
             assert res.iterations >= 1
+    # held at a bound it says so (`diffpen fit --law hunt_crossley` advised a longer rollout,
+    # which the command cannot give, for targets out of the law's reach, audit32)
+    res = F.fit(mfn, p0, {"settling_time": 0.9995}, free=["contact.default.c"], method="lm",
+                maxiter=5, bounds={"contact.default.c": (1.5, 1.6)})
+    assert "use a longer rollout (a scene file's duration" in res.message, res.message
+    assert "parameters at their bounds: ['contact.default.c']" in res.message, res.message
 
 
 def test_residuals_and_jacobian_trace_once_and_equal_separate_passes():

@@ -278,10 +278,11 @@ def prepare(sim: dp.Simulator, records, *, bodies: dict | None = None,
             # the unobserved bodies start where and as the scene file puts them: say so when
             # the record starts the observed ones far from there or moving otherwise (their
             # links then start stretched, or moving against them: a rope's k 15% off)
-            if rest.any() and shift > max(MOVED_START, 0.1 * float(np.min(size))):
-                moved.append(f"{base} ({shift * 1e3:.3g} mm)")
-            if rest.any() and speed > MOVED_SPEED:
-                moved.append(f"{base} (velocity {speed:.3g} m/s off)")
+            off = ([f"{shift * 1e3:.3g} mm"] if rest.any() and shift > max(
+                MOVED_START, 0.1 * float(np.min(size))) else []) + (
+                [f"velocity {speed:.3g} m/s off"] if rest.any() and speed > MOVED_SPEED else [])
+            if off:                     # one entry per record (its count is the records')
+                moved.append(f"{base} ({', '.join(off)})")
         if lag:
             lagged[r] = True
             lagged[r, [int(idx[b]) for b, name in enumerate(names) if name in rec.bodies]] = False

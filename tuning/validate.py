@@ -209,12 +209,15 @@ def choice(w: Where, v, options) -> str:
 
 
 def vector(w: Where, v, n: int = 3, *, what: str = "x, y, z", unit: str = "",
-           limit: float | None = None) -> tuple:
-    """``n`` finite numbers (each of magnitude <= ``limit`` when given)."""
+           limit: float | None = None, beyond: str | None = None) -> tuple:
+    """``n`` finite numbers (each of magnitude <= ``limit`` when given; ``beyond``: what the
+    error says past it, else that it is a position too far from the origin)."""
     if not isinstance(v, list) or len(v) != n:
         raise w.error(f"must be {n} numbers [{what}]{' in ' + unit if unit else ''}, got "
                       f"{_kind(v)} {_show(v)}.")
     out = tuple(number(w / i, x) for i, x in enumerate(v))
+    if limit is not None and beyond is not None and max(abs(x) for x in out) > limit:
+        raise w.error(f"= {_show(v)} has a component beyond {limit:g} {unit}: {beyond}")
     if limit is not None and max(abs(x) for x in out) > limit:
         raise w.error(f"= {_show(v)} is farther than {limit:g} {unit or 'units'} from the "
                       f"origin: at that distance float32 positions resolve only "

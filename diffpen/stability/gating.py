@@ -10,7 +10,8 @@ from typing import NamedTuple
 import numpy as np
 
 from .. import precision as _precision
-from ..errors import SceneError, StabilityError
+from ..precision import PrecisionWarning
+from ..errors import SceneError, StabilityError, warn
 from .bounds import IMPLICIT_PRECISION, RESTING_RESOLUTION, Analysis, rates
 from .modes import SAFE_CH, SAFE_STABLE, SAFE_TIE, safe_dt, stable_dt
 
@@ -250,21 +251,13 @@ def _implicit_precision(an: Analysis, params, substeps: int) -> None:
         return
     K = float(np.max(r.K_row, initial=0.0))
     eps = float(np.finfo(np.dtype(an.dtype)).eps)
-    K_i = np.asarray(r.K_row, float)
-    stiff = (K_i > 0.0) & ~np.asarray(an.pinned, bool)
-    if an.gravity > 0.0 and stiff.any():
-        depth = an.gravity / K_i[stiff]
-        res = eps * np.asarray(an.d_ref, float)[stiff]
-        j = int(np.argmin(depth / res))
-        if depth[j] < RESTING_RESOLUTION * res[j]:
-            raise StabilityError(
-                f"{an.integrator.name} cannot resolve this system in "
-                f"{np.dtype(an.dtype).name}: a body's static deflection under gravity, "
-                f"{depth[j]:.2g} m (g / (k / m)), is below {RESTING_RESOLUTION:g} of the "
-                f"resolution of its positions ({res[j]:.2g} m: machine epsilon x its size), "
-                "and the step's linearisation, which differentiates the forces, gives wrong "
-                "or NaN gradients there. Use dtype=float64, or a softer k or a heavier "
-                "body.")
+    unresolved = _unresolved_rest(an, r)
+    if unresolved:
+        raise StabilityError(
+            f"{an.integrator.name} cannot resolve this system in {np.dtype(an.dtype).name}: "
+            f"{unresolved}, and the step's linearisation, which differentiates the forces, "
+            "gives wrong or NaN gradients there. Use dtype=float64, or a softer k or a "
+            "heavier body.")
     h = an.dt / substeps
     if K * h * h * eps <= IMPLICIT_PRECISION:
         return
@@ -275,6 +268,43 @@ def _implicit_precision(an: Analysis, params, substeps: int) -> None:
         f"(w h)^2 = {K * h * h:.3g} swamps the identity at machine epsilon {eps:.2g} (the "
         f"matrix is singular in rounding). Use dtype=float64, or a step <= {h_ok:.3g} s "
         f"(substeps={n}).", stable_dt=h_ok, substeps=n)
+
+
+def _unresolved_rest(an: Analysis, r) -> str | None:
+    """Where a body's static deflection under gravity, ``g / K_i`` (m, ``K_i`` its stiffness
+    over mass, from :func:`rates` ``r``), is below :data:`RESTING_RESOLUTION` of the dtype's
+    resolution of its positions (machine epsilon x its size), the words that say so; else
+    None."""
+    eps = float(np.finfo(np.dtype(an.dtype)).eps)
+    K_i = np.asarray(r.K_row, float)
+    stiff = (K_i > 0.0) & ~np.asarray(an.pinned, bool)
+    if not an.gravity > 0.0 or not stiff.any():
+        return None
+    depth = an.gravity / K_i[stiff]
+    res = eps * np.asarray(an.d_ref, float)[stiff]
+    j = int(np.argmin(depth / res))
+    if depth[j] >= RESTING_RESOLUTION * res[j]:
+        return None
+    return (f"a body's static deflection under gravity, {depth[j]:.2g} m (g / (k / m)), is "
+            f"below {RESTING_RESOLUTION:g} of the resolution of its positions ({res[j]:.2g} "
+            "m: machine epsilon x its size)")
+
+
+def _warn_unresolved_rest(an: Analysis, params) -> None:
+    """An explicit integrator's counterpart of :func:`_implicit_precision`'s refusal: warn
+    (:class:`diffpen.PrecisionWarning`) when a resting body's deflection is below its
+    dtype's resolution (:func:`_unresolved_rest`). Its motion is right to a rounding, but the
+    derivatives w.r.t. that stiffness are lost to rounding (float32, a 1 g ball at rest on k
+    1e7 N/m: d z / dk 5.6e-18 against m g / k^2 = 9.8e-17; k 1e9 on 1 kg: 52% off)."""
+    if np.dtype(an.dtype).itemsize >= 8:
+        return
+    r = rates(an, params)
+    unresolved = None if r is None else _unresolved_rest(an, r)
+    if unresolved:
+        warn(f"{unresolved}: the motion is right to that rounding, but derivatives w.r.t. "
+             "the stiffness holding it (and its resting height) are lost to it (a 1 g ball "
+             "at rest on k 1e7 N/m in float32: d z / dk 17x too small). Use dtype=float64 "
+             "to fit such a stiffness.", PrecisionWarning)
 
 
 def step_gate(sim, params, state, check: bool = True) -> int | None:
@@ -315,6 +345,7 @@ def _scalar_key(params):
 
 
 def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None) -> int:
+    _warn_unresolved_rest(an, params)          # (once per set of values: the gate caches)
     rep = report(an, params, packed=False, substeps=fixed, energy=energy)
     if rep is None:
         if not auto:

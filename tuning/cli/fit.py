@@ -373,8 +373,12 @@ def _print(args, out: dict) -> int:
         parts = []
         for n, v in out["achieved"].items():
             err = out.get("rel_error", {}).get(n)
-            parts.append(f"{n} = {fmt(v, UNITS.get(n, ''), 6)}" + (f" ({err * 100:.2g}% off)"
-                                                     if err is not None else ""))
+            # an infinite error is a metric that is no result (a settling time at the
+            # rollout's end): "inf% off" read as a number
+            note = ("" if err is None else f" ({err * 100:.2g}% off)" if math.isfinite(err)
+                    else " (not settled within the rollout: its end)" if "settl" in n
+                    else " (no finite error)")
+            parts.append(f"{n} = {fmt(v, UNITS.get(n, ''), 6)}{note}")
         print("achieved:  " + "   ".join(parts))
     for key, label in (("rms", "residual rms (m)"), ("noise", "record noise (m)"),
                        ("first_guess", "first guess (k, c)")):

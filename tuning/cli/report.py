@@ -112,16 +112,18 @@ def run(args) -> int:
 # --------------------------------------------------------------------------- stability
 def _stability(args, integs) -> int:
     from tuning.reports.extreme import extreme_cases, stability_matrix, summarize_matrix
+
+    from ..progress import Progress
     cases = extreme_cases(scenes=tuple(args.scenes), dtypes=tuple(args.dtypes),
                           integrators=integs, quick=args.quick)
+    # a bar on a terminal, a line every 5 s otherwise (a log file got one 4 kB line of \r)
+    bar = Progress(len(cases), "diffpen report stability", enabled=not args.json,
+                   value="done")
 
     def progress(i, n, row):
-        if not args.json:
-            sys.stderr.write(f"\r{i}/{n} cases")
-            sys.stderr.flush()
+        bar.update(i, i / max(n, 1))
     rows = stability_matrix(cases, progress=progress)
-    if not args.json:
-        sys.stderr.write("\n")
+    bar.close()
     summary = summarize_matrix(rows)
     if args.json:
         dump_json({"summary": summary, "rows": rows})

@@ -121,11 +121,9 @@ class _ElementTables:
                 w = self.w(key, i)
                 V.check_keys(w, e, allowed[key])
                 kw = dict(
-                    mass=V.number(w / "mass", self.require(w, e, "mass"), low=0.0,
-                                  low_open=True, unit="kg"),
+                    mass=self.mass(w / "mass", self.require(w, e, "mass")),
                     position=self.point(w / "position", self.require(w, e, "position")),
-                    velocity=V.vector(w / "velocity", e.get("velocity", [0.0, 0.0, 0.0]),
-                                      unit="m/s"),
+                    velocity=self.speed(w / "velocity", e.get("velocity", [0.0, 0.0, 0.0])),
                     pinned=V.boolean(w / "pinned", e.get("pinned", False)),
                     material=self.material_of(w, e),
                     collide=V.boolean(w / "collide", e.get("collide", True)))
@@ -164,13 +162,12 @@ class _ElementTables:
             raise w.error("gives both angular_velocity (world frame) and body_angular_velocity "
                           "(body frame): keep one.")
         if "body_angular_velocity" in e:
-            wb = V.vector(w / "body_angular_velocity", e["body_angular_velocity"],
-                          unit="rad/s")
+            wb = self.speed(w / "body_angular_velocity", e["body_angular_velocity"], "rad/s")
             kw["angular_velocity"] = _quat_rotate(q, wb)
         else:
-            kw["angular_velocity"] = V.vector(w / "angular_velocity",
-                                              e.get("angular_velocity", [0.0, 0.0, 0.0]),
-                                              unit="rad/s")
+            kw["angular_velocity"] = self.speed(w / "angular_velocity",
+                                                e.get("angular_velocity", [0.0, 0.0, 0.0]),
+                                                "rad/s")
         if "inertia" in e:
             kw["inertia"] = V.vector(w / "inertia", e["inertia"], unit="kg m^2")
             for j, v in enumerate(kw["inertia"]):
@@ -195,10 +192,9 @@ class _ElementTables:
                 V.check_keys(w, e, allowed[key])
                 name = self.name(w / "name", e.get("name", default_name[key]), self.names)
                 kw = {"group": name,
-                      "mass": V.number(w / "mass", self.require(w, e, "mass"), low=0.0,
-                                       low_open=True, unit="kg"),
-                      "velocity": V.vector(w / "velocity", e.get("velocity", [0.0, 0.0, 0.0]),
-                                           unit="m/s"),
+                      "mass": self.mass(w / "mass", self.require(w, e, "mass")),
+                      "velocity": self.speed(w / "velocity",
+                                             e.get("velocity", [0.0, 0.0, 0.0])),
                       "collide": V.boolean(w / "collide", e.get("collide", True))}
                 if "drag" in e:
                     kw["drag"] = (None if e["drag"] is False else

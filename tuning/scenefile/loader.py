@@ -16,8 +16,8 @@ from .advice import file_advice
 from .elements import _ElementTables
 from .fitspec import _FitTable
 from .record import SceneFile
-from .schema import (DEFAULT_C, DEFAULT_K, MAX_BODIES, MAX_COORD, MAX_DENSE_PAIRS, MAX_STEPS,
-                     MAX_TRAJECTORY_BYTES, TOP, _NAME, _takes)
+from .schema import (DEFAULT_C, DEFAULT_K, MAX_BODIES, MAX_COORD, MAX_DENSE_PAIRS, MAX_MASS,
+                     MAX_SPEED, MAX_STEPS, MAX_TRAJECTORY_BYTES, TOP, _NAME, _takes)
 from .sizes import _SizeGuards
 
 
@@ -82,6 +82,19 @@ class _Loader(_ElementTables, _SizeGuards, _FitTable):
     def point(w: Where, v, unit: str = "m") -> tuple:
         """A position (m) within MAX_COORD of the origin."""
         return V.vector(w, v, unit=unit, limit=MAX_COORD)
+
+    @staticmethod
+    def speed(w: Where, v, unit: str = "m/s") -> tuple:
+        """A start velocity (m/s) or angular velocity (rad/s), each component within
+        MAX_SPEED."""
+        return V.vector(w, v, unit=unit, limit=MAX_SPEED, beyond=(
+            f"give a start speed in {unit} below that (a faster one is a unit slip or not a "
+            "motion this simulator steps)."))
+
+    @staticmethod
+    def mass(w: Where, v) -> float:
+        """A body's mass, kg, in (0, MAX_MASS]."""
+        return V.number(w, v, low=0.0, low_open=True, high=MAX_MASS, unit="kg")
 
     def require(self, w: Where, e: dict, key: str):
         if key not in e:
