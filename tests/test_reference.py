@@ -52,14 +52,21 @@ def test_apex_heights_exact_on_parabolas():
     assert math.isnan(ap[1])
 
 
-def test_chain_reference_agrees_with_simulator_at_small_dt():
-    n, k, c, m, L = 3, 200.0, 0.5, 0.1, 0.2
+def _pinned_chain(n, k, c, m, L):
+    """``n`` particles of ``m`` kg in a row at spacing ``L`` m from a pinned one, joined by
+    springs of ``k`` N/m and ``c`` N s/m at rest length ``L``, under gravity."""
     scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
     prev = scene.add_particle(mass=m, position=(0.0, 0.0, 0.0), pinned=True)
     for i in range(1, n + 1):
         b = scene.add_particle(mass=m, position=(L * i, 0.0, 0.0))
         scene.add_spring(prev, b, k=k, c=c, rest_length=L)
         prev = b
+    return scene
+
+
+def test_chain_reference_agrees_with_simulator_at_small_dt():
+    n, k, c, m, L = 3, 200.0, 0.5, 0.1, 0.2
+    scene = _pinned_chain(n, k, c, m, L)
     sim = dp.compile(scene, 1e-4, integrator="rk4")
     traj = sim.rollout(sim.params(), 2000, save_every=100)
     ref = chain_reference(np.asarray(traj.time), x0=[[L * i, 0, 0] for i in range(n + 1)],
@@ -104,12 +111,7 @@ def test_verlet_gives_the_continuous_spring_damping_derivative():
     def ref(cc):
         return chain_reference(np.array([T]), x0=x0, m=m, k=k, c=cc, rest=L)[-1, 1:].ravel()
     cont = (ref(c * (1 + 1e-5)) - ref(c * (1 - 1e-5))) / (2e-5 * c)
-    scene = dp.Scene(gravity=(0.0, 0.0, -9.81))
-    prev = scene.add_particle(mass=m, position=(0.0, 0.0, 0.0), pinned=True)
-    for i in range(1, n + 1):
-        b = scene.add_particle(mass=m, position=(L * i, 0.0, 0.0))
-        scene.add_spring(prev, b, k=k, c=c, rest_length=L)
-        prev = b
+    scene = _pinned_chain(n, k, c, m, L)
     steps = int(round(T / dt))
     big = np.abs(cont) > 0.1 * np.abs(cont).max()
     errors = {}
