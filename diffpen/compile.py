@@ -343,9 +343,11 @@ class Simulator:
                      h: float | None = None):
         """``(a, alpha)``: linear accelerations (n_bodies, 3) m/s^2 with gravity, and angular
         accelerations (n_bodies, 3) rad/s^2 (None without rotating bodies). Pure, not jitted:
-        what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`). For a
-        state in the columns layout (:mod:`diffpen.layout`; only when :attr:`columns`),
-        ``a`` is :class:`diffpen.layout.Columns` and ``alpha`` None."""
+        what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`), so under
+        semi-implicit Euler a body with unequal moments gets ``I_w^-1 tau`` alone (the step
+        carries its angular momentum: :meth:`diffpen.rigid.RigidDynamics.transport`), else
+        Euler's equations. In the columns layout (:mod:`diffpen.layout`; only when
+        :attr:`columns`) ``a`` is :class:`diffpen.layout.Columns` and ``alpha`` None."""
         if _layout.is_columns(state.position):
             # the columns layout (diffpen.layout): terms read rows, forces come back as
             # columns, each component gets the rows' operations in the same order
@@ -394,9 +396,8 @@ class Simulator:
         return self._steps[n]
 
     def stability(self, params: Params, state: State | None = None):
-        """Largest stable step of this integrator for ``params`` and the current margin.
-
-        Returns a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
+        """Largest stable step of this integrator for ``params`` and the current margin:
+        a :class:`diffpen.stability.StabilityReport` (``stable_dt`` in s, ``margin`` =
         stable_dt / inner step, ``substeps_needed``, ``omega_max`` rad/s, what limits it).
         Params must be concrete (not jit tracers): inside jit the rollout's
         ``State.aux["unstable"]`` flag says the same. ``state``: the start state a rollout
@@ -515,8 +516,7 @@ class Simulator:
                 raise _start_energy.with_hint(exc) from None
             raise
         if check_stability and all(map(_is_concrete, jax.tree_util.tree_leaves(params))):
-            # a concrete start spin too fast for semi-implicit Euler: "auto" steps it with
-            # more substeps, a fixed count is refused (traced params never raise)
+            # a start spin past the integrator's limit: "auto" substeps, else refused
             n = _motion.check_spin(self, state, int(n),
                                    auto=substeps is None and self.substeps == "auto")
             if self._tunnel_table is not None and all(map(_is_concrete, (state.position,

@@ -558,8 +558,9 @@ def implicit_euler_with(solver: str) -> Integrator:
 def kick_then_drift(integrator) -> bool:
     """Whether ``integrator`` (a name or a record) steps as semi-implicit Euler, by its step
     factory, not its name (a renamed record steps the same): its velocity lags its position
-    by ``h / 2`` (what the centred contact laws take back) and it steps the gyroscopic term
-    explicitly (what the spin limit guards)."""
+    by ``h / 2`` (what the centred contact laws take back) and it carries the angular
+    momentum of bodies with unequal moments (:meth:`diffpen.rigid.RigidDynamics.transport`)
+    instead of stepping their gyroscopic term."""
     return resolve(integrator).make is semi_implicit_euler
 
 

@@ -59,7 +59,9 @@ def _carrying(sim, step, h: float):
         return step
 
     def carried(params, state):
-        return rigid.transport(state, step(params, state), h)
+        new = step(params, state)
+        with jax.named_scope("angular_momentum_transport"):
+            return rigid.transport(state, new, h)
     return carried
 
 

@@ -238,3 +238,17 @@ def test_a_rest_float32_cannot_resolve_warns_under_an_explicit_integrator():
         with warnings.catch_warnings():
             warnings.simplefilter("error", dp.PrecisionWarning)
             quiet.rollout(quiet.params(k=k, c=100.0), 5)
+
+
+def test_the_unresolved_rest_warning_is_given_once_per_simulator():
+    """Its text carries the values, so Python's filter kept none of the repeats: a loop over
+    12 stiffnesses warned 12 times (audit35)."""
+    s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+    s.add_sphere(0.1, 1e-3, (0.0, 0.0, 0.1))
+    s.add_plane()
+    sim = dp.compile(s, dt=1e-3, substeps="auto", dtype=jnp.float32)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        for k in (1e7, 2e7, 4e7):
+            sim.rollout(sim.params(k=k, c=100.0), 2)
+    assert sum(issubclass(w.category, dp.PrecisionWarning) for w in seen) == 1

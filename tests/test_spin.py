@@ -8,6 +8,7 @@ import pytest
 
 import diffpen as dp
 from diffpen.geometry import quat_to_matrix
+from jaxpr_scopes import traced_scopes
 
 
 def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
@@ -111,3 +112,47 @@ def test_vmap_over_a_start_spin_alone_runs():
 
     np.testing.assert_allclose(jax.vmap(final_spin)(jnp.array([1.0, 2.0])),
                                [[0.0, 0.0, 1.0], [0.0, 0.0, 2.0]], atol=1e-12)
+
+
+def test_auto_substeps_for_a_spin_are_capped_and_the_report_names_the_spin():
+    """substeps="auto" took any count a spin asked for (a 1:2:3 box at 1e9 rad/s: 2e7 inner
+    steps per step, a run that looks hung); the stiffness path refuses past
+    MAX_AUTO_SUBSTEPS. sim.stability(params, state) printed "w_max <= 0 rad/s, set by body
+    0's spin" and kept the contact's limiting body; its substep count and "auto"'s differed
+    (audit35)."""
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(1e9, 0.0, 1e7),
+              inertia=(1.0, 2.0, 3.0))
+    auto = dp.compile(s, 1e-3, substeps="auto")
+    with pytest.raises(dp.StabilityError, match=r"substeps='auto' would need about 2e\+07 "
+                       r"substeps.*body 0's spin.*too slow.*implicit_euler"):
+        auto.rollout(auto.params(), 2)
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+              inertia=(1.0, 2.0, 3.0))
+    sim = dp.compile(s, 1e-3)
+    report = sim.stability(sim.params())
+    assert report.limiting_body == 0 and report.substeps_needed == 7
+    assert "w_max" not in str(report) and "set by body 0's spin" in str(report)
+    assert dp.compile(s, 1e-3, substeps="auto").rollout(sim.params(), 2) is not None
+
+
+def test_the_transport_is_traced_only_where_a_body_needs_it():
+    """The angular-momentum transport runs for bodies with unequal moments under
+    semi-implicit Euler only: not for cubes and rigid spheres (no gyroscopic term), pinned
+    boxes, other integrators or scenes without rigid bodies (audit35: nothing checked it)."""
+    def traced(add, integrator="semi_implicit_euler"):
+        s = dp.Scene(gravity=(0.0, 0.0, -9.81))
+        add(s)
+        sim = dp.compile(s, 1e-3, integrator=integrator)
+        return "angular_momentum_transport" in " ".join(traced_scopes(sim, sim.params())[0])
+
+    def flat(s):
+        s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 1.0))
+    assert traced(flat)
+    assert not traced(flat, "verlet") and not traced(flat, "rk4")
+    assert not traced(lambda s: s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0)))
+    assert not traced(lambda s: s.add_rigid_sphere(0.1, 1.0, (0.0, 0.0, 1.0)))
+    assert not traced(lambda s: s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 1.0), pinned=True)
+                      or s.add_particle(1.0, (1.0, 0.0, 0.0), collide=False))
+    assert not traced(lambda s: s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)))

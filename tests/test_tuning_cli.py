@@ -411,6 +411,12 @@ def test_simulate_without_a_practical_step_names_the_scene_files_key(capsys, tmp
     assert main(["simulate", str(scene)]) == 2
     err = capsys.readouterr().err
     assert "no practical step" in err and "integrator='" not in err
+    assert f'set integrator = "implicit_euler" at the top of {scene} (no step limit)' in err
+    # the same where the file asks for substeps = "auto" (audit35)
+    scene.write_text('substeps = "auto"\n' + scene.read_text())
+    assert main(["simulate", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert "substeps='auto' would need" in err and "integrator='" not in err, err
     assert f'set integrator = "implicit_euler" at the top of {scene}' in err
 
 

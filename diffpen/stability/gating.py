@@ -67,11 +67,14 @@ class StabilityReport(NamedTuple):
             return "no limit" if math.isinf(x) else f"{x:.4g} s"
         verdict = ("ok" if self.safe else "UNSTABLE" if not self.stable
                    else "stable but past the safe step")
+        spin = self.limiting.startswith("body ") and "'s spin" in self.limiting
         return (f"{self.integrator}: inner step {self.inner_dt:.4g} s; stable step "
                 f"{fmt(self.stable_dt)} (margin {self.margin:.3g}); safe step "
                 f"{fmt(self.safe_dt)} (margin {self.safe_margin:.3g}): {verdict}, needs "
-                f"{self.substeps_needed} substep(s); w_max <= {self.omega_max:.4g} rad/s"
-                + (f", set by {self.limiting}" if self.limiting else ""))
+                f"{self.substeps_needed} substep(s); "
+                + (f"set by {self.limiting}" if spin else
+                   f"w_max <= {self.omega_max:.4g} rad/s"
+                   + (f", set by {self.limiting}" if self.limiting else "")))
 
 
 def _down(x: float, digits: int) -> float:
@@ -172,6 +175,7 @@ class GateCache:
         self.size = size
         self._verdicts: dict = {}
         self._steps: dict = {}      # step_gate's verdicts: params key -> (energy, substeps)
+        self.rest_warned = False    # the float32 resting-deflection warning was given
 
     def get(self, key, step: bool = False):
         """The verdict for ``key`` (``step``: :func:`step_gate`'s), or None."""
@@ -233,7 +237,7 @@ def _gate_count(an, params, check, substeps, cache, energy) -> int:
         hit = cache.get(key)
         if hit is not None:
             return hit
-    n = _gate(an, params, auto, fixed, energy)
+    n = _gate(an, params, auto, fixed, energy, cache)
     if cache is not None:
         cache.put(key, n)
     return n
@@ -290,21 +294,24 @@ def _unresolved_rest(an: Analysis, r) -> str | None:
             "m: machine epsilon x its size)")
 
 
-def _warn_unresolved_rest(an: Analysis, params) -> None:
+def _warn_unresolved_rest(an: Analysis, params) -> bool:
     """An explicit integrator's counterpart of :func:`_implicit_precision`'s refusal: warn
-    (:class:`diffpen.PrecisionWarning`) when a resting body's deflection is below its
-    dtype's resolution (:func:`_unresolved_rest`). Its motion is right to a rounding, but the
-    derivatives w.r.t. that stiffness are lost to rounding (float32, a 1 g ball at rest on k
-    1e7 N/m: d z / dk 5.6e-18 against m g / k^2 = 9.8e-17; k 1e9 on 1 kg: 52% off)."""
+    (:class:`diffpen.PrecisionWarning`) when a body would rest with a deflection below its
+    dtype's resolution (:func:`_unresolved_rest`; from the parameters: the gate warns once
+    per simulator). Its motion is right to a rounding, but the derivatives w.r.t. that
+    stiffness are lost to rounding (float32, a 1 g ball at rest on k 1e7 N/m: d z / dk
+    5.6e-18 against m g / k^2 = 9.8e-17; k 1e9 on 1 kg: 52% off). Whether it warned."""
     if np.dtype(an.dtype).itemsize >= 8:
-        return
+        return False
     r = rates(an, params)
     unresolved = None if r is None else _unresolved_rest(an, r)
     if unresolved:
-        warn(f"{unresolved}: the motion is right to that rounding, but derivatives w.r.t. "
-             "the stiffness holding it (and its resting height) are lost to it (a 1 g ball "
-             "at rest on k 1e7 N/m in float32: d z / dk 17x too small). Use dtype=float64 "
-             "to fit such a stiffness.", PrecisionWarning)
+        warn(f"{unresolved}: where it rests the motion is right to that rounding, but "
+             "derivatives w.r.t. the stiffness holding it (and its resting height) are lost "
+             "to it (a 1 g ball at rest on k 1e7 N/m in float32: d z / dk 17x too small). "
+             "Use dtype=float64 to differentiate w.r.t. such a stiffness (warned once per "
+             "simulator).", PrecisionWarning)
+    return bool(unresolved)
 
 
 def step_gate(sim, params, state, check: bool = True) -> int | None:
@@ -344,8 +351,11 @@ def _scalar_key(params):
         return None
 
 
-def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None) -> int:
-    _warn_unresolved_rest(an, params)          # (once per set of values: the gate caches)
+def _gate(an: Analysis, params, auto: bool, fixed: int | None, energy=None,
+          cache=None) -> int:
+    if cache is None or not cache.rest_warned:
+        if _warn_unresolved_rest(an, params) and cache is not None:
+            cache.rest_warned = True                # once per simulator
     rep = report(an, params, packed=False, substeps=fixed, energy=energy)
     if rep is None:
         if not auto:

@@ -377,7 +377,7 @@ def _print(args, out: dict) -> int:
             # rollout's end): "inf% off" read as a number
             note = ("" if err is None else f" ({err * 100:.2g}% off)" if math.isfinite(err)
                     else " (not settled within the rollout: its end)" if "settl" in n
-                    else " (no finite error)")
+                    else " (no such event in the rollout)")
             parts.append(f"{n} = {fmt(v, UNITS.get(n, ''), 6)}{note}")
         print("achieved:  " + "   ".join(parts))
     for key, label in (("rms", "residual rms (m)"), ("noise", "record noise (m)"),

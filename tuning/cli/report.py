@@ -122,8 +122,10 @@ def _stability(args, integs) -> int:
 
     def progress(i, n, row):
         bar.update(i, i / max(n, 1))
-    rows = stability_matrix(cases, progress=progress)
-    bar.close()
+    try:
+        rows = stability_matrix(cases, progress=progress)
+    finally:
+        bar.close()
     summary = summarize_matrix(rows)
     if args.json:
         dump_json({"summary": summary, "rows": rows})

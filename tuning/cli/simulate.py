@@ -48,10 +48,10 @@ def _stability_advice(message: str, args) -> str:
     from ..scenefile import is_scene_path
     head, sep, tail = message.partition(" Use dt <= ")
     if not sep:             # no practical step: the integrator is the file's to change
-        implicit = "use integrator='implicit_euler' (no step limit)"
+        implicit = "use integrator='implicit_euler'"      # (too many substeps, or "auto"'s)
         if implicit in message and is_scene_path(args.scene):
             return message.replace(implicit, 'set integrator = "implicit_euler" at the top '
-                                   f"of {args.scene} (no step limit)")
+                                   f"of {args.scene}")
         return message
     dt = tail.split(" s,", 1)[0]
     if is_scene_path(args.scene):

@@ -5,6 +5,8 @@ from __future__ import annotations
 import inspect
 import re
 
+from ..records import MAX_MAGNITUDE
+
 
 #: size guards (raise them by argument of :func:`load_scene_file`)
 MAX_STEPS = 10_000_000
@@ -18,10 +20,10 @@ DEFAULT_K = 1e4
 DEFAULT_C = 20.0
 #: positions, centres and anchor points must lie within this distance of the origin, m
 MAX_COORD = 1e6
-#: start velocities (m/s) and angular velocities (rad/s) per component, as records' columns
-#: are held to (tuning.records); body masses, kg (1e300 kg passed, and `diffpen simulate`
+#: start velocities (m/s) and angular velocities (rad/s) per component: the records' bound
+#: (tuning.records.MAX_MAGNITUDE); body masses, kg (1e300 kg passed, and `diffpen simulate`
 #: reported a decay time of 0 s as valid)
-MAX_SPEED = 1e6
+MAX_SPEED = MAX_MAGNITUDE["velocity"]
 MAX_MASS = 1e12
 
 BODY_TABLES = ("spheres", "particles", "boxes", "rigid_spheres")
