@@ -85,7 +85,7 @@ from . import autodiff, broadphase, builders, rigid, rollout, terms  # noqa: E40
 from .autodiff import grad, value_and_grad  # noqa: E402
 from .compile import Simulator, compile  # noqa: E402
 from .errors import (ContactWarning, NonFiniteError, PerformanceWarning,  # noqa: E402
-                     SceneError, StabilityError)
+                     SceneError, SpinWarning, StabilityError)
 from .precision import PrecisionWarning  # noqa: E402
 from .terms.plastic import CollapseWarning  # noqa: E402
 from .integrators import Integrator  # noqa: E402
@@ -98,7 +98,7 @@ __all__ = [
     "Scene", "compile", "Simulator", "Integrator", "value_and_grad", "grad",
     "Params", "ContactParams", "SpringParams", "State", "Trajectory",
     "SceneError", "StabilityError", "NonFiniteError", "PerformanceWarning", "ContactWarning",
-    "PrecisionWarning", "CollapseWarning",
+    "PrecisionWarning", "CollapseWarning", "SpinWarning",
     "laws", "geometry", "integrators", "physical", "builders",
     "rigid", "broadphase", "stability", "autodiff", "rollout", "terms",
 ]

@@ -44,6 +44,12 @@ class ContactWarning(UserWarning):
     says what to change."""
 
 
+class SpinWarning(UserWarning):
+    """A rollout whose start was within its integrator's spin limit, in which a torque spun
+    a rigid body past it (:mod:`diffpen.motion`): its results from there carry the
+    integrator's energy error at that turn per step; the message says what to change."""
+
+
 _PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
 
 

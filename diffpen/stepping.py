@@ -29,7 +29,28 @@ def build(sim, n: int):
         inner = _carrying(sim, build_step(method, _accel_at(sim, h), h, inv_mass=inv_mass), h)
     if sim._aux_updates:
         inner = _with_aux_updates(inner, sim._aux_updates)
-    return substepped(inner, n)
+    return _spin_flagged(sim, substepped(inner, n), h)
+
+
+def _spin_flagged(sim, step, h: float):
+    """``step`` that also ors into a state's ``aux["unstable"]`` flag (where it has one)
+    whether a rigid body spins past its integrator's limit after it
+    (:func:`diffpen.motion.spin_unsafe`): a torque can spin a body up during a rollout whose
+    start was within the limit. ``step`` itself where no body has a spin limit (no rigid
+    body with unequal moments, or an integrator without one)."""
+    from . import motion as _motion
+    from .stability import FLAG
+    if not (np.any(sim._spin_kappa) and _motion.spin_limit(sim) is not None):
+        return step
+
+    def flagged_step(params, state):
+        new = step(params, state)
+        if FLAG not in new.aux:
+            return new
+        with jax.named_scope("spin_flag"):
+            spun = _motion.spin_unsafe(sim, new, h)
+        return new._replace(aux={**new.aux, FLAG: new.aux[FLAG] | spun})
+    return flagged_step
 
 
 def hold_pins(sim, state):

@@ -119,6 +119,9 @@ def test_free_spinning_box_conserves_energy_and_momentum(spinning):
 
 
 def test_free_rotation_follows_eulers_equations(spinning):
+    """Body-frame angular velocity against scipy's Euler's equations: 1.1e-6 of |w| at dt
+    5e-4, second order (2e-3, first order, with the gyroscopic term stepped explicitly; this
+    test held it to 2%, which checked nothing once the step carried the momentum, audit34)."""
     traj, inertia, w0, _, _ = spinning[5e-4]
     a, b, c = inertia
 
@@ -128,7 +131,7 @@ def test_free_rotation_follows_eulers_equations(spinning):
     ref = solve_ivp(euler, (0.0, t[-1]), w0, t_eval=t, rtol=1e-11, atol=1e-12).y.T
     rot = quat_to_matrix(np.asarray(traj.orientation)[:, 0], xp=np)
     w_body = np.einsum("tji,tj->ti", rot, np.asarray(traj.angular_velocity)[:, 0])
-    assert np.abs(w_body - ref).max() < 2e-2 * np.abs(w0).max()
+    assert np.abs(w_body - ref).max() < 1e-5 * np.abs(w0).max()
 
 
 # --------------------------------------------------------------------------- anchored springs

@@ -22,8 +22,18 @@ def test_a_spin_too_fast_for_semi_implicit_euler_is_refused_or_caught():
               inertia=(1.0, 2.0, 3.0))
     bsim = dp.compile(s, 1e-3)
     with pytest.raises(dp.StabilityError, match=r"spins at \|w\| = 300.3 rad/s.*kappa = 1.*"
-                       r"spin limit 0.05.*substeps=7.*integrator='rk4'"):
+                       r"spin limit 0.05.*Use dt <= 0.000166 s.*substeps=7") as refused:
         bsim.rollout(bsim.params(), 400)
+    # rk4 is not offered where it refuses too (0.3 > 0.2); the dt it names passes (it was
+    # rounded up: 0.000167 s, refused again, audit34)
+    assert "rk4" not in str(refused.value)
+    at = dp.compile(s, 0.000166)
+    assert np.isfinite(at.rollout(at.params(), 2).orientation).all()
+    slower = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    slower.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(100.0, 0.0, 0.0),
+                   inertia=(1.0, 2.0, 3.0))
+    with pytest.raises(dp.StabilityError, match=r"or integrator='rk4' \(to kappa \|w\| h"):
+        dp.compile(slower, 1e-3).rollout(bsim.params(), 2)
     past = bsim.rollout(bsim.params(), 400, check_stability=False)
     inertia = np.array([1.0, 2.0, 3.0])
 
@@ -125,7 +135,7 @@ def test_auto_substeps_for_a_spin_are_capped_and_the_report_names_the_spin():
               inertia=(1.0, 2.0, 3.0))
     auto = dp.compile(s, 1e-3, substeps="auto")
     with pytest.raises(dp.StabilityError, match=r"substeps='auto' would need about 2e\+07 "
-                       r"substeps.*body 0's spin.*too slow.*implicit_euler"):
+                       r"substeps.*body 0's spin.*too slow.*a cube has no spin limit"):
         auto.rollout(auto.params(), 2)
     s = dp.Scene(gravity=(0.0, 0.0, 0.0))
     s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
@@ -156,3 +166,30 @@ def test_the_transport_is_traced_only_where_a_body_needs_it():
     assert not traced(lambda s: s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 1.0), pinned=True)
                       or s.add_particle(1.0, (1.0, 0.0, 0.0), collide=False))
     assert not traced(lambda s: s.add_sphere(0.1, 1.0, (0.0, 0.0, 1.0)))
+
+
+def test_a_spin_a_torque_builds_up_during_a_rollout_is_flagged_and_warned():
+    """Only the start spin was checked: a box starting at rest on a stretched anchored
+    spring, at half the safe step, spun up to kappa |w| h 2.3 (46x the limit) and ended
+    with 3.25x its energy under semi-implicit Euler, finite, unflagged and silent (verlet:
+    NaN under jit, unflagged; audit34). Each step now ors the spin into aux["unstable"], and
+    a concrete rollout warns (dp.SpinWarning)."""
+    import warnings
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    b = s.add_box((0.05, 0.1, 0.15), 1.0, (0.0, 0.0, 0.0))
+    s.add_anchored_spring(b, None, (0.05, 0.1, 0.15), (0.6, 0.3, -0.4), k=2000.0, c=0.0,
+                          rest_length=0.0)
+    probe = dp.compile(s, 1e-3)
+    dt = 0.5 * probe.stability(probe.params()).safe_dt
+    sim = dp.compile(s, dt)
+    n = int(2.0 / dt)
+    traced = jax.jit(lambda k: sim.rollout(sim.params(spring_k=k), n, save_every=n))(2000.0)
+    assert bool(traced.aux["unstable"][-1])
+    with pytest.warns(dp.SpinWarning, match=r"spun past semi_implicit_euler's spin limit.*"
+                      r"first by saved step \d+"):
+        sim.rollout(sim.params(), n, save_every=1)
+    # at a step that keeps it within the limit (|w| peaks near 550 rad/s): no flag, no word
+    fine = dp.compile(s, 5e-5)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", dp.SpinWarning)
+        assert not bool(fine.rollout(fine.params(), 400, save_every=400).aux["unstable"][-1])
