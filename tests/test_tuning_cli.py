@@ -517,3 +517,25 @@ def test_scene_files_refuse_speeds_and_masses_no_simulation_reports(tmp_path, ca
     assert main(["simulate", str(scene), "--json", "--out", str(out)]) == 2
     assert says in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_fit_takes_the_built_in_balls_rollout_length(capsys, monkeypatch, tmp_path):
+    """An unsettled fit advised "a longer rollout", which `diffpen fit` on the built-in ball
+    could not give (audit32): --duration sets it; a record or scene file refuses it."""
+    import tuning.bounce as bounce
+    seen = {}
+
+    def spy(scene, targets, **kw):
+        seen.update(kw)
+        raise SystemExit(0)
+    monkeypatch.setattr(bounce, "fit_bounce", spy)
+    with pytest.raises(SystemExit):
+        main(["fit", "--duration", "8"])
+    assert seen["duration"] == 8.0
+    rec = tmp_path / "rec.csv"
+    rec.write_text("t,z\n0,1\n0.01,0.9995\n")
+    assert main(["fit", "--data", str(rec), "--duration", "8"]) == 2
+    assert "does not read --duration" in capsys.readouterr().err
+    scene = os.path.join(os.path.dirname(__file__), "..", "examples", "ball.toml")
+    assert main(["fit", scene, "--duration", "8"]) == 2
+    assert "--duration set the built-in ball's fit" in capsys.readouterr().err

@@ -309,7 +309,7 @@ def test_an_unsettled_settling_time_is_not_reached_and_the_message_says_why():
     # which the command cannot give, for targets out of the law's reach, audit32)
     res = F.fit(mfn, p0, {"settling_time": 0.9995}, free=["contact.default.c"], method="lm",
                 maxiter=5, bounds={"contact.default.c": (1.5, 1.6)})
-    assert "use a longer rollout (a scene file's duration" in res.message, res.message
+    assert "use a longer rollout (diffpen fit --duration" in res.message, res.message
     assert "parameters at their bounds: ['contact.default.c']" in res.message, res.message
 
 

@@ -224,8 +224,8 @@ def result_message(message: str, reached: bool, metrics: dict, spec: tuple,
             and not bool(np.all(np.asarray(metrics["settled"])))):
         return (f"targets NOT reached ({message}): the motion has not settled within the "
                 "rollout at the fitted values, so its settling_time is only the rollout's "
-                "end, not a result; use a longer rollout (a scene file's duration, or "
-                "duration= of tuning.fit_bounce)" + (
+                "end, not a result; use a longer rollout (diffpen fit --duration, a scene "
+                "file's duration, or duration= of tuning.fit_bounce)" + (
                     f"; parameters at their bounds: {list(at_bound)}, so these targets may "
                     "be out of this law's reach within them" if at_bound else ""))
     return (f"targets NOT reached ({message}); closest achieved values are reported"

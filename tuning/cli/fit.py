@@ -85,6 +85,9 @@ def add_arguments(p) -> None:
                         "fit of lowest cost (default 1)")
     p.add_argument("--dt", type=positive("--dt"), help="time step, s (default 1e-3 for "
                    "targets; chosen from the data with --data)")
+    p.add_argument("--duration", type=positive("--duration"), metavar="S",
+                   help="rollout length of the built-in ball's fit, s (default: covers the "
+                        "targets with margin)")
     p.add_argument("--law", type=law_name,
                    help="contact law, a name in diffpen.laws.CONTACT_LAWS (default linear)")
     p.add_argument("--exponent", type=positive("--exponent"), metavar="N",
@@ -154,7 +157,7 @@ def _check_plot(args) -> None:
 BALL_FLAGS = {"radius": 0.1, "mass": 1.0, "drop": 1.0, "settle_tol": 1e-3, "law": "linear",
               "dt": None, "k0": None, "c0": None, "target_apex": None,
               "target_settle": None, "target_contact": None, "target_decay": None,
-              "events": False,
+              "events": False, "duration": None,
               "exponent": 1.0}
 
 
@@ -174,6 +177,7 @@ def _refuse_data_flags(args) -> None:
                              ("--settle-tol", args.settle_tol is not None),
                              ("--method", args.method != "lm"),
                              ("--events", args.events is not None),
+                             ("--duration", args.duration is not None),
                              ("--lr", args.lr != DEFAULT_LR)) if on]
     if given:
         raise CLIError(f"--data {args.data[0]} does not read {' '.join(given)}: a t,z record "
@@ -262,7 +266,8 @@ def _run(args) -> int:
     law = _law(args)
     res = fit_bounce(scene, targets, dt=dt, law=law, settle_tol=args.settle_tol,
                      k0=args.k0, c0=args.c0, method=method, optimizer=opt,
-                     maxiter=args.maxiter, progress=False if args.json else None)
+                     maxiter=args.maxiter, progress=False if args.json else None,
+                     duration=args.duration)
     seconds = time.perf_counter() - t0
     from diffpen.checks import one_contact_per_body
     centred = (", event-exact steps" if args.events else ", damping at the step's centre"
