@@ -532,7 +532,7 @@ class Simulator:
         if _is_concrete(traj.time if observe is not None else traj.position):
             for term in self._reporting:        # host-side, e.g. the broad phase's overflow
                 term.report(traj)
-            _motion.warn_spun_up(self, traj, check_stability)   # spun past its spin limit
+            _motion.warn_spun_up(self, traj, check_stability, state)  # spun past the limit
         return traj
 
     def __repr__(self) -> str:

@@ -17,7 +17,8 @@ import numpy as np
 from .errors import ContactWarning, SpinWarning, StabilityError, warn
 
 __all__ = ["SPIN_LIMIT", "SPIN_LIMITS", "anisotropy", "spin_anisotropy", "spin_limit",
-           "spin_step", "check_spin", "with_spin", "warn_spun_up", "spin_unsafe",
+           "spin_speed", "spin_step", "check_spin", "with_spin", "warn_spun_up",
+           "spin_unsafe",
            "tunnelling_table", "check_tunnelling"]
 
 
@@ -74,12 +75,27 @@ def spin_limit(sim) -> float | None:
     return SPIN_LIMITS.get(_stepper(sim))
 
 
+def spin_speed(w, q, moments, xp=np):
+    """(n,) ``sqrt(w_b . I w_b / I_min)`` (rad/s) of bodies turning at world angular
+    velocity ``w`` (n, 3) rad/s with orientation ``q`` (n, 4) and principal moments
+    ``moments`` (n, 3) kg m^2 (0 for bodies that do not rotate: 0 here): the largest ``|w|``
+    the body reaches without torque (its rotational energy ``E = w_b . I w_b / 2`` is kept
+    and ``|w|^2 <= 2 E / I_min``), so a free body near its middle axis, whose ``|w|`` grows
+    1.16x for moments 1:2:3, is judged as it will turn. ``>= |w|`` always."""
+    from .geometry import quat_to_matrix
+    m = xp.asarray(moments, dtype=w.dtype)
+    wb = xp.sum(quat_to_matrix(q, xp=xp) * w[..., :, None], axis=-2)   # R^T w, body frame
+    low = m.min(axis=-1)
+    e2 = xp.sum(m * wb * wb, axis=-1)
+    return xp.sqrt(xp.where(low > 0.0, e2, 0.0) / xp.where(low > 0.0, low, 1.0))
+
+
 def spin_step(sim, state):
     """``(h_max, body, speed, kappa, limit)``: the largest inner step (s) at which a concrete,
     unbatched start ``state`` spins within the simulator's spin limit (``kappa |w| h <=
-    limit``, :data:`SPIN_LIMITS`), the body that sets it, its ``|w|`` (rad/s) and anisotropy;
-    None where nothing limits it (no spinning body with unequal moments, an integrator
-    without a limit, a traced or batched state)."""
+    limit``, :data:`SPIN_LIMITS`, ``|w|`` the body's :func:`spin_speed`), the body that sets
+    it, that speed (rad/s) and its anisotropy; None where nothing limits it (no spinning body
+    with unequal moments, an integrator without a limit, a traced or batched state)."""
     from .checks import _batched
     from .params import _is_concrete
     w = getattr(state, "angular_velocity", None)
@@ -90,7 +106,11 @@ def spin_step(sim, state):
     limit = spin_limit(sim)
     if limit is None:
         return None
-    speed = np.linalg.norm(np.asarray(w, dtype=float).reshape(-1, 3), axis=-1)
+    q = getattr(state, "orientation", None)
+    if q is None or not _is_concrete(q):
+        return None
+    speed = spin_speed(np.asarray(w, dtype=float).reshape(-1, 3),
+                       np.asarray(q, dtype=float).reshape(-1, 4), sim._moments)
     rate = kappa * speed
     if not rate.size or not np.isfinite(rate).all() or rate.max() <= 0.0:
         return None
@@ -129,8 +149,9 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
     other = "" if limit >= SPIN_LIMITS["rk4"] or rate > SPIN_LIMITS["rk4"] else \
         f", or integrator='rk4' (to kappa |w| h = {SPIN_LIMITS['rk4']})"
     raise StabilityError(
-        f"body {b} spins at |w| = {speed:.4g} rad/s with inertia anisotropy kappa = "
-        f"{kappa:.3g}: kappa |w| h = {rate:.3g} per step of {h:.3g} s, past "
+        f"body {b} spins at up to |w| = {speed:.4g} rad/s (sqrt(2 E / I_min), its energy's "
+        f"speed) with inertia anisotropy kappa = {kappa:.3g}: kappa |w| h = {rate:.3g} per "
+        f"step of {h:.3g} s, past "
         f"{sim.integrator}'s spin limit {limit}. {why}. Use dt <= {_down(h_max, 3):.3g} s "
         f"(an inner step), substeps={need} (or substeps='auto'){other}.", stable_dt=h_max,
         substeps=need)
@@ -265,30 +286,44 @@ def check_tunnelling(sim, params, state) -> None:
             ContactWarning)
 
 
-def warn_spun_up(sim, traj, checked: bool) -> None:
+def warn_spun_up(sim, traj, checked: bool, start=None) -> None:
     """Warn (:class:`diffpen.SpinWarning`) when a concrete rollout whose start passed the
     up-front checks (``checked``: its params within the safe step, its start spin within the
-    limit) has its ``aux["unstable"]`` flag set: each step ors in whether a rigid body spins
-    past its integrator's limit (:func:`diffpen.stepping._spin_flagged`), and nothing else
-    sets it there. A torque spun the body up during the rollout."""
+    limit) and whose ``start`` state's own ``aux["unstable"]`` flag was clear (a rollout
+    continued from a flagged state keeps it) has the flag set: each step ors in whether a
+    rigid body spins past its integrator's limit (:func:`diffpen.stepping._spin_flagged`),
+    and nothing else sets it there. A torque spun the body up during the rollout."""
+    from .params import _is_concrete
     from .stability import FLAG
     aux = getattr(traj, "aux", None)
     if not checked or not isinstance(aux, dict) or FLAG not in aux:
         return
-    from .params import _is_concrete
-    limit = spin_limit(sim)
-    if limit is None or not np.any(sim._spin_kappa) or not _is_concrete(aux[FLAG]):
+    limit = spin_limit(sim) if np.any(sim._spin_kappa) else None
+    if limit is None or not _is_concrete(aux[FLAG]):
         return                          # (under vmap the flag can be traced, alone)
+    given = getattr(start, "aux", {}).get(FLAG) if start is not None else None
+    # (host arrays: np.any of a jax array runs its own .any(), a program of its own)
+    if given is not None and (not _is_concrete(given) or np.asarray(given).any()):
+        return
     flag = np.asarray(aux[FLAG])
     if flag.ndim != 1 or not flag.any():
         return
+    from .stability.gating import _down, _needed
     i = int(np.argmax(flag))
+    fix = "Use a smaller dt or more substeps."
+    w, q = getattr(traj, "angular_velocity", None), getattr(traj, "orientation", None)
+    if w is not None and q is not None:        # the fastest saved spin says how much smaller
+        w, q = np.asarray(w, float), np.asarray(q, float)
+        rate = np.max(sim._spin_kappa * spin_speed(w, q, sim._moments))
+        if np.isfinite(rate) and rate > 0.0:
+            h_max = limit / rate
+            fix = (f"Use dt <= {_down(h_max, 3):.3g} s (an inner step) or substeps >= "
+                   f"{_needed(sim.dt, h_max)}, by its fastest saved spin.")
     warn(f"a rigid body spun past {sim.integrator}'s spin limit (kappa |w| h > {limit}, "
          f"diffpen.motion.SPIN_LIMITS) during the rollout, first by saved step {i} (t = "
          f"{float(np.asarray(traj.time)[i]):.4g} s): a torque spun it up after a start within "
          "the limit, and the integrator's energy error at that turn per step is in the "
-         "results from there (aux['unstable'] is set). Use a smaller dt or more substeps.",
-         SpinWarning)
+         f"results from there (aux['unstable'] is set). {fix}", SpinWarning)
 
 
 def spin_unsafe(sim, state, h: float):
@@ -303,6 +338,6 @@ def spin_unsafe(sim, state, h: float):
     if limit is None:
         return jnp.zeros((), bool)
     w = jnp.asarray(w)
-    speed = jnp.sqrt(jnp.sum(w * w, axis=-1))
+    speed = spin_speed(w, jnp.asarray(state.orientation), sim._moments, xp=jnp)
     rate = jnp.asarray(kappa, speed.dtype) * speed * h
     return jnp.any(rate > limit) | jnp.any(~jnp.isfinite(rate))

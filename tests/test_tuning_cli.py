@@ -532,6 +532,10 @@ def test_fit_takes_the_built_in_balls_rollout_length(capsys, monkeypatch, tmp_pa
     with pytest.raises(SystemExit):
         main(["fit", "--duration", "8"])
     assert seen["duration"] == 8.0
+    monkeypatch.undo()
+    # one that ends before the ball lands is refused, naming the flag (it fitted nothing)
+    assert main(["fit", "--target-apex", "0.4", "--duration", "0.2"]) == 2
+    assert "ends before the ball first lands" in capsys.readouterr().err
     rec = tmp_path / "rec.csv"
     rec.write_text("t,z\n0,1\n0.01,0.9995\n")
     assert main(["fit", "--data", str(rec), "--duration", "8"]) == 2

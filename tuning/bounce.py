@@ -331,6 +331,12 @@ def fit_bounce(scene: dp.Scene, targets: dict, *, dt: float = 1e-3, law: str = "
                        "could not be told from one that settled on time. Give a duration of "
                        f"at least {SETTLE_MARGIN:g} x the target, or leave it out (default "
                        "1.4 x the target + 0.2 s).")
+    if given and duration <= info["t_fall"]:
+        # no contact in the rollout: every metric is missing, the fit only wanders
+        raise FitError(f"duration {duration:g} s ends before the ball first lands (it falls "
+                       f"for {info['t_fall']:.3g} s): give a longer duration (diffpen fit "
+                       "--duration), or leave it out (default: covers the targets with "
+                       "margin).")
     if not (isinstance(dt, (int, float, np.floating, np.integer)) and not isinstance(dt, bool)
             and math.isfinite(dt) and dt > 0.0):
         raise FitError(f"time step dt must be a finite number of seconds > 0, got {dt!r} "

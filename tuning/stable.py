@@ -264,11 +264,19 @@ def law_c(sim, damping: float, k: float, *, state=None, params=None) -> float:
 
 def solver_miss(sim) -> str:
     """The words messages about ``sim``'s FLAG add for its other cause: ``""`` unless ``sim``
-    solves its implicit steps by GMRES or CG (:func:`diffpen.integrators.solves_iteratively`),
-    whose missed solve sets the flag too and which a smaller step or softer contact may not
-    cure; then a clause naming that cause and its remedy."""
-    if sim is None or not solves_iteratively(sim.analysis.integrator, 3 * sim.n_bodies,
-                                             rigid=sim.scene.has_rotation):
+    has a rigid body with a spin limit (each step flags a spin past it) or solves its implicit
+    steps by GMRES or CG (:func:`diffpen.integrators.solves_iteratively`), whose missed solve
+    sets the flag too and which a smaller step or softer contact may not cure; then a clause
+    naming that cause and its remedy."""
+    if sim is None:
+        return ""
+    from diffpen.motion import spin_limit
+    if np.any(getattr(sim, "_spin_kappa", 0.0)) and spin_limit(sim) is not None:
+        # each step flags a rigid body spun past its integrator's limit (diffpen.motion)
+        return (" (or a rigid body spun past its integrator's spin limit, "
+                "diffpen.motion.SPIN_LIMITS: a smaller dt or more substeps cures that too)")
+    if not solves_iteratively(sim.analysis.integrator, 3 * sim.n_bodies,
+                              rigid=sim.scene.has_rotation):
         return ""
     return (" (or its iterative implicit solve missed its system: compile with "
             "integrator=diffpen.integrators.implicit_euler_with('dense'), which solves "
