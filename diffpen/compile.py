@@ -344,7 +344,7 @@ class Simulator:
         """``(a, alpha)``: linear accelerations (n_bodies, 3) m/s^2 with gravity, and angular
         accelerations (n_bodies, 3) rad/s^2 (None without rotating bodies). Pure, not jitted:
         what the integrators integrate (``accel_fn`` of :mod:`diffpen.integrators`), so under
-        semi-implicit Euler a body with unequal moments gets ``I_w^-1 tau`` alone (the step
+        (semi-)implicit Euler a body with unequal moments gets ``I_w^-1 tau`` alone (the step
         carries its angular momentum: :meth:`diffpen.rigid.RigidDynamics.transport`), else
         Euler's equations. In the columns layout (:mod:`diffpen.layout`; only when
         :attr:`columns`) ``a`` is :class:`diffpen.layout.Columns` and ``alpha`` None."""

@@ -558,10 +558,18 @@ def implicit_euler_with(solver: str) -> Integrator:
 def kick_then_drift(integrator) -> bool:
     """Whether ``integrator`` (a name or a record) steps as semi-implicit Euler, by its step
     factory, not its name (a renamed record steps the same): its velocity lags its position
-    by ``h / 2`` (what the centred contact laws take back) and it carries the angular
-    momentum of bodies with unequal moments (:meth:`diffpen.rigid.RigidDynamics.transport`)
-    instead of stepping their gyroscopic term."""
+    by ``h / 2`` (what the centred contact laws take back); it carries the angular momentum
+    of bodies with unequal moments (:func:`carries_momentum`)."""
     return resolve(integrator).make is semi_implicit_euler
+
+
+def carries_momentum(integrator) -> bool:
+    """Whether ``integrator`` (a name or a record) steps as a kick (its velocities) then a
+    drift at the new velocities, semi-implicit Euler and implicit Euler, by their step
+    factories: the step then carries the angular momentum of bodies with unequal moments
+    (:meth:`diffpen.rigid.RigidDynamics.transport`) instead of their gyroscopic term."""
+    make = resolve(integrator).make
+    return getattr(make, "func", make) in (semi_implicit_euler, implicit_euler)
 
 
 def resolve(integrator) -> Integrator:

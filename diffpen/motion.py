@@ -34,12 +34,14 @@ SPIN_LIMIT = 0.05
 #: The spin limit of each integrator that has one, by its step factory's name: where 5000 free
 #: steps of that box keep its energy within about 0.3%. verlet steps the gyroscopic term
 #: explicitly (0.34% at 0.05, 1-4% at 0.1, NaN from 0.2); rk4 0.28% at 0.2, 5-15% at 0.5, NaN
-#: from 2-2.5. implicit Euler has none: it stays finite at any spin but is not accurate
-#: (energy +1.7% / +39%, angular momentum 2.7% / 58% over 5000 steps at 0.005 / 0.05; before
-#: it too was not flagged). The error grows about
+#: from 2-2.5. implicit Euler carries the angular momentum as semi-implicit Euler does, with
+#: its figures and limit (its linearised gyroscopic term gained energy +1.7% / +39% and lost
+#: angular momentum 2.7% / 58% over 5000 steps at 0.005 / 0.05, unflagged). The error grows
+#: about
 #: linearly with the steps: at the limits 0.5% / 2.8% / 1.3% after 50 000 steps, 6% / 45% /
 #: 16% after 500 000 (semi-implicit Euler / verlet / rk4).
-SPIN_LIMITS = {"semi_implicit_euler": SPIN_LIMIT, "verlet": 0.05, "rk4": 0.2}
+SPIN_LIMITS = {"semi_implicit_euler": SPIN_LIMIT, "implicit_euler": SPIN_LIMIT, "verlet": 0.05,
+               "rk4": 0.2}
 
 
 def anisotropy(inertia) -> float:
@@ -65,7 +67,9 @@ def _stepper(sim) -> str | None:
     from . import integrators as _integrators
     rec = getattr(getattr(sim, "analysis", None), "integrator", None)
     make = _integrators.resolve(rec if rec is not None else sim.integrator).make
+    make = getattr(make, "func", make)              # implicit_euler_with(...)'s partials
     return {_integrators.semi_implicit_euler: "semi_implicit_euler",
+            _integrators.implicit_euler: "implicit_euler",
             _integrators.verlet: "verlet", _integrators.rk4: "rk4"}.get(make)
 
 
@@ -140,8 +144,8 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
     if auto:
         return need
     from .stability.gating import _down
-    why = ("Semi-implicit Euler keeps the angular momentum but not the energy at such a "
-           "turn per step" if _stepper(sim) == "semi_implicit_euler" else
+    why = (f"{sim.integrator} keeps the angular momentum but not the energy at such a "
+           "turn per step" if _stepper(sim) in ("semi_implicit_euler", "implicit_euler") else
            f"{sim.integrator} steps the gyroscopic term explicitly and gains energy at such "
            "a turn per step, until it turns NaN")
     rate = kappa * speed * h

@@ -11,15 +11,15 @@ moments (kg m^2) and ``R`` the rotation matrix of the orientation; Euler's equat
 angular acceleration ``alpha = I_w^-1 (tau - w x I_w w)`` (rad/s^2). The integrators advance
 ``w`` and the quaternions (:func:`diffpen.integrators.kick` / ``drift``).
 
-Under semi-implicit Euler (a kick, then a drift) a body with unequal moments steps its
-angular momentum instead (:meth:`RigidDynamics.transport`): the kick adds ``h I_w^-1 tau``
-only, and the body is turned over the step at the mean of that speed and the speed its
-angular momentum ``L = I_w w`` has at the turned orientation, then given that momentum's
-speed, ``w' = I_w(q')^-1 L``. Without torque ``L`` is kept to rounding and ``|w| <= |L| /
-I_min``, so no spin grows without bound (the gyroscopic term stepped explicitly gains energy
-every step: a box of moments near 1:2:3 spun off its axes at ``kappa |w| h`` 0.04 turned NaN
-within 5000 steps). Bodies with equal moments (a cube, a sphere) have no gyroscopic term and
-step as before.
+Under semi-implicit and implicit Euler (a kick, then a drift at the new velocities) a body
+with unequal moments steps its angular momentum instead (:meth:`RigidDynamics.transport`): the
+kick adds ``h I_w^-1 tau`` only, and the body is turned over the step at the mean of that
+speed and the speed its angular momentum ``L = I_w w`` has at the turned orientation, then
+given that momentum's speed, ``w' = I_w(q')^-1 L``. Without torque ``L`` is kept to rounding
+and ``|w| <= |L| / I_min``, so no spin grows without bound (the gyroscopic term stepped
+explicitly gains energy every step: a box of moments near 1:2:3 spun off its axes at ``kappa
+|w| h`` 0.04 turned NaN within 5000 steps). Bodies with equal moments (a cube, a sphere) have
+no gyroscopic term and step as before.
 
 The terms that produce torque are :mod:`diffpen.terms.rigid` (box corners, sphere-box,
 anchored springs) and :mod:`diffpen.terms.friction` (friction at a rigid sphere's contact).
@@ -85,14 +85,15 @@ class RigidDynamics:
     """Static rigid-body data of a compiled scene and the angular acceleration.
 
     Built by ``diffpen.compile`` only when the scene has rigid bodies, with its integrator
-    (a kick-then-drift one carries the angular momentum of bodies with unequal moments:
-    :meth:`transport`). Attributes: ``index`` (r,) int, the free rigid bodies; ``inertia``
-    (r, 3) kg m^2; ``carried`` the bodies whose angular momentum the step carries.
+    (semi-implicit or implicit Euler carries the angular momentum of bodies with unequal
+    moments: :meth:`transport`). Attributes: ``index`` (r,) int, the free rigid bodies;
+    ``inertia`` (r, 3) kg m^2; ``carried`` the bodies whose angular momentum the step
+    carries.
     """
 
     def __init__(self, ctx: CompileContext, integrator=None):
-        from .integrators import kick_then_drift
-        momentum = integrator is not None and kick_then_drift(integrator)
+        from .integrators import carries_momentum
+        momentum = integrator is not None and carries_momentum(integrator)
         bodies = ctx.scene.bodies
         self.n = ctx.n
         self.index = np.array([i for i, b in enumerate(bodies) if b.rigid and not b.pinned],
@@ -102,7 +103,7 @@ class RigidDynamics:
         self.inv_inertia = ctx.const(1.0 / inertia) if inertia.size else self.inertia
         self._const = ctx.const
         # the free rigid bodies whose angular momentum the step carries (momentum: a
-        # kick-then-drift integrator; only unequal moments have a gyroscopic term)
+        # (semi-)implicit Euler; only unequal moments have a gyroscopic term)
         unequal = np.array([np.ptp(m) > 1e-12 * np.max(m) for m in inertia], dtype=bool)
         self.carried = self.index[unequal] if momentum else self.index[:0]
         self._carried_inertia = ctx.const(inertia[unequal]) if momentum else None

@@ -73,7 +73,7 @@ def hold_pins(sim, state):
 
 def _carrying(sim, step, h: float):
     """``step`` followed by the rigid bodies' angular-momentum transport where the simulator
-    carries it (a kick-then-drift integrator and a body with unequal moments:
+    carries it (semi-implicit or implicit Euler and a body with unequal moments:
     :meth:`diffpen.rigid.RigidDynamics.transport`); ``step`` itself otherwise."""
     rigid = sim._rigid
     if rigid is None or rigid.carried.size == 0:

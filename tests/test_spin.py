@@ -160,7 +160,7 @@ def test_the_transport_is_traced_only_where_a_body_needs_it():
 
     def flat(s):
         s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 1.0))
-    assert traced(flat)
+    assert traced(flat) and traced(flat, "implicit_euler")
     assert not traced(flat, "verlet") and not traced(flat, "rk4")
     assert not traced(lambda s: s.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 1.0)))
     assert not traced(lambda s: s.add_rigid_sphere(0.1, 1.0, (0.0, 0.0, 1.0)))
@@ -251,3 +251,31 @@ def test_fit_messages_name_the_spin_limit_as_a_cause_of_the_flag():
     c = dp.Scene(gravity=(0.0, 0.0, 0.0))
     c.add_box((0.1, 0.1, 0.1), 1.0, (0.0, 0.0, 0.0))
     assert solver_miss(dp.compile(c, 1e-3)) == ""
+
+
+def test_implicit_euler_carries_the_angular_momentum_too():
+    """Implicit Euler linearised the gyroscopic term: a free 1:2:3 box at kappa |w| h 0.04
+    gained energy and lost angular momentum by tens of percent over 2000 steps, unflagged
+    (+39% and 58% at 0.05 over 5000, audit34). It carries the angular momentum as
+    semi-implicit Euler does: |L| to rounding, the energy within 0.05%; its start spin has
+    the same limit."""
+    inertia = np.array([1.0, 2.0, 3.0])
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0)
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=tuple(20.0 * axis),
+              inertia=tuple(inertia))
+    sim = dp.compile(s, 1e-3, integrator="implicit_euler")
+    tr = sim.rollout(sim.params(), 2000, save_every=100)
+    rot = quat_to_matrix(np.asarray(tr.orientation)[:, 0], xp=np)
+    w_body = np.einsum("tji,tj->ti", rot, np.asarray(tr.angular_velocity)[:, 0])
+    mom = np.einsum("tij,tj->ti", rot, inertia * w_body)
+    energy = np.sum(inertia * w_body ** 2, axis=1)
+    w0 = 20.0 * axis
+    np.testing.assert_allclose(mom, np.broadcast_to(inertia * w0, mom.shape), atol=1e-10)
+    assert np.abs(energy / np.sum(inertia * w0 ** 2) - 1.0).max() < 5e-4
+    s = dp.Scene(gravity=(0.0, 0.0, 0.0))
+    s.add_box((0.3, 0.2, 0.1), 1.0, (0.0, 0.0, 0.0), angular_velocity=(300.0, 10.0, 10.0),
+              inertia=tuple(inertia))
+    fast = dp.compile(s, 1e-3, integrator="implicit_euler")
+    with pytest.raises(dp.StabilityError, match="implicit_euler's spin limit 0.05"):
+        fast.rollout(fast.params(), 10)
