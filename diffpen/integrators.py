@@ -33,7 +33,7 @@ from .state import State
 __all__ = ["Integrator", "kick", "drift", "semi_implicit_euler", "verlet", "rk4", "kick_then_drift",
            "implicit_euler", "backward_euler_amplification", "substepped", "build_step",
            "resolve", "BUILTIN", "INTEGRATORS", "IMPLICIT", "DENSE_MAX_DOF",
-           "implicit_euler_with", "solves_iteratively"]
+           "implicit_euler_with", "solves_iteratively", "carries_momentum"]
 
 
 def kick(state: State, acc, h) -> State:
