@@ -236,8 +236,10 @@ def implicit_euler(accel_fn: Callable, dt: float, *, inv_mass=None, solver: str 
     velocity is ``u = (v, w)`` (6n) and a configuration change is ``(dx, dtheta)``, a
     translation and a world-frame rotation vector (the orientation becomes ``q`` rotated by
     ``dtheta``); ``A_x`` and ``A_v`` are the Jacobians of ``(a, alpha)`` with respect to them.
-    After the solve, ``x' = x + h v'`` and ``q`` turns by ``h w'``. Rigid scenes use the dense
-    solve (the iterative solvers are refused there).
+    After the solve, ``x' = x + h v'`` and ``q`` turns by ``h w'`` (a body with unequal moments
+    then takes its angular momentum's turn and speed, :func:`carries_momentum`, its
+    gyroscopic term left out of the solve). Rigid scenes use the dense solve (the iterative
+    solvers are refused there).
     """
     from .errors import SceneError
 

@@ -34,14 +34,14 @@ SPIN_LIMIT = 0.05
 #: The spin limit of each integrator that has one, by its step factory's name: where 5000 free
 #: steps of that box keep its energy within about 0.3%. verlet steps the gyroscopic term
 #: explicitly (0.34% at 0.05, 1-4% at 0.1, NaN from 0.2); rk4 0.28% at 0.2, 5-15% at 0.5, NaN
-#: from 2-2.5. implicit Euler carries the angular momentum as semi-implicit Euler does, with
-#: its figures and limit (its linearised gyroscopic term gained energy +1.7% / +39% and lost
-#: angular momentum 2.7% / 58% over 5000 steps at 0.005 / 0.05, unflagged). The error grows
-#: about
+#: from 2-2.5. implicit Euler carries the angular momentum as semi-implicit Euler does (its
+#: linearised gyroscopic term gained energy +1.7% / +39% and lost angular momentum 2.7% / 58%
+#: over 5000 steps at 0.005 / 0.05), with its energy figures, and has no limit: it is chosen
+#: for steps past the explicit limit, where a landing box turns 0.1 per step and its contact
+#: error (tens of mm against rk4 at 5 ms) is far larger. The error grows about
 #: linearly with the steps: at the limits 0.5% / 2.8% / 1.3% after 50 000 steps, 6% / 45% /
 #: 16% after 500 000 (semi-implicit Euler / verlet / rk4).
-SPIN_LIMITS = {"semi_implicit_euler": SPIN_LIMIT, "implicit_euler": SPIN_LIMIT, "verlet": 0.05,
-               "rk4": 0.2}
+SPIN_LIMITS = {"semi_implicit_euler": SPIN_LIMIT, "verlet": 0.05, "rk4": 0.2}
 
 
 def anisotropy(inertia) -> float:
@@ -61,9 +61,9 @@ def spin_anisotropy(scene) -> np.ndarray:
 
 
 def _stepper(sim) -> str | None:
-    """The key of :data:`SPIN_LIMITS` the simulator's integrator steps as, by its record's
-    step factory (a renamed record steps the same), or None (implicit Euler, an integrator
-    made outside the package)."""
+    """The name of the built-in integrator the simulator's steps as, by its record's step
+    factory (a renamed record steps the same): a key of :data:`SPIN_LIMITS`, or
+    ``"implicit_euler"`` (no limit), or None (an integrator made outside the package)."""
     from . import integrators as _integrators
     rec = getattr(getattr(sim, "analysis", None), "integrator", None)
     make = _integrators.resolve(rec if rec is not None else sim.integrator).make
@@ -149,15 +149,13 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
            f"{sim.integrator} steps the gyroscopic term explicitly and gains energy at such "
            "a turn per step, until it turns NaN")
     rate = kappa * speed * h
-    # rk4 where it would take this turn per step (the advice must pass the check)
-    other = "" if limit >= SPIN_LIMITS["rk4"] or rate > SPIN_LIMITS["rk4"] else \
-        f", or integrator='rk4' (to kappa |w| h = {SPIN_LIMITS['rk4']})"
     raise StabilityError(
         f"body {b} spins at up to |w| = {speed:.4g} rad/s (sqrt(2 E / I_min), its energy's "
         f"speed) with inertia anisotropy kappa = {kappa:.3g}: kappa |w| h = {rate:.3g} per "
         f"step of {h:.3g} s, past "
         f"{sim.integrator}'s spin limit {limit}. {why}. Use dt <= {_down(h_max, 3):.3g} s "
-        f"(an inner step), substeps={need} (or substeps='auto'){other}.", stable_dt=h_max,
+        f"(an inner step), substeps={need} (or substeps='auto'), or "
+        "integrator='implicit_euler' (no spin limit, first order).", stable_dt=h_max,
         substeps=need)
 
 
