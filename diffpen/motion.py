@@ -127,7 +127,7 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
     its integrator's spin limit (``kappa |w| h``, :data:`SPIN_LIMITS`): ``substeps`` when it
     is enough; else, with ``auto``, the count that is, and otherwise :class:`StabilityError`
     saying which dt, substeps or integrator would step it."""
-    from .stability.gating import MAX_AUTO_SUBSTEPS, _count, _needed
+    from .stability.gating import MAX_AUTO_SUBSTEPS, _count, _down, _needed
     found = spin_step(sim, state)
     h = sim.dt / substeps
     if found is None or h <= found[0]:
@@ -143,7 +143,6 @@ def check_spin(sim, state, substeps: int, *, auto: bool = False) -> int:
             substeps=need)
     if auto:
         return need
-    from .stability.gating import _down
     why = (f"{sim.integrator} keeps the angular momentum but not the energy at such a "
            "turn per step" if _stepper(sim) in ("semi_implicit_euler", "implicit_euler") else
            f"{sim.integrator} steps the gyroscopic term explicitly and gains energy at such "
